@@ -1,0 +1,263 @@
+"""One typed config tree, a section per stage, loaded from YAML.
+
+Every field has a default (the values of ``configs/default.yaml``); a preset file only names what
+differs. Loading checks every key and type and names the file, the key and what was expected.
+Stages take explicit arguments; ``from_config`` factories at the boundaries read these sections.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from blockloc.errors import ConfigError
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+
+
+@dataclass
+class DatasetConfig:
+    data_root: str = ""  # empty: $BLOCKLOC_DATA, then ./data
+    lidar_topic: str = "/velodyne_points"
+    imu_topic: str = "/imu"
+    use_hits_times: bool = True  # NCLT: per-point times from velodyne_hits.bin when present
+    min_range_m: float = 1.0
+    max_range_m: float = 100.0
+
+
+@dataclass
+class ImuConfig:
+    rate_hz: float = 100.0
+    # Continuous-time noise densities and bias random walks (Microstrain 3DM-GX3-25 class).
+    acc_noise_density: float = 0.004  # m/s^2/sqrt(Hz)
+    gyro_noise_density: float = 0.0003  # rad/s/sqrt(Hz)
+    acc_bias_random_walk: float = 0.0002  # m/s^3/sqrt(Hz)
+    gyro_bias_random_walk: float = 0.00002  # rad/s^2/sqrt(Hz)
+    integration_sigma: float = 1e-4
+    gravity_m_s2: float = 9.81
+
+
+@dataclass
+class LidarConfig:
+    rate_hz: float = 10.0
+    deskew: bool = True
+    voxel_size_m: float = 0.5  # scan downsampling before registration
+    max_points: int = 20000
+
+
+@dataclass
+class MapConfig:
+    backend: str = "block"  # block | grid | srt | global
+    path: str = ""
+    voxel_size_m: float = 0.2
+    # block maps (Feng et al.)
+    block_size_m: float = 100.0
+    keyframe_distance_m: float = 1.0
+    keyframe_angle_deg: float = 15.0
+    switch_hysteresis_m: float = 5.0
+    # grid puzzle tiles (Byeon et al.)
+    tile_size_m: float = 20.0
+    grid_n: int = 1
+    grid_k: int = 1
+    # SRT-PM (Kim et al.)
+    srt_radius_m: float = 60.0
+    srt_rebuild_period_s: float = 10.0
+    # provider
+    cache_mb: float = 1024.0
+    prefetch: bool = True
+
+
+@dataclass
+class RegistrationConfig:
+    method: str = "ndt"
+    resolution_m: float = 1.0
+    neighbors: str = "DIRECT7"  # DIRECT1 | DIRECT7 | DIRECT27
+    outlier_ratio: float = 0.55
+    min_points_per_voxel: int = 6
+    max_iterations: int = 30
+    step_epsilon: float = 1e-3
+    num_threads: int = 2
+
+
+@dataclass
+class GlobalInitConfig:
+    window_m: float = 40.0
+    yaw_window_deg: float = 360.0
+    resolution_m: float = 0.25
+    pyramid_levels: int = 6
+    z_band_m: tuple[float, float] = (-1.0, 2.0)  # height band around the sensor, map frame
+    top_k: int = 5
+    min_fitness: float = 0.6
+    ambiguity_distance_m: float = 2.0
+
+
+@dataclass
+class TrackingConfig:
+    window_size: int = 20  # N_a: keyframes inside a block
+    window_size_on_switch: int = 5  # N_r: keyframes kept when the map switches
+    keyframe_distance_m: float = 0.0  # 0: every scan is a keyframe
+    ndt_information_scale: float = 1.0
+    degeneracy_eigenvalue_ratio: float = 0.01
+    robust_loss: str = "huber"
+    min_fitness: float = 0.4
+    max_innovation_m: float = 1.0
+    use_odometry_factor: bool = False
+
+
+@dataclass
+class EvaluationConfig:
+    align: bool = False
+    rpe_deltas_m: tuple[float, ...] = (1.0, 10.0, 100.0)
+    max_time_diff_s: float = 0.02
+    plots: bool = True
+
+
+@dataclass
+class SimConfig:
+    preset: str = "small"
+    seed: int = 1
+    azimuth_steps: int = 2000
+    slam_error_m: float = 0.03
+
+
+@dataclass
+class Config:
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
+    imu: ImuConfig = field(default_factory=ImuConfig)
+    lidar: LidarConfig = field(default_factory=LidarConfig)
+    map: MapConfig = field(default_factory=MapConfig)
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    global_init: GlobalInitConfig = field(default_factory=GlobalInitConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        return _to_plain(self)
+
+
+def _to_plain(obj: Any) -> Any:
+    if dataclasses.is_dataclass(obj):
+        return {f.name: _to_plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, tuple):
+        return [_to_plain(v) for v in obj]
+    return obj
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
+
+
+def _coerce(value: Any, tp: Any, where: str) -> Any:
+    """Check ``value`` against annotation ``tp``; int is accepted where float is expected."""
+    origin = typing.get_origin(tp)
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where}: expected a mapping (section), got {type(value).__name__}")
+        return _build(tp, value, where)
+    if origin in (typing.Union, types.UnionType):
+        errors = []
+        for arg in typing.get_args(tp):
+            try:
+                return _coerce(value, arg, where)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        raise ConfigError(f"{where}: expected {_type_name(tp)}, got {value!r}")
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ConfigError(f"{where}: expected a list of {len(args)} values, got {value!r}")
+        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+    if tp is type(None):
+        if value is None:
+            return None
+        raise ConfigError(f"{where}: expected null, got {value!r}")
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        raise ConfigError(f"{where}: expected true or false, got {value!r}")
+    if tp is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        raise ConfigError(f"{where}: expected a number, got {value!r}")
+    if tp is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        raise ConfigError(f"{where}: expected an integer, got {value!r}")
+    if tp is str:
+        if isinstance(value, str):
+            return value
+        raise ConfigError(f"{where}: expected a string, got {value!r}")
+    raise ConfigError(f"{where}: unsupported type {_type_name(tp)}")
+
+
+def _build(cls: type, data: dict[str, Any], where: str, base: Any = None) -> Any:
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    for key in data:
+        if key not in names:
+            raise ConfigError(f"{where}: unknown key '{key}' (expected one of: {', '.join(sorted(names))})")
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        sub_where = f"{where}.{f.name}" if where else f.name
+        current = getattr(base, f.name) if base is not None else None
+        if f.name in data:
+            if dataclasses.is_dataclass(hints[f.name]) and current is not None:
+                if not isinstance(data[f.name], dict):
+                    raise ConfigError(f"{sub_where}: expected a mapping (section), got {data[f.name]!r}")
+                kwargs[f.name] = _build(hints[f.name], data[f.name], sub_where, current)
+            else:
+                kwargs[f.name] = _coerce(data[f.name], hints[f.name], sub_where)
+        elif current is not None:
+            kwargs[f.name] = current
+    return cls(**kwargs)
+
+
+def merge(base: Config, data: dict[str, Any], source: str = "<dict>") -> Config:
+    """A new Config: ``base`` overridden by the nested mapping ``data``."""
+    try:
+        return _build(Config, data or {}, "", base)
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+
+
+def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> Config:
+    """Defaults, then the YAML file ``path`` (a path or a preset name such as 'nclt'), then overrides."""
+    import yaml
+
+    cfg = Config()
+    if path:
+        file = Path(path)
+        if not file.exists() and (CONFIG_DIR / f"{path}.yaml").exists():
+            file = CONFIG_DIR / f"{path}.yaml"
+        if not file.exists():
+            presets = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
+            raise ConfigError(f"{path}: no such config file or preset (presets: {', '.join(presets)})")
+        try:
+            data = yaml.safe_load(file.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{file}: not valid YAML ({str(exc).splitlines()[0]})") from None
+        if not isinstance(data, dict):
+            raise ConfigError(f"{file}: expected a mapping of sections at the top level")
+        cfg = merge(cfg, data, str(file))
+    if overrides:
+        cfg = merge(cfg, overrides, "overrides")
+    return cfg
+
+
+def save_config(cfg: Config, path: str | Path) -> None:
+    """Write ``cfg`` as YAML, atomically."""
+    import yaml
+
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    tmp.replace(path)

@@ -1,0 +1,167 @@
+"""SE(3) helpers on numpy arrays.
+
+Conventions: a transform ``T_a_b`` (4, 4) maps points in frame b to frame a: ``p_a = T_a_b @ p_b``.
+Euler angles are roll, pitch, yaw in radians with R = Rz(yaw) @ Ry(pitch) @ Rx(roll), the
+convention of NCLT's ground truth and of ROS's ``rpy``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation and (3,) translation -> (4, 4) transform."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def inv_T(T: np.ndarray) -> np.ndarray:
+    """Inverse of one (4, 4) or a stack (N, 4, 4) of rigid transforms."""
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(R, -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a (4, 4) transform to (N, 3) points; returns float64 (N, 3)."""
+    pts = np.asarray(points, dtype=np.float64)
+    return pts @ T[:3, :3].T + T[:3, 3]
+
+
+def rpy_to_R(roll, pitch, yaw) -> np.ndarray:
+    """Roll, pitch, yaw (radians, scalars or (N,) arrays) -> (3, 3) or (N, 3, 3), R = Rz Ry Rx."""
+    roll, pitch, yaw = np.broadcast_arrays(np.asarray(roll, float), np.asarray(pitch, float),
+                                           np.asarray(yaw, float))
+    cr, sr = np.cos(roll), np.sin(roll)
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    R = np.empty(roll.shape + (3, 3))
+    R[..., 0, 0] = cy * cp
+    R[..., 0, 1] = cy * sp * sr - sy * cr
+    R[..., 0, 2] = cy * sp * cr + sy * sr
+    R[..., 1, 0] = sy * cp
+    R[..., 1, 1] = sy * sp * sr + cy * cr
+    R[..., 1, 2] = sy * sp * cr - cy * sr
+    R[..., 2, 0] = -sp
+    R[..., 2, 1] = cp * sr
+    R[..., 2, 2] = cp * cr
+    return R
+
+
+def R_to_rpy(R: np.ndarray) -> np.ndarray:
+    """(3, 3) or (N, 3, 3) rotation -> (3,) or (N, 3) roll, pitch, yaw in radians (R = Rz Ry Rx)."""
+    R = np.asarray(R, dtype=np.float64)
+    roll = np.arctan2(R[..., 2, 1], R[..., 2, 2])
+    pitch = np.arcsin(np.clip(-R[..., 2, 0], -1.0, 1.0))
+    yaw = np.arctan2(R[..., 1, 0], R[..., 0, 0])
+    return np.stack([roll, pitch, yaw], axis=-1)
+
+
+def xyzrpy_to_T(x, y, z, roll, pitch, yaw) -> np.ndarray:
+    """Position (m) and roll/pitch/yaw (rad) -> (4, 4), or (N, 4, 4) for array inputs."""
+    R = rpy_to_R(roll, pitch, yaw)
+    T = np.zeros(R.shape[:-2] + (4, 4))
+    T[..., :3, :3] = R
+    T[..., 0, 3] = x
+    T[..., 1, 3] = y
+    T[..., 2, 3] = z
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def T_to_xyzrpy(T: np.ndarray) -> np.ndarray:
+    """(4, 4) or (N, 4, 4) -> (6,) or (N, 6) as x, y, z (m), roll, pitch, yaw (rad)."""
+    return np.concatenate([T[..., :3, 3], R_to_rpy(T[..., :3, :3])], axis=-1)
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """(3,) vector -> (3, 3) skew-symmetric matrix with skew(v) @ w = v x w."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rotation vector(s) (3,) or (N, 3), radians -> rotation matrix (3, 3) or (N, 3, 3)."""
+    w = np.asarray(w, dtype=np.float64)
+    theta = np.linalg.norm(w, axis=-1)[..., None, None]
+    K = np.zeros(w.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2] = -w[..., 2], w[..., 1]
+    K[..., 1, 0], K[..., 1, 2] = w[..., 2], -w[..., 0]
+    K[..., 2, 0], K[..., 2, 1] = -w[..., 1], w[..., 0]
+    small = theta < 1e-8
+    safe = np.where(small, 1.0, theta)
+    A = np.where(small, 1.0 - theta**2 / 6.0, np.sin(safe) / safe)
+    B = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
+    return np.eye(3) + A * K + B * (K @ K)
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) or (N, 3, 3) -> rotation vector (3,) or (N, 3), radians."""
+    from scipy.spatial.transform import Rotation
+
+    R = np.asarray(R, dtype=np.float64)
+    return Rotation.from_matrix(R).as_rotvec()
+
+
+def rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Angle (rad) of rotation matrices (3, 3) or (N, 3, 3)."""
+    tr = np.trace(R, axis1=-2, axis2=-1)
+    return np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0))
+
+
+@dataclass
+class Trajectory:
+    """Time-stamped poses.
+
+    stamps: (N,) float64 seconds, strictly increasing.
+    poses: (N, 4, 4) float64, ``T_map_frame`` for whatever frame the producer states
+    (ground truth: the dataset's body frame).
+    """
+
+    stamps: np.ndarray
+    poses: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.stamps = np.asarray(self.stamps, dtype=np.float64).reshape(-1)
+        self.poses = np.asarray(self.poses, dtype=np.float64).reshape(-1, 4, 4)
+        if len(self.stamps) != len(self.poses):
+            raise ValueError(f"{len(self.stamps)} stamps but {len(self.poses)} poses")
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    @property
+    def positions(self) -> np.ndarray:
+        """(N, 3) translations."""
+        return self.poses[:, :3, 3]
+
+    def interpolate(self, t: np.ndarray) -> np.ndarray:
+        """Poses at times t (M,) -> (M, 4, 4): linear in translation, slerp in rotation.
+
+        Times outside [stamps[0], stamps[-1]] are clamped to the ends.
+        """
+        from scipy.spatial.transform import Rotation, Slerp
+
+        t = np.clip(np.atleast_1d(np.asarray(t, dtype=np.float64)), self.stamps[0], self.stamps[-1])
+        if len(self) == 1:
+            return np.repeat(self.poses[:1], len(t), axis=0)
+        slerp = Slerp(self.stamps, Rotation.from_matrix(self.poses[:, :3, :3]))
+        out = np.zeros((len(t), 4, 4))
+        out[:, :3, :3] = slerp(t).as_matrix()
+        for k in range(3):
+            out[:, k, 3] = np.interp(t, self.stamps, self.poses[:, k, 3])
+        out[:, 3, 3] = 1.0
+        return out
+
+    def path_length(self) -> float:
+        """Length (m) of the polyline through the positions."""
+        return float(np.linalg.norm(np.diff(self.positions, axis=0), axis=1).sum())
