@@ -83,8 +83,17 @@ def eval_cmd(
         print_metrics(metrics, _console())
 
 
-# ----------------------------------------------------------------------------- commands added by stages
-# (sim, map build/tile/info/plot/serve, init, track, demo live below as their stages land)
+# ----------------------------------------------------------------------------- sim
+# @sim-commands (anchor: the sim stage adds its command above this line)
+
+# ----------------------------------------------------------------------------- map
+# @map-commands (anchor: the maps stage adds its commands above this line)
+
+# ----------------------------------------------------------------------------- init
+# @init-commands (anchor: the global-init stage adds its command above this line)
+
+# ----------------------------------------------------------------------------- track / demo
+# @track-commands (anchor: the tracking stage adds its commands above this line)
 
 
 def main() -> None:
