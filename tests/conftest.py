@@ -6,6 +6,11 @@ import os
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
+
+# Machines here are shared and noisy: hypothesis checks properties, not speed.
+settings.register_profile("blockloc", deadline=None, derandomize=True)
+settings.load_profile("blockloc")
 
 REPO = Path(__file__).resolve().parent.parent
 

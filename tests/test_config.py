@@ -1,0 +1,65 @@
+from pathlib import Path
+
+import pytest
+
+from blockloc.config import CONFIG_DIR, Config, load_config, save_config
+from blockloc.errors import ConfigError
+
+
+def test_every_preset_loads():
+    names = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
+    assert {"default", "nclt", "m2dgr", "sim"} <= set(names)
+    for name in names:
+        assert isinstance(load_config(name), Config)
+
+
+def test_default_yaml_matches_the_dataclass_defaults():
+    import yaml
+
+    data = yaml.safe_load((CONFIG_DIR / "default.yaml").read_text())
+    assert data == Config().to_dict()
+
+
+def test_preset_overrides_only_what_it_names():
+    cfg = load_config("nclt")
+    assert cfg.registration.resolution_m == 2.0
+    assert cfg.tracking.window_size == Config().tracking.window_size
+
+
+@pytest.mark.parametrize(
+    "text, needle",
+    [
+        ("map:\n  bogus: 1\n", "map: unknown key 'bogus'"),
+        ("mapp:\n  backend: block\n", "unknown key 'mapp'"),
+        ("map:\n  block_size_m: big\n", "map.block_size_m: expected a number"),
+        ("tracking:\n  window_size: 2.5\n", "tracking.window_size: expected an integer"),
+        ("lidar:\n  deskew: 1\n", "lidar.deskew: expected true or false"),
+        ("map: 3\n", "map: expected a mapping"),
+        ("- a\n- b\n", "expected a mapping of sections"),
+        ("map: [\n", "not valid YAML"),
+    ],
+)
+def test_bad_config_names_file_key_and_expectation(tmp_path: Path, text, needle):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    msg = str(err.value)
+    assert needle in msg
+    assert str(path) in msg
+    assert "\n" not in msg
+
+
+def test_missing_config_file_lists_presets(tmp_path):
+    with pytest.raises(ConfigError, match="presets: .*nclt"):
+        load_config(tmp_path / "nope.yaml")
+
+
+def test_int_accepted_for_float_and_round_trip(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("map:\n  block_size_m: 40\n")
+    cfg = load_config(path)
+    assert cfg.map.block_size_m == 40.0 and isinstance(cfg.map.block_size_m, float)
+    out = tmp_path / "used.yaml"
+    save_config(cfg, out)
+    assert load_config(out) == cfg
