@@ -25,9 +25,11 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
+from typing import Iterable, Iterator
 
 import numpy as np
 
+from blockloc.datasets.base import ImuData, LidarFrame, SequenceInfo
 from blockloc.errors import DatasetError
 from blockloc.geometry import T_to_xyzrpy, Trajectory, xyzrpy_to_T
 
@@ -147,3 +149,523 @@ def write_groundtruth_csv(path: str | Path, traj: Trajectory) -> None:
     utime = np.round(traj.stamps * 1e6).astype(np.int64)
     lines = [f"{u:d}," + ",".join(f"{v:.9f}" for v in row) for u, row in zip(utime, xyzrpy)]
     _atomic_write_text(path, "\n".join(lines) + ("\n" if lines else ""))
+
+
+# --- point decoding ---------------------------------------------------------------------------
+
+def decode_points(raw: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Structured NCLT points (N,) of NCLT_POINT_DTYPE -> xyz (N, 3) float32 metres in the
+    velodyne frame, intensity (N,) float32 0..255, laser id (N,) uint16."""
+    xyz = np.empty((len(raw), 3), dtype=np.float32)
+    for k, name in enumerate("xyz"):
+        np.multiply(raw[name], np.float32(NCLT_POINT_SCALE), out=xyz[:, k], casting="unsafe")
+    xyz += np.float32(NCLT_POINT_OFFSET)
+    return xyz, raw["intensity"].astype(np.float32), raw["laser_id"].astype(np.uint16)
+
+
+def encode_points(points: np.ndarray, intensity: np.ndarray | None, ring: np.ndarray | None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) metres -> (structured (M,) NCLT_POINT_DTYPE, keep mask (N,) bool).
+
+    Coordinates are rounded to the 5 mm grid; points that are not finite or outside the format's
+    range [-100, 227.675] m are not kept. Intensity is rounded and clipped to 0..255; ring to 0..255.
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    q = np.rint((pts - NCLT_POINT_OFFSET) / NCLT_POINT_SCALE)
+    keep = np.isfinite(q).all(axis=1) & (q >= 0).all(axis=1) & (q <= 65535).all(axis=1)
+    q = q[keep].astype(np.uint16)
+    out = np.zeros(len(q), dtype=NCLT_POINT_DTYPE)
+    out["x"], out["y"], out["z"] = q[:, 0], q[:, 1], q[:, 2]
+    if intensity is not None:
+        inten = np.nan_to_num(np.asarray(intensity, dtype=np.float64)[keep])
+        out["intensity"] = np.clip(np.rint(inten), 0, 255).astype(np.uint8)
+    if ring is not None:
+        out["laser_id"] = np.clip(np.asarray(ring)[keep], 0, 255).astype(np.uint8)
+    return out, keep
+
+
+def azimuth_time_offsets(points: np.ndarray, *, period_s: float = 0.1,
+                         azimuth_increases: bool = True) -> np.ndarray:
+    """Per-point time offsets (N,) float32 s from azimuth, for a sweep without recorded times.
+
+    Assumes one revolution per ``period_s``, that the first point is the first fired, and that the
+    azimuth atan2(y, x) grows with time (``azimuth_increases``; True for NCLT's z-down velodyne
+    frame, where the clockwise-from-above spin is positive about z; False for z-up frames).
+    Offsets are relative to the first point, in [0, period_s).
+    """
+    if len(points) == 0:
+        return np.zeros(0, dtype=np.float32)
+    az = np.arctan2(points[:, 1], points[:, 0]).astype(np.float64)
+    d = az - az[0] if azimuth_increases else az[0] - az
+    frac = np.mod(d, 2.0 * np.pi) / (2.0 * np.pi)
+    return (frac * period_s).astype(np.float32)
+
+
+# --- hits file --------------------------------------------------------------------------------
+
+class HitsIndex:
+    """Packet index of a ``velodyne_hits.bin`` and per-point time lookup.
+
+    The file is memory-mapped as uint64 words (every packet is 8-byte aligned); indexing walks
+    the packet headers once (numba, ~1 s for a multi-GB campus file).
+    """
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        size = self.path.stat().st_size
+        if size % 8 != 0:
+            raise DatasetError(f"{self.path}: {size} bytes, expected a multiple of 8 "
+                               "(24-byte packet headers + 8-byte hits); the file is truncated")
+        self.words = (np.memmap(self.path, dtype="<u8", mode="r") if size
+                      else np.zeros(0, dtype="<u8"))
+        from blockloc.datasets._nclt_kernels import index_hits_words
+
+        offs, nums, uts, status, bad = index_hits_words(self.words)
+        if status == 1:
+            raise DatasetError(f"{self.path}: bad packet magic at byte {bad * 8}, expected "
+                               f"4 x uint16 {NCLT_HITS_MAGIC}")
+        if status == 2:
+            n_need = (3 + int(self.words[bad + 1] & 0xFFFFFFFF)) * 8 if bad + 1 < len(self.words) else 24
+            raise DatasetError(f"{self.path}: truncated packet at byte {bad * 8}: expected "
+                               f"{n_need} bytes, {size - bad * 8} left")
+        order = np.argsort(uts, kind="stable")
+        self.offsets, self.num_hits, self.utimes = offs[order], nums[order], uts[order]
+        log.debug("%s: %d packets, %d hits", self.path, len(self.offsets), int(self.num_hits.sum()))
+
+    def window(self, t0_us: int, t1_us: int) -> tuple[np.ndarray, np.ndarray]:
+        """Raw 8-byte hit words (H,) uint64 and their packet utimes (H,) int64 for packets with
+        t0_us <= utime <= t1_us, in time order."""
+        i0, i1 = np.searchsorted(self.utimes, [t0_us, t1_us], side="left")
+        i1 = np.searchsorted(self.utimes, t1_us, side="right")
+        offs, nums, uts = self.offsets[i0:i1], self.num_hits[i0:i1], self.utimes[i0:i1]
+        total = int(nums.sum())
+        if total == 0:
+            return np.zeros(0, dtype=np.uint64), np.zeros(0, dtype=np.int64)
+        starts = np.repeat(offs + 3 - np.concatenate([[0], np.cumsum(nums)[:-1]]), nums)
+        idx = starts + np.arange(total)
+        return np.asarray(self.words[idx]), np.repeat(uts, nums)
+
+    def point_utimes(self, sync_words: np.ndarray, utime_us: int, span_us: int = 110_000
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """Times (N,) int64 us of the sync points (N,) uint64 words, and a found mask (N,) bool.
+
+        Each sync point is matched to the identical 8-byte hit among the packets within
+        ``span_us`` of the frame's utime. Fast path: the sync points are a contiguous run of the
+        hit stream. Otherwise by sorting; a point whose bytes occur in several packets (e.g. a
+        static robot repeats a return sweep after sweep) takes the one nearest the median time of
+        the uniquely matched points.
+        """
+        n = len(sync_words)
+        hits, hit_t = self.window(utime_us - span_us, utime_us + span_us)
+        times = np.zeros(n, dtype=np.int64)
+        if n == 0 or len(hits) == 0:
+            return times, np.zeros(n, dtype=bool)
+        for p in np.flatnonzero(hits == sync_words[0])[:16]:
+            if p + n <= len(hits) and np.array_equal(hits[p:p + n], sync_words):
+                return hit_t[p:p + n].copy(), np.ones(n, dtype=bool)
+        order = np.argsort(hits, kind="stable")
+        sk = hits[order]
+        lo = np.searchsorted(sk, sync_words, side="left")
+        hi = np.searchsorted(sk, sync_words, side="right")
+        cnt = hi - lo
+        found = cnt > 0
+        uniq = cnt == 1
+        times[uniq] = hit_t[order[lo[uniq]]]
+        multi = np.flatnonzero(cnt > 1)
+        if len(multi):
+            ref = np.median(times[uniq]) if uniq.any() else float(utime_us)
+            best_t = hit_t[order[lo[multi]]]
+            best_d = np.abs(best_t - ref)
+            for k in range(1, int(min(cnt[multi].max(), 32))):
+                ok = cnt[multi] > k
+                cand = hit_t[order[np.minimum(lo[multi] + k, len(sk) - 1)]]
+                better = ok & (np.abs(cand - ref) < best_d)
+                best_t = np.where(better, cand, best_t)
+                best_d = np.where(better, np.abs(cand - ref), best_d)
+            times[multi] = best_t
+        return times, found
+
+
+# --- IMU csv ----------------------------------------------------------------------------------
+
+def read_ms25_csv(path: str | Path) -> ImuData:
+    """Read NCLT ``ms25.csv``: utime (us), mag xyz, accel xyz (m/s^2), gyro xyz (rad/s).
+
+    Returns ImuData in the MS25 frame with t in seconds. Rows holding NaN/inf are dropped;
+    out-of-order rows are sorted and rows with a duplicate utime dropped (first kept); each such
+    recovery logs one warning with the count. Fewer than 10 columns -> DatasetError naming the line.
+    """
+    path = Path(path)
+    try:
+        data = np.loadtxt(path, delimiter=",", ndmin=2, dtype=np.float64)
+    except ValueError:
+        data = None
+    if data is None or (data.size and data.shape[1] < 10):
+        with open(path) as fh:
+            for lineno, line in enumerate(fh, start=1):
+                parts = line.strip().split(",")
+                if not line.strip():
+                    continue
+                if len(parts) < 10:
+                    raise DatasetError(f"{path}:{lineno}: {len(parts)} columns, expected 10 "
+                                       "(utime, mag xyz, accel xyz, gyro xyz)")
+                try:
+                    [float(p) for p in parts]
+                except ValueError:
+                    raise DatasetError(f"{path}:{lineno}: non-numeric value in {line.strip()[:80]!r}, "
+                                       "expected utime, mag xyz, accel xyz, gyro xyz") from None
+        raise DatasetError(f"{path}: rows of unequal length, expected 10 columns each")
+    data = data.reshape(-1, data.shape[1] if data.size else 10)
+    return _imu_from_rows(path, data[:, 0], data[:, 4:7], data[:, 7:10])
+
+
+def _imu_from_rows(path, utime, acc, gyro) -> ImuData:
+    utime = np.asarray(utime, dtype=np.float64)
+    good = np.isfinite(utime) & np.isfinite(acc).all(axis=1) & np.isfinite(gyro).all(axis=1)
+    if not good.all():
+        log.warning("%s: dropped %d IMU rows holding NaN/inf", path, int((~good).sum()))
+        utime, acc, gyro = utime[good], acc[good], gyro[good]
+    if len(utime) and np.any(np.diff(utime) < 0):
+        log.warning("%s: %d IMU rows out of time order; sorted", path,
+                    int((np.diff(utime) < 0).sum()))
+        order = np.argsort(utime, kind="stable")
+        utime, acc, gyro = utime[order], acc[order], gyro[order]
+    keep = np.concatenate([[True], np.diff(utime) > 0]) if len(utime) else np.zeros(0, bool)
+    if not keep.all():
+        log.warning("%s: dropped %d IMU rows with a duplicate stamp", path, int((~keep).sum()))
+        utime, acc, gyro = utime[keep], acc[keep], gyro[keep]
+    return ImuData(utime * 1e-6, np.ascontiguousarray(acc, dtype=np.float64),
+                   np.ascontiguousarray(gyro, dtype=np.float64))
+
+
+def write_ms25_csv(path: str | Path, imu: ImuData) -> None:
+    """Write ImuData as NCLT ``ms25.csv`` (magnetometer columns 0). Temp file, then rename."""
+    path = Path(path)
+    utime = np.round(np.asarray(imu.t) * 1e6).astype(np.int64)
+    rows = np.column_stack([np.zeros((len(utime), 3)), imu.acc, imu.gyro])
+    lines = [f"{u:d}," + ",".join(f"{v:.9g}" for v in row) for u, row in zip(utime, rows)]
+    _atomic_write_text(path, "\n".join(lines) + ("\n" if lines else ""))
+
+
+# --- the sequence -----------------------------------------------------------------------------
+
+SIDECAR_NAME = "blockloc_session.json"
+
+
+class NcltSequence:
+    """A session directory in NCLT layout as a ``Sequence``.
+
+    Frames: one per ``velodyne_sync/<utime>.bin``, loaded lazily. ``stamp`` = the file's utime in
+    seconds. Points are in the velodyne frame, each as measured at its own firing time (raw, not
+    deskewed); ``time_offsets`` = firing time - stamp, in seconds, from ``velodyne_hits.bin``
+    (packet resolution, ~0.55 ms) when present and ``use_hits_times``; otherwise derived from the
+    azimuth for a 10 Hz clockwise spin starting at the first point, i.e. offsets in [0, 0.1) s
+    assuming the stamp is the start of the sweep (logged once). ``ring`` = the HDL-32E laser id
+    (firing order, not elevation order). Points outside [min_range_m, max_range_m] are dropped.
+
+    IMU: ``ms25.csv`` in the MS25 frame (NaN rows dropped, unsorted rows sorted, duplicate stamps
+    dropped, each with a warning). Ground truth: ``groundtruth_<date>.csv`` (T_map_body, z down).
+    ``mapping_poses()``: ``slam_poses_<date>.csv`` when present, else ground truth.
+
+    Extrinsics are NCLT's (``NCLT_T_BODY_LIDAR``, ``NCLT_T_BODY_IMU``, gravity +z) unless the
+    directory holds ``blockloc_session.json`` (written by ``write_session`` for simulated sessions)
+    giving ``T_body_lidar``, ``T_body_imu`` and ``gravity_map``.
+
+    Files are searched in ``session_dir``, then its parent and ``<parent>/ground_truth`` (ground
+    truth), or ``<parent>/sensor_data/<date>`` (ms25.csv); explicit paths override the search.
+    """
+
+    def __init__(self, session_dir: str | Path, *, use_hits_times: bool = True,
+                 min_range_m: float = 1.0, max_range_m: float = 100.0, date: str | None = None,
+                 ms25_path: str | Path | None = None, groundtruth_path: str | Path | None = None,
+                 name: str | None = None):
+        self.session_dir = Path(session_dir)
+        self.min_range_m = float(min_range_m)
+        self.max_range_m = float(max_range_m)
+        sync_dir = self.session_dir / "velodyne_sync"
+        if not sync_dir.is_dir():
+            raise DatasetError(
+                f"{sync_dir}: not found; put the NCLT velodyne_sync/<utime>.bin scans there "
+                f"(download <date>_vel.tar.gz from the NCLT site and unpack it so that "
+                f"{self.session_dir}/velodyne_sync exists)")
+        self._sync_dir = sync_dir
+        self.date = date or self._guess_date()
+        self._utimes = self._list_sync(sync_dir)
+        self._ms25_path = Path(ms25_path) if ms25_path else self._find_ms25()
+        self._gt_path = (Path(groundtruth_path) if groundtruth_path
+                         else self._find_csv(f"groundtruth_{self.date}.csv"))
+        self._slam_path = self._find_csv(f"slam_poses_{self.date}.csv", only_session=True)
+        hits = self.session_dir / "velodyne_hits.bin"
+        self._hits_path = hits if (use_hits_times and hits.is_file()) else None
+        self._hits: HitsIndex | None = None
+        if self._hits_path is None:
+            why = "disabled" if (not use_hits_times and hits.is_file()) else f"no {hits}"
+            log.info("%s: per-point times from azimuth (10 Hz clockwise spin), %s",
+                     self.session_dir, why)
+        self._imu: ImuData | None = None
+        self._gt: Trajectory | None | bool = False
+        self._slam: Trajectory | None | bool = False
+        T_bl, T_bi, g = NCLT_T_BODY_LIDAR, NCLT_T_BODY_IMU, np.array(NCLT_GRAVITY_MAP)
+        sidecar = self.session_dir / SIDECAR_NAME
+        if sidecar.is_file():
+            T_bl, T_bi, g = _read_sidecar(sidecar)
+        self.info = SequenceInfo(name=name or f"nclt:{self.session_dir.name}",
+                                 T_body_lidar=np.array(T_bl, dtype=np.float64),
+                                 T_body_imu=np.array(T_bi, dtype=np.float64),
+                                 gravity_map=np.asarray(g, dtype=np.float64),
+                                 lidar_rate_hz=10.0, imu_rate_hz=self._peek_imu_rate())
+
+    # discovery ---------------------------------------------------------------------------------
+    def _guess_date(self) -> str:
+        gts = sorted(self.session_dir.glob("groundtruth_*.csv"))
+        if gts:
+            return gts[0].stem[len("groundtruth_"):]
+        return self.session_dir.name
+
+    @staticmethod
+    def _list_sync(sync_dir: Path) -> np.ndarray:
+        utimes, skipped = [], 0
+        with os.scandir(sync_dir) as it:
+            for entry in it:
+                stem, ext = os.path.splitext(entry.name)
+                if ext == ".bin" and stem.isdigit():
+                    utimes.append(int(stem))
+                else:
+                    skipped += 1
+        if skipped:
+            log.warning("%s: ignored %d files not named <utime>.bin", sync_dir, skipped)
+        return np.unique(np.asarray(utimes, dtype=np.int64))
+
+    def _find_ms25(self) -> Path:
+        cands = [self.session_dir / "ms25.csv",
+                 self.session_dir / "sensor_data" / "ms25.csv",
+                 self.session_dir.parent / "sensor_data" / self.date / "ms25.csv"]
+        for c in cands:
+            if c.is_file():
+                return c
+        raise DatasetError(
+            f"{cands[0]}: not found; put the NCLT ms25.csv there (download {self.date}_sen.tar.gz "
+            f"from the NCLT site and unpack it into {self.session_dir.parent})")
+
+    def _find_csv(self, fname: str, only_session: bool = False) -> Path | None:
+        cands = [self.session_dir / fname]
+        if not only_session:
+            cands += [self.session_dir.parent / fname, self.session_dir.parent / "ground_truth" / fname,
+                      self.session_dir.parent.parent / "ground_truth" / fname]
+        for c in cands:
+            if c.is_file():
+                return c
+        return None
+
+    def _peek_imu_rate(self) -> float:
+        stamps = []
+        with open(self._ms25_path) as fh:
+            for line in fh:
+                head = line.split(",", 1)[0].strip()
+                try:
+                    stamps.append(float(head))
+                except ValueError:
+                    continue
+                if len(stamps) >= 200:
+                    break
+        dt = np.diff(np.sort(np.asarray(stamps))) * 1e-6
+        dt = dt[dt > 0]
+        return float(round(1.0 / np.median(dt), 1)) if len(dt) else 100.0
+
+    # protocol ----------------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self._utimes)
+
+    def frame_stamps(self) -> np.ndarray:
+        """(F,) float64 seconds, the sync files' utimes."""
+        return self._utimes * 1e-6
+
+    def frame(self, index: int) -> LidarFrame:
+        n = len(self._utimes)
+        if not -n <= index < n:
+            raise IndexError(f"frame {index} out of range for {n} frames")
+        index = index % n
+        utime = int(self._utimes[index])
+        path = self._sync_dir / f"{utime}.bin"
+        size = path.stat().st_size
+        if size % 8 != 0:
+            raise DatasetError(f"{path}: {size} bytes, expected a multiple of 8 (8-byte points); "
+                               f"the file is truncated ({size // 8 * 8} or {(size // 8 + 1) * 8} expected)")
+        words = np.fromfile(path, dtype="<u8")
+        raw = words.view(NCLT_POINT_DTYPE)
+        xyz, intensity, ring = decode_points(raw)
+        offsets = self._time_offsets(words, xyz, utime)
+        r2 = np.einsum("ij,ij->i", xyz, xyz)
+        keep = np.isfinite(r2) & (r2 >= self.min_range_m ** 2) & (r2 <= self.max_range_m ** 2)
+        frame = LidarFrame(index, utime * 1e-6, xyz, intensity, offsets, ring)
+        if not keep.all():
+            frame = frame.select(keep)
+        if len(frame) == 0:
+            log.warning("%s: empty scan (%d points before range filter)", path, len(raw))
+        return frame
+
+    def _time_offsets(self, words: np.ndarray, xyz: np.ndarray, utime: int) -> np.ndarray:
+        if self._hits_path is not None:
+            if self._hits is None:
+                self._hits = HitsIndex(self._hits_path)
+            t_us, found = self._hits.point_utimes(words, utime)
+            offsets = ((t_us - utime) * 1e-6).astype(np.float32)
+            if not found.all():
+                log.debug("%d of %d points without a hit; azimuth times", int((~found).sum()), len(found))
+                az = azimuth_time_offsets(xyz)
+                offsets[~found] = az[~found]
+            return offsets
+        return azimuth_time_offsets(xyz)
+
+    def frames(self, start: int = 0, stop: int | None = None) -> Iterator[LidarFrame]:
+        stop = len(self) if stop is None else min(stop, len(self))
+        for i in range(start, stop):
+            yield self.frame(i)
+
+    def imu(self) -> ImuData:
+        if self._imu is None:
+            self._imu = read_ms25_csv(self._ms25_path)
+        return self._imu
+
+    def ground_truth(self) -> Trajectory | None:
+        if self._gt is False:
+            if self._gt_path is None:
+                log.warning("%s: no groundtruth_%s.csv found; sequence has no ground truth",
+                            self.session_dir, self.date)
+                self._gt = None
+            else:
+                self._gt = read_groundtruth_csv(self._gt_path)
+        return self._gt
+
+    def mapping_poses(self) -> Trajectory | None:
+        if self._slam is False:
+            self._slam = read_groundtruth_csv(self._slam_path) if self._slam_path else None
+        return self._slam if self._slam is not None else self.ground_truth()
+
+
+def _read_sidecar(path: Path):
+    import json
+
+    try:
+        d = json.loads(path.read_text())
+        T_bl = np.asarray(d["T_body_lidar"], dtype=np.float64).reshape(4, 4)
+        T_bi = np.asarray(d["T_body_imu"], dtype=np.float64).reshape(4, 4)
+        g = np.asarray(d["gravity_map"], dtype=np.float64).reshape(3)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise DatasetError(f"{path}: malformed ({exc}); expected JSON with T_body_lidar (4x4), "
+                           "T_body_imu (4x4), gravity_map (3)") from None
+    return T_bl, T_bi, g
+
+
+# --- writer -----------------------------------------------------------------------------------
+
+#: Duration of one HDL-32E data packet (12 firing blocks x 46.08 us); the hits file written by
+#: ``write_session`` groups points into packets of this length, so per-point times read back
+#: within half of it.
+HITS_PACKET_US = 553
+
+
+def _hits_packets(words: np.ndarray, t_us: np.ndarray) -> bytes:
+    """Group time-sorted point words (N,) uint64 with times (N,) int64 into hits packets."""
+    if len(words) == 0:
+        return b""
+    bins = (t_us - t_us[0]) // HITS_PACKET_US
+    cuts = np.flatnonzero(np.diff(bins)) + 1
+    starts = np.concatenate([[0], cuts])
+    ends = np.concatenate([cuts, [len(words)]])
+    n = ends - starts
+    # packet utime: middle of its points' time span, so the read-back error is <= half a packet
+    utime = (t_us[starts] + t_us[ends - 1] + 1) // 2
+    out = np.empty(len(words) + 3 * len(starts), dtype="<u8")
+    pos = starts + 3 * np.arange(len(starts))
+    out[pos] = np.uint64(0xAD9CAD9CAD9CAD9C)
+    ut = utime.astype(np.uint64)
+    out[pos + 1] = n.astype(np.uint64) | ((ut & np.uint64(0xFFFFFFFF)) << np.uint64(32))
+    out[pos + 2] = ut >> np.uint64(32)
+    point_pos = np.arange(len(words)) + 3 * np.repeat(np.arange(len(starts)) + 1, n)
+    out[point_pos] = words
+    return out.tobytes()
+
+
+def write_session(out_dir: str | Path, *, date: str, frames: Iterable[LidarFrame], imu: ImuData,
+                  ground_truth: Trajectory, slam_poses: Trajectory | None = None,
+                  write_hits: bool = True, T_body_lidar: np.ndarray | None = None,
+                  T_body_imu: np.ndarray | None = None,
+                  gravity_map: np.ndarray | tuple | None = None) -> Path:
+    """Write a session in NCLT layout to ``out_dir``; returns ``out_dir``.
+
+    frames: iterable of LidarFrame in the velodyne frame (stamps in s, ``time_offsets`` in s
+      relative to the stamp, ``ring`` = laser id, ``intensity`` 0..255), consumed one at a time.
+      Points are quantised to 5 mm and written in time order; non-finite or unrepresentable
+      points are dropped (one warning with the total count).
+    imu: samples in the MS25 frame -> ``ms25.csv``. ground_truth, slam_poses: T_map_body ->
+      ``groundtruth_<date>.csv`` / ``slam_poses_<date>.csv``.
+    write_hits: also write ``velodyne_hits.bin`` (packets of HITS_PACKET_US) for per-point times.
+    T_body_lidar, T_body_imu, gravity_map: if any is given, ``blockloc_session.json`` records all
+      three (missing ones default to NCLT's) and the loader uses them instead of NCLT's.
+
+    Atomic: everything goes into ``<out_dir>.tmp-*`` beside it, renamed to ``out_dir`` at the end
+    (an existing ``out_dir`` is replaced).
+    """
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f"{out_dir.name}.tmp-", dir=out_dir.parent))
+    try:
+        sync_dir = tmp / "velodyne_sync"
+        sync_dir.mkdir()
+        dropped = 0
+        n_frames = 0
+        last_utime = None
+        hits_fh = open(tmp / "velodyne_hits.bin", "wb") if write_hits else None
+        try:
+            for frame in frames:
+                utime = int(round(frame.stamp * 1e6))
+                if last_utime is not None and utime <= last_utime:
+                    raise DatasetError(f"frame {frame.index}: stamp {frame.stamp!r} s is not after "
+                                       f"the previous frame's ({last_utime * 1e-6!r} s)")
+                last_utime = utime
+                raw, keep = encode_points(frame.points, frame.intensity, frame.ring)
+                dropped += int((~keep).sum())
+                if frame.time_offsets is not None:
+                    t_us = utime + np.rint(np.asarray(frame.time_offsets, np.float64)[keep] * 1e6
+                                           ).astype(np.int64)
+                else:
+                    t_us = np.full(len(raw), utime, dtype=np.int64)
+                order = np.argsort(t_us, kind="stable")
+                raw, t_us = raw[order], t_us[order]
+                raw.tofile(sync_dir / f"{utime}.bin")
+                if hits_fh is not None:
+                    hits_fh.write(_hits_packets(raw.view("<u8"), t_us))
+                n_frames += 1
+        finally:
+            if hits_fh is not None:
+                hits_fh.close()
+        if dropped:
+            log.warning("write_session %s: dropped %d non-finite or out-of-range points",
+                        out_dir, dropped)
+        write_ms25_csv(tmp / "ms25.csv", imu)
+        write_groundtruth_csv(tmp / f"groundtruth_{date}.csv", ground_truth)
+        if slam_poses is not None:
+            write_groundtruth_csv(tmp / f"slam_poses_{date}.csv", slam_poses)
+        if T_body_lidar is not None or T_body_imu is not None or gravity_map is not None:
+            import json
+
+            d = {"T_body_lidar": np.asarray(NCLT_T_BODY_LIDAR if T_body_lidar is None else T_body_lidar,
+                                            dtype=float).tolist(),
+                 "T_body_imu": np.asarray(NCLT_T_BODY_IMU if T_body_imu is None else T_body_imu,
+                                          dtype=float).tolist(),
+                 "gravity_map": np.asarray(NCLT_GRAVITY_MAP if gravity_map is None else gravity_map,
+                                           dtype=float).tolist()}
+            _atomic_write_text(tmp / SIDECAR_NAME, json.dumps(d, indent=1))
+        old = None
+        if out_dir.exists():
+            old = Path(tempfile.mkdtemp(prefix=f"{out_dir.name}.old-", dir=out_dir.parent))
+            os.replace(out_dir, old / out_dir.name)
+        os.replace(tmp, out_dir)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+        log.info("wrote %d frames to %s", n_frames, out_dir)
+        return out_dir
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
