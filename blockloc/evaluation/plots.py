@@ -1,0 +1,80 @@
+"""PNG plots of an evaluation (matplotlib, Agg backend, imported lazily)."""
+
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path) -> Path:
+    """Save ``fig`` as PNG to a temp file beside ``path``, then rename it into place."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".png", dir=path.parent)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=120, format="png")
+        os.replace(tmp, path)
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+    return path
+
+
+def plot_trajectories(path: Path, gt_xy_all: np.ndarray, est_xy: np.ndarray, errors_m: np.ndarray,
+                      *, title: str = "") -> Path:
+    """Top view: the whole ground truth as a line, the matched estimate coloured by its ATE.
+
+    gt_xy_all: (N, 2) ground-truth positions, map frame, metres; est_xy: (K, 2) estimated positions
+    (aligned if alignment was used); errors_m: (K,) translation error of each estimated position.
+    """
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7, 6))
+    try:
+        ax.plot(gt_xy_all[:, 0], gt_xy_all[:, 1], color="0.6", lw=1.5, label="ground truth")
+        sc = ax.scatter(est_xy[:, 0], est_xy[:, 1], c=errors_m, s=4, cmap="viridis", label="estimate")
+        fig.colorbar(sc, ax=ax, label="translation error [m]")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.legend(loc="best")
+        ax.set_title(title or "trajectories (top view)")
+        fig.tight_layout()
+        return _save(fig, Path(path))
+    finally:
+        plt.close(fig)
+
+
+def plot_errors_over_time(path: Path, stamps: np.ndarray, trans_m: np.ndarray, rot_deg: np.ndarray,
+                          *, title: str = "") -> Path:
+    """Translation (m) and rotation (deg) error over time (s from the first matched stamp)."""
+    plt = _pyplot()
+    t = np.asarray(stamps, dtype=np.float64)
+    t = t - t[0] if len(t) else t
+    fig, (ax_t, ax_r) = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
+    try:
+        ax_t.plot(t, trans_m, lw=1.0)
+        ax_t.axhline(float(np.sqrt(np.mean(np.square(trans_m)))), color="C3", ls="--", lw=1, label="RMSE")
+        ax_t.set_ylabel("translation error [m]")
+        ax_t.legend(loc="upper right")
+        ax_r.plot(t, rot_deg, lw=1.0, color="C1")
+        ax_r.set_ylabel("rotation error [deg]")
+        ax_r.set_xlabel("time [s]")
+        ax_t.set_title(title or "absolute error over time")
+        fig.tight_layout()
+        return _save(fig, Path(path))
+    finally:
+        plt.close(fig)
