@@ -1,0 +1,430 @@
+"""The map store: a directory of PCD tiles/blocks with a versioned manifest, built atomically.
+
+Layout of a store directory::
+
+    manifest.json                  version, kind ('block' | 'grid'), frame, parameters, entries
+    000.pcd 001.pcd ...            block maps (kind 'block'), plus CentroidCloud.pcd: one point per
+                                   block, row i = centroid of block i (the released block-map layout)
+    {cx}_{cy}.pcd ...              grid tiles (kind 'grid'), named by their centre in metres, plus an
+                                   Autoware ``pointcloud_map_metadata.yaml``
+
+Every entry of the manifest records id, file, bounds (min, max; map frame, metres), centroid,
+point count, file size and sha256; :meth:`MapStore.load` verifies the checksum.
+
+A directory in the released block-map layout (``%03d.pcd`` + ``CentroidCloud.pcd``, no manifest)
+opens as a block map without checksums.
+
+All reads of a store go through :class:`MapFiles`, the single file-access layer: local paths read
+with the standard library, URLs (``http://``, ``s3://``, ...) through fsspec when it is installed.
+
+Builds are atomic: :class:`MapWriter` writes into a hidden temporary directory beside the output
+carrying an ``.incomplete`` marker and renames it into place only after the manifest is written;
+an interrupted build leaves no directory that :func:`open_map` accepts.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import re
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+from blockloc.errors import MapError
+from blockloc.maps.pcd import decode_pcd, encode_pcd
+
+log = logging.getLogger(__name__)
+
+MANIFEST_NAME = "manifest.json"
+MANIFEST_VERSION = 1
+CENTROID_CLOUD = "CentroidCloud.pcd"
+AUTOWARE_METADATA = "pointcloud_map_metadata.yaml"
+INCOMPLETE_MARKER = ".incomplete"
+KINDS = ("block", "grid")
+_LEGACY_BLOCK = re.compile(r"^(\d{3,})\.pcd$")
+
+
+@dataclass(frozen=True)
+class MapEntry:
+    """One block or tile of a store.
+
+    bounds_min, bounds_max, centroid: (3,) float64, map frame, metres (bounds of the points; for
+    grid tiles ``cell_min``/``cell_max`` in the parameters give the cell itself).
+    num_points: points in the file. bytes: file size. sha256: hex digest of the file, or None
+    (legacy block layout: not verified).
+    """
+
+    id: str
+    file: str
+    bounds_min: np.ndarray
+    bounds_max: np.ndarray
+    centroid: np.ndarray
+    num_points: int
+    bytes: int
+    sha256: str | None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "id": self.id, "file": self.file,
+            "bounds_min": [float(v) for v in self.bounds_min],
+            "bounds_max": [float(v) for v in self.bounds_max],
+            "centroid": [float(v) for v in self.centroid],
+            "num_points": int(self.num_points), "bytes": int(self.bytes), "sha256": self.sha256,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], where: str) -> "MapEntry":
+        try:
+            return cls(
+                id=str(d["id"]), file=str(d["file"]),
+                bounds_min=np.asarray(d["bounds_min"], float).reshape(3),
+                bounds_max=np.asarray(d["bounds_max"], float).reshape(3),
+                centroid=np.asarray(d["centroid"], float).reshape(3),
+                num_points=int(d["num_points"]), bytes=int(d["bytes"]), sha256=d.get("sha256"),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MapError(f"{where}: malformed manifest entry {d!r:.80} ({exc})") from None
+
+
+class MapFiles:
+    """Read-only access to the files of one store: a local directory or a URL.
+
+    Issue 9 (maps over HTTP/S3) plugs in here: everything else reads through this class.
+    """
+
+    def __init__(self, root: str | Path):
+        root_s = str(root)
+        self.is_remote = "://" in root_s and not root_s.startswith("file://")
+        if root_s.startswith("file://"):
+            root_s = root_s[len("file://"):]
+        self.root = root_s.rstrip("/") if self.is_remote else str(Path(root_s))
+        self._fs = None
+        if self.is_remote:
+            try:
+                import fsspec
+            except ImportError:
+                raise MapError(f"{root_s}: reading maps from URLs needs the fsspec package") from None
+            self._fs, self._fs_root = fsspec.core.url_to_fs(self.root)
+
+    def url(self, name: str) -> str:
+        """Full path or URL of a file of the store (for messages)."""
+        return f"{self.root}/{name}" if self.is_remote else str(Path(self.root) / name)
+
+    def read_bytes(self, name: str) -> bytes:
+        """Bytes of the file ``name``; MapError naming it when missing or unreadable."""
+        try:
+            if self._fs is not None:
+                return self._fs.cat_file(f"{self._fs_root}/{name}")
+            return (Path(self.root) / name).read_bytes()
+        except FileNotFoundError:
+            raise MapError(f"{self.url(name)}: missing map file") from None
+        except OSError as exc:
+            raise MapError(f"{self.url(name)}: cannot read ({exc})") from None
+
+    def exists(self, name: str) -> bool:
+        if self._fs is not None:
+            return bool(self._fs.exists(f"{self._fs_root}/{name}"))
+        return (Path(self.root) / name).exists()
+
+    def is_dir(self) -> bool:
+        if self._fs is not None:
+            return bool(self._fs.isdir(self._fs_root))
+        return Path(self.root).is_dir()
+
+    def list_names(self) -> list[str]:
+        """Names of the files directly in the store."""
+        if self._fs is not None:
+            return sorted(Path(p).name for p in self._fs.ls(self._fs_root, detail=False))
+        return sorted(p.name for p in Path(self.root).iterdir() if p.is_file())
+
+
+class MapStore:
+    """An opened map store (see the module docstring). Entries are kept in manifest order."""
+
+    def __init__(self, files: MapFiles, kind: str, frame: str, params: dict[str, Any],
+                 entries: list[MapEntry], version: int = MANIFEST_VERSION, legacy: bool = False):
+        self.files = files
+        self.kind = kind
+        self.frame = frame
+        self.params = dict(params)
+        self.entries = list(entries)
+        self.version = version
+        self.legacy = legacy
+        self._by_id = {e.id: e for e in self.entries}
+        if len(self._by_id) != len(self.entries):
+            raise MapError(f"{files.url(MANIFEST_NAME)}: duplicate entry ids in the manifest")
+        self._bmin = np.array([e.bounds_min for e in self.entries]).reshape(-1, 3)
+        self._bmax = np.array([e.bounds_max for e in self.entries]).reshape(-1, 3)
+
+    @property
+    def path(self) -> str:
+        """The store's directory (or URL)."""
+        return self.files.root
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    def __repr__(self) -> str:
+        return f"MapStore({self.path!r}, kind={self.kind!r}, entries={len(self.entries)})"
+
+    @property
+    def ids(self) -> list[str]:
+        return [e.id for e in self.entries]
+
+    def entry(self, entry_id: str) -> MapEntry:
+        try:
+            return self._by_id[entry_id]
+        except KeyError:
+            raise MapError(f"{self.path}: no block/tile with id {entry_id!r}") from None
+
+    def centroids(self) -> np.ndarray:
+        """(M, 3) entry centroids, map frame, metres, in entry order."""
+        return np.array([e.centroid for e in self.entries]).reshape(-1, 3)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(min (3,), max (3,)) over all entries, map frame, metres."""
+        if not self.entries:
+            return np.zeros(3), np.zeros(3)
+        return self._bmin.min(axis=0), self._bmax.max(axis=0)
+
+    @property
+    def total_points(self) -> int:
+        return int(sum(e.num_points for e in self.entries))
+
+    @property
+    def total_bytes(self) -> int:
+        return int(sum(e.bytes for e in self.entries))
+
+    def entries_in_box(self, xy_min: Sequence[float], xy_max: Sequence[float]) -> list[MapEntry]:
+        """Entries whose xy bounds intersect the box [xy_min, xy_max] (map frame, metres)."""
+        if not self.entries:
+            return []
+        lo = np.asarray(xy_min, float)[:2]
+        hi = np.asarray(xy_max, float)[:2]
+        hit = np.all(self._bmax[:, :2] >= lo, axis=1) & np.all(self._bmin[:, :2] <= hi, axis=1)
+        return [self.entries[i] for i in np.flatnonzero(hit)]
+
+    def load(self, entry_id: str) -> tuple[np.ndarray, np.ndarray | None]:
+        """Points (N, 3) float32 and intensity (N,) float32 | None of one entry.
+
+        The file's sha256 and point count are checked against the manifest; a mismatch, a bad
+        header or a truncated payload raises MapError naming the file.
+        """
+        e = self.entry(entry_id)
+        data = self.files.read_bytes(e.file)
+        url = self.files.url(e.file)
+        if e.sha256 is not None:
+            digest = hashlib.sha256(data).hexdigest()
+            if digest != e.sha256:
+                raise MapError(f"{url}: checksum mismatch (sha256 {digest[:12]}..., manifest says "
+                               f"{e.sha256[:12]}...): the file is corrupt or was changed")
+        points, intensity = decode_pcd(data, url)
+        if len(points) != e.num_points:
+            raise MapError(f"{url}: holds {len(points)} points, manifest says {e.num_points}")
+        return points, intensity
+
+    def load_points(self, ids: Iterable[str]) -> np.ndarray:
+        """Concatenated points (N, 3) float32 of the given entries, map frame."""
+        parts = [self.load(i)[0] for i in ids]
+        return np.concatenate(parts) if parts else np.zeros((0, 3), np.float32)
+
+
+def open_map(path: str | Path) -> MapStore:
+    """Open a store directory (or URL): manifest store, or the released block-map layout."""
+    files = MapFiles(path)
+    if not files.is_remote and not Path(files.root).exists():
+        raise MapError(f"{path}: no such map directory")
+    if not files.is_remote and not files.is_dir():
+        raise MapError(f"{path}: not a map directory (a file; to tile a global PCD use "
+                       "'blockloc map tile')")
+    if files.exists(INCOMPLETE_MARKER):
+        raise MapError(f"{path}: an incomplete (interrupted) map build; rebuild it")
+    if files.exists(MANIFEST_NAME):
+        return _open_manifest(files)
+    if not files.is_remote and files.exists(CENTROID_CLOUD):
+        return _open_legacy_block(files)
+    raise MapError(f"{path}: not a map store (no {MANIFEST_NAME}, and no {CENTROID_CLOUD} of the "
+                   "released block-map layout)")
+
+
+def _open_manifest(files: MapFiles) -> MapStore:
+    where = files.url(MANIFEST_NAME)
+    try:
+        doc = json.loads(files.read_bytes(MANIFEST_NAME).decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise MapError(f"{where}: not valid JSON ({exc})") from None
+    if not isinstance(doc, dict):
+        raise MapError(f"{where}: expected a JSON object")
+    version = doc.get("version")
+    if not isinstance(version, int) or version < 1:
+        raise MapError(f"{where}: missing or bad 'version' (expected an integer >= 1)")
+    if version > MANIFEST_VERSION:
+        raise MapError(f"{where}: manifest version {version} is newer than this blockloc reads "
+                       f"({MANIFEST_VERSION}); upgrade blockloc")
+    kind = doc.get("kind")
+    if kind not in KINDS:
+        raise MapError(f"{where}: 'kind' is {kind!r}, expected one of {', '.join(KINDS)}")
+    raw_entries = doc.get("entries")
+    if not isinstance(raw_entries, list):
+        raise MapError(f"{where}: 'entries' must be a list")
+    entries = [MapEntry.from_dict(d, where) for d in raw_entries]
+    return MapStore(files, kind, str(doc.get("frame", "map")), doc.get("parameters") or {},
+                    entries, version)
+
+
+def _open_legacy_block(files: MapFiles) -> MapStore:
+    """The released block-map layout: ``%03d.pcd`` blocks + ``CentroidCloud.pcd`` (row i = block i)."""
+    centroids, _ = decode_pcd(files.read_bytes(CENTROID_CLOUD), files.url(CENTROID_CLOUD))
+    names = {int(m.group(1)): n for n in files.list_names() if (m := _LEGACY_BLOCK.match(n))}
+    if len(centroids) == 0:
+        raise MapError(f"{files.url(CENTROID_CLOUD)}: holds no block centroids")
+    entries = []
+    for i, c in enumerate(centroids):
+        if i not in names:
+            raise MapError(f"{files.url(f'{i:03d}.pcd')}: missing block {i} named by "
+                           f"{CENTROID_CLOUD} ({len(centroids)} centroids)")
+        data = files.read_bytes(names[i])
+        pts, _ = decode_pcd(data, files.url(names[i]))
+        lo = pts.min(axis=0) if len(pts) else np.asarray(c, float)
+        hi = pts.max(axis=0) if len(pts) else np.asarray(c, float)
+        entries.append(MapEntry(f"{i:03d}", names[i], np.asarray(lo, float), np.asarray(hi, float),
+                                np.asarray(c, float), len(pts), len(data), None))
+    log.info("%s: released block-map layout, %d blocks (no checksums)", files.root, len(entries))
+    return MapStore(files, "block", "map", {"layout": "released-block-map"}, entries, legacy=True)
+
+
+def entry_stats(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(bounds_min, bounds_max, centroid), each (3,) float64, of (N, 3) points (zeros when empty)."""
+    if len(points) == 0:
+        z = np.zeros(3)
+        return z, z.copy(), z.copy()
+    p = np.asarray(points, np.float64)
+    return p.min(axis=0), p.max(axis=0), p.mean(axis=0)
+
+
+class MapWriter:
+    """Builds a store atomically. Use as a context manager::
+
+        with MapWriter(out, "grid", params={...}) as w:
+            w.add("1.0_-3.0", points, intensity)
+            store = w.commit()
+
+    Files go to a hidden temporary directory beside ``out`` (marked incomplete); ``commit`` writes
+    the kind's extra files and the manifest, then renames the directory to ``out``. Leaving the
+    block without ``commit`` (an exception, a kill) removes or abandons the temporary directory;
+    ``out`` is never touched until the rename.
+    """
+
+    def __init__(self, out: str | Path, kind: str, *, frame: str = "map",
+                 params: dict[str, Any] | None = None, overwrite: bool = False):
+        if kind not in KINDS:
+            raise MapError(f"map kind {kind!r}: expected one of {', '.join(KINDS)}")
+        self.out = Path(out)
+        self.kind = kind
+        self.frame = frame
+        self.params = dict(params or {})
+        self.overwrite = overwrite
+        self.entries: list[MapEntry] = []
+        self._committed = False
+        if self.out.exists() and not overwrite:
+            raise MapError(f"{self.out}: already exists (choose another --out or allow overwrite)")
+        parent = self.out.parent
+        try:
+            parent.mkdir(parents=True, exist_ok=True)
+            self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.building-", dir=parent))
+        except OSError as exc:
+            raise MapError(f"{self.out}: cannot create the output directory ({exc})") from None
+        (self.tmp / INCOMPLETE_MARKER).write_text(f"build started {time.ctime()} pid {os.getpid()}\n")
+
+    def __enter__(self) -> "MapWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if not self._committed:
+            self.abort()
+
+    def abort(self) -> None:
+        """Remove the temporary directory (nothing of ``out`` was written)."""
+        shutil.rmtree(self.tmp, ignore_errors=True)
+
+    def add(self, entry_id: str, points: np.ndarray, intensity: np.ndarray | None = None,
+            file: str | None = None, centroid: np.ndarray | None = None) -> MapEntry:
+        """Write one block/tile: ``points`` (N, 3) map frame metres, ``intensity`` (N,) or None.
+
+        ``centroid`` defaults to the mean of the points.
+        """
+        if self._committed:
+            raise MapError(f"{self.out}: writer already committed")
+        file = file or f"{entry_id}.pcd"
+        if any(e.id == entry_id for e in self.entries):
+            raise MapError(f"{self.out}: duplicate entry id {entry_id!r}")
+        data = encode_pcd(points, intensity)
+        (self.tmp / file).write_bytes(data)
+        lo, hi, mean = entry_stats(points)
+        entry = MapEntry(entry_id, file, lo, hi, mean if centroid is None else np.asarray(centroid, float),
+                         len(points), len(data), hashlib.sha256(data).hexdigest())
+        self.entries.append(entry)
+        return entry
+
+    def write_extra(self, name: str, data: bytes) -> None:
+        """An extra file in the store directory (not an entry)."""
+        (self.tmp / name).write_bytes(data)
+
+    def commit(self) -> MapStore:
+        """Write the kind's extra files and the manifest, rename into place, return the open store."""
+        if self.kind == "block":
+            cents = np.array([e.centroid for e in self.entries], np.float32).reshape(-1, 3)
+            self.write_extra(CENTROID_CLOUD, encode_pcd(cents, np.arange(len(cents), dtype=np.float32)))
+        elif self.kind == "grid":
+            self.write_extra(AUTOWARE_METADATA, autoware_metadata(self.entries, self.params).encode())
+        doc = {
+            "version": MANIFEST_VERSION, "kind": self.kind, "frame": self.frame,
+            "parameters": self.params, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "entries": [e.to_dict() for e in self.entries],
+        }
+        (self.tmp / MANIFEST_NAME).write_text(json.dumps(doc, indent=1))
+        _fsync_dir_files(self.tmp)
+        (self.tmp / INCOMPLETE_MARKER).unlink()
+        old = None
+        if self.out.exists():
+            if not self.overwrite:
+                self.abort()
+                raise MapError(f"{self.out}: appeared during the build; not overwritten")
+            old = self.out.with_name(f".{self.out.name}.old-{os.getpid()}")
+            os.replace(self.out, old)
+        os.replace(self.tmp, self.out)
+        self._committed = True
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+        log.info("wrote %s map %s: %d entries", self.kind, self.out, len(self.entries))
+        return open_map(self.out)
+
+
+def autoware_metadata(entries: list[MapEntry], params: dict[str, Any]) -> str:
+    """Autoware ``pointcloud_map_metadata.yaml``: resolutions, then ``file: [min_x, min_y]`` per tile."""
+    size = float(params["tile_size_m"])
+    lines = [f"x_resolution: {size!r}", f"y_resolution: {size!r}"]
+    for e in entries:
+        cx, cy = (float(v) for v in e.id.split("_"))
+        lines.append(f"{e.file}: [{round(cx - size / 2, 9)!r}, {round(cy - size / 2, 9)!r}]")
+    return "\n".join(lines) + "\n"
+
+
+def _fsync_dir_files(path: Path) -> None:
+    for p in path.iterdir():
+        try:
+            fd = os.open(p, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        except OSError:
+            pass
