@@ -320,7 +320,19 @@ def read_ms25_csv(path: str | Path) -> ImuData:
 
 
 def _imu_from_rows(path, utime, acc, gyro) -> ImuData:
-    utime = np.asarray(utime, dtype=np.float64)
+    return clean_imu(path, np.asarray(utime, dtype=np.float64) * 1e-6, acc, gyro)
+
+
+def clean_imu(source, t, acc, gyro) -> ImuData:
+    """IMU rows (t (M,) s, acc (M, 3), gyro (M, 3)) -> ImuData with strictly increasing t.
+
+    Rows holding NaN/inf are dropped, out-of-order rows sorted, rows with a duplicate stamp
+    dropped (first kept); each recovery logs one warning naming ``source`` and the count.
+    """
+    path = source
+    utime = np.asarray(t, dtype=np.float64)
+    acc = np.asarray(acc, dtype=np.float64).reshape(-1, 3)
+    gyro = np.asarray(gyro, dtype=np.float64).reshape(-1, 3)
     good = np.isfinite(utime) & np.isfinite(acc).all(axis=1) & np.isfinite(gyro).all(axis=1)
     if not good.all():
         log.warning("%s: dropped %d IMU rows holding NaN/inf", path, int((~good).sum()))
@@ -334,7 +346,7 @@ def _imu_from_rows(path, utime, acc, gyro) -> ImuData:
     if not keep.all():
         log.warning("%s: dropped %d IMU rows with a duplicate stamp", path, int((~keep).sum()))
         utime, acc, gyro = utime[keep], acc[keep], gyro[keep]
-    return ImuData(utime * 1e-6, np.ascontiguousarray(acc, dtype=np.float64),
+    return ImuData(utime, np.ascontiguousarray(acc, dtype=np.float64),
                    np.ascontiguousarray(gyro, dtype=np.float64))
 
 
