@@ -1,0 +1,104 @@
+"""`blockloc eval` end to end in a subprocess: JSON equals evo's APE; bad input is one line."""
+
+from __future__ import annotations
+
+import copy
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+evo_metrics = pytest.importorskip("evo.core.metrics")
+from evo.core import sync  # noqa: E402
+from evo.tools import file_interface  # noqa: E402
+
+from blockloc.evaluation.trajectory_io import write_tum  # noqa: E402
+from blockloc.geometry import Trajectory  # noqa: E402
+
+
+def blockloc(*args: str) -> subprocess.CompletedProcess:
+    exe = shutil.which("blockloc")
+    cmd = [exe] if exe else [sys.executable, "-m", "blockloc.cli"]
+    return subprocess.run(cmd + list(args), capture_output=True, text=True, timeout=120)
+
+
+@pytest.fixture(scope="module")
+def tum_pair(tmp_path_factory):
+    rng = np.random.default_rng(7)
+    n = 300
+    yaw = np.cumsum(rng.normal(0, 0.08, n))
+    pos = np.cumsum(np.stack([np.cos(yaw), np.sin(yaw), rng.normal(0, 0.05, n)], 1) * 0.12, 0)
+    gt = np.tile(np.eye(4), (n, 1, 1))
+    gt[:, :3, :3] = Rotation.from_euler("xyz", np.stack([rng.normal(0, .05, n), rng.normal(0, .05, n), yaw], 1)
+                                        ).as_matrix()
+    gt[:, :3, 3] = pos
+    est = gt.copy()
+    est[:, :3, :3] = est[:, :3, :3] @ Rotation.from_rotvec(rng.normal(0, 0.02, (n, 3))).as_matrix()
+    est[:, :3, 3] += rng.normal(0, 0.1, (n, 3))
+    offset = np.eye(4)
+    offset[:3, :3] = Rotation.from_euler("z", 0.3).as_matrix()
+    offset[:3, 3] = [2.0, -1.0, 0.5]
+    est = offset @ est
+    t = 1e9 + 0.1 * np.arange(n)
+    d = tmp_path_factory.mktemp("cli_eval")
+    write_tum(d / "gt.tum", Trajectory(t, gt))
+    write_tum(d / "est.tum", Trajectory(t + rng.uniform(-0.005, 0.005, n), est))
+    return d / "gt.tum", d / "est.tum"
+
+
+def evo_rmse(gt_path, est_path, relation, align):
+    ref = file_interface.read_tum_trajectory_file(str(gt_path))
+    est = file_interface.read_tum_trajectory_file(str(est_path))
+    ref, est = sync.associate_trajectories(ref, est, max_diff=0.02)
+    if align:
+        est = copy.deepcopy(est)
+        est.align(ref)
+    ape = evo_metrics.APE(relation)
+    ape.process_data((ref, est))
+    return ape.get_statistic(evo_metrics.StatisticsType.rmse)
+
+
+@pytest.mark.parametrize("align", [False, True])
+def test_eval_json_equals_evo_ape(tum_pair, align):
+    gt, est = tum_pair
+    res = blockloc("eval", "--gt", str(gt), "--est", str(est), "--json", *(["--align"] if align else []))
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.strip().splitlines()
+    assert len(lines) == 1
+    m = json.loads(lines[0])
+    PR = evo_metrics.PoseRelation
+    assert m["matched"] == 300 and m["aligned"] is align
+    assert m["ate_trans_rmse_m"] == pytest.approx(evo_rmse(gt, est, PR.translation_part, align), abs=1e-6)
+    assert m["ate_full_rmse"] == pytest.approx(evo_rmse(gt, est, PR.full_transformation, align), abs=1e-6)
+    assert m["ate_rot_rmse_deg"] == pytest.approx(evo_rmse(gt, est, PR.rotation_angle_deg, align), abs=1e-6)
+    for key in ("rpe_1m_trans_rmse_m", "rpe_10m_trans_rmse_m", "rpe_10m_rot_rmse_deg"):
+        assert isinstance(m[key], float)
+    assert m["rpe_100m_pairs"] is None  # the path is ~36 m
+
+
+def test_eval_table_and_plots(tum_pair, tmp_path):
+    gt, est = tum_pair
+    res = blockloc("eval", "--gt", str(gt), "--est", str(est), "--plot", str(tmp_path / "p"))
+    assert res.returncode == 0, res.stderr
+    assert "ATE" in res.stdout and "RPE" in res.stdout
+    assert (tmp_path / "p" / "trajectories.png").stat().st_size > 0
+    assert (tmp_path / "p" / "errors.png").stat().st_size > 0
+
+
+def test_eval_bad_file_is_one_line_without_traceback(tum_pair, tmp_path):
+    gt, _ = tum_pair
+    bad = tmp_path / "bad.tum"
+    bad.write_text("0 0 0 0 0 0 0 1\n0.1 0 0 0 0 1\n")
+    res = blockloc("eval", "--gt", str(gt), "--est", str(bad), "--json")
+    assert res.returncode != 0
+    assert res.stdout == ""
+    err = res.stderr.strip().splitlines()
+    assert len(err) == 1 and "Traceback" not in res.stderr
+    assert str(bad) in err[0] and ":2:" in err[0] and "expected 8 numbers" in err[0]
+    res = blockloc("eval", "--gt", str(tmp_path / "missing.tum"), "--est", str(gt))
+    assert res.returncode != 0 and len(res.stderr.strip().splitlines()) == 1
+    assert "missing.tum" in res.stderr and "Traceback" not in res.stderr
