@@ -1,0 +1,143 @@
+"""Branch-and-bound over (x, y, yaw) on a max pyramid (coarse to fine).
+
+Angles: the step is acos(1 - r^2 / (2 d_max^2)) (r: cell size, d_max: the scan's farthest cell), so
+one angular step moves the farthest scan cell by at most one cell. Each angle has its own roots at
+the top pyramid level tiling the translation window; the search is depth first, best child first
+(Cartographer), with the pruning threshold raised from the start to ``s0_ratio`` times the block-map
+paper's greedy initial score S0 (a greedy dive from the best roots) instead of waiting for leaves.
+The K best distinct leaves (non-maximum suppression over ``nms_m`` and ``nms_deg``) are returned.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from blockloc.global_init.pyramid import Pyramid
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Candidate2D:
+    """A leaf of the search: the levelled body at (x, y) metres (levelled frame L) with the levelled
+    scan rotated by ``theta`` rad; ``score`` in [0, 1] (mean raster value under the scan cells)."""
+
+    x: float
+    y: float
+    theta: float
+    score: float
+
+
+@dataclass
+class SearchStats:
+    num_angles: int
+    angle_step_rad: float
+    num_roots: int
+    nodes_visited: int
+    s0: float  # greedy initial score, [0, 1]; 0 when not used
+    time_s: float
+
+
+def angle_step(resolution: float, max_range: float) -> float:
+    """acos(1 - r^2 / (2 d^2)): the rotation moving a point at range d by one cell of side r."""
+    d = max(max_range, resolution)
+    return math.acos(1.0 - resolution**2 / (2.0 * d**2))
+
+
+def make_angles(theta_center: float, yaw_window_rad: float, step: float) -> tuple[np.ndarray, bool]:
+    """Angles (A,) covering ``theta_center`` +- window/2 and whether they wrap the full circle."""
+    if yaw_window_rad >= 2.0 * math.pi - 1e-9:
+        n = int(math.ceil(2.0 * math.pi / step))
+        return theta_center + np.arange(n) * (2.0 * math.pi / n), True
+    n_half = int(math.ceil(0.5 * yaw_window_rad / step))
+    return theta_center + np.arange(-n_half, n_half + 1) * step, False
+
+
+def rotated_cells(xy: np.ndarray, angles: np.ndarray, resolution: float) -> tuple[np.ndarray, np.ndarray]:
+    """Cells (A, N) int64 of the scan cell centres xy (N, 2) rotated by each angle (A,)."""
+    c = np.cos(angles)[:, None]
+    s = np.sin(angles)[:, None]
+    x = xy[None, :, 0]
+    y = xy[None, :, 1]
+    cx = np.floor((c * x - s * y) / resolution).astype(np.int64)
+    cy = np.floor((s * x + c * y) / resolution).astype(np.int64)
+    return cx, cy
+
+
+def search(pyramid: Pyramid, scan_xy: np.ndarray, center_xy: np.ndarray, window_m: float,
+           theta_center: float = 0.0, yaw_window_rad: float = 2.0 * math.pi, top_k: int = 5,
+           use_s0: bool = True, s0_ratio: float = 0.9, min_score: float = 0.05,
+           nms_m: float = 1.0, nms_deg: float = 5.0, n_dives: int = 8,
+           max_range: float | None = None) -> tuple[list[Candidate2D], SearchStats]:
+    """Top-K poses of the scan cells ``scan_xy`` (N, 2), levelled body frame, in the pyramid.
+
+    The body is searched over the square ``center_xy`` (2,) +- window_m/2 (levelled frame, metres)
+    and over angles ``theta_center`` +- yaw_window_rad/2. The pyramid must cover every cell the scan
+    can reach from there (see :func:`required_cells`). Scores are in [0, 1].
+    """
+    from blockloc.global_init import _kernels as K
+
+    t0 = time.perf_counter()
+    r = pyramid.resolution
+    top = pyramid.num_levels - 1
+    n_pts = len(scan_xy)
+    d_max = max_range if max_range is not None else float(np.hypot(*scan_xy.T).max())
+    step = angle_step(r, d_max)
+    angles, wrap = make_angles(theta_center, yaw_window_rad, step)
+    cx, cy = rotated_cells(scan_xy, angles, r)
+    dx = (cx - pyramid.origin[0]).astype(np.int32)
+    dy = (cy - pyramid.origin[1]).astype(np.int32)
+    half_cells = int(math.ceil(0.5 * window_m / r))
+    c0 = np.floor(np.asarray(center_xy, float) / r).astype(np.int64)
+    tx0, ty0 = int(c0[0] - half_cells), int(c0[1] - half_cells)
+    n_t = 2 * half_cells + 1
+    tx_end, ty_end = tx0 + n_t, ty0 + n_t
+    width = 1 << top
+    gx = np.arange(tx0, tx_end, width)
+    gy = np.arange(ty0, ty_end, width)
+    A = len(angles)
+    ra = np.repeat(np.arange(A), len(gx) * len(gy)).astype(np.int64)
+    rtx = np.tile(np.repeat(gx, len(gy)), A).astype(np.int64)
+    rty = np.tile(np.tile(gy, len(gx)), A).astype(np.int64)
+    rb = K.root_scores(pyramid.levels, top, dx, dy, ra, rtx, rty)
+    order = np.argsort(rb, kind="stable")
+    ra, rtx, rty, rb = ra[order], rtx[order], rty[order], rb[order]
+    full = 255 * n_pts
+    threshold = int(min_score * full)
+    s0 = 0.0
+    if use_s0 and len(rb):
+        best = -1
+        for i in range(1, min(n_dives, len(rb)) + 1):
+            s, _, _ = K.greedy_dive(pyramid.levels, dx, dy, ra[-i], rtx[-i], rty[-i], top, tx_end, ty_end)
+            best = max(best, int(s))
+        s0 = best / full
+        # Prune below a fraction of S0 (not S0 itself) so near-best candidates survive for the
+        # ambiguity check and the NDT verification; the S0 leaf is found again by the search.
+        threshold = max(threshold, int(s0_ratio * best) - 1)
+    nms_cells = int(math.ceil(nms_m / r))
+    nms_angles = int(math.ceil(math.radians(nms_deg) / step))
+    cs, ca, ctx, cty, visited = K.branch_and_bound(
+        pyramid.levels, dx, dy, ra, rtx, rty, rb, top, tx_end, ty_end, threshold, top_k,
+        nms_cells, nms_angles, A, wrap)
+    order = np.argsort(-cs, kind="stable")
+    cands = [Candidate2D(float(ctx[i] * r), float(cty[i] * r), float(angles[ca[i]]), float(cs[i] / full))
+             for i in order]
+    stats = SearchStats(A, step, len(ra), int(visited), s0, time.perf_counter() - t0)
+    log.debug("bnb: %d angles x %d roots, %d nodes, best %.3f, %.3f s", A, len(gx) * len(gy),
+              visited, cands[0].score if cands else -1, stats.time_s)
+    return cands, stats
+
+
+def required_cells(scan_xy: np.ndarray, center_xy: np.ndarray, window_m: float,
+                   resolution: float) -> tuple[np.ndarray, np.ndarray]:
+    """Global cell range [lo, hi) the pyramid must cover for :func:`search` (any rotation)."""
+    d = float(np.hypot(*np.asarray(scan_xy).T).max()) + 2 * resolution
+    c = np.asarray(center_xy, float)
+    lo = np.floor((c - 0.5 * window_m - d) / resolution).astype(np.int64) - 2
+    hi = np.floor((c + 0.5 * window_m + d) / resolution).astype(np.int64) + 3
+    return lo, hi

@@ -1,0 +1,218 @@
+"""Where global initialization gets its map: per-region pyramids, ground heights and points.
+
+Two sources with one interface (``R_L_map``, ``bounds_L()``, ``pyramid(lo, hi)``,
+``ground_at(xy_L)``, ``points_in_box(lo_L, hi_L)``):
+
+- :class:`ArrayMap`: a point array held in memory (tests, small maps); one raster.
+- :class:`StoreMap`: a :class:`blockloc.maps.store.MapStore`; one pyramid per map entry (block or
+  tile), built on first use and cached on disk keyed by the entry's sha256 and the projection
+  parameters (``$BLOCKLOC_CACHE`` or ``~/.cache/blockloc``, ``global_init/``; atomic writes), so a
+  map served read-only over HTTP still gets its cache. A query assembles only the entries it needs
+  (element-wise max, exact because every level is a max); points are loaded only for refinement.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from blockloc.global_init.projection import GROUND_CELL_M, R_level_from_gravity, lookup_ground, rasterize_map
+from blockloc.global_init.pyramid import Pyramid, assemble, build_pyramid
+
+log = logging.getLogger(__name__)
+
+CACHE_VERSION = 1
+
+
+@dataclass(frozen=True)
+class ProjectionParams:
+    """resolution_m: base cell (m); num_levels: pyramid levels; band_m: height band above ground (m);
+    mode: 'band' | 'all'."""
+
+    resolution_m: float = 0.25
+    num_levels: int = 7
+    band_m: tuple[float, float] = (0.3, 3.0)
+    mode: str = "band"
+
+    def key(self) -> str:
+        return f"v{CACHE_VERSION}-r{self.resolution_m:g}-l{self.num_levels}-b{self.band_m[0]:g}_{self.band_m[1]:g}-{self.mode}"
+
+
+@dataclass
+class _Piece:
+    pyramid: Pyramid
+    ground_origin: np.ndarray
+    ground: np.ndarray
+
+
+def _piece_from_points(points_map: np.ndarray, R_L_map: np.ndarray, params: ProjectionParams) -> _Piece:
+    lvl = np.asarray(points_map, dtype=np.float64) @ R_L_map.T
+    ras = rasterize_map(lvl, params.resolution_m, params.band_m, params.mode)
+    return _Piece(build_pyramid(ras, params.num_levels), ras.ground_origin, ras.ground)
+
+
+def box_L_to_map(lo_L: np.ndarray, hi_L: np.ndarray, R_L_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Map-frame xy box (min (2,), max (2,)) holding the levelled-frame xy box [lo_L, hi_L]."""
+    corners = np.array([[x, y, 0.0] for x in (lo_L[0], hi_L[0]) for y in (lo_L[1], hi_L[1])])
+    m = corners @ R_L_map  # R_map_L = R_L_map^T, applied to row vectors
+    return m[:, :2].min(axis=0), m[:, :2].max(axis=0)
+
+
+class ArrayMap:
+    """A map held as one point array (M, 3), map frame, metres; gravity_map (3,) m/s^2."""
+
+    def __init__(self, points_map: np.ndarray, gravity_map, params: ProjectionParams = ProjectionParams()):
+        self.params = params
+        self.R_L_map = R_level_from_gravity(gravity_map)
+        self._points = np.asarray(points_map, dtype=np.float64).reshape(-1, 3)
+        self._lvl_xy = self._points @ self.R_L_map[:2].T
+        self._piece = _piece_from_points(self._points, self.R_L_map, params)
+
+    def bounds_L(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._lvl_xy.min(axis=0), self._lvl_xy.max(axis=0)
+
+    def pyramid(self, lo: np.ndarray, hi: np.ndarray) -> Pyramid:
+        return assemble([self._piece.pyramid], lo, hi)
+
+    def ground_at(self, xy_L: np.ndarray) -> np.ndarray:
+        return lookup_ground(self._piece.ground_origin, self._piece.ground, xy_L, GROUND_CELL_M)
+
+    def points_in_box(self, lo_L: np.ndarray, hi_L: np.ndarray) -> np.ndarray:
+        keep = np.all((self._lvl_xy >= lo_L) & (self._lvl_xy <= hi_L), axis=1)
+        return self._points[keep]
+
+    def region_centers(self, window_m: float) -> np.ndarray:
+        lo, hi = self.bounds_L()
+        return _grid_centers(lo, hi, window_m)
+
+
+def _grid_centers(lo: np.ndarray, hi: np.ndarray, window_m: float) -> np.ndarray:
+    n = np.maximum(np.ceil((hi - lo) / window_m).astype(int), 1)
+    start = 0.5 * (lo + hi) - 0.5 * (n - 1) * window_m
+    xs = start[0] + window_m * np.arange(n[0])
+    ys = start[1] + window_m * np.arange(n[1])
+    return np.array([[x, y] for x in xs for y in ys])
+
+
+def default_cache_dir() -> Path:
+    root = os.environ.get("BLOCKLOC_CACHE")
+    return Path(root) if root else Path.home() / ".cache" / "blockloc"
+
+
+class StoreMap:
+    """A map store seen by global initialization (see the module docstring)."""
+
+    def __init__(self, store, gravity_map, params: ProjectionParams = ProjectionParams(),
+                 cache_dir: str | Path | None = None):
+        self.store = store
+        self.params = params
+        self.R_L_map = R_level_from_gravity(gravity_map)
+        self.cache_dir = Path(cache_dir) if cache_dir else default_cache_dir() / "global_init"
+        self._pieces: dict[str, _Piece] = {}
+        g = np.asarray(gravity_map, float)
+        self._gkey = hashlib.sha256(np.round(g / np.linalg.norm(g), 6).tobytes()).hexdigest()[:8]
+        # Entry xy boxes in the levelled frame.
+        boxes = [box_L_from_map(e.bounds_min, e.bounds_max, self.R_L_map) for e in store.entries]
+        self._lo = np.array([b[0] for b in boxes]).reshape(-1, 2)
+        self._hi = np.array([b[1] for b in boxes]).reshape(-1, 2)
+
+    def bounds_L(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._lo.min(axis=0), self._hi.max(axis=0)
+
+    def _entries_in(self, lo_L: np.ndarray, hi_L: np.ndarray) -> list[int]:
+        hit = np.all(self._hi >= lo_L, axis=1) & np.all(self._lo <= hi_L, axis=1)
+        return list(np.flatnonzero(hit))
+
+    def _cache_path(self, entry) -> Path:
+        ident = entry.sha256 or hashlib.sha256(json.dumps(
+            [self.store.path, entry.id, entry.num_points, np.asarray(entry.bounds_min).tolist(),
+             np.asarray(entry.bounds_max).tolist()]).encode()).hexdigest()
+        return self.cache_dir / f"{self.params.key()}-g{self._gkey}" / f"{ident}.npz"
+
+    def _piece(self, i: int) -> _Piece:
+        entry = self.store.entries[i]
+        if entry.id in self._pieces:
+            return self._pieces[entry.id]
+        path = self._cache_path(entry)
+        piece = None
+        if path.exists():
+            try:
+                with np.load(path) as z:
+                    piece = _Piece(Pyramid(z["origin"], z["levels"], float(z["resolution"])),
+                                   z["ground_origin"], z["ground"])
+            except (OSError, ValueError, KeyError) as exc:
+                log.warning("ignoring unreadable cache %s (%s)", path, exc)
+        if piece is None:
+            piece = _piece_from_points(self.store.load(entry.id)[0], self.R_L_map, self.params)
+            self._write(path, piece)
+        self._pieces[entry.id] = piece
+        return piece
+
+    @staticmethod
+    def _write(path: Path, piece: _Piece) -> None:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(prefix=path.name, suffix=".tmp", dir=path.parent)
+            with os.fdopen(fd, "wb") as f:
+                np.savez_compressed(f, origin=piece.pyramid.origin, levels=piece.pyramid.levels,
+                                    resolution=piece.pyramid.resolution,
+                                    ground_origin=piece.ground_origin, ground=piece.ground)
+            os.replace(tmp, path)
+        except OSError as exc:  # a read-only cache only costs time
+            log.warning("cannot write global-init cache %s (%s)", path, exc)
+
+    def precompute(self) -> int:
+        """Build (or load) the pyramid of every entry; returns the number of entries."""
+        for i in range(len(self.store.entries)):
+            self._piece(i)
+        return len(self.store.entries)
+
+    def pyramid(self, lo: np.ndarray, hi: np.ndarray) -> Pyramid:
+        r = self.params.resolution_m
+        ids = self._entries_in(lo * r, hi * r)
+        if not ids:
+            from blockloc.errors import GlobalInitError
+
+            raise GlobalInitError(f"{self.store.path}: no map block/tile near the search window")
+        return assemble([self._piece(i).pyramid for i in ids], lo, hi)
+
+    def ground_at(self, xy_L: np.ndarray) -> np.ndarray:
+        xy_L = np.asarray(xy_L, float).reshape(-1, 2)
+        out = np.full(len(xy_L), np.nan)
+        for i in self._entries_in(xy_L.min(axis=0), xy_L.max(axis=0)):
+            p = self._piece(i)
+            g = lookup_ground(p.ground_origin, p.ground, xy_L, GROUND_CELL_M)
+            out = np.fmin(out, g)
+        return out
+
+    def points_in_box(self, lo_L: np.ndarray, hi_L: np.ndarray) -> np.ndarray:
+        ids = self._entries_in(lo_L, hi_L)
+        if not ids:
+            return np.zeros((0, 3))
+        pts = self.store.load_points([self.store.entries[i].id for i in ids]).astype(np.float64)
+        xy = pts @ self.R_L_map[:2].T
+        return pts[np.all((xy >= lo_L) & (xy <= hi_L), axis=1)]
+
+    def region_centers(self, window_m: float) -> np.ndarray:
+        """Centres (R, 2) of square regions tiling the map, keeping those that touch an entry."""
+        lo, hi = self.bounds_L()
+        c = _grid_centers(lo, hi, window_m)
+        h = 0.5 * window_m
+        return np.array([x for x in c if self._entries_in(x - h, x + h)]).reshape(-1, 2)
+
+
+def box_L_from_map(bmin: np.ndarray, bmax: np.ndarray, R_L_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Levelled xy box (min (2,), max (2,)) of a map-frame 3D box [bmin, bmax]."""
+    bmin = np.asarray(bmin, float)
+    bmax = np.asarray(bmax, float)
+    corners = np.array([[x, y, z] for x in (bmin[0], bmax[0]) for y in (bmin[1], bmax[1])
+                        for z in (bmin[2], bmax[2])])
+    lvl = corners @ R_L_map.T
+    return lvl[:, :2].min(axis=0), lvl[:, :2].max(axis=0)
