@@ -1,0 +1,163 @@
+"""IMU buffering and GTSAM preintegration.
+
+The estimator's state is the BODY frame (``T_map_body``, velocity of the body origin in the map
+frame); IMU samples arrive in the imu frame and GTSAM's ``body_P_sensor`` (= ``T_body_imu``) maps
+them into the body frame after the bias (which lives in the imu frame) is removed. Gravity is a
+vector in the map frame (NCLT and simulated sessions: z down, (0, 0, +9.81); ROS: (0, 0, -9.81)),
+handed to ``PreintegrationCombinedParams`` as is: never assume z up.
+
+gtsam is imported inside functions so importing this module stays cheap.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ImuNoise:
+    """Continuous-time IMU noise (densities and random walks), units per sqrt(Hz).
+
+    acc_noise_density: m/s^2/sqrt(Hz); gyro_noise_density: rad/s/sqrt(Hz);
+    acc_bias_random_walk: m/s^3/sqrt(Hz); gyro_bias_random_walk: rad/s^2/sqrt(Hz);
+    integration_sigma: position integration error, m (GTSAM's integrationCovariance).
+    """
+
+    acc_noise_density: float = 0.004
+    gyro_noise_density: float = 0.0003
+    acc_bias_random_walk: float = 0.0002
+    gyro_bias_random_walk: float = 0.00002
+    integration_sigma: float = 1e-4
+
+    @classmethod
+    def from_config(cls, imu_cfg) -> "ImuNoise":
+        """From a ``blockloc.config.ImuConfig``."""
+        return cls(imu_cfg.acc_noise_density, imu_cfg.gyro_noise_density, imu_cfg.acc_bias_random_walk,
+                   imu_cfg.gyro_bias_random_walk, imu_cfg.integration_sigma)
+
+
+def make_preintegration_params(gravity_map: np.ndarray, T_body_imu: np.ndarray, noise: ImuNoise,
+                               noise_inflation: float = 1.0):
+    """``gtsam.PreintegrationCombinedParams`` for gravity (3,) m/s^2 in the map frame.
+
+    noise_inflation multiplies every standard deviation: real IMUs are never as good as their
+    datasheet once vibration and misalignment are counted.
+    """
+    import gtsam
+
+    k2 = noise_inflation**2
+    p = gtsam.PreintegrationCombinedParams(np.asarray(gravity_map, dtype=np.float64).reshape(3))
+    I3 = np.eye(3)
+    p.setAccelerometerCovariance(I3 * noise.acc_noise_density**2 * k2)
+    p.setGyroscopeCovariance(I3 * noise.gyro_noise_density**2 * k2)
+    p.setBiasAccCovariance(I3 * noise.acc_bias_random_walk**2 * k2)
+    p.setBiasOmegaCovariance(I3 * noise.gyro_bias_random_walk**2 * k2)
+    p.setIntegrationCovariance(I3 * noise.integration_sigma**2)
+    if not np.allclose(T_body_imu, np.eye(4)):
+        p.setBodyPSensor(gtsam.Pose3(np.asarray(T_body_imu, dtype=np.float64)))
+    return p
+
+
+class ImuBuffer:
+    """Time-ordered IMU samples (imu frame) kept for the current window.
+
+    Samples older than what the window needs are dropped with :meth:`discard_before`.
+    Integration over [t0, t1] uses zero-order hold: each sample holds until the next one, the
+    last known sample holds across gaps and past the newest sample (so an IMU gap or a frame
+    that arrives before its IMU data still integrates; the gap is reported).
+    """
+
+    def __init__(self) -> None:
+        self._t: list[float] = []
+        self._acc: list[np.ndarray] = []
+        self._gyro: list[np.ndarray] = []
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    @property
+    def last_time(self) -> float | None:
+        return self._t[-1] if self._t else None
+
+    def insert(self, t: float, acc: np.ndarray, gyro: np.ndarray) -> bool:
+        """Append one sample; returns False (and ignores it) when t is not after the last one."""
+        if self._t and t <= self._t[-1]:
+            return False
+        acc = np.asarray(acc, dtype=np.float64).reshape(3)
+        gyro = np.asarray(gyro, dtype=np.float64).reshape(3)
+        if not (np.all(np.isfinite(acc)) and np.all(np.isfinite(gyro))):
+            return False
+        self._t.append(float(t))
+        self._acc.append(acc)
+        self._gyro.append(gyro)
+        return True
+
+    def discard_before(self, t: float) -> None:
+        """Drop samples no longer needed to integrate from t on (keeps the one holding at t)."""
+        i = int(np.searchsorted(self._t, t, side="right")) - 1
+        if i > 0:
+            del self._t[:i], self._acc[:i], self._gyro[:i]
+
+    def segments(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """Zero-order-hold pieces covering [t0, t1].
+
+        Returns acc (K, 3), gyro (K, 3), dt (K,) seconds with sum(dt) = t1 - t0, and the longest
+        stretch (s) inside [t0, t1] covered by no fresh sample. K = 0 when t1 <= t0 or no sample
+        is known at all.
+        """
+        if t1 <= t0 or not self._t:
+            return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), 0.0
+        t = np.asarray(self._t)
+        i0 = max(int(np.searchsorted(t, t0, side="right")) - 1, 0)
+        i1 = int(np.searchsorted(t, t1, side="left"))
+        idx = np.arange(i0, max(i1, i0 + 1))
+        starts = np.maximum(t[idx], t0)
+        starts[0] = t0
+        ends = np.append(starts[1:], t1)
+        dt = ends - starts
+        keep = dt > 1e-9
+        acc = np.asarray(self._acc)[idx][keep]
+        gyro = np.asarray(self._gyro)[idx][keep]
+        # Longest stretch with no sample: between consecutive sample times clipped to [t0, t1].
+        knots = np.concatenate([[t0], t[(t > t0) & (t < t1)], [t1]])
+        if t[0] > t0:  # no sample before t0: the first sample's value is extrapolated backwards
+            knots = np.concatenate([[t0 - (t[0] - t0)], knots[1:]])
+        max_gap = float(np.max(np.diff(knots))) if len(knots) > 1 else 0.0
+        return acc, gyro, dt[keep], max_gap
+
+
+def integrate(pim, buffer: ImuBuffer, t0: float, t1: float) -> float:
+    """Integrate ``buffer`` over [t0, t1] into the preintegrator ``pim``; returns the longest gap (s)."""
+    acc, gyro, dt, max_gap = buffer.segments(t0, t1)
+    for a, w, d in zip(acc, gyro, dt):
+        pim.integrateMeasurement(a, w, float(d))
+    return max_gap
+
+
+def predict_states(params, state_i, bias, buffer: ImuBuffer, t_i: float,
+                   times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """IMU-propagated body poses at increasing ``times`` (K,) from the NavState at ``t_i``.
+
+    Returns T_map_body (K, 4, 4) and velocities (K, 3) in the map frame. Times before t_i get
+    the state at t_i (the window never needs to go back in time).
+    """
+    import gtsam
+
+    times = np.asarray(times, dtype=np.float64)
+    poses = np.empty((len(times), 4, 4))
+    vels = np.empty((len(times), 3))
+    pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
+    t_prev = t_i
+    for k, t in enumerate(times):
+        if t > t_prev:
+            integrate(pim, buffer, t_prev, t)
+            t_prev = t
+        s = pim.predict(state_i, bias) if pim.deltaTij() > 0 else state_i
+        poses[k] = s.pose().matrix()
+        vels[k] = s.velocity()
+    return poses, vels

@@ -1,0 +1,453 @@
+"""The streaming pose tracker: IMU preintegration + NDT factors in a 20 -> 5 sliding window.
+
+Per frame (``insert_frame``):
+ 1. predict the body pose over the sweep from the IMU (from the newest keyframe's estimate),
+ 2. downsample the scan and deskew it to the scan time (IMU rotation, constant velocity),
+ 3. ask the map provider for the local map at the predicted position (it reports switches),
+ 4. register the scan with the predicted pose as initial guess,
+ 5. check health (fitness, innovation against the prediction),
+ 6. add a keyframe: CombinedImuFactor from the previous one, the NDT factor when accepted,
+    optionally a LiDAR odometry factor; optimize the window,
+ 7. marginalize: down to N_r keyframes on a map switch, else down to N_a,
+ 8. after ``max_bad_frames`` rejected frames in a row, relocalize around the last good pose.
+
+Collaborators are duck-typed so tests can hand in small fakes:
+- ``map_provider.update(position_map (3,), velocity_map (3,) | None, stamp) -> LocalMap`` with
+  ``.target`` (what ``registration.align`` takes, None when nothing is mapped), ``.switched``,
+  and optionally ``.block_id`` / ``.region_id``;
+- ``registration.align(target, source_points (N, 3), T_init (4, 4)) -> result`` with
+  ``T_target_source``, ``converged``, ``fitness``, ``H`` (6, 6, Pose3 tangent order);
+- ``relocalize(points_lidar (N, 3), hint_T_map_body (4, 4) | None, gravity_body (3,), stamp)
+  -> T_map_body (4, 4) | None``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Callable, Optional
+
+import numpy as np
+
+from blockloc.datasets.base import LidarFrame
+from blockloc.errors import TrackingError
+from blockloc.geometry import inv_T, rotation_angle
+from blockloc.tracking import deskew as dsk
+from blockloc.tracking.factors import NdtFactorParams, ndt_factor, ndt_information, odometry_factor, state_priors
+from blockloc.tracking.imu import ImuBuffer, ImuNoise, integrate, make_preintegration_params, predict_states
+from blockloc.tracking.window import SlidingWindow, keys_of
+
+log = logging.getLogger(__name__)
+
+Relocalizer = Callable[[np.ndarray, Optional[np.ndarray], np.ndarray, float], Optional[np.ndarray]]
+
+
+@dataclass(frozen=True)
+class TrackerParams:
+    """Explicit tracker settings (``from_config`` fills them from the config tree)."""
+
+    window_size: int = 20  # N_a
+    window_size_on_switch: int = 5  # N_r
+    voxel_size_m: float = 0.5
+    max_points: int = 20000
+    min_range_m: float = 1.0
+    max_range_m: float = 100.0
+    deskew: bool = True
+    min_points: int = 100
+    min_fitness: float = 0.4
+    max_innovation_m: float = 1.0
+    max_innovation_deg: float = 10.0
+    max_bad_frames: int = 3  # rejected frames in a row before relocalization
+    relocalize_every: int = 5  # while lost, frames between relocalization attempts
+    use_odometry_factor: bool = False
+    odometry_sigma_rot_rad: float = np.deg2rad(0.5)
+    odometry_sigma_trans_m: float = 0.05
+    lm_iterations: int = 6
+    compute_covariance: bool = True
+    imu_noise_inflation: float = 1.0
+    ndt: NdtFactorParams = field(default_factory=NdtFactorParams)
+    # first keyframe priors
+    init_sigma_rot_rad: float = np.deg2rad(1.0)
+    init_sigma_trans_m: float = 0.1
+    init_sigma_vel_m_s: float = 1.0
+    init_sigma_acc_bias: float = 0.2
+    init_sigma_gyro_bias: float = 0.01
+
+
+@dataclass
+class Diagnostics:
+    """Per-frame health and cost; every field is plain data for JSON."""
+
+    status: str = "ok"  # ok | rejected | imu_only | lost | recovered | uninitialized
+    fitness: float = float("nan")
+    innovation_m: float = float("nan")
+    innovation_deg: float = float("nan")
+    window_size: int = 0
+    marginalized: int = 0
+    switched: bool = False
+    block_id: object = None
+    num_points: int = 0
+    weak_dims: int = 0
+    imu_gap_s: float = 0.0
+    deskew_ms: float = 0.0
+    registration_ms: float = 0.0
+    smoother_ms: float = 0.0
+    update_ms: float = 0.0
+    map_ms: float = 0.0
+
+
+@dataclass
+class Estimate:
+    """The tracker's answer for one frame.
+
+    T_map_body: (4, 4) or None before the first successful initialization.
+    covariance: (6, 6) Pose3 tangent (rotation rad, translation m) of T_map_body, or None.
+    velocity_map: (3,) m/s; acc_bias (3,) m/s^2 and gyro_bias (3,) rad/s in the imu frame.
+    """
+
+    index: int
+    stamp: float
+    T_map_body: np.ndarray | None
+    covariance: np.ndarray | None
+    velocity_map: np.ndarray
+    acc_bias: np.ndarray
+    gyro_bias: np.ndarray
+    diagnostics: Diagnostics
+
+    def as_dict(self) -> dict:
+        return asdict(self.diagnostics)
+
+
+class Tracker:
+    """Streaming estimator: ``insert_imu`` for every IMU sample, ``insert_frame`` for every scan."""
+
+    def __init__(self, *, map_provider, registration, T_body_lidar: np.ndarray, T_body_imu: np.ndarray,
+                 gravity_map: np.ndarray, imu_noise: ImuNoise = ImuNoise(),
+                 params: TrackerParams = TrackerParams(), relocalize: Relocalizer | None = None) -> None:
+        self.map_provider = map_provider
+        self.registration = registration
+        self.T_body_lidar = np.asarray(T_body_lidar, dtype=np.float64)
+        self.T_lidar_body = inv_T(self.T_body_lidar)
+        self.T_body_imu = np.asarray(T_body_imu, dtype=np.float64)
+        self.gravity_map = np.asarray(gravity_map, dtype=np.float64).reshape(3)
+        self.params = params
+        self.relocalize = relocalize
+        self.imu_params = make_preintegration_params(self.gravity_map, self.T_body_imu, imu_noise,
+                                                     params.imu_noise_inflation)
+        self.imu = ImuBuffer()
+        self.window = SlidingWindow(params.window_size, params.lm_iterations)
+        self._next_index = 0
+        self._last_ndt: tuple[int, np.ndarray] | None = None  # (keyframe, T_map_body) of the last accepted NDT
+        self._last_good: np.ndarray | None = None
+        self._bad_streak = 0
+        self._lost_frames = 0
+        self.counters = {"frames": 0, "failures": 0, "recoveries": 0, "switches": 0, "rejected": 0,
+                         "imu_only": 0}
+
+    # ----------------------------------------------------------------- factories
+    @classmethod
+    def from_config(cls, cfg, info, *, map_provider, registration, relocalize=None) -> "Tracker":
+        """From a ``blockloc.config.Config`` and a ``SequenceInfo``."""
+        tc, lc, dc = cfg.tracking, cfg.lidar, cfg.dataset
+        ndt = NdtFactorParams(information_scale=tc.ndt_information_scale,
+                              degeneracy_ratio=tc.degeneracy_eigenvalue_ratio,
+                              min_sigma_rot_rad=np.deg2rad(tc.ndt_min_sigma_rot_deg),
+                              min_sigma_trans_m=tc.ndt_min_sigma_trans_m,
+                              huber_k=tc.huber_k if tc.robust_loss == "huber" else 0.0)
+        params = TrackerParams(window_size=tc.window_size, window_size_on_switch=tc.window_size_on_switch,
+                               voxel_size_m=lc.voxel_size_m, max_points=lc.max_points,
+                               min_range_m=dc.min_range_m, max_range_m=dc.max_range_m, deskew=lc.deskew,
+                               min_fitness=tc.min_fitness, max_innovation_m=tc.max_innovation_m,
+                               max_innovation_deg=tc.max_innovation_deg, max_bad_frames=tc.max_bad_frames,
+                               use_odometry_factor=tc.use_odometry_factor, lm_iterations=tc.lm_iterations,
+                               imu_noise_inflation=tc.imu_noise_inflation, ndt=ndt)
+        return cls(map_provider=map_provider, registration=registration, T_body_lidar=info.T_body_lidar,
+                   T_body_imu=info.T_body_imu, gravity_map=info.gravity_map,
+                   imu_noise=ImuNoise.from_config(cfg.imu), params=params, relocalize=relocalize)
+
+    # ----------------------------------------------------------------- state
+    @property
+    def initialized(self) -> bool:
+        return len(self.window) > 0
+
+    def initialize(self, T_map_body: np.ndarray, stamp: float, velocity_map: np.ndarray | None = None,
+                   bias=None, sigma_vel_m_s: float | None = None) -> None:
+        """Start (or restart) the window with one keyframe at ``stamp`` held by priors.
+
+        velocity_map: (3,) m/s if known (e.g. from ground truth), else zero with a loose prior.
+        """
+        import gtsam
+
+        p = self.params
+        T = np.asarray(T_map_body, dtype=np.float64)
+        vel = np.zeros(3) if velocity_map is None else np.asarray(velocity_map, dtype=np.float64)
+        if sigma_vel_m_s is None:
+            sigma_vel_m_s = 0.1 if velocity_map is not None else p.init_sigma_vel_m_s
+        bias = bias if bias is not None else gtsam.imuBias.ConstantBias()
+        self.window.clear()
+        i = self._next_index
+        self._next_index += 1
+        kx, kv, kb = keys_of(i)
+        values = gtsam.Values()
+        values.insert(kx, gtsam.Pose3(T))
+        values.insert(kv, vel)
+        values.insert(kb, bias)
+        self.window.add_keyframe(i, float(stamp), values)
+        for f in state_priors(keys_of(i), T, vel, bias, p.init_sigma_rot_rad, p.init_sigma_trans_m,
+                              sigma_vel_m_s, p.init_sigma_acc_bias, p.init_sigma_gyro_bias):
+            self.window.add_factor(f)
+        self._last_ndt = None
+        self._last_good = T.copy()
+        self._bad_streak = 0
+        self._lost_frames = 0
+
+    def insert_imu(self, t: float, acc: np.ndarray, gyro: np.ndarray) -> None:
+        """One IMU sample: t seconds, acc (3,) m/s^2 specific force and gyro (3,) rad/s, imu frame."""
+        self.imu.insert(t, acc, gyro)
+
+    def _state(self, i: int):
+        import gtsam
+
+        kx, kv, kb = keys_of(i)
+        v = self.window.values
+        return gtsam.NavState(v.atPose3(kx), v.atVector(kv)), v.atConstantBias(kb)
+
+    def _gravity_body(self, T_map_body: np.ndarray | None) -> np.ndarray:
+        if T_map_body is not None:
+            return T_map_body[:3, :3].T @ self.gravity_map
+        if len(self.imu):
+            acc = np.asarray(self.imu._acc[-50:]).mean(axis=0)  # at rest the IMU reads -g
+            return -(self.T_body_imu[:3, :3] @ acc)
+        return np.array([0.0, 0.0, np.linalg.norm(self.gravity_map)])
+
+    # ----------------------------------------------------------------- the frame step
+    def insert_frame(self, frame: LidarFrame) -> Estimate:
+        """Process one LiDAR sweep; returns the estimate at ``frame.stamp``."""
+        t_start = time.perf_counter()
+        p = self.params
+        stamp = float(frame.stamp)
+        diag = Diagnostics()
+        self.counters["frames"] += 1
+
+        points, offsets = self._preprocess(frame)
+        diag.num_points = len(points)
+
+        if not self.initialized:
+            est = self._start_without_pose(frame, points, stamp, diag)
+            if est is not None:
+                return est
+
+        last = self.window.latest
+        t_prev = self.window.stamps[last]
+        state_prev, bias_prev = self._state(last)
+
+        # 1-2. IMU prediction over the sweep, deskew to the scan time.
+        t0 = time.perf_counter()
+        T_pred, v_pred, scan_pts = self._predict_and_deskew(points, offsets, stamp, t_prev, state_prev,
+                                                            bias_prev)
+        diag.deskew_ms = (time.perf_counter() - t0) * 1e3
+
+        # 3. the local map at the predicted position.
+        t0 = time.perf_counter()
+        local = self.map_provider.update(T_pred[:3, 3].copy(), v_pred.copy(), stamp)
+        diag.map_ms = (time.perf_counter() - t0) * 1e3
+        diag.switched = bool(getattr(local, "switched", False))
+        diag.block_id = _plain(getattr(local, "block_id", getattr(local, "region_id", None)))
+        if diag.switched:
+            self.counters["switches"] += 1
+
+        # 4-5. registration and its health.
+        t0 = time.perf_counter()
+        T_ndt, info, accepted = self._register(local, scan_pts, T_pred, diag)
+        diag.registration_ms = (time.perf_counter() - t0) * 1e3
+
+        # 6-7. the window.
+        t0 = time.perf_counter()
+        k = self._add_keyframe(stamp, t_prev, last, state_prev, bias_prev, T_pred, v_pred, T_ndt, info,
+                               accepted, diag)
+        self.window.optimize()
+        diag.marginalized = self.window.enforce_size(diag.switched, p.window_size_on_switch)
+        diag.window_size = len(self.window)
+        diag.smoother_ms = (time.perf_counter() - t0) * 1e3
+
+        est_T = self.window.values.atPose3(keys_of(k)[0]).matrix()
+        # 8. health bookkeeping and recovery.
+        if accepted:
+            self._bad_streak = 0
+            self._lost_frames = 0
+            self._last_good = est_T.copy()
+        else:
+            self._bad_streak += 1
+            if self._bad_streak >= p.max_bad_frames:
+                if self._bad_streak == p.max_bad_frames:
+                    self.counters["failures"] += 1
+                    log.warning("frame %d: %d rejected scans in a row, relocalizing", frame.index,
+                                self._bad_streak)
+                diag.status = "lost"
+                recovered = self._try_recover(scan_pts, stamp, k, diag)
+                if recovered is not None:
+                    est_T = recovered
+                    k = self.window.latest
+        self.imu.discard_before(self.window.stamps[self.window.latest] - 1.0)
+
+        return self._estimate(frame.index, stamp, k, diag, t_start)
+
+    # ----------------------------------------------------------------- steps
+    def _preprocess(self, frame: LidarFrame) -> tuple[np.ndarray, np.ndarray]:
+        p = self.params
+        pts = np.asarray(frame.points, dtype=np.float64)
+        if len(pts) == 0:
+            return np.zeros((0, 3)), np.zeros(0)
+        ok = dsk.range_filter(pts, p.min_range_m, p.max_range_m)
+        idx = np.flatnonzero(ok)
+        sel = dsk.voxel_downsample_indices(pts[idx], p.voxel_size_m, p.max_points, seed=frame.index)
+        idx = idx[sel]
+        offsets = (np.zeros(len(idx)) if frame.time_offsets is None
+                   else np.asarray(frame.time_offsets, dtype=np.float64)[idx])
+        return pts[idx], offsets
+
+    def _predict_and_deskew(self, points, offsets, stamp, t_prev, state_prev, bias_prev):
+        """Predicted T_map_body and velocity at ``stamp``; the points deskewed to ``stamp``."""
+        p = self.params
+        if p.deskew and len(offsets) and (offsets.max() - offsets.min()) > 1e-6:
+            t_lo, t_hi = stamp + offsets.min(), stamp + offsets.max()
+            imu_t = np.asarray(self.imu._t)
+            inner = imu_t[(imu_t > max(t_lo, t_prev)) & (imu_t < t_hi)]
+            table_t = np.unique(np.concatenate([[t_lo, t_hi, stamp], inner]))
+        else:
+            table_t = np.array([stamp])
+        poses, vels = predict_states(self.imu_params, state_prev, bias_prev, self.imu, t_prev,
+                                     np.maximum(table_t, t_prev))
+        ref = int(np.searchsorted(table_t, stamp))
+        T_pred, v_pred = poses[ref], vels[ref]
+        if len(table_t) == 1:
+            return T_pred, v_pred, points
+        # Constant-velocity translation (eq. 9), IMU rotation (eq. 8).
+        poses = poses.copy()
+        poses[:, :3, 3] = T_pred[:3, 3] + v_pred[None] * (table_t - stamp)[:, None]
+        T_ref_table = dsk.lidar_motion_table(poses, self.T_body_lidar, ref)
+        return T_pred, v_pred, dsk.deskew_points(points, stamp + offsets, table_t, T_ref_table)
+
+    def _register(self, local, scan_pts, T_pred, diag):
+        p = self.params
+        target = getattr(local, "target", None)
+        if target is None or len(scan_pts) < p.min_points:
+            diag.status = "imu_only"
+            self.counters["imu_only"] += 1
+            return None, None, False
+        try:
+            res = self.registration.align(target, scan_pts, T_pred @ self.T_body_lidar)
+        except Exception as exc:  # a registration failure is a rejected scan, not a crash
+            log.warning("registration failed: %s", exc)
+            diag.status = "rejected"
+            self.counters["rejected"] += 1
+            return None, None, False
+        T_ndt = np.asarray(res.T_target_source) @ self.T_lidar_body
+        diag.fitness = float(res.fitness)
+        diag.innovation_m = float(np.linalg.norm(T_ndt[:3, 3] - T_pred[:3, 3]))
+        diag.innovation_deg = float(np.rad2deg(rotation_angle(T_pred[:3, :3].T @ T_ndt[:3, :3])))
+        ok = (bool(getattr(res, "converged", True)) and diag.fitness >= p.min_fitness
+              and diag.innovation_m <= p.max_innovation_m and diag.innovation_deg <= p.max_innovation_deg
+              and np.all(np.isfinite(T_ndt)))
+        if not ok:
+            diag.status = "rejected"
+            self.counters["rejected"] += 1
+            return T_ndt, None, False
+        info, diag.weak_dims = ndt_information(np.asarray(res.H), self.T_body_lidar, p.ndt)
+        return T_ndt, info, True
+
+    def _add_keyframe(self, stamp, t_prev, last, state_prev, bias_prev, T_pred, v_pred, T_ndt, info,
+                      accepted, diag) -> int:
+        import gtsam
+
+        p = self.params
+        dt = stamp - t_prev
+        if dt < 1e-4:
+            # Same time as the newest keyframe (the first scan after initialization): the NDT
+            # factor goes on that keyframe, no new state.
+            k = last
+        else:
+            k = self._next_index
+            self._next_index += 1
+            kx, kv, kb = keys_of(k)
+            px, pv, pb = keys_of(last)
+            pim = gtsam.PreintegratedCombinedMeasurements(self.imu_params, bias_prev)
+            diag.imu_gap_s = integrate(pim, self.imu, t_prev, stamp)
+            values = gtsam.Values()
+            values.insert(kx, gtsam.Pose3(T_ndt if accepted else T_pred))
+            values.insert(kv, v_pred)
+            values.insert(kb, bias_prev)
+            self.window.add_keyframe(k, stamp, values)
+            self.window.add_factor(gtsam.CombinedImuFactor(px, pv, kx, kv, pb, kb, pim))
+        if accepted:
+            kx = keys_of(k)[0]
+            self.window.add_factor(ndt_factor(kx, T_ndt, info, p.ndt.huber_k))
+            if p.use_odometry_factor and self._last_ndt is not None and self._last_ndt[0] != k \
+                    and self._last_ndt[0] in self.window.stamps:
+                j, T_j = self._last_ndt
+                self.window.add_factor(odometry_factor(keys_of(j)[0], kx, inv_T(T_j) @ T_ndt,
+                                                       p.odometry_sigma_rot_rad, p.odometry_sigma_trans_m,
+                                                       p.ndt.huber_k))
+            self._last_ndt = (k, T_ndt)
+        return k
+
+    def _start_without_pose(self, frame, points, stamp, diag) -> Estimate | None:
+        """No pose yet: relocalize over the whole map, or report 'uninitialized'."""
+        if self.relocalize is None:
+            raise TrackingError("tracker has no initial pose: call initialize() or give a relocalizer")
+        T = None
+        if len(points) >= self.params.min_points:
+            T = self.relocalize(points, None, self._gravity_body(None), stamp)
+        if T is None:
+            diag.status = "uninitialized"
+            diag.update_ms = 0.0
+            return Estimate(frame.index, stamp, None, None, np.zeros(3), np.zeros(3), np.zeros(3), diag)
+        log.info("frame %d: initialized by global localization at %s", frame.index, np.round(T[:3, 3], 2))
+        self.initialize(T, stamp)
+        return None
+
+    def _try_recover(self, scan_pts, stamp, k, diag) -> np.ndarray | None:
+        """Relocalize around the last good pose; on success restart the window there."""
+        p = self.params
+        if self.relocalize is None or len(scan_pts) < p.min_points:
+            return None
+        if (self._bad_streak - p.max_bad_frames) % max(1, p.relocalize_every) != 0:
+            return None
+        state, bias = self._state(k)
+        T_cur = state.pose().matrix()
+        hint = self._last_good if self._last_good is not None else T_cur
+        T = self.relocalize(scan_pts, hint, self._gravity_body(T_cur), stamp)
+        if T is None:
+            return None
+        self.counters["recoveries"] += 1
+        log.warning("relocalized at %s (%.2f m from the last good pose)", np.round(T[:3, 3], 2),
+                    np.linalg.norm(T[:3, 3] - hint[:3, 3]))
+        self.initialize(T, stamp, velocity_map=np.asarray(state.velocity()), bias=bias, sigma_vel_m_s=0.5)
+        self.window.optimize()
+        diag.status = "recovered"
+        diag.window_size = len(self.window)
+        return T
+
+    def _estimate(self, index, stamp, k, diag, t_start) -> Estimate:
+        state, bias = self._state(k)
+        cov = None
+        if self.params.compute_covariance:
+            try:
+                cov = self.window.covariance(keys_of(k)[0])
+            except RuntimeError as exc:  # an indeterminant system: report, do not crash
+                log.debug("no covariance: %s", exc)
+        diag.update_ms = (time.perf_counter() - t_start) * 1e3
+        return Estimate(index, stamp, state.pose().matrix(), cov, np.asarray(state.velocity()),
+                        np.asarray(bias.accelerometer()), np.asarray(bias.gyroscope()), diag)
+
+
+def _plain(x):
+    """A JSON-friendly copy of a block / region id."""
+    if x is None or isinstance(x, (int, str, float)):
+        return x
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, (tuple, list)):
+        return [_plain(v) for v in x]
+    return str(x)
