@@ -106,6 +106,13 @@ class TrackingConfig:
     min_fitness: float = 0.4
     max_innovation_m: float = 1.0
     use_odometry_factor: bool = False
+    max_innovation_deg: float = 10.0
+    max_bad_frames: int = 3  # rejected scans in a row before relocalizing around the last good pose
+    ndt_min_sigma_trans_m: float = 0.02  # floor of the NDT factor's standard deviations
+    ndt_min_sigma_rot_deg: float = 0.1
+    huber_k: float = 1.345
+    lm_iterations: int = 6
+    imu_noise_inflation: float = 1.0
 
 
 @dataclass
