@@ -70,11 +70,15 @@ def eval_cmd(
     json_out: bool = typer.Option(False, "--json", help="Print one JSON object."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Directory for PNG plots."),
     max_time_diff: float = typer.Option(0.02, "--max-time-diff", help="Association tolerance, s."),
+    interpolate: bool = typer.Option(False, "--interpolate",
+                                     help="Interpolate ground truth to the estimate's stamps (else nearest)."),
+    rpe_deltas: str = typer.Option("1,10,100", "--rpe-deltas", help="RPE path-length deltas, m, comma separated."),
 ) -> None:
     """ATE (translation and full xyzrpy), rotation RMSE and RPE of an estimate against ground truth."""
-    from blockloc.evaluation.report import evaluate_files, print_metrics
+    from blockloc.evaluation.report import evaluate_files, parse_deltas, print_metrics
 
-    metrics = evaluate_files(gt, est, align=align, max_time_diff_s=max_time_diff, plot_dir=plot)
+    metrics = evaluate_files(gt, est, align=align, max_time_diff_s=max_time_diff, plot_dir=plot,
+                             interpolate=interpolate, rpe_deltas_m=parse_deltas(rpe_deltas))
     if json_out:
         import json
 

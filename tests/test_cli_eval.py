@@ -102,3 +102,14 @@ def test_eval_bad_file_is_one_line_without_traceback(tum_pair, tmp_path):
     res = blockloc("eval", "--gt", str(tmp_path / "missing.tum"), "--est", str(gt))
     assert res.returncode != 0 and len(res.stderr.strip().splitlines()) == 1
     assert "missing.tum" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_eval_options_interpolate_and_rpe_deltas(tum_pair):
+    gt, est = tum_pair
+    res = blockloc("eval", "--gt", str(gt), "--est", str(est), "--json", "--interpolate", "--rpe-deltas", "2,5")
+    assert res.returncode == 0, res.stderr
+    m = json.loads(res.stdout)
+    assert m["association"] == "interpolated" and m["rpe_deltas_m"] == [2.0, 5.0]
+    assert m["rpe_5m_pairs"] > 0 and "rpe_10m_pairs" not in m
+    res = blockloc("eval", "--gt", str(gt), "--est", str(est), "--rpe-deltas", "a")
+    assert res.returncode != 0 and res.stderr.strip().startswith("error: RPE deltas 'a'")

@@ -77,6 +77,26 @@ def associate(stamps_a: np.ndarray, stamps_b: np.ndarray, max_time_diff_s: float
     return out_a[order], out_b[order]
 
 
+def nearest_within(stamps_ref: np.ndarray, stamps_query: np.ndarray, max_time_diff_s: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """For each query stamp, the nearest reference stamp if within ``max_time_diff_s``.
+
+    stamps_ref: (N,) sorted ascending; stamps_query: (M,) seconds. A reference stamp may serve
+    several queries (used to gate interpolation, not for one-to-one pairing).
+    Returns index arrays (K,) into ref and query, sorted by the query index.
+    """
+    ref = np.asarray(stamps_ref, dtype=np.float64).reshape(-1)
+    q = np.asarray(stamps_query, dtype=np.float64).reshape(-1)
+    if len(ref) == 0 or len(q) == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    k = np.searchsorted(ref, q)
+    lo = np.clip(k - 1, 0, len(ref) - 1)
+    hi = np.clip(k, 0, len(ref) - 1)
+    j = np.where(np.abs(ref[lo] - q) <= np.abs(ref[hi] - q), lo, hi)
+    keep = np.flatnonzero(np.abs(ref[j] - q) <= max_time_diff_s)
+    return j[keep].astype(np.int64), keep.astype(np.int64)
+
+
 # ----------------------------------------------------------------------------- alignment
 
 

@@ -94,3 +94,40 @@ def test_print_metrics_shows_the_numbers(rng):
     assert f"{m['ate_trans_rmse_m']:.4f}" in text and f"{m['ate_full_rmse']:.4f}" in text
     assert f"{m['rpe_1m_trans_rmse_m']:.4f}" in text
     assert "RPE 1000 m skipped" in text
+
+
+def test_interpolation_removes_time_skew_bias(rng):
+    # ground truth at 100 Hz, estimate = exact poses at stamps 4 ms off the grid: nearest matching
+    # sees the robot's motion over 4 ms as error, interpolation does not
+    gt = random_trajectory(rng, n=1000, dt=0.01, speed=1.5)
+    t_est = gt.stamps[5:-5:10] + 0.004
+    est = Trajectory(t_est, gt.interpolate(t_est))
+    nearest = evaluate_trajectories(gt, est, max_time_diff_s=0.02)
+    interp = evaluate_trajectories(gt, est, max_time_diff_s=0.02, interpolate=True)
+    assert nearest["ate_trans_rmse_m"] == pytest.approx(1.5 * 0.004, rel=0.05)
+    assert interp["ate_trans_rmse_m"] < 1e-9
+    assert interp["matched"] == nearest["matched"] == len(est)
+    assert interp["association"] == "interpolated"
+    far = Trajectory(t_est + 100.0, est.poses)
+    with pytest.raises(EvaluationError, match="no estimated pose within"):
+        evaluate_trajectories(gt, far, interpolate=True)
+
+
+def test_evaluate_with_config_uses_the_section(rng):
+    from blockloc.config import EvaluationConfig
+    from blockloc.evaluation.report import evaluate_with_config
+
+    gt = random_trajectory(rng, n=200)
+    est = perturb(rng, gt, 0.1, 0.01)
+    m = evaluate_with_config(gt, est, EvaluationConfig(align=True, rpe_deltas_m=(2.0,)))
+    assert m["aligned"] is True and m["rpe_deltas_m"] == [2.0] and m["rpe_2m_pairs"] > 0
+    assert m["ate_trans_rmse_m"] == pytest.approx(evaluate_trajectories(gt, est, align=True)["ate_trans_rmse_m"])
+
+
+def test_parse_deltas():
+    from blockloc.evaluation.report import parse_deltas
+
+    assert parse_deltas("1, 10,100") == (1.0, 10.0, 100.0) and parse_deltas("") == ()
+    for bad in ("1,x", "0", "-5"):
+        with pytest.raises(EvaluationError, match="expected positive distances"):
+            parse_deltas(bad)
