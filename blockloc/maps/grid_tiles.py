@@ -1,0 +1,232 @@
+"""Grid-puzzle tiles (Byeon et al.): square, non-overlapping tiles named by their centre.
+
+The plane is cut into cells of side s aligned to the map origin: cell (ix, iy) covers
+``[ix*s, (ix+1)*s) x [iy*s, (iy+1)*s)`` (map frame, metres, all heights). Its tile file is
+``{cx}_{cy}.pcd`` with the centre ``((ix+0.5)*s, (iy+0.5)*s)`` printed with a fixed number of
+decimals (enough to be exact for s; at least one), e.g. ``-3.0_5.0.pcd`` for s = 2. Every point
+falls in exactly one tile and the union of the tiles is the input (Algorithm 1).
+
+The tile window of Algorithm 2 lives here too: (2n+1)^2 cells around the robot's cell, widened by
+k cells toward the motion direction according to one of 8 heading sectors (:func:`grid_window`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+
+from blockloc.errors import MapError
+
+log = logging.getLogger(__name__)
+
+# Heading sectors of 45 degrees centred on the axes and diagonals, counter-clockwise from +x
+# (map frame): the direction (dx, dy) in cells toward which the window is widened.
+SECTOR_DIRECTIONS = ((1, 0), (1, 1), (0, 1), (-1, 1), (-1, 0), (-1, -1), (0, -1), (1, -1))
+SECTOR_NAMES = ("E", "NE", "N", "NW", "W", "SW", "S", "SE")
+
+
+def check_tile_size(tile_size_m: float) -> float:
+    try:
+        s = float(tile_size_m)
+    except (TypeError, ValueError):
+        s = float("nan")
+    if not (s > 0 and math.isfinite(s)):
+        raise MapError(f"tile size {tile_size_m!r} m: expected a positive number of metres")
+    return s
+
+
+def name_decimals(tile_size_m: float) -> int:
+    """Decimals that print every tile centre (odd multiples of s/2) exactly; at least 1."""
+    half = check_tile_size(tile_size_m) / 2.0
+    for d in range(1, 10):
+        if abs(round(half, d) - half) < 1e-9 * max(1.0, half):
+            return d
+    return 9
+
+
+def cell_of(xy: np.ndarray, tile_size_m: float) -> np.ndarray:
+    """Cell indices (N, 2) int64 of points ``xy`` (N, >=2), exact at cell borders:
+    ``ix*s <= x < (ix+1)*s`` holds in float64 for every returned index."""
+    s = check_tile_size(tile_size_m)
+    xy = np.asarray(xy, np.float64)[:, :2]
+    idx = np.floor(xy / s).astype(np.int64)
+    # x / s rounds; fix the rare index that disagrees with the float64 cell bounds
+    idx -= (xy < idx * s)
+    idx += (xy >= (idx + 1) * s)
+    return idx
+
+
+def tile_name(ix: int, iy: int, tile_size_m: float, decimals: int | None = None) -> str:
+    """Tile id ``{cx}_{cy}`` of cell (ix, iy): its centre in metres with fixed decimals."""
+    s = check_tile_size(tile_size_m)
+    d = name_decimals(s) if decimals is None else decimals
+    return f"{(ix + 0.5) * s:.{d}f}_{(iy + 0.5) * s:.{d}f}"
+
+
+def parse_tile_name(name: str, tile_size_m: float) -> tuple[int, int]:
+    """Cell (ix, iy) of a tile id or file name ``{cx}_{cy}[.pcd]``; MapError when malformed."""
+    s = check_tile_size(tile_size_m)
+    stem = name[:-4] if name.endswith(".pcd") else name
+    try:
+        cx_s, cy_s = stem.split("_")
+        cx, cy = float(cx_s), float(cy_s)
+    except ValueError:
+        raise MapError(f"tile name {name!r}: expected '{{cx}}_{{cy}}' centre coordinates") from None
+    ix, iy = round(cx / s - 0.5), round(cy / s - 0.5)
+    if abs((ix + 0.5) * s - cx) > 1e-6 * s or abs((iy + 0.5) * s - cy) > 1e-6 * s:
+        raise MapError(f"tile name {name!r}: not the centre of a {s} m cell")
+    return int(ix), int(iy)
+
+
+def tile_bounds(name: str, tile_size_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """xy_min (2,), xy_max (2,) of the tile ``name``: the half-open cell [min, max)."""
+    s = check_tile_size(tile_size_m)
+    ix, iy = parse_tile_name(name, s)
+    return np.array([ix * s, iy * s]), np.array([(ix + 1) * s, (iy + 1) * s])
+
+
+def split_into_tiles(points: np.ndarray, tile_size_m: float) -> dict[tuple[int, int], np.ndarray]:
+    """Cell -> indices into ``points`` (N, >=2), cells in sorted order, indices ascending."""
+    if len(points) == 0:
+        return {}
+    cells = cell_of(points, tile_size_m)
+    order = np.lexsort((cells[:, 1], cells[:, 0]))
+    sorted_cells = cells[order]
+    breaks = np.flatnonzero(np.any(np.diff(sorted_cells, axis=0) != 0, axis=1)) + 1
+    groups = np.split(order, breaks)
+    return {(int(cells[g[0], 0]), int(cells[g[0], 1])): np.sort(g) for g in groups}
+
+
+def tile_global_map(points: np.ndarray, intensity: np.ndarray | None, tile_size_m: float,
+                    out: str | Path, *, frame: str = "map", params: dict | None = None,
+                    overwrite: bool = False, progress: bool = False):
+    """Algorithm 1: cut a global map (N, 3) into tiles written atomically as a grid store at ``out``.
+
+    No point is dropped or duplicated: the tiles' payloads concatenate to the input.
+    Returns the opened :class:`~blockloc.maps.store.MapStore`.
+    """
+    from blockloc.maps.store import MapWriter
+
+    s = check_tile_size(tile_size_m)
+    pts = np.asarray(points)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise MapError(f"points: expected an (N, 3) array, got shape {pts.shape}")
+    if len(pts) == 0:
+        raise MapError("global map is empty: nothing to tile")
+    if not np.isfinite(pts).all():
+        raise MapError("global map has non-finite coordinates (NaN/inf): remove them first")
+    groups = split_into_tiles(pts, s)
+    d = name_decimals(s)
+    p = {"tile_size_m": s, "origin": [0.0, 0.0], "name_decimals": d, **(params or {})}
+    items = groups.items()
+    if progress:
+        from tqdm import tqdm
+
+        items = tqdm(items, total=len(groups), desc="tiles", unit="tile")
+    with MapWriter(out, "grid", frame=frame, params=p, overwrite=overwrite) as w:
+        for (ix, iy), idx in items:
+            w.add(tile_name(ix, iy, s, d), pts[idx], None if intensity is None else intensity[idx])
+        store = w.commit()
+    log.info("tiled %d points into %d tiles of %.3g m", len(pts), len(groups), s)
+    return store
+
+
+def tile_pcd_file(path: str | Path, tile_size_m: float, out: str | Path, *,
+                  overwrite: bool = False, progress: bool = False):
+    """``blockloc map tile``: read a global PCD and write its grid store."""
+    from blockloc.maps.pcd import read_pcd
+
+    check_tile_size(tile_size_m)
+    pts, inten = read_pcd(path)
+    if len(pts) == 0:
+        raise MapError(f"{path}: holds no points, nothing to tile")
+    finite = np.isfinite(pts).all(axis=1)
+    if not finite.all():
+        log.warning("%s: dropping %d points with NaN/inf coordinates", path, int((~finite).sum()))
+        pts, inten = pts[finite], None if inten is None else inten[finite]
+    return tile_global_map(pts, inten, tile_size_m, out, params={"source": str(path)},
+                           overwrite=overwrite, progress=progress)
+
+
+def build_grid_map_from_sequence(seq, *, tile_size_m: float = 20.0, keyframe_distance_m: float = 1.0,
+                                 keyframe_angle_deg: float = 15.0, voxel_size_m: float = 0.2,
+                                 out: str | Path, deskew: bool = True, progress: bool = False,
+                                 overwrite: bool = False, max_frames: int | None = None):
+    """Grid store from a mapping sequence: keyframes into the map frame, voxel filter per tile, tiles.
+
+    Points are binned into tiles as they arrive and each tile is voxel-filtered when it grows, so
+    memory follows the mapped area. Returns the opened store.
+    """
+    from blockloc.maps.mapping import mapping_keyframes, voxel_downsample
+
+    s = check_tile_size(tile_size_m)
+    acc: dict[tuple[int, int], list] = {}
+    raw: dict[tuple[int, int], int] = {}
+    n_kf = 0
+    for kf in mapping_keyframes(seq, keyframe_distance_m=keyframe_distance_m,
+                                keyframe_angle_deg=keyframe_angle_deg, deskew=deskew,
+                                progress=progress, max_frames=max_frames):
+        n_kf += 1
+        inten = kf.intensity if kf.intensity is not None else np.zeros(len(kf.points_map), np.float32)
+        for cell, idx in split_into_tiles(kf.points_map, s).items():
+            acc.setdefault(cell, []).append((kf.points_map[idx].astype(np.float32), inten[idx]))
+            raw[cell] = raw.get(cell, 0) + len(idx)
+            if raw[cell] > 1_000_000 and voxel_size_m > 0:
+                p, i = voxel_downsample(*_cat(acc[cell]), voxel_size_m)
+                acc[cell], raw[cell] = [(p, i)], len(p)
+    if n_kf == 0:
+        raise MapError(f"{seq.info.name}: no keyframes to build a grid map from")
+    parts_p, parts_i = [], []
+    for cell in sorted(acc):
+        # a voxel straddling a cell border (s not a multiple of the voxel) may put its mean in
+        # the neighbour cell: tile_global_map re-bins every point, so none is lost
+        p, i = voxel_downsample(*_cat(acc.pop(cell)), voxel_size_m)
+        parts_p.append(p)
+        parts_i.append(i)
+    pts = np.concatenate(parts_p)
+    inten = np.concatenate(parts_i)
+    params = {"sequence": seq.info.name, "keyframe_distance_m": keyframe_distance_m,
+              "keyframe_angle_deg": keyframe_angle_deg, "voxel_size_m": voxel_size_m,
+              "num_keyframes": n_kf, "deskew": deskew}
+    return tile_global_map(pts, inten, s, out, params=params, overwrite=overwrite)
+
+
+def _cat(parts):
+    return np.concatenate([p for p, _ in parts]), np.concatenate([i for _, i in parts])
+
+
+# --------------------------------------------------------------------------- Algorithm 2 window
+
+
+def heading_sector(velocity_xy: np.ndarray | None, min_speed_m_s: float = 0.1) -> int | None:
+    """Sector 0..7 (E, NE, N, NW, W, SW, S, SE; 45 deg each, centred on the axes and diagonals)
+    of the horizontal velocity (map frame, m/s), or None when slower than ``min_speed_m_s``."""
+    if velocity_xy is None:
+        return None
+    v = np.asarray(velocity_xy, np.float64)
+    if not np.all(np.isfinite(v[:2])) or np.hypot(v[0], v[1]) < min_speed_m_s:
+        return None
+    angle = math.atan2(v[1], v[0])
+    return int(round(angle / (math.pi / 4))) % 8
+
+
+def grid_window(ix: int, iy: int, n: int, k: int, sector: int | None) -> list[tuple[int, int]]:
+    """Cells of the window: (2n+1)^2 around (ix, iy), widened by k cells toward ``sector``.
+
+    Axis sectors (E, N, W, S) add k columns/rows of 2n+1 cells on that side; diagonal sectors add
+    them on both sides they face, including the corner block, so the window stays a rectangle
+    ((2n+1+k)^2 cells). ``sector`` None: the plain (2n+1)^2 window.
+    """
+    if n < 0 or k < 0:
+        raise MapError(f"grid window n={n}, k={k}: expected non-negative integers")
+    x0, x1, y0, y1 = ix - n, ix + n, iy - n, iy + n
+    if sector is not None and k > 0:
+        dx, dy = SECTOR_DIRECTIONS[sector]
+        x1 += k if dx > 0 else 0
+        x0 -= k if dx < 0 else 0
+        y1 += k if dy > 0 else 0
+        y0 -= k if dy < 0 else 0
+    return [(x, y) for x in range(x0, x1 + 1) for y in range(y0, y1 + 1)]
