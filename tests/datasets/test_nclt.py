@@ -1,0 +1,303 @@
+"""NCLT layout: constants, byte layouts, round trips through write_session, and bad input."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from blockloc.datasets.base import ImuData, LidarFrame, Sequence
+from blockloc.datasets.nclt import (NCLT_GRAVITY_MAP, NCLT_POINT_DTYPE, NCLT_T_BODY_LIDAR, HITS_PACKET_US,
+                                    NcltSequence, read_groundtruth_csv, read_ms25_csv,
+                                    write_groundtruth_csv, write_session)
+from blockloc.errors import DatasetError
+from blockloc.geometry import T_to_xyzrpy, inv_T
+
+QUANT_M = 0.0025 + 1e-5  # half of NCLT's 5 mm grid, plus float32 rounding (ulp 7.6e-6 at 100 m)
+
+
+def _write(tmp_path, d, **kw):
+    return write_session(tmp_path / "2012-01-22", date="2012-01-22", frames=iter(d["frames"]),
+                         imu=d["imu"], ground_truth=d["gt"], **kw)
+
+
+def test_t_body_lidar_matches_devkit_ssc():
+    # devkit x_body_vel: lidar 0.957 m above the body origin (z down), yawed -90.703 deg
+    xyzrpy = T_to_xyzrpy(NCLT_T_BODY_LIDAR)
+    np.testing.assert_allclose(xyzrpy[:3], [0.002, -0.004, -0.957])
+    np.testing.assert_allclose(np.rad2deg(xyzrpy[3:]), [0.807, 0.166, -90.703], atol=1e-9)
+    R = NCLT_T_BODY_LIDAR[:3, :3]
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    # lidar x axis points to body -y (yaw -90 deg): the devkit's Rz Ry Rx convention
+    assert R[1, 0] < -0.99
+    assert NCLT_GRAVITY_MAP[2] > 9.8
+
+
+def test_session_round_trip(tmp_path, session_data):
+    out = _write(tmp_path, session_data, slam_poses=session_data["slam"])
+    assert out == tmp_path / "2012-01-22"
+    assert not list(tmp_path.glob("*.tmp-*"))
+    seq = NcltSequence(out, min_range_m=0.5, max_range_m=200.0)
+    assert isinstance(seq, Sequence)
+    frames = session_data["frames"]
+    assert len(seq) == len(frames)
+    np.testing.assert_allclose(seq.frame_stamps(), [f.stamp for f in frames], atol=1e-6)
+    for ref, got in zip(frames, seq.frames()):
+        # the writer stores points in time order; the synthetic frames already are
+        assert len(got) == len(ref)
+        assert got.points.shape == (len(ref), 3)
+        assert np.abs(got.points - ref.points).max() <= QUANT_M
+        np.testing.assert_array_equal(got.intensity, np.rint(ref.intensity))
+        np.testing.assert_array_equal(got.ring, ref.ring)
+        err = np.abs(got.time_offsets - ref.time_offsets)
+        assert err.max() <= HITS_PACKET_US * 0.5e-6 + 2e-6
+        assert got.stamp == pytest.approx(ref.stamp, abs=1e-6)
+    imu = seq.imu()
+    np.testing.assert_allclose(imu.t, session_data["imu"].t, atol=1e-6)
+    np.testing.assert_allclose(imu.acc, session_data["imu"].acc, rtol=1e-7, atol=1e-8)
+    np.testing.assert_allclose(imu.gyro, session_data["imu"].gyro, rtol=1e-7, atol=1e-8)
+    gt = seq.ground_truth()
+    np.testing.assert_allclose(gt.stamps, session_data["gt"].stamps, atol=1e-6)
+    np.testing.assert_allclose(gt.poses, session_data["gt"].poses, atol=1e-8)
+    np.testing.assert_allclose(seq.mapping_poses().poses, session_data["slam"].poses, atol=1e-8)
+    assert seq.info.imu_rate_hz == pytest.approx(100.0)
+    np.testing.assert_allclose(seq.info.T_body_lidar, NCLT_T_BODY_LIDAR)
+
+
+def test_mapping_poses_fall_back_to_ground_truth(tmp_path, session_data):
+    seq = NcltSequence(_write(tmp_path, session_data))
+    np.testing.assert_allclose(seq.mapping_poses().poses, session_data["gt"].poses, atol=1e-8)
+
+
+def test_byte_layout_is_nclt(tmp_path, session_data):
+    out = _write(tmp_path, session_data)
+    ref = session_data["frames"][0]
+    utime = int(round(ref.stamp * 1e6))
+    raw = np.fromfile(out / "velodyne_sync" / f"{utime}.bin", dtype=NCLT_POINT_DTYPE)
+    # the devkit's decoding: raw * 0.005 - 100
+    xyz = np.stack([raw["x"], raw["y"], raw["z"]], 1) * 0.005 - 100.0
+    assert np.abs(xyz - ref.points).max() <= QUANT_M
+    np.testing.assert_array_equal(raw["laser_id"], ref.ring)
+    hits = (out / "velodyne_hits.bin").read_bytes()
+    head = np.frombuffer(hits[:24], dtype=[("m", "<u2", 4), ("n", "<u4"), ("t", "<u8"), ("p", "<u4")])[0]
+    assert list(head["m"]) == [44444] * 4
+    assert 0 < head["n"] < 4000
+    assert abs(int(head["t"]) - (utime - 100_000)) < 1000  # first points fire 0.1 s before the stamp
+    # all frames' points are in the hits file, each packet 24 + 8 n bytes
+    n_points = sum(len(f) for f in session_data["frames"])
+    assert (len(hits) - 8 * n_points) % 24 == 0
+
+
+def test_sessions_are_byte_identical(tmp_path, session_data):
+    a = _write(tmp_path / "a", session_data)
+    b = _write(tmp_path / "b", session_data)
+    for f in sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file()):
+        assert (a / f).read_bytes() == (b / f).read_bytes(), f
+
+
+def test_azimuth_fallback_without_hits(tmp_path, session_data, caplog):
+    out = _write(tmp_path, session_data, write_hits=False)
+    with caplog.at_level(logging.INFO, logger="blockloc.datasets.nclt"):
+        seq = NcltSequence(out, max_range_m=200)
+    assert "azimuth" in caplog.text
+    f = seq.frame(1)
+    ref = session_data["frames"][1]
+    # sweep starts at the first point; points are ordered by azimuth (z-down convention: increasing)
+    assert f.time_offsets[0] == 0.0
+    est = f.time_offsets + ref.time_offsets[0]
+    assert np.abs(est - ref.time_offsets).max() < 2e-3
+    # hits present but disabled behaves the same
+    out2 = _write(tmp_path / "h", session_data)
+    np.testing.assert_array_equal(NcltSequence(out2, use_hits_times=False, max_range_m=200).frame(1).time_offsets,
+                                  f.time_offsets)
+
+
+def test_hits_matching_when_sync_is_not_a_contiguous_run(tmp_path, session_data):
+    out = _write(tmp_path, session_data)
+    ref = session_data["frames"][2]
+    utime = int(round(ref.stamp * 1e6))
+    path = out / "velodyne_sync" / f"{utime}.bin"
+    raw = np.fromfile(path, dtype=NCLT_POINT_DTYPE)
+    perm = np.random.default_rng(5).permutation(len(raw))[: len(raw) - 100]  # shuffled, subsampled
+    raw[perm].tofile(path)
+    f = NcltSequence(out, max_range_m=200).frame(2)
+    assert len(f) == len(perm)
+    err = np.abs(f.time_offsets - ref.time_offsets[perm])
+    assert err.max() <= HITS_PACKET_US * 0.5e-6 + 2e-6
+
+
+def test_range_filter_and_nan_points(tmp_path, session_data, caplog):
+    fr = session_data["frames"][0]
+    pts = fr.points.copy()
+    pts[:3] = [np.nan, 0, 0]
+    pts[3] = [np.inf, 1, 1]
+    pts[4] = [0.3, 0.0, 0.0]  # inside min range
+    session_data["frames"][0] = LidarFrame(0, fr.stamp, pts, fr.intensity, fr.time_offsets, fr.ring)
+    with caplog.at_level(logging.WARNING):
+        out = _write(tmp_path, session_data)
+    assert "dropped 4 non-finite" in caplog.text
+    seq = NcltSequence(out, min_range_m=1.0, max_range_m=200)
+    f = seq.frame(0)
+    assert len(f) == len(pts) - 5
+    r = np.linalg.norm(f.points, axis=1)
+    assert np.isfinite(f.points).all() and r.min() >= 1.0
+    assert len(NcltSequence(out, min_range_m=1.0, max_range_m=30).frame(1).points) < len(session_data["frames"][1])
+    assert np.linalg.norm(NcltSequence(out, max_range_m=30).frame(1).points, axis=1).max() <= 30
+
+
+def test_empty_scan_gives_empty_frame(tmp_path, session_data, caplog):
+    fr = session_data["frames"][1]
+    session_data["frames"][1] = LidarFrame(1, fr.stamp, np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0, np.uint16))
+    out = _write(tmp_path, session_data)
+    seq = NcltSequence(out)
+    with caplog.at_level(logging.WARNING):
+        f = seq.frame(1)
+    assert len(f) == 0 and f.points.shape == (0, 3) and "empty scan" in caplog.text
+    assert len(seq.frame(2)) > 0
+
+
+def test_truncated_sync_bin(tmp_path, session_data):
+    out = _write(tmp_path, session_data)
+    path = sorted((out / "velodyne_sync").iterdir())[1]
+    data = path.read_bytes()
+    path.write_bytes(data[:-3])
+    seq = NcltSequence(out)
+    with pytest.raises(DatasetError, match=rf"{path.name}.*{len(data) - 3} bytes.*multiple of 8"):
+        seq.frame(1)
+
+
+def test_truncated_hits_bin(tmp_path, session_data):
+    out = _write(tmp_path, session_data)
+    hits = out / "velodyne_hits.bin"
+    hits.write_bytes(hits.read_bytes()[:-16])
+    with pytest.raises(DatasetError, match=r"velodyne_hits.bin: truncated packet at byte \d+: expected \d+ bytes"):
+        NcltSequence(out).frame(0)
+    hits.write_bytes(hits.read_bytes()[:-3])
+    with pytest.raises(DatasetError, match=r"velodyne_hits.bin: \d+ bytes, expected a multiple of 8"):
+        NcltSequence(out).frame(0)
+
+
+def test_bad_hits_magic(tmp_path, session_data):
+    out = _write(tmp_path, session_data)
+    hits = out / "velodyne_hits.bin"
+    b = bytearray(hits.read_bytes())
+    b[0] = 0
+    hits.write_bytes(bytes(b))
+    with pytest.raises(DatasetError, match="bad packet magic at byte 0"):
+        NcltSequence(out).frame(0)
+
+
+def test_missing_files(tmp_path, session_data):
+    with pytest.raises(DatasetError, match=r"velodyne_sync: not found; put the NCLT"):
+        NcltSequence(tmp_path / "nothing")
+    out = _write(tmp_path, session_data)
+    (out / "ms25.csv").unlink()
+    with pytest.raises(DatasetError, match=r"ms25.csv: not found; put the NCLT ms25.csv there"):
+        NcltSequence(out)
+
+
+def test_ground_truth_found_beside_session(tmp_path, session_data, caplog):
+    out = _write(tmp_path, session_data)
+    (out / "groundtruth_2012-01-22.csv").rename(tmp_path / "groundtruth_2012-01-22.csv")
+    seq = NcltSequence(out, date="2012-01-22")
+    assert len(seq.ground_truth()) == len(session_data["gt"])
+    (tmp_path / "groundtruth_2012-01-22.csv").unlink()
+    with caplog.at_level(logging.WARNING):
+        assert NcltSequence(out, date="2012-01-22").ground_truth() is None
+    assert "no groundtruth_2012-01-22.csv" in caplog.text
+
+
+def test_groundtruth_csv_nan_rows_and_errors(tmp_path, session_data, caplog):
+    p = tmp_path / "gt.csv"
+    write_groundtruth_csv(p, session_data["gt"])
+    lines = p.read_text().splitlines()
+    lines.insert(0, "1326030000000000,nan,nan,nan,nan,nan,nan")  # NCLT's first rows look like this
+    lines[5] = lines[5].split(",")[0] + ",1,2,NaN,0,0,0"
+    p.write_text("\n".join(lines) + "\n")
+    with caplog.at_level(logging.WARNING):
+        traj = read_groundtruth_csv(p)
+    assert "dropped 2 of" in caplog.text
+    assert len(traj) == len(session_data["gt"]) - 1  # one real row became NaN
+    assert np.isfinite(traj.poses).all()
+    lines[7] = "1326030000070000,1,2,3"
+    p.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetError, match=r"gt.csv:8: 4 columns, expected 7"):
+        read_groundtruth_csv(p)
+    with pytest.raises(DatasetError, match="not found"):
+        read_groundtruth_csv(tmp_path / "missing.csv")
+
+
+def test_groundtruth_csv_round_trip_is_exact(tmp_path, session_data):
+    p = tmp_path / "gt.csv"
+    write_groundtruth_csv(p, session_data["gt"])
+    traj = read_groundtruth_csv(p)
+    np.testing.assert_allclose(traj.stamps, session_data["gt"].stamps, atol=5e-7)
+    err = inv_T(traj.poses) @ session_data["gt"].poses
+    np.testing.assert_allclose(err, np.broadcast_to(np.eye(4), err.shape), atol=1e-8)
+
+
+def test_ms25_unsorted_duplicate_nan_and_short_rows(tmp_path, caplog):
+    p = tmp_path / "ms25.csv"
+    rows = [f"{1000000 + 10000 * i},0,0,0,{i},0,-9.8,0,0,{i * 0.1}" for i in range(10)]
+    rows[3], rows[4] = rows[4], rows[3]          # out of order
+    rows.append(rows[6])                          # duplicate stamp
+    rows.append("1200000,0,0,0,nan,0,-9.8,0,0,0")  # NaN
+    p.write_text("\n".join(rows) + "\n")
+    with caplog.at_level(logging.WARNING):
+        imu = read_ms25_csv(p)
+    assert "1 IMU rows holding NaN" in caplog.text
+    assert "out of time order; sorted" in caplog.text
+    assert "1 IMU rows with a duplicate stamp" in caplog.text
+    assert len(imu) == 10 and np.all(np.diff(imu.t) > 0)
+    np.testing.assert_allclose(imu.acc[:, 0], np.arange(10))
+    np.testing.assert_allclose(imu.gyro[:, 2], np.arange(10) * 0.1)
+    rows[2] = "1020000,0,0,0,1,2"
+    p.write_text("\n".join(rows[:10]) + "\n")
+    with pytest.raises(DatasetError, match=r"ms25.csv:3: 6 columns, expected 10"):
+        read_ms25_csv(p)
+
+
+def test_write_session_is_atomic_on_failure(tmp_path, session_data):
+    def frames():
+        yield session_data["frames"][0]
+        raise RuntimeError("simulator crashed")
+
+    with pytest.raises(RuntimeError):
+        write_session(tmp_path / "s", date="d", frames=frames(), imu=session_data["imu"],
+                      ground_truth=session_data["gt"])
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_write_session_replaces_and_rejects_unordered_frames(tmp_path, session_data):
+    out = _write(tmp_path, session_data)
+    (out / "stale.txt").write_text("x")
+    _write(tmp_path, session_data)
+    assert not (out / "stale.txt").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["2012-01-22"]
+    fr = session_data["frames"]
+    with pytest.raises(DatasetError, match="is not after"):
+        write_session(tmp_path / "x", date="d", frames=[fr[1], fr[0]], imu=session_data["imu"],
+                      ground_truth=session_data["gt"])
+
+
+def test_sidecar_extrinsics(tmp_path, session_data):
+    T = np.eye(4)
+    T[:3, 3] = [0.1, 0.2, -1.0]
+    out = _write(tmp_path, session_data, T_body_lidar=T, gravity_map=(0, 0, -9.81))
+    seq = NcltSequence(out)
+    np.testing.assert_allclose(seq.info.T_body_lidar, T)
+    np.testing.assert_allclose(seq.info.gravity_map, [0, 0, -9.81])
+    np.testing.assert_allclose(seq.info.T_body_imu, np.eye(4))
+    (out / "blockloc_session.json").write_text("{bad json")
+    with pytest.raises(DatasetError, match="blockloc_session.json: malformed"):
+        NcltSequence(out)
+
+
+def test_frame_index_errors_and_imu_type(tmp_path, session_data):
+    seq = NcltSequence(_write(tmp_path, session_data))
+    with pytest.raises(IndexError):
+        seq.frame(len(seq))
+    assert seq.frame(-1).index == len(seq) - 1
+    assert isinstance(seq.imu(), ImuData)
+    assert [f.index for f in seq.frames(1, 3)] == [1, 2]
