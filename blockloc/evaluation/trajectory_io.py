@@ -21,6 +21,7 @@ Writers write to a temporary file beside the target and rename it into place.
 
 from __future__ import annotations
 
+import io
 import logging
 import os
 import tempfile
@@ -89,30 +90,54 @@ def _data_lines(text: str):
         yield lineno, s.replace(",", " ").split()
 
 
-def _parse_rows(path: Path, text: str, ncols: int, what: str) -> tuple[np.ndarray, np.ndarray]:
-    """Rows of exactly ``ncols`` finite floats -> ((M, ncols) float64, (M,) line numbers)."""
-    rows, linenos = [], []
+class _LineNumbers:
+    """Line numbers (1-based) of the data lines of a text, computed only when a message needs one."""
+
+    def __init__(self, text: str):
+        self._text = text
+        self._numbers: list[int] | None = None
+
+    def __getitem__(self, k: int) -> int:
+        if self._numbers is None:
+            self._numbers = [lineno for lineno, _ in _data_lines(self._text)]
+        return self._numbers[int(k)]
+
+
+def _parse_rows(path: Path, text: str, ncols: int, what: str) -> tuple[np.ndarray, _LineNumbers]:
+    """Rows of exactly ``ncols`` finite floats -> ((M, ncols) float64, line number of each row)."""
+    linenos = _LineNumbers(text)
+    if "," not in text:  # fast path (C parser); any problem falls through to the checking parser
+        try:
+            import warnings
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")  # an empty file warns: let the slow path word it
+                data = np.loadtxt(io.StringIO(text), comments=("#", "//"), ndmin=2, dtype=np.float64)
+            if data.shape[1] == ncols and len(data) and np.isfinite(data).all():
+                return data, linenos
+        except (ValueError, UserWarning):
+            pass
+    rows = []
     for lineno, fields in _data_lines(text):
         if len(fields) != ncols:
             raise DatasetError(f"{path}:{lineno}: expected {ncols} numbers ({what}), got {len(fields)}")
         rows.append(fields)
-        linenos.append(lineno)
     if not rows:
         raise DatasetError(f"{path}: no poses, expected lines of {ncols} numbers ({what})")
     try:
         data = np.array(rows, dtype=np.float64)
     except ValueError:  # find the offending line for the message
-        for fields, lineno in zip(rows, linenos):
+        for k, fields in enumerate(rows):
             try:
                 [float(f) for f in fields]
             except ValueError:
-                raise DatasetError(f"{path}:{lineno}: expected {ncols} numbers ({what}), "
+                raise DatasetError(f"{path}:{linenos[k]}: expected {ncols} numbers ({what}), "
                                    f"got {' '.join(fields)[:60]!r}") from None
         raise
     bad = np.flatnonzero(~np.isfinite(data).all(axis=1))
     if bad.size:
         raise DatasetError(f"{path}:{linenos[bad[0]]}: non-finite value, expected {ncols} finite numbers ({what})")
-    return data, np.asarray(linenos)
+    return data, linenos
 
 
 def _sorted_unique(path: Path, stamps: np.ndarray, poses: np.ndarray) -> Trajectory:
