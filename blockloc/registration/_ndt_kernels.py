@@ -1,0 +1,538 @@
+"""Numba kernels of the NDT engine (leaf module: importing it imports numba).
+
+Everything here works on plain arrays; ``blockloc.registration.ndt`` holds the classes.
+
+Voxel keys: integer voxel coordinates ``i = floor(x / resolution)`` packed into one int64,
+21 bits per axis with an offset of 2**20 (so |i| < 2**20), ``key = (ix << 42) | (iy << 21) | iz``.
+A voxel's statistics are kept relative to its centre ``(i + 0.5) * resolution`` so sums of outer
+products stay well conditioned far from the origin and sums of different tiles can be added.
+
+Hash table: open addressing with linear probing, size a power of two, ``table_keys`` (S,) int64
+with -1 for an empty slot and ``table_vals`` (S,) int64 holding the row of the voxel.
+
+Derivatives follow the right perturbation ``T * Exp(xi)``, ``xi = (omega, v)`` (GTSAM Pose3 order,
+SE(3) exponential chart). The kernels compute them in the "left" frame (with ``u = R p``) and the
+caller rotates them with ``diag(R, R)``; see ``ndt_derivatives``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+KEY_OFFSET = 1 << 20
+KEY_MASK = (1 << 21) - 1
+HASH_MUL = np.uint64(0x9E3779B97F4A7C15)
+EMPTY = -1
+
+# Upper-triangle order of a symmetric 6x6 in the accumulator rows.
+_TRI = [(i, j) for i in range(6) for j in range(i, 6)]
+TRI_I = np.array([p[0] for p in _TRI], dtype=np.int64)
+TRI_J = np.array([p[1] for p in _TRI], dtype=np.int64)
+
+
+@njit(cache=True, inline="always")
+def _pack(ix, iy, iz):
+    return ((ix + KEY_OFFSET) << 42) | ((iy + KEY_OFFSET) << 21) | (iz + KEY_OFFSET)
+
+
+@njit(cache=True, inline="always")
+def _in_range(ix, iy, iz):
+    return (-KEY_OFFSET <= ix < KEY_OFFSET and -KEY_OFFSET <= iy < KEY_OFFSET
+            and -KEY_OFFSET <= iz < KEY_OFFSET)
+
+
+@njit(cache=True, inline="always")
+def _slot(key, shift):
+    h = np.uint64(key) * HASH_MUL
+    return np.int64(h >> np.uint64(shift))
+
+
+@njit(cache=True, inline="always")
+def _lookup(table_keys, table_vals, shift, mask, key):
+    s = _slot(key, shift)
+    while True:
+        k = table_keys[s]
+        if k == key:
+            return table_vals[s]
+        if k == EMPTY:
+            return -1
+        s = (s + 1) & mask
+
+
+@njit(cache=True)
+def unpack_keys(keys):
+    """(V,) int64 keys -> (V, 3) int64 voxel coordinates."""
+    out = np.empty((keys.shape[0], 3), dtype=np.int64)
+    for i in range(keys.shape[0]):
+        k = keys[i]
+        out[i, 0] = ((k >> 42) & KEY_MASK) - KEY_OFFSET
+        out[i, 1] = ((k >> 21) & KEY_MASK) - KEY_OFFSET
+        out[i, 2] = (k & KEY_MASK) - KEY_OFFSET
+    return out
+
+
+def table_size_for(n):
+    """Power-of-two table size with load factor <= 0.5 (at least 16); returns (size, shift)."""
+    bits = max(4, int(np.ceil(np.log2(max(2 * n, 2)))))
+    return 1 << bits, 64 - bits
+
+
+@njit(cache=True)
+def voxel_stats(points, inv_res, res):
+    """Accumulate per-voxel statistics of points in one pass (hash accumulation, serial).
+
+    points: (N, 3) float64. Returns keys (V,) int64, count (V,) int64, sums (V, 3) and outer
+    sums (V, 6: xx xy xz yy yz zz) of coordinates relative to the voxel centre, and the number
+    of points skipped because their voxel coordinate is out of the 21-bit range.
+    """
+    n = points.shape[0]
+    size = 16
+    while size < 2 * n:
+        size *= 2
+    bits = 0
+    while (1 << bits) < size:
+        bits += 1
+    shift = 64 - bits
+    mask = size - 1
+    table_keys = np.full(size, EMPTY, dtype=np.int64)
+    table_vals = np.empty(size, dtype=np.int64)
+    keys = np.empty(n, dtype=np.int64)
+    count = np.zeros(n, dtype=np.int64)
+    sums = np.zeros((n, 3))
+    outer = np.zeros((n, 6))
+    nv = 0
+    skipped = 0
+    for i in range(n):
+        x = points[i, 0]
+        y = points[i, 1]
+        z = points[i, 2]
+        fx = np.floor(x * inv_res)
+        fy = np.floor(y * inv_res)
+        fz = np.floor(z * inv_res)
+        if not (-KEY_OFFSET <= fx < KEY_OFFSET and -KEY_OFFSET <= fy < KEY_OFFSET
+                and -KEY_OFFSET <= fz < KEY_OFFSET):
+            skipped += 1
+            continue
+        ix = np.int64(fx)
+        iy = np.int64(fy)
+        iz = np.int64(fz)
+        key = _pack(ix, iy, iz)
+        s = _slot(key, shift)
+        while True:
+            k = table_keys[s]
+            if k == key:
+                v = table_vals[s]
+                break
+            if k == EMPTY:
+                v = nv
+                table_keys[s] = key
+                table_vals[s] = v
+                keys[v] = key
+                nv += 1
+                break
+            s = (s + 1) & mask
+        dx = x - (ix + 0.5) * res
+        dy = y - (iy + 0.5) * res
+        dz = z - (iz + 0.5) * res
+        count[v] += 1
+        sums[v, 0] += dx
+        sums[v, 1] += dy
+        sums[v, 2] += dz
+        outer[v, 0] += dx * dx
+        outer[v, 1] += dx * dy
+        outer[v, 2] += dx * dz
+        outer[v, 3] += dy * dy
+        outer[v, 4] += dy * dz
+        outer[v, 5] += dz * dz
+    return keys[:nv].copy(), count[:nv].copy(), sums[:nv].copy(), outer[:nv].copy(), skipped
+
+
+@njit(cache=True)
+def merge_stats(keys, count, sums, outer):
+    """Sum statistics of coinciding keys (e.g. the concatenated voxels of several tiles).
+
+    Returns unique keys (U,), count (U,), sums (U, 3), outer (U, 6), and for each unique voxel
+    the row of its first contributor (U,) and the number of contributors (U,).
+    """
+    n = keys.shape[0]
+    size = 16
+    while size < 2 * n:
+        size *= 2
+    bits = 0
+    while (1 << bits) < size:
+        bits += 1
+    shift = 64 - bits
+    mask = size - 1
+    table_keys = np.full(size, EMPTY, dtype=np.int64)
+    table_vals = np.empty(size, dtype=np.int64)
+    ukeys = np.empty(n, dtype=np.int64)
+    ucount = np.zeros(n, dtype=np.int64)
+    usums = np.zeros((n, 3))
+    uouter = np.zeros((n, 6))
+    first = np.empty(n, dtype=np.int64)
+    contributors = np.zeros(n, dtype=np.int64)
+    nu = 0
+    for i in range(n):
+        key = keys[i]
+        s = _slot(key, shift)
+        while True:
+            k = table_keys[s]
+            if k == key:
+                v = table_vals[s]
+                break
+            if k == EMPTY:
+                v = nu
+                table_keys[s] = key
+                table_vals[s] = v
+                ukeys[v] = key
+                first[v] = i
+                nu += 1
+                break
+            s = (s + 1) & mask
+        contributors[v] += 1
+        ucount[v] += count[i]
+        for c in range(3):
+            usums[v, c] += sums[i, c]
+        for c in range(6):
+            uouter[v, c] += outer[i, c]
+    return (ukeys[:nu].copy(), ucount[:nu].copy(), usums[:nu].copy(), uouter[:nu].copy(),
+            first[:nu].copy(), contributors[:nu].copy())
+
+
+@njit(cache=True, inline="always")
+def _jacobi_eig3(a00, a01, a02, a11, a12, a22, V):
+    """Eigen-decomposition of a symmetric 3x3 by cyclic Jacobi rotations (scalar code).
+
+    Writes eigenvectors into the columns of V (3, 3); returns the three eigenvalues.
+    """
+    A = np.empty((3, 3))
+    A[0, 0] = a00
+    A[0, 1] = a01
+    A[0, 2] = a02
+    A[1, 0] = a01
+    A[1, 1] = a11
+    A[1, 2] = a12
+    A[2, 0] = a02
+    A[2, 1] = a12
+    A[2, 2] = a22
+    for i in range(3):
+        for j in range(3):
+            V[i, j] = 1.0 if i == j else 0.0
+    for _sweep in range(16):
+        off = A[0, 1] * A[0, 1] + A[0, 2] * A[0, 2] + A[1, 2] * A[1, 2]
+        diag = A[0, 0] * A[0, 0] + A[1, 1] * A[1, 1] + A[2, 2] * A[2, 2]
+        if off <= 1e-30 * diag or off == 0.0:
+            break
+        for p in range(2):
+            for q in range(p + 1, 3):
+                apq = A[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (A[q, q] - A[p, p]) / (2.0 * apq)
+                t = (1.0 if theta >= 0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
+                c = 1.0 / np.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(3):
+                    akp = A[k, p]
+                    akq = A[k, q]
+                    A[k, p] = c * akp - s * akq
+                    A[k, q] = s * akp + c * akq
+                for k in range(3):
+                    apk = A[p, k]
+                    aqk = A[q, k]
+                    A[p, k] = c * apk - s * aqk
+                    A[q, k] = s * apk + c * aqk
+                for k in range(3):
+                    vkp = V[k, p]
+                    vkq = V[k, q]
+                    V[k, p] = c * vkp - s * vkq
+                    V[k, q] = s * vkp + c * vkq
+    return A[0, 0], A[1, 1], A[2, 2]
+
+
+@njit(cache=True)
+def _gaussians_range(keys, count, sums, outer, res, min_points, eig_ratio, eig_floor,
+                     means, icov, valid, lo, hi):
+    V = np.empty((3, 3))
+    for v in range(lo, hi):
+        n = count[v]
+        if n < min_points or n < 3:
+            valid[v] = False
+            continue
+        k = keys[v]
+        cx = (((k >> 42) & KEY_MASK) - KEY_OFFSET + 0.5) * res
+        cy = (((k >> 21) & KEY_MASK) - KEY_OFFSET + 0.5) * res
+        cz = ((k & KEY_MASK) - KEY_OFFSET + 0.5) * res
+        inv_n = 1.0 / n
+        mx = sums[v, 0] * inv_n
+        my = sums[v, 1] * inv_n
+        mz = sums[v, 2] * inv_n
+        # Sample covariance (n - 1), as PCL's and ndt_omp's voxel grids.
+        f = 1.0 / (n - 1)
+        c00 = (outer[v, 0] - n * mx * mx) * f
+        c01 = (outer[v, 1] - n * mx * my) * f
+        c02 = (outer[v, 2] - n * mx * mz) * f
+        c11 = (outer[v, 3] - n * my * my) * f
+        c12 = (outer[v, 4] - n * my * mz) * f
+        c22 = (outer[v, 5] - n * mz * mz) * f
+        l0, l1, l2 = _jacobi_eig3(c00, c01, c02, c11, c12, c22, V)
+        lmax = max(l0, max(l1, l2))
+        floor = max(eig_ratio * lmax, eig_floor)
+        l0 = max(l0, floor)
+        l1 = max(l1, floor)
+        l2 = max(l2, floor)
+        i0 = 1.0 / l0
+        i1 = 1.0 / l1
+        i2 = 1.0 / l2
+        # inverse covariance = V diag(1/l) V^T
+        icov[v, 0] = V[0, 0] * V[0, 0] * i0 + V[0, 1] * V[0, 1] * i1 + V[0, 2] * V[0, 2] * i2
+        icov[v, 1] = V[0, 0] * V[1, 0] * i0 + V[0, 1] * V[1, 1] * i1 + V[0, 2] * V[1, 2] * i2
+        icov[v, 2] = V[0, 0] * V[2, 0] * i0 + V[0, 1] * V[2, 1] * i1 + V[0, 2] * V[2, 2] * i2
+        icov[v, 3] = V[1, 0] * V[1, 0] * i0 + V[1, 1] * V[1, 1] * i1 + V[1, 2] * V[1, 2] * i2
+        icov[v, 4] = V[1, 0] * V[2, 0] * i0 + V[1, 1] * V[2, 1] * i1 + V[1, 2] * V[2, 2] * i2
+        icov[v, 5] = V[2, 0] * V[2, 0] * i0 + V[2, 1] * V[2, 1] * i1 + V[2, 2] * V[2, 2] * i2
+        means[v, 0] = cx + mx
+        means[v, 1] = cy + my
+        means[v, 2] = cz + mz
+        valid[v] = True
+
+
+@njit(cache=True)
+def gaussians_serial(keys, count, sums, outer, res, min_points, eig_ratio, eig_floor):
+    """Voxel Gaussians (serial; safe to call from a background thread).
+
+    Returns means (V, 3) absolute, inverse regularized covariances (V, 6: xx xy xz yy yz zz) and
+    valid (V,) bool (count >= max(min_points, 3)). Covariance eigenvalues are clamped to
+    ``max(eig_ratio * largest, eig_floor)`` (Magnusson's regularization, ratio 0.01).
+    """
+    nv = keys.shape[0]
+    means = np.zeros((nv, 3))
+    icov = np.zeros((nv, 6))
+    valid = np.zeros(nv, dtype=np.bool_)
+    _gaussians_range(keys, count, sums, outer, res, min_points, eig_ratio, eig_floor,
+                     means, icov, valid, 0, nv)
+    return means, icov, valid
+
+
+@njit(cache=True, parallel=True)
+def gaussians_parallel(keys, count, sums, outer, res, min_points, eig_ratio, eig_floor):
+    """Same as ``gaussians_serial`` in parallel chunks."""
+    nv = keys.shape[0]
+    means = np.zeros((nv, 3))
+    icov = np.zeros((nv, 6))
+    valid = np.zeros(nv, dtype=np.bool_)
+    nchunks = 64
+    step = (nv + nchunks - 1) // nchunks
+    for c in prange(nchunks):
+        lo = c * step
+        hi = min(nv, lo + step)
+        if lo < hi:
+            _gaussians_range(keys, count, sums, outer, res, min_points, eig_ratio, eig_floor,
+                             means, icov, valid, lo, hi)
+    return means, icov, valid
+
+
+@njit(cache=True)
+def build_table(keys, size, shift):
+    """Hash table over unique keys (V,): returns table_keys (size,), table_vals (size,)."""
+    mask = size - 1
+    table_keys = np.full(size, EMPTY, dtype=np.int64)
+    table_vals = np.empty(size, dtype=np.int64)
+    for v in range(keys.shape[0]):
+        key = keys[v]
+        s = _slot(key, shift)
+        while table_keys[s] != EMPTY:
+            s = (s + 1) & mask
+        table_keys[s] = key
+        table_vals[s] = v
+    return table_keys, table_vals
+
+
+@njit(cache=True)
+def lookup_keys(table_keys, table_vals, shift, query):
+    """Rows of query keys (Q,) in the table, -1 where absent."""
+    mask = table_keys.shape[0] - 1
+    out = np.empty(query.shape[0], dtype=np.int64)
+    for i in range(query.shape[0]):
+        out[i] = _lookup(table_keys, table_vals, shift, mask, query[i])
+    return out
+
+
+@njit(cache=True, parallel=True)
+def ndt_kernel(points, R, t, table_keys, table_vals, shift, gauss, inv_res, neighbors,
+               d1, d2, inlier_q, want_derivs, nchunks):
+    """Score (and derivatives) of the point-to-distribution NDT objective at T = (R, t).
+
+    points: (N, 3) source points; R (3, 3), t (3,) map them into the target frame.
+    gauss: (M, 9) rows of mean (3) and inverse covariance (6: xx xy xz yy yz zz).
+    neighbors: 1, 7 or 27 (DIRECT1/7/27 around the voxel containing the transformed point).
+    Per point and neighbour Gaussian: s = -d1 * exp(-d2/2 * x^T C x), x = R p + t - mean.
+
+    Returns acc (nchunks, 30): per chunk [score, num_inliers, b_left (6), H_left upper triangle
+    (21), unused] of the cost f = -score; left-frame derivatives (see module doc): the caller sums
+    over chunks and maps them to the right perturbation with diag(R^T, R^T).
+    """
+    n = points.shape[0]
+    mask = table_keys.shape[0] - 1
+    r00 = R[0, 0]
+    r01 = R[0, 1]
+    r02 = R[0, 2]
+    r10 = R[1, 0]
+    r11 = R[1, 1]
+    r12 = R[1, 2]
+    r20 = R[2, 0]
+    r21 = R[2, 1]
+    r22 = R[2, 2]
+    t0 = t[0]
+    t1 = t[1]
+    t2 = t[2]
+    acc = np.zeros((nchunks, 30))
+    step = (n + nchunks - 1) // nchunks
+    half_d2 = 0.5 * d2
+    for c in prange(nchunks):
+        lo = c * step
+        hi = min(n, lo + step)
+        score = 0.0
+        inliers = 0.0
+        for i in range(lo, hi):
+            px = points[i, 0]
+            py = points[i, 1]
+            pz = points[i, 2]
+            ux = r00 * px + r01 * py + r02 * pz
+            uy = r10 * px + r11 * py + r12 * pz
+            uz = r20 * px + r21 * py + r22 * pz
+            x0 = ux + t0
+            x1 = uy + t1
+            x2 = uz + t2
+            fx = np.floor(x0 * inv_res)
+            fy = np.floor(x1 * inv_res)
+            fz = np.floor(x2 * inv_res)
+            if not (-KEY_OFFSET < fx < KEY_OFFSET - 1 and -KEY_OFFSET < fy < KEY_OFFSET - 1
+                    and -KEY_OFFSET < fz < KEY_OFFSET - 1):
+                continue
+            ix = np.int64(fx)
+            iy = np.int64(fy)
+            iz = np.int64(fz)
+            # per-point sums over neighbour Gaussians: w = sum a y, M = sum a (C - d2 y y^T)
+            w0 = 0.0
+            w1 = 0.0
+            w2 = 0.0
+            m00 = 0.0
+            m01 = 0.0
+            m02 = 0.0
+            m11 = 0.0
+            m12 = 0.0
+            m22 = 0.0
+            qmin = 1e300
+            for nb in range(neighbors):
+                if neighbors == 1:
+                    jx = ix
+                    jy = iy
+                    jz = iz
+                elif neighbors == 7:
+                    jx = ix
+                    jy = iy
+                    jz = iz
+                    if nb == 1:
+                        jx = ix - 1
+                    elif nb == 2:
+                        jx = ix + 1
+                    elif nb == 3:
+                        jy = iy - 1
+                    elif nb == 4:
+                        jy = iy + 1
+                    elif nb == 5:
+                        jz = iz - 1
+                    elif nb == 6:
+                        jz = iz + 1
+                else:
+                    jx = ix + (nb % 3) - 1
+                    jy = iy + ((nb // 3) % 3) - 1
+                    jz = iz + (nb // 9) - 1
+                key = _pack(jx, jy, jz)
+                v = _lookup(table_keys, table_vals, shift, mask, key)
+                if v < 0:
+                    continue
+                dx = x0 - gauss[v, 0]
+                dy = x1 - gauss[v, 1]
+                dz = x2 - gauss[v, 2]
+                c00 = gauss[v, 3]
+                c01 = gauss[v, 4]
+                c02 = gauss[v, 5]
+                c11 = gauss[v, 6]
+                c12 = gauss[v, 7]
+                c22 = gauss[v, 8]
+                y0 = c00 * dx + c01 * dy + c02 * dz
+                y1 = c01 * dx + c11 * dy + c12 * dz
+                y2 = c02 * dx + c12 * dy + c22 * dz
+                q = dx * y0 + dy * y1 + dz * y2
+                if q < qmin:
+                    qmin = q
+                e = np.exp(-half_d2 * q)
+                score += -d1 * e
+                if want_derivs:
+                    a = -d1 * d2 * e
+                    w0 += a * y0
+                    w1 += a * y1
+                    w2 += a * y2
+                    ad2 = a * d2
+                    m00 += a * c00 - ad2 * y0 * y0
+                    m01 += a * c01 - ad2 * y0 * y1
+                    m02 += a * c02 - ad2 * y0 * y2
+                    m11 += a * c11 - ad2 * y1 * y1
+                    m12 += a * c12 - ad2 * y1 * y2
+                    m22 += a * c22 - ad2 * y2 * y2
+            if qmin <= inlier_q:
+                inliers += 1.0
+            if want_derivs:
+                # b = [u x w; w]
+                acc[c, 2] += uy * w2 - uz * w1
+                acc[c, 3] += uz * w0 - ux * w2
+                acc[c, 4] += ux * w1 - uy * w0
+                acc[c, 5] += w0
+                acc[c, 6] += w1
+                acc[c, 7] += w2
+                # P = skew(u) M  (rot-trans block, plus -0.5 skew(w))
+                p00 = uy * m02 - uz * m01
+                p01 = uy * m12 - uz * m11
+                p02 = uy * m22 - uz * m12
+                p10 = uz * m00 - ux * m02
+                p11 = uz * m01 - ux * m12
+                p12 = uz * m02 - ux * m22
+                p20 = ux * m01 - uy * m00
+                p21 = ux * m11 - uy * m01
+                p22 = ux * m12 - uy * m02
+                # rot-rot = P skew(u)^T ; row i = u x (row i of P), then + S(w, u)
+                wu = w0 * ux + w1 * uy + w2 * uz
+                h00 = uy * p02 - uz * p01 + w0 * ux - wu
+                h01 = uz * p00 - ux * p02 + 0.5 * (ux * w1 + w0 * uy)
+                h02 = ux * p01 - uy * p00 + 0.5 * (ux * w2 + w0 * uz)
+                h11 = uz * p10 - ux * p12 + w1 * uy - wu
+                h12 = ux * p11 - uy * p10 + 0.5 * (uy * w2 + w1 * uz)
+                h22 = ux * p21 - uy * p20 + w2 * uz - wu
+                # rot-trans = P - 0.5 skew(w)
+                acc[c, 8] += h00
+                acc[c, 9] += h01
+                acc[c, 10] += h02
+                acc[c, 11] += p00
+                acc[c, 12] += p01 + 0.5 * w2
+                acc[c, 13] += p02 - 0.5 * w1
+                acc[c, 14] += h11
+                acc[c, 15] += h12
+                acc[c, 16] += p10 - 0.5 * w2
+                acc[c, 17] += p11
+                acc[c, 18] += p12 + 0.5 * w0
+                acc[c, 19] += h22
+                acc[c, 20] += p20 + 0.5 * w1
+                acc[c, 21] += p21 - 0.5 * w0
+                acc[c, 22] += p22
+                acc[c, 23] += m00
+                acc[c, 24] += m01
+                acc[c, 25] += m02
+                acc[c, 26] += m11
+                acc[c, 27] += m12
+                acc[c, 28] += m22
+        acc[c, 0] += score
+        acc[c, 1] += inliers
+    return acc

@@ -1,0 +1,322 @@
+"""NDT engine: accuracy on real and synthetic points, derivatives, tiles, errors."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from blockloc.errors import RegistrationError
+from blockloc.geometry import inv_T, rotation_angle, transform_points, xyzrpy_to_T
+from blockloc.registration.ndt import (
+    NdtRegistration,
+    NdtTarget,
+    align,
+    ndt_constants,
+    se3_exp,
+)
+
+
+def pose_error(T_est, T_ref):
+    """(translation m, rotation deg) of inv(T_ref) @ T_est."""
+    E = inv_T(T_ref) @ T_est
+    return float(np.linalg.norm(E[:3, 3])), float(np.degrees(rotation_angle(E[:3, :3])))
+
+
+def random_offset(rng, trans=1.0, yaw_deg=5.0, rp_deg=2.0):
+    dx = rng.uniform(-trans, trans, 3)
+    roll, pitch = np.radians(rng.uniform(-rp_deg, rp_deg, 2))
+    yaw = np.radians(rng.uniform(-yaw_deg, yaw_deg))
+    return xyzrpy_to_T(*dx, roll, pitch, yaw)
+
+
+# ------------------------------------------------------------------------------------------
+# real HDL-32E pair
+
+
+def test_real_pair_from_identity_and_random_starts(hdl_pair):
+    target_pts, source, T_ref = hdl_pair
+    target = NdtTarget.build(target_pts, resolution=1.0)
+    reg = NdtRegistration(neighbors="DIRECT7")
+    res = reg.align(target, source, np.eye(4))
+    et, er = pose_error(res.T_target_source, T_ref)
+    assert res.converged and et < 0.05 and er < 0.5, (et, er)
+    assert 0.5 < res.fitness <= 1.0
+
+    rng = np.random.default_rng(2024)
+    ok = 0
+    for _ in range(50):
+        T0 = T_ref @ random_offset(rng)
+        r = reg.align(target, source, T0)
+        et, er = pose_error(r.T_target_source, T_ref)
+        ok += et < 0.05 and er < 0.5
+    assert ok >= 48, f"{ok}/50 within 5 cm and 0.5 deg"
+
+
+def test_real_pair_one_shot_direct1_at_2m(hdl_pair):
+    """The block-map paper's setting (DIRECT1, 2 m) converges from a moderate offset."""
+    target_pts, source, T_ref = hdl_pair
+    T0 = T_ref @ xyzrpy_to_T(0.3, -0.2, 0.05, 0.0, 0.0, np.radians(2.0))
+    res = align(target_pts, source, T0, resolution=2.0, neighbors="DIRECT1")
+    et, er = pose_error(res.T_target_source, T_ref)
+    assert res.converged and et < 0.1 and er < 0.5, (et, er)
+
+
+# ------------------------------------------------------------------------------------------
+# synthetic scene
+
+
+@pytest.mark.parametrize("neighbors", ["DIRECT1", "DIRECT7", "DIRECT27"])
+def test_synthetic_random_transforms_recovered(scene, make_scene, neighbors):
+    target = NdtTarget.build(scene, resolution=1.0)
+    # An independent sample of the same surfaces as the scan.
+    scan = make_scene(seed=7, n_per_m2=4.0)
+    rng = np.random.default_rng(11)
+    reg = NdtRegistration(neighbors=neighbors)
+    offsets = 0.3 if neighbors == "DIRECT1" else 1.0  # DIRECT1 sees only its own voxel
+    for _ in range(5):
+        T_true = random_offset(rng, trans=offsets)
+        source = transform_points(inv_T(T_true), scan)
+        res = reg.align(target, source, np.eye(4))
+        et, er = pose_error(res.T_target_source, T_true)
+        assert res.converged, neighbors
+        assert et < 0.02 and er < 0.1, (neighbors, et, er)
+        assert res.fitness > 0.9
+
+
+def test_result_fields_and_degeneracy(scene, make_scene):
+    target = NdtTarget.build(scene, resolution=1.0)
+    scan = make_scene(seed=3, n_per_m2=4.0)
+    res = NdtRegistration().align(target, scan)
+    assert res.T_target_source.shape == (4, 4)
+    assert res.H.shape == (6, 6) and res.b.shape == (6,)
+    assert np.allclose(res.H, res.H.T)
+    assert res.error == pytest.approx(-res.score)
+    assert res.num_inliers == round(res.fitness * res.num_points)
+    # at the optimum of a well-constrained scene: gradient ~ 0 relative to curvature, H PD
+    assert np.all(res.eigenvalues > 0)
+    assert len(res.degenerate_directions(1e-6)) == 0
+    # a single plane (the floor) leaves x, y and yaw unconstrained
+    floor = scene[(np.abs(scene[:, 2]) < 0.05)]
+    plane_res = NdtRegistration().align(NdtTarget.build(floor), floor[::10])
+    weak = plane_res.degenerate_directions(0.01)
+    assert len(weak) == 3
+    # the weak subspace is spanned by yaw (omega_z), v_x and v_y
+    span = np.zeros((3, 6))
+    span[0, 2] = span[1, 3] = span[2, 4] = 1.0
+    proj = weak @ span.T
+    assert np.allclose(np.linalg.svd(proj, compute_uv=False), 1.0, atol=1e-2)
+    info = plane_res.information(0.0)
+    assert np.linalg.eigvalsh(info).min() >= -1e-9
+
+
+# ------------------------------------------------------------------------------------------
+# derivatives
+
+
+def _interior_source(scene, T, res, n=400, seed=5):
+    """Scene points whose image under T lies >= 0.15 voxel from any voxel face (no voxel changes
+    under the small finite-difference perturbations)."""
+    rng = np.random.default_rng(seed)
+    pts = scene[rng.choice(len(scene), 6000, replace=False)]
+    frac = np.mod(transform_points(T, pts) / res, 1.0)
+    keep = np.all((frac > 0.15) & (frac < 0.85), axis=1)
+    return pts[keep][:n]
+
+
+@pytest.mark.parametrize("neighbors", ["DIRECT1", "DIRECT7"])
+def test_gradient_and_hessian_match_finite_differences(scene, neighbors):
+    target = NdtTarget.build(scene, resolution=1.0)
+    T = xyzrpy_to_T(0.12, -0.08, 0.05, 0.01, -0.02, 0.03)
+    source = _interior_source(scene, T, 1.0)
+    assert len(source) >= 200
+    reg = NdtRegistration(neighbors=neighbors)
+    ev = reg.evaluate(target, source, T)
+
+    def cost(xi):
+        return -reg.evaluate(target, source, T @ se3_exp(xi), derivatives=False).score
+
+    h = 1e-4
+    E = np.eye(6) * h
+    b_fd = np.array([(cost(E[i]) - cost(-E[i])) / (2 * h) for i in range(6)])
+    H_fd = np.zeros((6, 6))
+    for i in range(6):
+        for j in range(6):
+            H_fd[i, j] = (cost(E[i] + E[j]) - cost(E[i] - E[j]) - cost(-E[i] + E[j])
+                          + cost(-E[i] - E[j])) / (4 * h * h)
+    scale_b = np.abs(b_fd).max()
+    scale_H = np.abs(H_fd).max()
+    assert scale_b > 1.0  # not at the optimum: the gradient is substantial
+    np.testing.assert_allclose(ev.b, b_fd, atol=1e-5 * scale_b)
+    np.testing.assert_allclose(ev.H, H_fd, atol=1e-4 * scale_H)
+
+
+def test_gtsam_hessian_factor_reproduces_newton_step(scene):
+    import gtsam
+
+    target = NdtTarget.build(scene, resolution=1.0)
+    T = xyzrpy_to_T(0.05, -0.03, 0.02, 0.0, 0.0, 0.01)
+    source = _interior_source(scene, T, 1.0, n=600)
+    reg = NdtRegistration()
+    ev = reg.evaluate(target, source, T)
+    error = -ev.score
+    key = gtsam.symbol("x", 0)
+    factor = gtsam.HessianFactor(key, ev.H, -ev.b, 2.0 * error)
+    graph = gtsam.GaussianFactorGraph()
+    graph.push_back(factor)
+    delta = graph.optimize().at(key)
+    np.testing.assert_allclose(delta, -np.linalg.solve(ev.H, ev.b), rtol=1e-6, atol=1e-9)
+    # the factor's error is the quadratic model error + b.x + x^T H x / 2
+    x = np.array([0.001, -0.002, 0.0005, 0.01, 0.02, -0.01])
+    vv = gtsam.VectorValues()
+    vv.insert(key, x)
+    assert factor.error(vv) == pytest.approx(error + ev.b @ x + 0.5 * x @ ev.H @ x, rel=1e-9)
+    # and the Newton step lowers the true cost
+    after = -reg.evaluate(target, source, T @ se3_exp(delta), derivatives=False).score
+    assert after < error
+
+
+def test_ndt_constants_match_magnusson():
+    d1, d2 = ndt_constants(1.0, 0.55)
+    # values printed by ndt_omp / PCL for resolution 1, outlier ratio 0.55
+    assert d1 < 0 and d2 > 0
+    c1, c2 = 10 * 0.45, 0.55
+    d3 = -np.log(c2)
+    assert d1 == pytest.approx(-np.log(c1 + c2) - d3)
+    # the fitted Gaussian-plus-uniform passes through the mixture at x = 0 and x = 1 sigma
+    assert -np.log(c1 + c2) - d3 == pytest.approx(d1)
+    assert -np.log(c1 * np.exp(-0.5) + c2) - d3 == pytest.approx(d1 * np.exp(-d2 / 2))
+
+
+# ------------------------------------------------------------------------------------------
+# target construction and tiles
+
+
+def _snapshot_dict(target):
+    snap = target.snapshot()
+    order = np.argsort(snap.keys)
+    return snap.keys[order], snap.gauss[order], snap.counts[order]
+
+
+def _tiles(points, size, offset=0.0):
+    idx = np.floor((points[:, :2] - offset) / size).astype(int)
+    out = {}
+    for key in {tuple(k) for k in idx}:
+        sel = np.all(idx == key, axis=1)
+        out[key] = points[sel]
+    return out
+
+
+def test_gaussians_regularized_and_match_numpy(scene):
+    target = NdtTarget.build(scene, resolution=2.0, min_points_per_voxel=6)
+    means, covs = target.gaussians()
+    counts = target.voxel_counts()
+    assert np.all(counts >= 6)
+    lam = np.linalg.eigvalsh(covs)
+    assert np.all(lam[:, 0] >= 0.01 * lam[:, 2] * (1 - 1e-9))
+    # one voxel against numpy
+    vox = np.floor(scene / 2.0).astype(int)
+    key = vox[0]
+    sel = np.all(vox == key, axis=1)
+    pts = scene[sel]
+    i = np.argmin(np.linalg.norm(means - pts.mean(axis=0), axis=1))
+    np.testing.assert_allclose(means[i], pts.mean(axis=0), atol=1e-9)
+    w, V = np.linalg.eigh(np.cov(pts.T))
+    w = np.maximum(w, 0.01 * w[-1])
+    np.testing.assert_allclose(covs[i], (V * w) @ V.T, atol=1e-9)
+
+
+@pytest.mark.parametrize("tile_size,offset", [(10.0, 0.0), (7.3, 0.4)])
+def test_tiles_equal_full_build(scene, tile_size, offset):
+    """Aligned tiles and tiles whose edges cut through voxels both equal the one-shot build."""
+    full = _snapshot_dict(NdtTarget.build(scene, resolution=1.0))
+    tiles = _tiles(scene, tile_size, offset)
+    tiled = NdtTarget.from_tiles(tiles, resolution=1.0)
+    k1, g1, c1 = full
+    k2, g2, c2 = _snapshot_dict(tiled)
+    np.testing.assert_array_equal(k1, k2)
+    np.testing.assert_array_equal(c1, c2)
+    np.testing.assert_allclose(g1, g2, rtol=1e-9, atol=1e-9)
+
+    # remove and re-add one tile
+    key = sorted(tiles)[0]
+    tiled.remove_tile(key)
+    rest = np.concatenate([p for k, p in tiles.items() if k != key])
+    kr, gr, cr = _snapshot_dict(NdtTarget.build(rest, resolution=1.0))
+    k3, g3, c3 = _snapshot_dict(tiled)
+    np.testing.assert_array_equal(kr, k3)
+    np.testing.assert_allclose(gr, g3, rtol=1e-9, atol=1e-9)
+    tiled.add_tile(key, tiles[key])
+    k4, g4, _ = _snapshot_dict(tiled)
+    np.testing.assert_array_equal(k1, k4)
+    np.testing.assert_allclose(g1, g4, rtol=1e-9, atol=1e-9)
+    assert tiled.num_points == len(scene)
+
+
+def test_tile_updates_while_aligning(scene, make_scene):
+    tiles = _tiles(scene, 10.0)
+    target = NdtTarget.from_tiles(tiles)
+    scan = make_scene(seed=9, n_per_m2=3.0)
+    T_true = xyzrpy_to_T(0.3, -0.2, 0.0, 0.0, 0.0, 0.02)
+    source = transform_points(inv_T(T_true), scan)
+    far_key = max(tiles)
+    stop = threading.Event()
+    errors = []
+
+    def churn():
+        try:
+            while not stop.is_set():
+                target.remove_tile(far_key)
+                target.add_tile(far_key, tiles[far_key])
+        except Exception as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    th = threading.Thread(target=churn)
+    th.start()
+    try:
+        reg = NdtRegistration()
+        for _ in range(5):
+            res = reg.align(target, source)
+            et, er = pose_error(res.T_target_source, T_true)
+            assert et < 0.05 and er < 0.2
+    finally:
+        stop.set()
+        th.join()
+    assert not errors
+
+
+# ------------------------------------------------------------------------------------------
+# bad input
+
+
+def test_bad_inputs_raise_one_line_errors(scene):
+    target = NdtTarget.build(scene)
+    reg = NdtRegistration()
+    cases = [
+        (lambda: NdtTarget.build(np.empty((0, 3))), "target points"),
+        (lambda: NdtTarget.build(np.zeros((10, 2))), "(N, 3)"),
+        (lambda: reg.align(target, np.empty((0, 3))), "source points"),
+        (lambda: reg.align(target, scene[:5]), "at least"),
+        (lambda: reg.align(target, np.vstack([scene[:100], [[np.nan, 0, 0]]])), "NaN"),
+        (lambda: reg.align(target, np.vstack([scene[:100], [[np.inf, 0, 0]]])), "NaN or inf"),
+        (lambda: NdtTarget.build(np.array([[0, 0, np.nan]] * 20)), "NaN"),
+        (lambda: reg.align(target, scene[:100], np.eye(3)), "T_init"),
+        (lambda: reg.align(NdtTarget.build(scene[:5]), scene[:100]), "no voxel"),
+        (lambda: NdtRegistration(neighbors="DIRECT5"), "DIRECT5"),
+        (lambda: NdtTarget.build(scene, resolution=0.0), "resolution"),
+        (lambda: target.remove_tile("nope"), "nope"),
+    ]
+    for fn, text in cases:
+        with pytest.raises(RegistrationError) as info:
+            fn()
+        msg = str(info.value)
+        assert text in msg and "\n" not in msg, msg
+
+
+def test_voxel_downsample():
+    from blockloc.registration.voxels import voxel_downsample
+
+    pts = np.array([[0.1, 0.1, 0.1], [0.3, 0.3, 0.3], [1.5, 0.2, 0.2], [np.nan, 0, 0]])
+    out = voxel_downsample(pts, 1.0)
+    np.testing.assert_allclose(out, [[0.2, 0.2, 0.2], [1.5, 0.2, 0.2]])
