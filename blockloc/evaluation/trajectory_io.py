@@ -112,7 +112,7 @@ def _parse_rows(path: Path, text: str, ncols: int, what: str) -> tuple[np.ndarra
 
             with warnings.catch_warnings():
                 warnings.simplefilter("error")  # an empty file warns: let the slow path word it
-                data = np.loadtxt(io.StringIO(text), comments=("#", "//"), ndmin=2, dtype=np.float64)
+                data = np.loadtxt(io.StringIO(text), comments="#", ndmin=2, dtype=np.float64)
             if data.shape[1] == ncols and len(data) and np.isfinite(data).all():
                 return data, linenos
         except (ValueError, UserWarning):
