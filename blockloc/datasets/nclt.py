@@ -219,8 +219,12 @@ class HitsIndex:
         if size % 8 != 0:
             raise DatasetError(f"{self.path}: {size} bytes, expected a multiple of 8 "
                                "(24-byte packet headers + 8-byte hits); the file is truncated")
-        self.words = (np.memmap(self.path, dtype="<u8", mode="r") if size
-                      else np.zeros(0, dtype="<u8"))
+        if size == 0:
+            self.words = np.zeros(0, dtype="<u8")
+            self.offsets = self.num_hits = self.utimes = np.zeros(0, dtype=np.int64)
+            return
+        # read-only memmap: one numba signature, compiled once per install (cache=True)
+        self.words = np.memmap(self.path, dtype="<u8", mode="r")
         from blockloc.datasets._nclt_kernels import index_hits_words
 
         offs, nums, uts, status, bad = index_hits_words(self.words)

@@ -301,3 +301,10 @@ def test_frame_index_errors_and_imu_type(tmp_path, session_data):
     assert seq.frame(-1).index == len(seq) - 1
     assert isinstance(seq.imu(), ImuData)
     assert [f.index for f in seq.frames(1, 3)] == [1, 2]
+
+
+def test_empty_hits_file_falls_back_to_azimuth(tmp_path, session_data):
+    out = _write(tmp_path, session_data)
+    (out / "velodyne_hits.bin").write_bytes(b"")
+    f = NcltSequence(out, max_range_m=200).frame(0)
+    assert len(f) == len(session_data["frames"][0]) and f.time_offsets[0] == 0.0
