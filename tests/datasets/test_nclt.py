@@ -308,3 +308,21 @@ def test_empty_hits_file_falls_back_to_azimuth(tmp_path, session_data):
     (out / "velodyne_hits.bin").write_bytes(b"")
     f = NcltSequence(out, max_range_m=200).frame(0)
     assert len(f) == len(session_data["frames"][0]) and f.time_offsets[0] == 0.0
+
+
+def test_real_hdl32e_scan_round_trip(tmp_path, shared_data, session_data):
+    """A real HDL-32E sweep through the NCLT byte layout keeps every point within 5 mm quantization."""
+    from pypcd4 import PointCloud
+
+    arr = PointCloud.from_path(shared_data / "hdl32e_pair" / "target.pcd").numpy(("x", "y", "z", "intensity"))
+    arr = arr[np.isfinite(arr).all(axis=1)]
+    n = len(arr)
+    assert n > 60000
+    frame = LidarFrame(0, 1326030000.1, arr[:, :3], np.clip(arr[:, 3], 0, 255), None, None)
+    out = write_session(tmp_path / "real", date="real", frames=[frame], imu=session_data["imu"],
+                        ground_truth=session_data["gt"])
+    got = NcltSequence(out, min_range_m=0.0, max_range_m=300.0).frame(0)
+    assert len(got) == n
+    assert np.abs(got.points - arr[:, :3]).max() <= QUANT_M
+    np.testing.assert_array_equal(got.intensity, np.rint(np.clip(arr[:, 3], 0, 255)))
+    np.testing.assert_array_equal(got.time_offsets, np.zeros(n, np.float32))
