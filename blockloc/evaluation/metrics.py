@@ -53,26 +53,32 @@ def associate(stamps_a: np.ndarray, stamps_b: np.ndarray, max_time_diff_s: float
         hi = np.clip(k, 0, len(sorted_ref) - 1)
         return np.where(np.abs(sorted_ref[lo] - query) <= np.abs(sorted_ref[hi] - query), lo, hi)
 
+    nb_of_a = nearest(sb, sa)  # (N,) into sb
+    na_of_b = nearest(sa, sb)  # (M,) into sa
     ia = np.arange(len(sa))
-    jb = np.arange(len(sb))
-    cand_a = np.concatenate([ia, nearest(sa, sb)])
-    cand_b = np.concatenate([nearest(sb, sa), jb])
-    dt = np.abs(sa[cand_a] - sb[cand_b])
-    keep = dt <= max_time_diff_s
-    cand_a, cand_b, dt = cand_a[keep], cand_b[keep], dt[keep]
-    order = np.lexsort((cand_b, cand_a, dt))
-    used_a = np.zeros(len(sa), dtype=bool)
+    # Mutual nearest neighbours within tolerance have the smallest |dt| of every candidate touching
+    # either end, so the greedy pass would accept them first: take them all at once.
+    mutual = (na_of_b[nb_of_a] == ia) & (np.abs(sa - sb[nb_of_a]) <= max_time_diff_s)
+    used_a = mutual.copy()
     used_b = np.zeros(len(sb), dtype=bool)
-    out_a, out_b = [], []
-    for k in order:
+    used_b[nb_of_a[mutual]] = True
+    out_a: list[int] = []
+    out_b: list[int] = []
+    # The rest (dense stamps, one stamp nearest to several): greedy from the smallest |dt|.
+    cand_a = np.concatenate([ia, na_of_b])
+    cand_b = np.concatenate([nb_of_a, np.arange(len(sb))])
+    dt = np.abs(sa[cand_a] - sb[cand_b])
+    keep = (dt <= max_time_diff_s) & ~used_a[cand_a] & ~used_b[cand_b]
+    cand_a, cand_b, dt = cand_a[keep], cand_b[keep], dt[keep]
+    for k in np.lexsort((cand_b, cand_a, dt)):
         i, j = cand_a[k], cand_b[k]
         if used_a[i] or used_b[j]:
             continue
         used_a[i] = used_b[j] = True
         out_a.append(i)
         out_b.append(j)
-    out_a = oa[np.asarray(out_a, dtype=np.int64)]
-    out_b = ob[np.asarray(out_b, dtype=np.int64)]
+    out_a = oa[np.concatenate([ia[mutual], np.asarray(out_a, dtype=np.int64)])]
+    out_b = ob[np.concatenate([nb_of_a[mutual], np.asarray(out_b, dtype=np.int64)])]
     order = np.argsort(out_a, kind="stable")
     return out_a[order], out_b[order]
 
