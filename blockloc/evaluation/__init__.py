@@ -1,1 +1,8 @@
-"""evaluation"""
+"""Trajectory files and ATE/RPE evaluation.
+
+- ``trajectory_io``: ``read_trajectory`` (TUM, KITTI, NCLT csv, sniffed), ``write_tum``, ``write_kitti``.
+- ``metrics``: pure numpy: ``associate``, ``umeyama_alignment``, ``absolute_pose_errors``,
+  ``relative_pose_errors``.
+- ``report``: ``evaluate_files``, ``evaluate_trajectories``, ``evaluate_with_config``, ``print_metrics``.
+- ``plots``: PNGs (matplotlib, Agg, imported lazily).
+"""
