@@ -69,6 +69,7 @@ class MapConfig:
     # provider
     cache_mb: float = 1024.0
     prefetch: bool = True
+    prefetch_lookahead_s: float = 5.0  # prefetch the region needed after this much motion
 
 
 @dataclass

@@ -1,0 +1,216 @@
+"""Which blocks/tiles should be resident: the four map policies as small pure state machines.
+
+Each policy turns the robot's position (map frame, metres), velocity (m/s) and time (s) into a
+*region*: a sorted tuple of store entry ids. ``select`` advances the policy's state (call it once
+per frame); ``peek`` answers the same question for a hypothetical future position without
+changing state; ``ahead`` predicts the next region the robot will need when it keeps its
+velocity for ``horizon_m`` metres (used to prefetch), or None.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+
+from blockloc.errors import MapError
+from blockloc.maps.grid_tiles import (SECTOR_NAMES, cell_of, grid_window, heading_sector,
+                                      parse_tile_name, tile_name)
+
+Region = tuple  # sorted tuple of entry ids
+
+
+class GlobalPolicy:
+    """Everything: the baseline every claim is measured against."""
+
+    name = "global"
+
+    def __init__(self, ids: Sequence[str]):
+        self.region: Region = tuple(sorted(ids))
+
+    def select(self, position, velocity, stamp) -> Region:
+        return self.region
+
+    def peek(self, position, velocity) -> Region:
+        return self.region
+
+    def ahead(self, position, velocity, horizon_m) -> Region | None:
+        return None
+
+    def region_name(self, region: Region) -> str:
+        return "global"
+
+
+def _ray(position, velocity, horizon_m: float, step_m: float):
+    """Points along the horizontal motion ray from ``position``, every ``step_m`` up to
+    ``horizon_m`` (the first sample just ahead), or an empty list when not moving."""
+    if velocity is None:
+        return []
+    v = np.asarray(velocity, np.float64)[:2]
+    speed = float(np.hypot(*v))
+    if not np.isfinite(speed) or speed < 1e-3 or horizon_m <= 0:
+        return []
+    u = v / speed
+    p = np.asarray(position, np.float64)
+    n = max(int(math.ceil(horizon_m / step_m)), 1)
+    out = []
+    for i in range(1, n + 1):
+        q = p.copy()
+        q[:2] = p[:2] + u * min(i * step_m, horizon_m)
+        out.append(q)
+    return out
+
+
+class BlockPolicy:
+    """The block whose centroid is nearest (3D), with hysteresis.
+
+    The active block changes only when another centroid is nearer by more than ``hysteresis_m``,
+    so a robot driving along the bisector of two blocks does not flip between them.
+    """
+
+    name = "block"
+
+    def __init__(self, ids: Sequence[str], centroids: np.ndarray, hysteresis_m: float = 5.0):
+        if len(ids) == 0:
+            raise MapError("block map has no blocks")
+        if hysteresis_m < 0:
+            raise MapError(f"switch hysteresis {hysteresis_m!r} m: expected >= 0")
+        from scipy.spatial import cKDTree
+
+        self.ids = list(ids)
+        self.centroids = np.asarray(centroids, np.float64).reshape(-1, 3)
+        self.tree = cKDTree(self.centroids)
+        self.hysteresis_m = float(hysteresis_m)
+        self.current: int | None = None
+
+    def _choose(self, position, current: int | None) -> int:
+        p = np.asarray(position, np.float64)
+        _, j = self.tree.query(p)
+        j = int(j)
+        if current is None or j == current:
+            return j
+        d_new = np.linalg.norm(self.centroids[j] - p)
+        d_cur = np.linalg.norm(self.centroids[current] - p)
+        return j if d_new + self.hysteresis_m < d_cur else current
+
+    def select(self, position, velocity, stamp) -> Region:
+        self.current = self._choose(position, self.current)
+        return (self.ids[self.current],)
+
+    def peek(self, position, velocity) -> Region:
+        return (self.ids[self._choose(position, self.current)],)
+
+    def ahead(self, position, velocity, horizon_m) -> Region | None:
+        if velocity is None:
+            return None
+        v = np.asarray(velocity, np.float64)
+        speed = float(np.linalg.norm(v))
+        if not np.isfinite(speed) or speed < 1e-3:
+            return None
+        region = self.peek(np.asarray(position, np.float64) + v / speed * horizon_m, velocity)
+        return region if self.current is None or region[0] != self.ids[self.current] else None
+
+    def region_name(self, region: Region) -> str:
+        return region[0]
+
+
+class GridPolicy:
+    """Grid-puzzle Algorithm 2: (2n+1)^2 tiles around the robot's tile, widened by k tiles toward
+    the heading sector (8 sectors of 45 degrees); recomputed only after the robot has moved more
+    than s/2 from where the window was last computed."""
+
+    name = "grid"
+
+    def __init__(self, ids: Sequence[str], tile_size_m: float, n: int = 1, k: int = 1):
+        self.tile_size_m = float(tile_size_m)
+        self.n, self.k = int(n), int(k)
+        self.cells = {parse_tile_name(i, self.tile_size_m): i for i in ids}
+        self.anchor: np.ndarray | None = None
+        self.region: Region | None = None
+        self.centre: tuple[int, int] | None = None
+        self.sector: int | None = None
+
+    def _window(self, position, velocity) -> tuple[Region, tuple[int, int], int | None]:
+        cell = tuple(int(v) for v in cell_of(np.asarray(position, float)[None, :2], self.tile_size_m)[0])
+        sector = heading_sector(None if velocity is None else np.asarray(velocity)[:2])
+        cells = grid_window(cell[0], cell[1], self.n, self.k, sector)
+        return tuple(sorted(self.cells[c] for c in cells if c in self.cells)), cell, sector
+
+    def select(self, position, velocity, stamp) -> Region:
+        p = np.asarray(position, np.float64)[:2]
+        if self.anchor is None or np.linalg.norm(p - self.anchor) > self.tile_size_m / 2:
+            self.region, self.centre, self.sector = self._window(position, velocity)
+            self.anchor = p.copy()
+        return self.region
+
+    def peek(self, position, velocity) -> Region:
+        return self._window(position, velocity)[0]
+
+    def ahead(self, position, velocity, horizon_m) -> Region | None:
+        """The window at the point where the robot, keeping its heading, next moves more than
+        s/2 from the current anchor (where the window will be recomputed)."""
+        if self.anchor is None:
+            return None
+        for q in _ray(position, velocity, horizon_m, self.tile_size_m / 20):
+            if np.linalg.norm(q[:2] - self.anchor) > self.tile_size_m / 2:
+                return self.peek(q, velocity)
+        return None
+
+    def region_name(self, region: Region) -> str:
+        if self.centre is None:
+            return "grid"
+        sec = "-" if self.sector is None else SECTOR_NAMES[self.sector]
+        return f"{tile_name(*self.centre, self.tile_size_m)}/{sec}"
+
+
+class SrtPolicy:
+    """SRT-PM: every tile within radius R' of the robot (tiles whose square intersects the disk)
+    merged into one partial map, recomputed when the robot enters a new cell or after T seconds."""
+
+    name = "srt"
+
+    def __init__(self, ids: Sequence[str], tile_size_m: float, radius_m: float = 60.0,
+                 rebuild_period_s: float = 10.0):
+        if not radius_m > 0:
+            raise MapError(f"SRT radius {radius_m!r} m: expected a positive number")
+        self.tile_size_m = float(tile_size_m)
+        self.radius_m = float(radius_m)
+        self.rebuild_period_s = float(rebuild_period_s)
+        s = self.tile_size_m
+        self.ids = list(ids)
+        cells = np.array([parse_tile_name(i, s) for i in ids], np.float64).reshape(-1, 2)
+        self.cell_min = cells * s
+        self.cell_max = (cells + 1) * s
+        self.cell: tuple[int, int] | None = None
+        self.built_at: float = -math.inf
+        self.region: Region | None = None
+
+    def _tiles(self, position) -> Region:
+        p = np.asarray(position, np.float64)[:2]
+        nearest = np.clip(p, self.cell_min, self.cell_max)
+        inside = np.linalg.norm(nearest - p, axis=1) <= self.radius_m
+        return tuple(sorted(self.ids[i] for i in np.flatnonzero(inside)))
+
+    def select(self, position, velocity, stamp) -> Region:
+        cell = tuple(int(v) for v in cell_of(np.asarray(position, float)[None, :2], self.tile_size_m)[0])
+        if self.region is None or cell != self.cell or stamp - self.built_at >= self.rebuild_period_s:
+            self.region = self._tiles(position)
+            self.cell, self.built_at = cell, float(stamp)
+        return self.region
+
+    def peek(self, position, velocity) -> Region:
+        return self._tiles(position)
+
+    def ahead(self, position, velocity, horizon_m) -> Region | None:
+        """The partial map just after the robot, keeping its heading, enters the next cell."""
+        if self.cell is None:
+            return None
+        for q in _ray(position, velocity, horizon_m, self.tile_size_m / 20):
+            cell = tuple(int(v) for v in cell_of(q[None, :2], self.tile_size_m)[0])
+            if cell != self.cell:
+                return self._tiles(q)
+        return None
+
+    def region_name(self, region: Region) -> str:
+        return "srt" if self.cell is None else f"srt:{tile_name(*self.cell, self.tile_size_m)}"

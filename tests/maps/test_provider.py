@@ -1,0 +1,256 @@
+"""The map provider: policies, hysteresis, switch reporting, prefetch, LRU bound, bad tiles."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from blockloc.config import MapConfig
+from blockloc.errors import MapError
+from blockloc.maps.grid_tiles import tile_global_map
+from blockloc.maps.policies import BlockPolicy, GridPolicy, SrtPolicy
+from blockloc.maps.provider import MapProvider
+from blockloc.maps.store import MapWriter
+
+
+def _block_store(path, centres, n=2000, seed=0):
+    rng = np.random.default_rng(seed)
+    with MapWriter(path, "block", params={"block_size_m": 50.0}) as w:
+        for i, c in enumerate(centres):
+            pts = np.asarray(c, float) + rng.uniform(-20, 20, (n, 3)) * [1, 1, 0.1]
+            w.add(f"{i:03d}", pts, centroid=np.asarray(c, float))
+        return w.commit()
+
+
+def _grid_store(path, extent=100.0, tile=10.0, per_tile=400, seed=0):
+    rng = np.random.default_rng(seed)
+    n = int((extent / tile) ** 2 * per_tile)
+    pts = np.c_[rng.uniform(0, extent, (n, 2)), rng.uniform(0, 3, n)].astype(np.float32)
+    return tile_global_map(pts, None, tile, path)
+
+
+class CountingBuilder:
+    def __init__(self):
+        self.calls = 0
+        self.threads = set()
+
+    def __call__(self, points):
+        self.calls += 1
+        self.threads.add(threading.current_thread().name)
+        return {"n": len(points), "call": self.calls}
+
+
+def _drive(provider, xs, y=0.0, vx=1.0, dt=1.0, wait=True):
+    out = []
+    for k, x in enumerate(xs):
+        out.append(provider.update(np.array([x, y, 0.0]), np.array([vx, 0.0, 0.0]), 100.0 + k * dt))
+        if wait:
+            provider.wait_idle()
+    return out
+
+
+def test_block_policy_hysteresis_no_flip_flop():
+    pol = BlockPolicy(["a", "b"], np.array([[0, 0, 0], [100, 0, 0]]), hysteresis_m=6.0)
+    # wander around the bisector x = 50 within +-2.9 m: never switches once on "a"
+    seq = [10, 45, 52.9, 47.1, 52.9, 47.1, 52.9]
+    got = [pol.select(np.array([x, 0, 0]), None, 0)[0] for x in seq]
+    assert got == ["a"] * len(seq)
+    assert pol.select(np.array([53.1, 0, 0]), None, 0) == ("b",)
+    assert [pol.select(np.array([x, 0, 0]), None, 0)[0] for x in (50, 47.1, 52)] == ["b"] * 3
+    assert pol.select(np.array([46.9, 0, 0]), None, 0) == ("a",)
+
+
+def test_block_provider_switch_reported_once_and_in_background(tmp_path):
+    store = _block_store(tmp_path / "m", [[0, 0, 0], [60, 0, 0], [120, 0, 0]])
+    builder = CountingBuilder()
+    with MapProvider(store, "block", target_builder=builder, hysteresis_m=4.0) as prov:
+        maps = _drive(prov, np.arange(0, 125, 1.0))
+        st = prov.stats()
+    ids = [m.block_id for m in maps]
+    changes = [i for i in range(1, len(ids)) if ids[i] != ids[i - 1]]
+    assert [m.switched for m in maps].count(True) == len(changes) == 2 == st["switches"]
+    assert all(maps[i].switched for i in changes) and not maps[0].switched
+    assert ids[0] == "000" and ids[-1] == "002"
+    # switch happens past the bisector by at least half the hysteresis
+    assert 32.0 <= changes[0] <= 33.0
+    assert maps[changes[0]].version == maps[changes[0] - 1].version + 1
+    assert builder.threads == {"blockloc-map-provider"}
+    assert maps[0].target["n"] == maps[0].num_points == 2000
+    assert st["late_frames"] == 0 and st["prefetch_hits"] == 2  # prefetch made every switch ready
+
+
+def test_prefetch_loads_ahead_and_without_it_switches_are_late(tmp_path):
+    store = _block_store(tmp_path / "m", [[0, 0, 0], [60, 0, 0]])
+    gate = threading.Event()
+
+    def slow_builder(points):
+        gate.wait(10)
+        return len(points)
+
+    # with prefetch: the block ahead is built before the robot needs it
+    gate.set()
+    with MapProvider(store, "block", target_builder=slow_builder, lookahead_s=10.0) as prov:
+        prov.update(np.array([20.0, 0, 0]), np.array([2.0, 0, 0]), 0.0)
+        assert prov.wait_idle()
+        assert prov.stats()["prefetch_builds"] == 1 and prov.stats()["loads"] == 2
+        m = prov.update(np.array([40.0, 0, 0]), np.array([2.0, 0, 0]), 10.0)
+        assert m.switched and m.block_id == "001"
+    # without: the first frame that wants block 1 still gets block 0, and update does not wait
+    gate.clear()
+    with MapProvider(store, "block", target_builder=slow_builder, prefetch=False) as prov:
+        gate.set()
+        prov.update(np.array([20.0, 0, 0]), np.array([2.0, 0, 0]), 0.0)
+        gate.clear()  # the next build blocks until released
+        m = prov.update(np.array([40.0, 0, 0]), np.array([2.0, 0, 0]), 10.0)
+        assert not m.switched and m.block_id == "000"  # returned while the builder is blocked
+        m = prov.update(np.array([41.0, 0, 0]), np.array([2.0, 0, 0]), 10.1)
+        assert m.block_id == "000"
+        gate.set()
+        assert prov.wait_idle()
+        m = prov.update(np.array([42.0, 0, 0]), np.array([2.0, 0, 0]), 10.2)
+        assert m.switched and m.block_id == "001"
+        st = prov.stats()
+        assert st["late_frames"] == 2 and st["prefetch_builds"] == 0
+
+
+def test_grid_window_served_and_recomputed_after_half_tile(tmp_path):
+    store = _grid_store(tmp_path / "g")
+    with MapProvider(store, "grid", grid_n=1, grid_k=1) as prov:
+        m = prov.update(np.array([55.0, 55.0, 0]), np.array([1.0, 0, 0]), 0.0)
+        # cell (5, 5), heading east: x cells 4..7, y cells 4..6
+        want = sorted(f"{(ix + 0.5) * 10:.1f}_{(iy + 0.5) * 10:.1f}" for ix in range(4, 8)
+                      for iy in range(4, 7))
+        assert list(m.entry_ids) == want and m.num_points == sum(
+            store.entry(i).num_points for i in want)
+        assert m.region_id == "55.0_55.0/E"
+        # 4.9 m later (< s/2) the window is not recomputed even though the cell changed
+        m2 = prov.update(np.array([59.9, 55.0, 0]), np.array([1.0, 0, 0]), 1.0)
+        assert m2.entry_ids == m.entry_ids and not m2.switched
+        prov.wait_idle()
+        m3 = prov.update(np.array([60.1, 55.0, 0]), np.array([1.0, 0, 0]), 2.0)
+        assert m3.switched and "85.0_55.0" in m3.entry_ids and "45.0_55.0" not in m3.entry_ids
+
+
+def test_srt_radius_and_rebuild_triggers():
+    ids = [f"{(ix + 0.5) * 10:.1f}_{(iy + 0.5) * 10:.1f}" for ix in range(10) for iy in range(10)]
+    pol = SrtPolicy(ids, 10.0, radius_m=12.0, rebuild_period_s=5.0)
+    r0 = pol.select(np.array([55.0, 55.0, 0]), None, 0.0)
+    # tiles whose square comes within 12 m: the own cell and its 8 neighbours (axis cells 10 m on
+    # start 15 m away)
+    assert r0 == tuple(sorted(f"{x:.1f}_{y:.1f}" for x in (45, 55, 65) for y in (45, 55, 65)))
+    # same cell, before T: unchanged even though the disk moved
+    assert pol.select(np.array([58.0, 55.0, 0]), None, 4.0) == r0
+    # after T: recomputed at the new position (the cell 70..80 m is now 12 m away)
+    r1 = pol.select(np.array([58.0, 55.0, 0]), None, 5.0)
+    assert set(r1) - set(r0) == {"75.0_55.0"}  # its diagonal neighbours are 13 m away
+    # entering a new cell recomputes immediately, before T
+    pol.select(np.array([69.0, 55.0, 0]), None, 5.5)
+    assert pol.built_at == 5.5 and "85.0_55.0" in pol.region and "45.0_55.0" not in pol.region
+
+
+def test_grid_policy_ahead_predicts_next_window():
+    ids = [f"{(ix + 0.5) * 10:.1f}_{(iy + 0.5) * 10:.1f}" for ix in range(10) for iy in range(10)]
+    pol = GridPolicy(ids, 10.0, n=1, k=1)
+    pol.select(np.array([55.0, 55.0, 0]), np.array([1.0, 0, 0]), 0)
+    nxt = pol.ahead(np.array([57.0, 55.0, 0]), np.array([1.0, 0, 0]), 10.0)
+    assert nxt == pol.peek(np.array([60.05, 55.0, 0]), np.array([1.0, 0, 0]))
+    assert pol.ahead(np.array([57.0, 55.0, 0]), np.array([1.0, 0, 0]), 1.0) is None  # too far
+
+
+def test_lru_bound_respected_and_evicts(tmp_path):
+    store = _grid_store(tmp_path / "g", extent=200.0, tile=10.0, per_tile=3000)
+    tile_mb = 3000 * 12 / 2**20
+    budget = 40 * tile_mb  # a 3x4 window is 12 tiles (+ a spare region): about 40 tiles fit
+    with MapProvider(store, "grid", target_builder=CountingBuilder(), cache_mb=budget) as prov:
+        peak = 0.0
+        for k, x in enumerate(np.arange(5, 195, 2.0)):
+            prov.update(np.array([x, 100.0, 0]), np.array([2.0, 0, 0]), float(k))
+            prov.wait_idle()
+            peak = max(peak, prov.stats()["resident_mb"])
+        st = prov.stats()
+    assert st["evictions"] > 0
+    assert peak <= budget * 1.0001
+    assert st["loads"] > 40  # the route needed more tiles than fit
+
+
+def test_missing_and_corrupt_tiles_do_not_stop_tracking(tmp_path, caplog):
+    store = _block_store(tmp_path / "m", [[0, 0, 0], [60, 0, 0], [120, 0, 0]])
+    (tmp_path / "m" / "001.pcd").write_bytes(b"garbage")
+    (tmp_path / "m" / "002.pcd").unlink()
+    with MapProvider(store, "block", target_builder=CountingBuilder()) as prov:
+        maps = _drive(prov, np.arange(0, 125, 2.0))
+        st = prov.stats()
+    assert maps[-1].block_id == "002" and maps[-1].num_points == 0 and maps[-1].target is None
+    assert maps[-1].missing == ("002",)
+    assert any(m.block_id == "001" and m.missing == ("001",) for m in maps)
+    assert st["failed_loads"] >= 2
+    assert "checksum mismatch" in caplog.text and "missing map file" in caplog.text
+
+
+def test_incremental_tile_targets(tmp_path):
+    store = _grid_store(tmp_path / "g", extent=100.0)
+
+    class TileTarget:
+        built = 0
+
+        def __init__(self, tiles):
+            TileTarget.built += 1
+            self.tiles = dict(tiles)
+            self.adds = self.removes = 0
+
+        def add_tile(self, key, pts):
+            self.tiles[key] = pts
+            self.adds += 1
+
+        def remove_tile(self, key):
+            del self.tiles[key]
+            self.removes += 1
+
+    maps = []
+    with MapProvider(store, "srt", tiles_target_builder=TileTarget, srt_radius_m=15.0) as prov:
+        for k, x in enumerate(np.arange(5, 95, 3.0)):
+            m = prov.update(np.array([x, 50.0, 0]), np.array([3.0, 0, 0]), float(k))
+            # valid until the next update: the served target holds exactly the region's tiles
+            assert set(m.target.tiles) == set(m.entry_ids)
+            assert sum(len(p) for p in m.target.tiles.values()) == m.num_points
+            prov.wait_idle()
+            assert set(m.target.tiles) == set(m.entry_ids)  # the worker never touches it
+            maps.append(m)
+    assert TileTarget.built <= 3  # the rest were add/remove updates of a spare buffer
+    assert sum(m.switched for m in maps) >= 5
+
+
+def test_global_backend_and_config(tmp_path):
+    store = _grid_store(tmp_path / "g", extent=30.0)
+    cfg = MapConfig(backend="global", cache_mb=64.0)
+    with MapProvider.from_config(store, cfg, target_builder=CountingBuilder()) as prov:
+        maps = _drive(prov, np.arange(0, 30, 5.0))
+    assert all(m.entry_ids == tuple(sorted(store.ids)) for m in maps)
+    assert maps[0].num_points == store.total_points and not any(m.switched for m in maps)
+
+
+def test_bad_backend_and_kinds(tmp_path):
+    grid = _grid_store(tmp_path / "g", extent=20.0)
+    block = _block_store(tmp_path / "b", [[0, 0, 0]])
+    with pytest.raises(MapError, match="needs a block map"):
+        MapProvider(grid, "block")
+    with pytest.raises(MapError, match="needs a grid map"):
+        MapProvider(block, "srt")
+    with pytest.raises(MapError, match="backend 'nope'"):
+        MapProvider(block, "nope")
+    with pytest.raises(MapError, match="cache"):
+        MapProvider(block, "block", cache_mb=0)
+
+
+def test_target_builder_failure_is_unmapped_not_fatal(tmp_path):
+    store = _block_store(tmp_path / "m", [[0, 0, 0], [60, 0, 0]])
+
+    def picky(points):
+        raise ValueError("too few points")
+
+    with MapProvider(store, "block", target_builder=picky) as prov:
+        m = prov.update(np.zeros(3), None, 0.0)
+        assert m.target is None and m.num_points == 2000
+        assert prov.stats()["target_failures"] == 1
