@@ -131,3 +131,23 @@ def test_parse_deltas():
     for bad in ("1,x", "0", "-5"):
         with pytest.raises(EvaluationError, match="expected positive distances"):
             parse_deltas(bad)
+
+
+def test_evaluate_files_nclt_groundtruth_against_tum_and_timed_kitti(tmp_path, rng):
+    from blockloc.geometry import T_to_xyzrpy
+
+    gt = random_trajectory(rng, n=300, t0=1326044400.0, dt=0.1)
+    rows = ["%d,nan,nan,nan,nan,nan,nan" % 1326044399000000]  # NCLT's leading NaN row
+    for t, v in zip(gt.stamps, T_to_xyzrpy(gt.poses)):
+        rows.append(",".join(["%d" % round(t * 1e6)] + ["%.9f" % x for x in v]))
+    (tmp_path / "groundtruth_2012-01-22.csv").write_text("\n".join(rows) + "\n")
+    est = perturb(rng, gt, 0.08, 0.01)
+    est = Trajectory(est.stamps + 0.005, est.poses)
+    write_tum(tmp_path / "est.tum", est)
+    write_kitti(tmp_path / "est.kitti", est)  # with est.times.txt
+    direct = evaluate_trajectories(gt, est)
+    for name in ("est.tum", "est.kitti"):
+        m = evaluate_files(tmp_path / "groundtruth_2012-01-22.csv", tmp_path / name)
+        assert m["matched"] == 300 and m["association"] == "time"
+        assert m["ate_trans_rmse_m"] == pytest.approx(direct["ate_trans_rmse_m"], abs=1e-6)
+        assert m["ate_full_rmse"] == pytest.approx(direct["ate_full_rmse"], abs=1e-6)
