@@ -47,34 +47,13 @@ class Refiner:
         self.num_threads = num_threads
         self.max_iterations = max_iterations
         self._map = np.asarray(map_points, dtype=np.float64).reshape(-1, 3)
-        self._ndt = None
-        try:
-            from blockloc.registration import ndt  # noqa: F401
+        from blockloc.registration.ndt import NdtRegistration, NdtTarget
 
-            self._ndt = ndt
-        except ImportError:  # the NDT engine has not landed: development stand-in only
-            log.warning("blockloc.registration.ndt not available; refining with small_gicp GICP")
-        if self._ndt is not None:
-            self._target = self._ndt.NdtTarget.build(self._map, resolution_m)
-            self._reg = self._ndt.NdtRegistration(max_iterations=max_iterations,
-                                                  num_threads=num_threads)
-        else:
-            import small_gicp
-
-            self._target, self._tree = small_gicp.preprocess_points(self._map, 0.25, 20, num_threads)
+        self._target = NdtTarget.build(self._map, resolution_m)
+        self._reg = NdtRegistration(max_iterations=max_iterations, num_threads=num_threads)
 
     def align(self, source_body: np.ndarray, T_init: np.ndarray) -> RefineResult:
         """Refine ``T_init`` (4, 4) T_map_body for scan points (N, 3), body frame, metres."""
-        src = np.asarray(source_body, dtype=np.float64)
-        if self._ndt is not None:
-            res = self._reg.align(self._target, src, T_init)
-            return RefineResult(np.asarray(res.T_target_source), float(res.fitness), bool(res.converged),
-                                int(getattr(res, "iterations", 0)))
-        import small_gicp
-
-        source, _ = small_gicp.preprocess_points(src, 0.25, 20, self.num_threads)
-        res = small_gicp.align(self._target, source, self._tree, T_init, registration_type="GICP",
-                               max_correspondence_distance=1.0, num_threads=self.num_threads,
-                               max_iterations=self.max_iterations)
-        return RefineResult(np.asarray(res.T_target_source), float(res.num_inliers) / max(source.size(), 1),
-                            bool(res.converged), int(res.iterations))
+        res = self._reg.align(self._target, np.asarray(source_body, dtype=np.float64), T_init)
+        return RefineResult(np.asarray(res.T_target_source), float(res.fitness), bool(res.converged),
+                            int(res.iterations))

@@ -48,11 +48,13 @@ class InitParams:
     min_score: float = 0.05
     nms_m: float = 1.0
     nms_deg: float = 5.0
-    min_fitness: float = 0.6
+    min_fitness: float = 0.5
     ambiguity_distance_m: float = 2.0
     ambiguity_fitness_margin: float = 0.05
     ndt_resolution_m: float = 1.0
     scan_voxel_m: float = 0.5
+    max_ndt_points: int = 3000
+    ambiguity_score_ratio: float = 0.8  # once one is verified, refine others only above this x best
     refine_range_m: float = 50.0
     reloc_window_m: float = 100.0
     max_regions: int = 0  # 0: every region of the map
@@ -149,6 +151,9 @@ class GlobalLocalizer:
                             p.max_scan_cells, p.min_scan_cells)
         scan_ndt = voxel_downsample(points_body, p.scan_voxel_m)
         scan_ndt = scan_ndt[np.linalg.norm(scan_ndt, axis=1) <= p.max_range_m]
+        if len(scan_ndt) > p.max_ndt_points:
+            rng = np.random.default_rng(0)
+            scan_ndt = scan_ndt[np.sort(rng.choice(len(scan_ndt), p.max_ndt_points, replace=False))]
         if hint_yaw is None:
             theta_c, yaw_win = 0.0, 2 * math.pi
         else:
@@ -227,7 +232,12 @@ class GlobalLocalizer:
             return []
         refiner = Refiner(pts, p.ndt_resolution_m, p.num_threads)
         out = []
-        for c in c2d:
+        best_score = max(c.score for c in c2d)
+        for c in sorted(c2d, key=lambda c: -c.score):
+            # Once a candidate is verified, only those scoring close to the best can make the
+            # result ambiguous; the others need no NDT run.
+            if any(o.verified for o in out) and c.score < p.ambiguity_score_ratio * best_score:
+                break
             T0 = self._pose_from_2d(c, scan)
             r = refiner.align(scan_ndt, T0)
             ok = bool(r.converged and r.fitness >= p.min_fitness and np.all(np.isfinite(r.T_map_body)))
