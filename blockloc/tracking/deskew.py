@@ -76,6 +76,25 @@ def deskew_points(points: np.ndarray, times: np.ndarray, table_times: np.ndarray
     if K == 1 or len(pts) == 0:
         T = T_ref_table[0]
         return pts @ T[:3, :3].T + T[:3, 3]
+    R = np.ascontiguousarray(T_ref_table[:, :3, :3])
+    # Per-interval relative rotation vectors w_j = log(R_j^T R_{j+1}).
+    w_int = np.ascontiguousarray(so3_log(np.swapaxes(R[:-1], 1, 2) @ R[1:]).reshape(K - 1, 3))
+    trans = np.ascontiguousarray(T_ref_table[:, :3, 3])
+    from blockloc.tracking._kernels import deskew_kernel
+
+    return deskew_kernel(np.ascontiguousarray(pts), np.ascontiguousarray(times, dtype=np.float64),
+                         np.ascontiguousarray(table_times), R, w_int, trans)
+
+
+def deskew_points_numpy(points: np.ndarray, times: np.ndarray, table_times: np.ndarray,
+                        T_ref_table: np.ndarray) -> np.ndarray:
+    """Reference (pure numpy) version of :func:`deskew_points`, same arguments and result."""
+    pts = np.asarray(points, dtype=np.float64)
+    table_times = np.asarray(table_times, dtype=np.float64)
+    K = len(table_times)
+    if K == 1 or len(pts) == 0:
+        T = T_ref_table[0]
+        return pts @ T[:3, :3].T + T[:3, 3]
     t = np.clip(np.asarray(times, dtype=np.float64), table_times[0], table_times[-1])
     j = np.clip(np.searchsorted(table_times, t, side="right") - 1, 0, K - 2)
     span = table_times[j + 1] - table_times[j]

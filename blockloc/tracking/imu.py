@@ -123,10 +123,10 @@ class ImuBuffer:
         keep = dt > 1e-9
         acc = np.asarray(self._acc)[idx][keep]
         gyro = np.asarray(self._gyro)[idx][keep]
-        # Longest stretch with no sample: between consecutive sample times clipped to [t0, t1].
-        knots = np.concatenate([[t0], t[(t > t0) & (t < t1)], [t1]])
-        if t[0] > t0:  # no sample before t0: the first sample's value is extrapolated backwards
-            knots = np.concatenate([[t0 - (t[0] - t0)], knots[1:]])
+        # Longest stretch without a fresh sample, counted from the sample holding at t0 (so a
+        # gap spanning several frames is seen whole), up to t1.
+        first = t[i0] if t[i0] <= t0 else t0 - (t[0] - t0)  # none before t0: extrapolated back
+        knots = np.concatenate([[first], t[(t > t0) & (t < t1)], [t1]])
         max_gap = float(np.max(np.diff(knots))) if len(knots) > 1 else 0.0
         return acc, gyro, dt[keep], max_gap
 

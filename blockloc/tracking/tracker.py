@@ -277,7 +277,7 @@ class Tracker:
             self._bad_streak = 0
             self._lost_frames = 0
             self._last_good = est_T.copy()
-        else:
+        elif diag.status == "rejected":  # a dropout (imu_only) is not a sign of divergence
             self._bad_streak += 1
             if self._bad_streak >= p.max_bad_frames:
                 if self._bad_streak == p.max_bad_frames:

@@ -124,7 +124,7 @@ T_BODY_LIDAR = xyzrpy_to_T(0.1, -0.05, -0.8, 0.01, -0.02, 0.03)  # not identity,
 class GicpRegistration:
     """small_gicp GICP behind the NDT engine's interface (same H, b convention)."""
 
-    def __init__(self, max_correspondence_m: float = 1.0, num_threads: int = 2) -> None:
+    def __init__(self, max_correspondence_m: float = 1.0, num_threads: int = 1) -> None:
         self.max_corr = max_correspondence_m
         self.num_threads = num_threads
 
