@@ -91,9 +91,119 @@ def eval_cmd(
 # @sim-commands (anchor: the sim stage adds its command above this line)
 
 # ----------------------------------------------------------------------------- map
+@map_app.command("build")
+def map_build_cmd(
+    seq: str = typer.Option(..., "--seq", help="Mapping sequence: name (nclt_2, sim:small/map) or path."),
+    kind: str = typer.Option("block", "--kind", help="block | grid"),
+    out: Path = typer.Option(..., "--out", help="Output map directory (written atomically)."),
+    config: Optional[str] = typer.Option(None, "--config", help="Config file or preset name."),
+    data_root: Optional[str] = typer.Option(None, "--data-root", help="Root of the datasets."),
+    block_size: Optional[float] = typer.Option(None, "--block-size", help="Block size S, m."),
+    tile_size: Optional[float] = typer.Option(None, "--tile-size", help="Grid tile side, m."),
+    voxel: Optional[float] = typer.Option(None, "--voxel", help="Voxel filter size, m."),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", help="Use only the first N frames."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing map."),
+) -> None:
+    """Build a block map or grid tiles from a mapping sequence and its poses."""
+    import dataclasses
+
+    from blockloc.datasets import open_sequence
+    from blockloc.maps.tools import build_map, map_summary, print_summary
+
+    cfg = _load_cfg(config)
+    overrides = {k: v for k, v in (("block_size_m", block_size), ("tile_size_m", tile_size),
+                                   ("voxel_size_m", voxel)) if v is not None}
+    map_cfg = dataclasses.replace(cfg.map, **overrides)
+    sequence = open_sequence(seq, data_root=data_root, dataset_cfg=cfg.dataset)
+    store = build_map(sequence, kind, out, map_cfg, overwrite=overwrite, max_frames=max_frames)
+    print_summary(map_summary(store), _console())
+
+
+@map_app.command("tile")
+def map_tile_cmd(
+    global_pcd: Path = typer.Argument(..., help="Global map PCD file."),
+    tile_size: float = typer.Option(..., "--tile-size", help="Tile side, m."),
+    out: Path = typer.Option(..., "--out", help="Output map directory (written atomically)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing map."),
+) -> None:
+    """Cut a global PCD map into grid-puzzle tiles named by their centre (Autoware metadata too)."""
+    from blockloc.maps.grid_tiles import tile_pcd_file
+    from blockloc.maps.tools import map_summary, print_summary
+
+    store = tile_pcd_file(global_pcd, tile_size, out, overwrite=overwrite, progress=True)
+    print_summary(map_summary(store), _console())
+
+
+@map_app.command("info")
+def map_info_cmd(
+    map_path: str = typer.Argument(..., help="Map directory (or URL)."),
+    json_out: bool = typer.Option(False, "--json", help="Print one JSON object."),
+    quick: bool = typer.Option(False, "--quick", help="Skip the overlap ratio (reads every file)."),
+) -> None:
+    """Blocks/tiles, points, bytes and overlap ratio of a map."""
+    from blockloc.maps.store import open_map
+    from blockloc.maps.tools import map_summary, print_summary
+
+    summary = map_summary(open_map(map_path), with_overlap=not quick)
+    if json_out:
+        import json
+
+        typer.echo(json.dumps(summary))
+    else:
+        print_summary(summary, _console())
+
+
+@map_app.command("plot")
+def map_plot_cmd(
+    map_path: str = typer.Argument(..., help="Map directory (or URL)."),
+    seq: Optional[str] = typer.Option(None, "--seq", help="Sequence whose trajectory to draw."),
+    out: Optional[Path] = typer.Option(None, "--out", help="PNG path (default: <map>.png)."),
+    data_root: Optional[str] = typer.Option(None, "--data-root", help="Root of the datasets."),
+) -> None:
+    """PNG of the blocks/tiles from above, with a sequence's trajectory."""
+    from blockloc.maps.store import open_map
+    from blockloc.maps.tools import plot_map
+
+    store = open_map(map_path)
+    traj = None
+    if seq:
+        from blockloc.datasets import open_sequence
+
+        s = open_sequence(seq, data_root=data_root)
+        traj = s.ground_truth() or s.mapping_poses()
+    png = out or Path(str(map_path).rstrip("/") + ".png")
+    typer.echo(str(plot_map(store, png, traj)))
+
+
 # @map-commands (anchor: the maps stage adds its commands above this line)
 
 # ----------------------------------------------------------------------------- init
+@app.command("init")
+def init_cmd(
+    seq: str = typer.Option(..., "--seq", help="Sequence name (sim:small/loc, nclt_2, ...) or path."),
+    frame: int = typer.Option(..., "--frame", help="0-based index of the LiDAR scan (time order)."),
+    map_path: str = typer.Option(..., "--map", help="Map store directory or URL."),
+    pose_hint: Optional[str] = typer.Option(None, "--pose-hint",
+                                            help="x,y[,yaw] in the map frame (m, rad); none: whole map."),
+    window: Optional[float] = typer.Option(None, "--window", help="Search window side, m (default 40)."),
+    yaw_window: Optional[float] = typer.Option(None, "--yaw-window", help="Yaw window around the hint, deg."),
+    json_out: bool = typer.Option(False, "--json", help="Print one JSON object."),
+    data_root: Optional[str] = typer.Option(None, "--data-root", help="Root of the datasets."),
+    config: Optional[str] = typer.Option(None, "--config", help="Config file or preset name."),
+) -> None:
+    """Global initialization: the body's pose in the map by branch-and-bound + NDT verification."""
+    from blockloc.errors import GlobalInitError
+    from blockloc.global_init.command import print_result, run_init, to_json
+
+    res, summ = run_init(seq, frame, map_path, pose_hint, window, yaw_window, config, data_root)
+    if json_out:
+        typer.echo(to_json(summ))
+    else:
+        print_result(summ, _console())
+    if not res.verified:
+        raise GlobalInitError(f"no verified match (best score {res.score:.3f}, fitness {res.fitness:.3f})")
+
+
 # @init-commands (anchor: the global-init stage adds its command above this line)
 
 # ----------------------------------------------------------------------------- track / demo

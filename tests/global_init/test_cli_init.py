@@ -1,0 +1,109 @@
+"""`blockloc init` end to end on a small NCLT-layout session and a tiled map store (subprocess)."""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from blockloc.datasets.base import ImuData, LidarFrame
+from blockloc.datasets.nclt import write_session
+from blockloc.geometry import Trajectory, T_to_xyzrpy, inv_T, xyzrpy_to_T
+from blockloc.global_init.relocalize import pose_error
+from blockloc.maps.store import MapWriter
+
+from .synthetic import GRAVITY_Z_DOWN, Z_DOWN, gravity_body, scan_from, world_up
+
+TRUE_XYZRPY = (8.0, -6.0, -(1.9 + 0.02 * 8.0), 0.02, -0.01, 1.1)
+
+
+def _write_store(path, points, tile=40.0):
+    with MapWriter(path, "grid", params={"tile_size_m": tile}) as w:
+        keys = np.floor(points[:, :2] / tile).astype(int)
+        for k in np.unique(keys, axis=0):
+            sel = np.all(keys == k, axis=1)
+            w.add(f"{(k[0] + 0.5) * tile:.1f}_{(k[1] + 0.5) * tile:.1f}", points[sel].astype(np.float32))
+        w.commit()
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    root = tmp_path_factory.mktemp("init_cli")
+    world = world_up(seed=11) @ Z_DOWN.T
+    _write_store(root / "map", world)
+    _write_store(root / "other_map", world_up(seed=12) @ Z_DOWN.T)
+    T = xyzrpy_to_T(*TRUE_XYZRPY)
+    scan = scan_from(world, T, radius=40.0).astype(np.float32)
+    stamps = 100.0 + np.arange(3) * 0.1
+    frames = [LidarFrame(i, s, scan, np.full(len(scan), 50, np.float32), np.zeros(len(scan), np.float32),
+                         np.zeros(len(scan), np.uint16)) for i, s in enumerate(stamps)]
+    t = np.arange(99.5, 101.0, 0.01)
+    acc = np.tile(-gravity_body(T), (len(t), 1)) + np.random.default_rng(0).normal(0, 0.02, (len(t), 3))
+    imu = ImuData(t, acc, np.zeros((len(t), 3)))
+    gt = Trajectory(stamps, np.repeat(T[None], len(stamps), axis=0))
+    write_session(root / "session", date="2012-01-01", frames=frames, imu=imu, ground_truth=gt,
+                  write_hits=False, T_body_lidar=np.eye(4), T_body_imu=np.eye(4), gravity_map=GRAVITY_Z_DOWN)
+    env = dict(os.environ, BLOCKLOC_CACHE=str(root / "cache"))
+    return root, T, env
+
+
+def _run(env, *args):
+    return subprocess.run([sys.executable, "-m", "blockloc.cli", "init", *args], capture_output=True,
+                          text=True, env=env, timeout=300)
+
+
+def test_init_with_a_hint_prints_the_body_pose_as_json(setup):
+    root, T, env = setup
+    p = _run(env, "--seq", str(root / "session"), "--frame", "1", "--map", str(root / "map"),
+             "--pose-hint", "20,-15", "--json")
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout)
+    T_est = xyzrpy_to_T(*(out[k] for k in ("x", "y", "z", "roll", "pitch", "yaw")))
+    dt, dr = pose_error(T_est, T)
+    assert dt < 0.1 and dr < 0.5, (dt, dr)
+    assert out["verified"] and out["fitness"] >= 0.5 and out["time_s"] > 0
+    # the per-tile pyramids were cached under BLOCKLOC_CACHE
+    assert list((root / "cache" / "global_init").rglob("*.npz"))
+
+
+def test_init_without_a_hint_relocalizes_over_the_whole_map(setup):
+    root, T, env = setup
+    p = _run(env, "--seq", str(root / "session"), "--frame", "0", "--map", str(root / "map"), "--json")
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout)
+    assert np.hypot(out["x"] - T[0, 3], out["y"] - T[1, 3]) < 0.1
+    assert out["stats"]["regions_searched"] >= 1
+
+
+def test_init_text_output(setup):
+    root, _, env = setup
+    p = _run(env, "--seq", str(root / "session"), "--frame", "2", "--map", str(root / "map"),
+             "--pose-hint", "8,-6,1.1", "--yaw-window", "30")
+    assert p.returncode == 0, p.stderr
+    assert "T_map_body" in p.stdout and "fitness" in p.stdout
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--pose-hint", "900,0"], "outside the map"),
+    (["--pose-hint", "0,0", "--window", "0"], "--window 0"),
+    (["--pose-hint", "abc"], "--pose-hint"),
+    (["--frame", "99"], "--frame 99"),
+])
+def test_init_bad_input_is_one_line_and_non_zero(setup, args, message):
+    root, _, env = setup
+    base = {"--seq": str(root / "session"), "--frame": "0", "--map": str(root / "map")}
+    for i in range(0, len(args), 2):
+        base[args[i]] = args[i + 1]
+    p = _run(env, *[x for kv in base.items() for x in kv])
+    assert p.returncode != 0
+    assert message in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
+
+
+def test_init_no_match_says_so_with_the_best_score(setup):
+    root, _, env = setup
+    p = _run(env, "--seq", str(root / "session"), "--frame", "0", "--map", str(root / "other_map"),
+             "--pose-hint", "8,-6")
+    assert p.returncode != 0
+    assert "no verified match (best score" in p.stderr
