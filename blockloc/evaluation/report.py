@@ -202,6 +202,7 @@ def _fmt(value: Any, digits: int = 4) -> str:
 
 def print_metrics(metrics: dict[str, Any], console) -> None:
     """Print ``metrics`` (from ``evaluate_*``) as rich tables on ``console``."""
+    from rich.markup import escape
     from rich.table import Table
 
     head = Table(title="trajectory evaluation", show_header=False, box=None)
@@ -209,7 +210,7 @@ def print_metrics(metrics: dict[str, Any], console) -> None:
     head.add_column("value")
     for key in ("gt_file", "est_file"):
         if key in metrics:
-            head.add_row(key.replace("_", " "), str(metrics[key]))
+            head.add_row(key.replace("_", " "), escape(str(metrics[key])))
     head.add_row("matched", f"{metrics['matched']} of {metrics['est_poses']} estimated "
                             f"({metrics['gt_poses']} ground truth), by {metrics['association']}")
     if metrics.get("duration_s") is not None:
@@ -222,14 +223,14 @@ def print_metrics(metrics: dict[str, Any], console) -> None:
     ate.add_column("error")
     for s in _STATS:
         ate.add_column(s, justify="right")
-    ate.add_row("translation [m]", *[_fmt(metrics[f"ate_trans_{s}_m"]) for s in _STATS])
-    ate.add_row("full ||E-I||_F", *[_fmt(metrics[f"ate_full_{s}"]) for s in _STATS])
-    ate.add_row("rotation [deg]", *[_fmt(metrics[f"ate_rot_{s}_deg"], 3) for s in _STATS])
+    ate.add_row(escape("translation [m]"), *[_fmt(metrics[f"ate_trans_{s}_m"]) for s in _STATS])
+    ate.add_row(escape("full ||E-I||_F"), *[_fmt(metrics[f"ate_full_{s}"]) for s in _STATS])
+    ate.add_row(escape("rotation [deg]"), *[_fmt(metrics[f"ate_rot_{s}_deg"], 3) for s in _STATS])
     console.print(ate)
 
     rpe = Table(title="RPE (relative pose error over path length)")
-    for col in ("delta", "pairs", "trans RMSE [m]", "trans mean [%]", "rot RMSE [deg]", "rot [deg/m]"):
-        rpe.add_column(col, justify="right")
+    for col in ("delta", "pairs", "trans RMSE\n[m]", "trans mean\n[%]", "rot RMSE\n[deg]", "rot mean\n[deg/m]"):
+        rpe.add_column(escape(col), justify="right")
     for delta in metrics.get("rpe_deltas_m", []):
         k = rpe_key(delta)
         rpe.add_row(f"{delta:g} m", _fmt(metrics[f"{k}_pairs"]), _fmt(metrics[f"{k}_trans_rmse_m"]),
@@ -237,6 +238,6 @@ def print_metrics(metrics: dict[str, Any], console) -> None:
                     _fmt(metrics[f"{k}_rot_mean_deg_per_m"], 4))
     console.print(rpe)
     for note in metrics.get("notes", []):
-        console.print(f"note: {note}", style="yellow")
+        console.print(f"note: {escape(note)}", style="yellow")
     for plot in metrics.get("plots", []):
-        console.print(f"plot: {plot}")
+        console.print(f"plot: {escape(plot)}")

@@ -94,6 +94,7 @@ def test_print_metrics_shows_the_numbers(rng):
     assert f"{m['ate_trans_rmse_m']:.4f}" in text and f"{m['ate_full_rmse']:.4f}" in text
     assert f"{m['rpe_1m_trans_rmse_m']:.4f}" in text
     assert "RPE 1000 m skipped" in text
+    assert "translation [m]" in text and "[deg/m]" in text  # units survive rich markup
 
 
 def test_interpolation_removes_time_skew_bias(rng):
