@@ -18,7 +18,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 FRAGMENTS = ROOT / "docs" / "bench"
-ORDER = ["datasets", "sim", "ndt", "maps", "global_init", "tracking", "scaling", "server"]
+ORDER = ["datasets", "evaluation", "sim", "ndt", "maps", "global_init", "tracking", "scaling", "server"]
 
 
 def machine() -> str:
