@@ -1,0 +1,202 @@
+"""Simulated sessions as ``Sequence`` objects, ray-cast on the fly (nothing written).
+
+``open_sim_sequence("small", "loc", 1)`` -> a ``SimSequence``; frame i is a pure function of
+(preset, seed, session, i): its noise comes from a generator seeded by (seed, session, i), so
+random access, streaming and writing give the same scan.
+
+Frames follow NCLT (``blockloc.datasets.nclt``): map z down, body x forward / y right / z down,
+``T_body_lidar = NCLT_T_BODY_LIDAR``, IMU = body (``NCLT_T_BODY_IMU``), gravity (0, 0, +9.81).
+Frame stamps are the sweep start; ``time_offsets`` lie in [0, 0.1) s.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from typing import Iterator
+
+import numpy as np
+
+from blockloc.datasets.base import ImuData, LidarFrame, SequenceInfo
+from blockloc.errors import SimError
+from blockloc.geometry import Trajectory, make_T, so3_exp
+from blockloc.sim.presets import Preset, get_preset
+from blockloc.sim.trajectory import (D4, SimTrajectory, cover_route, lane_waypoints, plan_motion,
+                                     relocalization_route)
+from blockloc.sim.world import World, build_world, session_movables, stable_hash
+
+log = logging.getLogger(__name__)
+
+#: Each session is another "day": (date used in NCLT file names, start epoch in s, UTC noon).
+SESSION_DAYS = {"map": ("2020-06-01", 1591012800), "loc": ("2020-06-08", 1591617600),
+                "loc2": ("2020-06-15", 1592222400), "loc3": ("2020-06-22", 1592827200)}
+
+
+@functools.lru_cache(maxsize=4)
+def cached_world(preset: Preset, seed: int) -> World:
+    """``build_world`` memoised per (preset, seed)."""
+    return build_world(preset, seed)
+
+
+@functools.lru_cache(maxsize=8)
+def session_trajectory(preset: Preset, seed: int, session: str) -> SimTrajectory:
+    """The session's trajectory: the mapping drive covers the road graph; localization drives
+    wander over the edges it drove, preferring the opposite direction, from another start."""
+    world = cached_world(preset, seed)
+    roads = world.roads
+    if session not in preset.sessions:
+        raise SimError(f"sim session {session!r}: preset {preset.name} has {', '.join(preset.sessions)}")
+    rng = np.random.default_rng(np.random.SeedSequence([seed, stable_hash(preset.name), 4]))
+    map_route = cover_route(roads, rng, preset.route_length_m[0], (0, 0))
+    k = preset.sessions.index(session)
+    if k == 0:
+        route = map_route
+    else:
+        rng = np.random.default_rng(np.random.SeedSequence([seed, stable_hash(session), 4]))
+        start = map_route[(len(map_route) * k) // (len(preset.sessions) + 1)]
+        route = relocalization_route(roads, rng, preset.route_length_m[k], start, map_route)
+    wp = lane_waypoints(roads, route, preset.route_length_m[k])
+    rng = np.random.default_rng(np.random.SeedSequence([seed, stable_hash(session), 8]))
+    samples = plan_motion(wp, preset, rng)
+    from blockloc.datasets.nclt import NCLT_T_BODY_LIDAR
+
+    body_height = preset.lidar_height_m + float(NCLT_T_BODY_LIDAR[2, 3])  # lidar 0.957 m above
+    return SimTrajectory(samples, world, body_height)
+
+
+def smooth_noise(rng: np.random.Generator, t: np.ndarray, dims: int, knot_s: float = 2.0) -> np.ndarray:
+    """(len(t), dims) smooth zero-mean noise of ~unit std: cubic spline through N(0,1) knots."""
+    from scipy.interpolate import CubicSpline
+
+    knots = np.arange(t[0] - knot_s, t[-1] + 2 * knot_s, knot_s)
+    vals = rng.normal(0.0, 1.0, (len(knots), dims)) / 0.85
+    return CubicSpline(knots, vals)(t)
+
+
+class SimSequence:
+    """One simulated session (see module docstring). Implements ``blockloc.datasets.base.Sequence``."""
+
+    def __init__(self, preset: Preset, session: str, seed: int):
+        from blockloc.datasets.nclt import NCLT_GRAVITY_MAP, NCLT_T_BODY_IMU, NCLT_T_BODY_LIDAR
+
+        if session not in preset.sessions:
+            raise SimError(f"sim session {session!r}: preset {preset.name} has {', '.join(preset.sessions)}")
+        self.preset = preset
+        self.session = session
+        self.seed = int(seed)
+        self.world = cached_world(preset, self.seed)
+        self.trajectory = session_trajectory(preset, self.seed, session)
+        self.date, epoch = SESSION_DAYS.get(session, ("2020-07-01", 1593604800))
+        self.epoch_us = int(epoch) * 1_000_000
+        self.period_s = 1.0 / preset.lidar.rate_hz
+        self._n = max(0, int((self.trajectory.duration - self.period_s) / self.period_s))
+        self.T_flu_lidar = D4 @ NCLT_T_BODY_LIDAR
+        self._az0 = float(np.random.default_rng([self.seed, stable_hash(session), 9]).uniform(0, 2 * np.pi))
+        self._scene = None
+        self._imu = None
+        self.info = SequenceInfo(name=f"sim:{preset.name}/{session}@{self.seed}",
+                                 T_body_lidar=np.array(NCLT_T_BODY_LIDAR, dtype=float),
+                                 T_body_imu=np.array(NCLT_T_BODY_IMU, dtype=float),
+                                 gravity_map=np.array(NCLT_GRAVITY_MAP, dtype=float),
+                                 lidar_rate_hz=preset.lidar.rate_hz, imu_rate_hz=preset.imu_rate_hz)
+
+    # --- scene --------------------------------------------------------------------------------
+    @property
+    def scene(self):
+        """The session's ``SessionScene`` (built on first use: static world + that day's movables)."""
+        if self._scene is None:
+            from blockloc.sim.scene import SessionScene, make_actors
+
+            base = self.session == self.preset.sessions[0]
+            self._scene = SessionScene(self.world, session_movables(self.world, self.session, base),
+                                       make_actors(self.world, self.session))
+        return self._scene
+
+    # --- protocol -----------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return self._n
+
+    def _utime(self, index: int) -> int:
+        return self.epoch_us + int(round(index * self.period_s * 1e6))
+
+    def frame_stamps(self) -> np.ndarray:
+        return (self.epoch_us + np.rint(np.arange(self._n) * self.period_s * 1e6).astype(np.int64)) * 1e-6
+
+    def frame(self, index: int) -> LidarFrame:
+        return self.frame_with_labels(index)[0]
+
+    def frame_with_labels(self, index: int) -> tuple[LidarFrame, np.ndarray]:
+        """The frame and a (N,) int category per point (index into ``scene.categories``)."""
+        from blockloc.sim.lidar import simulate_scan
+
+        n = self._n
+        if not -n <= index < n:
+            raise IndexError(f"frame {index} out of range for {n} frames")
+        index %= n
+        t0 = (self._utime(index) - self.epoch_us) * 1e-6
+        A = self.preset.lidar.azimuth_steps
+        col_off = np.arange(A) * (self.period_s / A)
+        T_wl = self.trajectory.T_world_flu(t0 + col_off) @ self.T_flu_lidar
+        rng = np.random.default_rng(np.random.SeedSequence([self.seed, stable_hash(self.session), 5, index]))
+        res = simulate_scan(self.scene, T_wl, col_off, self.preset.lidar, rng, t0 + 0.5 * self.period_s,
+                            self._az0)
+        frame = LidarFrame(index, self._utime(index) * 1e-6, res.points, res.intensity,
+                           res.time_offsets, res.ring)
+        return frame, res.category
+
+    def frames(self, start: int = 0, stop: int | None = None) -> Iterator[LidarFrame]:
+        stop = self._n if stop is None else min(stop, self._n)
+        for i in range(start, stop):
+            yield self.frame(i)
+
+    def _rel_times(self, rate_hz: float) -> np.ndarray:
+        return np.arange(int(np.floor(self.trajectory.duration * rate_hz)) + 1) / rate_hz
+
+    def imu(self) -> ImuData:
+        """100 Hz samples in the body frame: ideal values + white noise + bias (random walk from a
+        non-zero initial bias), the 3DM-GX3 class values of ``preset.imu``."""
+        if self._imu is None:
+            noise = self.preset.imu
+            f = self.preset.imu_rate_hz
+            t = self._rel_times(f)
+            acc, gyro = self.trajectory.imu_ideal(t)
+            rng = np.random.default_rng(np.random.SeedSequence([self.seed, stable_hash(self.session), 6]))
+            ba = rng.normal(0, noise.acc_bias_init_sigma, 3) + np.cumsum(
+                rng.normal(0, noise.acc_bias_random_walk / np.sqrt(f), (len(t), 3)), axis=0)
+            bg = rng.normal(0, noise.gyro_bias_init_sigma, 3) + np.cumsum(
+                rng.normal(0, noise.gyro_bias_random_walk / np.sqrt(f), (len(t), 3)), axis=0)
+            acc = acc + ba + rng.normal(0, noise.acc_noise_density * np.sqrt(f), (len(t), 3))
+            gyro = gyro + bg + rng.normal(0, noise.gyro_noise_density * np.sqrt(f), (len(t), 3))
+            self.imu_bias = (ba, bg)
+            self._imu = ImuData(self.epoch_us * 1e-6 + t, acc, gyro)
+        return self._imu
+
+    def ground_truth(self) -> Trajectory:
+        """T_map_body at ``gt_rate_hz`` (100 Hz), NCLT frames."""
+        t = self._rel_times(self.preset.gt_rate_hz)
+        return Trajectory(self.epoch_us * 1e-6 + t, self.trajectory.T_map_body(t))
+
+    def mapping_poses(self) -> Trajectory:
+        """Mapping session: "offline SLAM" poses = ground truth with a smooth error of about
+        ``slam_error_m`` (position) and ``slam_error_rad`` (attitude); other sessions: ground truth."""
+        gt = self.ground_truth()
+        if self.session != self.preset.sessions[0]:
+            return gt
+        rng = np.random.default_rng(np.random.SeedSequence([self.seed, stable_hash(self.session), 7]))
+        rel = gt.stamps - gt.stamps[0]
+        e = smooth_noise(rng, rel, 6)
+        dT = np.array([make_T(R, p) for R, p in zip(so3_exp(e[:, :3] * self.preset.slam_error_rad),
+                                                    e[:, 3:] * self.preset.slam_error_m)])
+        return Trajectory(gt.stamps, gt.poses @ dT)
+
+    # --- helpers for tests and tools ------------------------------------------------------------
+    def T_world_lidar(self, t_rel: np.ndarray) -> np.ndarray:
+        """(N, 4, 4) lidar pose in the world frame (z up) at session-relative times."""
+        return self.trajectory.T_world_flu(t_rel) @ self.T_flu_lidar
+
+
+def open_sim_sequence(preset: str, session: str, seed: int, **overrides) -> SimSequence:
+    """A simulated session streamed on the fly: ``preset`` small | campus | tiny, ``session``
+    map | loc | loc2 (campus), ``seed`` any int. ``overrides``: preset fields, e.g.
+    ``azimuth_steps=2000`` for full HDL-32E density on ``small``."""
+    return SimSequence(get_preset(preset, **overrides), session, int(seed))

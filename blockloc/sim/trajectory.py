@@ -1,0 +1,356 @@
+"""Routes on the road graph, a C2 robot trajectory along them, and the IMU it implies.
+
+Internal frames: ``world`` (z up, x east) and ``flu`` (body: x forward, y left, z up). The NCLT
+frames are ``map`` (z down) and ``body`` (x forward, y right, z down):
+``T_map_body = D @ T_world_flu @ D`` with ``D = diag(1, -1, -1, 1)``.
+
+The robot is a unicycle (Segway-like) driven by smooth speed / yaw-rate profiles (quintic
+ramps): it accelerates, cruises, stops, turns in place and drives curves. The integrated planar
+state is sampled at 100 Hz and interpolated by cubic splines (C2), so position, velocity and
+acceleration are continuous; z, roll and pitch follow the (C2) terrain under it.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from blockloc.geometry import so3_log
+from blockloc.sim.presets import Preset
+from blockloc.sim.world import Roads, World, smootherstep, smootherstep_d
+
+log = logging.getLogger(__name__)
+
+D4 = np.diag([1.0, -1.0, -1.0, 1.0])  # world(z up) <-> map(z down), flu <-> frd
+GRAVITY_WORLD = np.array([0.0, 0.0, -9.81])
+LANE_OFFSET_M = 0.8  # the robot keeps right of the road centre line
+_DT = 0.01  # integration / spline knot step, s
+
+
+# --- routes -----------------------------------------------------------------------------------
+
+Node = tuple[int, int]
+
+
+def _edge(a: Node, b: Node) -> tuple[Node, Node]:
+    return (a, b) if a <= b else (b, a)
+
+
+def cover_route(roads: Roads, rng: np.random.Generator, length_m: float, start: Node) -> list[Node]:
+    """A node walk that first covers unvisited road edges (greedy, BFS to the nearest unvisited
+    one), then wanders without immediate U-turns, until ``length_m`` is driven."""
+    route = [start]
+    visited: set = set()
+    total = 0.0
+    all_edges = {_edge(a, b) for a in _all_nodes(roads) for b in roads.neighbours(a)}
+    while total < length_m:
+        cur = route[-1]
+        nbrs = roads.neighbours(cur)
+        fresh = [n for n in nbrs if _edge(cur, n) not in visited]
+        if fresh:
+            nxt = fresh[rng.integers(len(fresh))]
+        elif len(visited) < len(all_edges):
+            path = _bfs_to_unvisited(roads, cur, visited)
+            nxt = path[1]
+        else:
+            back = route[-2] if len(route) > 1 else None
+            opts = [n for n in nbrs if n != back] or nbrs
+            nxt = opts[rng.integers(len(opts))]
+        visited.add(_edge(cur, nxt))
+        total += float(np.linalg.norm(roads.node_xy(nxt) - roads.node_xy(cur)))
+        route.append(nxt)
+    return route
+
+
+def _all_nodes(roads: Roads) -> list[Node]:
+    return [(i, j) for i in range(len(roads.xs)) for j in range(len(roads.ys))]
+
+
+def _bfs_to_unvisited(roads: Roads, start: Node, visited: set) -> list[Node]:
+    from collections import deque
+
+    prev = {start: None}
+    q = deque([start])
+    while q:
+        cur = q.popleft()
+        for n in roads.neighbours(cur):
+            if _edge(cur, n) not in visited:
+                path = [n, cur]
+                while prev[path[-1]] is not None:
+                    path.append(prev[path[-1]])
+                return path[::-1]
+            if n not in prev:
+                prev[n] = cur
+                q.append(n)
+    raise RuntimeError("no unvisited edge")
+
+
+def relocalization_route(roads: Roads, rng: np.random.Generator, length_m: float, start: Node,
+                         map_route: list[Node]) -> list[Node]:
+    """A walk on the edges the mapping route drove (so it stays inside the map), preferring
+    edges driven least and in the direction opposite to the mapping drive."""
+    mapped_dir = {(a, b) for a, b in zip(map_route[:-1], map_route[1:])}
+    mapped = {_edge(a, b) for a, b in mapped_dir}
+    uses: dict = {}
+    route = [start]
+    total = 0.0
+    while total < length_m:
+        cur = route[-1]
+        back = route[-2] if len(route) > 1 else None
+        opts = [n for n in roads.neighbours(cur) if _edge(cur, n) in mapped]
+        if not opts:
+            raise RuntimeError(f"node {cur} is not on the mapping route")
+        if len(opts) > 1 and back in opts:
+            opts.remove(back)
+        score = [uses.get(_edge(cur, n), 0) * 2.0 + (1.0 if (cur, n) in mapped_dir else 0.0)
+                 + rng.uniform(0, 0.9) for n in opts]
+        nxt = opts[int(np.argmin(score))]
+        uses[_edge(cur, nxt)] = uses.get(_edge(cur, nxt), 0) + 1
+        total += float(np.linalg.norm(roads.node_xy(nxt) - roads.node_xy(cur)))
+        route.append(nxt)
+    return route
+
+
+def lane_waypoints(roads: Roads, route: list[Node], length_m: float) -> np.ndarray:
+    """(K, 2) corner points of the route, offset LANE_OFFSET_M to the right of the centre
+    line, truncated to ``length_m``. U-turns get two points (turn across to the other lane)."""
+    P = np.array([roads.node_xy(n) for n in route])
+    pts = []
+    for k in range(len(P)):
+        d_in = _unit(P[k] - P[k - 1]) if k > 0 else _unit(P[1] - P[0])
+        d_out = _unit(P[k + 1] - P[k]) if k + 1 < len(P) else d_in
+        r_in = np.array([d_in[1], -d_in[0]]) * LANE_OFFSET_M
+        r_out = np.array([d_out[1], -d_out[0]]) * LANE_OFFSET_M
+        if np.dot(d_in, d_out) < -0.5:  # U-turn: end of the inbound lane, start of the outbound
+            pts += [P[k] + r_in, P[k] + r_out]
+        elif abs(d_in[0] * d_out[1] - d_in[1] * d_out[0]) < 1e-6:
+            pts.append(P[k] + r_in)
+        else:  # intersection of the two offset lines
+            A = np.c_[d_in, -d_out]
+            s = np.linalg.solve(A, (P[k] + r_out) - (P[k] + r_in))
+            pts.append(P[k] + r_in + s[0] * d_in)
+    pts = np.array(pts)
+    # truncate to length
+    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    cum = np.concatenate([[0], np.cumsum(seg)])
+    if cum[-1] > length_m:
+        k = int(np.searchsorted(cum, length_m))
+        end = pts[k - 1] + (pts[k] - pts[k - 1]) * (length_m - cum[k - 1]) / max(seg[k - 1], 1e-9)
+        pts = np.vstack([pts[:k], end])
+    return pts
+
+
+def _unit(v):
+    n = np.linalg.norm(v)
+    return v / n if n > 0 else np.array([1.0, 0.0])
+
+
+def _wrap(a):
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+# --- motion plan ------------------------------------------------------------------------------
+
+class _Integrator:
+    """Unicycle integrated at _DT; records (t, x, y, psi)."""
+
+    def __init__(self, x, y, psi):
+        self.x, self.y, self.psi, self.v = float(x), float(y), float(psi), 0.0
+        self.rows = [(0.0, self.x, self.y, self.psi)]
+
+    def run(self, v_fn, w_fn, T):
+        """Apply v(u), w(u) for u in (0, 1] over T seconds (u = elapsed / T)."""
+        n = max(1, int(round(T / _DT)))
+        u = np.arange(1, n + 1) / n
+        v = v_fn(u)
+        w = w_fn(u)
+        v_prev = np.concatenate([[self.v], v[:-1]])
+        w_prev = np.concatenate([[w_fn(np.array([0.0]))[0]], w[:-1]])
+        psi = self.psi + np.cumsum(0.5 * (w + w_prev) * _DT)
+        psi_mid = np.concatenate([[self.psi], psi[:-1]]) * 0.5 + psi * 0.5
+        vm = 0.5 * (v + v_prev)
+        x = self.x + np.cumsum(vm * np.cos(psi_mid) * _DT)
+        y = self.y + np.cumsum(vm * np.sin(psi_mid) * _DT)
+        t0 = self.rows[-1][0]
+        t = t0 + np.arange(1, n + 1) * _DT
+        self.rows.extend(zip(t, x, y, psi))
+        self.x, self.y, self.psi, self.v = float(x[-1]), float(y[-1]), float(psi[-1]), float(v[-1])
+
+    def wait(self, T):
+        self.run(lambda u: np.zeros_like(u), lambda u: np.zeros_like(u), T)
+
+    def turn_in_place(self, dpsi, rate=0.6):
+        T = max(1.5, 1.875 * abs(dpsi) / rate)  # peak yaw rate ~ rate rad/s
+        self.run(lambda u: np.zeros_like(u), lambda u: dpsi * smootherstep_d(u) / T, T)
+
+    def ramp_speed(self, v1, accel=0.5, dpsi=0.0):
+        v0 = self.v
+        T = max(0.5, 1.875 * abs(v1 - v0) / accel)
+        self.run(lambda u: v0 + (v1 - v0) * smootherstep(u), lambda u: dpsi * smootherstep_d(u) / T, T)
+        return 0.5 * (v0 + v1) * T
+
+    def cruise(self, dist, dpsi=0.0):
+        if dist <= 1e-3:
+            return
+        T = dist / max(self.v, 1e-3)
+        v = self.v
+        self.run(lambda u: np.full_like(u, v), lambda u: dpsi * smootherstep_d(u) / T, T)
+
+    def curve(self, dpsi, v, rate=0.3):
+        T = max(2.0, abs(dpsi) / rate)
+        self.run(lambda u: np.full_like(u, v), lambda u: dpsi * smootherstep_d(u) / T, T)
+
+
+def _curve_lead(dpsi: float, v: float, rate=0.3) -> float:
+    """Distance before a corner at which a curve of heading change dpsi (speed v) must start
+    so that the path is tangent to both legs."""
+    it = _Integrator(0.0, 0.0, 0.0)
+    it.v = v
+    it.curve(dpsi, v, rate)
+    ex, ey = it.x, it.y
+    return float(ex - ey / np.tan(dpsi))
+
+
+def plan_motion(waypoints: np.ndarray, preset: Preset, rng: np.random.Generator) -> np.ndarray:
+    """Drive through ``waypoints`` (K, 2); returns (N, 4) rows t (s from 0), x, y, psi (rad,
+    unwrapped) at 100 Hz. Sharp corners (> 100 deg) and a share of the others are taken by
+    stopping and turning in place; the rest by curves; random stops on legs."""
+    v_c = preset.cruise_speed_mps
+    decel_dist = 1.875 * v_c * v_c  # distance covered by ramp_speed(0.0) from v_c (accel 0.5)
+    P = np.asarray(waypoints, dtype=float)
+    psi0 = np.arctan2(*(P[1] - P[0])[::-1])
+    it = _Integrator(P[0, 0], P[0, 1], psi0)
+    it.wait(2.0)  # standing start: lets estimators initialise gravity and biases
+    n = len(P)
+    # corner modes decided up front: True = stop and turn in place
+    in_place = [True] * n
+    for k in range(1, n - 1):
+        d1, d2 = P[k] - P[k - 1], P[k + 1] - P[k]
+        ang = abs(_wrap(np.arctan2(d2[1], d2[0]) - np.arctan2(d1[1], d1[0])))
+        in_place[k] = ang > np.deg2rad(100) or ang < np.deg2rad(5) or rng.random() < preset.turn_in_place_prob
+        if np.linalg.norm(d1) < 8 or np.linalg.norm(d2) < 8:
+            in_place[k] = True
+    for k in range(1, n):
+        target = P[k]
+        to = target - np.array([it.x, it.y])
+        dist = float(np.linalg.norm(to))
+        heading = float(np.arctan2(to[1], to[0]))
+        dpsi = _wrap(heading - it.psi)
+        if it.v < 1e-6 and abs(dpsi) > np.deg2rad(2):
+            it.turn_in_place(dpsi)
+            dpsi = 0.0
+        # where this leg ends: a stop at the corner, or the start of a curve
+        if k == n - 1 or in_place[k]:
+            end_lead, stop = 0.0, True
+            next_dpsi = 0.0
+        else:
+            d2 = P[k + 1] - P[k]
+            next_dpsi = _wrap(np.arctan2(d2[1], d2[0]) - heading)
+            end_lead, stop = _curve_lead(next_dpsi, v_c), False
+        avail = dist - end_lead
+        stops = []
+        if stop and rng.random() < preset.stop_prob and avail > 4 * decel_dist:
+            stops.append(rng.uniform(0.3, 0.7) * avail)
+        legs = np.diff(np.concatenate([[0.0], stops, [avail]]))
+        for li, L in enumerate(legs):
+            last = li == len(legs) - 1
+            ends_stopped = stop or not last
+            v_leg = v_c
+            if it.v < 1e-6 and ends_stopped:  # short leg from rest to rest: lower top speed
+                v_leg = min(v_c, float(np.sqrt(max(L, 0.01) / 3.75)))
+            ramp_up = 0.0
+            if it.v < v_leg - 1e-6:
+                ramp_up = it.ramp_speed(v_leg, dpsi=dpsi if li == 0 else 0.0)
+            elif li == 0 and abs(dpsi) > 0:
+                it.cruise(min(4.0, 0.3 * L), dpsi=dpsi)
+                ramp_up = min(4.0, 0.3 * L)
+            remaining = L - ramp_up
+            if not ends_stopped:
+                it.cruise(remaining)
+            else:
+                it.cruise(remaining - 1.875 * v_leg * v_leg)
+                it.ramp_speed(0.0)
+                if not last:
+                    it.wait(rng.uniform(2.0, 5.0))
+        if not stop:
+            it.curve(next_dpsi, v_c)
+    it.ramp_speed(0.0)
+    it.wait(2.0)
+    return np.array(it.rows)
+
+
+# --- the trajectory ---------------------------------------------------------------------------
+
+@dataclass
+class SimTrajectory:
+    """Robot body trajectory over [0, duration] s (session-relative time).
+
+    ``T_world_flu(t)``: (N, 4, 4); ``T_map_body(t)``: NCLT frames (z down). The body origin
+    rides ``body_height_m`` above the terrain, its z axis along the terrain normal.
+    """
+
+    samples: np.ndarray  # (N, 4) t, x, y, psi at 100 Hz
+    world: World
+    body_height_m: float
+
+    def __post_init__(self) -> None:
+        from scipy.interpolate import CubicSpline
+
+        t = self.samples[:, 0]
+        self._sx = CubicSpline(t, self.samples[:, 1])
+        self._sy = CubicSpline(t, self.samples[:, 2])
+        self._sp = CubicSpline(t, self.samples[:, 3])
+        self.duration = float(t[-1])
+
+    def planar(self, t: np.ndarray, order: int = 0):
+        t = np.asarray(t, dtype=np.float64)
+        return self._sx(t, order), self._sy(t, order), self._sp(t, order)
+
+    def position(self, t: np.ndarray) -> np.ndarray:
+        x, y, _ = self.planar(t)
+        return np.stack([x, y, self.world.terrain.height(x, y) + self.body_height_m], axis=-1)
+
+    def rotation(self, t: np.ndarray) -> np.ndarray:
+        """(N, 3, 3) R_world_flu."""
+        x, y, psi = self.planar(np.atleast_1d(t))
+        _, hx, hy = self.world.terrain.height_grad(x, y)
+        n = np.stack([-hx, -hy, np.ones_like(hx)], axis=-1)
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        f = np.stack([np.cos(psi), np.sin(psi), np.zeros_like(psi)], axis=-1)
+        xa = f - np.sum(f * n, axis=-1, keepdims=True) * n
+        xa /= np.linalg.norm(xa, axis=-1, keepdims=True)
+        ya = np.cross(n, xa)
+        return np.stack([xa, ya, n], axis=-1)
+
+    def T_world_flu(self, t: np.ndarray) -> np.ndarray:
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        T = np.zeros((len(t), 4, 4))
+        T[:, :3, :3] = self.rotation(t)
+        T[:, :3, 3] = self.position(t)
+        T[:, 3, 3] = 1.0
+        return T
+
+    def T_map_body(self, t: np.ndarray) -> np.ndarray:
+        """(N, 4, 4) NCLT ground truth: body (x fwd, y right, z down) in map (z down)."""
+        return D4 @ self.T_world_flu(t) @ D4
+
+    def imu_ideal(self, t: np.ndarray, h: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+        """Noise-free specific force (N, 3) m/s^2 and angular rate (N, 3) rad/s in the NCLT body
+        frame (FRD) at times t: f = R^T (a - g), omega from the rotation's derivative."""
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        ax = self._sx(t, 2)
+        ay = self._sy(t, 2)
+        z = lambda tt: self.position(tt)[:, 2]  # noqa: E731
+        az = (z(t + h) - 2.0 * z(t) + z(t - h)) / (h * h)
+        a_w = np.stack([ax, ay, az], axis=-1)
+        R = self.rotation(t)
+        f_flu = np.einsum("nji,nj->ni", R, a_w - GRAVITY_WORLD)
+        Rm, Rp = self.rotation(t - h), self.rotation(t + h)
+        w_flu = so3_log(np.einsum("nji,njk->nik", Rm, Rp)) / (2.0 * h)
+        flip = np.array([1.0, -1.0, -1.0])
+        return f_flu * flip, w_flu * flip
+
+    def path_length(self) -> float:
+        return float(np.linalg.norm(np.diff(self.samples[:, 1:3], axis=0), axis=1).sum())

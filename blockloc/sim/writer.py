@@ -1,0 +1,118 @@
+"""Write a simulated dataset: every session of a preset, as NCLT-layout directories or ROS bags.
+
+Layout of ``out`` (NCLT, the default)::
+
+    out/sim.json        preset, seed, sessions, frame conventions (no timestamps: reproducible)
+    out/map/            the mapping drive: velodyne_sync/, velodyne_hits.bin, ms25.csv,
+                        groundtruth_<date>.csv, slam_poses_<date>.csv (offline-SLAM poses)
+    out/loc/            a localization drive on another day (campus: also out/loc2/)
+
+``--format rosbag1`` writes ``out/<session>.bag``, ``rosbag2`` a bag directory ``out/<session>/``
+(sqlite3), each with ``out/<session>_groundtruth.csv`` (NCLT csv, T_map_body). Bags hold the
+points in the velodyne frame; readers need the NCLT extrinsic recorded in ``sim.json``.
+
+The whole dataset is written into a temp directory beside ``out`` and renamed at the end.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from blockloc.errors import SimError
+from blockloc.sim.presets import get_preset
+from blockloc.sim.stream import SimSequence
+
+log = logging.getLogger(__name__)
+
+FORMATS = ("nclt", "rosbag1", "rosbag2")
+Progress = Callable[[str, int, int], None]  # (session, frames done, frames total)
+
+
+def _counting(frames, seq: SimSequence, progress: Progress | None):
+    total = len(seq)
+    for k, f in enumerate(frames):
+        yield f
+        if progress is not None:
+            progress(seq.session, k + 1, total)
+
+
+def generate_dataset(preset: str, seed: int, out: Path, fmt: str = "nclt", *,
+                     progress: Progress | None = None, sessions: tuple[str, ...] | None = None,
+                     max_frames: int | None = None, **overrides) -> Path:
+    """Simulate every session of ``preset`` with ``seed`` and write them under ``out``.
+
+    fmt: nclt | rosbag1 | rosbag2. progress: called after each frame. sessions: a subset (default
+    all). max_frames: cap per session (tests). overrides: preset fields (``azimuth_steps``...).
+    Returns ``out``. An existing ``out`` is replaced only when the new dataset is complete.
+    """
+    from blockloc.datasets.nclt import NCLT_GRAVITY_MAP, NCLT_T_BODY_IMU, NCLT_T_BODY_LIDAR, write_session
+
+    if fmt not in FORMATS:
+        raise SimError(f"sim format {fmt!r}: expected one of {', '.join(FORMATS)}")
+    p = get_preset(preset, **overrides)
+    names = tuple(sessions) if sessions else p.sessions
+    for s in names:
+        if s not in p.sessions:
+            raise SimError(f"sim session {s!r}: preset {p.name} has {', '.join(p.sessions)}")
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    try:
+        meta = {"generator": "blockloc.sim", "format_version": 1, "preset": p.name, "seed": int(seed),
+                "format": fmt, "sessions": {}, "azimuth_steps": p.lidar.azimuth_steps,
+                "frames": {"map": "NCLT map, z down", "body": "x forward, y right, z down",
+                           "T_body_lidar": np.asarray(NCLT_T_BODY_LIDAR).tolist(),
+                           "T_body_imu": np.asarray(NCLT_T_BODY_IMU).tolist(),
+                           "gravity_map": list(NCLT_GRAVITY_MAP)}}
+        for s in names:
+            seq = SimSequence(p, s, seed)
+            n = len(seq) if max_frames is None else min(len(seq), int(max_frames))
+            frames = _counting(seq.frames(0, n), seq, progress)
+            imu = seq.imu()
+            gt = seq.ground_truth()
+            if max_frames is not None:  # keep IMU / ground truth to the frames' time span
+                t_end = seq.frame_stamps()[n - 1] + 0.2 if n else gt.stamps[0]
+                imu = imu.between(imu.t[0], t_end)
+                keep = gt.stamps <= t_end
+                gt = type(gt)(gt.stamps[keep], gt.poses[keep])
+            slam = None
+            if s == p.sessions[0]:
+                slam = seq.mapping_poses()
+                slam = type(slam)(slam.stamps[: len(gt)], slam.poses[: len(gt)])
+            if fmt == "nclt":
+                write_session(tmp / s, date=seq.date, frames=frames, imu=imu, ground_truth=gt,
+                              slam_poses=slam, write_hits=True)
+            else:
+                from blockloc.datasets.nclt import write_groundtruth_csv
+                from blockloc.datasets.rosbag import write_rosbag
+
+                target = tmp / (f"{s}.bag" if fmt == "rosbag1" else s)
+                write_rosbag(target, frames, imu, version="ros1" if fmt == "rosbag1" else "ros2-sqlite3",
+                             lidar_topic="/velodyne_points", imu_topic="/imu")
+                write_groundtruth_csv(tmp / f"{s}_groundtruth.csv", gt)
+                if slam is not None:
+                    write_groundtruth_csv(tmp / f"{s}_slam_poses.csv", slam)
+            meta["sessions"][s] = {"date": seq.date, "frames": n,
+                                   "duration_s": round(float(seq.trajectory.duration), 3),
+                                   "path_length_m": round(seq.trajectory.path_length(), 2)}
+            log.info("sim %s/%s: %d frames", p.name, s, n)
+        (tmp / "sim.json").write_text(json.dumps(meta, indent=1, sort_keys=True) + "\n")
+        old = None
+        if out.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+            os.replace(out, old / out.name)
+        os.replace(tmp, out)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+        return out
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
