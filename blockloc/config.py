@@ -82,6 +82,8 @@ class RegistrationConfig:
     max_iterations: int = 30
     step_epsilon: float = 1e-3
     num_threads: int = 2
+    coarse_levels: int = 1  # NDT target grids at 2x, 4x ... resolution (from the fine voxel sums)
+    coarse_to_fine: bool = True  # align on the coarse levels first (wider basin of convergence)
 
 
 @dataclass

@@ -359,6 +359,42 @@ def lookup_keys(table_keys, table_vals, shift, query):
     return out
 
 
+@njit(cache=True, inline="always")
+def _add_jmj(acc, c, o, ux, uy, uz, m00, m01, m02, m11, m12, m22):
+    """acc[c, o:o+21] += upper triangle of J^T M J, J = [-skew(u), I] (3 x 6), M symmetric."""
+    # P = skew(u) M is the rot-trans block; rot-rot = P skew(u)^T, row i = u x (row i of P)
+    p00 = uy * m02 - uz * m01
+    p01 = uy * m12 - uz * m11
+    p02 = uy * m22 - uz * m12
+    p10 = uz * m00 - ux * m02
+    p11 = uz * m01 - ux * m12
+    p12 = uz * m02 - ux * m22
+    p20 = ux * m01 - uy * m00
+    p21 = ux * m11 - uy * m01
+    p22 = ux * m12 - uy * m02
+    acc[c, o + 0] += uy * p02 - uz * p01
+    acc[c, o + 1] += uz * p00 - ux * p02
+    acc[c, o + 2] += ux * p01 - uy * p00
+    acc[c, o + 3] += p00
+    acc[c, o + 4] += p01
+    acc[c, o + 5] += p02
+    acc[c, o + 6] += uz * p10 - ux * p12
+    acc[c, o + 7] += ux * p11 - uy * p10
+    acc[c, o + 8] += p10
+    acc[c, o + 9] += p11
+    acc[c, o + 10] += p12
+    acc[c, o + 11] += ux * p21 - uy * p20
+    acc[c, o + 12] += p20
+    acc[c, o + 13] += p21
+    acc[c, o + 14] += p22
+    acc[c, o + 15] += m00
+    acc[c, o + 16] += m01
+    acc[c, o + 17] += m02
+    acc[c, o + 18] += m11
+    acc[c, o + 19] += m12
+    acc[c, o + 20] += m22
+
+
 @njit(cache=True, parallel=True)
 def ndt_kernel(points, R, t, table_keys, table_vals, shift, gauss, inv_res, neighbors,
                d1, d2, inlier_q, want_derivs, nchunks):
@@ -369,9 +405,10 @@ def ndt_kernel(points, R, t, table_keys, table_vals, shift, gauss, inv_res, neig
     neighbors: 1, 7 or 27 (DIRECT1/7/27 around the voxel containing the transformed point).
     Per point and neighbour Gaussian: s = -d1 * exp(-d2/2 * x^T C x), x = R p + t - mean.
 
-    Returns acc (nchunks, 30): per chunk [score, num_inliers, b_left (6), H_left upper triangle
-    (21), unused] of the cost f = -score; left-frame derivatives (see module doc): the caller sums
-    over chunks and maps them to the right perturbation with diag(R^T, R^T).
+    Returns acc (nchunks, 50): per chunk [score, num_inliers, b_left (6), H_left upper triangle
+    (21), H_gn_left upper triangle (21)] of the cost f = -score; left-frame derivatives (see
+    module doc): the caller sums over chunks and maps them to the right perturbation with
+    diag(R^T, R^T). H_gn drops the second-order and -d2 y y^T terms (IRLS / Gauss-Newton: PSD).
     """
     n = points.shape[0]
     mask = table_keys.shape[0] - 1
@@ -387,7 +424,7 @@ def ndt_kernel(points, R, t, table_keys, table_vals, shift, gauss, inv_res, neig
     t0 = t[0]
     t1 = t[1]
     t2 = t[2]
-    acc = np.zeros((nchunks, 30))
+    acc = np.zeros((nchunks, 50))
     step = (n + nchunks - 1) // nchunks
     half_d2 = 0.5 * d2
     for c in prange(nchunks):
@@ -424,6 +461,12 @@ def ndt_kernel(points, R, t, table_keys, table_vals, shift, gauss, inv_res, neig
             m11 = 0.0
             m12 = 0.0
             m22 = 0.0
+            g00 = 0.0
+            g01 = 0.0
+            g02 = 0.0
+            g11 = 0.0
+            g12 = 0.0
+            g22 = 0.0
             qmin = 1e300
             for nb in range(neighbors):
                 if neighbors == 1:
@@ -483,6 +526,12 @@ def ndt_kernel(points, R, t, table_keys, table_vals, shift, gauss, inv_res, neig
                     m11 += a * c11 - ad2 * y1 * y1
                     m12 += a * c12 - ad2 * y1 * y2
                     m22 += a * c22 - ad2 * y2 * y2
+                    g00 += a * c00
+                    g01 += a * c01
+                    g02 += a * c02
+                    g11 += a * c11
+                    g12 += a * c12
+                    g22 += a * c22
             if qmin <= inlier_q:
                 inliers += 1.0
             if want_derivs:
@@ -493,46 +542,63 @@ def ndt_kernel(points, R, t, table_keys, table_vals, shift, gauss, inv_res, neig
                 acc[c, 5] += w0
                 acc[c, 6] += w1
                 acc[c, 7] += w2
-                # P = skew(u) M  (rot-trans block, plus -0.5 skew(w))
-                p00 = uy * m02 - uz * m01
-                p01 = uy * m12 - uz * m11
-                p02 = uy * m22 - uz * m12
-                p10 = uz * m00 - ux * m02
-                p11 = uz * m01 - ux * m12
-                p12 = uz * m02 - ux * m22
-                p20 = ux * m01 - uy * m00
-                p21 = ux * m11 - uy * m01
-                p22 = ux * m12 - uy * m02
-                # rot-rot = P skew(u)^T ; row i = u x (row i of P), then + S(w, u)
+                # exact: J^T M J + S(w, u)
+                _add_jmj(acc, c, 8, ux, uy, uz, m00, m01, m02, m11, m12, m22)
                 wu = w0 * ux + w1 * uy + w2 * uz
-                h00 = uy * p02 - uz * p01 + w0 * ux - wu
-                h01 = uz * p00 - ux * p02 + 0.5 * (ux * w1 + w0 * uy)
-                h02 = ux * p01 - uy * p00 + 0.5 * (ux * w2 + w0 * uz)
-                h11 = uz * p10 - ux * p12 + w1 * uy - wu
-                h12 = ux * p11 - uy * p10 + 0.5 * (uy * w2 + w1 * uz)
-                h22 = ux * p21 - uy * p20 + w2 * uz - wu
-                # rot-trans = P - 0.5 skew(w)
-                acc[c, 8] += h00
-                acc[c, 9] += h01
-                acc[c, 10] += h02
-                acc[c, 11] += p00
-                acc[c, 12] += p01 + 0.5 * w2
-                acc[c, 13] += p02 - 0.5 * w1
-                acc[c, 14] += h11
-                acc[c, 15] += h12
-                acc[c, 16] += p10 - 0.5 * w2
-                acc[c, 17] += p11
-                acc[c, 18] += p12 + 0.5 * w0
-                acc[c, 19] += h22
-                acc[c, 20] += p20 + 0.5 * w1
-                acc[c, 21] += p21 - 0.5 * w0
-                acc[c, 22] += p22
-                acc[c, 23] += m00
-                acc[c, 24] += m01
-                acc[c, 25] += m02
-                acc[c, 26] += m11
-                acc[c, 27] += m12
-                acc[c, 28] += m22
+                acc[c, 8] += w0 * ux - wu
+                acc[c, 9] += 0.5 * (ux * w1 + w0 * uy)
+                acc[c, 10] += 0.5 * (ux * w2 + w0 * uz)
+                acc[c, 12] += 0.5 * w2
+                acc[c, 13] += -0.5 * w1
+                acc[c, 14] += w1 * uy - wu
+                acc[c, 15] += 0.5 * (uy * w2 + w1 * uz)
+                acc[c, 16] += -0.5 * w2
+                acc[c, 18] += 0.5 * w0
+                acc[c, 19] += w2 * uz - wu
+                acc[c, 20] += 0.5 * w1
+                acc[c, 21] += -0.5 * w0
+                # Gauss-Newton (PSD): J^T (sum a C) J
+                _add_jmj(acc, c, 29, ux, uy, uz, g00, g01, g02, g11, g12, g22)
         acc[c, 0] += score
         acc[c, 1] += inliers
     return acc
+
+
+@njit(cache=True)
+def coarsen_stats(keys, count, sums, outer, res):
+    """Re-express voxel statistics at twice the resolution (parent voxel = floor(i / 2)).
+
+    Inputs as ``voxel_stats`` output at voxel edge ``res``. Returns parent keys (V,) and the
+    statistics moved to the parent centres, one row per child (not merged: use ``merge_stats``).
+    """
+    n = keys.shape[0]
+    pkeys = np.empty(n, dtype=np.int64)
+    psums = np.empty((n, 3))
+    pouter = np.empty((n, 6))
+    for v in range(n):
+        k = keys[v]
+        ix = ((k >> 42) & KEY_MASK) - KEY_OFFSET
+        iy = ((k >> 21) & KEY_MASK) - KEY_OFFSET
+        iz = (k & KEY_MASK) - KEY_OFFSET
+        jx = ix >> 1  # arithmetic shift: floor division by 2 for negative indices too
+        jy = iy >> 1
+        jz = iz >> 1
+        pkeys[v] = _pack(jx, jy, jz)
+        # child centre minus parent centre
+        dx = (ix + 0.5) * res - (jx + 0.5) * 2.0 * res
+        dy = (iy + 0.5) * res - (jy + 0.5) * 2.0 * res
+        dz = (iz + 0.5) * res - (jz + 0.5) * 2.0 * res
+        m = count[v]
+        sx = sums[v, 0]
+        sy = sums[v, 1]
+        sz = sums[v, 2]
+        psums[v, 0] = sx + m * dx
+        psums[v, 1] = sy + m * dy
+        psums[v, 2] = sz + m * dz
+        pouter[v, 0] = outer[v, 0] + 2.0 * sx * dx + m * dx * dx
+        pouter[v, 1] = outer[v, 1] + sx * dy + dx * sy + m * dx * dy
+        pouter[v, 2] = outer[v, 2] + sx * dz + dx * sz + m * dx * dz
+        pouter[v, 3] = outer[v, 3] + 2.0 * sy * dy + m * dy * dy
+        pouter[v, 4] = outer[v, 4] + sy * dz + dy * sz + m * dy * dz
+        pouter[v, 5] = outer[v, 5] + 2.0 * sz * dz + m * dz * dz
+    return pkeys, psums, pouter
