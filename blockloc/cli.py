@@ -202,6 +202,23 @@ def map_plot_cmd(
     typer.echo(str(plot_map(store, png, traj)))
 
 
+@map_app.command("serve")
+def map_serve_cmd(
+    map_path: Path = typer.Argument(..., help="Map store directory, or a directory of map stores."),
+    host: str = typer.Option("127.0.0.1", "--host", help="Address to bind (loopback by default)."),
+    port: int = typer.Option(8765, "--port", help="TCP port (0: any free port)."),
+) -> None:
+    """Serve a map store read-only over HTTP (GET/HEAD, ETag/304, Range) until Ctrl-C."""
+    from blockloc.maps.server import serve
+
+    def ready(url: str, stores: list) -> None:
+        for s in stores:
+            typer.echo(f"serving {url}/{s + '/' if s else ''}", err=True)
+        typer.echo("press Ctrl-C to stop", err=True)
+
+    serve(map_path, host, port, on_ready=ready)
+
+
 # @map-commands (anchor: the maps stage adds its commands above this line)
 
 # ----------------------------------------------------------------------------- init
@@ -234,6 +251,114 @@ def init_cmd(
 # @init-commands (anchor: the global-init stage adds its command above this line)
 
 # ----------------------------------------------------------------------------- track / demo
+def _results_dir(out: Optional[Path], name: str) -> Path:
+    import time as _time
+
+    if out is not None:
+        return out
+    safe = name.replace(":", "_").replace("/", "_").replace("@", "_")
+    return Path("results") / f"{safe}_{_time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def _track_progress(console, label: str):
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    prog = Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                    console=console, transient=True)
+    task = prog.add_task(label, total=None)
+    return prog, (lambda done, total: prog.update(task, completed=done, total=total))
+
+
+def _print_track_summary(console, m: dict, out: Optional[Path]) -> None:
+    from rich.table import Table
+
+    def f(v, fmt="{:.3f}"):
+        return "-" if v is None else (fmt.format(v) if isinstance(v, float) else str(v))
+
+    t = Table(title=f"blockloc track: {m.get('sequence')} ({m.get('backend')} map)", show_header=False)
+    t.add_column(style="bold")
+    t.add_column(justify="right")
+    init = m.get("init") or {}
+    rows = [("frames", f(m.get("frames"))), ("init", f(init.get("mode"))),
+            ("init error (m)", f(init.get("error_m"))),
+            ("ATE translation RMSE (m)", f(m.get("ate_trans_rmse_m"))),
+            ("ATE full RMSE", f(m.get("ate_full_rmse"))), ("ATE rotation RMSE (deg)", f(m.get("ate_rot_rmse_deg"))),
+            ("failures / recoveries", f"{m.get('failures')} / {m.get('recoveries')}"),
+            ("map switches", f(m.get("switches"))),
+            ("update median / p99 (ms)", f"{f(m.get('update_ms_median'), '{:.1f}')} / {f(m.get('update_ms_p99'), '{:.1f}')}"),
+            ("peak RSS (MB)", f(m.get("peak_rss_mb"), "{:.0f}"))]
+    for k, v in rows:
+        if v != "-" or k.startswith("ATE"):
+            t.add_row(k, v)
+    console.print(t)
+    if out is not None:
+        console.print(f"results in {out}")
+
+
+@app.command("track")
+def track_cmd(
+    seq: str = typer.Option(..., "--seq", help="Sequence: sim:small/loc, nclt_2, m2dgr_1, or a path."),
+    map_path: Optional[str] = typer.Option(None, "--map", help="Map store (default: the sequence's map)."),
+    backend: Optional[str] = typer.Option(None, "--map-backend", help="block | grid | srt | global."),
+    init: Optional[str] = typer.Option(None, "--init", help="gt: start at the first ground-truth pose."),
+    init_pose: Optional[str] = typer.Option(None, "--init-pose", help="x,y[,yaw]: global init around a hint."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Results directory (default results/<seq>_<time>)."),
+    config: Optional[str] = typer.Option(None, "--config", help="Config file or preset name."),
+    data_root: Optional[str] = typer.Option(None, "--data-root", help="Root of NCLT / M2DGR data."),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", help="Stop after this many frames."),
+) -> None:
+    """Track a sequence in a prior map (sliding-window IMU + NDT); writes poses, metrics and plots."""
+    from blockloc.errors import TrackingError
+    from blockloc.pipeline import LocalizationPipeline, parse_init_pose
+
+    if init not in (None, "gt"):
+        raise TrackingError(f"--init {init!r}: expected 'gt' (or use --init-pose x,y[,yaw])")
+    if init and init_pose:
+        raise TrackingError("--init gt and --init-pose exclude each other")
+    preset = "sim" if seq.startswith("sim:") else ("nclt" if seq.startswith("nclt_") else
+                                                    ("m2dgr" if seq.startswith("m2dgr_") else None))
+    cfg = _load_cfg(config, preset)
+    mode = "gt" if init else ("pose" if init_pose else "global")
+    console = _console()
+    out_dir = _results_dir(out, seq)
+    prog, cb = _track_progress(console, "tracking")
+    pipe = LocalizationPipeline(seq, cfg=cfg, map_path=map_path, backend=backend, init=mode,
+                                init_pose=parse_init_pose(init_pose) if init_pose else None, out=out_dir,
+                                data_root=data_root, progress=cb, max_frames=max_frames)
+    with prog:
+        res = pipe.run()
+    _print_track_summary(console, res.metrics, res.out_dir)
+
+
+@app.command("demo")
+def demo_cmd(
+    out: Optional[Path] = typer.Option(None, "--out", help="Results directory (default results/demo_<time>)."),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", help="Track only this many frames."),
+) -> None:
+    """Simulate the small world, build its block map, localize from a rough hint, track, evaluate."""
+    from blockloc.demo import run_demo
+
+    console = _console()
+    out_dir = _results_dir(out, "demo")
+    prog, cb = _track_progress(console, "tracking")
+    say = lambda msg: console.print(f"[bold cyan]demo[/] {msg}")  # noqa: E731
+    started = []
+
+    def progress(done, total):
+        if not started:
+            started.append(prog.start())
+        cb(done, total)
+
+    try:
+        res = run_demo(out_dir, say=say, progress=progress, max_frames=max_frames)
+    finally:
+        prog.stop()
+    init = res.metrics.get("init") or {}
+    if init.get("time_s") is not None:
+        say(f"global init: {init.get('error_m', float('nan')):.2f} m from the truth in {init['time_s']:.2f} s")
+    _print_track_summary(console, res.metrics, res.out_dir)
+
+
 # @track-commands (anchor: the tracking stage adds its commands above this line)
 
 
