@@ -133,7 +133,8 @@ class TileCache:
             data = path.read_bytes()
         except OSError:  # absent, or evicted by another process
             with self._lock:
-                self._forget(sha256)
+                if not path.exists():  # (not re-added by a put meanwhile)
+                    self._forget(sha256)
             return None
         if hashlib.sha256(data).hexdigest() != sha256:
             log.warning("%s: cached map file is corrupt; dropped, it will be fetched again", path)
@@ -163,16 +164,16 @@ class TileCache:
             path.parent.mkdir(exist_ok=True)
             with open(tmp, "wb") as f:
                 f.write(data)
-            os.replace(tmp, path)
+            with self._lock:  # the rename and the index change together (eviction unlinks)
+                os.replace(tmp, path)
+                self._forget(sha256)
+                self._index[sha256] = len(data)
+                self._bytes += len(data)
+                self._evict()
         except OSError as exc:
             log.warning("%s: cannot write to the map cache (%s)", path, exc)
             _unlink(tmp)
             return False
-        with self._lock:
-            self._forget(sha256)
-            self._index[sha256] = len(data)
-            self._bytes += len(data)
-            self._evict()
         return True
 
     def clear(self) -> None:
@@ -271,6 +272,16 @@ def _is_permanent(exc: BaseException) -> bool:
     return isinstance(status, int) and 400 <= status < 500 and status not in (408, 429)
 
 
+_TRANSPORT_MODULES = ("aiohttp", "botocore", "aiobotocore", "s3fs", "fsspec", "urllib3", "requests")
+
+
+def _is_transport_error(exc: BaseException) -> bool:
+    """Errors of the network stack (worth classifying and retrying), as opposed to bugs."""
+    if isinstance(exc, (OSError, TimeoutError, EOFError)):
+        return True
+    return any(c.__module__.split(".")[0] in _TRANSPORT_MODULES for c in type(exc).__mro__)
+
+
 def _describe(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
@@ -337,10 +348,7 @@ class RemoteMapFiles:
                     self._stats.cache_hits += 1
                     return data
                 self._stats.cache_misses += 1
-        data = self._shared_fetch(name, sha)
-        if sha is not None and self.cache is not None:
-            self.cache.put(sha, data)
-        return data
+        return self._shared_fetch(name, sha)
 
     def exists(self, name: str) -> bool:
         """Whether ``name`` exists; answered from the cached manifest when the server is down."""
@@ -457,8 +465,15 @@ class RemoteMapFiles:
                 raise MapError(str(flight.error))
             return flight.data  # type: ignore[return-value]
         try:
-            flight.data = self._fetch(name, sha)
-            return flight.data
+            data = None
+            if sha is not None and self.cache is not None:
+                data = self.cache.get(sha)  # a flight that ended after our cache look-up
+            if data is None:
+                data = self._fetch(name, sha)
+                if sha is not None and self.cache is not None:
+                    self.cache.put(sha, data)  # before the flight ends: later readers hit
+            flight.data = data
+            return data
         except BaseException as exc:
             flight.error = exc
             raise
@@ -520,6 +535,8 @@ class RemoteMapFiles:
                 last = exc
                 continue
             except Exception as exc:  # network layers raise many types; classify, then retry
+                if not _is_transport_error(exc):
+                    raise  # a bug, not a network fault
                 if _is_permanent(exc):
                     self._mark_online()
                     raise MapError(f"{url}: refused by the server ({_describe(exc)})") from None
@@ -573,7 +590,6 @@ def _make_fs(url: str, retry: RetryPolicy, storage_options: dict[str, Any]):
             total=retry.timeout_s, sock_connect=min(retry.timeout_s, 5.0))}
     elif protocol in ("s3", "s3a"):
         # our RetryPolicy is the only retry loop: botocore's and s3fs's are switched off
-        opts["retries"] = 1
         opts["config_kwargs"] = {"connect_timeout": min(retry.timeout_s, 5.0),
                                  "read_timeout": retry.timeout_s,
                                  "retries": {"max_attempts": 1, "mode": "standard"}}
@@ -583,12 +599,15 @@ def _make_fs(url: str, retry: RetryPolicy, storage_options: dict[str, Any]):
         else:
             opts[key] = value
     try:
-        return fsspec.core.url_to_fs(url, **opts)
+        fs, root = fsspec.core.url_to_fs(url, **opts)
     except ImportError as exc:
         need = "s3fs" if protocol.startswith("s3") else str(exc)
         raise MapError(f"{url}: reading {protocol}:// maps needs the {need} package") from None
     except ValueError as exc:
         raise MapError(f"{url}: unsupported map URL ({exc})") from None
+    if protocol in ("s3", "s3a"):
+        fs.retries = 1  # s3fs's own retry loop (an attribute, not a constructor option)
+    return fs, root
 
 
 def open_map_files(url_or_path: str | os.PathLike, **remote_options: Any):
