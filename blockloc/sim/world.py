@@ -317,7 +317,7 @@ def build_world(preset: Preset, seed: int) -> World:
     yl = np.concatenate([[-sy / 2 - hw], roads.ys, [sy / 2 + hw]])
     cells = []
     kinds = ["buildings", "park", "parking", "field"]
-    probs = [0.45, 0.2, 0.17, 0.18]
+    probs = [0.5, 0.2, 0.15, 0.15]
     ncell = (len(xl) - 1) * (len(yl) - 1)
     types = list(rng.choice(kinds, size=ncell, p=probs))
     # every world has at least one open field, one parking and two building cells
