@@ -23,7 +23,7 @@ def world():
     target = reg.build_target(scene)
     imu = imu_from_trajectory(traj, 0.0, 10.0, T_body_imu=T_BODY_IMU, acc_bias=ACC_BIAS, gyro_bias=GYRO_BIAS,
                               noise=0.01, seed=1)
-    stamps = np.round(np.arange(0.1, 8.0, 0.1), 6)
+    stamps = np.round(np.arange(0.1, 7.0, 0.1), 6)
     frames = {s: make_scan(scene, traj, s, T_BODY_LIDAR, index=i, max_points=6000, seed=5)
               for i, s in enumerate(stamps)}
     return dict(traj=traj, reg=reg, target=target, imu=imu, stamps=stamps, frames=frames)
