@@ -173,14 +173,20 @@ class SessionScene:
             return
         xy, _ = self.actors.poses(t)
         near = np.linalg.norm(xy - center[:2], axis=1) < max_range + 10.0
-        sel = np.zeros(len(rays), dtype=bool)
-        hx = np.hypot(dirs[:, 0], dirs[:, 1]) + 1e-12
+        # select per column when rays come in columns sharing an origin (the lidar model casts
+        # 32 a column); the bounding circle is 3.5 m, wider than any actor, for the tilt margin
+        step = 32 if len(rays) % 32 == 0 and np.allclose(origins[::32], origins[31::32]) else 1
+        o = origins[::step, :2]
+        dv = dirs[::step, :2]
+        hx = np.hypot(dv[:, 0], dv[:, 1]) + 1e-12
+        sel_c = np.zeros(len(o), dtype=bool)
         for p in xy[near]:
-            rel = p - origins[:, :2]
+            rel = p - o
             dist = np.hypot(rel[:, 0], rel[:, 1])
-            along = (rel[:, 0] * dirs[:, 0] + rel[:, 1] * dirs[:, 1]) / hx
+            along = (rel[:, 0] * dv[:, 0] + rel[:, 1] * dv[:, 1]) / hx
             perp2 = np.maximum(dist * dist - along * along, 0.0)
-            sel |= (perp2 < 3.0 * 3.0) & ((along > 0) | (dist < 3.0))
+            sel_c |= (perp2 < 3.5 * 3.5) & ((along > 0) | (dist < 3.5))
+        sel = np.repeat(sel_c, step)
         idx = np.flatnonzero(sel)
         if not len(idx):
             return
