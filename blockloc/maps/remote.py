@@ -51,12 +51,12 @@ _T = TypeVar("_T")
 
 
 def default_cache_dir() -> Path:
-    """``$BLOCKLOC_MAP_CACHE``, else ``$XDG_CACHE_HOME/blockloc/maps``, else ``~/.cache/blockloc/maps``."""
+    """``$BLOCKLOC_MAP_CACHE``, else ``<$BLOCKLOC_CACHE or ~/.cache/blockloc>/remote-maps``."""
     env = os.environ.get("BLOCKLOC_MAP_CACHE")
     if env:
-        return Path(env)
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "blockloc" / "maps"
+        return Path(env).expanduser()
+    base = os.environ.get("BLOCKLOC_CACHE")
+    return (Path(base).expanduser() if base else Path.home() / ".cache" / "blockloc") / "remote-maps"
 
 
 def is_url(url_or_path: str | os.PathLike) -> bool:
