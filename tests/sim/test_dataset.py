@@ -144,3 +144,19 @@ def test_cli_sim_writes_a_dataset(tmp_path):
     assert len(list((tmp_path / "o" / "loc" / "velodyne_sync").iterdir())) > 300
     bad = CliRunner().invoke(app, ["sim", "--preset", "tiny", "--out", str(tmp_path / "x"), "--format", "las"])
     assert bad.exit_code != 0 and not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("fmt", ["rosbag1", "rosbag2"])
+def test_rosbag_formats_read_back(tmp_path, fmt):
+    from blockloc.datasets.rosbag import RosbagSequence
+
+    out = generate_dataset("tiny", 5, tmp_path / fmt, fmt, max_frames=4, azimuth_steps=60)
+    bag = out / ("map.bag" if fmt == "rosbag1" else "map")
+    seq = RosbagSequence(bag, lidar_topic="/velodyne_points", imu_topic="/imu",
+                         ground_truth_path=out / "map_groundtruth.csv")
+    sim = open_sim_sequence("tiny", "map", 5, azimuth_steps=60)
+    assert len(seq) == 4
+    f, s = seq.frame(3), sim.frame(3)
+    assert f.stamp == pytest.approx(s.stamp) and len(f) == len(s)
+    assert np.allclose(np.sort(f.points[:, 2]), np.sort(s.points[:, 2]), atol=1e-5)
+    assert np.allclose(seq.ground_truth().poses, sim.ground_truth().poses[:len(seq.ground_truth())], atol=1e-6)
