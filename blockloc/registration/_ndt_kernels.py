@@ -395,23 +395,113 @@ def _add_jmj(acc, c, o, ux, uy, uz, m00, m01, m02, m11, m12, m22):
     acc[c, o + 20] += m22
 
 
+@njit(cache=True)
+def build_neighbor_table(keys, table_keys, table_vals, shift):
+    """DIRECT7 neighbour lists, so one hash look-up per source point replaces seven.
+
+    keys: (V,) valid voxel keys (row v of the Gaussians), table_*: their hash table.
+    Returns nkeys (W,) keys of every voxel that is a valid voxel or a face neighbour of one,
+    their hash table (size, shift as ``table_size_for``) and nbr (W, 7) int32: the rows of the
+    valid voxels among that voxel and its 6 face neighbours (-1 where absent).
+    """
+    nv = keys.shape[0]
+    mask = table_keys.shape[0] - 1
+    cand = np.empty(7 * nv, dtype=np.int64)
+    nc = 0
+    for v in range(nv):
+        k = keys[v]
+        ix = ((k >> 42) & KEY_MASK) - KEY_OFFSET
+        iy = ((k >> 21) & KEY_MASK) - KEY_OFFSET
+        iz = (k & KEY_MASK) - KEY_OFFSET
+        for nb in range(7):
+            jx, jy, jz = _offset7(ix, iy, iz, nb)
+            if _in_range(jx, jy, jz):
+                cand[nc] = _pack(jx, jy, jz)
+                nc += 1
+    size = 16
+    while size < 2 * nc:
+        size *= 2
+    bits = 0
+    while (1 << bits) < size:
+        bits += 1
+    nshift = 64 - bits
+    nmask = size - 1
+    ntable_keys = np.full(size, EMPTY, dtype=np.int64)
+    ntable_vals = np.empty(size, dtype=np.int64)
+    nkeys = np.empty(nc, dtype=np.int64)
+    nw = 0
+    for i in range(nc):
+        key = cand[i]
+        s = _slot(key, nshift)
+        while True:
+            k = ntable_keys[s]
+            if k == key:
+                break
+            if k == EMPTY:
+                ntable_keys[s] = key
+                ntable_vals[s] = nw
+                nkeys[nw] = key
+                nw += 1
+                break
+            s = (s + 1) & nmask
+    nbr = np.full((nw, 7), -1, dtype=np.int32)
+    for w in range(nw):
+        k = nkeys[w]
+        ix = ((k >> 42) & KEY_MASK) - KEY_OFFSET
+        iy = ((k >> 21) & KEY_MASK) - KEY_OFFSET
+        iz = (k & KEY_MASK) - KEY_OFFSET
+        m = 0
+        for nb in range(7):
+            jx, jy, jz = _offset7(ix, iy, iz, nb)
+            if _in_range(jx, jy, jz):
+                r = _lookup(table_keys, table_vals, shift, mask, _pack(jx, jy, jz))
+                if r >= 0:
+                    nbr[w, m] = r
+                    m += 1
+    return nkeys[:nw].copy(), ntable_keys, ntable_vals, nshift, nbr
+
+
+@njit(cache=True, inline="always")
+def _offset7(ix, iy, iz, nb):
+    if nb == 1:
+        return ix - 1, iy, iz
+    if nb == 2:
+        return ix + 1, iy, iz
+    if nb == 3:
+        return ix, iy - 1, iz
+    if nb == 4:
+        return ix, iy + 1, iz
+    if nb == 5:
+        return ix, iy, iz - 1
+    if nb == 6:
+        return ix, iy, iz + 1
+    return ix, iy, iz
+
+
+# Pairs with d2/2 * q above this contribute exp(-30) ~ 1e-13 of a perfect match: skipped.
+MAX_HALF_D2_Q = 30.0
+
+
 @njit(cache=True, parallel=True)
 def ndt_kernel(points, R, t, table_keys, table_vals, shift, gauss, inv_res, neighbors,
-               d1, d2, inlier_q, want_derivs, nchunks):
+               d1, d2, inlier_q, mode, nchunks, ntable_keys, ntable_vals, nshift, nbr):
     """Score (and derivatives) of the point-to-distribution NDT objective at T = (R, t).
 
     points: (N, 3) source points; R (3, 3), t (3,) map them into the target frame.
     gauss: (M, 9) rows of mean (3) and inverse covariance (6: xx xy xz yy yz zz).
     neighbors: 1, 7 or 27 (DIRECT1/7/27 around the voxel containing the transformed point).
+    ntable_*, nshift, nbr: ``build_neighbor_table`` output, used when neighbors == 7.
     Per point and neighbour Gaussian: s = -d1 * exp(-d2/2 * x^T C x), x = R p + t - mean.
+    mode: 0 score only; 1 exact gradient and Hessian; 2 gradient and the Gauss-Newton (IRLS)
+    matrix sum a J^T C J (drops the second-order and -d2 y y^T terms: always PSD).
 
-    Returns acc (nchunks, 50): per chunk [score, num_inliers, b_left (6), H_left upper triangle
-    (21), H_gn_left upper triangle (21)] of the cost f = -score; left-frame derivatives (see
-    module doc): the caller sums over chunks and maps them to the right perturbation with
-    diag(R^T, R^T). H_gn drops the second-order and -d2 y y^T terms (IRLS / Gauss-Newton: PSD).
+    Returns acc (nchunks, 29): per chunk [score, num_inliers, b_left (6), H_left upper triangle
+    (21)] of the cost f = -score in the left frame (see module doc): the caller sums over chunks
+    and maps them to the right perturbation with diag(R^T, R^T).
     """
     n = points.shape[0]
     mask = table_keys.shape[0] - 1
+    nmask = ntable_keys.shape[0] - 1
     r00 = R[0, 0]
     r01 = R[0, 1]
     r02 = R[0, 2]
@@ -424,9 +514,11 @@ def ndt_kernel(points, R, t, table_keys, table_vals, shift, gauss, inv_res, neig
     t0 = t[0]
     t1 = t[1]
     t2 = t[2]
-    acc = np.zeros((nchunks, 50))
+    acc = np.zeros((nchunks, 29))
     step = (n + nchunks - 1) // nchunks
     half_d2 = 0.5 * d2
+    exact = mode == 1
+    derivs = mode != 0
     for c in prange(nchunks):
         lo = c * step
         hi = min(n, lo + step)
@@ -452,6 +544,7 @@ def ndt_kernel(points, R, t, table_keys, table_vals, shift, gauss, inv_res, neig
             iy = np.int64(fy)
             iz = np.int64(fz)
             # per-point sums over neighbour Gaussians: w = sum a y, M = sum a (C - d2 y y^T)
+            # (exact) or sum a C (Gauss-Newton), a = -d1 d2 e > 0
             w0 = 0.0
             w1 = 0.0
             w2 = 0.0
@@ -461,42 +554,29 @@ def ndt_kernel(points, R, t, table_keys, table_vals, shift, gauss, inv_res, neig
             m11 = 0.0
             m12 = 0.0
             m22 = 0.0
-            g00 = 0.0
-            g01 = 0.0
-            g02 = 0.0
-            g11 = 0.0
-            g12 = 0.0
-            g22 = 0.0
             qmin = 1e300
-            for nb in range(neighbors):
-                if neighbors == 1:
-                    jx = ix
-                    jy = iy
-                    jz = iz
-                elif neighbors == 7:
-                    jx = ix
-                    jy = iy
-                    jz = iz
-                    if nb == 1:
-                        jx = ix - 1
-                    elif nb == 2:
-                        jx = ix + 1
-                    elif nb == 3:
-                        jy = iy - 1
-                    elif nb == 4:
-                        jy = iy + 1
-                    elif nb == 5:
-                        jz = iz - 1
-                    elif nb == 6:
-                        jz = iz + 1
-                else:
-                    jx = ix + (nb % 3) - 1
-                    jy = iy + ((nb // 3) % 3) - 1
-                    jz = iz + (nb // 9) - 1
-                key = _pack(jx, jy, jz)
-                v = _lookup(table_keys, table_vals, shift, mask, key)
-                if v < 0:
+            hits = 0
+            row = -1
+            if neighbors == 7:
+                row = _lookup(ntable_keys, ntable_vals, nshift, nmask, _pack(ix, iy, iz))
+                if row < 0:
                     continue
+            for nb in range(neighbors):
+                if neighbors == 7:
+                    v = np.int64(nbr[row, nb])
+                    if v < 0:
+                        break  # lists are packed: the rest are absent too
+                else:
+                    jx = ix
+                    jy = iy
+                    jz = iz
+                    if neighbors == 27:
+                        jx = ix + (nb % 3) - 1
+                        jy = iy + ((nb // 3) % 3) - 1
+                        jz = iz + (nb // 9) - 1
+                    v = _lookup(table_keys, table_vals, shift, mask, _pack(jx, jy, jz))
+                    if v < 0:
+                        continue
                 dx = x0 - gauss[v, 0]
                 dy = x1 - gauss[v, 1]
                 dz = x2 - gauss[v, 2]
@@ -512,29 +592,33 @@ def ndt_kernel(points, R, t, table_keys, table_vals, shift, gauss, inv_res, neig
                 q = dx * y0 + dy * y1 + dz * y2
                 if q < qmin:
                     qmin = q
+                if half_d2 * q > MAX_HALF_D2_Q:
+                    continue
                 e = np.exp(-half_d2 * q)
                 score += -d1 * e
-                if want_derivs:
+                if derivs:
+                    hits += 1
                     a = -d1 * d2 * e
                     w0 += a * y0
                     w1 += a * y1
                     w2 += a * y2
-                    ad2 = a * d2
-                    m00 += a * c00 - ad2 * y0 * y0
-                    m01 += a * c01 - ad2 * y0 * y1
-                    m02 += a * c02 - ad2 * y0 * y2
-                    m11 += a * c11 - ad2 * y1 * y1
-                    m12 += a * c12 - ad2 * y1 * y2
-                    m22 += a * c22 - ad2 * y2 * y2
-                    g00 += a * c00
-                    g01 += a * c01
-                    g02 += a * c02
-                    g11 += a * c11
-                    g12 += a * c12
-                    g22 += a * c22
+                    m00 += a * c00
+                    m01 += a * c01
+                    m02 += a * c02
+                    m11 += a * c11
+                    m12 += a * c12
+                    m22 += a * c22
+                    if exact:
+                        ad2 = a * d2
+                        m00 -= ad2 * y0 * y0
+                        m01 -= ad2 * y0 * y1
+                        m02 -= ad2 * y0 * y2
+                        m11 -= ad2 * y1 * y1
+                        m12 -= ad2 * y1 * y2
+                        m22 -= ad2 * y2 * y2
             if qmin <= inlier_q:
                 inliers += 1.0
-            if want_derivs:
+            if hits > 0:
                 # b = [u x w; w]
                 acc[c, 2] += uy * w2 - uz * w1
                 acc[c, 3] += uz * w0 - ux * w2
@@ -542,23 +626,22 @@ def ndt_kernel(points, R, t, table_keys, table_vals, shift, gauss, inv_res, neig
                 acc[c, 5] += w0
                 acc[c, 6] += w1
                 acc[c, 7] += w2
-                # exact: J^T M J + S(w, u)
                 _add_jmj(acc, c, 8, ux, uy, uz, m00, m01, m02, m11, m12, m22)
-                wu = w0 * ux + w1 * uy + w2 * uz
-                acc[c, 8] += w0 * ux - wu
-                acc[c, 9] += 0.5 * (ux * w1 + w0 * uy)
-                acc[c, 10] += 0.5 * (ux * w2 + w0 * uz)
-                acc[c, 12] += 0.5 * w2
-                acc[c, 13] += -0.5 * w1
-                acc[c, 14] += w1 * uy - wu
-                acc[c, 15] += 0.5 * (uy * w2 + w1 * uz)
-                acc[c, 16] += -0.5 * w2
-                acc[c, 18] += 0.5 * w0
-                acc[c, 19] += w2 * uz - wu
-                acc[c, 20] += 0.5 * w1
-                acc[c, 21] += -0.5 * w0
-                # Gauss-Newton (PSD): J^T (sum a C) J
-                _add_jmj(acc, c, 29, ux, uy, uz, g00, g01, g02, g11, g12, g22)
+                if exact:
+                    # second-order term S(w, u) of the SE(3) exponential
+                    wu = w0 * ux + w1 * uy + w2 * uz
+                    acc[c, 8] += w0 * ux - wu
+                    acc[c, 9] += 0.5 * (ux * w1 + w0 * uy)
+                    acc[c, 10] += 0.5 * (ux * w2 + w0 * uz)
+                    acc[c, 12] += 0.5 * w2
+                    acc[c, 13] += -0.5 * w1
+                    acc[c, 14] += w1 * uy - wu
+                    acc[c, 15] += 0.5 * (uy * w2 + w1 * uz)
+                    acc[c, 16] += -0.5 * w2
+                    acc[c, 18] += 0.5 * w0
+                    acc[c, 19] += w2 * uz - wu
+                    acc[c, 20] += 0.5 * w1
+                    acc[c, 21] += -0.5 * w0
         acc[c, 0] += score
         acc[c, 1] += inliers
     return acc

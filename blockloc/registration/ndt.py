@@ -168,6 +168,31 @@ class _Snapshot:
     table_vals: np.ndarray  # (S,) int64
     shift: int
     num_points: int
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def neighbor_table(self) -> tuple:
+        """DIRECT7 neighbour lists (built on first use, then cached; immutable afterwards).
+
+        Two threads racing here both build the same table; either result is kept.
+        """
+        table = self._cache.get("nbr7")
+        if table is None:
+            _, ntk, ntv, nshift, nbr = _kernels().build_neighbor_table(
+                self.keys, self.table_keys, self.table_vals, self.shift)
+            table = (ntk, ntv, nshift, nbr)
+            self._cache["nbr7"] = table
+        return table
+
+
+_NO_NEIGHBOR_TABLE = None
+
+
+def _empty_neighbor_table() -> tuple:
+    global _NO_NEIGHBOR_TABLE
+    if _NO_NEIGHBOR_TABLE is None:
+        _NO_NEIGHBOR_TABLE = (np.full(16, -1, np.int64), np.zeros(16, np.int64), 60,
+                              np.full((1, 7), -1, np.int32))
+    return _NO_NEIGHBOR_TABLE
 
 
 class NdtTarget:
@@ -449,7 +474,6 @@ class _Eval:
     num_inliers: int
     b: np.ndarray | None
     H: np.ndarray | None
-    H_gn: np.ndarray | None = None
 
 
 class NdtRegistration:
@@ -457,15 +481,16 @@ class NdtRegistration:
 
     neighbors: DIRECT1 | DIRECT7 | DIRECT27, the voxel containing the transformed point, plus its 6
     face neighbours, plus all 26 neighbours. coarse_to_fine: when the target has coarse levels,
-    first align on them (``coarse_neighbors``, stopping at 10 x ``step_epsilon``), then on the
-    finest level with ``neighbors``; H, b and the score are always those of the finest level.
+    first align on them (``coarse_neighbors``, stopping at 10 x ``step_epsilon``, with every k-th
+    source point so that at most about ``coarse_max_points`` are used), then on the finest level
+    with ``neighbors`` and all points; H, b and the score are always those of the finest level.
     max_step_m (default: the target resolution) and max_step_rad cap one Newton step.
     """
 
     def __init__(self, neighbors: str = "DIRECT7", outlier_ratio: float = 0.55,
                  max_iterations: int = 30, step_epsilon: float = 1e-3,
                  coarse_to_fine: bool = True, coarse_neighbors: str = "DIRECT1",
-                 max_step_m: float | None = None, max_step_rad: float = 0.2,
+                 coarse_max_points: int = 3000, max_step_m: float | None = None, max_step_rad: float = 0.2,
                  num_threads: int | None = None):
         for name, value in (("neighbors", neighbors), ("coarse_neighbors", coarse_neighbors)):
             if value not in NEIGHBORS:
@@ -483,6 +508,7 @@ class NdtRegistration:
         self.max_iterations = int(max_iterations)
         self.step_epsilon = float(step_epsilon)
         self.coarse_to_fine = bool(coarse_to_fine)
+        self.coarse_max_points = max(int(coarse_max_points), MIN_SOURCE_POINTS)
         self.max_step_m = None if max_step_m is None else float(max_step_m)
         self.max_step_rad = float(max_step_rad)
         self.num_threads = num_threads
@@ -506,28 +532,41 @@ class NdtRegistration:
         return self._eval(snap, NEIGHBORS[self.neighbors], src, T, derivatives)
 
     def _eval(self, snap: _Snapshot, neighbors: int, src: np.ndarray, T: np.ndarray,
-              derivatives: bool) -> _Eval:
+              derivatives: bool, gauss_newton: bool = False) -> _Eval:
         k = _kernels()
         d1, d2 = ndt_constants(snap.resolution, self.outlier_ratio)
         R = np.ascontiguousarray(T[:3, :3])
         t = np.ascontiguousarray(T[:3, 3])
         nchunks = max(1, min(64, len(src) // 256))
+        mode = 0 if not derivatives else (2 if gauss_newton else 1)
+        ntk, ntv, nshift, nbr = (snap.neighbor_table() if neighbors == 7
+                                 else _empty_neighbor_table())
         acc = k.ndt_kernel(src, R, t, snap.table_keys, snap.table_vals, snap.shift, snap.gauss,
                            1.0 / snap.resolution, neighbors, d1, d2, INLIER_MAHALANOBIS_SQ,
-                           derivatives, nchunks).sum(axis=0)
+                           mode, nchunks, ntk, ntv, nshift, nbr).sum(axis=0)
         score = float(acc[0])
         inliers = int(round(acc[1]))
         if not derivatives:
             return _Eval(score, inliers, None, None)
-        b_left = acc[2:8]
         # left frame (u = R p) -> right perturbation: J_right = J_left diag(R, R)
         Rb = np.zeros((6, 6))
         Rb[:3, :3] = R
         Rb[3:, 3:] = R
-        b = Rb.T @ b_left
-        H = _unpack_sym6(acc[8:29], k)
-        H_gn = _unpack_sym6(acc[29:50], k)
-        return _Eval(score, inliers, b, Rb.T @ H @ Rb, Rb.T @ H_gn @ Rb)
+        b = Rb.T @ acc[2:8]
+        H = Rb.T @ _unpack_sym6(acc[8:29], k) @ Rb
+        return _Eval(score, inliers, b, 0.5 * (H + H.T))
+
+    def _direction(self, snap, neighbors, src, T, ev: _Eval) -> np.ndarray:
+        """Newton direction -H^-1 b where the exact H is positive definite; elsewhere (far from
+        the optimum NDT's Hessian is strongly indefinite) the Gauss-Newton / IRLS direction
+        -H_gn^-1 b, a descent direction since H_gn is PSD."""
+        lam, V = np.linalg.eigh(ev.H)
+        if lam[0] > 1e-9 * max(lam[-1], 1e-300):
+            return -(V @ ((V.T @ ev.b) / lam))
+        H_gn = self._eval(snap, neighbors, src, T, True, gauss_newton=True).H
+        lam, V = np.linalg.eigh(H_gn)
+        lam = np.maximum(lam, max(1e-9 * float(lam[-1]), 1e-12))
+        return -(V @ ((V.T @ ev.b) / lam))
 
     def _newton(self, snap: _Snapshot, neighbors: int, src: np.ndarray, T: np.ndarray,
                 epsilon: float) -> tuple[np.ndarray, _Eval, int, bool]:
@@ -537,7 +576,7 @@ class NdtRegistration:
         iterations = 0
         ev = self._eval(snap, neighbors, src, T, True)
         while iterations < self.max_iterations:
-            d = _descent_direction(ev.H, ev.H_gn, ev.b)
+            d = self._direction(snap, neighbors, src, T, ev)
             # cap the step so that one Newton step cannot leap across many voxels
             scale = 1.0
             nr = np.linalg.norm(d[:3])
@@ -550,11 +589,12 @@ class NdtRegistration:
             slope = float(ev.b @ d)  # directional derivative of the cost (< 0)
             alpha = 1.0
             accepted = None
-            for _ in range(9):
-                T_try = T @ se3_exp(alpha * d)
-                trial = self._eval(snap, neighbors, src, T_try, False)
+            for trial_no in range(9):
+                T_try = _orthonormalize(T @ se3_exp(alpha * d))
+                # the full step is usually accepted: evaluate its derivatives at once
+                trial = self._eval(snap, neighbors, src, T_try, trial_no == 0)
                 if -trial.score <= -ev.score + 1e-4 * alpha * slope:
-                    accepted = T_try
+                    accepted = trial
                     break
                 alpha *= 0.5
             iterations += 1
@@ -562,8 +602,8 @@ class NdtRegistration:
                 # no decrease along a descent direction: at the optimum to numerical precision
                 converged = bool(np.linalg.norm(d) < 10 * epsilon or abs(slope) < 1e-9)
                 break
-            T = _orthonormalize(accepted)
-            ev = self._eval(snap, neighbors, src, T, True)
+            T = T_try
+            ev = accepted if accepted.H is not None else self._eval(snap, neighbors, src, T, True)
             if np.linalg.norm(alpha * d) < epsilon:
                 converged = True
                 break
@@ -585,12 +625,15 @@ class NdtRegistration:
 
             numba.set_num_threads(min(int(self.num_threads), numba.config.NUMBA_NUM_THREADS))
         coarse_iterations = 0
-        if self.coarse_to_fine:
+        if self.coarse_to_fine and len(levels) > 1:
+            # the coarse levels only bring T into the fine basin: a subset of the points will do
+            stride = max(1, len(src) // self.coarse_max_points)
+            coarse_src = src[::stride] if stride > 1 else src
             for snap in reversed(levels[1:]):
                 if len(snap.keys) == 0:
                     continue
-                T, _, it, _ = self._newton(snap, NEIGHBORS[self.coarse_neighbors], src, T,
-                                           10.0 * self.step_epsilon)
+                T, _, it, _ = self._newton(snap, NEIGHBORS[self.coarse_neighbors], coarse_src,
+                                           T, 10.0 * self.step_epsilon)
                 coarse_iterations += it
         T, ev, iterations, converged = self._newton(levels[0], NEIGHBORS[self.neighbors], src, T,
                                                     self.step_epsilon)
@@ -609,17 +652,6 @@ def _unpack_sym6(tri: np.ndarray, k) -> np.ndarray:
     H = np.zeros((6, 6))
     H[k.TRI_I, k.TRI_J] = tri
     return H + np.triu(H, 1).T
-
-
-def _descent_direction(H: np.ndarray, H_gn: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Newton direction -H^-1 b where H is positive definite; elsewhere the Gauss-Newton
-    (IRLS) direction -H_gn^-1 b, which is a descent direction since H_gn is PSD."""
-    lam, V = np.linalg.eigh(H)
-    if lam[0] > 1e-9 * max(lam[-1], 1e-300):
-        return -(V @ ((V.T @ b) / lam))
-    lam, V = np.linalg.eigh(H_gn)
-    lam = np.maximum(lam, max(1e-9 * float(lam[-1]), 1e-12))
-    return -(V @ ((V.T @ b) / lam))
 
 
 def align(target_points: np.ndarray, source_points: np.ndarray,

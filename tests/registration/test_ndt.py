@@ -201,6 +201,40 @@ def test_result_H_is_psd_projection_of_exact_hessian(scene, make_scene):
     assert good.eigenvalues[0] > 0
 
 
+@pytest.mark.parametrize("neighbors", ["DIRECT1", "DIRECT7", "DIRECT27"])
+def test_score_and_inliers_match_numpy_reference(scene, neighbors):
+    """Kernel score (hash look-ups, DIRECT7 neighbour lists) against a plain numpy version."""
+    target = NdtTarget.build(scene, resolution=1.0)
+    means, covs = target.gaussians()
+    icovs = np.linalg.inv(covs)
+    index = {tuple(k): i for i, k in enumerate(np.floor(means).astype(int))}
+    # voxel of each Gaussian = voxel of its mean (the mean lies inside its voxel)
+    T = xyzrpy_to_T(0.2, -0.1, 0.05, 0.01, 0.0, 0.02)
+    rng = np.random.default_rng(3)
+    source = scene[rng.choice(len(scene), 300, replace=False)] + rng.normal(0, 0.05, (300, 3))
+    x = transform_points(T, source)
+    offsets = {"DIRECT1": [(0, 0, 0)],
+               "DIRECT7": [(0, 0, 0), (-1, 0, 0), (1, 0, 0), (0, -1, 0), (0, 1, 0), (0, 0, -1),
+                           (0, 0, 1)],
+               "DIRECT27": [(i, j, k) for k in (-1, 0, 1) for j in (-1, 0, 1) for i in (-1, 0, 1)]}
+    d1, d2 = ndt_constants(1.0, 0.55)
+    score, inliers = 0.0, 0
+    for p in x:
+        v = np.floor(p).astype(int)
+        qs = []
+        for o in offsets[neighbors]:
+            i = index.get(tuple(v + o))
+            if i is not None:
+                dlt = p - means[i]
+                qs.append(dlt @ icovs[i] @ dlt)
+        score += sum(-d1 * np.exp(-d2 * q / 2) for q in qs)
+        inliers += bool(qs) and min(qs) <= 11.345
+    ev = NdtRegistration(neighbors=neighbors).evaluate(target, source, T, derivatives=False)
+    assert ev.score == pytest.approx(score, rel=1e-9)
+    assert ev.num_inliers == inliers
+    assert 0 < inliers < len(source)
+
+
 def test_ndt_constants_match_magnusson():
     d1, d2 = ndt_constants(1.0, 0.55)
     # values printed by ndt_omp / PCL for resolution 1, outlier ratio 0.55
