@@ -53,8 +53,10 @@ def session_trajectory(preset: Preset, seed: int, session: str) -> SimTrajectory
         route = map_route
     else:
         rng = np.random.default_rng(np.random.SeedSequence([seed, stable_hash(session), 4]))
-        start = map_route[(len(map_route) * k) // (len(preset.sessions) + 1)]
-        route = relocalization_route(roads, rng, preset.route_length_m[k], start, map_route)
+        # the mapping drive stops part-way along its last edge: only full edges count as mapped
+        driven = map_route[:-1]
+        start = driven[(len(driven) * k) // (len(preset.sessions) + 1)]
+        route = relocalization_route(roads, rng, preset.route_length_m[k], start, driven)
     wp = lane_waypoints(roads, route, preset.route_length_m[k])
     rng = np.random.default_rng(np.random.SeedSequence([seed, stable_hash(session), 8]))
     samples = plan_motion(wp, preset, rng)

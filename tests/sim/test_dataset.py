@@ -160,3 +160,25 @@ def test_rosbag_formats_read_back(tmp_path, fmt):
     assert f.stamp == pytest.approx(s.stamp) and len(f) == len(s)
     assert np.allclose(np.sort(f.points[:, 2]), np.sort(s.points[:, 2]), atol=1e-5)
     assert np.allclose(seq.ground_truth().poses, sim.ground_truth().poses[:len(seq.ground_truth())], atol=1e-6)
+
+
+def test_campus_routes_are_long_and_inside_the_map():
+    from scipy.spatial import cKDTree
+
+    from blockloc.sim.presets import get_preset
+    from blockloc.sim.stream import session_trajectory
+
+    p = get_preset("campus")
+    assert p.size_m[0] >= 800 and p.size_m[1] >= 500 and "loc2" in p.sessions
+    mp = session_trajectory(p, 1, "map").samples[::10, 1:3]
+    tree = cKDTree(mp)
+    loc = session_trajectory(p, 1, "loc")
+    assert loc.path_length() >= 6000
+    t = np.arange(0, loc.duration, 0.1)
+    v = np.hypot(loc._sx(t, 1), loc._sy(t, 1))
+    w = np.abs(loc._sp(t, 1))
+    assert v.max() <= 1.5 and 1.0 <= loc.path_length() / loc.duration <= 1.5
+    assert ((v < 0.02) & (w > 0.2)).sum() > 50  # turns in place
+    for s in ("loc", "loc2"):
+        d, _ = tree.query(session_trajectory(p, 1, s).samples[::10, 1:3])
+        assert d.max() < 15.0
