@@ -47,6 +47,65 @@ def gravity_at(seq, stamp: float) -> np.ndarray:
     return gravity_body_from_imu(near.acc, seq.info.T_body_imu)
 
 
+def scan_body_deskewed(frame, seq, imu=None) -> tuple[np.ndarray, float]:
+    """Frame points (N, 3) in the BODY frame at the middle of the sweep, and that time (s).
+
+    The reference time is the middle of the sweep (``frame.stamp`` plus the mid time offset): the
+    pose a rigid registration finds for a scan taken while moving is the pose at mid-sweep, so
+    the result is stamped there (NCLT and simulated stamps are the sweep start: ~0.065 m apart at
+    1.3 m/s). Points are rotation-deskewed to that time with the gyro.
+
+    At initialization the velocity is unknown, so only the rotation during the sweep (integrated
+    from the gyro, bias neglected: ~0.002 rad/s x 0.1 s) is removed; at a turn in place it moves far
+    points by metres, while the unknown translation is at most speed x sweep time (~0.15 m).
+    Frames without per-point times are returned as they are.
+    """
+    from blockloc.geometry import so3_exp
+    from blockloc.tracking.deskew import deskew_points_numpy
+
+    info = seq.info
+    pts = np.asarray(frame.points, dtype=np.float64)
+    if frame.time_offsets is None or len(pts) == 0:
+        return transform_points(info.T_body_lidar, pts), float(frame.stamp)
+    offs = np.asarray(frame.time_offsets, dtype=np.float64)
+    t_ref = float(frame.stamp + 0.5 * (offs.min() + offs.max()))
+    imu = seq.imu() if imu is None else imu
+    t0, t1 = frame.stamp + offs.min(), frame.stamp + offs.max()
+    near = imu.between(t0 - 0.02, t1 + 0.02)
+    if len(near) < 2 or t1 <= t0:
+        return transform_points(info.T_body_lidar, pts), t_ref
+    omega_body = near.gyro @ np.asarray(info.T_body_imu, float)[:3, :3].T
+    times = np.concatenate([[t0], near.t[(near.t > t0) & (near.t < t1)], [t1]])
+    idx = np.clip(np.searchsorted(near.t, times, side="right") - 1, 0, len(near) - 1)
+    R = [np.eye(3)]
+    for k in range(1, len(times)):  # zero-order hold of the rate over each interval
+        R.append(R[-1] @ so3_exp(omega_body[idx[k - 1]] * (times[k] - times[k - 1])))
+    R = np.array(R)
+    # Rotation of the body at each table time relative to the body at t_ref.
+    times = np.append(times, t_ref)
+    R_ref = _interp_rotation(times[:-1], R, t_ref)
+    times = times[:-1]
+    T_body_table = np.zeros((len(times), 4, 4))
+    T_body_table[:, :3, :3] = R_ref.T[None] @ R
+    T_body_table[:, 3, 3] = 1.0
+    T_bl = np.asarray(info.T_body_lidar, float)
+    from blockloc.geometry import inv_T
+
+    T_lidar_table = inv_T(T_bl)[None] @ T_body_table @ T_bl[None]
+    lidar = deskew_points_numpy(pts, frame.stamp + offs, times, T_lidar_table)
+    return transform_points(T_bl, lidar), t_ref
+
+
+def _interp_rotation(times: np.ndarray, R: np.ndarray, t: float) -> np.ndarray:
+    """Rotation at time t from a table (K,) times and (K, 3, 3) rotations (slerp in one interval)."""
+    from blockloc.geometry import so3_exp, so3_log
+
+    j = int(np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2))
+    span = times[j + 1] - times[j]
+    a = (t - times[j]) / span if span > 0 else 0.0
+    return R[j] @ so3_exp(a * so3_log(R[j].T @ R[j + 1]))
+
+
 def run_init(seq_name: str, frame_index: int, map_path: str, hint: str | None, window_m: float | None,
              yaw_window_deg: float | None, config: str | None, data_root: str | None):
     """Returns (InitResult, summary dict). Raises BlocklocError on bad input."""
@@ -68,9 +127,9 @@ def run_init(seq_name: str, frame_index: int, map_path: str, hint: str | None, w
     frame = seq.frame(frame_index)
     params = InitParams.from_config(cfg.global_init, cfg.registration)
     loc = GlobalLocalizer.for_store(store, seq.info.gravity_map, params)
-    pts_body = transform_points(seq.info.T_body_lidar, frame.points)
-    res = loc.localize(pts_body, gravity_at(seq, frame.stamp), hint_xy, hint_yaw, window_m, yaw_window_deg)
-    return res, summary(res, frame.stamp)
+    pts_body, t_ref = scan_body_deskewed(frame, seq)
+    res = loc.localize(pts_body, gravity_at(seq, t_ref), hint_xy, hint_yaw, window_m, yaw_window_deg)
+    return res, summary(res, t_ref)
 
 
 def summary(res: InitResult, stamp: float | None = None) -> dict:

@@ -10,8 +10,10 @@ What is projected (choice recorded in docs/bench/global_init.md): points in a *h
 local ground* (default 0.3 .. 3.0 m), not all points. Ground returns cover almost every cell near the
 sensor in both map and scan, so an occupancy image of all points rewards any placement on open
 ground; the band keeps walls, trunks, poles, cars and fences, which fix x, y and yaw. The local
-ground is the minimum height in 1 m cells, eroded over +-2 cells so that a cell holding only a wall
+ground is the minimum height in 1 m cells, eroded over +-1 cell so that a cell holding only a wall
 still finds the ground next to it; this follows slopes and ramps, which an absolute z band does not.
+Where that local minimum stands more than 1 m above the minimum over +-5 cells, it is a canopy or a
+roof, not ground, and the wider minimum is used (else tree crowns fill whole areas of the raster).
 
 The map raster is a smoothed occupancy: each occupied cell spreads exp(-d^2 / (2 sigma^2)) to its
 neighbours (sigma = one cell), stored as uint8 0..255. The spread is a max over occupied cells, so
@@ -28,7 +30,9 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 GROUND_CELL_M = 1.0
-GROUND_ERODE_CELLS = 2
+GROUND_ERODE_CELLS = 1
+GROUND_WIDE_CELLS = 5
+GROUND_MAX_STEP_M = 1.0
 SMOOTH_RADIUS_CELLS = 2
 
 
@@ -85,23 +89,29 @@ def heading_offset(R_tilt: np.ndarray) -> float:
 
 
 def ground_grid(points_lvl: np.ndarray, cell_m: float = GROUND_CELL_M,
-                erode_cells: int = GROUND_ERODE_CELLS) -> tuple[np.ndarray, np.ndarray]:
+                erode_cells: int = GROUND_ERODE_CELLS, wide_cells: int = GROUND_WIDE_CELLS,
+                max_step_m: float = GROUND_MAX_STEP_M) -> tuple[np.ndarray, np.ndarray]:
     """Local ground height on a coarse grid.
 
     points_lvl: (N, 3) levelled frame (z up), metres.
     Returns (origin (2,) int64 coarse cell index of grid[0, 0], grid (GX, GY) float32 metres; NaN
-    where no point fell within ``erode_cells``). The grid value is the minimum z over the cell and
-    its neighbours within ``erode_cells``.
+    where no point fell within ``wide_cells``). The ground of a cell is the minimum z over the cell
+    and its neighbours within ``erode_cells`` (follows slopes and ramps), unless that is more than
+    ``max_step_m`` above the minimum within ``wide_cells``: then the cell's lowest points are no
+    ground (tree canopies and roofs with no ground seen below) and the wide minimum is used.
     """
     from scipy.ndimage import minimum_filter
 
     cells = np.floor(points_lvl[:, :2] / cell_m).astype(np.int64)
-    origin = cells.min(axis=0) - erode_cells
-    shape = tuple(cells.max(axis=0) - origin + 1 + erode_cells)
-    grid = np.full(shape, np.inf, dtype=np.float32)
+    origin = cells.min(axis=0) - wide_cells
+    shape = tuple(cells.max(axis=0) - origin + 1 + wide_cells)
+    raw = np.full(shape, np.inf, dtype=np.float32)
     ij = cells - origin
-    np.minimum.at(grid, (ij[:, 0], ij[:, 1]), points_lvl[:, 2].astype(np.float32))
-    grid = minimum_filter(grid, size=2 * erode_cells + 1, mode="constant", cval=np.inf)
+    np.minimum.at(raw, (ij[:, 0], ij[:, 1]), points_lvl[:, 2].astype(np.float32))
+    near = minimum_filter(raw, size=2 * erode_cells + 1, mode="constant", cval=np.inf)
+    wide = minimum_filter(raw, size=2 * wide_cells + 1, mode="constant", cval=np.inf)
+    with np.errstate(invalid="ignore"):
+        grid = np.where(near - wide > max_step_m, wide, near)
     grid[~np.isfinite(grid)] = np.nan
     return origin, grid
 
@@ -232,11 +242,13 @@ class ScanProjection:
 
 def project_scan(points_body: np.ndarray, gravity_body: np.ndarray, resolution: float,
                  band_m: tuple[float, float], mode: str = "band", max_range_m: float = 60.0,
-                 max_cells: int = 1500, min_cells: int = 50, seed: int = 0) -> ScanProjection:
+                 max_cells: int = 1500, min_cells: int = 50, seed: int = 0,
+                 min_range_m: float = 3.0) -> ScanProjection:
     """Level, filter and reduce a scan to unique occupied cells.
 
     points_body: (N, 3) body frame, metres. gravity_body: (3,) gravity direction in the body frame.
-    Keeps cells within ``max_range_m`` horizontally; at most ``max_cells`` (a fixed-seed subsample).
+    Keeps cells between ``min_range_m`` (the robot itself and the innermost ground rings, whose
+    height is the most sensitive to a tilt error) and ``max_range_m`` horizontally; at most ``max_cells`` (a fixed-seed subsample).
     Raises GlobalInitError when fewer than ``min_cells`` cells remain.
     """
     from blockloc.errors import GlobalInitError
@@ -246,12 +258,13 @@ def project_scan(points_body: np.ndarray, gravity_body: np.ndarray, resolution: 
     R_tilt = R_level_from_gravity(gravity_body)
     lvl = pts @ R_tilt.T
     rng_xy = np.hypot(lvl[:, 0], lvl[:, 1])
-    lvl = lvl[(rng_xy > 0.5) & (rng_xy <= max_range_m)]
+    lvl = lvl[(rng_xy > 0.5) & (rng_xy <= max_range_m)]  # ground estimate uses the near points too
     if len(lvl) < min_cells:
         raise GlobalInitError(f"scan has {len(lvl)} usable points within {max_range_m} m: "
                               f"expected at least {min_cells}")
     structure, (g_origin, g_grid) = select_structure(lvl, band_m, mode)
     near = lookup_ground(g_origin, g_grid, np.array([[0.0, 0.0]]))[0]
+    structure = structure[np.hypot(structure[:, 0], structure[:, 1]) >= min_range_m]
     cells = np.unique(np.floor(structure[:, :2] / resolution).astype(np.int64), axis=0)
     if len(cells) < min_cells:
         raise GlobalInitError(f"scan has {len(cells)} occupied cells in the height band {band_m} m: "
