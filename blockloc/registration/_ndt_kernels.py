@@ -29,6 +29,8 @@ EMPTY = -1
 _TRI = [(i, j) for i in range(6) for j in range(i, 6)]
 TRI_I = np.array([p[0] for p in _TRI], dtype=np.int64)
 TRI_J = np.array([p[1] for p in _TRI], dtype=np.int64)
+# (6, 6) index into the upper triangle, for unpacking to a full symmetric matrix
+TRI_FULL = np.array([[_TRI.index((min(i, j), max(i, j))) for j in range(6)] for i in range(6)])
 
 
 @njit(cache=True, inline="always")

@@ -19,12 +19,16 @@ eigenvalues. ``NdtResult.H`` is its PSD projection (negative eigenvalues set to 
 sees an indefinite factor); ``eigenvalues``/``eigenvectors``, ``degenerate_directions()`` and
 ``information(min_eigenvalue)`` serve down-weighting weak directions.
 
-Newton iterations: the step solves ``H' d = -b`` where ``H'`` is ``H`` with its eigenvalues replaced
-by their absolute values, floored at 1e-6 x the largest (a descent direction even where ``H`` is
-indefinite), capped to ``max_step_m`` / ``max_step_rad``, then a backtracking line search
-(Armijo, halving up to 8 times) on the score. This is simpler than More-Thuente and, with the exact
-Hessian, takes the full Newton step near the optimum (quadratic convergence). Stops when the step
-norm ``|alpha * d|`` (rad and m together) < ``step_epsilon`` or after ``max_iterations``.
+Iterations (``step``): far from the optimum, and on real scans often even near it, NDT's exact
+Hessian is indefinite, so the default ``step="gauss_newton"`` solves ``H_gn d = -b`` with the
+Gauss-Newton / IRLS matrix ``H_gn = sum a J^T C J`` (a = -d1 d2 exp(-d2 q / 2) > 0; always PSD, so
+``d`` is a descent direction) and evaluates the exact Hessian once at the end for the result.
+``step="newton"`` uses the exact Hessian wherever it is positive definite and ``H_gn`` elsewhere.
+The step is capped to ``max_step_m`` / ``max_step_rad``, then a backtracking line search (Armijo,
+halving up to 8 times) on the score: simpler than More-Thuente and enough with descent directions
+of the right scale (measured: on the real HDL-32E pair, 100/100 random starts within +-1 m, +-5 deg
+yaw, +-2 deg roll/pitch end within 5 cm / 0.5 deg with coarse-to-fine). Stops when the step norm
+``|alpha * d|`` (rad and m together) < ``step_epsilon`` or after ``max_iterations`` per level.
 
 Threading: an ``NdtTarget`` holds its search structure in an immutable snapshot replaced as a
 whole by ``add_tile`` / ``remove_tile`` (which serialize on a lock and use serial kernels);
@@ -484,13 +488,14 @@ class NdtRegistration:
     first align on them (``coarse_neighbors``, stopping at 10 x ``step_epsilon``, with every k-th
     source point so that at most about ``coarse_max_points`` are used), then on the finest level
     with ``neighbors`` and all points; H, b and the score are always those of the finest level.
-    max_step_m (default: the target resolution) and max_step_rad cap one Newton step.
+    step: "gauss_newton" (default) or "newton", see the module doc. max_step_m (default: the
+    target resolution) and max_step_rad cap one step.
     """
 
     def __init__(self, neighbors: str = "DIRECT7", outlier_ratio: float = 0.55,
                  max_iterations: int = 30, step_epsilon: float = 1e-3,
                  coarse_to_fine: bool = True, coarse_neighbors: str = "DIRECT1",
-                 coarse_max_points: int = 3000, max_step_m: float | None = None, max_step_rad: float = 0.2,
+                 coarse_max_points: int = 1500, step: str = "gauss_newton", max_step_m: float | None = None, max_step_rad: float = 0.2,
                  num_threads: int | None = None):
         for name, value in (("neighbors", neighbors), ("coarse_neighbors", coarse_neighbors)):
             if value not in NEIGHBORS:
@@ -508,6 +513,9 @@ class NdtRegistration:
         self.max_iterations = int(max_iterations)
         self.step_epsilon = float(step_epsilon)
         self.coarse_to_fine = bool(coarse_to_fine)
+        if step not in ("newton", "gauss_newton"):
+            raise RegistrationError(f"step {step!r}: expected 'newton' or 'gauss_newton'")
+        self.step = step
         self.coarse_max_points = max(int(coarse_max_points), MIN_SOURCE_POINTS)
         self.max_step_m = None if max_step_m is None else float(max_step_m)
         self.max_step_rad = float(max_step_rad)
@@ -556,27 +564,31 @@ class NdtRegistration:
         H = Rb.T @ _unpack_sym6(acc[8:29], k) @ Rb
         return _Eval(score, inliers, b, 0.5 * (H + H.T))
 
-    def _direction(self, snap, neighbors, src, T, ev: _Eval) -> np.ndarray:
-        """Newton direction -H^-1 b where the exact H is positive definite; elsewhere (far from
-        the optimum NDT's Hessian is strongly indefinite) the Gauss-Newton / IRLS direction
-        -H_gn^-1 b, a descent direction since H_gn is PSD."""
+    def _direction(self, snap, neighbors, src, T, ev: _Eval, gn: bool) -> np.ndarray:
+        """Step direction -H^-1 b. With ``gn`` ev.H is already the Gauss-Newton matrix. Else
+        ev.H is exact: used where positive definite; elsewhere the Gauss-Newton / IRLS matrix
+        (PSD, so the direction is a descent direction) is evaluated and used instead."""
         lam, V = np.linalg.eigh(ev.H)
-        if lam[0] > 1e-9 * max(lam[-1], 1e-300):
-            return -(V @ ((V.T @ ev.b) / lam))
-        H_gn = self._eval(snap, neighbors, src, T, True, gauss_newton=True).H
-        lam, V = np.linalg.eigh(H_gn)
+        if not gn:
+            if lam[0] > 1e-9 * max(lam[-1], 1e-300):
+                return -(V @ ((V.T @ ev.b) / lam))
+            lam, V = np.linalg.eigh(self._eval(snap, neighbors, src, T, True, True).H)
         lam = np.maximum(lam, max(1e-9 * float(lam[-1]), 1e-12))
         return -(V @ ((V.T @ ev.b) / lam))
 
     def _newton(self, snap: _Snapshot, neighbors: int, src: np.ndarray, T: np.ndarray,
                 epsilon: float) -> tuple[np.ndarray, _Eval, int, bool]:
-        """Newton iterations on one level; returns (T, evaluation at T, iterations, converged)."""
+        """Iterations on one level; returns (T, evaluation at T, iterations, converged).
+
+        The evaluation holds the Gauss-Newton matrix as H when ``self.step == "gauss_newton"``.
+        """
+        gn = self.step == "gauss_newton"
         max_step_m = self.max_step_m if self.max_step_m is not None else snap.resolution
         converged = False
         iterations = 0
-        ev = self._eval(snap, neighbors, src, T, True)
+        ev = self._eval(snap, neighbors, src, T, True, gn)
         while iterations < self.max_iterations:
-            d = self._direction(snap, neighbors, src, T, ev)
+            d = self._direction(snap, neighbors, src, T, ev, gn)
             # cap the step so that one Newton step cannot leap across many voxels
             scale = 1.0
             nr = np.linalg.norm(d[:3])
@@ -592,7 +604,7 @@ class NdtRegistration:
             for trial_no in range(9):
                 T_try = _orthonormalize(T @ se3_exp(alpha * d))
                 # the full step is usually accepted: evaluate its derivatives at once
-                trial = self._eval(snap, neighbors, src, T_try, trial_no == 0)
+                trial = self._eval(snap, neighbors, src, T_try, trial_no == 0, gn)
                 if -trial.score <= -ev.score + 1e-4 * alpha * slope:
                     accepted = trial
                     break
@@ -603,7 +615,8 @@ class NdtRegistration:
                 converged = bool(np.linalg.norm(d) < 10 * epsilon or abs(slope) < 1e-9)
                 break
             T = T_try
-            ev = accepted if accepted.H is not None else self._eval(snap, neighbors, src, T, True)
+            ev = (accepted if accepted.H is not None
+                  else self._eval(snap, neighbors, src, T, True, gn))
             if np.linalg.norm(alpha * d) < epsilon:
                 converged = True
                 break
@@ -637,6 +650,8 @@ class NdtRegistration:
                 coarse_iterations += it
         T, ev, iterations, converged = self._newton(levels[0], NEIGHBORS[self.neighbors], src, T,
                                                     self.step_epsilon)
+        if self.step == "gauss_newton":
+            ev = self._eval(levels[0], NEIGHBORS[self.neighbors], src, T, True)  # exact H
         lam, V = np.linalg.eigh(ev.H)
         H = ev.H if lam[0] >= 0.0 else (V * np.maximum(lam, 0.0)) @ V.T
         if lam[0] < 0.0:
@@ -649,9 +664,8 @@ class NdtRegistration:
 
 
 def _unpack_sym6(tri: np.ndarray, k) -> np.ndarray:
-    H = np.zeros((6, 6))
-    H[k.TRI_I, k.TRI_J] = tri
-    return H + np.triu(H, 1).T
+    """Upper triangle (21,) in the kernels' order -> symmetric (6, 6)."""
+    return tri[k.TRI_FULL]
 
 
 def align(target_points: np.ndarray, source_points: np.ndarray,
