@@ -127,14 +127,6 @@ class EvaluationConfig:
 
 
 @dataclass
-class SimConfig:
-    preset: str = "small"
-    seed: int = 1
-    azimuth_steps: int = 2000
-    slam_error_m: float = 0.03
-
-
-@dataclass
 class Config:
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     imu: ImuConfig = field(default_factory=ImuConfig)
@@ -144,7 +136,6 @@ class Config:
     global_init: GlobalInitConfig = field(default_factory=GlobalInitConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
-    sim: SimConfig = field(default_factory=SimConfig)
 
     def to_dict(self) -> dict[str, Any]:
         return _to_plain(self)
