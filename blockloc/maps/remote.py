@@ -357,10 +357,14 @@ class RemoteMapFiles:
             return self._with_retries(self.url(name), lambda: self._remote_exists(name))
         except MapError:
             manifest = self._cached_manifest()
-            if manifest is None:
+            try:
+                names = _manifest_files(manifest) if manifest is not None else None
+            except ValueError:  # also a JSON decode error: an unusable copy
+                names = None
+            if names is None:
                 raise
             log.warning("%s: server unreachable; answering from the cached manifest", self.url(name))
-            return name == MANIFEST_NAME or name in _manifest_files(manifest)
+            return name == MANIFEST_NAME or name in names
 
     def is_dir(self) -> bool:
         """True when the URL holds a manifest (or lists as a directory)."""
