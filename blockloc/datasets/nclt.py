@@ -31,6 +31,7 @@ import numpy as np
 
 from blockloc.datasets.base import ImuData, LidarFrame, SequenceInfo
 from blockloc.errors import DatasetError
+from blockloc.fileio import atomic_write_text
 from blockloc.geometry import T_to_xyzrpy, Trajectory, xyzrpy_to_T
 
 log = logging.getLogger(__name__)
@@ -75,20 +76,6 @@ NCLT_T_BODY_IMU = np.eye(4)
 
 #: Gravity in NCLT's map frame (z down), m/s^2.
 NCLT_GRAVITY_MAP = (0.0, 0.0, 9.81)
-
-
-# --- small atomic-file helpers ------------------------------------------------------------------
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 # --- ground truth csv -------------------------------------------------------------------------
@@ -148,7 +135,7 @@ def write_groundtruth_csv(path: str | Path, traj: Trajectory) -> None:
     xyzrpy = T_to_xyzrpy(traj.poses)
     utime = np.round(traj.stamps * 1e6).astype(np.int64)
     lines = [f"{u:d}," + ",".join(f"{v:.9f}" for v in row) for u, row in zip(utime, xyzrpy)]
-    _atomic_write_text(path, "\n".join(lines) + ("\n" if lines else ""))
+    atomic_write_text(path, "\n".join(lines) + ("\n" if lines else ""))
 
 
 # --- point decoding ---------------------------------------------------------------------------
@@ -363,7 +350,7 @@ def write_ms25_csv(path: str | Path, imu: ImuData) -> None:
     utime = np.round(np.asarray(imu.t) * 1e6).astype(np.int64)
     rows = np.column_stack([np.zeros((len(utime), 3)), imu.acc, imu.gyro])
     lines = [f"{u:d}," + ",".join(f"{v:.9g}" for v in row) for u, row in zip(utime, rows)]
-    _atomic_write_text(path, "\n".join(lines) + ("\n" if lines else ""))
+    atomic_write_text(path, "\n".join(lines) + ("\n" if lines else ""))
 
 
 # --- the sequence -----------------------------------------------------------------------------
@@ -675,7 +662,7 @@ def write_session(out_dir: str | Path, *, date: str, frames: Iterable[LidarFrame
                                           dtype=float).tolist(),
                  "gravity_map": np.asarray(NCLT_GRAVITY_MAP if gravity_map is None else gravity_map,
                                            dtype=float).tolist()}
-            _atomic_write_text(tmp / SIDECAR_NAME, json.dumps(d, indent=1))
+            atomic_write_text(tmp / SIDECAR_NAME, json.dumps(d, indent=1))
         old = None
         if out_dir.exists():
             old = Path(tempfile.mkdtemp(prefix=f"{out_dir.name}.old-", dir=out_dir.parent))

@@ -23,8 +23,6 @@ from __future__ import annotations
 
 import io
 import logging
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,6 +30,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from blockloc.errors import DatasetError
+from blockloc.fileio import atomic_write_text
 from blockloc.geometry import Trajectory
 
 log = logging.getLogger(__name__)
@@ -54,19 +53,6 @@ class TrajectoryFile:
 
 
 # ----------------------------------------------------------------------------- helpers
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _read_text(path: Path) -> str:
@@ -200,7 +186,7 @@ def format_tum(traj: Trajectory) -> str:
 def write_tum(path: str | Path, traj: Trajectory) -> Path:
     """Write ``traj`` as TUM, atomically. Returns the path."""
     path = Path(path)
-    _atomic_write_text(path, format_tum(traj))
+    atomic_write_text(path, format_tum(traj))
     return path
 
 
@@ -255,9 +241,9 @@ def write_kitti(path: str | Path, traj: Trajectory, *, write_times: bool = True)
     rows = traj.poses[:, :3, :].reshape(-1, 12)
     text = "".join(" ".join(f"{v:.9e}" for v in row) + "\n" for row in rows)
     if write_times:
-        _atomic_write_text(path.with_name(f"{path.stem}.times.txt"),
+        atomic_write_text(path.with_name(f"{path.stem}.times.txt"),
                            "".join(f"{t:.9f}\n" for t in traj.stamps))
-    _atomic_write_text(path, text)
+    atomic_write_text(path, text)
     return path
 
 
