@@ -90,12 +90,18 @@ class RegistrationConfig:
 class GlobalInitConfig:
     window_m: float = 40.0
     yaw_window_deg: float = 360.0
-    resolution_m: float = 0.25
-    pyramid_levels: int = 6
-    z_band_m: tuple[float, float] = (-1.0, 2.0)  # height band around the sensor, map frame
+    resolution_m: float = 0.5  # 2D cell of the branch and bound (NDT refines afterwards)
+    pyramid_levels: int = 6  # top level: a sliding max over 2^5 cells = 16 m
+    height_band_m: tuple[float, float] = (0.3, 3.0)  # projected points: height above local ground
+    projection: str = "band"  # band (height band above local ground) | all (plain occupancy)
+    max_range_m: float = 60.0  # scan cells used by the 2D search (sets the angular step)
     top_k: int = 5
-    min_fitness: float = 0.6
+    use_s0: bool = True  # greedy initial score S0 (block-map paper); False: plain BBS
+    s0_ratio: float = 0.9  # prune below this fraction of S0
+    min_fitness: float = 0.5  # NDT inlier ratio for a verified match
     ambiguity_distance_m: float = 2.0
+    ndt_resolution_m: float = 1.0
+    reloc_window_m: float = 100.0  # regions of the no-hint relocalization
 
 
 @dataclass

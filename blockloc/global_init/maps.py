@@ -36,8 +36,8 @@ class ProjectionParams:
     """resolution_m: base cell (m); num_levels: pyramid levels; band_m: height band above ground (m);
     mode: 'band' | 'all'."""
 
-    resolution_m: float = 0.25
-    num_levels: int = 7
+    resolution_m: float = 0.5
+    num_levels: int = 6
     band_m: tuple[float, float] = (0.3, 3.0)
     mode: str = "band"
 

@@ -35,8 +35,8 @@ log = logging.getLogger(__name__)
 class InitParams:
     """Every knob of global initialization (defaults: ``GlobalInitConfig``)."""
 
-    resolution_m: float = 0.25
-    pyramid_levels: int = 7
+    resolution_m: float = 0.5
+    pyramid_levels: int = 6
     band_m: tuple[float, float] = (0.3, 3.0)
     projection: str = "band"  # band | all
     max_range_m: float = 60.0
