@@ -93,6 +93,7 @@ class GlobalInitConfig:
     resolution_m: float = 0.5  # 2D cell of the branch and bound (NDT refines afterwards)
     pyramid_levels: int = 6  # top level: a sliding max over 2^5 cells = 16 m
     height_band_m: tuple[float, float] = (0.3, 3.0)  # projected points: height above local ground
+    z_band_m: tuple[float, float] = (-1.0, 2.0)  # unused, kept so older YAML files load: see height_band_m
     projection: str = "band"  # band (height band above local ground) | all (plain occupancy)
     max_range_m: float = 60.0  # scan cells used by the 2D search (sets the angular step)
     top_k: int = 5
