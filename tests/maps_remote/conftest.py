@@ -92,8 +92,8 @@ class AppThread:
 @pytest.fixture(scope="module")
 def s3_endpoint():
     """URL of a moto S3 server on 127.0.0.1 (fake credentials in the environment)."""
-    pytest.importorskip("s3fs")
-    from moto.server import ThreadedMotoServer
+    pytest.importorskip("s3fs")  # optional dependencies of s3:// maps and of these tests
+    ThreadedMotoServer = pytest.importorskip("moto.server").ThreadedMotoServer
 
     mp = pytest.MonkeyPatch()
     for k, v in {"AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing",
