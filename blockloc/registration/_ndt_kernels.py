@@ -8,7 +8,8 @@ A voxel's statistics are kept relative to its centre ``(i + 0.5) * resolution`` 
 products stay well conditioned far from the origin and sums of different tiles can be added.
 
 Hash table: open addressing with linear probing, size a power of two, ``table_keys`` (S,) int64
-with -1 for an empty slot and ``table_vals`` (S,) int64 holding the row of the voxel.
+with -1 for an empty slot and ``table_vals`` (S,) int64 holding the row of the voxel (search
+tables: strided views of one (S, 2) array, so that a probe touches one cache line).
 
 Derivatives follow the right perturbation ``T * Exp(xi)``, ``xi = (omega, v)`` (GTSAM Pose3 order,
 SE(3) exponential chart). The kernels compute them in the "left" frame (with ``u = R p``) and the
@@ -337,10 +338,15 @@ def gaussians_parallel(keys, count, sums, outer, res, min_points, eig_ratio, eig
 
 @njit(cache=True)
 def build_table(keys, size, shift):
-    """Hash table over unique keys (V,): returns table_keys (size,), table_vals (size,)."""
+    """Hash table over unique keys (V,): returns table_keys (size,), table_vals (size,).
+
+    Both are strided views of one (size, 2) array, so a probe reads one cache line.
+    """
     mask = size - 1
-    table_keys = np.full(size, EMPTY, dtype=np.int64)
-    table_vals = np.empty(size, dtype=np.int64)
+    table = np.empty((size, 2), dtype=np.int64)
+    table_keys = table[:, 0]
+    table_vals = table[:, 1]
+    table_keys[:] = EMPTY
     for v in range(keys.shape[0]):
         key = keys[v]
         s = _slot(key, shift)
@@ -428,8 +434,10 @@ def build_neighbor_table(keys, table_keys, table_vals, shift):
         bits += 1
     nshift = 64 - bits
     nmask = size - 1
-    ntable_keys = np.full(size, EMPTY, dtype=np.int64)
-    ntable_vals = np.empty(size, dtype=np.int64)
+    ntable = np.empty((size, 2), dtype=np.int64)  # key and row in one cache line
+    ntable_keys = ntable[:, 0]
+    ntable_vals = ntable[:, 1]
+    ntable_keys[:] = EMPTY
     nkeys = np.empty(nc, dtype=np.int64)
     nw = 0
     for i in range(nc):

@@ -19,16 +19,18 @@ eigenvalues. ``NdtResult.H`` is its PSD projection (negative eigenvalues set to 
 sees an indefinite factor); ``eigenvalues``/``eigenvectors``, ``degenerate_directions()`` and
 ``information(min_eigenvalue)`` serve down-weighting weak directions.
 
-Iterations (``step``): far from the optimum, and on real scans often even near it, NDT's exact
-Hessian is indefinite, so the default ``step="gauss_newton"`` solves ``H_gn d = -b`` with the
-Gauss-Newton / IRLS matrix ``H_gn = sum a J^T C J`` (a = -d1 d2 exp(-d2 q / 2) > 0; always PSD, so
-``d`` is a descent direction) and evaluates the exact Hessian once at the end for the result.
-``step="newton"`` uses the exact Hessian wherever it is positive definite and ``H_gn`` elsewhere.
-The step is capped to ``max_step_m`` / ``max_step_rad``, then a backtracking line search (Armijo,
-halving up to 8 times) on the score: simpler than More-Thuente and enough with descent directions
-of the right scale (measured: on the real HDL-32E pair, 100/100 random starts within +-1 m, +-5 deg
-yaw, +-2 deg roll/pitch end within 5 cm / 0.5 deg with coarse-to-fine). Stops when the step norm
-``|alpha * d|`` (rad and m together) < ``step_epsilon`` or after ``max_iterations`` per level.
+Iterations (``step``): NDT's exact Hessian is indefinite far from the optimum (and, on real scans,
+sometimes near it). The default ``step="newton"`` solves ``H d = -b`` with the exact Hessian where
+it is positive definite and otherwise with the Gauss-Newton / IRLS matrix ``H_gn = sum a J^T C J``
+(a = -d1 d2 exp(-d2 q / 2) > 0; always PSD, so ``d`` is a descent direction; a modified Newton
+step with |eigenvalues| crawls there instead). ``step="gauss_newton"`` always uses ``H_gn`` and
+evaluates the exact Hessian once at the end for the result (measured slightly slower: more
+iterations). The step is capped to ``max_step_m`` / ``max_step_rad``, then a backtracking line
+search (Armijo, halving up to 8 times) on the score: simpler than More-Thuente and enough with
+descent directions of the right scale (measured: on the real HDL-32E pair, 100/100 random starts
+within +-1 m, +-5 deg yaw, +-2 deg roll/pitch end within 5 cm / 0.5 deg with coarse-to-fine).
+Stops when the step norm ``|alpha * d|`` (rad and m together) < ``step_epsilon`` or after
+``max_iterations`` per level.
 
 Threading: an ``NdtTarget`` holds its search structure in an immutable snapshot replaced as a
 whole by ``add_tile`` / ``remove_tile`` (which serialize on a lock and use serial kernels);
@@ -194,8 +196,9 @@ _NO_NEIGHBOR_TABLE = None
 def _empty_neighbor_table() -> tuple:
     global _NO_NEIGHBOR_TABLE
     if _NO_NEIGHBOR_TABLE is None:
-        _NO_NEIGHBOR_TABLE = (np.full(16, -1, np.int64), np.zeros(16, np.int64), 60,
-                              np.full((1, 7), -1, np.int32))
+        tab = np.zeros((16, 2), np.int64)
+        tab[:, 0] = -1
+        _NO_NEIGHBOR_TABLE = (tab[:, 0], tab[:, 1], 60, np.full((1, 7), -1, np.int32))
     return _NO_NEIGHBOR_TABLE
 
 
@@ -346,10 +349,13 @@ class NdtTarget:
     def _rebuild(self) -> None:
         tiles = list(self._tiles.values())
         num_points = sum(t.num_points for t in tiles)
-        self._levels = tuple(
+        levels = tuple(
             self._combine([t.levels[level] for t in tiles], self.resolution * 2**level,
                           num_points)
             for level in range(self.coarse_levels + 1))
+        # DIRECT7 lists of the fine level now (in the updating thread), not in the first align
+        levels[0].neighbor_table()
+        self._levels = levels
         log.debug("NDT target: %d voxels from %d tiles, %d points", self.num_voxels,
                   len(tiles), num_points)
 
@@ -488,14 +494,14 @@ class NdtRegistration:
     first align on them (``coarse_neighbors``, stopping at 10 x ``step_epsilon``, with every k-th
     source point so that at most about ``coarse_max_points`` are used), then on the finest level
     with ``neighbors`` and all points; H, b and the score are always those of the finest level.
-    step: "gauss_newton" (default) or "newton", see the module doc. max_step_m (default: the
+    step: "newton" (default) or "gauss_newton", see the module doc. max_step_m (default: the
     target resolution) and max_step_rad cap one step.
     """
 
     def __init__(self, neighbors: str = "DIRECT7", outlier_ratio: float = 0.55,
                  max_iterations: int = 30, step_epsilon: float = 1e-3,
                  coarse_to_fine: bool = True, coarse_neighbors: str = "DIRECT1",
-                 coarse_max_points: int = 1500, step: str = "gauss_newton", max_step_m: float | None = None, max_step_rad: float = 0.2,
+                 coarse_max_points: int = 1500, step: str = "newton", max_step_m: float | None = None, max_step_rad: float = 0.2,
                  num_threads: int | None = None):
         for name, value in (("neighbors", neighbors), ("coarse_neighbors", coarse_neighbors)):
             if value not in NEIGHBORS:
