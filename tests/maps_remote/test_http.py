@@ -239,3 +239,32 @@ def test_threads_share_downloads(served, tmp_path):
         for a in arrays:
             np.testing.assert_array_equal(a, clouds[eid][0])
     assert files.stats.fetched_files == len(clouds) + 1  # each file downloaded once
+
+
+def test_options_from_config_and_policy_validation(tmp_path, monkeypatch):
+    from types import SimpleNamespace
+
+    from blockloc.config import Config
+    from blockloc.maps.remote import DEFAULT_CACHE_BYTES, default_cache_dir, remote_options_from_config
+
+    opts = remote_options_from_config(Config().map)  # fields not there yet: defaults
+    assert opts["cache_dir"] is None and opts["cache_bytes"] == DEFAULT_CACHE_BYTES
+    assert opts["retry"] == RetryPolicy()
+    cfg = SimpleNamespace(remote_cache_dir=str(tmp_path), remote_cache_mb=8.0, remote_timeout_s=1.5,
+                          remote_retries=5, remote_backoff_s=0.5)
+    opts = remote_options_from_config(cfg)
+    assert opts == {"cache_dir": str(tmp_path), "cache_bytes": 8 * 2**20,
+                    "retry": RetryPolicy(timeout_s=1.5, retries=5, backoff_s=0.5)}
+    with pytest.raises(MapError, match="retries >= 0"):
+        RetryPolicy(retries=-1)
+    p = RetryPolicy(backoff_s=0.1, backoff_max_s=0.5)
+    import random
+
+    rng = random.Random(0)
+    delays = [p.delay(k, rng) for k in range(1, 6)]
+    assert 0.05 <= delays[0] <= 0.1 and all(d <= 0.5 for d in delays) and delays[3] >= 0.25
+    monkeypatch.setenv("BLOCKLOC_MAP_CACHE", str(tmp_path / "mc"))
+    assert default_cache_dir() == tmp_path / "mc"
+    monkeypatch.delenv("BLOCKLOC_MAP_CACHE")
+    monkeypatch.setenv("BLOCKLOC_CACHE", str(tmp_path / "bc"))
+    assert default_cache_dir() == tmp_path / "bc" / "remote-maps"
