@@ -78,7 +78,8 @@ def ensure_map(seq_name: str, out: Path, kind: str, source: str = "builder") -> 
     return out
 
 
-def fpfh_ransac(map_pts: np.ndarray, scan_body: np.ndarray, voxel: float = 1.0, seed: int = 0) -> np.ndarray:
+def fpfh_ransac(map_pts: np.ndarray, scan_body: np.ndarray, voxel: float = 1.0, seed: int = 0,
+                iterations: int = 1_000_000, confidence: float = 1.0, mutual: bool = False) -> np.ndarray:
     """T_map_body from FPFH + RANSAC (open3d), coarse; map (M, 3) map frame, scan (N, 3) body frame."""
     from blockloc._open3d import open3d
 
@@ -96,9 +97,9 @@ def fpfh_ransac(map_pts: np.ndarray, scan_body: np.ndarray, voxel: float = 1.0, 
     src, fs = prep(scan_body)
     tgt, ft = prep(map_pts)
     res = reg.registration_ransac_based_on_feature_matching(
-        src, tgt, fs, ft, True, 1.5 * voxel, reg.TransformationEstimationPointToPoint(False), 3,
+        src, tgt, fs, ft, mutual, 1.5 * voxel, reg.TransformationEstimationPointToPoint(False), 3,
         [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
-        reg.RANSACConvergenceCriteria(100000, 0.999))
+        reg.RANSACConvergenceCriteria(iterations, confidence))
     return np.asarray(res.transformation)
 
 
@@ -114,7 +115,8 @@ def main(argv=None) -> int:
     ap.add_argument("--reloc-frames", type=int, default=20)
     ap.add_argument("--hint-error", type=float, default=15.0)
     ap.add_argument("--window", type=float, default=40.0)
-    ap.add_argument("--methods", default="bbs+s0,bbs,fpfh+ransac")
+    ap.add_argument("--methods", default="bbs+s0,bbs,fpfh+ransac,bbs+s0/all",
+                    help="bbs+s0, bbs (plain), fpfh+ransac, bbs+s0/all (occupancy of all points, no band)")
     ap.add_argument("--fpfh-frames", type=int, default=None, help="FPFH on the first K frames only")
     ap.add_argument("--projection", default="band", help="band | all (the scan/map 2D projection)")
     ap.add_argument("--out", default=str(REPO / "docs" / "bench" / "global_init.md"))
@@ -132,7 +134,8 @@ def main(argv=None) -> int:
 
     seq_name = f"sim:{args.preset}/{args.session}@{args.seed}"
     cache = Path(os.environ.get("BLOCKLOC_CACHE", Path.home() / ".cache" / "blockloc")) / "bench"
-    map_dir = Path(args.map or cache / f"map_{args.preset}_{args.seed}_{args.map_kind}_{args.map_source}")
+    kind = "grid" if args.map_source == "gt" else args.map_kind
+    map_dir = Path(args.map or cache / f"map_{args.preset}_{args.seed}_{kind}_{args.map_source}")
     t0 = time.perf_counter()
     ensure_map(f"sim:{args.preset}/map@{args.seed}", map_dir, args.map_kind, args.map_source)
     t_map = time.perf_counter() - t0
@@ -145,6 +148,10 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     loc.map.precompute()
     t_pre = time.perf_counter() - t0
+    loc_all = None
+    if "bbs+s0/all" in args.methods:
+        loc_all = GlobalLocalizer.for_store(store, seq.info.gravity_map, InitParams(projection="all"))
+        loc_all.map.precompute()
 
     rng = np.random.default_rng(args.rng)
     frames = np.sort(rng.choice(np.arange(20, len(seq)), size=min(args.frames, len(seq) - 20), replace=False))
@@ -157,10 +164,10 @@ def main(argv=None) -> int:
         g = gravity_at(seq, t_ref)
         hint = T_gt[:2, 3] + rng.uniform(-args.hint_error, args.hint_error, 2)
         for m in methods:
-            if m in ("bbs+s0", "bbs"):
-                loc.params.use_s0 = m == "bbs+s0"
+            if m in ("bbs+s0", "bbs", "bbs+s0/all"):
+                loc.params.use_s0 = m != "bbs"
                 t = time.perf_counter()
-                res = loc.localize(pts, g, hint, None, args.window, 360.0)
+                res = (loc_all if m == "bbs+s0/all" else loc).localize(pts, g, hint, None, args.window, 360.0)
                 dt = time.perf_counter() - t
                 T = res.T_map_body
                 extra = res.stats.get("nodes_visited", 0)
