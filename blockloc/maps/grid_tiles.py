@@ -151,47 +151,79 @@ def tile_pcd_file(path: str | Path, tile_size_m: float, out: str | Path, *,
                            overwrite=overwrite, progress=progress)
 
 
+class GridMapBuilder:
+    """Streaming grid map: ``add`` keyframe points (map frame) as they come, ``finish(out)``.
+
+    Points are binned into tiles on arrival and a tile is voxel-filtered whenever it grows past
+    ``compact_points``, so memory follows the mapped area, not the number of scans.
+    """
+
+    def __init__(self, tile_size_m: float = 20.0, voxel_size_m: float = 0.2,
+                 compact_points: int = 1_000_000):
+        self.tile_size_m = check_tile_size(tile_size_m)
+        self.voxel_size_m = float(voxel_size_m)
+        self.compact_points = int(compact_points)
+        self.num_keyframes = 0
+        self._acc: dict[tuple[int, int], list] = {}
+        self._raw: dict[tuple[int, int], int] = {}
+
+    def add(self, points_map: np.ndarray, intensity: np.ndarray | None = None) -> None:
+        """One keyframe's points (N, 3) map frame, metres, and intensity (N,) or None."""
+        from blockloc.maps.mapping import voxel_downsample
+
+        self.num_keyframes += 1
+        pts = np.asarray(points_map)
+        inten = np.zeros(len(pts), np.float32) if intensity is None else np.asarray(intensity, np.float32)
+        for cell, idx in split_into_tiles(pts, self.tile_size_m).items():
+            self._acc.setdefault(cell, []).append((pts[idx].astype(np.float32), inten[idx]))
+            self._raw[cell] = self._raw.get(cell, 0) + len(idx)
+            if self._raw[cell] > self.compact_points and self.voxel_size_m > 0:
+                p, i = voxel_downsample(*_cat(self._acc[cell]), self.voxel_size_m)
+                self._acc[cell], self._raw[cell] = [(p, i)], len(p)
+
+    def points(self) -> tuple[np.ndarray, np.ndarray]:
+        """The voxel-filtered map so far: points (N, 3) float32, intensity (N,) float32."""
+        from blockloc.maps.mapping import voxel_downsample
+
+        parts_p, parts_i = [], []
+        for cell in sorted(self._acc):
+            # a voxel straddling a cell border (s not a multiple of the voxel) may put its mean
+            # in the neighbour cell: tile_global_map re-bins every point, so none is lost
+            p, i = voxel_downsample(*_cat(self._acc[cell]), self.voxel_size_m)
+            self._acc[cell], self._raw[cell] = [(p, i)], len(p)
+            parts_p.append(p)
+            parts_i.append(i)
+        if not parts_p:
+            return np.zeros((0, 3), np.float32), np.zeros(0, np.float32)
+        return np.concatenate(parts_p), np.concatenate(parts_i)
+
+    def finish(self, out: str | Path, *, params: dict | None = None, overwrite: bool = False):
+        """Write the grid store atomically to ``out``; returns the opened store."""
+        if self.num_keyframes == 0:
+            raise MapError("no keyframes to build a grid map from (empty session?)")
+        pts, inten = self.points()
+        p = {"voxel_size_m": self.voxel_size_m, "num_keyframes": self.num_keyframes, **(params or {})}
+        return tile_global_map(pts, inten, self.tile_size_m, out, params=p, overwrite=overwrite)
+
+
 def build_grid_map_from_sequence(seq, *, tile_size_m: float = 20.0, keyframe_distance_m: float = 1.0,
                                  keyframe_angle_deg: float = 15.0, voxel_size_m: float = 0.2,
                                  out: str | Path, deskew: bool = True, progress: bool = False,
                                  overwrite: bool = False, max_frames: int | None = None):
-    """Grid store from a mapping sequence: keyframes into the map frame, voxel filter per tile, tiles.
+    """Grid store from a mapping sequence: keyframes into the map frame (deskewed), voxel filter
+    per tile, tiles written atomically to ``out``. Returns the opened store."""
+    from blockloc.maps.mapping import mapping_keyframes
 
-    Points are binned into tiles as they arrive and each tile is voxel-filtered when it grows, so
-    memory follows the mapped area. Returns the opened store.
-    """
-    from blockloc.maps.mapping import mapping_keyframes, voxel_downsample
-
-    s = check_tile_size(tile_size_m)
-    acc: dict[tuple[int, int], list] = {}
-    raw: dict[tuple[int, int], int] = {}
-    n_kf = 0
+    builder = GridMapBuilder(tile_size_m, voxel_size_m)
     for kf in mapping_keyframes(seq, keyframe_distance_m=keyframe_distance_m,
                                 keyframe_angle_deg=keyframe_angle_deg, deskew=deskew,
                                 progress=progress, max_frames=max_frames):
-        n_kf += 1
-        inten = kf.intensity if kf.intensity is not None else np.zeros(len(kf.points_map), np.float32)
-        for cell, idx in split_into_tiles(kf.points_map, s).items():
-            acc.setdefault(cell, []).append((kf.points_map[idx].astype(np.float32), inten[idx]))
-            raw[cell] = raw.get(cell, 0) + len(idx)
-            if raw[cell] > 1_000_000 and voxel_size_m > 0:
-                p, i = voxel_downsample(*_cat(acc[cell]), voxel_size_m)
-                acc[cell], raw[cell] = [(p, i)], len(p)
-    if n_kf == 0:
-        raise MapError(f"{seq.info.name}: no keyframes to build a grid map from")
-    parts_p, parts_i = [], []
-    for cell in sorted(acc):
-        # a voxel straddling a cell border (s not a multiple of the voxel) may put its mean in
-        # the neighbour cell: tile_global_map re-bins every point, so none is lost
-        p, i = voxel_downsample(*_cat(acc.pop(cell)), voxel_size_m)
-        parts_p.append(p)
-        parts_i.append(i)
-    pts = np.concatenate(parts_p)
-    inten = np.concatenate(parts_i)
+        builder.add(kf.points_map, kf.intensity)
     params = {"sequence": seq.info.name, "keyframe_distance_m": keyframe_distance_m,
-              "keyframe_angle_deg": keyframe_angle_deg, "voxel_size_m": voxel_size_m,
-              "num_keyframes": n_kf, "deskew": deskew}
-    return tile_global_map(pts, inten, s, out, params=params, overwrite=overwrite)
+              "keyframe_angle_deg": keyframe_angle_deg, "deskew": deskew}
+    if builder.num_keyframes == 0:
+        raise MapError(f"{seq.info.name}: no keyframes to build a grid map from")
+    return builder.finish(out, params=params, overwrite=overwrite)
 
 
 def _cat(parts):

@@ -203,13 +203,16 @@ class MapProvider:
         return self._local(switched)
 
     def stats(self) -> dict:
-        """Counters: resident_mb (entry cache + region buffers), cache_mb (the bound), loads,
+        """Counters: resident_mb (entry cache + region buffers), active_mb / active_points (the
+        served local map's points), cache_mb (the bound), loads,
         cache_hits, evictions, switches, builds, prefetch_builds, prefetch_hits, late_frames (frames
         served the previous region because the wanted one was not built yet), failed_loads,
         waits_ms (total time update waited), max_wait_ms, build_ms."""
         with self._lock:
             out = dict(self._stats)
             out["resident_mb"] = self._resident_bytes() / _MB
+            out["active_mb"] = 0.0 if self._active is None else self._active.points.nbytes / _MB
+            out["active_points"] = 0 if self._active is None else len(self._active.points)
             out["cache_mb"] = self.cache_bytes / _MB
             out["cached_entries"] = len(self._cache)
             out["ready_regions"] = len(self._ready)
@@ -257,10 +260,14 @@ class MapProvider:
         self._trim_ready()
         log.info("map region -> %s (%d entries, %d points)", new.name, len(new.region), len(new.points))
 
-    def _trim_ready(self) -> None:
+    def _trim_ready(self, keep: Region | None = None) -> None:
+        """At most ``max_spare_regions`` built regions besides the active one, then the bound."""
         while len(self._ready) > self.max_spare_regions:
-            self._ready.popitem(last=False)
-        self._enforce_budget(keep=set())
+            victim = next((r for r in self._ready if r not in (keep, self._wanted)), None)
+            if victim is None:
+                break
+            self._ready.pop(victim)
+        self._enforce_budget(keep)
 
     def _submit(self, region: Region, demand: bool) -> None:
         if region in self._busy or region in self._ready or (
@@ -277,18 +284,22 @@ class MapProvider:
         self._lock.notify_all()
 
     def _resident_bytes(self) -> int:
-        total = self._cache_nbytes
-        seen = {id(a) for a in self._cache.values()}
+        """Bytes of distinct point arrays held (cache and region buffers) plus targets' ``nbytes``."""
+        arrays = {id(a): a.nbytes for a in self._cache.values()}
+        total_targets = 0
         for b in ([self._active] if self._active else []) + list(self._ready.values()):
-            if id(b.points) not in seen:
-                total += b.nbytes
-            total += int(getattr(b.target, "nbytes", 0) or 0)
-        return total
+            arrays.setdefault(id(b.points), b.points.nbytes)
+            total_targets += int(getattr(b.target, "nbytes", 0) or 0)
+        return sum(arrays.values()) + total_targets
 
-    def _enforce_budget(self, keep: set) -> None:
-        pinned = set(keep)
+    def _enforce_budget(self, keep: Region | None = None) -> None:
+        """Evict least-recently-used cache entries, then the oldest spare regions, until the
+        resident bytes fit the bound. Never evicted: the active region, ``keep`` (a region just
+        built) and the region the robot currently wants."""
+        protected = {r for r in (keep, self._wanted) if r is not None}
         if self._active is not None:
-            pinned |= set(self._active.region)
+            protected.add(self._active.region)
+        pinned = set().union(*protected) if protected else set()
         while self._resident_bytes() > self.cache_bytes:
             victim = next((k for k in self._cache if k not in pinned), None)
             if victim is not None:
@@ -296,11 +307,12 @@ class MapProvider:
                 self._cache_nbytes -= arr.nbytes
                 self._stats["evictions"] += 1
                 continue
-            if self._ready:
-                self._ready.popitem(last=False)
+            spare = next((r for r in self._ready if r not in protected), None)
+            if spare is not None:
+                self._ready.pop(spare)
                 continue
             if not self._warned_budget:
-                log.warning("map cache bound %.0f MB is smaller than the active region (%.0f MB)",
+                log.warning("map cache bound %.0f MB is smaller than the regions in use (%.0f MB)",
                             self.cache_bytes / _MB, self._resident_bytes() / _MB)
                 self._warned_budget = True
             break
@@ -333,17 +345,8 @@ class MapProvider:
                 self._stats["builds"] += 1
                 if is_prefetch:
                     self._stats["prefetch_builds"] += 1
-                self._trim_ready_keep(region)
+                self._trim_ready(keep=region)
                 self._lock.notify_all()
-
-    def _trim_ready_keep(self, region: Region) -> None:
-        while len(self._ready) > self.max_spare_regions:
-            oldest = next(iter(self._ready))
-            if oldest == region:
-                self._ready.move_to_end(region)
-                continue
-            self._ready.pop(oldest)
-        self._enforce_budget(keep=set(region))
 
     def _take_spare(self, region: Region) -> _Buffer | None:
         """A non-active built buffer to update incrementally (removed from ``_ready``)."""

@@ -333,6 +333,7 @@ class MapWriter:
         self.params = dict(params or {})
         self.overwrite = overwrite
         self.entries: list[MapEntry] = []
+        self._ids: set[str] = set()
         self._committed = False
         if self.out.exists() and not overwrite:
             raise MapError(f"{self.out}: already exists (choose another --out or allow overwrite)")
@@ -364,8 +365,9 @@ class MapWriter:
         if self._committed:
             raise MapError(f"{self.out}: writer already committed")
         file = file or f"{entry_id}.pcd"
-        if any(e.id == entry_id for e in self.entries):
+        if entry_id in self._ids:
             raise MapError(f"{self.out}: duplicate entry id {entry_id!r}")
+        self._ids.add(entry_id)
         data = encode_pcd(points, intensity)
         (self.tmp / file).write_bytes(data)
         lo, hi, mean = entry_stats(points)

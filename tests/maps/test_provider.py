@@ -254,3 +254,14 @@ def test_target_builder_failure_is_unmapped_not_fatal(tmp_path):
         m = prov.update(np.zeros(3), None, 0.0)
         assert m.target is None and m.num_points == 2000
         assert prov.stats()["target_failures"] == 1
+
+
+def test_bound_smaller_than_a_region_still_serves_and_switches(tmp_path, caplog):
+    store = _block_store(tmp_path / "m", [[0, 0, 0], [60, 0, 0], [120, 0, 0]])
+    with MapProvider(store, "block", cache_mb=0.001) as prov:  # one block is ~23 kB
+        maps = _drive(prov, np.arange(0, 125, 2.0))
+        st = prov.stats()
+    assert [m.block_id for m in maps][-1] == "002" and st["switches"] == 2
+    assert all(m.num_points == 2000 for m in maps)
+    assert st["evictions"] >= 1 and "smaller than the regions in use" in caplog.text
+    assert st["resident_mb"] <= 2 * 2000 * 12 / 2**20 + 1e-9  # active + the wanted/prefetched one
