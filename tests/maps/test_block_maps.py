@@ -168,3 +168,17 @@ def test_open_written_block_map(tmp_path):
     again = open_map(tmp_path / "m")
     assert again.ids == store.ids and len(again.ids) == 3
     np.testing.assert_allclose(again.centroids(), store.centroids())
+
+
+def test_scan_to_map_matches_per_point_poses_on_a_long_trajectory():
+    """Windowed, binned deskew == every point moved with its own interpolated pose (to < 1 cm)."""
+    traj = route([[0, 0], [300, 0], [300, 300]], speed=2.0, rate=100.0)  # 30k poses
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-30, 30, (500, 3))
+    dt = rng.uniform(-0.05, 0.05, 500)
+    T_bl = xyzrpy_to_T(0.2, 0.1, 0.4, 0.01, -0.02, 0.3)
+    for stamp in (traj.stamps[10], traj.stamps[15000], traj.stamps[-10]):
+        got = scan_to_map(pts, dt, stamp, traj, T_bl)
+        Ts = traj.interpolate(stamp + dt) @ T_bl
+        want = np.einsum("nij,nj->ni", Ts[:, :3, :3], pts) + Ts[:, :3, 3]
+        assert np.abs(got - want).max() < 0.01
