@@ -82,28 +82,45 @@ def table_size_for(n):
 
 
 @njit(cache=True)
-def voxel_stats(points, inv_res, res):
-    """Accumulate per-voxel statistics of points in one pass (hash accumulation, serial).
-
-    points: (N, 3) float64. Returns keys (V,) int64, count (V,) int64, sums (V, 3) and outer
-    sums (V, 6: xx xy xz yy yz zz) of coordinates relative to the voxel centre, and the number
-    of points skipped because their voxel coordinate is out of the 21-bit range.
-    """
-    n = points.shape[0]
-    size = 16
-    while size < 2 * n:
-        size *= 2
+def _rehash(keys, nv, size):
+    """New (size, 2) hash table over the first nv keys (rows 0..nv-1)."""
     bits = 0
     while (1 << bits) < size:
         bits += 1
     shift = 64 - bits
     mask = size - 1
-    table_keys = np.full(size, EMPTY, dtype=np.int64)
-    table_vals = np.empty(size, dtype=np.int64)
-    keys = np.empty(n, dtype=np.int64)
-    count = np.zeros(n, dtype=np.int64)
-    sums = np.zeros((n, 3))
-    outer = np.zeros((n, 6))
+    table = np.empty((size, 2), dtype=np.int64)
+    for s in range(size):
+        table[s, 0] = EMPTY
+    for v in range(nv):
+        s = _slot(keys[v], shift)
+        while table[s, 0] != EMPTY:
+            s = (s + 1) & mask
+        table[s, 0] = keys[v]
+        table[s, 1] = v
+    return table, shift
+
+
+@njit(cache=True)
+def voxel_stats(points, inv_res, res):
+    """Accumulate per-voxel statistics of points in one pass (hash accumulation, serial).
+
+    points: (N, 3) float64. Returns keys (V,) int64, count (V,) int64, sums (V, 3) and outer
+    sums (V, 6: xx xy xz yy yz zz) of coordinates relative to the voxel centre, and the number
+    of points skipped because their voxel coordinate is out of the 21-bit range. Memory grows
+    with the number of voxels (table and rows double as needed), not with N.
+    """
+    n = points.shape[0]
+    cap = 1024
+    while cap < min(n, 1 << 16):
+        cap *= 2
+    keys = np.empty(cap, dtype=np.int64)
+    count = np.zeros(cap, dtype=np.int64)
+    sums = np.zeros((cap, 3))
+    outer = np.zeros((cap, 6))
+    size = 2 * cap
+    table, shift = _rehash(keys, 0, size)
+    mask = size - 1
     nv = 0
     skipped = 0
     for i in range(n):
@@ -123,14 +140,34 @@ def voxel_stats(points, inv_res, res):
         key = _pack(ix, iy, iz)
         s = _slot(key, shift)
         while True:
-            k = table_keys[s]
+            k = table[s, 0]
             if k == key:
-                v = table_vals[s]
+                v = table[s, 1]
                 break
             if k == EMPTY:
+                if nv == cap:  # grow rows and table (load factor stays <= 0.5)
+                    cap *= 2
+                    keys2 = np.empty(cap, dtype=np.int64)
+                    keys2[:nv] = keys[:nv]
+                    keys = keys2
+                    count2 = np.zeros(cap, dtype=np.int64)
+                    count2[:nv] = count[:nv]
+                    count = count2
+                    sums2 = np.zeros((cap, 3))
+                    sums2[:nv] = sums[:nv]
+                    sums = sums2
+                    outer2 = np.zeros((cap, 6))
+                    outer2[:nv] = outer[:nv]
+                    outer = outer2
+                    size = 2 * cap
+                    table, shift = _rehash(keys, nv, size)
+                    mask = size - 1
+                    s = _slot(key, shift)
+                    while table[s, 0] != EMPTY:
+                        s = (s + 1) & mask
                 v = nv
-                table_keys[s] = key
-                table_vals[s] = v
+                table[s, 0] = key
+                table[s, 1] = v
                 keys[v] = key
                 nv += 1
                 break
@@ -315,24 +352,6 @@ def gaussians_serial(keys, count, sums, outer, res, min_points, eig_ratio, eig_f
     valid = np.zeros(nv, dtype=np.bool_)
     _gaussians_range(keys, count, sums, outer, res, min_points, eig_ratio, eig_floor,
                      means, icov, valid, 0, nv)
-    return means, icov, valid
-
-
-@njit(cache=True, parallel=True)
-def gaussians_parallel(keys, count, sums, outer, res, min_points, eig_ratio, eig_floor):
-    """Same as ``gaussians_serial`` in parallel chunks."""
-    nv = keys.shape[0]
-    means = np.zeros((nv, 3))
-    icov = np.zeros((nv, 6))
-    valid = np.zeros(nv, dtype=np.bool_)
-    nchunks = 64
-    step = (nv + nchunks - 1) // nchunks
-    for c in prange(nchunks):
-        lo = c * step
-        hi = min(nv, lo + step)
-        if lo < hi:
-            _gaussians_range(keys, count, sums, outer, res, min_points, eig_ratio, eig_floor,
-                             means, icov, valid, lo, hi)
     return means, icov, valid
 
 

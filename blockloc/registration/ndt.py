@@ -241,7 +241,7 @@ class NdtTarget:
         """
         target = cls(resolution, min_points_per_voxel, eigenvalue_ratio, coarse_levels)
         xyz = _as_points(points, "target points", 1)
-        target._tiles[None] = target._tile_stats(xyz, parallel=True)
+        target._tiles[None] = target._tile_stats(xyz)
         target._rebuild()
         return target
 
@@ -253,7 +253,7 @@ class NdtTarget:
         target = cls(resolution, min_points_per_voxel, eigenvalue_ratio, coarse_levels)
         for key, pts in tiles.items():
             xyz = _as_points(pts, f"tile {key!r}", 1)
-            target._tiles[key] = target._tile_stats(xyz, parallel=True)
+            target._tiles[key] = target._tile_stats(xyz)
         target._rebuild()
         return target
 
@@ -268,7 +268,7 @@ class NdtTarget:
         """Add (or replace) a tile: voxelizes only its points, then swaps in a new search
         structure. Safe to call from a background thread while other threads align."""
         xyz = _as_points(points, f"tile {key!r}", 1)
-        stats = self._tile_stats(xyz, parallel=False)
+        stats = self._tile_stats(xyz)
         with self._lock:
             self._tiles[key] = stats
             self._rebuild()
@@ -321,14 +321,14 @@ class NdtTarget:
         return levels
 
     # internals ------------------------------------------------------------------------------
-    def _level_gaussians(self, keys, count, sums, outer, res, parallel):
-        k = _kernels()
-        fn = k.gaussians_parallel if parallel else k.gaussians_serial
-        # Absolute eigenvalue floor (m^2) for voxels whose points are (nearly) all identical.
-        return fn(keys, count, sums, outer, res, self.min_points_per_voxel,
-                  self.eigenvalue_ratio, 1e-6 * res**2)
+    def _level_gaussians(self, keys, count, sums, outer, res):
+        # Serial on purpose: ~0.5 us per voxel, and a parallel region stalls badly when the
+        # cores are shared (measured: slower than serial under load).
+        return _kernels().gaussians_serial(keys, count, sums, outer, res,
+                                           self.min_points_per_voxel, self.eigenvalue_ratio,
+                                           1e-6 * res**2)  # absolute floor (m^2)
 
-    def _tile_stats(self, xyz: np.ndarray, parallel: bool) -> _TileStats:
+    def _tile_stats(self, xyz: np.ndarray) -> _TileStats:
         k = _kernels()
         res = self.resolution
         keys, count, sums, outer, skipped = k.voxel_stats(xyz, 1.0 / res, res)
@@ -342,7 +342,7 @@ class NdtTarget:
                 pkeys, psums, pouter = k.coarsen_stats(keys, count, sums, outer, res)
                 keys, count, sums, outer, _, _ = k.merge_stats(pkeys, count, psums, pouter)
                 res = 2.0 * res
-            means, icov, valid = self._level_gaussians(keys, count, sums, outer, res, parallel)
+            means, icov, valid = self._level_gaussians(keys, count, sums, outer, res)
             levels.append(_LevelStats(keys, count, sums, outer, means, icov, valid))
         return _TileStats(tuple(levels), len(xyz))
 
@@ -382,7 +382,7 @@ class NdtTarget:
             if len(shared):
                 # Voxels cut by tile edges: Gaussians from the summed statistics.
                 m2, c2, v2 = self._level_gaussians(ukeys[shared], ucount[shared], usums[shared],
-                                                   uouter[shared], res, parallel=False)
+                                                   uouter[shared], res)
                 means[shared] = m2
                 icov[shared] = c2
                 valid[shared] = v2

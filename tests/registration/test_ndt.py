@@ -251,8 +251,8 @@ def test_ndt_constants_match_magnusson():
 # target construction and tiles
 
 
-def _snapshot_dict(target):
-    snap = target.snapshot()
+def _snapshot_dict(target, level=0):
+    snap = target.snapshot(level)
     order = np.argsort(snap.keys)
     return snap.keys[order], snap.gauss[order], snap.counts[order]
 
@@ -264,6 +264,19 @@ def _tiles(points, size, offset=0.0):
         sel = np.all(idx == key, axis=1)
         out[key] = points[sel]
     return out
+
+
+def test_coarse_level_equals_direct_build_at_double_resolution(scene):
+    """Level 1 (from the 1 m voxel sums) is the 2 m grid built from the points."""
+    k1, g1, c1 = _snapshot_dict(NdtTarget.build(scene, resolution=1.0, coarse_levels=2), 1)
+    k2, g2, c2 = _snapshot_dict(NdtTarget.build(scene, resolution=2.0, coarse_levels=0), 0)
+    np.testing.assert_array_equal(k1, k2)
+    np.testing.assert_array_equal(c1, c2)
+    np.testing.assert_allclose(g1, g2, rtol=1e-8, atol=1e-8)
+    k4, g4, _ = _snapshot_dict(NdtTarget.build(scene - 0.37, resolution=1.0, coarse_levels=2), 2)
+    k5, g5, _ = _snapshot_dict(NdtTarget.build(scene - 0.37, resolution=4.0, coarse_levels=0), 0)
+    np.testing.assert_array_equal(k4, k5)
+    np.testing.assert_allclose(g4, g5, rtol=1e-8, atol=1e-8)
 
 
 def test_gaussians_regularized_and_match_numpy(scene):
@@ -296,6 +309,14 @@ def test_tiles_equal_full_build(scene, tile_size, offset):
     np.testing.assert_array_equal(k1, k2)
     np.testing.assert_array_equal(c1, c2)
     np.testing.assert_allclose(g1, g2, rtol=1e-9, atol=1e-9)
+    # the coarse level (derived from the voxel sums) matches too
+    full_target = NdtTarget.build(scene, resolution=1.0)
+    for level in (1,):
+        kc1, gc1, cc1 = _snapshot_dict(full_target, level)
+        kc2, gc2, cc2 = _snapshot_dict(tiled, level)
+        np.testing.assert_array_equal(kc1, kc2)
+        np.testing.assert_array_equal(cc1, cc2)
+        np.testing.assert_allclose(gc1, gc2, rtol=1e-8, atol=1e-8)
 
     # remove and re-add one tile
     key = sorted(tiles)[0]
