@@ -183,3 +183,25 @@ def test_scan_to_map_matches_per_point_poses_on_a_long_trajectory():
         Ts = traj.interpolate(stamp + dt) @ T_bl
         want = np.einsum("nij,nj->ni", Ts[:, :3, :3], pts) + Ts[:, :3, 3]
         assert np.abs(got - want).max() < 0.01
+
+
+@pytest.mark.parametrize("kind", ["block", "grid"])
+def test_build_interrupted_half_way_leaves_no_map(tmp_path, kind):
+    """A scan read that fails half way through the session: no output directory, no temp dir."""
+    world = world_points(extent=(-30, 90), seed=4, density=0.2)
+    traj = route([[0, 0], [60, 0]], speed=5.0)
+    seq = MemorySequence(world, traj, radius=20.0)
+    good_frame = seq.frame
+
+    def failing(i):
+        if i > len(traj) // 2:
+            raise OSError("disk unplugged")
+        return good_frame(i)
+
+    seq.frame = failing
+    build = build_block_map_from_sequence if kind == "block" else build_grid_map_from_sequence
+    with pytest.raises(OSError, match="unplugged"):
+        build(seq, keyframe_distance_m=2.0, out=tmp_path / "m")
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(MapError):
+        open_map(tmp_path / "m")
