@@ -184,6 +184,7 @@ class SrtPolicy:
         self.cell_max = (cells + 1) * s
         self.cell: tuple[int, int] | None = None
         self.built_at: float = -math.inf
+        self.last_stamp: float = -math.inf
         self.region: Region | None = None
 
     def _tiles(self, position) -> Region:
@@ -193,6 +194,7 @@ class SrtPolicy:
         return tuple(sorted(self.ids[i] for i in np.flatnonzero(inside)))
 
     def select(self, position, velocity, stamp) -> Region:
+        self.last_stamp = float(stamp)
         cell = tuple(int(v) for v in cell_of(np.asarray(position, float)[None, :2], self.tile_size_m)[0])
         if self.region is None or cell != self.cell or stamp - self.built_at >= self.rebuild_period_s:
             self.region = self._tiles(position)
@@ -203,13 +205,23 @@ class SrtPolicy:
         return self._tiles(position)
 
     def ahead(self, position, velocity, horizon_m) -> Region | None:
-        """The partial map just after the robot, keeping its heading, enters the next cell."""
-        if self.cell is None:
+        """The next partial map, if the robot keeps its velocity: built where it enters the next
+        cell or where the period T runs out, whichever comes first within ``horizon_m``."""
+        if self.cell is None or velocity is None:
             return None
-        for q in _ray(position, velocity, horizon_m, self.tile_size_m / 20):
-            cell = tuple(int(v) for v in cell_of(q[None, :2], self.tile_size_m)[0])
+        v = np.asarray(velocity, np.float64)[:2]
+        speed = float(np.hypot(*v))
+        if not np.isfinite(speed) or speed < 1e-3:
+            return None
+        d_expiry = speed * max(self.built_at + self.rebuild_period_s - self.last_stamp, 0.0)
+        for q in _ray(position, velocity, min(horizon_m, d_expiry), self.tile_size_m / 20):
+            cell = tuple(int(c) for c in cell_of(q[None, :2], self.tile_size_m)[0])
             if cell != self.cell:
                 return self._tiles(q)
+        if d_expiry <= horizon_m:
+            q = np.asarray(position, np.float64).copy()
+            q[:2] += v / speed * d_expiry
+            return self._tiles(q)
         return None
 
     def region_name(self, region: Region) -> str:

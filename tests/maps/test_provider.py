@@ -265,3 +265,16 @@ def test_bound_smaller_than_a_region_still_serves_and_switches(tmp_path, caplog)
     assert all(m.num_points == 2000 for m in maps)
     assert st["evictions"] >= 1 and "smaller than the regions in use" in caplog.text
     assert st["resident_mb"] <= 2 * 2000 * 12 / 2**20 + 1e-9  # active + the wanted/prefetched one
+
+
+def test_srt_ahead_predicts_cell_entry_and_period_expiry():
+    ids = [f"{(ix + 0.5) * 10:.1f}_{(iy + 0.5) * 10:.1f}" for ix in range(10) for iy in range(10)]
+    pol = SrtPolicy(ids, 10.0, radius_m=12.0, rebuild_period_s=5.0)
+    v = np.array([1.0, 0, 0])
+    pol.select(np.array([51.0, 55.0, 0]), v, 0.0)
+    # at 1 m/s the period runs out (x = 56) before the next cell (x = 60)
+    assert pol.ahead(np.array([51.0, 55.0, 0]), v, 20.0) == pol.peek(np.array([56.0, 55.0, 0]), v)
+    # moving fast, the cell border comes first
+    fast = np.array([4.0, 0, 0])
+    assert pol.ahead(np.array([51.0, 55.0, 0]), fast, 40.0) == pol.peek(np.array([60.05, 55.0, 0]), fast)
+    assert pol.ahead(np.array([51.0, 55.0, 0]), v, 2.0) is None  # neither within the horizon
