@@ -11,6 +11,9 @@ Hash table: open addressing with linear probing, size a power of two, ``table_ke
 with -1 for an empty slot and ``table_vals`` (S,) int64 holding the row of the voxel (search
 tables: strided views of one (S, 2) array, so that a probe touches one cache line).
 
+Kernels release the GIL (``nogil``), so a background thread updating tiles does not stop the
+tracking thread's Python code, and vice versa.
+
 Derivatives follow the right perturbation ``T * Exp(xi)``, ``xi = (omega, v)`` (GTSAM Pose3 order,
 SE(3) exponential chart). The kernels compute them in the "left" frame (with ``u = R p``) and the
 caller rotates them with ``diag(R, R)``; see ``ndt_derivatives``.
@@ -63,7 +66,7 @@ def _lookup(table_keys, table_vals, shift, mask, key):
         s = (s + 1) & mask
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def unpack_keys(keys):
     """(V,) int64 keys -> (V, 3) int64 voxel coordinates."""
     out = np.empty((keys.shape[0], 3), dtype=np.int64)
@@ -81,7 +84,7 @@ def table_size_for(n):
     return 1 << bits, 64 - bits
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _rehash(keys, nv, size):
     """New (size, 2) hash table over the first nv keys (rows 0..nv-1)."""
     bits = 0
@@ -101,7 +104,7 @@ def _rehash(keys, nv, size):
     return table, shift
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def voxel_stats(points, inv_res, res):
     """Accumulate per-voxel statistics of points in one pass (hash accumulation, serial).
 
@@ -188,7 +191,7 @@ def voxel_stats(points, inv_res, res):
     return keys[:nv].copy(), count[:nv].copy(), sums[:nv].copy(), outer[:nv].copy(), skipped
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def merge_stats(keys, count, sums, outer):
     """Sum statistics of coinciding keys (e.g. the concatenated voxels of several tiles).
 
@@ -291,7 +294,7 @@ def _jacobi_eig3(a00, a01, a02, a11, a12, a22, V):
     return A[0, 0], A[1, 1], A[2, 2]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _gaussians_range(keys, count, sums, outer, res, min_points, eig_ratio, eig_floor,
                      means, icov, valid, lo, hi):
     V = np.empty((3, 3))
@@ -338,7 +341,7 @@ def _gaussians_range(keys, count, sums, outer, res, min_points, eig_ratio, eig_f
         valid[v] = True
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def gaussians_serial(keys, count, sums, outer, res, min_points, eig_ratio, eig_floor):
     """Voxel Gaussians (serial; safe to call from a background thread).
 
@@ -355,7 +358,7 @@ def gaussians_serial(keys, count, sums, outer, res, min_points, eig_ratio, eig_f
     return means, icov, valid
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def build_table(keys, size, shift):
     """Hash table over unique keys (V,): returns table_keys (size,), table_vals (size,).
 
@@ -376,7 +379,7 @@ def build_table(keys, size, shift):
     return table_keys, table_vals
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def lookup_keys(table_keys, table_vals, shift, query):
     """Rows of query keys (Q,) in the table, -1 where absent."""
     mask = table_keys.shape[0] - 1
@@ -422,7 +425,7 @@ def _add_jmj(acc, c, o, ux, uy, uz, m00, m01, m02, m11, m12, m22):
     acc[c, o + 20] += m22
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def build_neighbor_table(keys, table_keys, table_vals, shift):
     """DIRECT7 neighbour lists, so one hash look-up per source point replaces seven.
 
@@ -473,6 +476,13 @@ def build_neighbor_table(keys, table_keys, table_vals, shift):
                 nw += 1
                 break
             s = (s + 1) & nmask
+    # compact table sized for the unique voxels (the first was sized for all candidates)
+    size = 16
+    while size < 2 * nw:
+        size *= 2
+    ntable, nshift = _rehash(nkeys, nw, size)
+    ntable_keys = ntable[:, 0]
+    ntable_vals = ntable[:, 1]
     nbr = np.full((nw, 7), -1, dtype=np.int32)
     for w in range(nw):
         k = nkeys[w]
@@ -511,7 +521,7 @@ def _offset7(ix, iy, iz, nb):
 MAX_HALF_D2_Q = 30.0
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def ndt_kernel(points, R, t, table_keys, table_vals, shift, gauss, inv_res, neighbors,
                d1, d2, inlier_q, mode, nchunks, ntable_keys, ntable_vals, nshift, nbr):
     """Score (and derivatives) of the point-to-distribution NDT objective at T = (R, t).
@@ -676,7 +686,7 @@ def ndt_kernel(points, R, t, table_keys, table_vals, shift, gauss, inv_res, neig
     return acc
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def coarsen_stats(keys, count, sums, outer, res):
     """Re-express voxel statistics at twice the resolution (parent voxel = floor(i / 2)).
 
