@@ -231,12 +231,6 @@ class MapProvider:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def __del__(self):  # pragma: no cover - best effort
-        try:
-            self._closed = True
-        except Exception:
-            pass
-
     # ------------------------------------------------------------------ internals (lock held)
     def _local(self, switched: bool) -> LocalMap:
         b = self._active
