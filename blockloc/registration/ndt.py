@@ -107,7 +107,8 @@ def _orthonormalize(T: np.ndarray) -> np.ndarray:
 def _as_points(points: Any, what: str, min_points: int) -> np.ndarray:
     arr = np.asarray(points)
     if arr.ndim != 2 or arr.shape[1] < 3:
-        raise RegistrationError(f"{what}: expected an (N, 3) array of points, got shape {arr.shape}")
+        raise RegistrationError(
+            f"{what}: expected an (N, 3) array of points, got shape {arr.shape}")
     if not np.issubdtype(arr.dtype, np.number):
         raise RegistrationError(f"{what}: expected numeric points, got dtype {arr.dtype}")
     xyz = np.ascontiguousarray(arr[:, :3], dtype=np.float64)
@@ -131,7 +132,8 @@ def _check_T(T: Any, what: str = "T_init") -> np.ndarray:
         return np.eye(4)
     arr = np.asarray(T, dtype=np.float64)
     if arr.shape != (4, 4) or not np.isfinite(arr).all():
-        raise RegistrationError(f"{what}: expected a finite (4, 4) transform, got shape {arr.shape}")
+        raise RegistrationError(
+            f"{what}: expected a finite (4, 4) transform, got shape {arr.shape}")
     R = arr[:3, :3]
     if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or abs(np.linalg.det(R) - 1.0) > 1e-3:
         raise RegistrationError(f"{what}: rotation block is not orthonormal")
@@ -479,7 +481,10 @@ def ndt_constants(resolution: float, outlier_ratio: float) -> tuple[float, float
 
 
 @dataclass
-class _Eval:
+class NdtEvaluation:
+    """Score, inlier count and (when asked) gradient ``b`` (6,) and Hessian ``H`` (6, 6) of
+    ``error = -score`` at one pose, conventions as ``NdtResult`` (H exact, not projected)."""
+
     score: float
     num_inliers: int
     b: np.ndarray | None
@@ -495,13 +500,18 @@ class NdtRegistration:
     source point so that at most about ``coarse_max_points`` are used), then on the finest level
     with ``neighbors`` and all points; H, b and the score are always those of the finest level.
     step: "newton" (default) or "gauss_newton", see the module doc. max_step_m (default: the
-    target resolution) and max_step_rad cap one step.
+    target resolution) and max_step_rad cap one step. num_threads: numba threads of the
+    alignment kernel, set for the calling thread (None: numba's current setting). On cores
+    shared with other busy processes or threads, 1 thread has a much better median latency than
+    2 (a parallel region waits for its slowest, descheduled worker): see docs/bench/ndt.md.
+    Source points in scan order (spatially coherent) run faster than shuffled ones.
     """
 
     def __init__(self, neighbors: str = "DIRECT7", outlier_ratio: float = 0.55,
                  max_iterations: int = 30, step_epsilon: float = 1e-3,
                  coarse_to_fine: bool = True, coarse_neighbors: str = "DIRECT1",
-                 coarse_max_points: int = 1500, step: str = "newton", max_step_m: float | None = None, max_step_rad: float = 0.2,
+                 coarse_max_points: int = 1500, step: str = "newton",
+                 max_step_m: float | None = None, max_step_rad: float = 0.2,
                  num_threads: int | None = None):
         for name, value in (("neighbors", neighbors), ("coarse_neighbors", coarse_neighbors)):
             if value not in NEIGHBORS:
@@ -537,7 +547,7 @@ class NdtRegistration:
 
     # ---------------------------------------------------------------------------------------
     def evaluate(self, target: NdtTarget, source_points: np.ndarray, T_target_source: np.ndarray,
-                 derivatives: bool = True) -> _Eval:
+                 derivatives: bool = True) -> NdtEvaluation:
         """Score, inliers and (optionally) b, H of the cost -score at a pose (finest level,
         ``neighbors``), without optimizing. Same conventions as ``NdtResult``."""
         snap = target.snapshot(0)
@@ -546,7 +556,7 @@ class NdtRegistration:
         return self._eval(snap, NEIGHBORS[self.neighbors], src, T, derivatives)
 
     def _eval(self, snap: _Snapshot, neighbors: int, src: np.ndarray, T: np.ndarray,
-              derivatives: bool, gauss_newton: bool = False) -> _Eval:
+              derivatives: bool, gauss_newton: bool = False) -> NdtEvaluation:
         k = _kernels()
         d1, d2 = ndt_constants(snap.resolution, self.outlier_ratio)
         R = np.ascontiguousarray(T[:3, :3])
@@ -561,16 +571,16 @@ class NdtRegistration:
         score = float(acc[0])
         inliers = int(round(acc[1]))
         if not derivatives:
-            return _Eval(score, inliers, None, None)
+            return NdtEvaluation(score, inliers, None, None)
         # left frame (u = R p) -> right perturbation: J_right = J_left diag(R, R)
         Rb = np.zeros((6, 6))
         Rb[:3, :3] = R
         Rb[3:, 3:] = R
         b = Rb.T @ acc[2:8]
         H = Rb.T @ _unpack_sym6(acc[8:29], k) @ Rb
-        return _Eval(score, inliers, b, 0.5 * (H + H.T))
+        return NdtEvaluation(score, inliers, b, 0.5 * (H + H.T))
 
-    def _direction(self, snap, neighbors, src, T, ev: _Eval, gn: bool) -> np.ndarray:
+    def _direction(self, snap, neighbors, src, T, ev: NdtEvaluation, gn: bool) -> np.ndarray:
         """Step direction -H^-1 b. With ``gn`` ev.H is already the Gauss-Newton matrix. Else
         ev.H is exact: used where positive definite; elsewhere the Gauss-Newton / IRLS matrix
         (PSD, so the direction is a descent direction) is evaluated and used instead."""
@@ -583,7 +593,7 @@ class NdtRegistration:
         return -(V @ ((V.T @ ev.b) / lam))
 
     def _newton(self, snap: _Snapshot, neighbors: int, src: np.ndarray, T: np.ndarray,
-                epsilon: float) -> tuple[np.ndarray, _Eval, int, bool]:
+                epsilon: float) -> tuple[np.ndarray, NdtEvaluation, int, bool]:
         """Iterations on one level; returns (T, evaluation at T, iterations, converged).
 
         The evaluation holds the Gauss-Newton matrix as H when ``self.step == "gauss_newton"``.
