@@ -418,7 +418,8 @@ class NdtResult:
     """Outcome of one NDT alignment.
 
     T_target_source: (4, 4) maps source points into the target (map) frame.
-    converged: the last step was below ``step_epsilon`` (False: stopped at max_iterations).
+    converged: the last step was below ``step_epsilon`` (False: stopped at max_iterations, or
+        no source point matched any Gaussian).
     iterations: Newton iterations on the finest level; coarse_iterations: on coarser levels.
     score: NDT score (sum over points and neighbour Gaussians of -d1 exp(-d2 q / 2), maximized).
     error: ``-score`` (the minimized cost whose derivatives are ``b`` and ``H``).
@@ -668,6 +669,8 @@ class NdtRegistration:
                                                     self.step_epsilon)
         if self.step == "gauss_newton":
             ev = self._eval(levels[0], NEIGHBORS[self.neighbors], src, T, True)  # exact H
+        if ev.num_inliers == 0:
+            converged = False  # nothing matched: the pose is unconstrained, not converged
         lam, V = np.linalg.eigh(ev.H)
         H = ev.H if lam[0] >= 0.0 else (V * np.maximum(lam, 0.0)) @ V.T
         if lam[0] < 0.0:

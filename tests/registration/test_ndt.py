@@ -408,6 +408,15 @@ def test_from_config(hdl_pair):
     assert et < 0.1 and er < 0.5
 
 
+def test_no_overlap_is_not_converged(scene):
+    target = NdtTarget.build(scene)
+    far = scene[:2000] + np.array([500.0, 0.0, 0.0])
+    res = NdtRegistration().align(target, far)
+    assert res.num_inliers == 0 and res.fitness == 0.0 and res.score == 0.0
+    assert not res.converged
+    np.testing.assert_array_equal(res.T_target_source, np.eye(4))
+
+
 def test_voxel_downsample():
     from blockloc.registration.voxels import voxel_downsample
 
