@@ -523,13 +523,17 @@ MAX_HALF_D2_Q = 30.0
 
 @njit(cache=True, parallel=True, nogil=True)
 def ndt_kernel(points, R, t, table_keys, table_vals, shift, gauss, inv_res, neighbors,
-               d1, d2, inlier_q, mode, nchunks, ntable_keys, ntable_vals, nshift, nbr):
+               d1, d2, inlier_q, mode, nchunks, ntable_keys, ntable_vals, nshift, nbr,
+               key_cache, row_cache):
     """Score (and derivatives) of the point-to-distribution NDT objective at T = (R, t).
 
     points: (N, 3) source points; R (3, 3), t (3,) map them into the target frame.
     gauss: (M, 9) rows of mean (3) and inverse covariance (6: xx xy xz yy yz zz).
     neighbors: 1, 7 or 27 (DIRECT1/7/27 around the voxel containing the transformed point).
     ntable_*, nshift, nbr: ``build_neighbor_table`` output, used when neighbors == 7.
+    key_cache, row_cache: (N,) int64 per-point memo of the last voxel key and its neighbour-list
+    row (DIRECT7), reused across the iterations of one alignment (key -1: empty); a point
+    usually stays in its voxel from one iteration to the next, which saves the hash probe.
     Per point and neighbour Gaussian: s = -d1 * exp(-d2/2 * x^T C x), x = R p + t - mean.
     mode: 0 score only; 1 exact gradient and Hessian; 2 gradient and the Gauss-Newton (IRLS)
     matrix sum a J^T C J (drops the second-order and -d2 y y^T terms: always PSD).
@@ -597,7 +601,13 @@ def ndt_kernel(points, R, t, table_keys, table_vals, shift, gauss, inv_res, neig
             hits = 0
             row = -1
             if neighbors == 7:
-                row = _lookup(ntable_keys, ntable_vals, nshift, nmask, _pack(ix, iy, iz))
+                pk = _pack(ix, iy, iz)
+                if key_cache[i] == pk:
+                    row = row_cache[i]
+                else:
+                    row = _lookup(ntable_keys, ntable_vals, nshift, nmask, pk)
+                    key_cache[i] = pk
+                    row_cache[i] = row
                 if row < 0:
                     continue
             for nb in range(neighbors):

@@ -557,7 +557,8 @@ class NdtRegistration:
         return self._eval(snap, NEIGHBORS[self.neighbors], src, T, derivatives)
 
     def _eval(self, snap: _Snapshot, neighbors: int, src: np.ndarray, T: np.ndarray,
-              derivatives: bool, gauss_newton: bool = False) -> NdtEvaluation:
+              derivatives: bool, gauss_newton: bool = False,
+              memo: tuple | None = None) -> NdtEvaluation:
         k = _kernels()
         d1, d2 = ndt_constants(snap.resolution, self.outlier_ratio)
         R = np.ascontiguousarray(T[:3, :3])
@@ -566,9 +567,11 @@ class NdtRegistration:
         mode = 0 if not derivatives else (2 if gauss_newton else 1)
         ntk, ntv, nshift, nbr = (snap.neighbor_table() if neighbors == 7
                                  else _empty_neighbor_table())
+        if memo is None:
+            memo = _new_memo(len(src) if neighbors == 7 else 0)
         acc = k.ndt_kernel(src, R, t, snap.table_keys, snap.table_vals, snap.shift, snap.gauss,
                            1.0 / snap.resolution, neighbors, d1, d2, INLIER_MAHALANOBIS_SQ,
-                           mode, nchunks, ntk, ntv, nshift, nbr).sum(axis=0)
+                           mode, nchunks, ntk, ntv, nshift, nbr, memo[0], memo[1]).sum(axis=0)
         score = float(acc[0])
         inliers = int(round(acc[1]))
         if not derivatives:
@@ -581,7 +584,8 @@ class NdtRegistration:
         H = Rb.T @ _unpack_sym6(acc[8:29], k) @ Rb
         return NdtEvaluation(score, inliers, b, 0.5 * (H + H.T))
 
-    def _direction(self, snap, neighbors, src, T, ev: NdtEvaluation, gn: bool) -> np.ndarray:
+    def _direction(self, snap, neighbors, src, T, ev: NdtEvaluation, gn: bool,
+                   memo: tuple) -> np.ndarray:
         """Step direction -H^-1 b. With ``gn`` ev.H is already the Gauss-Newton matrix. Else
         ev.H is exact: used where positive definite; elsewhere the Gauss-Newton / IRLS matrix
         (PSD, so the direction is a descent direction) is evaluated and used instead."""
@@ -589,23 +593,24 @@ class NdtRegistration:
         if not gn:
             if lam[0] > 1e-9 * max(lam[-1], 1e-300):
                 return -(V @ ((V.T @ ev.b) / lam))
-            lam, V = np.linalg.eigh(self._eval(snap, neighbors, src, T, True, True).H)
+            lam, V = np.linalg.eigh(self._eval(snap, neighbors, src, T, True, True, memo).H)
         lam = np.maximum(lam, max(1e-9 * float(lam[-1]), 1e-12))
         return -(V @ ((V.T @ ev.b) / lam))
 
     def _newton(self, snap: _Snapshot, neighbors: int, src: np.ndarray, T: np.ndarray,
-                epsilon: float) -> tuple[np.ndarray, NdtEvaluation, int, bool]:
-        """Iterations on one level; returns (T, evaluation at T, iterations, converged).
+                epsilon: float) -> tuple[np.ndarray, NdtEvaluation, int, bool, tuple]:
+        """Iterations on one level; returns (T, evaluation at T, iterations, converged, memo).
 
         The evaluation holds the Gauss-Newton matrix as H when ``self.step == "gauss_newton"``.
         """
         gn = self.step == "gauss_newton"
+        memo = _new_memo(len(src) if neighbors == 7 else 0)  # this level's per-point voxel rows
         max_step_m = self.max_step_m if self.max_step_m is not None else snap.resolution
         converged = False
         iterations = 0
-        ev = self._eval(snap, neighbors, src, T, True, gn)
+        ev = self._eval(snap, neighbors, src, T, True, gn, memo)
         while iterations < self.max_iterations:
-            d = self._direction(snap, neighbors, src, T, ev, gn)
+            d = self._direction(snap, neighbors, src, T, ev, gn, memo)
             # cap the step so that one Newton step cannot leap across many voxels
             scale = 1.0
             nr = np.linalg.norm(d[:3])
@@ -621,7 +626,7 @@ class NdtRegistration:
             for trial_no in range(9):
                 T_try = _orthonormalize(T @ se3_exp(alpha * d))
                 # the full step is usually accepted: evaluate its derivatives at once
-                trial = self._eval(snap, neighbors, src, T_try, trial_no == 0, gn)
+                trial = self._eval(snap, neighbors, src, T_try, trial_no == 0, gn, memo)
                 if -trial.score <= -ev.score + 1e-4 * alpha * slope:
                     accepted = trial
                     break
@@ -633,11 +638,11 @@ class NdtRegistration:
                 break
             T = T_try
             ev = (accepted if accepted.H is not None
-                  else self._eval(snap, neighbors, src, T, True, gn))
+                  else self._eval(snap, neighbors, src, T, True, gn, memo))
             if np.linalg.norm(alpha * d) < epsilon:
                 converged = True
                 break
-        return T, ev, iterations, converged
+        return T, ev, iterations, converged, memo
 
     def align(self, target: NdtTarget, source_points: np.ndarray,
               T_init: np.ndarray | None = None) -> NdtResult:
@@ -662,13 +667,13 @@ class NdtRegistration:
             for snap in reversed(levels[1:]):
                 if len(snap.keys) == 0:
                     continue
-                T, _, it, _ = self._newton(snap, NEIGHBORS[self.coarse_neighbors], coarse_src,
+                T, _, it, _, _ = self._newton(snap, NEIGHBORS[self.coarse_neighbors], coarse_src,
                                            T, 10.0 * self.step_epsilon)
                 coarse_iterations += it
-        T, ev, iterations, converged = self._newton(levels[0], NEIGHBORS[self.neighbors], src, T,
-                                                    self.step_epsilon)
-        if self.step == "gauss_newton":
-            ev = self._eval(levels[0], NEIGHBORS[self.neighbors], src, T, True)  # exact H
+        T, ev, iterations, converged, memo = self._newton(
+            levels[0], NEIGHBORS[self.neighbors], src, T, self.step_epsilon)
+        if self.step == "gauss_newton":  # exact H at the result
+            ev = self._eval(levels[0], NEIGHBORS[self.neighbors], src, T, True, False, memo)
         if ev.num_inliers == 0:
             converged = False  # nothing matched: the pose is unconstrained, not converged
         lam, V = np.linalg.eigh(ev.H)
@@ -680,6 +685,11 @@ class NdtRegistration:
             error=-ev.score, fitness=ev.num_inliers / len(src), num_inliers=ev.num_inliers,
             num_points=len(src), H=0.5 * (H + H.T), b=ev.b, eigenvalues=lam, eigenvectors=V,
             H_exact=ev.H, coarse_iterations=coarse_iterations)
+
+
+def _new_memo(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-point (voxel key, neighbour-list row) memo for the DIRECT7 kernel; key -1: empty."""
+    return np.full(max(n, 1), -1, dtype=np.int64), np.full(max(n, 1), -1, dtype=np.int64)
 
 
 def _unpack_sym6(tri: np.ndarray, k) -> np.ndarray:
