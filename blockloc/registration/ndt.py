@@ -6,12 +6,14 @@ only with >= ``min_points_per_voxel`` points. Voxel grid aligned at the origin.
 
 Score (Magnusson eq. 6.9, as ndt_omp): for a source point mapped into the target, ``x = T p``, and
 each neighbour Gaussian (mean mu, inverse covariance C) ``s = -d1 exp(-d2/2 (x-mu)^T C (x-mu))``
-with d1, d2 from the outlier ratio and the resolution. ``score`` = sum of s (maximized).
+with d1, d2 from the outlier ratio and the resolution. ``score`` = sum of s (maximized); pairs with
+d2/2 (x-mu)^T C (x-mu) > 30 (weight < 1e-13) are skipped.
 
 Cost and derivatives (the GTSAM convention, as small_gicp's ``H``, ``b``): ``error = -score``
-(minimized), ``b`` = gradient and ``H`` = exact Hessian of ``error(T * Exp(xi))`` at xi = 0, with
-``xi = (omega, v)`` rotation first (GTSAM Pose3 tangent order, right perturbation, SE(3)
-exponential). ``gtsam.HessianFactor(key, H, -b, 2 * error)`` then has error
+(minimized; negative, which GTSAM accepts as the factor's constant term), ``b`` = gradient and
+``H_exact`` = exact Hessian of ``error(T * Exp(xi))`` at xi = 0, with ``xi = (omega, v)``
+rotation first (GTSAM Pose3 tangent order, right perturbation, SE(3) exponential, the chart of
+``gtsam.Pose3.Expmap``). ``gtsam.HessianFactor(key, H, -b, 2 * error)`` then has error
 ``error + b.xi + xi^T H xi / 2``, the local quadratic model whose minimizer is the Newton step.
 The exact Hessian (``NdtResult.H_exact``, tested against finite differences) is positive definite
 near a good optimum; far from it, or where the map is degenerate, it can have small or negative
@@ -33,9 +35,10 @@ Stops when the step norm ``|alpha * d|`` (rad and m together) < ``step_epsilon``
 ``max_iterations`` per level.
 
 Threading: an ``NdtTarget`` holds its search structure in an immutable snapshot replaced as a
-whole by ``add_tile`` / ``remove_tile`` (which serialize on a lock and use serial kernels);
-``NdtRegistration.align`` reads the snapshot once, so a background thread may update a target
-while another thread aligns against it: each alignment sees either the old or the new map.
+whole by ``add_tile`` / ``remove_tile`` (which serialize on a lock and use serial kernels that
+release the GIL); ``NdtRegistration.align`` reads the snapshot once, so a background thread may
+update a target while another thread aligns against it: each alignment sees either the old or
+the new map, never a mix. ``NdtRegistration`` holds settings only and is shareable too.
 """
 
 from __future__ import annotations
