@@ -282,9 +282,9 @@ def main(argv: list[str] | None = None) -> int:
         "each start. NDT iterations count all "
         "levels (coarse DIRECT1 at 2 m on <= 1500 points, then the fine level at 1 m); "
         "default steps: exact Newton where the Hessian is positive definite, else Gauss-Newton. "
-        "Median times include the stalls of a parallel region when other processes hold the "
-        "cores (compare the 1-thread rows and the fastest column); the fastest run is the "
-        "figure for an otherwise idle machine.",
+        "Median times include waits for cores held by other processes (see the load average "
+        "above); the fastest column is the least disturbed of the runs, not a measurement on "
+        "an idle machine.",
         "",
     ]
     out = ROOT / "docs" / "bench" / "ndt.md"
