@@ -70,6 +70,13 @@ class MapConfig:
     cache_mb: float = 1024.0
     prefetch: bool = True
     prefetch_lookahead_s: float = 5.0  # prefetch the region needed after this much motion
+    retry_missing_s: float = 5.0  # rebuild a region whose entries failed to load this often
+    # maps read from http(s):// or s3:// (blockloc.maps.remote)
+    remote_cache_dir: str = ""  # empty: $BLOCKLOC_MAP_CACHE or ~/.cache/blockloc/remote-maps
+    remote_cache_mb: float = 2048.0
+    remote_timeout_s: float = 10.0
+    remote_retries: int = 3
+    remote_backoff_s: float = 0.25
 
 
 @dataclass

@@ -164,7 +164,7 @@ class LocalizationPipeline:
                                 "or no init option (global localization)")
 
     def _open_map(self) -> None:
-        from blockloc.maps.store import open_map
+        from blockloc.maps.store import open_map_from_config
 
         path = self.map_path or self.cfg.map.path or None
         if path is None:
@@ -174,7 +174,7 @@ class LocalizationPipeline:
                 raise MapError(f"map for {self.seq_name} not found at {path}; build it with: "
                                f"{build_hint(self.seq_name, kind, Path(path))}")
         self.map_path = path
-        self.store = open_map(path)
+        self.store = open_map_from_config(path, self.cfg.map)
 
     def _make_components(self) -> None:
         from blockloc.global_init.relocalize import GlobalLocalizer, InitParams

@@ -82,7 +82,9 @@ class MapProvider:
     srt_radius_m, srt_rebuild_period_s: SRT-PM radius R' and period T. prefetch: build the region
     the robot will need next if it keeps its velocity for ``lookahead_s`` seconds (at least
     ``min_lookahead_m`` metres). cache_mb: bound on resident map memory (entry cache plus
-    region buffers; the active region is never evicted).
+    region buffers; the active region is never evicted). retry_missing_s: while entries of the
+    active region are missing (a file failed to load, e.g. a map server went away), it is rebuilt
+    in the background every this many seconds of sensor time and swapped in once more of it loads.
     """
 
     def __init__(self, store: MapStore, backend: str = "block", *,
@@ -91,7 +93,8 @@ class MapProvider:
                  hysteresis_m: float = 5.0, grid_n: int = 1, grid_k: int = 1,
                  srt_radius_m: float = 60.0, srt_rebuild_period_s: float = 10.0,
                  prefetch: bool = True, lookahead_s: float = 5.0, min_lookahead_m: float = 2.0,
-                 cache_mb: float = 1024.0, max_spare_regions: int = 2):
+                 cache_mb: float = 1024.0, max_spare_regions: int = 2,
+                 retry_missing_s: float = 5.0):
         if backend not in BACKENDS:
             raise MapError(f"map backend {backend!r}: expected one of {', '.join(BACKENDS)}")
         if len(store.entries) == 0:
@@ -107,6 +110,9 @@ class MapProvider:
         self.min_lookahead_m = float(min_lookahead_m)
         self.cache_bytes = float(cache_mb) * _MB
         self.max_spare_regions = int(max_spare_regions)
+        self.retry_missing_s = float(retry_missing_s)
+        self._last_retry = -np.inf
+        self._rebuilding: set[Region] = set()  # the active region, being rebuilt to fill gaps
         self.policy = self._make_policy(hysteresis_m, grid_n, grid_k, srt_radius_m, srt_rebuild_period_s)
 
         self._lock = threading.Condition()
@@ -136,7 +142,8 @@ class MapProvider:
                    tiles_target_builder=tiles_target_builder, hysteresis_m=cfg.switch_hysteresis_m,
                    grid_n=cfg.grid_n, grid_k=cfg.grid_k, srt_radius_m=cfg.srt_radius_m,
                    srt_rebuild_period_s=cfg.srt_rebuild_period_s, prefetch=cfg.prefetch,
-                   lookahead_s=cfg.prefetch_lookahead_s, cache_mb=cfg.cache_mb)
+                   lookahead_s=cfg.prefetch_lookahead_s, cache_mb=cfg.cache_mb,
+                   retry_missing_s=cfg.retry_missing_s)
 
     def _make_policy(self, hysteresis_m, grid_n, grid_k, srt_radius_m, srt_rebuild_period_s):
         st = self.store
@@ -194,6 +201,8 @@ class MapProvider:
                 else:
                     self._stats["late_frames"] += 1
                     self._submit(wanted, demand=True)
+            if not self._errors:
+                self._retry_missing(wanted, stamp)
             if self.prefetch and velocity is not None and not self._errors:
                 horizon = float(np.linalg.norm(velocity[:2])) * self.lookahead_s
                 ahead = self.policy.ahead(position, velocity, max(horizon, self.min_lookahead_m))
@@ -253,6 +262,27 @@ class MapProvider:
             self._ready.move_to_end(old.region, last=False)
         self._trim_ready()
         log.info("map region -> %s (%d entries, %d points)", new.name, len(new.region), len(new.points))
+
+    def _retry_missing(self, wanted: Region, stamp: float) -> None:
+        """Refill the active region's missing entries: collect a finished rebuild, or start one."""
+        active = self._active
+        if active is None or not active.missing or wanted != active.region:
+            return
+        if wanted in self._ready and wanted not in self._rebuilding:
+            fresh = self._ready.pop(wanted)
+            if len(fresh.missing) < len(active.missing):
+                fresh.name = active.name
+                self._active = fresh
+                self._version += 1
+                log.warning("map region %s reloaded: %d of its entries still missing", fresh.name,
+                            len(fresh.missing))
+            return
+        if stamp - self._last_retry >= self.retry_missing_s and wanted not in self._rebuilding:
+            self._last_retry = stamp
+            self._rebuilding.add(wanted)
+            self._queue.append((1, wanted, True))
+            self._queue.sort(key=lambda q: q[0])
+            self._lock.notify_all()
 
     def _trim_ready(self, keep: Region | None = None) -> None:
         """At most ``max_spare_regions`` built regions besides the active one, then the bound."""
@@ -320,21 +350,25 @@ class MapProvider:
                 if self._closed:
                     return
                 _, region, is_prefetch = self._queue.pop(0)
-                if region in self._ready or (self._active is not None and self._active.region == region):
+                rebuild = region in self._rebuilding
+                if not rebuild and (region in self._ready or (
+                        self._active is not None and self._active.region == region)):
                     continue
                 self._busy.add(region)
-                spare = self._take_spare(region)
+                spare = None if rebuild else self._take_spare(region)
             try:
                 buf = self._build(region, spare, is_prefetch)
             except BaseException as exc:  # noqa: BLE001 - handed to the caller of update()
                 log.error("map provider: building region %s failed: %s", region, exc)
                 with self._lock:
                     self._busy.discard(region)
+                    self._rebuilding.discard(region)
                     self._errors.append(exc)
                     self._lock.notify_all()
                 return
             with self._lock:
                 self._busy.discard(region)
+                self._rebuilding.discard(region)
                 self._ready[region] = buf
                 self._stats["builds"] += 1
                 if is_prefetch:
@@ -372,6 +406,9 @@ class MapProvider:
             return None
         points.setflags(write=False)
         with self._lock:
+            if entry_id in self._failed:
+                self._failed.discard(entry_id)
+                log.warning("map entry %s loaded again after earlier failures", entry_id)
             self._stats["loads"] += 1
             self._cache[entry_id] = points
             self._cache_nbytes += points.nbytes

@@ -95,34 +95,27 @@ class MapEntry:
 
 
 class MapFiles:
-    """Read-only access to the files of one store: a local directory or a URL.
+    """Read-only access to the files of one local store directory.
 
-    Issue 9 (maps over HTTP/S3) plugs in here: everything else reads through this class.
+    Every read of a store goes through this interface; URLs (http(s)://, s3://) are served by
+    :class:`blockloc.maps.remote.RemoteMapFiles`, which has the same methods plus a cache.
     """
+
+    is_remote = False
 
     def __init__(self, root: str | Path):
         root_s = str(root)
-        self.is_remote = "://" in root_s and not root_s.startswith("file://")
         if root_s.startswith("file://"):
             root_s = root_s[len("file://"):]
-        self.root = root_s.rstrip("/") if self.is_remote else str(Path(root_s))
-        self._fs = None
-        if self.is_remote:
-            try:
-                import fsspec
-            except ImportError:
-                raise MapError(f"{root_s}: reading maps from URLs needs the fsspec package") from None
-            self._fs, self._fs_root = fsspec.core.url_to_fs(self.root)
+        self.root = str(Path(root_s))
 
     def url(self, name: str) -> str:
-        """Full path or URL of a file of the store (for messages)."""
-        return f"{self.root}/{name}" if self.is_remote else str(Path(self.root) / name)
+        """Full path of a file of the store (for messages)."""
+        return str(Path(self.root) / name)
 
     def read_bytes(self, name: str) -> bytes:
         """Bytes of the file ``name``; MapError naming it when missing or unreadable."""
         try:
-            if self._fs is not None:
-                return self._fs.cat_file(f"{self._fs_root}/{name}")
             return (Path(self.root) / name).read_bytes()
         except FileNotFoundError:
             raise MapError(f"{self.url(name)}: missing map file") from None
@@ -130,19 +123,13 @@ class MapFiles:
             raise MapError(f"{self.url(name)}: cannot read ({exc})") from None
 
     def exists(self, name: str) -> bool:
-        if self._fs is not None:
-            return bool(self._fs.exists(f"{self._fs_root}/{name}"))
         return (Path(self.root) / name).exists()
 
     def is_dir(self) -> bool:
-        if self._fs is not None:
-            return bool(self._fs.isdir(self._fs_root))
         return Path(self.root).is_dir()
 
     def list_names(self) -> list[str]:
         """Names of the files directly in the store."""
-        if self._fs is not None:
-            return sorted(Path(p).name for p in self._fs.ls(self._fs_root, detail=False))
         return sorted(p.name for p in Path(self.root).iterdir() if p.is_file())
 
 
@@ -237,9 +224,14 @@ class MapStore:
         return np.concatenate(parts) if parts else np.zeros((0, 3), np.float32)
 
 
-def open_map(path: str | Path) -> MapStore:
-    """Open a store directory (or URL): manifest store, or the released block-map layout."""
-    files = MapFiles(path)
+def open_map(path: str | Path, **remote_options: Any) -> MapStore:
+    """Open a store: a local directory or a URL (http(s)://, s3://), holding a manifest store or
+    the released block-map layout. ``remote_options`` go to
+    :class:`blockloc.maps.remote.RemoteMapFiles` (cache_dir, cache_bytes, retry, ...) and are
+    ignored for local paths (see ``remote_options_from_config``)."""
+    from blockloc.maps.remote import open_map_files
+
+    files = open_map_files(path, **remote_options)
     if not files.is_remote and not Path(files.root).exists():
         raise MapError(f"{path}: no such map directory")
     if not files.is_remote and not files.is_dir():
@@ -253,6 +245,13 @@ def open_map(path: str | Path) -> MapStore:
         return _open_legacy_block(files)
     raise MapError(f"{path}: not a map store (no {MANIFEST_NAME}, and no {CENTROID_CLOUD} of the "
                    "released block-map layout)")
+
+
+def open_map_from_config(path: str | Path, map_cfg: Any) -> MapStore:
+    """:func:`open_map` with the remote-store options of a ``MapConfig``."""
+    from blockloc.maps.remote import remote_options_from_config
+
+    return open_map(path, **remote_options_from_config(map_cfg))
 
 
 def _open_manifest(files: MapFiles) -> MapStore:

@@ -189,6 +189,22 @@ def test_missing_and_corrupt_tiles_do_not_stop_tracking(tmp_path, caplog):
     assert "checksum mismatch" in caplog.text and "missing map file" in caplog.text
 
 
+def test_missing_entry_is_retried_and_swapped_in_when_it_loads_again(tmp_path):
+    store = _block_store(tmp_path / "m", [[0, 0, 0], [60, 0, 0]])
+    good = (tmp_path / "m" / "000.pcd").read_bytes()
+    (tmp_path / "m" / "000.pcd").write_bytes(b"garbage")  # e.g. a server that went away
+    with MapProvider(store, "block", target_builder=CountingBuilder(), retry_missing_s=2.0) as prov:
+        first = _drive(prov, [0.0, 0.5])
+        assert first[-1].missing == ("000",) and first[-1].target is None
+        (tmp_path / "m" / "000.pcd").write_bytes(good)  # the file is back
+        later = _drive(prov, [1.0, 1.5, 2.0, 2.5, 3.0, 3.5], dt=1.0)
+    healed = [m for m in later if not m.missing]
+    assert healed, "the region was never rebuilt after its entry became loadable"
+    assert healed[-1].block_id == "000" and healed[-1].num_points == 2000
+    assert healed[-1].target is not None and not healed[-1].switched
+    assert healed[-1].version > first[-1].version
+
+
 def test_incremental_tile_targets(tmp_path):
     store = _grid_store(tmp_path / "g", extent=100.0)
 

@@ -1,8 +1,8 @@
 """Tracking a short stretch of the small simulated session with the map from HTTP and from s3://
 gives the same trajectory as with the map on disk.
 
-The pipeline opens maps with ``blockloc.maps.store.open_map``; until that dispatches URLs to
-``RemoteMapFiles`` itself, this test routes URLs there (the change proposed for ``open_map``).
+The pipeline opens maps with ``blockloc.maps.store.open_map``, which reads URLs through
+``RemoteMapFiles``; the tests only record the instances it makes and give them a private cache.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from blockloc.maps.remote import RemoteMapFiles, is_url
+from blockloc.maps.remote import RemoteMapFiles
 from blockloc.maps.server import MapServer
 
 from .conftest import FAST_RETRY
@@ -33,26 +33,24 @@ def small_world():
 class _Remote:
     def __init__(self):
         self.made: list[RemoteMapFiles] = []  # the files objects open_map made
-        self.options: dict = {}  # extra RemoteMapFiles options
+
+
+def _recording_remote(monkeypatch, made: list, **defaults):
+    """Make open_map's RemoteMapFiles record themselves and use ``defaults`` (cache, retries)."""
+    from blockloc.maps import remote as remote_mod
+
+    class Recording(RemoteMapFiles):
+        def __init__(self, url, **kw):
+            super().__init__(url, **{**kw, **defaults})
+            made.append(self)
+
+    monkeypatch.setattr(remote_mod, "RemoteMapFiles", Recording)
 
 
 @pytest.fixture
 def remote_open_map(monkeypatch, tmp_path):
-    """open_map that reads URLs through RemoteMapFiles."""
-    from blockloc.maps import store as store_mod
-
     remote = _Remote()
-    local_open = store_mod.open_map
-
-    def open_map(path, **kw):
-        if not is_url(path):
-            return local_open(path)
-        files = RemoteMapFiles(str(path), **{"cache_dir": tmp_path / "cache", "retry": FAST_RETRY,
-                                              **remote.options})
-        remote.made.append(files)
-        return store_mod._open_manifest(files)
-
-    monkeypatch.setattr(store_mod, "open_map", open_map)
+    _recording_remote(monkeypatch, remote.made, cache_dir=tmp_path / "cache", retry=FAST_RETRY)
     return remote
 
 
@@ -95,8 +93,9 @@ def test_tracking_from_s3_equals_disk(small_world, from_disk, remote_open_map, s
     s3.create_bucket(Bucket="trackmaps")
     for p in sorted(paths.block_map.iterdir()):
         s3.upload_file(str(p), "trackmaps", f"small/{p.name}")
-    remote_open_map.options["storage_options"] = {"client_kwargs": {"endpoint_url": s3_endpoint}}
-    traj = _track(small_world, "s3://trackmaps/small/")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("AWS_ENDPOINT_URL", s3_endpoint)
+        traj = _track(small_world, "s3://trackmaps/small/")
     _same(traj, from_disk)
     (files,) = remote_open_map.made
     assert files.stats.fetched_files >= 2 and files.stats.failures == 0
@@ -109,7 +108,6 @@ STOP_AT, BACK_AT, N_LONG = 40, 100, 450  # block 001 is first needed near frame 
 def killed_run(small_world, tmp_path_factory):
     """Track 450 frames from HTTP; the server is stopped at frame 40 and back at frame 100."""
     from blockloc.datasets import open_sequence
-    from blockloc.maps import store as store_mod
     from blockloc.pipeline import LocalizationPipeline
 
     paths, cfg = small_world
@@ -117,12 +115,7 @@ def killed_run(small_world, tmp_path_factory):
     made = []
     mp = pytest.MonkeyPatch()
 
-    def open_map(path, **kw):
-        files = RemoteMapFiles(str(path), cache_dir=cache, retry=FAST_RETRY)
-        made.append(files)
-        return store_mod._open_manifest(files)
-
-    mp.setattr(store_mod, "open_map", open_map)
+    _recording_remote(mp, made, cache_dir=cache, retry=FAST_RETRY)
     srv = MapServer(paths.block_map)
     srv.start()
 
@@ -149,8 +142,6 @@ def test_tracking_goes_on_when_the_server_dies(killed_run):
     assert files.stats.failures >= 1  # the provider did ask while the server was down
 
 
-@pytest.mark.xfail(strict=True, reason="provider.py keeps the buffer of a region whose entries failed "
-                   "to load and never asks again, so tracking does not recover when the server returns")
 def test_tracking_recovers_when_the_server_returns(killed_run):
     res, seq, files = killed_run
     assert files.stats.fetched_files >= 3  # block 001 fetched after the server came back
