@@ -125,7 +125,7 @@ def _interior_source(scene, T, res, n=400, seed=5):
     return pts[keep][:n]
 
 
-@pytest.mark.parametrize("neighbors", ["DIRECT1", "DIRECT7"])
+@pytest.mark.parametrize("neighbors", ["DIRECT1", "DIRECT7", "DIRECT27"])
 def test_gradient_and_hessian_match_finite_differences(scene, neighbors):
     target = NdtTarget.build(scene, resolution=1.0)
     T = xyzrpy_to_T(0.12, -0.08, 0.05, 0.01, -0.02, 0.03)
