@@ -28,7 +28,7 @@ from blockloc.global_init.pyramid import Pyramid, assemble, build_pyramid
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 
 
 @dataclass(frozen=True)

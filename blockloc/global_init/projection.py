@@ -62,7 +62,13 @@ def R_level_from_gravity(gravity: np.ndarray) -> np.ndarray:
         from blockloc.errors import GlobalInitError
 
         raise GlobalInitError(f"gravity vector {g.tolist()}: expected a finite non-zero (3,) vector")
-    return rotation_aligning(g, np.array([0.0, 0.0, -1.0]))
+    down = np.array([0.0, 0.0, -1.0])
+    if g[2] > 0:
+        # z-down frames (NCLT): flip about x first so the result stays near (x, -y, -z) and keeps
+        # the heading, instead of a near half-turn about an axis set by the small tilt.
+        F = np.diag([1.0, -1.0, -1.0])
+        return rotation_aligning(F @ g, down) @ F
+    return rotation_aligning(g, down)
 
 
 def gravity_body_from_imu(acc_imu: np.ndarray, T_body_imu: np.ndarray) -> np.ndarray:

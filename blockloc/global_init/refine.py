@@ -20,12 +20,14 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class RefineResult:
-    """T_map_body: (4, 4) refined pose; fitness: inlier ratio in [0, 1]; converged: NDT's flag."""
+    """T_map_body: (4, 4) refined pose; fitness: inlier ratio in [0, 1]; converged: NDT's flag;
+    ndt_score: NDT score per source point (higher is better)."""
 
     T_map_body: np.ndarray
     fitness: float
     converged: bool
     iterations: int = 0
+    ndt_score: float = 0.0
 
 
 def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
@@ -56,4 +58,4 @@ class Refiner:
         """Refine ``T_init`` (4, 4) T_map_body for scan points (N, 3), body frame, metres."""
         res = self._reg.align(self._target, np.asarray(source_body, dtype=np.float64), T_init)
         return RefineResult(np.asarray(res.T_target_source), float(res.fitness), bool(res.converged),
-                            int(res.iterations))
+                            int(res.iterations), float(res.score) / max(int(res.num_points), 1))

@@ -88,6 +88,7 @@ class InitCandidate:
     converged: bool
     verified: bool
     T_map_body_2d: np.ndarray | None = None  # before refinement
+    ndt_score: float = 0.0  # NDT score per scan point (higher is better)
 
 
 @dataclass
@@ -95,7 +96,8 @@ class InitResult:
     """Outcome of global initialization.
 
     T_map_body: (4, 4) best pose (the best verified candidate; without one, the best-scoring
-    refined candidate, or None when the search found nothing). verified: it passed the fitness check.
+    refined candidate, or None when the search found nothing); verified candidates are ranked by
+    NDT score per point. verified: it passed the fitness check.
     ambiguous: another verified candidate nearly as good lies > ambiguity_distance_m away.
     candidates: every refined candidate, best first. time_s: wall time. stats: search details.
     """
@@ -241,7 +243,7 @@ class GlobalLocalizer:
             T0 = self._pose_from_2d(c, scan)
             r = refiner.align(scan_ndt, T0)
             ok = bool(r.converged and r.fitness >= p.min_fitness and np.all(np.isfinite(r.T_map_body)))
-            out.append(InitCandidate(r.T_map_body, c.score, r.fitness, r.converged, ok, T0))
+            out.append(InitCandidate(r.T_map_body, c.score, r.fitness, r.converged, ok, T0, r.ndt_score))
         return out
 
     def _relocalize(self, scan: ScanProjection, scan_ndt: np.ndarray, theta_c: float, yaw_win: float):
@@ -301,7 +303,9 @@ class GlobalLocalizer:
 
     def _decide(self, cands: list[InitCandidate], stats: dict, elapsed: float) -> InitResult:
         p = self.params
-        cands = sorted(cands, key=lambda c: (c.verified, c.fitness, c.score), reverse=True)
+        # Verified first, then by the NDT score per point: smoother than the inlier ratio, which
+        # ties along weakly constrained directions (corridors).
+        cands = sorted(cands, key=lambda c: (c.verified, c.ndt_score, c.fitness), reverse=True)
         if not cands:
             return InitResult(None, 0.0, 0.0, [], False, elapsed, False, stats)
         best = cands[0]
