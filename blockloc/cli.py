@@ -308,11 +308,7 @@ def track_cmd(
     max_frames: Optional[int] = typer.Option(None, "--max-frames", help="Stop after this many frames."),
 ) -> None:
     """Track a sequence in a prior map (sliding-window IMU + NDT); writes poses, metrics and plots."""
-    import warnings
-
     from blockloc.errors import TrackingError
-
-    warnings.filterwarnings("ignore", message=".*TBB.*")  # numba's note about an old TBB: not ours
     from blockloc.pipeline import LocalizationPipeline, parse_init_pose
 
     if init not in (None, "gt"):
@@ -340,11 +336,7 @@ def demo_cmd(
     max_frames: Optional[int] = typer.Option(None, "--max-frames", help="Track only this many frames."),
 ) -> None:
     """Simulate the small world, build its block map, localize from a rough hint, track, evaluate."""
-    import warnings
-
     from blockloc.demo import run_demo
-
-    warnings.filterwarnings("ignore", message=".*TBB.*")
 
     console = _console()
     out_dir = _results_dir(out, "demo")
