@@ -160,6 +160,9 @@ def print_result(summ: dict, console) -> None:
                       f"yaw {math.degrees(summ['yaw']):.2f} deg")
     console.print(f"score {summ['score']:.3f}  fitness {summ['fitness']:.3f}  verified {summ['verified']}  "
                   f"ambiguous {summ['ambiguous']}  time {summ['time_s']:.2f} s")
+    if summ["ambiguous"]:
+        console.print("[yellow]warning: ambiguous: another verified candidate far from this one fits almost "
+                      "as well (repeated structure); check the candidates or give a tighter hint[/yellow]")
     table = Table("#", "x", "y", "z", "yaw deg", "score", "fitness", "verified")
     for i, c in enumerate(summ["candidates"]):
         table.add_row(str(i), f"{c['x']:.2f}", f"{c['y']:.2f}", f"{c['z']:.2f}", f"{math.degrees(c['yaw']):.1f}",
