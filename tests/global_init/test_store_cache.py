@@ -1,0 +1,40 @@
+"""Per-entry pyramids are cached on disk (keyed by the entry's sha256) and assemble like one raster."""
+
+import numpy as np
+
+from blockloc.global_init.maps import ArrayMap, ProjectionParams, StoreMap
+from blockloc.maps.store import MapWriter, open_map
+
+from .synthetic import GRAVITY_Z_DOWN, Z_DOWN, world_up
+
+
+def _store(path, pts, tile=30.0):
+    keys = np.floor(pts[:, :2] / tile).astype(int)
+    with MapWriter(path, "grid", params={"tile_size_m": tile}) as w:
+        for k in np.unique(keys, axis=0):
+            w.add(f"{k[0]}_{k[1]}", pts[np.all(keys == k, axis=1)].astype(np.float32))
+        w.commit()
+    return open_map(path)
+
+
+def test_cached_pyramids_are_reused_and_match_the_whole_map(tmp_path, monkeypatch):
+    pts = (world_up(seed=21, size=80.0) @ Z_DOWN.T).astype(np.float32).astype(np.float64)
+    store = _store(tmp_path / "map", pts)
+    params = ProjectionParams()
+    first = StoreMap(store, GRAVITY_Z_DOWN, params, cache_dir=tmp_path / "cache")
+    assert first.precompute() == len(store.entries) > 1
+    files = sorted((tmp_path / "cache").rglob("*.npz"))
+    assert len(files) == len(store.entries)
+    # a second map object reads the cache: it never loads points to build pyramids
+    second = StoreMap(open_map(tmp_path / "map"), GRAVITY_Z_DOWN, params, cache_dir=tmp_path / "cache")
+    monkeypatch.setattr(second.store, "load", lambda *a, **k: (_ for _ in ()).throw(AssertionError("loaded")))
+    lo, hi = np.array([-60, -60]), np.array([60, 60])
+    got = second.pyramid(lo, hi)
+    assert got.levels[0].max() == 255
+    # Tiles compose into the same base raster as the whole map, away from tile edges where each
+    # tile's local ground is estimated from its own points.
+    whole = ArrayMap(pts, GRAVITY_Z_DOWN, params).pyramid(lo, hi)
+    agree = np.mean(got.levels[0] == whole.levels[0])
+    assert agree > 0.97, agree
+    top = params.num_levels - 1
+    assert np.all(got.levels[top] >= got.levels[top - 1])
