@@ -308,6 +308,16 @@ class GlobalLocalizer:
         # Verified first, then by the NDT score per point: smoother than the inlier ratio, which
         # ties along weakly constrained directions (corridors).
         cands = sorted(cands, key=lambda c: (c.verified, c.ndt_score, c.fitness), reverse=True)
+        # Candidates that NDT brought to the same pose are one candidate (keep the best 2D score).
+        merged: list[InitCandidate] = []
+        for c in cands:
+            same = next((m for m in merged if np.linalg.norm(m.T_map_body[:3, 3] - c.T_map_body[:3, 3]) < 0.3
+                         and pose_error(m.T_map_body, c.T_map_body)[1] < 1.0), None)
+            if same is None:
+                merged.append(c)
+            else:
+                same.score = max(same.score, c.score)
+        cands = merged
         if not cands:
             return InitResult(None, 0.0, 0.0, [], False, elapsed, False, stats)
         best = cands[0]
