@@ -65,13 +65,9 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
 
     from bench.__main__ import machine
-    from blockloc.config import load_config
-    from blockloc.demo import DemoPaths, ensure_block_map, ensure_dataset
+    from blockloc.demo import prepare_small_world
 
-    cfg = load_config("sim")
-    paths = DemoPaths.default()
-    ensure_dataset(paths)
-    ensure_block_map(paths, cfg)
+    paths, cfg = prepare_small_world()
     load0 = os.getloadavg()[0]
     rows, results = [], {}
     for backend in args.backends.split(","):

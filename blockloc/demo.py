@@ -16,7 +16,8 @@ from typing import Callable
 
 import numpy as np
 
-from blockloc.pipeline import LocalizationPipeline, TrackResult, cache_root
+from blockloc.cache import cache_root, fingerprint
+from blockloc.pipeline import LocalizationPipeline, TrackResult
 
 log = logging.getLogger(__name__)
 
@@ -31,9 +32,19 @@ class DemoPaths:
     block_map: Path
 
     @classmethod
-    def default(cls, preset: str = PRESET, seed: int = SEED) -> "DemoPaths":
-        base = cache_root() / "sim" / f"{preset}_{seed}"
-        return cls(base, cache_root() / "maps" / f"{preset}_{seed}_block_from_disk")
+    def default(cls, preset: str = PRESET, seed: int = SEED, map_cfg=None) -> "DemoPaths":
+        """Cache paths keyed by what made them: the simulator's code, preset and seed; then the
+        map builder's code and the block parameters of ``map_cfg`` (default: the sim preset's)."""
+        if map_cfg is None:
+            from blockloc.config import load_config
+
+            map_cfg = load_config("sim").map
+        world = fingerprint("blockloc.sim", "blockloc.datasets.nclt", params=(preset, seed))
+        block_params = (map_cfg.block_size_m, map_cfg.keyframe_distance_m,
+                        map_cfg.keyframe_angle_deg, map_cfg.voxel_size_m)
+        blocks = fingerprint("blockloc.maps", "blockloc.datasets", params=(world, block_params))
+        base = cache_root() / "sim" / f"{preset}_{seed}-{world}"
+        return cls(base, cache_root() / "maps" / f"{preset}_{seed}_block-{blocks}")
 
 
 def ensure_dataset(paths: DemoPaths, preset: str = PRESET, seed: int = SEED,
@@ -76,6 +87,17 @@ def ensure_block_map(paths: DemoPaths, cfg, say: Callable[[str], None] = log.inf
     return paths.block_map
 
 
+def prepare_small_world(cfg=None, say: Callable[[str], None] = log.info):
+    """The cached `small` world and its block map: (DemoPaths, Config used, default the sim preset)."""
+    from blockloc.config import load_config
+
+    cfg = cfg or load_config("sim")
+    paths = DemoPaths.default(map_cfg=cfg.map)
+    ensure_dataset(paths, say=say)
+    ensure_block_map(paths, cfg, say=say)
+    return paths, cfg
+
+
 def noisy_hint(seq, seed: int = SEED, noise_m: float = HINT_NOISE_M) -> tuple[float, float, None]:
     """A position hint near the first ground-truth pose (as a user clicking on a map would give)."""
     gt = seq.ground_truth()
@@ -88,13 +110,9 @@ def noisy_hint(seq, seed: int = SEED, noise_m: float = HINT_NOISE_M) -> tuple[fl
 def run_demo(out: Path, cfg=None, *, say: Callable[[str], None] = log.info,
              progress: Callable[[int, int], None] | None = None, max_frames: int | None = None) -> TrackResult:
     """Run the demo; results in ``out``. Returns the pipeline's result (metrics include 'init')."""
-    from blockloc.config import load_config
     from blockloc.datasets import open_sequence
 
-    cfg = cfg or load_config("sim")
-    paths = DemoPaths.default()
-    ensure_dataset(paths, say=say)
-    ensure_block_map(paths, cfg, say=say)
+    paths, cfg = prepare_small_world(cfg, say=say)
     seq = open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset)
     hint = noisy_hint(seq)
     say(f"global init: branch-and-bound around the hint ({hint[0]:.1f}, {hint[1]:.1f}), yaw unknown")

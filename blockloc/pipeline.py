@@ -21,6 +21,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from blockloc.cache import cache_root
 from blockloc.config import Config
 from blockloc.errors import MapError, TrackingError
 from blockloc.geometry import Trajectory, inv_T, transform_points
@@ -28,12 +29,6 @@ from blockloc.geometry import Trajectory, inv_T, transform_points
 log = logging.getLogger(__name__)
 
 INIT_MODES = ("gt", "pose", "global")
-
-
-def cache_root() -> Path:
-    """``$BLOCKLOC_CACHE`` or ``~/.cache/blockloc``."""
-    root = os.environ.get("BLOCKLOC_CACHE")
-    return Path(root).expanduser() if root else Path.home() / ".cache" / "blockloc"
 
 
 def parse_init_pose(text: str) -> tuple[float, float, float | None]:

@@ -71,6 +71,7 @@ class TrackerParams:
     init_sigma_rot_rad: float = np.deg2rad(1.0)
     init_sigma_trans_m: float = 0.1
     init_sigma_vel_m_s: float = 1.0
+    recover_sigma_vel_m_s: float = 1.5  # velocity prior after a relocalization (starts at zero)
     init_sigma_acc_bias: float = 0.2
     init_sigma_gyro_bias: float = 0.01
 
@@ -414,7 +415,7 @@ class Tracker:
             return None
         if (self._bad_streak - p.max_bad_frames) % max(1, p.relocalize_every) != 0:
             return None
-        state, bias = self._state(k)
+        state, _ = self._state(k)
         T_cur = state.pose().matrix()
         hint = self._last_good if self._last_good is not None else T_cur
         T = self.relocalize(scan_pts, hint, self._gravity_body(T_cur), stamp)
@@ -423,7 +424,11 @@ class Tracker:
         self.counters["recoveries"] += 1
         log.warning("relocalized at %s (%.2f m from the last good pose)", np.round(T[:3, 3], 2),
                     np.linalg.norm(T[:3, 3] - hint[:3, 3]))
-        self.initialize(T, stamp, velocity_map=np.asarray(state.velocity()), bias=bias, sigma_vel_m_s=0.5)
+        # The diverged state's velocity and biases are not to be trusted (seen: 6 m/s and 0.9 m/s^2
+        # of accelerometer bias after a kidnapped start), so restart them from their priors: zero
+        # velocity held loosely (the robot's speed is a few m/s), biases from the initial prior.
+        self.initialize(T, stamp, velocity_map=np.zeros(3), bias=None,
+                        sigma_vel_m_s=p.recover_sigma_vel_m_s)
         self.window.optimize()
         diag.status = "recovered"
         diag.window_size = len(self.window)

@@ -20,13 +20,9 @@ N_FRAMES = 40
 
 @pytest.fixture(scope="module")
 def small_world():
-    from blockloc.config import load_config
-    from blockloc.demo import DemoPaths, ensure_block_map, ensure_dataset
+    from blockloc.demo import prepare_small_world
 
-    cfg = load_config("sim")
-    paths = DemoPaths.default()
-    ensure_dataset(paths)
-    ensure_block_map(paths, cfg)
+    paths, cfg = prepare_small_world()
     return paths, cfg
 
 

@@ -9,11 +9,7 @@ import pytest
 @pytest.fixture(scope="session")
 def small_world():
     """(DemoPaths, Config): <dataset>/map and <dataset>/loc in NCLT layout, and their block map."""
-    from blockloc.config import load_config
-    from blockloc.demo import DemoPaths, ensure_block_map, ensure_dataset
+    from blockloc.demo import prepare_small_world
 
-    cfg = load_config("sim")
-    paths = DemoPaths.default()
-    ensure_dataset(paths)
-    ensure_block_map(paths, cfg)
+    paths, cfg = prepare_small_world()
     return paths, cfg

@@ -149,7 +149,9 @@ def test_kidnapped_start_is_detected_and_recovered(world):
     rec = [i for i, e in enumerate(ests) if e.diagnostics.status == "recovered"][0]
     assert rec <= 4
     err = errors(world, ests)
-    assert err[rec:].max() < 0.05
+    # velocity and biases restart from their priors (zero velocity while moving at 2 m/s):
+    # a short transient, then the window has them back
+    assert err[rec:].max() < 0.15 and err[rec + 5:].max() < 0.03
 
 
 def test_start_without_pose_uses_global_localization(world):
