@@ -31,7 +31,7 @@ import numpy as np
 
 from blockloc.datasets.base import ImuData, LidarFrame, SequenceInfo
 from blockloc.errors import DatasetError
-from blockloc.fileio import atomic_write_text
+from blockloc.fileio import atomic_write_text, replace_dir
 from blockloc.geometry import T_to_xyzrpy, Trajectory, xyzrpy_to_T
 
 log = logging.getLogger(__name__)
@@ -663,13 +663,7 @@ def write_session(out_dir: str | Path, *, date: str, frames: Iterable[LidarFrame
                  "gravity_map": np.asarray(NCLT_GRAVITY_MAP if gravity_map is None else gravity_map,
                                            dtype=float).tolist()}
             atomic_write_text(tmp / SIDECAR_NAME, json.dumps(d, indent=1))
-        old = None
-        if out_dir.exists():
-            old = Path(tempfile.mkdtemp(prefix=f"{out_dir.name}.old-", dir=out_dir.parent))
-            os.replace(out_dir, old / out_dir.name)
-        os.replace(tmp, out_dir)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        replace_dir(tmp, out_dir)
         log.info("wrote %d frames to %s", n_frames, out_dir)
         return out_dir
     except BaseException:

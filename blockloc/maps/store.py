@@ -39,6 +39,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from blockloc.errors import MapError
+from blockloc.fileio import replace_dir
 from blockloc.maps.pcd import decode_pcd, encode_pcd
 
 log = logging.getLogger(__name__)
@@ -394,17 +395,11 @@ class MapWriter:
         (self.tmp / MANIFEST_NAME).write_text(json.dumps(doc, indent=1))
         _fsync_dir_files(self.tmp)
         (self.tmp / INCOMPLETE_MARKER).unlink()
-        old = None
-        if self.out.exists():
-            if not self.overwrite:
-                self.abort()
-                raise MapError(f"{self.out}: appeared during the build; not overwritten")
-            old = self.out.with_name(f".{self.out.name}.old-{os.getpid()}")
-            os.replace(self.out, old)
-        os.replace(self.tmp, self.out)
+        if self.out.exists() and not self.overwrite:
+            self.abort()
+            raise MapError(f"{self.out}: appeared during the build; not overwritten")
+        replace_dir(self.tmp, self.out)
         self._committed = True
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
         log.info("wrote %s map %s: %d entries", self.kind, self.out, len(self.entries))
         return open_map(self.out)
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import shutil
 import tempfile
 from pathlib import Path
@@ -27,6 +26,7 @@ from typing import Callable
 import numpy as np
 
 from blockloc.errors import SimError
+from blockloc.fileio import replace_dir
 from blockloc.sim.presets import get_preset
 from blockloc.sim.stream import SimSequence
 
@@ -105,13 +105,7 @@ def generate_dataset(preset: str, seed: int, out: Path, fmt: str = "nclt", *,
                                    "path_length_m": round(seq.trajectory.path_length(), 2)}
             log.info("sim %s/%s: %d frames", p.name, s, n)
         (tmp / "sim.json").write_text(json.dumps(meta, indent=1, sort_keys=True) + "\n")
-        old = None
-        if out.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
-            os.replace(out, old / out.name)
-        os.replace(tmp, out)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        replace_dir(tmp, out)
         return out
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
