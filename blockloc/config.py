@@ -106,7 +106,8 @@ class GlobalInitConfig:
     top_k: int = 5
     use_s0: bool = True  # greedy initial score S0 (block-map paper); False: plain BBS
     s0_ratio: float = 0.9  # prune below this fraction of S0
-    min_fitness: float = 0.5  # NDT inlier ratio for a verified match
+    min_fitness: float = 0.75  # NDT inlier ratio for a verified match (sim: true 0.8-0.97, false <= 0.61)
+    min_structure_fitness: float = 0.6  # same for the above-ground points alone (true >= 0.9, false <= 0.37)
     ambiguity_distance_m: float = 2.0
     ndt_resolution_m: float = 1.0
     reloc_window_m: float = 100.0  # regions of the no-hint relocalization

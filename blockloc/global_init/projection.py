@@ -238,12 +238,15 @@ class ScanProjection:
     ground_below: height of the ground below the body in the levelled body frame (negative: the
     ground is below), metres; NaN when not seen.
     R_tilt: (3, 3) levelling rotation of the body (p_lvl = R_tilt @ p_body).
+    structure_body: (K, 3) the 3D points in the height band, body frame (at most 3000, fixed-seed
+    subsample): verification checks that these, not the ground, fit the map.
     """
 
     xy: np.ndarray
     max_range: float
     ground_below: float
     R_tilt: np.ndarray
+    structure_body: np.ndarray | None = None
 
 
 def project_scan(points_body: np.ndarray, gravity_body: np.ndarray, resolution: float,
@@ -276,7 +279,11 @@ def project_scan(points_body: np.ndarray, gravity_body: np.ndarray, resolution: 
         raise GlobalInitError(f"scan has {len(cells)} occupied cells in the height band {band_m} m: "
                               f"expected at least {min_cells} (too few points or open ground)")
     if len(cells) > max_cells:
-        rng = np.random.default_rng(seed)
+        rng = np.random.default_rng(seed + 1)
         cells = cells[np.sort(rng.choice(len(cells), max_cells, replace=False))]
     xy = (cells + 0.5) * resolution
-    return ScanProjection(xy, float(np.hypot(xy[:, 0], xy[:, 1]).max()), float(near), R_tilt)
+    rng = np.random.default_rng(seed)
+    if len(structure) > 3000:
+        structure = structure[np.sort(rng.choice(len(structure), 3000, replace=False))]
+    return ScanProjection(xy, float(np.hypot(xy[:, 0], xy[:, 1]).max()), float(near), R_tilt,
+                          structure @ R_tilt)

@@ -54,6 +54,14 @@ class Refiner:
         self._target = NdtTarget.build(self._map, resolution_m)
         self._reg = NdtRegistration(max_iterations=max_iterations, num_threads=num_threads)
 
+    def inlier_ratio(self, points_body: np.ndarray, T_map_body: np.ndarray) -> float:
+        """Share of points (N, 3), body frame, that are NDT inliers of the target at ``T_map_body``."""
+        pts = np.asarray(points_body, dtype=np.float64).reshape(-1, 3)
+        if len(pts) == 0:
+            return 0.0
+        ev = self._reg.evaluate(self._target, pts, T_map_body, derivatives=False)
+        return float(ev.num_inliers) / len(pts)
+
     def align(self, source_body: np.ndarray, T_init: np.ndarray) -> RefineResult:
         """Refine ``T_init`` (4, 4) T_map_body for scan points (N, 3), body frame, metres."""
         res = self._reg.align(self._target, np.asarray(source_body, dtype=np.float64), T_init)

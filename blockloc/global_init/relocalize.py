@@ -48,7 +48,8 @@ class InitParams:
     min_score: float = 0.05
     nms_m: float = 1.0
     nms_deg: float = 5.0
-    min_fitness: float = 0.5
+    min_fitness: float = 0.75
+    min_structure_fitness: float = 0.6
     ambiguity_distance_m: float = 2.0
     ambiguity_fitness_margin: float = 0.05
     ndt_resolution_m: float = 1.0
@@ -89,6 +90,7 @@ class InitCandidate:
     verified: bool
     T_map_body_2d: np.ndarray | None = None  # before refinement
     ndt_score: float = 0.0  # NDT score per scan point (higher is better)
+    structure_fitness: float = 0.0  # inlier ratio of the scan's above-ground (band) points
 
 
 @dataclass
@@ -242,8 +244,12 @@ class GlobalLocalizer:
                 break
             T0 = self._pose_from_2d(c, scan)
             r = refiner.align(scan_ndt, T0)
-            ok = bool(r.converged and r.fitness >= p.min_fitness and np.all(np.isfinite(r.T_map_body)))
-            out.append(InitCandidate(r.T_map_body, c.score, r.fitness, r.converged, ok, T0, r.ndt_score))
+            finite = bool(np.all(np.isfinite(r.T_map_body)))
+            # Ground points fit the ground almost anywhere: the structure above it must fit too.
+            sfit = refiner.inlier_ratio(scan.structure_body, r.T_map_body) if finite else 0.0
+            ok = bool(r.converged and finite and r.fitness >= p.min_fitness
+                      and sfit >= p.min_structure_fitness)
+            out.append(InitCandidate(r.T_map_body, c.score, r.fitness, r.converged, ok, T0, r.ndt_score, sfit))
         return out
 
     def _relocalize(self, scan: ScanProjection, scan_ndt: np.ndarray, theta_c: float, yaw_win: float):

@@ -22,7 +22,7 @@ def box_outline(rng, cx, cy, w, d, h, angle, slope, per_m=60):
     return np.c_[X, Y, z + slope * X]
 
 
-def world_up(seed=0, size=120.0, n_boxes=45, slope=0.02, ground_per_m2=4.0):
+def world_up(seed=0, size=120.0, n_boxes=45, slope=0.02, ground_per_m2=15.0):
     """(N, 3) z-up points over [-size/2, size/2]^2: sloped ground plus random boxes."""
     rng = np.random.default_rng(seed)
     n_g = int(ground_per_m2 * size * size)
