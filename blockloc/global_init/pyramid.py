@@ -72,3 +72,27 @@ def assemble(pyramids: list[Pyramid], lo: np.ndarray, hi: np.ndarray) -> Pyramid
         src = p.levels[:, a[0] - p.origin[0]:b[0] - p.origin[0], a[1] - p.origin[1]:b[1] - p.origin[1]]
         np.maximum(dst, src, out=dst)
     return Pyramid(lo, out, pyramids[0].resolution)
+
+
+def extend(pyramid: Pyramid, num_levels: int) -> Pyramid:
+    """The same pyramid with levels added on top up to ``num_levels`` (large search windows).
+
+    Computed on the assembled crop: a level-h value needs the level h-1 values 2^(h-1) cells ahead,
+    which the crop holds for every cell a search reads (the crop spans the scan's reach past the
+    window on every side, and the nodes of the added levels read only inside it); cells past the crop
+    edge count as 0, so bounds there stay admissible only for reads within the crop, the only ones made.
+    """
+    have = pyramid.num_levels
+    if num_levels <= have:
+        return pyramid
+    levels = np.empty((num_levels,) + pyramid.levels.shape[1:], dtype=np.uint8)
+    levels[:have] = pyramid.levels
+    for h in range(have, num_levels):
+        half = 1 << (h - 1)
+        prev = levels[h - 1]
+        cur = prev.copy()
+        np.maximum(cur[:-half], prev[half:], out=cur[:-half])
+        cur2 = cur.copy()
+        np.maximum(cur2[:, :-half], cur[:, half:], out=cur2[:, :-half])
+        levels[h] = cur2
+    return Pyramid(pyramid.origin, levels, pyramid.resolution)

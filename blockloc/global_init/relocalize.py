@@ -25,6 +25,7 @@ from blockloc.errors import GlobalInitError
 from blockloc.geometry import inv_T, transform_points
 from blockloc.global_init.bnb import Candidate2D, make_angles, required_cells, rotated_cells, search
 from blockloc.global_init.maps import ArrayMap, ProjectionParams, StoreMap
+from blockloc.global_init.pyramid import extend
 from blockloc.global_init.projection import ScanProjection, heading_offset, project_scan
 from blockloc.global_init.refine import Refiner, voxel_downsample
 
@@ -57,7 +58,7 @@ class InitParams:
     max_ndt_points: int = 3000
     ambiguity_score_ratio: float = 0.8  # once one is verified, refine others only above this x best
     refine_range_m: float = 50.0
-    reloc_window_m: float = 100.0
+    reloc_window_m: float = 500.0
     max_regions: int = 0  # 0: every region of the map
     num_threads: int = 2
 
@@ -213,6 +214,10 @@ class GlobalLocalizer:
         lo, hi = required_cells(scan.xy, center, window_m, p.resolution_m)
         t = time.perf_counter()
         pyr = self.map.pyramid(lo, hi)
+        # Large windows (whole-map relocalization): more levels on top, so that a few hundred
+        # roots per angle, not tens of thousands, start the search.
+        want = int(math.ceil(math.log2(max(window_m / p.resolution_m / 8.0, 1.0)))) + 1
+        pyr = extend(pyr, max(pyr.num_levels, want))
         t_pyr = time.perf_counter() - t
         c2d, st = search(pyr, scan.xy, center, window_m, theta_c, yaw_win, p.top_k,
                          p.use_s0 if use_s0 is None else use_s0, p.s0_ratio, p.min_score, p.nms_m, p.nms_deg,
@@ -229,12 +234,20 @@ class GlobalLocalizer:
         if not c2d:
             return []
         p = self.params
-        xy = np.array([[c.x, c.y] for c in c2d])
         d = min(p.refine_range_m, p.max_range_m)
-        pts = self.map.points_in_box(xy.min(axis=0) - d, xy.max(axis=0) + d)
-        if len(pts) < 100:
-            return []
-        refiner = Refiner(pts, p.ndt_resolution_m, p.num_threads)
+        # One NDT target per cluster of candidates (a target over candidates far apart would load
+        # the whole map): a candidate within d/2 of an existing target's centre reuses it.
+        targets: list[tuple[np.ndarray, Refiner | None]] = []
+
+        def refiner_for(xy: np.ndarray) -> Refiner | None:
+            for centre, ref in targets:
+                if np.all(np.abs(xy - centre) <= 0.5 * d):
+                    return ref
+            pts = self.map.points_in_box(xy - d, xy + d)
+            ref = Refiner(pts, p.ndt_resolution_m, p.num_threads) if len(pts) >= 100 else None
+            targets.append((xy, ref))
+            return ref
+
         out = []
         best_score = max(c.score for c in c2d)
         for c in sorted(c2d, key=lambda c: -c.score):
@@ -243,6 +256,9 @@ class GlobalLocalizer:
             if any(o.verified for o in out) and c.score < p.ambiguity_score_ratio * best_score:
                 break
             T0 = self._pose_from_2d(c, scan)
+            refiner = refiner_for(np.array([c.x, c.y]))
+            if refiner is None:
+                continue
             r = refiner.align(scan_ndt, T0)
             finite = bool(np.all(np.isfinite(r.T_map_body)))
             # Ground points fit the ground almost anywhere: the structure above it must fit too.
