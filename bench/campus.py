@@ -26,9 +26,10 @@ from pathlib import Path
 
 import numpy as np
 
+from bench._track import STATUS_CODES, BackendRun, jsonable as _jsonable
+
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "bench" / "campus.md"
-STATUS_CODES = {"ok": 0, "rejected": 1, "imu_only": 2, "lost": 3, "recovered": 4, "uninitialized": 5}
 
 
 def default_map_dir(preset: str, seed: int, map_cfg) -> Path:
@@ -57,73 +58,6 @@ def ensure_block_map(preset: str, seed: int, out: Path, map_cfg) -> float:
     t0 = time.perf_counter()
     build_map(open_sequence(f"sim:{preset}/map@{seed}"), "block", out, map_cfg, overwrite=True, progress=False)
     return time.perf_counter() - t0
-
-
-class BackendRun:
-    """One pipeline stepped frame by frame (the pipeline's own steps, the loop driven from outside)."""
-
-    def __init__(self, seq, cfg, map_path: Path, backend: str, start: int, stop: int) -> None:
-        from blockloc.pipeline import LocalizationPipeline
-
-        self.backend = backend
-        p = LocalizationPipeline(seq, cfg=cfg, map_path=map_path, backend=backend, init="gt",
-                                 start_frame=start, max_frames=stop - start)
-        p._open_sequence()
-        p._open_map()
-        p._make_components()
-        p._make_tracker()
-        p._initialize()
-        self.pipe = p
-        self.j = int(np.searchsorted(p.imu.t, p.stamps[start] - 1.0))
-        self.stamps: list[float] = []
-        self.poses: list[np.ndarray] = []
-        cols = ("index", "core_ms", "update_ms", "map_ms", "registration_ms", "switched", "status", "window")
-        self.rows: dict[str, list] = {c: [] for c in cols}
-
-    def step(self, frame) -> None:
-        imu, tr = self.pipe.imu, self.pipe.tracker
-        t_end = frame.stamp + (float(np.max(frame.time_offsets)) if frame.time_offsets is not None
-                               and len(frame.time_offsets) else 0.0)
-        while self.j < len(imu.t) and imu.t[self.j] <= t_end:
-            tr.insert_imu(imu.t[self.j], imu.acc[self.j], imu.gyro[self.j])
-            self.j += 1
-        est = tr.insert_frame(frame)
-        d = est.diagnostics
-        r = self.rows
-        r["index"].append(frame.index)
-        r["core_ms"].append(d.deskew_ms + d.registration_ms + d.smoother_ms)
-        r["update_ms"].append(d.update_ms)
-        r["map_ms"].append(d.map_ms)
-        r["registration_ms"].append(d.registration_ms)
-        r["switched"].append(bool(d.switched))
-        r["status"].append(STATUS_CODES.get(d.status, 9))
-        r["window"].append(d.window_size)
-        if est.T_map_body is not None:
-            self.stamps.append(est.stamp)
-            self.poses.append(np.asarray(est.T_map_body))
-
-    def save(self, state: Path) -> None:
-        tr = self.pipe.tracker
-        arrays = {k: np.asarray(v) for k, v in self.rows.items()}
-        arrays["stamps"] = np.asarray(self.stamps, dtype=np.float64)
-        arrays["poses"] = np.asarray(self.poses, dtype=np.float64).reshape(-1, 4, 4)
-        arrays["counters"] = np.array(json.dumps(tr.counters))
-        arrays["map_stats"] = np.array(json.dumps(_jsonable(self.pipe.provider.stats())))
-        tmp = state / f".{self.backend}.npz.tmp.npz"
-        np.savez(tmp, **arrays)
-        tmp.replace(state / f"{self.backend}.npz")
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    return x
 
 
 def _write_json(path: Path, obj) -> None:
@@ -307,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def checkpoint(finished: bool) -> None:
         for r in runs:
-            r.save(state)
+            r.save(state / f"{r.backend}.npz")
         prog.update(updated=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), wall_s=time.perf_counter() - t0,
                     load_now=os.getloadavg()[0], load_mean=float(np.mean(loads)), finished=finished)
         _write_json(state / "progress.json", prog)
