@@ -179,6 +179,13 @@ def write_fragment(state: Path, out: Path) -> str:
                 d = np.linalg.norm(a["_positions"][:n] - b["_positions"][:n], axis=1)
                 lines.append(f"- trajectory RMSE global vs block (same stamps): {np.sqrt(np.mean(d ** 2)):.3f} m.")
     lines.append("")
+    from bench._track import write_json
+
+    write_json(out.with_suffix(".json"), {
+        "command": prog["command"], "covered_km": covered / 1000.0, "total_km": total_km, "frames": frames,
+        "finished": prog["finished"], "load_mean": prog["load_mean"],
+        "backends": {b: {k: v for k, v in m.items() if not k.startswith("_") and k != "map_stats"}
+                     for b, m in rows.items()}})
     text = "\n".join(lines) + "\n"
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_suffix(".md.tmp")

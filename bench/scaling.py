@@ -86,9 +86,12 @@ def plot(results: dict, area0_km2: float, path: Path) -> None:
     for ax, (key, title) in zip(axes, panels):
         for b, rows in results.items():
             xs = sorted(rows)
-            ax.plot([x * area0_km2 for x in xs], [rows[x][key] for x in xs], marker="o", label=b)
+            ax.plot(xs, [rows[x][key] for x in xs], marker="o", label=b)
+        scales = sorted({x for rows in results.values() for x in rows})
         ax.set_xscale("log", base=2)
-        ax.set_xlabel("map area [km²] (1x, 4x, 16x the small world)")
+        ax.set_xticks(scales, [f"{x}x\n{x * area0_km2:.2f} km²" for x in scales])
+        ax.minorticks_off()
+        ax.set_xlabel("map area (replicas of the small world)")
         ax.set_title(title)
         ax.grid(True, alpha=0.3)
         ax.set_ylim(bottom=0)
@@ -102,7 +105,7 @@ def plot(results: dict, area0_km2: float, path: Path) -> None:
 
 
 def main(argv=None) -> int:
-    from bench._track import run_in_child, summarize
+    from bench._track import run_in_child, summarize, write_json
     from bench.tracking import grid_map, map_for
 
     ap = argparse.ArgumentParser(prog="python -m bench.scaling", description=__doc__,
@@ -196,6 +199,10 @@ def main(argv=None) -> int:
                      f"{a['peak_rss_mb']:.0f} -> {z['peak_rss_mb']:.0f} MB, setup {a['setup_s']:.1f} -> {z['setup_s']:.1f} s.")
     lines += ["", f"![per-scan time and memory vs map size]({png.name})", ""]
     out = Path(args.out)
+    write_json(out.with_suffix(".json"), {
+        "command": cmd, "machine": machine(), "load": [load0, load1], "maps": maps_info,
+        "results": {b: {str(s): {k: v for k, v in m.items() if not k.startswith("_") and k != "map_stats"}
+                        for s, m in rows.items()} for b, rows in results.items()}})
     tmp_out = out.with_suffix(".md.tmp")
     tmp_out.write_text("\n".join(lines))
     tmp_out.replace(out)

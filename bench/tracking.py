@@ -85,7 +85,7 @@ def median_over(runs: list[dict], key: str):
 
 
 def main(argv=None) -> int:
-    from bench._track import KISS, ODOM, kiss_available, run_in_child, summarize, trajectory_rmse
+    from bench._track import KISS, ODOM, kiss_available, run_in_child, summarize, trajectory_rmse, write_json
 
     ap = argparse.ArgumentParser(prog="python -m bench.tracking", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -241,6 +241,12 @@ def main(argv=None) -> int:
     lines.append("")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
+    pairs = {f"{a}_vs_{b}": trajectory_rmse(first[a], first[b]) for a, b in
+             (("grid", "block"), ("srt", "block"), ("global", "block"), ("grid", "global"), ("srt", "global"))
+             if a in first and b in first}
+    write_json(out.with_suffix(".json"), {"command": cmd, "machine": machine(), "load": [load0, load1],
+                                          "backends": med, "trajectory_rmse_m": pairs, "storage": st,
+                                          "repeats": args.repeats})
     tmp_out = out.with_suffix(".md.tmp")
     tmp_out.write_text("\n".join(lines))
     tmp_out.replace(out)
