@@ -1,0 +1,141 @@
+"""Helpers of the benchmark suite: map replication (scaling), the rolling-map odometry baseline,
+trajectory comparison, the summary's reading of fragments."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from bench import summary
+from bench._track import RollingMapProvider, STATUS_CODES, summarize, trajectory_rmse
+from bench.scaling import lattice_offsets, replicate_store, replication_pitch
+from blockloc.maps.grid_tiles import tile_bounds
+from blockloc.maps.store import MapWriter, open_map
+
+
+def _points(rng, lo, hi, n):
+    return rng.uniform(lo, hi, (n, 3)).astype(np.float32)
+
+
+@pytest.fixture
+def stores(tmp_path):
+    rng = np.random.default_rng(3)
+    with MapWriter(tmp_path / "grid", "grid", params={"tile_size_m": 10.0}) as w:
+        w.add("5.0_5.0", _points(rng, [0, 0, 0], [10, 10, 1], 50))
+        w.add("-5.0_15.0", _points(rng, [-10, 10, 0], [0, 20, 1], 30))
+        grid = w.commit()
+    with MapWriter(tmp_path / "block", "block", params={"block_size_m": 20.0}) as w:
+        w.add("000", _points(rng, [-10, 0, 0], [5, 20, 1], 40))
+        w.add("001", _points(rng, [0, 0, 0], [10, 10, 1], 20))
+        block = w.commit()
+    return grid, block
+
+
+def test_lattice_offsets_start_at_origin_and_count_k_squared():
+    offs = lattice_offsets(3, (30.0, 40.0))
+    assert offs[0] == (0.0, 0.0)
+    assert len(offs) == 9 and len(set(offs)) == 9
+    assert max(o[0] for o in offs) == 60.0 and max(o[1] for o in offs) == 80.0
+
+
+def test_pitch_is_whole_tiles_and_clears_the_map(stores):
+    grid, block = stores
+    px, py = replication_pitch(block, grid, 10.0)
+    assert px % 10.0 == 0 and py % 10.0 == 0
+    lo, hi = grid.bounds()
+    assert px > hi[0] - lo[0] and py > hi[1] - lo[1]
+
+
+def test_replicated_grid_renames_tiles_to_their_shifted_cells(stores, tmp_path):
+    grid, block = stores
+    pitch = replication_pitch(block, grid, 10.0)
+    out = replicate_store(grid, tmp_path / "g4", lattice_offsets(2, pitch), 10.0)
+    assert len(out) == 4 * len(grid)
+    assert out.total_points == 4 * grid.total_points
+    for eid in out.ids:  # every tile's points lie in the cell its name says
+        pts, _ = out.load(eid)
+        lo, hi = tile_bounds(eid, 10.0)
+        assert np.all(pts[:, :2] >= lo - 1e-4) and np.all(pts[:, :2] <= hi + 1e-4)
+    # the original copy is unchanged
+    np.testing.assert_array_equal(out.load("5.0_5.0")[0], grid.load("5.0_5.0")[0])
+
+
+def test_replicated_grid_rejects_offsets_off_the_tile_lattice(stores, tmp_path):
+    grid, _ = stores
+    with pytest.raises(ValueError, match="multiple"):
+        replicate_store(grid, tmp_path / "bad", [(0.0, 0.0), (15.0, 0.0)], 10.0)
+
+
+def test_replicated_blocks_get_unique_ids_and_shifted_centroids(stores, tmp_path):
+    grid, block = stores
+    offs = [(0.0, 0.0), (100.0, 0.0), (0.0, 200.0)]
+    out = replicate_store(block, tmp_path / "b3", offs)
+    assert len(out) == 6 and len(set(out.ids)) == 6
+    c0 = block.centroids()
+    c = out.centroids()
+    for k, (dx, dy) in enumerate(offs):
+        np.testing.assert_allclose(c[2 * k:2 * k + 2, :2], c0[:, :2] + [dx, dy], atol=1e-3)
+
+
+def test_rolling_map_keeps_seed_scans_then_keyframes_by_distance():
+    rng = np.random.default_rng(0)
+    prov = RollingMapProvider(1.0, 3, seed_scans=3, keyframe_m=1.0, rebuild_m=1.0)
+    assert prov.update(np.zeros(3), None, 0.0).target is None  # no scan yet: nothing to register to
+    wall = np.c_[rng.uniform(-20, 20, 3000), np.full(3000, 5.0), rng.uniform(0, 3, 3000)]
+    for _ in range(5):  # standing still: only the seed scans are kept
+        prov.add_scan(np.zeros(3), wall + rng.normal(0, 0.01, wall.shape))
+    assert len(prov.keyframes) == 3
+    prov.add_scan(np.array([0.5, 0, 0]), wall)
+    assert len(prov.keyframes) == 3  # moved less than keyframe_m
+    prov.add_scan(np.array([1.5, 0, 0]), wall)
+    assert len(prov.keyframes) == 4
+    local = prov.update(np.array([1.5, 0, 0]), None, 1.0)
+    assert local.target is not None and local.num_points > 0 and not local.switched
+    built = prov.builds
+    prov.update(np.array([1.6, 0, 0]), None, 1.1)  # nothing new: no rebuild
+    assert prov.builds == built
+
+
+def test_rolling_map_serves_only_keyframes_within_radius():
+    prov = RollingMapProvider(1.0, 3, radius_m=10.0, voxel_m=0.05, seed_scans=1, keyframe_m=1.0)
+    near = np.c_[np.arange(50.0) * 0.1, np.zeros(50), np.arange(50.0) % 5 * 0.1]
+    prov.add_scan(np.zeros(3), near)
+    prov.add_scan(np.array([100.0, 0, 0]), near + [100.0, 0, 0])
+    local = prov.update(np.array([100.0, 0, 0]), None, 0.0)
+    assert 0 < local.num_points <= 50  # the far keyframe only
+
+
+def test_trajectory_rmse_matches_common_stamps_only():
+    a = {"_stamps": np.array([0.0, 0.1, 0.2, 0.3]), "_positions": np.zeros((4, 3))}
+    b = {"_stamps": np.array([0.1, 0.3, 0.5]), "_positions": np.array([[3.0, 4, 0], [0, 0, 0], [9, 9, 9]])}
+    assert trajectory_rmse(a, b) == pytest.approx(np.sqrt(25 / 2))
+    assert trajectory_rmse(a, {"_stamps": np.array([7.0]), "_positions": np.zeros((1, 3))}) is None
+
+
+def test_summarize_excludes_uninitialized_frames_and_reads_switches():
+    z = {"core_ms": np.array([100.0, 10, 12, 14]), "update_ms": np.array([200.0, 11, 13, 30]),
+         "registration_ms": np.ones(4), "map_ms": np.zeros(4), "switched": np.array([0, 0, 0, 1]),
+         "status": np.array([STATUS_CODES["uninitialized"], 0, 0, 0]), "window": np.array([0, 1, 2, 3]),
+         "active_points": np.array([0, 5, 5, 7]), "stamps": np.array([0.1, 0.2, 0.3]),
+         "poses": np.tile(np.eye(4), (3, 1, 1)),
+         "counters": np.array(json.dumps({"failures": 0, "recoveries": 0, "switches": 1, "rejected": 0,
+                                          "imu_only": 0})), "map_stats": np.array("{}")}
+    m = summarize(z)
+    assert m["core_ms_median"] == 12.0  # the uninitialized first frame is not a tracking cost
+    assert m["switch_frames"] == 1 and m["switch_update_ms_p99"] == pytest.approx(30.0)
+    assert "ate_trans_rmse_m" not in m  # no ground truth given
+
+
+def test_summary_reads_the_global_init_row_and_says_not_measured(tmp_path, monkeypatch):
+    monkeypatch.setattr(summary, "FRAG", tmp_path)
+    assert summary.global_init_row() is None
+    (tmp_path / "global_init.md").write_text(
+        "| method | frames | success | median trans. error (m) | median rot. error (deg) | median time (s) |\n"
+        "|---|---|---|---|---|---|\n| bbs | 10 | 90% | 0.5 | 1 | 0.2 |\n| bbs+s0 | 10 | 99% | 0.027 | 0.05 | 0.15 |\n")
+    assert summary.global_init_row() == {"error_m": 0.027, "time_s": 0.15, "success": "99%"}
+    text = summary.build()
+    assert "0.15 s" in text and "**beat**" in text
+    assert "not measured" in text  # no tracking.json here
+    assert summary.verdict(20.0, 14.28) == "**trail**" and summary.verdict(None, 1.0) == "not measured"
