@@ -260,6 +260,8 @@ class GlobalLocalizer:
             if refiner is None:
                 continue
             r = refiner.align(scan_ndt, T0)
+            if not r.converged and np.all(np.isfinite(r.T_map_body)):
+                r = refiner.align(scan_ndt, r.T_map_body)  # out of iterations, e.g. sliding along a corridor
             finite = bool(np.all(np.isfinite(r.T_map_body)))
             # Ground points fit the ground almost anywhere: the structure above it must fit too.
             sfit = refiner.inlier_ratio(scan.structure_body, r.T_map_body) if finite else 0.0
@@ -347,7 +349,9 @@ class GlobalLocalizer:
         if best.verified:
             for c in cands[1:]:
                 far = np.linalg.norm(c.T_map_body[:3, 3] - best.T_map_body[:3, 3]) > p.ambiguity_distance_m
-                if c.verified and far and c.fitness >= best.fitness - p.ambiguity_fitness_margin:
+                # Unconverged candidates count too: fitting as well elsewhere is what matters.
+                plausible = c.fitness >= p.min_fitness and c.structure_fitness >= p.min_structure_fitness
+                if plausible and far and c.fitness >= best.fitness - p.ambiguity_fitness_margin:
                     ambiguous = True
                     break
         if ambiguous:
