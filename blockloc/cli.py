@@ -53,12 +53,6 @@ def _console():
     return Console()
 
 
-def _load_cfg(config: Optional[str], preset: Optional[str] = None):
-    from blockloc.config import load_config
-
-    return load_config(config or preset)
-
-
 # ----------------------------------------------------------------------------- eval
 
 
@@ -137,7 +131,9 @@ def map_build_cmd(
     from blockloc.datasets import open_sequence
     from blockloc.maps.tools import build_map, map_summary, print_summary
 
-    cfg = _load_cfg(config)
+    from blockloc.config import load_config_for_sequence
+
+    cfg = load_config_for_sequence(seq, config)
     overrides = {k: v for k, v in (("block_size_m", block_size), ("tile_size_m", tile_size),
                                    ("voxel_size_m", voxel)) if v is not None}
     map_cfg = dataclasses.replace(cfg.map, **overrides)
@@ -308,6 +304,7 @@ def track_cmd(
     max_frames: Optional[int] = typer.Option(None, "--max-frames", help="Stop after this many frames."),
 ) -> None:
     """Track a sequence in a prior map (sliding-window IMU + NDT); writes poses, metrics and plots."""
+    from blockloc.config import load_config_for_sequence
     from blockloc.errors import TrackingError
     from blockloc.pipeline import LocalizationPipeline, parse_init_pose
 
@@ -315,9 +312,7 @@ def track_cmd(
         raise TrackingError(f"--init {init!r}: expected 'gt' (or use --init-pose x,y[,yaw])")
     if init and init_pose:
         raise TrackingError("--init gt and --init-pose exclude each other")
-    preset = "sim" if seq.startswith("sim:") else ("nclt" if seq.startswith("nclt_") else
-                                                    ("m2dgr" if seq.startswith("m2dgr_") else None))
-    cfg = _load_cfg(config, preset)
+    cfg = load_config_for_sequence(seq, config)
     mode = "gt" if init else ("pose" if init_pose else "global")
     console = _console()
     out_dir = _results_dir(out, seq)

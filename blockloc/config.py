@@ -100,7 +100,6 @@ class GlobalInitConfig:
     resolution_m: float = 0.5  # 2D cell of the branch and bound (NDT refines afterwards)
     pyramid_levels: int = 6  # top level: a sliding max over 2^5 cells = 16 m
     height_band_m: tuple[float, float] = (0.3, 3.0)  # projected points: height above local ground
-    z_band_m: tuple[float, float] = (-1.0, 2.0)  # unused, kept so older YAML files load: see height_band_m
     projection: str = "band"  # band (height band above local ground) | all (plain occupancy)
     max_range_m: float = 60.0  # scan cells used by the 2D search (sets the angular step)
     top_k: int = 5
@@ -267,6 +266,29 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
     if overrides:
         cfg = merge(cfg, overrides, "overrides")
     return cfg
+
+
+def preset_for_sequence(seq: str) -> str | None:
+    """The preset that fits a ``--seq`` value: 'sim' for simulated sessions (``sim:...`` or a
+    path written by ``blockloc sim``, which leaves ``sim.json`` beside its sessions), 'nclt' for
+    ``nclt_N`` and NCLT-layout directories, 'm2dgr' for ``m2dgr_N``; None otherwise."""
+    if seq.startswith("sim:"):
+        return "sim"
+    if seq.startswith("nclt_"):
+        return "nclt"
+    if seq.startswith("m2dgr_"):
+        return "m2dgr"
+    path = Path(seq)
+    if (path.parent / "sim.json").is_file():
+        return "sim"
+    if (path / "velodyne_sync").is_dir():
+        return "nclt"
+    return None
+
+
+def load_config_for_sequence(seq: str, config: str | Path | None = None) -> Config:
+    """``config`` (a file or preset name) when given, else the preset that fits ``seq``."""
+    return load_config(config or preset_for_sequence(seq))
 
 
 def save_config(cfg: Config, path: str | Path) -> None:

@@ -63,3 +63,19 @@ def test_int_accepted_for_float_and_round_trip(tmp_path):
     out = tmp_path / "used.yaml"
     save_config(cfg, out)
     assert load_config(out) == cfg
+
+
+def test_preset_follows_the_sequence(tmp_path):
+    from blockloc.config import load_config_for_sequence, preset_for_sequence
+
+    assert preset_for_sequence("sim:campus/loc@3") == "sim"
+    assert preset_for_sequence("nclt_2") == "nclt"
+    assert preset_for_sequence("m2dgr_1") == "m2dgr"
+    (tmp_path / "sim.json").write_text("{}")
+    (tmp_path / "loc" / "velodyne_sync").mkdir(parents=True)
+    assert preset_for_sequence(str(tmp_path / "loc")) == "sim"  # written by `blockloc sim`
+    (tmp_path / "other" / "nclt" / "velodyne_sync").mkdir(parents=True)
+    assert preset_for_sequence(str(tmp_path / "other" / "nclt")) == "nclt"
+    assert preset_for_sequence(str(tmp_path / "other" / "x.bag")) is None
+    assert load_config_for_sequence("nclt_2").registration.resolution_m == 2.0
+    assert load_config_for_sequence("nclt_2", "sim").map.block_size_m == 40.0  # --config wins

@@ -109,11 +109,11 @@ def _interp_rotation(times: np.ndarray, R: np.ndarray, t: float) -> np.ndarray:
 def run_init(seq_name: str, frame_index: int, map_path: str, hint: str | None, window_m: float | None,
              yaw_window_deg: float | None, config: str | None, data_root: str | None):
     """Returns (InitResult, summary dict). Raises BlocklocError on bad input."""
-    from blockloc.config import load_config
+    from blockloc.config import load_config_for_sequence
     from blockloc.datasets import open_sequence
     from blockloc.maps.store import open_map
 
-    cfg = load_config(config)
+    cfg = load_config_for_sequence(seq_name, config)
     window_m = cfg.global_init.window_m if window_m is None else window_m
     yaw_window_deg = cfg.global_init.yaw_window_deg if yaw_window_deg is None else yaw_window_deg
     hint_xy, hint_yaw = parse_hint(hint)
