@@ -14,8 +14,13 @@ Byte layouts (devkit ``read_vel_sync.py`` / ``read_vel_hits.py``, little endian)
   then num_hits points of the layout above.
 
 Frames: NCLT's body frame is x forward, y right, z down, so gravity in the map frame is
-(0, 0, +9.81). Velodyne points are in the velodyne frame; ``NCLT_T_BODY_LIDAR`` maps them into
-the body frame.
+(0, 0, +9.81). The raw hits of ``velodyne_hits.bin`` are in the velodyne frame
+(``NCLT_T_BODY_LIDAR`` maps them into the body frame), but the official ``velodyne_sync/*.bin``
+scans are already in the body frame: the devkit's project_vel_to_cam.py projects them with the
+camera's T_c_body alone, and public loaders (pyLiDAR-SLAM, KISS-ICP, pole-localization) pair
+them with body poses directly. A real NCLT session therefore gets ``NCLT_T_BODY_SYNC``
+(identity); sessions written by ``write_session`` (velodyne-frame points) record their
+extrinsics in ``blockloc_session.json``.
 """
 
 from __future__ import annotations
@@ -61,10 +66,14 @@ def _ssc_to_T(x, y, z, roll_deg, pitch_deg, yaw_deg) -> np.ndarray:
     return xyzrpy_to_T(x, y, z, *np.deg2rad([roll_deg, pitch_deg, yaw_deg]))
 
 
-#: Velodyne HDL-32E in the body frame: the devkit's x_body_vel = [0.002, -0.004, -0.957, 0.807,
-#: 0.166, -90.703] (x, y, z m; roll, pitch, yaw deg), as used by its project_vel_to_cam.py.
-#: The lidar sits 0.957 m above the body origin (z down) and is yawed -90.7 deg.
+#: Velodyne HDL-32E in the body frame: NCLT's x_body_vel = [0.002, -0.004, -0.957, 0.807,
+#: 0.166, -90.703] (x, y, z m; roll, pitch, yaw deg). The lidar sits 0.957 m above the body
+#: origin (z down) and is yawed -90.7 deg. This is the frame of the raw ``velodyne_hits.bin``
+#: hits (and of the simulator's sweeps), not of the official ``velodyne_sync`` scans.
 NCLT_T_BODY_LIDAR = _ssc_to_T(0.002, -0.004, -0.957, 0.807, 0.166, -90.703)
+
+#: Frame of the official ``velodyne_sync/<utime>.bin`` scans: the body frame itself.
+NCLT_T_BODY_SYNC = np.eye(4)
 
 #: Microstrain 3DM-GX3-45 (file ms25.csv) in the body frame. The NCLT paper (Carlevaris-Bianco
 #: et al., IJRR 2016) and devkit give extrinsics only for the velodyne and the Ladybug camera;
@@ -362,7 +371,7 @@ class NcltSequence:
     """A session directory in NCLT layout as a ``Sequence``.
 
     Frames: one per ``velodyne_sync/<utime>.bin``, loaded lazily. ``stamp`` = the file's utime in
-    seconds. Points are in the velodyne frame, each as measured at its own firing time (raw, not
+    seconds. Points are in the lidar frame of ``info.T_body_lidar``, each as measured at its own firing time (raw, not
     deskewed); ``time_offsets`` = firing time - stamp, in seconds, from ``velodyne_hits.bin``
     (packet resolution, ~0.55 ms) when present and ``use_hits_times``; otherwise derived from the
     azimuth for a 10 Hz clockwise spin starting at the first point, i.e. offsets in [0, 0.1) s
@@ -373,9 +382,11 @@ class NcltSequence:
     dropped, each with a warning). Ground truth: ``groundtruth_<date>.csv`` (T_map_body, z down).
     ``mapping_poses()``: ``slam_poses_<date>.csv`` when present, else ground truth.
 
-    Extrinsics are NCLT's (``NCLT_T_BODY_LIDAR``, ``NCLT_T_BODY_IMU``, gravity +z) unless the
-    directory holds ``blockloc_session.json`` (written by ``write_session`` for simulated sessions)
-    giving ``T_body_lidar``, ``T_body_imu`` and ``gravity_map``.
+    Extrinsics: ``T_body_lidar`` = ``NCLT_T_BODY_SYNC`` (identity: official velodyne_sync scans are
+    in the body frame), ``NCLT_T_BODY_IMU``, gravity +z, unless the directory holds
+    ``blockloc_session.json`` (written by ``write_session``) giving ``T_body_lidar``, ``T_body_imu``
+    and ``gravity_map``; a session of a ``blockloc sim`` dataset without it (``../sim.json``) gets
+    ``NCLT_T_BODY_LIDAR``.
 
     Files are searched in ``session_dir``, then its parent and ``<parent>/ground_truth`` (ground
     truth), or ``<parent>/sensor_data/<date>`` (ms25.csv); explicit paths override the search.
@@ -411,10 +422,15 @@ class NcltSequence:
         self._imu: ImuData | None = None
         self._gt: Trajectory | None | bool = False
         self._slam: Trajectory | None | bool = False
-        T_bl, T_bi, g = NCLT_T_BODY_LIDAR, NCLT_T_BODY_IMU, np.array(NCLT_GRAVITY_MAP)
+        # official NCLT: velodyne_sync scans are in the body frame (see the module docstring)
+        T_bl, T_bi, g = NCLT_T_BODY_SYNC, NCLT_T_BODY_IMU, np.array(NCLT_GRAVITY_MAP)
         sidecar = self.session_dir / SIDECAR_NAME
         if sidecar.is_file():
             T_bl, T_bi, g = _read_sidecar(sidecar)
+        elif _written_by_sim(self.session_dir):
+            # sessions written by 'blockloc sim' before write_session always wrote the sidecar:
+            # velodyne-frame sweeps with NCLT's extrinsics
+            T_bl = NCLT_T_BODY_LIDAR
         self.info = SequenceInfo(name=name or f"nclt:{self.session_dir.name}",
                                  T_body_lidar=np.array(T_bl, dtype=np.float64),
                                  T_body_imu=np.array(T_bi, dtype=np.float64),
@@ -549,6 +565,19 @@ class NcltSequence:
         return self._slam if self._slam is not None else self.ground_truth()
 
 
+def _written_by_sim(session_dir: Path) -> bool:
+    """True if ``session_dir`` sits in a dataset written by ``blockloc sim`` (``../sim.json``)."""
+    import json
+
+    meta = session_dir.parent / "sim.json"
+    if not meta.is_file():
+        return False
+    try:
+        return json.loads(meta.read_text()).get("generator") == "blockloc.sim"
+    except (ValueError, AttributeError):
+        return False
+
+
 def _read_sidecar(path: Path):
     import json
 
@@ -607,8 +636,9 @@ def write_session(out_dir: str | Path, *, date: str, frames: Iterable[LidarFrame
     imu: samples in the MS25 frame -> ``ms25.csv``. ground_truth, slam_poses: T_map_body ->
       ``groundtruth_<date>.csv`` / ``slam_poses_<date>.csv``.
     write_hits: also write ``velodyne_hits.bin`` (packets of HITS_PACKET_US) for per-point times.
-    T_body_lidar, T_body_imu, gravity_map: if any is given, ``blockloc_session.json`` records all
-      three (missing ones default to NCLT's) and the loader uses them instead of NCLT's.
+    T_body_lidar, T_body_imu, gravity_map: recorded in ``blockloc_session.json`` (always written;
+      missing ones default to NCLT's velodyne-frame ``NCLT_T_BODY_LIDAR``, ``NCLT_T_BODY_IMU``,
+      ``NCLT_GRAVITY_MAP``), which the loader uses instead of the official layout's defaults.
 
     Atomic: everything goes into ``<out_dir>.tmp-*`` beside it, renamed to ``out_dir`` at the end
     (an existing ``out_dir`` is replaced).
@@ -653,16 +683,16 @@ def write_session(out_dir: str | Path, *, date: str, frames: Iterable[LidarFrame
         write_groundtruth_csv(tmp / f"groundtruth_{date}.csv", ground_truth)
         if slam_poses is not None:
             write_groundtruth_csv(tmp / f"slam_poses_{date}.csv", slam_poses)
-        if T_body_lidar is not None or T_body_imu is not None or gravity_map is not None:
-            import json
+        # always written: these points are in the velodyne frame, unlike official velodyne_sync scans
+        import json
 
-            d = {"T_body_lidar": np.asarray(NCLT_T_BODY_LIDAR if T_body_lidar is None else T_body_lidar,
-                                            dtype=float).tolist(),
-                 "T_body_imu": np.asarray(NCLT_T_BODY_IMU if T_body_imu is None else T_body_imu,
-                                          dtype=float).tolist(),
-                 "gravity_map": np.asarray(NCLT_GRAVITY_MAP if gravity_map is None else gravity_map,
-                                           dtype=float).tolist()}
-            atomic_write_text(tmp / SIDECAR_NAME, json.dumps(d, indent=1))
+        d = {"T_body_lidar": np.asarray(NCLT_T_BODY_LIDAR if T_body_lidar is None else T_body_lidar,
+                                        dtype=float).tolist(),
+             "T_body_imu": np.asarray(NCLT_T_BODY_IMU if T_body_imu is None else T_body_imu,
+                                      dtype=float).tolist(),
+             "gravity_map": np.asarray(NCLT_GRAVITY_MAP if gravity_map is None else gravity_map,
+                                       dtype=float).tolist()}
+        atomic_write_text(tmp / SIDECAR_NAME, json.dumps(d, indent=1))
         replace_dir(tmp, out_dir)
         log.info("wrote %d frames to %s", n_frames, out_dir)
         return out_dir

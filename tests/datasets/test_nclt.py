@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from blockloc.datasets.base import ImuData, LidarFrame, Sequence
-from blockloc.datasets.nclt import (NCLT_GRAVITY_MAP, NCLT_POINT_DTYPE, NCLT_T_BODY_LIDAR, HITS_PACKET_US,
+from blockloc.datasets.nclt import (NCLT_GRAVITY_MAP, NCLT_POINT_DTYPE, NCLT_T_BODY_LIDAR, NCLT_T_BODY_SYNC,
+                                    HITS_PACKET_US,
                                     NcltSequence, read_groundtruth_csv, read_ms25_csv,
                                     write_groundtruth_csv, write_session)
 from blockloc.errors import DatasetError
@@ -326,3 +327,34 @@ def test_real_hdl32e_scan_round_trip(tmp_path, shared_data, session_data):
     assert np.abs(got.points - arr[:, :3]).max() <= QUANT_M
     np.testing.assert_array_equal(got.intensity, np.rint(np.clip(arr[:, 3], 0, 255)))
     np.testing.assert_array_equal(got.time_offsets, np.zeros(n, np.float32))
+
+
+def test_official_velodyne_sync_is_body_frame(tmp_path, session_data):
+    # Official velodyne_sync scans are in the body frame (devkit project_vel_to_cam.py projects
+    # them with T_c_body alone): a session without blockloc_session.json (the official layout)
+    # must not apply x_body_vel's -90.7 deg yaw / 0.957 m lift to them.
+    out = _write(tmp_path, session_data)
+    (out / "blockloc_session.json").unlink()
+    seq = NcltSequence(out)
+    np.testing.assert_allclose(seq.info.T_body_lidar, NCLT_T_BODY_SYNC)
+    np.testing.assert_allclose(seq.info.T_body_lidar, np.eye(4))
+    np.testing.assert_allclose(seq.info.gravity_map, NCLT_GRAVITY_MAP)
+
+
+def test_written_sessions_record_velodyne_frame(tmp_path, session_data):
+    # write_session stores velodyne-frame points, so it always records NCLT_T_BODY_LIDAR
+    out = _write(tmp_path, session_data)
+    assert (out / "blockloc_session.json").is_file()
+    np.testing.assert_allclose(NcltSequence(out).info.T_body_lidar, NCLT_T_BODY_LIDAR)
+
+
+def test_sim_dataset_without_sidecar_keeps_velodyne_frame(tmp_path, session_data):
+    # sessions of 'blockloc sim' datasets written before the sidecar was always written
+    root = tmp_path / "simdata"
+    out = write_session(root / "map", date="2020-06-01", frames=iter(session_data["frames"]),
+                        imu=session_data["imu"], ground_truth=session_data["gt"])
+    (out / "blockloc_session.json").unlink()
+    (root / "sim.json").write_text('{"generator": "blockloc.sim"}\n')
+    np.testing.assert_allclose(NcltSequence(out).info.T_body_lidar, NCLT_T_BODY_LIDAR)
+    (root / "sim.json").write_text('{"generator": "other"}\n')
+    np.testing.assert_allclose(NcltSequence(out).info.T_body_lidar, np.eye(4))
