@@ -427,17 +427,27 @@ class NcltSequence:
         sidecar = self.session_dir / SIDECAR_NAME
         if sidecar.is_file():
             T_bl, T_bi, g = _read_sidecar(sidecar)
-        elif _written_by_sim(self.session_dir):
-            # sessions written by 'blockloc sim' before write_session always wrote the sidecar:
-            # velodyne-frame sweeps with NCLT's extrinsics
-            T_bl = NCLT_T_BODY_LIDAR
+        elif self._hits_path is not None:
+            # official hits are raw velodyne-frame returns, the sync scans body-frame points: their
+            # bytes never coincide, so matching would only index a multi-GB file for nothing
+            log.info("%s: official NCLT session: velodyne_hits.bin is in the velodyne frame and "
+                     "velodyne_sync in the body frame, so per-point times come from the azimuth",
+                     self.session_dir)
+            self._hits_path = None
         self.info = SequenceInfo(name=name or f"nclt:{self.session_dir.name}",
                                  T_body_lidar=np.array(T_bl, dtype=np.float64),
                                  T_body_imu=np.array(T_bi, dtype=np.float64),
                                  gravity_map=np.asarray(g, dtype=np.float64),
-                                 lidar_rate_hz=10.0, imu_rate_hz=self._peek_imu_rate())
+                                 lidar_rate_hz=self._frame_rate_hz(), imu_rate_hz=self._peek_imu_rate())
 
     # discovery ---------------------------------------------------------------------------------
+    def _frame_rate_hz(self) -> float:
+        """Scans a second from the median stamp spacing (official velodyne_sync: ~5 Hz, the camera's
+        rate; the sensor still spins at 10 Hz, which the azimuth times assume)."""
+        if len(self._utimes) < 2:
+            return 10.0
+        return float(1e6 / np.median(np.diff(self._utimes)))
+
     def _guess_date(self) -> str:
         gts = sorted(self.session_dir.glob("groundtruth_*.csv"))
         if gts:
@@ -563,19 +573,6 @@ class NcltSequence:
         if self._slam is False:
             self._slam = read_groundtruth_csv(self._slam_path) if self._slam_path else None
         return self._slam if self._slam is not None else self.ground_truth()
-
-
-def _written_by_sim(session_dir: Path) -> bool:
-    """True if ``session_dir`` sits in a dataset written by ``blockloc sim`` (``../sim.json``)."""
-    import json
-
-    meta = session_dir.parent / "sim.json"
-    if not meta.is_file():
-        return False
-    try:
-        return json.loads(meta.read_text()).get("generator") == "blockloc.sim"
-    except (ValueError, AttributeError):
-        return False
 
 
 def _read_sidecar(path: Path):

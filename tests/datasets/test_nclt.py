@@ -348,13 +348,15 @@ def test_written_sessions_record_velodyne_frame(tmp_path, session_data):
     np.testing.assert_allclose(NcltSequence(out).info.T_body_lidar, NCLT_T_BODY_LIDAR)
 
 
-def test_sim_dataset_without_sidecar_keeps_velodyne_frame(tmp_path, session_data):
-    # sessions of 'blockloc sim' datasets written before the sidecar was always written
-    root = tmp_path / "simdata"
-    out = write_session(root / "map", date="2020-06-01", frames=iter(session_data["frames"]),
-                        imu=session_data["imu"], ground_truth=session_data["gt"])
+def test_official_session_ignores_hits_and_reports_its_scan_rate(tmp_path, session_data, caplog):
+    # official hits are velodyne-frame, sync scans body-frame: the hits file is not indexed
+    out = _write(tmp_path, session_data)
     (out / "blockloc_session.json").unlink()
-    (root / "sim.json").write_text('{"generator": "blockloc.sim"}\n')
-    np.testing.assert_allclose(NcltSequence(out).info.T_body_lidar, NCLT_T_BODY_LIDAR)
-    (root / "sim.json").write_text('{"generator": "other"}\n')
-    np.testing.assert_allclose(NcltSequence(out).info.T_body_lidar, np.eye(4))
+    with caplog.at_level("INFO"):
+        seq = NcltSequence(out)
+        frame = seq.frame(0)
+    assert seq._hits_path is None and seq._hits is None
+    assert "per-point times come from the azimuth" in caplog.text
+    assert frame.time_offsets.min() >= 0 and frame.time_offsets.max() < 0.1
+    stamps = seq.frame_stamps()
+    assert seq.info.lidar_rate_hz == pytest.approx(1.0 / np.median(np.diff(stamps)), rel=1e-6)
