@@ -347,6 +347,14 @@ def _q(a: np.ndarray, q: float):
 
 
 def _peak_rss_mb(psutil) -> float:
+    # VmHWM first: it restarts at exec, whereas Linux's ru_maxrss carries a parent's peak into a
+    # child started by fork + exec (a tracking run launched by a large process reported its parent's peak).
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return float(line.split()[1]) / 1024.0
+    except (OSError, ValueError, IndexError):
+        pass
     try:
         import resource
 
