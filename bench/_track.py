@@ -396,6 +396,14 @@ class ResourceSampler:
 
 
 def peak_rss_mb() -> float:
+    """This process's peak RSS in MB: VmHWM from /proc (reset at exec). ``ru_maxrss`` is not used: on
+    Linux a child started by a large parent inherits the parent's peak across fork + exec."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
     import resource
 
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
