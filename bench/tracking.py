@@ -1,6 +1,6 @@
 """Tracking benchmark: the papers' tables on the small world, every backend measured in one run.
 
-    python -m bench.tracking                   # block, grid, srt, global + map-free baselines
+    python -m bench.tracking                   # block, grid, srt, global + map-free baselines, 3 runs each
     python -m bench.tracking --max-frames 300 --repeats 3
     python -m bench.tracking --backends block,global
 
@@ -90,7 +90,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.tracking", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--max-frames", type=int, default=None)
-    ap.add_argument("--repeats", type=int, default=1, help="runs per backend (times: median over runs)")
+    ap.add_argument("--repeats", type=int, default=3, help="runs per backend (figures: median over runs)")
     ap.add_argument("--backends", default=",".join(MAP_BACKENDS + (ODOM, KISS)))
     ap.add_argument("--out", default=str(OUT))
     args = ap.parse_args(argv)
