@@ -83,6 +83,8 @@ class BlockMapBuilder:
         self._carried: int | None = None  # index of a closing keyframe that starts this block
         self._last_target: int | None = None  # block the previous closed keyframes went to
         self._finished = False
+        self._position_of: dict[int, np.ndarray] = {}  # keyframe index -> sensor position
+        self.skipped_into: dict[int, list[int]] = {}  # block -> keyframes it already covered
 
     def add(self, index: int, position: np.ndarray, points_map: np.ndarray,
             intensity: np.ndarray | None = None) -> None:
@@ -91,6 +93,7 @@ class BlockMapBuilder:
             raise MapError("block map builder already finished")
         position = np.asarray(position, np.float64).reshape(3)
         self.keyframe_positions.append(position)
+        self._position_of[index] = position
         if self._first_pos is None:
             self._first_pos = position
         self._append(index, points_map, intensity)
@@ -159,9 +162,17 @@ class BlockMapBuilder:
             self._merge(j, pts, inten, kf_ids, float(d), "merge")
         else:
             self._last_target = j
+            self.skipped_into.setdefault(j, []).extend(kf_ids)
             self.events.append(BlockEvent("skip", j, float(d), kf_ids))
             log.info("keyframes %d..%d skipped: block %03d already covers them (%.1f m)",
                      kf_ids[0], kf_ids[-1], j, d)
+
+    def keyframe_positions_of(self, block: int) -> np.ndarray:
+        """(K, 3) sensor positions of the keyframes block ``block`` was built from or already
+        covered (skipped ones): where the block's map is good. Map frame, metres."""
+        ids = list(self.blocks[block].keyframes) + self.skipped_into.get(block, [])
+        return np.array([self._position_of[k] for k in ids if k in self._position_of],
+                        np.float64).reshape(-1, 3)
 
     def _merge(self, j, pts, inten, kf_ids, d, action) -> None:
         b = self.blocks[j]
@@ -221,7 +232,8 @@ def write_block_map(builder: BlockMapBuilder, out: str | Path, *, params: dict |
          **(params or {})}
     with MapWriter(out, "block", params=p, overwrite=overwrite) as w:
         for i, b in enumerate(builder.blocks):
-            w.add(f"{i:03d}", b.points, b.intensity, file=f"{i:03d}.pcd", centroid=b.centroid)
+            w.add(f"{i:03d}", b.points, b.intensity, file=f"{i:03d}.pcd", centroid=b.centroid,
+                  keyframes=builder.keyframe_positions_of(i))
         return w.commit()
 
 

@@ -63,15 +63,22 @@ def _ray(position, velocity, horizon_m: float, step_m: float):
 
 
 class BlockPolicy:
-    """The block whose centroid is nearest (3D), with hysteresis.
+    """The block that covers the robot best, with hysteresis.
 
-    The active block changes only when another centroid is nearer by more than ``hysteresis_m``,
-    so a robot driving along the bisector of two blocks does not flip between them.
+    With ``keyframes`` (per block, the (K, 3) sensor positions it was built from) the distance of a
+    block is that of its nearest keyframe: the block whose mapping drive passed closest, so the
+    one whose points surround the robot. (The block-map paper's nearest centroid can pick a block
+    built on a parallel street whose centroid happens to be nearer: measured on the campus world,
+    fitness fell from 0.72 to 0.38 before the switch to a block scoring 0.97 there.) Without
+    keyframes (the released layout) the distance is the centroid's. The active block changes only
+    when another one is nearer by more than ``hysteresis_m``, so a robot driving along the border
+    of two blocks does not flip between them.
     """
 
     name = "block"
 
-    def __init__(self, ids: Sequence[str], centroids: np.ndarray, hysteresis_m: float = 5.0):
+    def __init__(self, ids: Sequence[str], centroids: np.ndarray, hysteresis_m: float = 5.0,
+                 keyframes: Sequence[np.ndarray | None] | None = None):
         if len(ids) == 0:
             raise MapError("block map has no blocks")
         if hysteresis_m < 0:
@@ -80,18 +87,23 @@ class BlockPolicy:
 
         self.ids = list(ids)
         self.centroids = np.asarray(centroids, np.float64).reshape(-1, 3)
-        self.tree = cKDTree(self.centroids)
+        # a block without keyframes is represented by its centroid
+        anchors = [self.centroids[i:i + 1] if keyframes is None or keyframes[i] is None
+                   or len(keyframes[i]) == 0 else np.asarray(keyframes[i], np.float64).reshape(-1, 3)
+                   for i in range(len(self.ids))]
+        self._block_of = np.concatenate([np.full(len(a), i) for i, a in enumerate(anchors)])
+        self.tree = cKDTree(np.concatenate(anchors))
+        self._trees = [cKDTree(a) for a in anchors]
         self.hysteresis_m = float(hysteresis_m)
         self.current: int | None = None
 
     def _choose(self, position, current: int | None) -> int:
         p = np.asarray(position, np.float64)
-        _, j = self.tree.query(p)
-        j = int(j)
+        d_new, a = self.tree.query(p)
+        j = int(self._block_of[a])
         if current is None or j == current:
             return j
-        d_new = np.linalg.norm(self.centroids[j] - p)
-        d_cur = np.linalg.norm(self.centroids[current] - p)
+        d_cur, _ = self._trees[current].query(p)
         return j if d_new + self.hysteresis_m < d_cur else current
 
     def select(self, position, velocity, stamp) -> Region:

@@ -153,7 +153,8 @@ class MapProvider:
             if st.kind != "block":
                 raise MapError(f"{st.path}: the 'block' backend needs a block map, this is a "
                                f"{st.kind} map (use --map-backend grid, srt or global)")
-            return BlockPolicy(st.ids, st.centroids(), hysteresis_m)
+            return BlockPolicy(st.ids, st.centroids(), hysteresis_m,
+                               keyframes=[e.keyframes for e in st.entries])
         if st.kind != "grid":
             raise MapError(f"{st.path}: the '{self.backend}' backend needs a grid map, this is a "
                            f"{st.kind} map (build one with 'blockloc map build --kind grid')")

@@ -71,15 +71,19 @@ class MapEntry:
     num_points: int
     bytes: int
     sha256: str | None
+    keyframes: np.ndarray | None = None  # (K, 3) sensor positions a block was built from, or None
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        d = {
             "id": self.id, "file": self.file,
             "bounds_min": [float(v) for v in self.bounds_min],
             "bounds_max": [float(v) for v in self.bounds_max],
             "centroid": [float(v) for v in self.centroid],
             "num_points": int(self.num_points), "bytes": int(self.bytes), "sha256": self.sha256,
         }
+        if self.keyframes is not None:
+            d["keyframes"] = [[round(float(v), 3) for v in p] for p in self.keyframes]
+        return d
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], where: str) -> "MapEntry":
@@ -90,6 +94,8 @@ class MapEntry:
                 bounds_max=np.asarray(d["bounds_max"], float).reshape(3),
                 centroid=np.asarray(d["centroid"], float).reshape(3),
                 num_points=int(d["num_points"]), bytes=int(d["bytes"]), sha256=d.get("sha256"),
+                keyframes=(np.asarray(d["keyframes"], float).reshape(-1, 3)
+                           if d.get("keyframes") is not None else None),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise MapError(f"{where}: malformed manifest entry {d!r:.80} ({exc})") from None
@@ -357,7 +363,8 @@ class MapWriter:
         shutil.rmtree(self.tmp, ignore_errors=True)
 
     def add(self, entry_id: str, points: np.ndarray, intensity: np.ndarray | None = None,
-            file: str | None = None, centroid: np.ndarray | None = None) -> MapEntry:
+            file: str | None = None, centroid: np.ndarray | None = None,
+            keyframes: np.ndarray | None = None) -> MapEntry:
         """Write one block/tile: ``points`` (N, 3) map frame metres, ``intensity`` (N,) or None.
 
         ``centroid`` defaults to the mean of the points.
@@ -372,7 +379,8 @@ class MapWriter:
         (self.tmp / file).write_bytes(data)
         lo, hi, mean = entry_stats(points)
         entry = MapEntry(entry_id, file, lo, hi, mean if centroid is None else np.asarray(centroid, float),
-                         len(points), len(data), hashlib.sha256(data).hexdigest())
+                         len(points), len(data), hashlib.sha256(data).hexdigest(),
+                         None if keyframes is None else np.asarray(keyframes, float).reshape(-1, 3))
         self.entries.append(entry)
         return entry
 

@@ -130,6 +130,10 @@ def test_block_map_from_sequence_covers_every_keyframe(tmp_path):
         pm = scan_to_map(f.points, None, f.stamp, traj, T_body_lidar)
         d, _ = tree.query(pm)
         assert np.mean(d < 0.6) > 0.99, i
+    # every keyframe position is recorded with the block that was built from it or covers it
+    # (a closing keyframe belongs to two blocks)
+    kf_pos = np.concatenate([e.keyframes for e in open_map(tmp_path / "bm").entries])
+    assert len(np.unique(kf_pos, axis=0)) == store.params["num_keyframes"]
     # the released layout is there too
     assert (tmp_path / "bm" / "CentroidCloud.pcd").exists()
     assert (tmp_path / "bm" / "000.pcd").exists()

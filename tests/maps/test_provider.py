@@ -62,6 +62,28 @@ def test_block_policy_hysteresis_no_flip_flop():
     assert pol.select(np.array([46.9, 0, 0]), None, 0) == ("a",)
 
 
+def test_block_policy_follows_the_blocks_keyframes_not_their_centroids():
+    # block "a" was mapped along y = 0 from x = 0 to 100, block "b" along the parallel street
+    # y = 40 but holds a big square whose points pull its centroid to (60, 10). A robot on
+    # y = 0 at x = 60 is covered by "a" (its keyframes pass 0 m away) although b's centroid is
+    # nearer (10 m vs 10 m from a's (50, 0)... and after the shift 60 m vs 0 m).
+    centroids = np.array([[10.0, 0, 0], [60.0, 5.0, 0]])
+    kf_a = np.c_[np.arange(0, 101, 5.0), np.zeros(21), np.zeros(21)]
+    kf_b = np.c_[np.arange(0, 101, 5.0), np.full(21, 40.0), np.zeros(21)]
+    by_centroid = BlockPolicy(["a", "b"], centroids, hysteresis_m=2.0)
+    by_keyframes = BlockPolicy(["a", "b"], centroids, hysteresis_m=2.0, keyframes=[kf_a, kf_b])
+    robot = np.array([60.0, 0.0, 0.0])
+    assert by_centroid.select(robot, None, 0) == ("b",)
+    assert by_keyframes.select(robot, None, 0) == ("a",)
+    # crossing to the other street switches once past the hysteresis, and not before
+    assert by_keyframes.select(np.array([60.0, 20.9, 0]), None, 0) == ("a",)
+    assert by_keyframes.select(np.array([60.0, 21.5, 0]), None, 0) == ("b",)
+    assert by_keyframes.select(np.array([60.0, 19.5, 0]), None, 0) == ("b",)
+    # a block without keyframes falls back to its centroid
+    mixed = BlockPolicy(["a", "b"], centroids, hysteresis_m=2.0, keyframes=[kf_a, None])
+    assert mixed.select(np.array([60.0, 4.0, 0]), None, 0) == ("b",)
+
+
 def test_block_provider_switch_reported_once_and_in_background(tmp_path):
     store = _block_store(tmp_path / "m", [[0, 0, 0], [60, 0, 0], [120, 0, 0]])
     builder = CountingBuilder()
