@@ -113,6 +113,7 @@ def main(argv=None) -> int:
     ap.add_argument("--scales", default="1,4,16", help="area factors (perfect squares)")
     ap.add_argument("--backends", default=",".join(BACKENDS))
     ap.add_argument("--max-frames", type=int, default=400)
+    ap.add_argument("--repeats", type=int, default=2, help="runs per (scale, backend); figures: median over runs")
     ap.add_argument("--out", default=str(OUT))
     args = ap.parse_args(argv)
     cmd = "python -m bench.scaling " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
@@ -145,17 +146,29 @@ def main(argv=None) -> int:
             gs = replicate_store(grid0, tmp / f"grid_{s}", offs, tile)
             maps_info[s] = {"block_points": bs.total_points, "grid_points": gs.total_points,
                             "blocks": len(bs), "tiles": len(gs), "bytes": gs.total_bytes}
-            for b in backends:
-                res = run_in_child(seq_path, map_for(b, tmp / f"block_{s}", tmp / f"grid_{s}"), b,
-                                   tmp / f"{b}_{s}.json", max_frames=args.max_frames)
-                m = summarize(res.pop("arrays"), gt)
-                m.update(peak_rss_mb=res["peak_rss_mb"], setup_s=res["setup_s"],
-                         resident_mb=m["map_stats"].get("resident_mb"),
-                         first_wait_ms=m["map_stats"].get("max_wait_ms"))
-                results[b][s] = m
-                print(f"{s}x {b}: core median {m['core_ms_median']:.1f} ms, peak RSS {m['peak_rss_mb']:.0f} MB, "
-                      f"resident {m['resident_mb']:.1f} MB, ATE {m.get('ate_trans_rmse_m') or float('nan'):.3f} m",
-                      file=sys.stderr, flush=True)
+        runs: dict[tuple[str, int], list[dict]] = {}
+        for rep in range(args.repeats):
+            # every repeat walks the scales in the other direction: load that drifts over the run
+            # does not line up with the map size
+            for s in (scales if rep % 2 == 0 else scales[::-1]):
+                for b in backends:
+                    res = run_in_child(seq_path, map_for(b, tmp / f"block_{s}", tmp / f"grid_{s}"), b,
+                                       tmp / f"{b}_{s}.json", max_frames=args.max_frames)
+                    m = summarize(res.pop("arrays"), gt)
+                    m.update(peak_rss_mb=res["peak_rss_mb"], setup_s=res["setup_s"],
+                             resident_mb=m["map_stats"].get("resident_mb"),
+                             first_wait_ms=m["map_stats"].get("max_wait_ms"))
+                    runs.setdefault((b, s), []).append(m)
+                    print(f"#{rep + 1} {s}x {b}: core median {m['core_ms_median']:.1f} ms, peak RSS "
+                          f"{m['peak_rss_mb']:.0f} MB, resident {m['resident_mb']:.1f} MB, ATE "
+                          f"{m.get('ate_trans_rmse_m') or float('nan'):.3f} m", file=sys.stderr, flush=True)
+        for (b, s), ms in runs.items():  # medians over the repeats
+            m = dict(ms[0])
+            for key in ("core_ms_median", "core_ms_mean", "update_ms_median", "peak_rss_mb", "resident_mb",
+                        "first_wait_ms", "setup_s"):
+                vals = [x[key] for x in ms if x.get(key) is not None]
+                m[key] = float(np.median(vals)) if vals else None
+            results[b][s] = m
     wall = time.perf_counter() - t0
     load1 = os.getloadavg()[0]
     lo, hi = grid0.bounds()
@@ -173,7 +186,8 @@ def main(argv=None) -> int:
         "",
         f"The small world's maps replicated on a k x k lattice (pitch {pitch[0]:g} x {pitch[1]:g} m, one lattice "
         f"cell = {area0:.3f} km²); the `loc` session's first {args.max_frames} scans drive the original copy. "
-        "Each (scale, backend) in its own process. `block`/`global` read the replicated block store (global = "
+        f"Each (scale, backend) in its own process, {args.repeats} runs (the scales walked up, then down; figures "
+        "are medians over the runs). `block`/`global` read the replicated block store (global = "
         "all blocks), `grid`/`srt` the replicated grid tiles. Resident map = the provider's memory (entry cache + "
         "served regions, points only) at the end of the run; peak RSS = the whole process (VmHWM); longest map "
         "wait = the longest time an update waited for the provider (the first map's load and NDT target build).",
