@@ -32,19 +32,18 @@ ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "bench" / "campus.md"
 
 
-def default_map_dir(preset: str, seed: int, map_cfg) -> Path:
-    """Cache path of the campus block map, keyed by the simulator's and map builder's code."""
+def default_map_dir(preset: str, seed: int, map_cfg, kind: str = "block") -> Path:
+    """Cache path of the campus map of ``kind``, keyed by the simulator's and map builder's code."""
     from blockloc.cache import cache_root, fingerprint
 
-    key = fingerprint("blockloc.sim", "blockloc.maps", params=(preset, seed, map_cfg.block_size_m,
-                                                               map_cfg.keyframe_distance_m,
-                                                               map_cfg.keyframe_angle_deg,
-                                                               map_cfg.voxel_size_m))
-    return cache_root() / "bench" / f"campus_{preset}_{seed}_block-{key}"
+    size = map_cfg.block_size_m if kind == "block" else map_cfg.tile_size_m
+    key = fingerprint("blockloc.sim", "blockloc.maps", params=(preset, seed, size, map_cfg.keyframe_distance_m,
+                                                               map_cfg.keyframe_angle_deg, map_cfg.voxel_size_m))
+    return cache_root() / "bench" / f"campus_{preset}_{seed}_{kind}-{key}"
 
 
-def ensure_block_map(preset: str, seed: int, out: Path, map_cfg) -> float:
-    """Build the block map of ``sim:<preset>/map@<seed>`` at ``out`` unless it loads; seconds spent."""
+def ensure_map(preset: str, seed: int, out: Path, map_cfg, kind: str = "block") -> float:
+    """Build the ``kind`` map of ``sim:<preset>/map@<seed>`` at ``out`` unless it loads; seconds spent."""
     from blockloc.datasets import open_sequence
     from blockloc.errors import MapError
     from blockloc.maps.store import open_map
@@ -56,7 +55,7 @@ def ensure_block_map(preset: str, seed: int, out: Path, map_cfg) -> float:
     except MapError:
         pass
     t0 = time.perf_counter()
-    build_map(open_sequence(f"sim:{preset}/map@{seed}"), "block", out, map_cfg, overwrite=True, progress=False)
+    build_map(open_sequence(f"sim:{preset}/map@{seed}"), kind, out, map_cfg, overwrite=True, progress=False)
     return time.perf_counter() - t0
 
 
@@ -112,7 +111,8 @@ def write_fragment(state: Path, out: Path) -> str:
     covered = rows[next(iter(rows))].get("path_length_m") or 0.0
     frames = prog["frames_done"]
     lines = [
-        "## Campus tracking run (issue 7's targets)",
+        "## Campus tracking run (issue 7's targets)" if set(prog["backends"]) == {"block", "global"} else
+        f"## Campus tracking, backends {', '.join(prog['backends'])} side by side",
         "",
         f"Command: `{prog['command']}`, started {prog['started']}, last checkpoint {prog['updated']} "
         f"({prog['wall_s'] / 60:.1f} min of wall time"
@@ -128,9 +128,9 @@ def write_fragment(state: Path, out: Path) -> str:
            f" — the last {len(seq) - prog['start'] - frames:,} scans were not run: the loop is bounded to "
            f"--minutes {prog['minutes']:g} (each scan is ray-cast at full density before the trackers see it; "
            f"{1e3 * prog['wall_s'] / max(frames, 1):.0f} ms of wall time a scan for ray casting and both trackers)."),
-        f"Map: block store `{prog['map']}` ({prog['map_desc']}); both backends use this store, "
+        f"Map: block store `{prog['map']}` ({prog['map_desc']}); `block` and `global` use the block store, "
         "`global` serves the union of all blocks. Init at the first ground-truth pose; `configs/sim.yaml` with "
-        f"block size {prog['block_size_m']:g} m. Each scan ray-cast once and fed to both trackers in lockstep.",
+        f"block size {prog['block_size_m']:g} m. Each scan ray-cast once and fed to every tracker in lockstep.",
         "",
         "Core = deskew + registration + smoother (the issue's per-scan update); update = the whole "
         "`insert_frame` (adds the map-provider call and the pose covariance).",
@@ -181,6 +181,13 @@ def write_fragment(state: Path, out: Path) -> str:
             if n and np.allclose(a["_stamps"][:n], b["_stamps"][:n]):
                 d = np.linalg.norm(a["_positions"][:n] - b["_positions"][:n], axis=1)
                 lines.append(f"- trajectory RMSE global vs block (same stamps): {np.sqrt(np.mean(d ** 2)):.3f} m.")
+        from bench._track import trajectory_rmse
+
+        for other, ref, tgt in (("grid", "block", " (target <= 0.05 m)"), ("grid", "global", ""),
+                                ("srt", "global", "")):
+            if other in rows and ref in rows:
+                r = trajectory_rmse(rows[other], rows[ref])
+                lines.append(f"- trajectory RMSE {other} vs {ref} (same stamps): {f(r, '{:.3f}')} m{tgt}.")
     for b in rows:
         z = np.load(state / f"{b}.npz")
         lost = np.nonzero(np.isin(z["status"], [STATUS_CODES["lost"], STATUS_CODES["recovered"]]))[0]
@@ -198,8 +205,8 @@ def write_fragment(state: Path, out: Path) -> str:
     write_json(out.with_suffix(".json"), {
         "command": prog["command"], "covered_km": covered / 1000.0, "total_km": total_km, "frames": frames,
         "finished": prog["finished"], "load_mean": prog["load_mean"],
-        "backends": {b: {k: v for k, v in m.items() if not k.startswith("_") and k != "map_stats"}
-                     for b, m in rows.items()}})
+        "backends": {b: {**{k: v for k, v in m.items() if not k.startswith("_") and k != "map_stats"},
+                         "resident_mb": m["map_stats"].get("resident_mb")} for b, m in rows.items()}})
     text = "\n".join(lines) + "\n"
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_suffix(".md.tmp")
@@ -219,6 +226,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--start", type=int, default=0)
     ap.add_argument("--map", default=None, help="block store (default: built once into the cache)")
+    ap.add_argument("--grid-map", default=None, help="grid store for grid/srt (default: built once into the cache)")
     ap.add_argument("--block-size", type=float, default=100.0)
     ap.add_argument("--state", default=None, help="checkpoint directory (default: cache)")
     ap.add_argument("--checkpoint-s", type=float, default=60.0)
@@ -242,7 +250,7 @@ def main(argv: list[str] | None = None) -> int:
     state.mkdir(parents=True, exist_ok=True)
     cfg = load_config("sim", overrides={"map": {"block_size_m": args.block_size}, "evaluation": {"plots": False}})
     map_path = Path(args.map) if args.map else default_map_dir(args.preset, args.seed, cfg.map)
-    t_build = ensure_block_map(args.preset, args.seed, map_path, cfg.map)
+    t_build = ensure_map(args.preset, args.seed, map_path, cfg.map)
     store = open_map(map_path)
     map_desc = (f"{len(store.entries)} blocks, {store.total_points:,} points, S = "
                 f"{store.params.get('block_size_m', args.block_size):g} m"
@@ -252,7 +260,16 @@ def main(argv: list[str] | None = None) -> int:
     seq = open_sequence(seq_name)
     stop = len(seq) if args.max_frames is None else min(len(seq), args.start + args.max_frames)
     backends = [b for b in args.backends.split(",") if b]
-    runs = [BackendRun(seq, cfg, map_path, b, args.start, stop) for b in backends]
+    grid_path = None
+    if any(b in ("grid", "srt") for b in backends):
+        grid_path = Path(args.grid_map) if args.grid_map else default_map_dir(args.preset, args.seed, cfg.map, "grid")
+        t_grid = ensure_map(args.preset, args.seed, grid_path, cfg.map, "grid")
+        gstore = open_map(grid_path)
+        map_desc += (f"; grid store `{grid_path}` for grid/srt ({len(gstore.entries)} tiles of "
+                     f"{cfg.map.tile_size_m:g} m, {gstore.total_points:,} points"
+                     + (f", built in {t_grid:.0f} s)" if t_grid else ", cached)"))
+    runs = [BackendRun(seq, cfg, grid_path if b in ("grid", "srt") else map_path, b, args.start, stop)
+            for b in backends]
     prog = {"command": cmd, "sequence": seq_name, "backends": backends, "map": str(map_path),
             "map_desc": map_desc, "block_size_m": args.block_size, "start": args.start, "minutes": args.minutes,
             "started": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "load_start": os.getloadavg()[0],
