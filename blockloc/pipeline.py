@@ -23,7 +23,7 @@ import numpy as np
 
 from blockloc.cache import cache_root
 from blockloc.config import Config
-from blockloc.errors import MapError, TrackingError
+from blockloc.errors import GlobalInitError, MapError, TrackingError
 from blockloc.geometry import Trajectory, inv_T, transform_points
 
 log = logging.getLogger(__name__)
@@ -189,12 +189,18 @@ class LocalizationPipeline:
         """Global init of one scan (lidar frame); around ``hint`` (T_map_body) or over the whole map."""
         gi = self.cfg.global_init
         pts_body = transform_points(self.info.T_body_lidar, points_lidar)
-        if hint is None:
-            res = self.localizer.localize(pts_body, gravity_body, None, None, gi.window_m, 360.0)
-        else:
-            yaw = float(np.arctan2(hint[1, 0], hint[0, 0]))
-            res = self.localizer.localize(pts_body, gravity_body, (float(hint[0, 3]), float(hint[1, 3])),
-                                          yaw, gi.window_m, gi.yaw_window_deg)
+        try:
+            if hint is None:
+                res = self.localizer.localize(pts_body, gravity_body, None, None, gi.window_m, 360.0)
+            else:
+                yaw = float(np.arctan2(hint[1, 0], hint[0, 0]))
+                res = self.localizer.localize(pts_body, gravity_body, (float(hint[0, 3]), float(hint[1, 3])),
+                                              yaw, gi.window_m, gi.yaw_window_deg)
+        except GlobalInitError as exc:  # e.g. a scan too sparse to project: this attempt failed, tracking goes on
+            log.info("global init at t=%.2f: %s", stamp, exc)
+            self.reloc_log.append({"stamp": stamp, "verified": False, "fitness": 0.0, "time_s": 0.0,
+                                   "hint": hint is not None, "error": str(exc)})
+            return None
         self.reloc_log.append({"stamp": stamp, "verified": bool(res.verified), "fitness": float(res.fitness),
                                "time_s": float(res.time_s), "hint": hint is not None})
         if not res.verified or res.T_map_body is None:
