@@ -98,6 +98,12 @@ def summarize(state: Path, backend: str, gt) -> dict:
     return m
 
 
+def _traj_rmse(a: dict, b: dict):
+    from bench._track import trajectory_rmse
+
+    return trajectory_rmse(a, b)
+
+
 def write_fragment(state: Path, out: Path) -> str:
     from bench.__main__ import machine
     from blockloc.datasets import open_sequence
@@ -205,6 +211,9 @@ def write_fragment(state: Path, out: Path) -> str:
     write_json(out.with_suffix(".json"), {
         "command": prog["command"], "covered_km": covered / 1000.0, "total_km": total_km, "frames": frames,
         "finished": prog["finished"], "load_mean": prog["load_mean"],
+        "trajectory_rmse_m": {f"{a}_vs_{b}": _traj_rmse(rows[a], rows[b]) for a, b in
+                              (("global", "block"), ("grid", "block"), ("grid", "global"), ("srt", "global"))
+                              if a in rows and b in rows},
         "backends": {b: {**{k: v for k, v in m.items() if not k.startswith("_") and k != "map_stats"},
                          "resident_mb": m["map_stats"].get("resident_mb")} for b, m in rows.items()}})
     text = "\n".join(lines) + "\n"
