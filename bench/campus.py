@@ -204,7 +204,8 @@ def write_fragment(state: Path, out: Path) -> str:
                 near = sw[np.argmin(np.abs(sw - i))] if len(sw) else None
                 desc.append(f"{int(z['index'][i])}" + (f" ({int(z['index'][near]) - int(z['index'][i]):+d} scans to the "
                                                        "nearest switch)" if near is not None else ""))
-            lines.append(f"- `{b}`: scans lost or relocalized: " + ", ".join(desc) + ".")
+            more = f", and {len(desc) - 8} more up to scan {int(z['index'][lost[-1]])}" if len(desc) > 8 else ""
+            lines.append(f"- `{b}`: {len(desc)} scans lost or relocalized: " + ", ".join(desc[:8]) + more + ".")
     lines.append("")
     from bench._track import write_json
 
