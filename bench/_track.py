@@ -21,6 +21,8 @@ from typing import Any
 
 import numpy as np
 
+from blockloc.fileio import atomic_write_text, to_jsonable
+
 STATUS_CODES = {"ok": 0, "rejected": 1, "imu_only": 2, "lost": 3, "recovered": 4, "uninitialized": 5}
 ODOM = "odom"  # the map-free baseline built from our parts: this tracker + a rolling map of its own scans
 KISS = "kiss-icp"  # the map-free LiDAR-only baseline from PyPI (optional: pip install kiss-icp)
@@ -276,7 +278,7 @@ class BackendRun:
         out["stamps"] = np.asarray(self.stamps, dtype=np.float64)
         out["poses"] = np.asarray(self.poses, dtype=np.float64).reshape(-1, 4, 4)
         out["counters"] = np.array(json.dumps(tr.counters))
-        out["map_stats"] = np.array(json.dumps(jsonable(self.pipe.provider.stats())))
+        out["map_stats"] = np.array(json.dumps(to_jsonable(self.pipe.provider.stats())))
         return out
 
     def save(self, path: Path) -> None:
@@ -288,24 +290,8 @@ class BackendRun:
         self.pipe.provider.close()
 
 
-def jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [jsonable(v) for v in x]
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, float) and not np.isfinite(x):
-        return None
-    return x
-
-
 def write_json(path: Path, obj) -> None:
-    tmp = path.with_name("." + path.name + ".tmp")
-    tmp.write_text(json.dumps(jsonable(obj), indent=1))
-    tmp.replace(path)
+    atomic_write_text(path, json.dumps(to_jsonable(obj), indent=1))
 
 
 # --------------------------------------------------------------------------- summaries

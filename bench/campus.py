@@ -26,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench._track import STATUS_CODES, BackendRun, jsonable as _jsonable
+from bench._track import STATUS_CODES, BackendRun
+from blockloc.fileio import to_jsonable as _jsonable
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "bench" / "campus.md"

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from blockloc.fileio import atomic_write_text
+
 ROOT = Path(__file__).resolve().parent.parent
 N_FRAMES = 30
 REPEATS = 5
@@ -96,10 +98,7 @@ def main() -> int:
              "| step | ms |", "|---|---:|"]
     lines += [f"| {name} | {ms:.2f} |" for name, ms in rows]
     out = ROOT / "docs" / "bench" / "datasets.md"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp_out = out.with_suffix(".md.tmp")
-    tmp_out.write_text("\n".join(lines) + "\n")
-    tmp_out.replace(out)
+    atomic_write_text(out, "\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 

@@ -18,6 +18,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from blockloc.fileio import atomic_write_text
 from scipy.spatial.transform import Rotation
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -103,10 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     ]
     lines += [f"| {name} | {size} | {t:.3f} |" for name, size, t in rows]
     out = ROOT / "docs" / "bench" / "evaluation.md"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp_out = out.with_suffix(".md.tmp")
-    tmp_out.write_text("\n".join(lines) + "\n")
-    tmp_out.replace(out)
+    atomic_write_text(out, "\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 

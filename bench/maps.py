@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from blockloc.fileio import atomic_write_text
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -201,10 +203,7 @@ def main(argv: list[str] | None = None) -> int:
                      f"{r['first_update_ms']:.0f} |")
     lines.append("")
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp_out = out.with_suffix(".md.tmp")
-    tmp_out.write_text("\n".join(lines) + "\n")
-    tmp_out.replace(out)
+    atomic_write_text(out, "\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 

@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from blockloc.fileio import atomic_write_text
+
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "bench" / "scaling.md"
 BACKENDS = ("block", "grid", "srt", "global")
@@ -227,9 +229,7 @@ def main(argv=None) -> int:
         "command": cmd, "machine": machine(), "load": [load0, load1], "maps": maps_info,
         "results": {b: {str(s): {k: v for k, v in m.items() if not k.startswith("_") and k != "map_stats"}
                         for s, m in rows.items()} for b, rows in results.items()}})
-    tmp_out = out.with_suffix(".md.tmp")
-    tmp_out.write_text("\n".join(lines))
-    tmp_out.replace(out)
+    atomic_write_text(out, "\n".join(lines))
     print(out)
     return 0
 

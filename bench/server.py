@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from blockloc.fileio import atomic_write_text
+
 ROOT = Path(__file__).resolve().parent.parent
 N_ROBOTS = 20
 GRID = 12            # tiles per side
@@ -264,10 +266,7 @@ def main(argv: list[str] | None = None) -> None:
     for label, key, fmt in ROWS:
         lines.append(f"| {label} | {fmt.format(med('saturated', key))} | {fmt.format(med('paced', key))} |")
     out = ROOT / "docs" / "bench" / "server.md"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp_out = out.with_suffix(".md.tmp")
-    tmp_out.write_text("\n".join(lines) + "\n")
-    os.replace(tmp_out, out)
+    atomic_write_text(out, "\n".join(lines) + "\n")
     print(out.read_text())
 
 

@@ -32,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from blockloc.fileio import atomic_write_text
+
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "bench" / "tracking.md"
 MAP_BACKENDS = ("block", "grid", "srt", "global")
@@ -248,9 +250,7 @@ def main(argv=None) -> int:
     write_json(out.with_suffix(".json"), {"command": cmd, "machine": machine(), "load": [load0, load1],
                                           "backends": med, "trajectory_rmse_m": pairs, "storage": st,
                                           "repeats": args.repeats})
-    tmp_out = out.with_suffix(".md.tmp")
-    tmp_out.write_text("\n".join(lines))
-    tmp_out.replace(out)
+    atomic_write_text(out, "\n".join(lines))
     print(out)
     return 0
 

@@ -76,3 +76,23 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
         replace_dir(tmp, path)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def to_jsonable(x):
+    """``x`` with numpy scalars/arrays as Python numbers/lists, tuples as lists, dict keys as
+    strings and non-finite floats as None (JSON has no NaN)."""
+    import math
+
+    import numpy as np
+
+    if isinstance(x, dict):
+        return {str(k): to_jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [to_jsonable(v) for v in x]
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, np.ndarray):
+        return to_jsonable(x.tolist())
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x

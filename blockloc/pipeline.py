@@ -24,6 +24,7 @@ import numpy as np
 from blockloc.cache import cache_root
 from blockloc.config import Config
 from blockloc.errors import GlobalInitError, MapError, TrackingError
+from blockloc.fileio import to_jsonable
 from blockloc.geometry import Trajectory, inv_T, transform_points
 
 log = logging.getLogger(__name__)
@@ -304,7 +305,7 @@ class LocalizationPipeline:
             "window_size_max": int(max((x["window_size"] for x in d), default=0)),
             "peak_rss_mb": _peak_rss_mb(psutil),
             "track_s": self.timings.get("track_s"), "total_s": self.timings.get("total_s"),
-            "relocalizations": self.reloc_log, "map_stats": _jsonable(self.provider.stats()),
+            "relocalizations": self.reloc_log, "map_stats": to_jsonable(self.provider.stats()),
         }
         if self.gt is not None and len(self.trajectory) > 1:
             from blockloc.evaluation.report import evaluate_trajectories
@@ -317,7 +318,7 @@ class LocalizationPipeline:
                                         max_time_diff_s=ev.max_time_diff_s, rpe_deltas_m=ev.rpe_deltas_m,
                                         plot_dir=plot_dir, interpolate=True)
             m.update(res)
-        return _jsonable(m)
+        return to_jsonable(m)
 
     def _write_results(self, metrics: dict) -> Path | None:
         if self.out is None:
@@ -367,20 +368,6 @@ def _peak_rss_mb(psutil) -> float:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
     except Exception:
         return psutil.Process().memory_info().rss / 2**20
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, float) and not np.isfinite(x):
-        return None
-    return x
 
 
 def _atomic_text(path: Path, text: str) -> None:

@@ -42,3 +42,15 @@ def test_atomic_dir_replaces_whole_or_not_at_all(tmp_path):
         (tmp / "c").write_text("3")
     assert sorted(p.name for p in out.iterdir()) == ["c"]
     assert [p.name for p in tmp_path.iterdir()] == ["session"]
+
+
+def test_to_jsonable_makes_numpy_and_nan_valid_json():
+    import json
+
+    import numpy as np
+
+    from blockloc.fileio import to_jsonable
+
+    got = to_jsonable({1: np.float32(0.5), "a": (np.int64(3), np.array([1.0, np.nan])), "b": float("inf")})
+    assert got == {"1": 0.5, "a": [3, [1.0, None]], "b": None}
+    json.dumps(got, allow_nan=False)
