@@ -44,15 +44,18 @@ def build_pyramid(raster: Raster, num_levels: int) -> Pyramid:
     levels = np.empty((num_levels,) + base.shape, dtype=np.uint8)
     levels[0] = base
     for h in range(1, num_levels):
-        half = 1 << (h - 1)
-        prev = levels[h - 1]
-        # Window 2^h at i = max(window 2^(h-1) at i, window 2^(h-1) at i + 2^(h-1)), both axes.
-        cur = prev.copy()
-        np.maximum(cur[:-half], prev[half:], out=cur[:-half])
-        cur2 = cur.copy()
-        np.maximum(cur2[:, :-half], cur[:, half:], out=cur2[:, :-half])
-        levels[h] = cur2
+        levels[h] = _next_level(levels[h - 1], h)
     return Pyramid(np.asarray(raster.origin, np.int64) - pad, levels, raster.resolution)
+
+
+def _next_level(prev: np.ndarray, h: int) -> np.ndarray:
+    """Level h from level h-1: window 2^h at i = max(window 2^(h-1) at i, at i + 2^(h-1)), both axes."""
+    half = 1 << (h - 1)
+    cur = prev.copy()
+    np.maximum(cur[:-half], prev[half:], out=cur[:-half])
+    out = cur.copy()
+    np.maximum(out[:, :-half], cur[:, half:], out=out[:, :-half])
+    return out
 
 
 def assemble(pyramids: list[Pyramid], lo: np.ndarray, hi: np.ndarray) -> Pyramid:
@@ -88,11 +91,5 @@ def extend(pyramid: Pyramid, num_levels: int) -> Pyramid:
     levels = np.empty((num_levels,) + pyramid.levels.shape[1:], dtype=np.uint8)
     levels[:have] = pyramid.levels
     for h in range(have, num_levels):
-        half = 1 << (h - 1)
-        prev = levels[h - 1]
-        cur = prev.copy()
-        np.maximum(cur[:-half], prev[half:], out=cur[:-half])
-        cur2 = cur.copy()
-        np.maximum(cur2[:, :-half], cur[:, half:], out=cur2[:, :-half])
-        levels[h] = cur2
+        levels[h] = _next_level(levels[h - 1], h)
     return Pyramid(pyramid.origin, levels, pyramid.resolution)
