@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from bench._track import STATUS_CODES, BackendRun
 from blockloc.fileio import to_jsonable as _jsonable
@@ -241,6 +242,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--block-size", type=float, default=100.0)
     ap.add_argument("--state", default=None, help="checkpoint directory (default: cache)")
     ap.add_argument("--checkpoint-s", type=float, default=60.0)
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="config override on top of configs/sim.yaml, e.g. map.grid_n=2 (repeatable)")
     ap.add_argument("--report-only", action="store_true")
     ap.add_argument("--out", default=str(OUT))
     args = ap.parse_args(argv)
@@ -259,7 +262,14 @@ def main(argv: list[str] | None = None) -> int:
         print(write_fragment(state, Path(args.out)))
         return 0
     state.mkdir(parents=True, exist_ok=True)
-    cfg = load_config("sim", overrides={"map": {"block_size_m": args.block_size}, "evaluation": {"plots": False}})
+    overrides = {"map": {"block_size_m": args.block_size}, "evaluation": {"plots": False}}
+    for item in args.set:
+        key, sep, value = item.partition("=")
+        section, dot, name = key.partition(".")
+        if not (sep and dot and section and name):
+            ap.error(f"--set {item!r}: expected SECTION.KEY=VALUE, e.g. map.grid_n=2")
+        overrides.setdefault(section, {})[name] = yaml.safe_load(value)
+    cfg = load_config("sim", overrides=overrides)
     map_path = Path(args.map) if args.map else default_map_dir(args.preset, args.seed, cfg.map)
     t_build = ensure_map(args.preset, args.seed, map_path, cfg.map)
     store = open_map(map_path)

@@ -61,7 +61,9 @@ class MapConfig:
     switch_hysteresis_m: float = 5.0
     # grid puzzle tiles (Byeon et al.)
     tile_size_m: float = 20.0
-    grid_n: int = 1
+    # n = 2: a (2n+1)s = 100 m window. With n = 1 (60 m) a straight street between long walls left
+    # the window without a feature along the street and tracking slid (campus bench, issue 8).
+    grid_n: int = 2
     grid_k: int = 1
     # SRT-PM (Kim et al.)
     srt_radius_m: float = 60.0

@@ -90,7 +90,7 @@ class MapProvider:
     def __init__(self, store: MapStore, backend: str = "block", *,
                  target_builder: Callable[[np.ndarray], Any] | None = None,
                  tiles_target_builder: Callable[[Mapping[str, np.ndarray]], Any] | None = None,
-                 hysteresis_m: float = 5.0, grid_n: int = 1, grid_k: int = 1,
+                 hysteresis_m: float = 5.0, grid_n: int = 2, grid_k: int = 1,
                  srt_radius_m: float = 60.0, srt_rebuild_period_s: float = 10.0,
                  prefetch: bool = True, lookahead_s: float = 5.0, min_lookahead_m: float = 2.0,
                  cache_mb: float = 1024.0, max_spare_regions: int = 2,
