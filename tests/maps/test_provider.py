@@ -185,7 +185,8 @@ def test_lru_bound_respected_and_evicts(tmp_path):
     store = _grid_store(tmp_path / "g", extent=200.0, tile=10.0, per_tile=3000)
     tile_mb = 3000 * 12 / 2**20
     budget = 40 * tile_mb  # a 3x4 window is 12 tiles (+ a spare region): about 40 tiles fit
-    with MapProvider(store, "grid", target_builder=CountingBuilder(), cache_mb=budget) as prov:
+    with MapProvider(store, "grid", grid_n=1, grid_k=1, target_builder=CountingBuilder(),
+                     cache_mb=budget) as prov:
         peak = 0.0
         for k, x in enumerate(np.arange(5, 195, 2.0)):
             prov.update(np.array([x, 100.0, 0]), np.array([2.0, 0, 0]), float(k))
