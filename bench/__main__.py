@@ -10,7 +10,9 @@ Each benchmark is a module ``bench.<name>`` with a ``main()`` that writes its ow
 
 from __future__ import annotations
 
+import os
 import platform
+import re
 import subprocess
 import sys
 import time
@@ -18,13 +20,11 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 FRAGMENTS = ROOT / "docs" / "bench"
-ORDER = ["datasets", "evaluation", "sim", "ndt", "maps", "global_init", "tracking", "scaling", "campus", "campus_keyframes", "campus_backends",
+ORDER = ["run", "datasets", "evaluation", "sim", "ndt", "maps", "global_init", "tracking", "scaling", "campus", "campus_keyframes", "campus_backends",
          "server", "summary"]  # summary last: it compares the fragments before it with the papers
 
 
 def machine() -> str:
-    import os
-
     try:
         import psutil
 
@@ -55,7 +55,10 @@ def assemble() -> Path:
     names = [n for n in ORDER if (FRAGMENTS / f"{n}.md").exists()]
     names += sorted(p.stem for p in FRAGMENTS.glob("*.md") if p.stem not in ORDER)
     for name in names:
-        parts.append((FRAGMENTS / f"{name}.md").read_text().rstrip() + "\n")
+        text = (FRAGMENTS / f"{name}.md").read_text().rstrip() + "\n"
+        # fragments link their plots beside themselves (docs/bench/x.png); this file is one level up
+        text = re.sub(r"(!\[[^\]]*\]\()([^/():]+\.png\))", r"\1bench/\2", text)
+        parts.append(text)
     out = ROOT / "docs" / "benchmarks.md"
     tmp = out.with_suffix(".md.tmp")
     tmp.write_text("\n".join(parts))
@@ -63,21 +66,53 @@ def assemble() -> Path:
     return out
 
 
+def _commit() -> str:
+    try:
+        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                             check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT,
+                               capture_output=True, text=True, check=True).stdout.strip()
+        return rev + (" (with uncommitted changes)" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown (not a git checkout)"
+
+
+def write_run_fragment(spent: dict, started, total_s: float, load0: float) -> None:
+    """docs/bench/run.md: how long the whole suite took, part by part (the issue asks to say so)."""
+    from blockloc.cache import cache_root
+    from blockloc.fileio import atomic_write_text
+
+    lines = ["## The whole suite in one command", "",
+             f"`python -m bench all`, started {time.strftime('%Y-%m-%d %H:%M UTC', started)} at commit "
+             f"{_commit()}, took **{total_s / 60:.0f} min** on {machine()} (load average {load0:.1f} at the "
+             f"start, {os.getloadavg()[0]:.1f} at the end). Cache directory `{cache_root()}`"
+             + (" (set by $BLOCKLOC_CACHE)" if os.environ.get("BLOCKLOC_CACHE") else "") + ": parts that find "
+             "their simulated world or map there reuse it; an empty cache makes every part build its own.", "",
+             "| part | wall time [min] | exit |", "|---|---|---|"]
+    lines += [f"| {n} | {s / 60:.1f} | {rc} |" for n, (s, rc) in spent.items()]
+    atomic_write_text(FRAGMENTS / "run.md", "\n".join(lines) + "\n\n")
+
+
 def main(argv: list[str]) -> int:
     names = argv or ["all"]
     if names == ["assemble"]:
         print(assemble())
         return 0
-    if names == ["all"]:
+    everything = names == ["all"]
+    if everything:
         names = [n for n in ORDER if (ROOT / "bench" / f"{n}.py").exists()]
-    failed = []
+    failed, spent = [], {}
+    started, load0, t_all = time.gmtime(), os.getloadavg()[0], time.time()
     for name in names:
         t0 = time.time()
         print(f"== bench.{name}", flush=True)
         rc = subprocess.call([sys.executable, "-m", f"bench.{name}"], cwd=ROOT)
-        print(f"== bench.{name}: exit {rc} after {time.time() - t0:.0f} s", flush=True)
+        spent[name] = (time.time() - t0, rc)
+        print(f"== bench.{name}: exit {rc} after {spent[name][0]:.0f} s", flush=True)
         if rc:
             failed.append(name)
+    if everything:
+        write_run_fragment(spent, started, time.time() - t_all, load0)
     print(assemble())
     if failed:
         print("failed:", ", ".join(failed))

@@ -1,7 +1,7 @@
 """Campus tracking run (issue 7's targets): block vs global backend on ``sim:campus/loc``, side by side.
 
     python -m bench.campus                       # as much of the session as fits in --minutes
-    python -m bench.campus --minutes 45 --state DIR
+    python -m bench.campus --minutes 50 --state DIR
     python -m bench.campus --report-only --state DIR   # fragment from the last checkpoint
 
 Each scan is ray-cast once and fed to one tracker per backend in lockstep (same frames, same load,
@@ -106,6 +106,56 @@ def _traj_rmse(a: dict, b: dict):
     return trajectory_rmse(a, b)
 
 
+def plot(rows: dict, gt, state: Path, path: Path) -> None:
+    """Three panels for a person to look at: the routes seen from above with the block backend's
+    error as colour, each backend's position error along the route, and its per-scan core time
+    along the route (rolling median over 200 scans)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(17, 5))
+    first = "block" if "block" in rows else next(iter(rows))
+    for b in rows:
+        z = np.load(state / f"{b}.npz")
+        keep = (z["status"] != STATUS_CODES["uninitialized"]) & (z["stamps"] >= gt.stamps[0]) & \
+            (z["stamps"] <= gt.stamps[-1])
+        if keep.sum() < 2:
+            continue
+        pos, core = z["poses"][keep][:, :3, 3], z["core_ms"][keep]
+        ref = gt.interpolate(z["stamps"][keep])[:, :3, 3]
+        err = np.linalg.norm(pos - ref, axis=1)
+        km = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(ref, axis=0), axis=1))]) / 1000.0
+        if b == first:
+            sc = axes[0].scatter(pos[:, 0], pos[:, 1], c=np.minimum(err, 0.3), s=1, cmap="viridis")
+            fig.colorbar(sc, ax=axes[0], label=f"{b}: position error [m] (clipped at 0.3)")
+        axes[1].plot(km, np.maximum(err, 1e-3), lw=0.6, label=b)
+        w = int(np.clip(len(core) // 10, 1, 200))
+        at = np.arange(w - 1, len(core), max(1, w // 4))
+        axes[2].plot(km[at], [np.median(core[i + 1 - w:i + 1]) for i in at], lw=1.0, label=b)
+    axes[0].set_aspect("equal")
+    axes[0].set_xlabel("x [m]")
+    axes[0].set_ylabel("y [m]")
+    axes[0].set_title("route (map frame)")
+    axes[1].set_xlabel("distance along the route [km]")
+    axes[1].set_ylabel("position error [m]")
+    axes[1].set_yscale("log")
+    axes[1].set_title("position error against ground truth")
+    axes[2].set_xlabel("distance along the route [km]")
+    axes[2].set_ylabel("core time per scan [ms]")
+    axes[2].set_ylim(bottom=0)
+    axes[2].set_title("per-scan core time (rolling median)")
+    for ax in axes[1:]:
+        ax.grid(True, alpha=0.3)
+        ax.legend()
+    fig.tight_layout()
+    tmp = path.with_name("." + path.name + ".tmp.png")
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    tmp.replace(path)
+
+
 def write_fragment(state: Path, out: Path) -> str:
     from bench.__main__ import machine
     from blockloc.datasets import open_sequence
@@ -208,7 +258,9 @@ def write_fragment(state: Path, out: Path) -> str:
                                                        "nearest switch)" if near is not None else ""))
             more = f", and {len(desc) - 8} more up to scan {int(z['index'][lost[-1]])}" if len(desc) > 8 else ""
             lines.append(f"- `{b}`: {len(desc)} scans lost or relocalized: " + ", ".join(desc[:8]) + more + ".")
-    lines.append("")
+    png = out.with_suffix(".png")
+    plot(rows, gt, state, png)
+    lines += ["", f"![route, position error and per-scan time along the route]({png.name})", ""]
     from bench._track import write_json
 
     write_json(out.with_suffix(".json"), {
@@ -234,7 +286,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--session", default="loc")
     ap.add_argument("--backends", default="block,global")
-    ap.add_argument("--minutes", type=float, default=45.0, help="wall-time budget of the tracking loop")
+    ap.add_argument("--minutes", type=float, default=50.0, help="wall-time budget of the tracking loop")
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--start", type=int, default=0)
     ap.add_argument("--map", default=None, help="block store (default: built once into the cache)")
