@@ -139,3 +139,30 @@ def test_summary_reads_the_global_init_row_and_says_not_measured(tmp_path, monke
     assert "0.15 s" in text and "**beat**" in text
     assert "not measured" in text  # no tracking.json here
     assert summary.verdict(20.0, 14.28) == "**trail**" and summary.verdict(None, 1.0) == "not measured"
+
+
+def test_assemble_points_plot_links_at_the_fragments_folder(tmp_path, monkeypatch):
+    import bench.__main__ as entry
+
+    frags = tmp_path / "docs" / "bench"
+    frags.mkdir(parents=True)
+    (frags / "scaling.md").write_text("## Scaling\n\n![time vs size](scaling.png)\n![abs](https://x.org/a.png)\n")
+    (frags / "extra.md").write_text("## Extra\n")
+    monkeypatch.setattr(entry, "ROOT", tmp_path)
+    monkeypatch.setattr(entry, "FRAGMENTS", frags)
+    text = entry.assemble().read_text()
+    assert "![time vs size](bench/scaling.png)" in text
+    assert "![abs](https://x.org/a.png)" in text  # absolute links are left alone
+    assert text.index("## Scaling") < text.index("## Extra")  # ORDER first, unknown fragments after
+
+
+def test_run_fragment_lists_every_part_with_its_time_and_exit(tmp_path, monkeypatch):
+    import time
+
+    import bench.__main__ as entry
+
+    monkeypatch.setattr(entry, "FRAGMENTS", tmp_path)
+    entry.write_run_fragment({"ndt": (90.0, 0), "campus": (3000.0, 1)}, time.gmtime(0), 3090.0, 0.5)
+    text = (tmp_path / "run.md").read_text()
+    assert "took **52 min**" in text
+    assert "| ndt | 1.5 | 0 |" in text and "| campus | 50.0 | 1 |" in text
