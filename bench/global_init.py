@@ -8,7 +8,8 @@ yaw unknown, a W x W m window. Methods on the same frames in the same run:
 Success: <= 0.3 m and <= 2 deg from ground truth after refinement. Also: relocalization without a
 hint over the whole map on M frames. Writes the markdown fragment ``docs/bench/global_init.md``.
 
-    python bench/global_init.py --frames 100 --reloc-frames 20
+    python -m bench.global_init                  # the whole fragment: small world, campus, notes
+    python -m bench.global_init --frames 100 --reloc-frames 20   # one section
 """
 
 from __future__ import annotations
@@ -103,7 +104,7 @@ def fpfh_ransac(map_pts: np.ndarray, scan_body: np.ndarray, voxel: float = 1.0, 
     return np.asarray(res.transformation)
 
 
-def main(argv=None) -> int:
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--preset", default="small")
     ap.add_argument("--seed", type=int, default=1)
@@ -123,7 +124,13 @@ def main(argv=None) -> int:
     ap.add_argument("--rng", type=int, default=0)
     ap.add_argument("--append", action="store_true", help="append to --out instead of replacing it")
     ap.add_argument("--title", default="Global initialization (block-map paper, Table I)")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def run(argv: list[str]) -> dict:
+    """One section of the fragment (one world, one map): writes or appends it to --out and returns
+    its figures (per method: success rate, median errors and times, the frames that failed)."""
+    args = parser().parse_args(argv)
 
     import logging
 
@@ -211,7 +218,7 @@ def main(argv=None) -> int:
         print(f"[reloc] frame {i}: {e_t:.2f} m {e_r:.2f} deg {dt:.2f} s, region rank "
               f"{res.stats.get('regions_searched')}/{res.stats.get('regions')}", flush=True)
 
-    cmd = "python " + " ".join(shlex.quote(a) for a in [os.path.relpath(sys.argv[0], REPO)] + sys.argv[1:])
+    cmd = "python -m bench.global_init " + " ".join(shlex.quote(a) for a in argv)
     lines = [
         f"## {args.title}",
         "",
@@ -232,11 +239,17 @@ def main(argv=None) -> int:
         "| method | frames | success | median trans. error (m) | median rot. error (deg) | median time (s) | p90 time (s) |",
         "|---|---|---|---|---|---|---|",
     ]
+    results = {"preset": args.preset, "map_points": int(store.total_points), "methods": {}, "reloc": None}
     for m in methods:
         r = np.array([x[1:4] for x in rows[m]], float).reshape(-1, 3)
         if not len(r):
             continue
         ok = (r[:, 0] <= 0.3) & (r[:, 1] <= 2.0)
+        results["methods"][m] = {
+            "frames": len(r), "success": float(ok.mean()), "err_m": float(np.median(r[:, 0])),
+            "err_deg": float(np.median(r[:, 1])), "time_s": float(np.median(r[:, 2])),
+            "nodes": float(np.median([x[4] for x in rows[m]])),
+            "failed": [(x[0], x[1]) for x, good in zip(rows[m], ok) if not good]}
         lines.append(f"| {m} | {len(r)} | {100 * ok.mean():.1f}% | {np.median(r[:, 0]):.3f} | "
                      f"{np.median(r[:, 1]):.3f} | {np.median(r[:, 2]):.2f} | {np.percentile(r[:, 2], 90):.2f} |")
     nodes = [f"{m} {np.median([x[4] for x in rows[m]]):,.0f}" for m in ("bbs+s0", "bbs", "bbs+s0/all")
@@ -246,6 +259,9 @@ def main(argv=None) -> int:
     if reloc:
         r = np.array([x[1:] for x in reloc], float)
         ok = (r[:, 0] <= 0.3) & (r[:, 1] <= 2.0)
+        results["reloc"] = {"frames": len(r), "success": float(ok.mean()), "time_s": float(np.median(r[:, 2])),
+                            "rank": float(np.median(r[:, 3])), "regions": int(r[0, 4]),
+                            "last_rank_share": float(np.mean(r[:, 3] == r[:, 4]))}
         lines += ["", f"No-hint relocalization over the whole map ({int(r[0, 4]) if len(r) else 0} regions of "
                   f"{params.reloc_window_m:g} m, ordered by the cheap score): {len(r)} frames, success "
                   f"{100 * ok.mean():.1f}%, median time {np.median(r[:, 2]):.2f} s, median region rank of the "
@@ -259,6 +275,92 @@ def main(argv=None) -> int:
     tmp.write_text(text)
     tmp.replace(out)
     print(text)
+    return results
+
+
+CAMPUS_TITLE = "Campus world: hinted init and no-hint relocalization over the whole map"
+
+
+def notes(small: dict, campus: dict | None) -> str:
+    """The notes under the tables, written from the figures just measured."""
+    m = small["methods"]
+    lines = ["### Notes (global initialization)", ""]
+    if "bbs+s0" in m:
+        o = m["bbs+s0"]
+        met = o["success"] >= 0.98 and o["err_m"] <= 0.05 and o["time_s"] <= 0.87
+        lines.append(
+            f"- Against the block-map paper's Table I (40 x 40 m window, i9, NCLT): ours 0.87 s / 0.05 m, plain BBS "
+            f"9.82 s / 5.00 m, FPFH+RANSAC 4,036 s / 0.26 m. Here, small world, 2 cores: BBS+S0 median "
+            f"{o['time_s']:.2f} s and {o['err_m']:.3f} m with {100 * o['success']:.0f}% success (issue targets "
+            f">= 98%, <= 0.05 m, <= 0.87 s: {'met' if met else '**missed**'}).")
+    if "bbs" in m and "bbs+s0" in m:
+        a, b = m["bbs+s0"], m["bbs"]
+        lines.append(
+            f"- Plain BBS: {100 * b['success']:.0f}% success, {b['err_m']:.3f} m, {b['time_s']:.2f} s, "
+            f"{b['nodes']:,.0f} nodes against BBS+S0's {a['nodes']:,.0f}. The bound is admissible in both, so both find "
+            "the same optimum; a depth-first search that dives best-child-first raises the threshold at its first "
+            "leaves, so S0 saves few nodes here. The paper's plain-BBS failure "
+            + ("does not reproduce." if b["success"] >= 0.9 else "reproduces."))
+    if "fpfh+ransac" in m:
+        f = m["fpfh+ransac"]
+        lines.append(
+            f"- FPFH+RANSAC (open3d): {100 * f['success']:.0f}% success, {f['time_s']:.2f} s median. Single sparse "
+            "scans and the denser accumulated map give different descriptors.")
+    if "bbs+s0/all" in m and "bbs+s0" in m:
+        a, b = m["bbs+s0"], m["bbs+s0/all"]
+        lines.append(
+            f"- Projection: the height band above local ground (0.3-3.0 m) against an occupancy of all points: "
+            f"{100 * a['success']:.0f}% vs {100 * b['success']:.0f}% success, {a['time_s']:.2f} vs {b['time_s']:.2f} s "
+            f"median ({a['nodes']:,.0f} vs {b['nodes']:,.0f} nodes: with the ground kept each node sums many more "
+            "scan cells).")
+    if campus:
+        c, r = campus["methods"].get("bbs+s0"), campus["reloc"]
+        if c:
+            lines.append(f"- Campus ({campus['map_points']:,} map points, full HDL-32E density), hinted: "
+                         f"{100 * c['success']:.0f}% of {c['frames']} frames, {c['err_m']:.3f} m, {c['time_s']:.2f} s median.")
+        if r:
+            lines.append(
+                f"- Campus, no hint: {100 * r['success']:.0f}% of {r['frames']} frames, {r['time_s']:.1f} s median; "
+                f"the match was found in region {r['rank']:.0f} of {r['regions']} (median), in the last region searched "
+                f"in {100 * r['last_rank_share']:.0f}% of frames"
+                + (" — the regions are ranked poorly, which is what makes it slow." if r["last_rank_share"] >= 0.3
+                   else "."))
+    for name, res in (("small", small), ("campus", campus)):
+        for meth, v in ((res or {}).get("methods") or {}).items():
+            if v["failed"]:
+                lines.append(f"- Failed frames ({name}, {meth}): " + ", ".join(
+                    f"{i} ({e:.2f} m off)" for i, e in v["failed"][:8]) + (" ..." if len(v["failed"]) > 8 else "") + ".")
+    lines += [
+        "- Verification: NDT fitness >= 0.75 and the above-ground points' inlier ratio >= 0.6; fitness alone "
+        "accepted wrong places hundreds of metres away on campus.",
+        "- Result time stamp: the pose is the body at mid-sweep (scan rotation-deskewed there with the gyro); "
+        "errors are against ground truth at that time.", ""]
+    return "\n".join(lines)
+
+
+def suite() -> int:
+    """``python -m bench.global_init`` with no arguments (as ``python -m bench all`` runs it): the small
+    world with every method, then the campus world (hinted and no-hint, ours only), then the notes."""
+    from bench.campus import default_map_dir, ensure_map as ensure_campus_map
+    from blockloc.config import load_config
+    from blockloc.fileio import atomic_write_text
+
+    small = run([])
+    cfg = load_config("sim", overrides={"map": {"block_size_m": 100.0}})
+    campus_map = default_map_dir("campus", 1, cfg.map)  # the store bench.campus tracks in: built once
+    ensure_campus_map("campus", 1, campus_map, cfg.map)
+    campus = run(["--preset", "campus", "--frames", "10", "--reloc-frames", "10", "--methods", "bbs+s0",
+                  "--map", str(campus_map), "--append", "--title", CAMPUS_TITLE])
+    out = REPO / "docs" / "bench" / "global_init.md"
+    atomic_write_text(out, out.read_text() + "\n" + notes(small, campus))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv:
+        return suite()
+    run(argv)
     return 0
 
 

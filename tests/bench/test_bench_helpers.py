@@ -166,3 +166,22 @@ def test_run_fragment_lists_every_part_with_its_time_and_exit(tmp_path, monkeypa
     text = (tmp_path / "run.md").read_text()
     assert "took **52 min**" in text
     assert "| ndt | 1.5 | 0 |" in text and "| campus | 50.0 | 1 |" in text
+
+
+def _gi_method(success, failed=()):
+    return {"frames": 10, "success": success, "err_m": 0.03, "err_deg": 0.05, "time_s": 0.4, "nodes": 1e5,
+            "failed": list(failed)}
+
+
+def test_global_init_notes_follow_the_figures():
+    from bench.global_init import notes
+
+    small = {"methods": {"bbs+s0": _gi_method(0.9, [(463, 4.3)]), "bbs": _gi_method(0.2)}, "reloc": None}
+    text = notes(small, {"map_points": 10, "methods": {}, "reloc": {"frames": 10, "success": 0.9, "time_s": 50.0,
+                                                                     "rank": 4, "regions": 4, "last_rank_share": 0.5}})
+    assert "**missed**" in text  # 90% success is below the 98% target
+    assert "failure reproduces" in text  # plain BBS at 20%
+    assert "463 (4.30 m off)" in text
+    assert "region 4 of 4" in text and "ranked poorly" in text
+    good = notes({"methods": {"bbs+s0": _gi_method(1.0), "bbs": _gi_method(1.0)}, "reloc": None}, None)
+    assert "met)" in good and "does not reproduce" in good and "Failed frames" not in good
