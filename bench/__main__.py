@@ -67,6 +67,8 @@ def assemble() -> Path:
 
 
 def _commit() -> str:
+    """HEAD's short hash, noting uncommitted changes to tracked files (taken before the run: the
+    run itself rewrites docs/)."""
     try:
         rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
                              check=True).stdout.strip()
@@ -77,14 +79,14 @@ def _commit() -> str:
         return "unknown (not a git checkout)"
 
 
-def write_run_fragment(spent: dict, started, total_s: float, load0: float) -> None:
+def write_run_fragment(spent: dict, started, total_s: float, load0: float, commit: str = "") -> None:
     """docs/bench/run.md: how long the whole suite took, part by part (the issue asks to say so)."""
     from blockloc.cache import cache_root
     from blockloc.fileio import atomic_write_text
 
     lines = ["## The whole suite in one command", "",
              f"`python -m bench all`, started {time.strftime('%Y-%m-%d %H:%M UTC', started)} at commit "
-             f"{_commit()}, took **{total_s / 60:.0f} min** on {machine()} (load average {load0:.1f} at the "
+             f"{commit or _commit()}, took **{total_s / 60:.0f} min** on {machine()} (load average {load0:.1f} at the "
              f"start, {os.getloadavg()[0]:.1f} at the end). Cache directory `{cache_root()}`"
              + (" (set by $BLOCKLOC_CACHE)" if os.environ.get("BLOCKLOC_CACHE") else "") + ": parts that find "
              "their simulated world or map there reuse it; an empty cache makes every part build its own.", "",
@@ -102,7 +104,7 @@ def main(argv: list[str]) -> int:
     if everything:
         names = [n for n in ORDER if (ROOT / "bench" / f"{n}.py").exists()]
     failed, spent = [], {}
-    started, load0, t_all = time.gmtime(), os.getloadavg()[0], time.time()
+    started, load0, t_all, commit = time.gmtime(), os.getloadavg()[0], time.time(), _commit()
     for name in names:
         t0 = time.time()
         print(f"== bench.{name}", flush=True)
@@ -112,7 +114,7 @@ def main(argv: list[str]) -> int:
         if rc:
             failed.append(name)
     if everything:
-        write_run_fragment(spent, started, time.time() - t_all, load0)
+        write_run_fragment(spent, started, time.time() - t_all, load0, commit)
     print(assemble())
     if failed:
         print("failed:", ", ".join(failed))
