@@ -59,6 +59,9 @@ class MapConfig:
     keyframe_distance_m: float = 1.0
     keyframe_angle_deg: float = 15.0
     switch_hysteresis_m: float = 5.0
+    # Also serve the nearest other block with a keyframe this close (0: one block, as the paper).
+    # 15 m: campus, first 1.1 km, ATE 0.063 -> 0.040 m (max 0.55 -> 0.11 m), resident map 59 -> 87 MB.
+    block_blend_m: float = 15.0
     # grid puzzle tiles (Byeon et al.)
     tile_size_m: float = 20.0
     # n = 2: a (2n+1)s = 100 m window. With n = 1 (60 m) a straight street between long walls left

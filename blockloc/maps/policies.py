@@ -73,16 +73,24 @@ class BlockPolicy:
     keyframes (the released layout) the distance is the centroid's. The active block changes only
     when another one is nearer by more than ``hysteresis_m``, so a robot driving along the border
     of two blocks does not flip between them.
+
+    With ``blend_m`` > 0 the region also holds the nearest other block that has a keyframe within
+    ``blend_m`` of the robot (at most two blocks): near the end of a block's drive its points lie
+    behind the robot, and a single block there measurably degrades the fit (campus, one block:
+    position error RMSE 0.09 m in the 20 scans around a switch against 0.04 m far from one; the
+    global map 0.04 m at both). The region is the sorted tuple of the block ids.
     """
 
     name = "block"
 
     def __init__(self, ids: Sequence[str], centroids: np.ndarray, hysteresis_m: float = 5.0,
-                 keyframes: Sequence[np.ndarray | None] | None = None):
+                 keyframes: Sequence[np.ndarray | None] | None = None, blend_m: float = 0.0):
         if len(ids) == 0:
             raise MapError("block map has no blocks")
         if hysteresis_m < 0:
             raise MapError(f"switch hysteresis {hysteresis_m!r} m: expected >= 0")
+        if not blend_m >= 0:
+            raise MapError(f"block blend distance {blend_m!r} m: expected >= 0")
         from scipy.spatial import cKDTree
 
         self.ids = list(ids)
@@ -95,6 +103,7 @@ class BlockPolicy:
         self.tree = cKDTree(np.concatenate(anchors))
         self._trees = [cKDTree(a) for a in anchors]
         self.hysteresis_m = float(hysteresis_m)
+        self.blend_m = float(blend_m)
         self.current: int | None = None
 
     def _choose(self, position, current: int | None) -> int:
@@ -106,12 +115,27 @@ class BlockPolicy:
         d_cur, _ = self._trees[current].query(p)
         return j if d_new + self.hysteresis_m < d_cur else current
 
+    def _region(self, current: int, position) -> Region:
+        if self.blend_m <= 0:
+            return (self.ids[current],)
+        p = np.asarray(position, np.float64)
+        others = {int(self._block_of[a]) for a in self.tree.query_ball_point(p, self.blend_m)} - {current}
+        if not others:
+            return (self.ids[current],)
+        nearest = min(others, key=lambda j: (self._trees[j].query(p)[0], j))
+        return tuple(sorted((self.ids[current], self.ids[nearest])))
+
     def select(self, position, velocity, stamp) -> Region:
         self.current = self._choose(position, self.current)
-        return (self.ids[self.current],)
+        return self._region(self.current, position)
 
     def peek(self, position, velocity) -> Region:
-        return (self.ids[self._choose(position, self.current)],)
+        return self._region(self._choose(position, self.current), position)
+
+    @property
+    def primary(self) -> str | None:
+        """The block the robot is in (the first of a blended pair is not necessarily it)."""
+        return None if self.current is None else self.ids[self.current]
 
     def ahead(self, position, velocity, horizon_m) -> Region | None:
         if velocity is None:
@@ -121,10 +145,10 @@ class BlockPolicy:
         if not np.isfinite(speed) or speed < 1e-3:
             return None
         region = self.peek(np.asarray(position, np.float64) + v / speed * horizon_m, velocity)
-        return region if self.current is None or region[0] != self.ids[self.current] else None
+        return region if self.current is None or region != self._region(self.current, position) else None
 
     def region_name(self, region: Region) -> str:
-        return region[0]
+        return "+".join(region)
 
 
 class GridPolicy:

@@ -44,7 +44,9 @@ class LocalMap:
     target: what ``target_builder`` returned for ``points`` (None when nothing is mapped here or no
     builder was given). points: (N, 3) float32 map frame, metres (read-only; do not modify).
     region_id: a readable name of the region; entry_ids: its blocks/tiles. switched: True exactly
-    on the update at which the active region changed (False on the first update: no previous map). block_id: the block (block backend) else None.
+    on the update at which the active region changed to one that does not hold every entry of the
+    last (False on the first update: no previous map). block_id: the block the robot is in (block
+    backend) else None.
     version: increases at every swap. missing: entries that failed to load (treated as unmapped).
     """
 
@@ -78,7 +80,7 @@ class MapProvider:
     None to serve points only. tiles_target_builder: optional ``{tile_id: points} -> target`` whose
     result has ``add_tile(id, points)`` / ``remove_tile(id)``; when given (grid/srt/global) targets
     are updated incrementally by tile instead of rebuilt.
-    hysteresis_m: block switching margin. grid_n, grid_k: grid window half-size and widening.
+    hysteresis_m: block switching margin. block_blend_m: see BlockPolicy. grid_n, grid_k: grid window half-size and widening.
     srt_radius_m, srt_rebuild_period_s: SRT-PM radius R' and period T. prefetch: build the region
     the robot will need next if it keeps its velocity for ``lookahead_s`` seconds (at least
     ``min_lookahead_m`` metres). cache_mb: bound on resident map memory (entry cache plus
@@ -90,7 +92,7 @@ class MapProvider:
     def __init__(self, store: MapStore, backend: str = "block", *,
                  target_builder: Callable[[np.ndarray], Any] | None = None,
                  tiles_target_builder: Callable[[Mapping[str, np.ndarray]], Any] | None = None,
-                 hysteresis_m: float = 5.0, grid_n: int = 2, grid_k: int = 1,
+                 hysteresis_m: float = 5.0, block_blend_m: float = 15.0, grid_n: int = 2, grid_k: int = 1,
                  srt_radius_m: float = 60.0, srt_rebuild_period_s: float = 10.0,
                  prefetch: bool = True, lookahead_s: float = 5.0, min_lookahead_m: float = 2.0,
                  cache_mb: float = 1024.0, max_spare_regions: int = 2,
@@ -113,7 +115,8 @@ class MapProvider:
         self.retry_missing_s = float(retry_missing_s)
         self._last_retry = -np.inf
         self._rebuilding: set[Region] = set()  # the active region, being rebuilt to fill gaps
-        self.policy = self._make_policy(hysteresis_m, grid_n, grid_k, srt_radius_m, srt_rebuild_period_s)
+        self.policy = self._make_policy(hysteresis_m, block_blend_m, grid_n, grid_k, srt_radius_m,
+                                        srt_rebuild_period_s)
 
         self._lock = threading.Condition()
         self._cache: OrderedDict[str, np.ndarray] = OrderedDict()  # entry id -> points (N, 3)
@@ -140,12 +143,12 @@ class MapProvider:
         """From a :class:`~blockloc.config.MapConfig` (``backend`` overrides ``cfg.backend``)."""
         return cls(store, backend or cfg.backend, target_builder=target_builder,
                    tiles_target_builder=tiles_target_builder, hysteresis_m=cfg.switch_hysteresis_m,
-                   grid_n=cfg.grid_n, grid_k=cfg.grid_k, srt_radius_m=cfg.srt_radius_m,
+                   block_blend_m=cfg.block_blend_m, grid_n=cfg.grid_n, grid_k=cfg.grid_k, srt_radius_m=cfg.srt_radius_m,
                    srt_rebuild_period_s=cfg.srt_rebuild_period_s, prefetch=cfg.prefetch,
                    lookahead_s=cfg.prefetch_lookahead_s, cache_mb=cfg.cache_mb,
                    retry_missing_s=cfg.retry_missing_s)
 
-    def _make_policy(self, hysteresis_m, grid_n, grid_k, srt_radius_m, srt_rebuild_period_s):
+    def _make_policy(self, hysteresis_m, block_blend_m, grid_n, grid_k, srt_radius_m, srt_rebuild_period_s):
         st = self.store
         if self.backend == "global":
             return GlobalPolicy(st.ids)
@@ -154,7 +157,7 @@ class MapProvider:
                 raise MapError(f"{st.path}: the 'block' backend needs a block map, this is a "
                                f"{st.kind} map (use --map-backend grid, srt or global)")
             return BlockPolicy(st.ids, st.centroids(), hysteresis_m,
-                               keyframes=[e.keyframes for e in st.entries])
+                               keyframes=[e.keyframes for e in st.entries], blend_m=block_blend_m)
         if st.kind != "grid":
             raise MapError(f"{st.path}: the '{self.backend}' backend needs a grid map, this is a "
                            f"{st.kind} map (build one with 'blockloc map build --kind grid')")
@@ -197,7 +200,9 @@ class MapProvider:
                 pass
             elif self._active is None or wanted != self._active.region:
                 if wanted in self._ready:
-                    switched = self._active is not None  # the first map is no switch
+                    # The first map is no switch, nor a region that only adds to the last one
+                    # (a blended block pair after its first block): the window keeps its states.
+                    switched = self._active is not None and not set(wanted) >= set(self._active.region)
                     self._swap(wanted)
                 else:
                     self._stats["late_frames"] += 1
@@ -246,8 +251,13 @@ class MapProvider:
         b = self._active
         return LocalMap(target=b.target, points=b.points, region_id=b.name, entry_ids=b.region,
                         switched=switched,
-                        block_id=b.region[0] if self.backend == "block" else None,
+                        block_id=self._block_id(b.region) if self.backend == "block" else None,
                         version=self._version, num_points=len(b.points), missing=b.missing)
+
+    def _block_id(self, region: Region) -> str:
+        """The block the robot is in, when the served region holds it (a blended pair holds two)."""
+        primary = self.policy.primary
+        return primary if primary in region else region[0]
 
     def _swap(self, region: Region) -> None:
         new = self._ready.pop(region)

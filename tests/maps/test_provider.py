@@ -84,6 +84,47 @@ def test_block_policy_follows_the_blocks_keyframes_not_their_centroids():
     assert mixed.select(np.array([60.0, 4.0, 0]), None, 0) == ("b",)
 
 
+def test_block_policy_blend_serves_the_next_block_near_the_end_of_a_drive():
+    # two drives along x: block a's keyframes 0..50 m, block b's 50..100 m (b starts where a ends)
+    kf_a = np.c_[np.arange(0, 51, 1.0), np.zeros((51, 2))]
+    kf_b = np.c_[np.arange(50, 101, 1.0), np.zeros((51, 2))]
+    cents = np.array([[25.0, 0, 0], [75.0, 0, 0]])
+    single = BlockPolicy(["a", "b"], cents, hysteresis_m=5.0, keyframes=[kf_a, kf_b])
+    blend = BlockPolicy(["a", "b"], cents, hysteresis_m=5.0, keyframes=[kf_a, kf_b], blend_m=10.0)
+    seen = {}
+    for x in np.arange(0, 101, 1.0):
+        p = np.array([x, 0.0, 0.0])
+        seen[x] = (single.select(p, None, 0.0), blend.select(p, None, 0.0), blend.primary)
+        assert seen[x][2] == single.primary  # blending never changes which block the robot is in
+    assert seen[30.0][1] == ("a",) and seen[95.0][1] == ("b",)  # far from the other drive: one block
+    assert seen[45.0][1] == ("a", "b") and seen[45.0][0] == ("a",)  # 5 m before a ends: both
+    assert seen[58.0][1] == ("a", "b") and seen[58.0][0] == ("b",)  # past the switch, a still near
+    # the blended region holds the primary block at every position, and at most two blocks
+    assert all(v[2] in v[1] and len(v[1]) <= 2 for v in seen.values())
+    with pytest.raises(MapError, match="blend"):
+        BlockPolicy(["a"], cents[:1], blend_m=-1.0)
+
+
+def test_blended_block_provider_reports_one_switch_per_border(tmp_path):
+    store = _block_store(tmp_path / "m", [[0, 0, 0], [60, 0, 0], [120, 0, 0]])
+    with MapProvider(store, "block", target_builder=CountingBuilder(), hysteresis_m=4.0,
+                     block_blend_m=0.0) as prov:
+        single = _drive(prov, np.arange(0, 125, 1.0))
+    # centroid-only blocks: blending adds the other block while its centroid is within blend_m
+    with MapProvider(store, "block", target_builder=CountingBuilder(), hysteresis_m=4.0,
+                     block_blend_m=35.0) as prov:
+        maps = _drive(prov, np.arange(0, 125, 1.0))
+    assert [m.block_id for m in maps] == [m.block_id for m in single]
+    regions = [m.entry_ids for m in maps]
+    assert ("000", "001") in regions and ("001", "002") in regions
+    # ('000',) -> ('000','001') only adds map: no switch; ('000','001') -> ('001',) or -> ('001','002') is one
+    flips = [i for i in range(1, len(maps)) if regions[i] != regions[i - 1]]
+    assert len(flips) > 2
+    assert [i for i, m in enumerate(maps) if m.switched] == [
+        i for i in flips if not set(regions[i]) >= set(regions[i - 1])]
+    assert sum(m.switched for m in maps) == 2
+
+
 def test_block_provider_switch_reported_once_and_in_background(tmp_path):
     store = _block_store(tmp_path / "m", [[0, 0, 0], [60, 0, 0], [120, 0, 0]])
     builder = CountingBuilder()
