@@ -23,6 +23,9 @@ import numpy as np
 
 from blockloc.fileio import atomic_write_text, to_jsonable
 
+# per-frame columns every run records (saved to its .npz)
+ROW_COLUMNS = ("index", "core_ms", "update_ms", "map_ms", "registration_ms", "switched", "status", "window",
+               "active_points")
 STATUS_CODES = {"ok": 0, "rejected": 1, "imu_only": 2, "lost": 3, "recovered": 4, "uninitialized": 5}
 ODOM = "odom"  # the map-free baseline built from our parts: this tracker + a rolling map of its own scans
 KISS = "kiss-icp"  # the map-free LiDAR-only baseline from PyPI (optional: pip install kiss-icp)
@@ -58,9 +61,7 @@ class KissRun:
         self.T_lidar_body = np.linalg.inv(self.info.T_body_lidar)
         self.stamps: list[float] = []
         self.poses: list[np.ndarray] = []
-        cols = ("index", "core_ms", "update_ms", "map_ms", "registration_ms", "switched", "status", "window",
-                "active_points")
-        self.rows: dict[str, list] = {c: [] for c in cols}
+        self.rows: dict[str, list] = {c: [] for c in ROW_COLUMNS}
 
     def step(self, frame) -> None:
         t = (np.asarray(frame.time_offsets, np.float64) if frame.time_offsets is not None
@@ -228,9 +229,7 @@ class BackendRun:
         self.j = int(np.searchsorted(p.imu.t, p.stamps[start] - 1.0))
         self.stamps: list[float] = []
         self.poses: list[np.ndarray] = []
-        cols = ("index", "core_ms", "update_ms", "map_ms", "registration_ms", "switched", "status", "window",
-                "active_points")
-        self.rows: dict[str, list] = {c: [] for c in cols}
+        self.rows: dict[str, list] = {c: [] for c in ROW_COLUMNS}
 
     def step(self, frame) -> None:
         imu, tr = self.pipe.imu, self.pipe.tracker
