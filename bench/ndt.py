@@ -98,7 +98,7 @@ def _median_ms(times) -> float:
 def main(argv: list[str] | None = None) -> int:
     from bench.__main__ import machine
     from blockloc.registration.ndt import NdtRegistration, NdtTarget
-    from blockloc.registration.voxels import voxel_downsample
+    from blockloc.voxels import voxel_downsample
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=30, help="starts per configuration")
@@ -113,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     tgt = _read_xyz(d / "target.pcd")
     src_raw = _read_xyz(d / "source.pcd")
     T_ref = np.loadtxt(d / "T_target_source.txt")
-    scan = voxel_downsample(src_raw, 0.15)
+    scan = voxel_downsample(src_raw, 0.15)[0]
 
     rng = np.random.default_rng(0)
     copies = [tgt] + [tgt + np.array([400.0 * (k % 5 + 1), 400.0 * (k // 5), 0.0])

@@ -100,7 +100,7 @@ def main(argv=None) -> int:
 
     from bench.__main__ import machine
     from blockloc.datasets import open_sequence
-    from blockloc.demo import prepare_small_world
+    from blockloc.commands.demo import prepare_small_world
 
     paths, cfg = prepare_small_world()
     block, grid = paths.block_map, grid_map(paths, cfg)

@@ -274,21 +274,16 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
 
 
 def preset_for_sequence(seq: str) -> str | None:
-    """The preset that fits a ``--seq`` value: 'sim' for simulated sessions (``sim:...`` or a
-    path written by ``blockloc sim``, which leaves ``sim.json`` beside its sessions), 'nclt' for
-    ``nclt_N`` and NCLT-layout directories, 'm2dgr' for ``m2dgr_N``; None otherwise."""
-    if seq.startswith("sim:"):
-        return "sim"
-    if seq.startswith("nclt_"):
-        return "nclt"
-    if seq.startswith("m2dgr_"):
-        return "m2dgr"
-    path = Path(seq)
-    if (path.parent / "sim.json").is_file():
-        return "sim"
-    if (path / "velodyne_sync").is_dir():
-        return "nclt"
-    return None
+    """The preset that fits a ``--seq`` value (``blockloc.datasets.refs.SequenceRef.preset``):
+    'sim' for simulated sessions, 'nclt' for NCLT, 'm2dgr' for M2DGR, None otherwise (also for
+    a value that names nothing: opening it will say why)."""
+    from blockloc.datasets.refs import SequenceRef
+    from blockloc.errors import DatasetError
+
+    try:
+        return SequenceRef.parse(seq).preset
+    except DatasetError:
+        return None
 
 
 def load_config_for_sequence(seq: str, config: str | Path | None = None) -> Config:
@@ -300,7 +295,6 @@ def save_config(cfg: Config, path: str | Path) -> None:
     """Write ``cfg`` as YAML, atomically."""
     import yaml
 
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
-    tmp.replace(path)
+    from blockloc.fileio import atomic_write_text
+
+    atomic_write_text(path, yaml.safe_dump(cfg.to_dict(), sort_keys=False))

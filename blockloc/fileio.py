@@ -1,4 +1,10 @@
-"""Atomic file writes: a reader sees the old file or the new one, never half of one."""
+"""Files blockloc writes: atomically (a reader sees the old file or the new one, never half of
+one), and replacing only what blockloc made.
+
+Replace-only-what-we-made: a directory is replaced or written into only when it is empty or
+carries one of blockloc's markers (:data:`OUTPUT_MARKERS`: a map store's manifest, a simulated
+dataset's sidecar, a results folder's metrics); anything else is the user's and is never deleted.
+"""
 
 from __future__ import annotations
 
@@ -47,12 +53,56 @@ def atomic_write_text(path: str | Path, text: str) -> None:
         tmp.write_text(text)
 
 
+def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
+    """Save a matplotlib figure atomically (the format from ``path``'s suffix) and close it."""
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    try:
+        with atomic_path(path, suffix=path.suffix) as tmp:
+            fig.savefig(tmp, dpi=dpi)
+    finally:
+        plt.close(fig)
+    return path
+
+
+#: Files that mark a directory as blockloc's own output: a map store, a simulated dataset
+#: (``blockloc sim``), a results folder (``blockloc track``), an NCLT-layout session it wrote.
+OUTPUT_MARKERS = ("manifest.json", "sim.json", "metrics.json", "blockloc_session.json")
+
+
+def is_blockloc_output(path: str | Path) -> bool:
+    """True for a directory blockloc made (it holds one of :data:`OUTPUT_MARKERS`) or an empty one."""
+    path = Path(path)
+    if not path.is_dir() or path.is_symlink():
+        return False
+    names = {p.name for p in path.iterdir()}
+    return not names or bool(names & set(OUTPUT_MARKERS))
+
+
+def check_replaceable(path: str | Path, option: str = "--out") -> None:
+    """Raise BlocklocError (one line naming ``path``) unless ``path`` is absent, an empty
+    directory, or a directory blockloc made: the check before any work that will replace it."""
+    from blockloc.errors import BlocklocError
+
+    path = Path(path)
+    if path.is_symlink() or (path.exists() and not path.is_dir()):
+        raise BlocklocError(f"{option} {path}: exists and is not a directory; blockloc replaces only "
+                            "directories it made (choose another path)")
+    if path.exists() and not is_blockloc_output(path):
+        raise BlocklocError(f"{option} {path}: a directory blockloc did not make (no "
+                            f"{' / '.join(OUTPUT_MARKERS)}); not replacing it (choose another path "
+                            "or empty it)")
+
+
 def replace_dir(src: str | Path, dst: str | Path) -> None:
     """Move the finished directory ``src`` to ``dst``, replacing any ``dst`` as whole as possible:
-    the old one is renamed aside first and removed only after the new one is in place."""
+    the old one is renamed aside first and removed only after the new one is in place. A ``dst``
+    that blockloc did not make (:func:`check_replaceable`) is never replaced."""
     import shutil
 
     src, dst = Path(src), Path(dst)
+    check_replaceable(dst, "output")
     old = None
     if dst.exists():
         old = Path(tempfile.mkdtemp(prefix=f".{dst.name}.old-", dir=dst.parent))

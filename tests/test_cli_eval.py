@@ -112,4 +112,4 @@ def test_eval_options_interpolate_and_rpe_deltas(tum_pair):
     assert m["association"] == "interpolated" and m["rpe_deltas_m"] == [2.0, 5.0]
     assert m["rpe_5m_pairs"] > 0 and "rpe_10m_pairs" not in m
     res = blockloc("eval", "--gt", str(gt), "--est", str(est), "--rpe-deltas", "a")
-    assert res.returncode != 0 and res.stderr.strip().startswith("error: RPE deltas 'a'")
+    assert res.returncode != 0 and res.stderr.strip().startswith("error: --rpe-deltas 'a'")

@@ -27,7 +27,8 @@ from blockloc.global_init.bnb import Candidate2D, make_angles, required_cells, r
 from blockloc.global_init.maps import ArrayMap, ProjectionParams, StoreMap
 from blockloc.global_init.pyramid import extend
 from blockloc.global_init.projection import ScanProjection, heading_offset, project_scan
-from blockloc.global_init.refine import Refiner, voxel_downsample
+from blockloc.global_init.refine import Refiner
+from blockloc.voxels import voxel_select
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +59,7 @@ class InitParams:
     max_ndt_points: int = 3000
     ambiguity_score_ratio: float = 0.8  # once one is verified, refine others only above this x best
     refine_range_m: float = 50.0
-    reloc_window_m: float = 500.0
+    reloc_window_m: float = 100.0
     max_regions: int = 0  # 0: every region of the map
     num_threads: int = 2
 
@@ -125,19 +126,27 @@ def _check_args(window_m: float, yaw_window_deg: float) -> None:
 class GlobalLocalizer:
     """Global initialization against one map (ArrayMap or StoreMap), reusable across scans."""
 
-    def __init__(self, map_source, params: InitParams | None = None):
+    def __init__(self, map_source, params: InitParams | None = None, engine=None):
         self.map = map_source
         self.params = params or InitParams()
+        if engine is None:  # the default engine at the refinement resolution
+            from blockloc.registration.engines import make_engine
+
+            engine = make_engine("ndt", resolution_m=self.params.ndt_resolution_m,
+                                 num_threads=self.params.num_threads)
+        self.engine = engine  # refines and verifies candidates
 
     @classmethod
-    def for_store(cls, store, gravity_map, params: InitParams | None = None, cache_dir=None) -> "GlobalLocalizer":
+    def for_store(cls, store, gravity_map, params: InitParams | None = None, cache_dir=None,
+                  engine=None) -> "GlobalLocalizer":
         params = params or InitParams()
-        return cls(StoreMap(store, gravity_map, params.projection_params, cache_dir), params)
+        return cls(StoreMap(store, gravity_map, params.projection_params, cache_dir), params, engine)
 
     @classmethod
-    def for_points(cls, map_points, gravity_map, params: InitParams | None = None) -> "GlobalLocalizer":
+    def for_points(cls, map_points, gravity_map, params: InitParams | None = None,
+                   engine=None) -> "GlobalLocalizer":
         params = params or InitParams()
-        return cls(ArrayMap(map_points, gravity_map, params.projection_params), params)
+        return cls(ArrayMap(map_points, gravity_map, params.projection_params), params, engine)
 
     # ------------------------------------------------------------------------- public
 
@@ -154,7 +163,7 @@ class GlobalLocalizer:
         _check_args(window_m, yaw_window_deg)
         scan = project_scan(points_body, gravity_body, p.resolution_m, p.band_m, p.projection, p.max_range_m,
                             p.max_scan_cells, p.min_scan_cells)
-        scan_ndt = voxel_downsample(points_body, p.scan_voxel_m)
+        scan_ndt = points_body[voxel_select(points_body, p.scan_voxel_m)]
         scan_ndt = scan_ndt[np.linalg.norm(scan_ndt, axis=1) <= p.max_range_m]
         if len(scan_ndt) > p.max_ndt_points:
             rng = np.random.default_rng(0)
@@ -244,7 +253,7 @@ class GlobalLocalizer:
                 if np.all(np.abs(xy - centre) <= 0.5 * d):
                     return ref
             pts = self.map.points_in_box(xy - d, xy + d)
-            ref = Refiner(pts, p.ndt_resolution_m, p.num_threads) if len(pts) >= 100 else None
+            ref = Refiner(self.engine, pts) if len(pts) >= 100 else None
             targets.append((xy, ref))
             return ref
 

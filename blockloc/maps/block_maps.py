@@ -28,7 +28,8 @@ from typing import Iterable
 import numpy as np
 
 from blockloc.errors import MapError
-from blockloc.maps.mapping import Keyframe, mapping_keyframes, voxel_downsample
+from blockloc.maps.mapping import Keyframe, mapping_keyframes
+from blockloc.voxels import voxel_downsample
 
 log = logging.getLogger(__name__)
 
@@ -125,8 +126,8 @@ class BlockMapBuilder:
         self._raw_count += len(pts)
         if self._raw_count > _COMPACT_POINTS and self.voxel_size_m > 0:
             p, i = self._gather()
-            p, i = voxel_downsample(p, i, self.voxel_size_m)
-            self._parts = [(p, i)]
+            p, i = voxel_downsample(p, self.voxel_size_m, i)
+            self._parts = [(p.astype(np.float32), i)]
             self._raw_count = len(p)
 
     def _gather(self) -> tuple[np.ndarray, np.ndarray | None]:
@@ -137,7 +138,8 @@ class BlockMapBuilder:
 
     def _close(self, tail_into: int | None = None) -> None:
         pts, inten = self._gather()
-        pts, inten = voxel_downsample(pts, inten, self.voxel_size_m)
+        pts, inten = voxel_downsample(pts, self.voxel_size_m, inten)
+        pts = pts.astype(np.float32)
         kf_ids = list(self._kf_ids)
         self._parts, self._raw_count, self._kf_ids, self._carried = [], 0, [], None
         if len(pts) == 0:
@@ -177,8 +179,9 @@ class BlockMapBuilder:
     def _merge(self, j, pts, inten, kf_ids, d, action) -> None:
         b = self.blocks[j]
         merged_i = None if (b.intensity is None or inten is None) else np.concatenate([b.intensity, inten])
-        b.points, b.intensity = voxel_downsample(np.concatenate([b.points, pts]), merged_i,
-                                                 self.voxel_size_m)
+        merged, b.intensity = voxel_downsample(np.concatenate([b.points, pts]), self.voxel_size_m,
+                                               merged_i)
+        b.points = merged.astype(np.float32)
         b.centroid = b.points.astype(np.float64).mean(axis=0)
         b.keyframes.extend(k for k in kf_ids if k not in set(b.keyframes))
         self._last_target = j

@@ -57,36 +57,6 @@ def select_keyframes(poses: np.ndarray, distance_m: float, angle_deg: float) -> 
     return np.asarray(keep, dtype=np.int64)
 
 
-def voxel_downsample(points: np.ndarray, intensity: np.ndarray | None, voxel_size_m: float
-                     ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Mean of the points (and intensities) in each cubic voxel of side ``voxel_size_m``.
-
-    points: (N, 3) map frame, metres -> (M, 3) float32 (voxels in a deterministic order).
-    ``voxel_size_m <= 0`` returns the input unchanged (as float32).
-    """
-    pts = np.asarray(points)
-    if voxel_size_m <= 0 or len(pts) == 0:
-        return pts.astype(np.float32), None if intensity is None else np.asarray(intensity, np.float32)
-    keys = np.floor(pts.astype(np.float64) / voxel_size_m).astype(np.int64)
-    keys -= keys.min(axis=0)
-    span = keys.max(axis=0) + 1
-    if np.prod(span.astype(np.float64)) < 2**62:
-        flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
-        _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    else:  # astronomically large extents: unique rows instead of a flat key
-        _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
-    m = len(counts)
-    out = np.empty((m, 3), np.float64)
-    for k in range(3):
-        out[:, k] = np.bincount(inverse, weights=pts[:, k], minlength=m) / counts
-    out_i = None
-    if intensity is not None:
-        out_i = (np.bincount(inverse, weights=np.asarray(intensity, np.float64), minlength=m)
-                 / counts).astype(np.float32)
-    return out.astype(np.float32), out_i
-
-
 def scan_to_map(points: np.ndarray, time_offsets: np.ndarray | None, stamp: float,
                 trajectory: Trajectory, T_body_lidar: np.ndarray,
                 deskew: bool = True) -> np.ndarray:

@@ -143,6 +143,7 @@ class Tracker:
         self._last_good: np.ndarray | None = None
         self._bad_streak = 0
         self._lost_frames = 0
+        self.last_scan_lidar: np.ndarray | None = None  # the last deskewed registration input (N, 3)
         self.counters = {"frames": 0, "failures": 0, "recoveries": 0, "switches": 0, "rejected": 0,
                          "imu_only": 0}
 
@@ -248,6 +249,7 @@ class Tracker:
         T_pred, v_pred, scan_pts = self._predict_and_deskew(points, offsets, stamp, t_prev, state_prev,
                                                             bias_prev)
         diag.deskew_ms = (time.perf_counter() - t0) * 1e3
+        self.last_scan_lidar = scan_pts
 
         # 3. the local map at the predicted position.
         t0 = time.perf_counter()

@@ -11,7 +11,7 @@ import pytest
 from blockloc.config import DatasetConfig
 from blockloc.datasets import open_sequence
 from blockloc.datasets.nclt import NCLT_T_BODY_LIDAR, NcltSequence, write_session
-from blockloc.datasets.registry import M2DGR_T_BODY_LIDAR, resolve_data_root
+from blockloc.datasets.refs import M2DGR_T_BODY_LIDAR, resolve_data_root
 from blockloc.datasets.rosbag import RosbagSequence, write_rosbag
 from blockloc.errors import DatasetError
 

@@ -10,7 +10,7 @@ from blockloc.errors import MapError
 from blockloc.geometry import xyzrpy_to_T
 from blockloc.maps.block_maps import BlockMapBuilder, build_block_map, build_block_map_from_sequence
 from blockloc.maps.grid_tiles import build_grid_map_from_sequence, tile_bounds
-from blockloc.maps.mapping import scan_to_map, select_keyframes, voxel_downsample
+from blockloc.maps.mapping import scan_to_map, select_keyframes
 from blockloc.maps.store import open_map
 
 from .synthetic import MemorySequence, route, world_points
@@ -87,14 +87,6 @@ def test_empty_and_bad_input():
         build_block_map([])
     with pytest.raises(MapError, match="block size"):
         BlockMapBuilder(block_size_m=0)
-
-
-def test_voxel_downsample_means():
-    pts = np.array([[0.05, 0.05, 0.05], [0.15, 0.05, 0.05], [1.05, 0, 0]])
-    p, i = voxel_downsample(pts, np.array([1.0, 3.0, 5.0]), 1.0)
-    order = np.argsort(p[:, 0])
-    np.testing.assert_allclose(p[order], [[0.1, 0.05, 0.05], [1.05, 0, 0]], atol=1e-6)
-    np.testing.assert_allclose(i[order], [2.0, 5.0])
 
 
 def test_select_keyframes_distance_and_angle():

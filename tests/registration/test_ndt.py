@@ -446,11 +446,3 @@ def test_no_overlap_is_not_converged(scene):
     assert res.num_inliers == 0 and res.fitness == 0.0 and res.score == 0.0
     assert not res.converged
     np.testing.assert_array_equal(res.T_target_source, np.eye(4))
-
-
-def test_voxel_downsample():
-    from blockloc.registration.voxels import voxel_downsample
-
-    pts = np.array([[0.1, 0.1, 0.1], [0.3, 0.3, 0.3], [1.5, 0.2, 0.2], [np.nan, 0, 0]])
-    out = voxel_downsample(pts, 1.0)
-    np.testing.assert_allclose(out, [[0.2, 0.2, 0.2], [1.5, 0.2, 0.2]])

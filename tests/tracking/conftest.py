@@ -9,7 +9,7 @@ import pytest
 @pytest.fixture(scope="session")
 def small_world():
     """(DemoPaths, Config): <dataset>/map and <dataset>/loc in NCLT layout, and their block map."""
-    from blockloc.demo import prepare_small_world
+    from blockloc.commands.demo import prepare_small_world
 
     paths, cfg = prepare_small_world()
     return paths, cfg

@@ -1,9 +1,10 @@
 """``blockloc demo``: the whole system on the `small` simulated world, from nothing, in minutes.
 
 Steps: simulate the world's two sessions (cached under ``$BLOCKLOC_CACHE`` or ``~/.cache/blockloc``),
-build the block map from the mapping session (cached), initialize on the localization session
-by branch-and-bound from a noisy position hint (yaw unknown), track with the sliding window,
-evaluate against ground truth and write the report.
+build the block map from the mapping session (cached where ``blockloc track --seq sim:small/loc``
+looks for it), initialize on the localization session by branch-and-bound from a noisy position
+hint (yaw unknown), track with the sliding window, evaluate against ground truth and write the
+results folder.
 """
 
 from __future__ import annotations
@@ -16,10 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from blockloc.cache import cache_root, fingerprint
-from blockloc.pipeline import LocalizationPipeline, TrackResult
-
-log = logging.getLogger(__name__)
+log = logging.getLogger("blockloc")
 
 PRESET = "small"
 SEED = 1
@@ -33,18 +31,21 @@ class DemoPaths:
 
     @classmethod
     def default(cls, preset: str = PRESET, seed: int = SEED, map_cfg=None) -> "DemoPaths":
-        """Cache paths keyed by what made them: the simulator's code, preset and seed; then the
-        map builder's code and the block parameters of ``map_cfg`` (default: the sim preset's)."""
+        """Cache paths keyed by what made them: the simulator's code, preset and seed; the block
+        map is the default map of ``sim:<preset>/loc@<seed>`` for the block settings of
+        ``map_cfg`` (default: the sim preset's)."""
+        from blockloc.cache import cache_root, fingerprint
+        from blockloc.commands.common import map_params
+        from blockloc.datasets.refs import SequenceRef
+
         if map_cfg is None:
             from blockloc.config import load_config
 
             map_cfg = load_config("sim").map
         world = fingerprint("blockloc.sim", "blockloc.datasets.nclt", params=(preset, seed))
-        block_params = (map_cfg.block_size_m, map_cfg.keyframe_distance_m,
-                        map_cfg.keyframe_angle_deg, map_cfg.voxel_size_m)
-        blocks = fingerprint("blockloc.maps", "blockloc.datasets", params=(world, block_params))
-        base = cache_root() / "sim" / f"{preset}_{seed}-{world}"
-        return cls(base, cache_root() / "maps" / f"{preset}_{seed}_block-{blocks}")
+        ref = SequenceRef.parse(f"sim:{preset}/loc@{seed}")
+        return cls(cache_root() / "sim" / f"{preset}_{seed}-{world}",
+                   ref.default_map_path("block", map_params=map_params(map_cfg, "block")))
 
 
 def ensure_dataset(paths: DemoPaths, preset: str = PRESET, seed: int = SEED,
@@ -57,7 +58,10 @@ def ensure_dataset(paths: DemoPaths, preset: str = PRESET, seed: int = SEED,
         return paths.dataset
     say(f"world: simulating the '{preset}' world (seed {seed}) into {paths.dataset} ...")
     t0 = time.perf_counter()
-    generate_dataset(preset, seed, paths.dataset)
+    from blockloc.commands.common import progress
+
+    with progress("simulating") as cb:
+        generate_dataset(preset, seed, paths.dataset, progress=lambda session, done, total: cb(done, total))
     say(f"world: done in {time.perf_counter() - t0:.0f} s")
     return paths.dataset
 
@@ -107,15 +111,37 @@ def noisy_hint(seq, seed: int = SEED, noise_m: float = HINT_NOISE_M) -> tuple[fl
     return float(p[0] + dx), float(p[1] + dy), None
 
 
-def run_demo(out: Path, cfg=None, *, say: Callable[[str], None] = log.info,
-             progress: Callable[[int, int], None] | None = None, max_frames: int | None = None) -> TrackResult:
-    """Run the demo; results in ``out``. Returns the pipeline's result (metrics include 'init')."""
+def demo_session(cfg=None, *, out: Path | None = None, observers=(), say: Callable[[str], None] = log.info,
+                 keep_estimates: bool = False):
+    """(Session on the small world's localization session in its block map, the hint)."""
     from blockloc.datasets import open_sequence
+    from blockloc.maps.store import open_map
+    from blockloc.session import Session
 
     paths, cfg = prepare_small_world(cfg, say=say)
     seq = open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset)
-    hint = noisy_hint(seq)
+    session = Session.from_config(cfg, seq, open_map(paths.block_map), backend="block", observers=observers,
+                                  out_dir=out, keep_estimates=keep_estimates,
+                                  facts={"map": str(paths.block_map)})
+    return session, noisy_hint(seq)
+
+
+def demo_command(out: Path | None, max_frames: int | None) -> None:
+    from blockloc.commands.common import check_results_dir, console, results_dir
+    from blockloc.commands.track import print_track_summary, run_tracking
+    from blockloc.evaluation.results import RunWriter
+
+    con = console()
+    out_dir = results_dir(out, "demo")
+    check_results_dir(out_dir)
+
+    def say(msg: str) -> None:
+        con.print(f"[bold cyan]demo[/] {msg}")
+
+    session, hint = demo_session(out=out_dir, observers=[RunWriter(out_dir)], say=say)
     say(f"global init: branch-and-bound around the hint ({hint[0]:.1f}, {hint[1]:.1f}), yaw unknown")
-    pipe = LocalizationPipeline(seq, cfg=cfg, map_path=paths.block_map, backend="block", init="pose",
-                                init_pose=hint, out=out, progress=progress, max_frames=max_frames)
-    return pipe.run()
+    res = run_tracking(session, mode="pose", hint=hint, out_dir=out_dir, max_frames=max_frames)
+    init = res.metrics.get("init") or {}
+    if init.get("time_s") is not None:
+        say(f"global init: {init.get('error_m', float('nan')):.2f} m from the truth in {init['time_s']:.2f} s")
+    print_track_summary(con, res.metrics, res.out_dir)

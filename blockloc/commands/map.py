@@ -1,0 +1,127 @@
+"""``blockloc map build | tile | info | plot | serve``."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger("blockloc")
+
+
+def build_map(seq, kind: str, out: str | Path, map_cfg, *, overwrite: bool = False,
+              progress: bool = True, max_frames: int | None = None):
+    """Build a block or grid store from a mapping sequence with the ``MapConfig`` settings."""
+    from blockloc.errors import MapError
+
+    if kind == "block":
+        from blockloc.maps.block_maps import build_block_map_from_sequence
+
+        return build_block_map_from_sequence(
+            seq, block_size_m=map_cfg.block_size_m, keyframe_distance_m=map_cfg.keyframe_distance_m,
+            keyframe_angle_deg=map_cfg.keyframe_angle_deg, voxel_size_m=map_cfg.voxel_size_m, out=out,
+            progress=progress, overwrite=overwrite, max_frames=max_frames)
+    if kind == "grid":
+        from blockloc.maps.grid_tiles import build_grid_map_from_sequence
+
+        return build_grid_map_from_sequence(
+            seq, tile_size_m=map_cfg.tile_size_m, keyframe_distance_m=map_cfg.keyframe_distance_m,
+            keyframe_angle_deg=map_cfg.keyframe_angle_deg, voxel_size_m=map_cfg.voxel_size_m, out=out,
+            progress=progress, overwrite=overwrite, max_frames=max_frames)
+    raise MapError(f"--kind {kind!r}: expected block or grid")
+
+
+def build_command(seq: str, kind: str, out: Path, config: str | None, data_root: str | None,
+                  block_size: float | None, tile_size: float | None, voxel: float | None,
+                  max_frames: int | None, overwrite: bool) -> None:
+    import dataclasses
+
+    from blockloc.commands.common import config_for, console
+    from blockloc.datasets import open_sequence
+    from blockloc.maps.summary import map_summary
+
+    cfg = config_for(seq, config)
+    overrides = {k: v for k, v in (("block_size_m", block_size), ("tile_size_m", tile_size),
+                                   ("voxel_size_m", voxel)) if v is not None}
+    map_cfg = dataclasses.replace(cfg.map, **overrides)
+    sequence = open_sequence(seq, data_root=data_root, dataset_cfg=cfg.dataset)
+    store = build_map(sequence, kind, out, map_cfg, overwrite=overwrite, max_frames=max_frames)
+    print_summary(map_summary(store), console())
+
+
+def tile_command(global_pcd: Path, tile_size: float, out: Path, overwrite: bool) -> None:
+    from blockloc.commands.common import console
+    from blockloc.maps.grid_tiles import tile_pcd_file
+    from blockloc.maps.summary import map_summary
+
+    store = tile_pcd_file(global_pcd, tile_size, out, overwrite=overwrite, progress=True)
+    print_summary(map_summary(store), console())
+
+
+def info_command(map_path: str, json_out: bool, quick: bool) -> None:
+    from blockloc.commands.common import console
+    from blockloc.maps.store import open_map
+    from blockloc.maps.summary import map_summary
+
+    summary = map_summary(open_map(map_path), with_overlap=not quick)
+    if json_out:
+        print(json.dumps(summary))
+    else:
+        print_summary(summary, console())
+
+
+def plot_command(map_path: str, seq: str | None, out: Path | None, data_root: str | None) -> None:
+    from blockloc.maps.plot import plot_map
+    from blockloc.maps.store import open_map
+
+    store = open_map(map_path)
+    traj = None
+    if seq:
+        from blockloc.commands.common import config_for
+        from blockloc.datasets import open_sequence
+
+        s = open_sequence(seq, data_root=data_root, dataset_cfg=config_for(seq, None).dataset)
+        traj = s.ground_truth() or s.mapping_poses()
+    png = out or Path(str(map_path).rstrip("/") + ".png")
+    print(str(plot_map(store, png, traj)))
+
+
+def serve_command(map_path: Path, host: str, port: int) -> None:
+    import sys
+
+    from blockloc.maps.server import serve
+
+    def ready(url: str, stores: list) -> None:
+        for s in stores:
+            print(f"serving {url}/{s + '/' if s else ''}", file=sys.stderr)
+        print("press Ctrl-C to stop", file=sys.stderr, flush=True)
+
+    serve(map_path, host, port, on_ready=ready)
+
+
+def print_summary(summary: dict[str, Any], console) -> None:
+    from rich.table import Table
+
+    t = Table(title=f"{summary['kind']} map {summary['path']}", show_header=False)
+    t.add_column("", style="bold")
+    t.add_column("")
+    unit = "blocks" if summary["kind"] == "block" else "tiles"
+    t.add_row(unit, f"{summary['entries']:,}")
+    t.add_row("points", f"{summary['points']:,}")
+    t.add_row("bytes", f"{summary['bytes']:,} ({summary['bytes'] / 2**20:.1f} MiB, headers "
+                       f"{summary['header_overhead_pct']:.2f}%)")
+    ppe = summary["points_per_entry"]
+    t.add_row(f"points per {unit[:-1]}", f"min {ppe['min']:,}  median {ppe['median']:,.0f}  "
+                                         f"max {ppe['max']:,}")
+    t.add_row("bounds", f"{summary['bounds_min']} .. {summary['bounds_max']}")
+    if "overlap_ratio" in summary:
+        t.add_row("overlap", f"{100 * summary['overlap_ratio']:.1f}% of stored points repeat "
+                             "another entry's")
+    params = {k: v for k, v in summary["parameters"].items() if not isinstance(v, (dict, list))}
+    t.add_row("parameters", ", ".join(f"{k}={v}" for k, v in params.items()))
+    if summary["legacy_layout"]:
+        t.add_row("layout", "released block-map layout (no manifest, no checksums)")
+    console.print(t)
+
+

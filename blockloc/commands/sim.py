@@ -1,0 +1,23 @@
+"""``blockloc sim``: simulate a world's sessions and write them (NCLT layout or ROS bags)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def sim_command(preset: str, seed: int, out: Path, fmt: str, azimuth_steps: int | None) -> None:
+    from blockloc.commands.common import progress
+    from blockloc.fileio import check_replaceable
+    from blockloc.sim.writer import generate_dataset
+
+    check_replaceable(out, "--out")  # before any work: never replace what blockloc did not make
+    overrides = {} if azimuth_steps is None else {"azimuth_steps": azimuth_steps}
+    current = {"session": None}
+    with progress(f"sim {preset}") as cb:
+        def report(session: str, done: int, total: int) -> None:
+            if session != current["session"]:
+                current["session"] = session
+            cb(done, total)
+
+        path = generate_dataset(preset, seed, out, fmt, progress=report, **overrides)
+    print(f"wrote {path}")

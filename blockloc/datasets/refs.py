@@ -1,0 +1,220 @@
+"""What a ``--seq`` value names: parsed once, here, for every command.
+
+:meth:`SequenceRef.parse` turns the text into a reference that knows its loader
+(:meth:`SequenceRef.open`), the config preset that fits it (``preset``), where the map for it is
+expected when ``--map`` is not given (:meth:`default_map_path`) and the command that builds that
+map (:meth:`build_hint`). Names:
+
+- ``nclt_1``..``nclt_5``: NCLT sessions 2012-01-15, 2012-01-22, 2012-02-02, 2012-04-29,
+  2012-05-11. The official downloads ``<date>_vel.tar.gz`` and ``<date>_sen.tar.gz`` both unpack
+  into a ``<date>/`` directory; unpack them under ``<data_root>/nclt/`` (or ``<data_root>/``)
+  and put ``groundtruth_<date>.csv`` in ``<date>/``, beside it, or in ``ground_truth/``.
+- ``m2dgr_1``, ``m2dgr_2``: M2DGR ``street_01.bag`` / ``street_02.bag`` under
+  ``<data_root>/m2dgr/`` (or ``<data_root>/``), ground truth ``street_0N.txt`` (TUM) beside the
+  bag or in ``ground_truth/``; topics ``/velodyne_points`` and ``/handsfree/imu``.
+- ``sim:<preset>/<session>[@<seed>]``: a simulated session streamed on the fly, seed 1 by default.
+- a path: an NCLT-layout session directory (has ``velodyne_sync/``; written by ``blockloc sim``
+  when ``sim.json`` lies beside it), a ROS1 ``.bag`` file, or a ROS2 bag directory (has
+  ``metadata.yaml``).
+
+The data root is the ``data_root`` argument, else the dataset settings' ``data_root``, else
+``$BLOCKLOC_DATA``, else ``./data``.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from blockloc.errors import DatasetError, MapError
+
+NCLT_NAMES = {f"nclt_{i + 1}": d for i, d in enumerate(
+    ("2012-01-15", "2012-01-22", "2012-02-02", "2012-04-29", "2012-05-11"))}
+M2DGR_NAMES = {"m2dgr_1": "street_01", "m2dgr_2": "street_02"}
+
+#: M2DGR: body = the Handsfree A9 IMU frame (x forward, y left, z up). The VLP-32C sits at
+#: (0.27255, -0.00053, 0.17954) m in it with identity rotation: the lidar-IMU extrinsic the
+#: M2DGR authors ship in their LIO configurations (extrinsic_T / extrinsic_R).
+M2DGR_T_BODY_LIDAR = np.array([[1.0, 0.0, 0.0, 0.27255],
+                               [0.0, 1.0, 0.0, -0.00053],
+                               [0.0, 0.0, 1.0, 0.17954],
+                               [0.0, 0.0, 0.0, 1.0]])
+M2DGR_T_BODY_IMU = np.eye(4)
+M2DGR_LIDAR_TOPIC = "/velodyne_points"
+M2DGR_IMU_TOPIC = "/handsfree/imu"
+
+_SIM_RE = re.compile(r"^sim:(?P<preset>[A-Za-z0-9_\-]+)/(?P<session>[A-Za-z0-9_\-]+)(@(?P<seed>\d+))?$")
+MAP_KINDS = ("block", "grid")
+
+
+def known_names() -> list[str]:
+    """Dataset names besides paths and ``sim:`` names."""
+    return list(NCLT_NAMES) + list(M2DGR_NAMES)
+
+
+def resolve_data_root(data_root: str | Path | None = None, dataset_cfg: Any = None) -> Path:
+    """The data root: argument, then ``dataset_cfg.data_root``, then $BLOCKLOC_DATA, then ./data."""
+    for cand in (data_root, getattr(dataset_cfg, "data_root", None), os.environ.get("BLOCKLOC_DATA")):
+        if cand:
+            return Path(cand).expanduser()
+    return Path("data")
+
+
+def map_kind_for_backend(backend: str) -> str:
+    """The map kind a tracking backend reads: block maps for ``block``, grid maps otherwise."""
+    return "block" if backend == "block" else "grid"
+
+
+@dataclass(frozen=True)
+class SequenceRef:
+    """A parsed ``--seq`` value.
+
+    kind: ``sim`` | ``nclt`` | ``m2dgr`` (names), ``nclt_dir`` | ``sim_dir`` | ``rosbag`` (paths).
+    text: the value as given. sim: (preset, session, seed) for ``sim``. path: the file or
+    directory for path kinds. preset: the config preset that fits (``sim`` | ``nclt`` | ``m2dgr``
+    | None).
+    """
+
+    text: str
+    kind: str
+    preset: str | None = None
+    path: Path | None = None
+    sim: tuple[str, str, int] | None = None
+
+    # ------------------------------------------------------------------ parsing
+    @classmethod
+    def parse(cls, text: str | os.PathLike) -> "SequenceRef":
+        """Parse a name or path; DatasetError (one line, what was expected) when it names nothing."""
+        name = str(text)
+        m = _SIM_RE.match(name)
+        if m:
+            return cls(name, "sim", "sim", sim=(m["preset"], m["session"], int(m["seed"] or 1)))
+        if name.startswith("sim:"):
+            raise DatasetError(f"sequence {name!r}: expected sim:<preset>/<session>[@<seed>], "
+                               "e.g. sim:small/loc@1")
+        if name in NCLT_NAMES:
+            return cls(name, "nclt", "nclt")
+        if name in M2DGR_NAMES:
+            return cls(name, "m2dgr", "m2dgr")
+        path = Path(name).expanduser()
+        if path.is_dir() and (path / "velodyne_sync").is_dir():
+            sim_written = (path.parent / "sim.json").is_file()
+            return cls(name, "sim_dir" if sim_written else "nclt_dir", "sim" if sim_written else "nclt",
+                       path=path)
+        if (path.is_file() and path.suffix == ".bag") or (path.is_dir() and (path / "metadata.yaml").is_file()):
+            sim_written = (path.parent / "sim.json").is_file()
+            return cls(name, "rosbag", "sim" if sim_written else None, path=path)
+        if path.exists():
+            raise DatasetError(f"{path}: not a sequence; expected an NCLT-layout session directory "
+                               "(with velodyne_sync/), a ROS1 .bag file or a ROS2 bag directory "
+                               "(with metadata.yaml)")
+        if "/" in name or os.sep in name or name.endswith(".bag"):
+            raise DatasetError(f"{path}: no such file or directory (expected an NCLT-layout session "
+                               "directory, a ROS1 .bag or a ROS2 bag directory)")
+        raise DatasetError(f"unknown sequence {name!r}: expected a path or one of "
+                           f"{', '.join(known_names())}, sim:<preset>/<session>[@<seed>]")
+
+    # ------------------------------------------------------------------ opening
+    def open(self, *, data_root: str | Path | None = None, dataset_cfg: Any = None,
+             lidar_topic: str | None = None, imu_topic: str | None = None):
+        """The Sequence this names. dataset_cfg: the dataset settings (range limits, hits use,
+        topics, data root; read by attribute); explicit arguments override it."""
+        ranges = dict(min_range_m=float(getattr(dataset_cfg, "min_range_m", 1.0)),
+                      max_range_m=float(getattr(dataset_cfg, "max_range_m", 100.0)))
+        use_hits = bool(getattr(dataset_cfg, "use_hits_times", True))
+        if self.kind == "sim":
+            from blockloc.sim.stream import open_sim_sequence
+
+            return open_sim_sequence(*self.sim)
+        if self.kind == "nclt":
+            from blockloc.datasets.nclt import NcltSequence
+
+            root = resolve_data_root(data_root, dataset_cfg)
+            date = NCLT_NAMES[self.text]
+            cands = [root / "nclt" / date, root / "NCLT" / date, root / date]
+            for c in cands:
+                if (c / "velodyne_sync").is_dir():
+                    return NcltSequence(c, use_hits_times=use_hits, date=date, name=self.text, **ranges)
+            raise DatasetError(
+                f"{self.text}: NCLT session {date} not found: expected {cands[0]}/velodyne_sync/ "
+                f"(unpack {date}_vel.tar.gz and {date}_sen.tar.gz from the NCLT site into {root / 'nclt'}, "
+                f"put groundtruth_{date}.csv in {cands[0]}; data root from --data-root or BLOCKLOC_DATA)")
+        if self.kind == "m2dgr":
+            return self._open_m2dgr(data_root, dataset_cfg, lidar_topic, imu_topic, ranges)
+        if self.kind in ("nclt_dir", "sim_dir"):
+            from blockloc.datasets.nclt import NcltSequence
+
+            return NcltSequence(self.path, use_hits_times=use_hits, **ranges)
+        from blockloc.datasets.rosbag import RosbagSequence
+
+        return RosbagSequence(self.path,
+                              lidar_topic=lidar_topic or getattr(dataset_cfg, "lidar_topic", None)
+                              or "/velodyne_points",
+                              imu_topic=imu_topic or getattr(dataset_cfg, "imu_topic", None) or "/imu",
+                              **ranges)
+
+    def _open_m2dgr(self, data_root, dataset_cfg, lidar_topic, imu_topic, ranges):
+        from blockloc.datasets.rosbag import RosbagSequence
+
+        root = resolve_data_root(data_root, dataset_cfg)
+        stem = M2DGR_NAMES[self.text]
+        cands = [root / "m2dgr" / f"{stem}.bag", root / "M2DGR" / f"{stem}.bag", root / f"{stem}.bag"]
+        bag = next((c for c in cands if c.is_file()), None)
+        if bag is None:
+            raise DatasetError(f"{self.text}: M2DGR {stem}.bag not found: expected {cands[0]} "
+                               f"(download {stem}.bag and its ground truth {stem}.txt from the "
+                               f"M2DGR site into {root / 'm2dgr'})")
+        gt = next((g for g in (bag.with_suffix(".txt"), bag.parent / "ground_truth" / f"{stem}.txt")
+                   if g.is_file()), None)
+        return RosbagSequence(bag, lidar_topic=lidar_topic or M2DGR_LIDAR_TOPIC,
+                              imu_topic=imu_topic or M2DGR_IMU_TOPIC,
+                              T_body_lidar=M2DGR_T_BODY_LIDAR, T_body_imu=M2DGR_T_BODY_IMU,
+                              gravity_map=(0.0, 0.0, -9.81), ground_truth_path=gt, name=self.text,
+                              **ranges)
+
+    # ------------------------------------------------------------------ its map
+    def mapping_source(self) -> str | None:
+        """The ``--seq`` a map for this sequence is built from (another session of the same
+        place), or None when there is no convention."""
+        if self.kind == "sim":
+            preset, _, seed = self.sim
+            return f"sim:{preset}/map@{seed}"
+        if self.kind == "nclt":
+            return "nclt_1" if self.text != "nclt_1" else "nclt_3"
+        if self.kind in ("sim_dir", "rosbag") and self.preset == "sim" and (self.path.parent / "map").exists():
+            return str(self.path.parent / "map")
+        return None
+
+    def default_map_path(self, kind: str, *, data_root: str | Path | None = None,
+                         dataset_cfg: Any = None, map_params: tuple = ()) -> Path:
+        """Where the ``kind`` (block | grid) map for this sequence is expected without --map.
+
+        sim: the cache entry ``blockloc demo`` and the tests build, keyed by the simulator's and
+        the map builder's code and ``map_params``. nclt_N: ``<data_root>/maps/nclt_<kind>``.
+        A session written by ``blockloc sim``: ``<out>/<kind>_map``. Otherwise MapError (give --map).
+        """
+        if kind not in MAP_KINDS:
+            raise MapError(f"map kind {kind!r}: expected one of {', '.join(MAP_KINDS)}")
+        if self.kind == "sim":
+            from blockloc.cache import cache_root, fingerprint
+
+            preset, _, seed = self.sim
+            world = fingerprint("blockloc.sim", "blockloc.datasets.nclt", params=(preset, seed))
+            key = fingerprint("blockloc.maps", "blockloc.datasets", params=(world, kind, tuple(map_params)))
+            return cache_root() / "maps" / f"{preset}_{seed}_{kind}-{key}"
+        if self.kind == "nclt":
+            return resolve_data_root(data_root, dataset_cfg) / "maps" / f"nclt_{kind}"
+        if self.kind in ("sim_dir", "rosbag") and self.mapping_source() is not None:
+            return self.path.parent / f"{kind}_map"
+        raise MapError(f"no default map for sequence {self.text!r}: give --map MAP (build one with "
+                       f"'blockloc map build --seq <mapping session> --kind {kind} --out MAP')")
+
+    def build_hint(self, kind: str, out: Path) -> str:
+        """The one-line command that builds the map expected at ``out``."""
+        src = self.mapping_source() or "<mapping session>"
+        return f"blockloc map build --seq {src} --kind {kind} --out {out}"
