@@ -224,7 +224,8 @@ def _read_pcd(path: Path) -> np.ndarray:
                            "FIELDS/SIZE/TYPE/COUNT of equal length with TYPE F, I or U") from None
     n, kind = int(meta.points), meta.data.value
     payload = path.stat().st_size - offset
-    what = f"{n} points of {dtype.itemsize} bytes ({' '.join(meta.fields)})"
+    what = f"{n} points ({' '.join(meta.fields)}" + (")" if kind == "ascii" else
+                                                       f", {dtype.itemsize} bytes each)")
     if kind == "binary" and payload < n * dtype.itemsize:
         raise DatasetError(f"{path}: truncated binary PCD: {payload} payload bytes, expected "
                            f"{n * dtype.itemsize} for {what}")
