@@ -1,6 +1,7 @@
 """A folder of point clouds (as SLAM systems export them) with a trajectory, as a Sequence.
 
-Layout (DIR is the folder given; the clouds may also sit in ``DIR/scans/``)::
+Layout (DIR is the folder given, or the parent of a ``scans/`` folder given; the clouds sit in
+DIR or ``DIR/scans/``)::
 
     DIR/scans/*.pcd | *.bin | *.ply   one scan a file, in name order (numeric names by value)
     DIR/poses.tum                     T_map_body, TUM ``t x y z qx qy qz qw``        (optional)
@@ -64,12 +65,19 @@ def _cloud_files(folder: Path) -> list[Path]:
             and os.path.splitext(e.name)[1].lower() in CLOUD_SUFFIXES]
 
 
+_SIDE_FILES = ("poses.tum", "poses.txt", "times.txt", "imu.csv", "extrinsics.yaml")
+
+
 def _layout(path: Path) -> tuple[Path, Path, list[Path]]:
-    """(root holding poses/imu/extrinsics, folder of the scans, scan files)."""
+    """(root holding poses/imu/extrinsics, folder of the scans, scan files). Given DIR/scans
+    itself (and no side file in it), the root is DIR."""
     sub = _cloud_files(path / "scans")
     if sub:
         return path, path / "scans", sub
-    return path, path, _cloud_files(path)
+    root = path
+    if path.name == "scans" and not any((path / f).is_file() for f in _SIDE_FILES):
+        root = path.parent
+    return root, path, _cloud_files(path)
 
 
 def is_scan_folder(path: str | Path) -> bool:
@@ -263,7 +271,7 @@ class ScanFolderSequence:
                                f"{self.files[k + 1].name} at {stamps[k + 1]:.6f} s")
         self._stamps = np.asarray(stamps, np.float64)
         info = SequenceInfo(
-            name=name or f"scans:{self.path.name}",
+            name=name or f"scans:{self.root.name}",
             T_body_lidar=extr.get("T_body_lidar", np.eye(4)),
             T_body_imu=extr.get("T_body_imu", np.eye(4)),
             gravity_map=extr.get("gravity_map", np.array([0.0, 0.0, -9.81])),

@@ -251,3 +251,12 @@ def test_real_walk(shared_data):
     b = seq.frame(1).points @ ref.poses[1, :3, :3].T + ref.poses[1, :3, 3]
     d, _ = cKDTree(a).query(b, distance_upper_bound=1.0)
     assert np.median(d) < 0.1
+
+
+def test_scans_subfolder_given_directly_finds_side_files(tmp_path):
+    root = _folder(tmp_path, [f"{i:06d}" for i in range(3)])
+    traj = _traj(T0 + 0.1 * np.arange(3))
+    write_tum(root / "poses.tum", traj)
+    seq = ScanFolderSequence(root / "scans")
+    assert seq.root == root and seq.info.name == f"scans:{root.name}"
+    np.testing.assert_allclose(seq.ground_truth().poses, traj.poses, atol=1e-9)
