@@ -115,8 +115,9 @@ def build_map_from_global_pcd(pcd_path: str | Path, traj_path, kind: str, out: s
     traj_path: its mapping trajectory (TUM, KITTI, NCLT csv path, or a Trajectory), T_map_body.
     kind: 'block' (keyframe crops stitched by Algorithm 1, ``block_size_m``) or 'grid' (the map
     within sensor range of the trajectory, tiles of ``tile_size_m``). The map is voxel-filtered
-    (``voxel_size_m``) once before cropping, so overlapping crops repeat identical points, which
-    the builders' voxel filter merges. frame_name: the trajectory's frame, recorded in the store
+    (``voxel_size_m``) once before cropping, so overlapping crops repeat identical points; a block
+    is given each of its points once (see the loop), with the same result as feeding
+    :func:`keyframes_from_global_map` to ``build_block_map``. frame_name: the trajectory's frame, recorded in the store
     (grid: manifest ``frame``; block: ``parameters.trajectory_frame``). Written atomically to
     ``out``; returns the opened MapStore.
     """
@@ -145,14 +146,6 @@ def build_map_from_global_pcd(pcd_path: str | Path, traj_path, kind: str, out: s
     seen = np.zeros(len(pts), bool)
     count = 0
 
-    def keyframes():
-        nonlocal count
-        for i, T_map_lidar, idx in crops:
-            seen[idx] = True
-            count += 1
-            yield Keyframe(i, T_map_lidar, pts[idx].astype(np.float64),
-                           None if inten is None else inten[idx])
-
     def check_seen():
         if not seen.any():
             raise MapError(f"{pcd_path}: no map point within {sensor_range_m} m of the trajectory "
@@ -160,20 +153,39 @@ def build_map_from_global_pcd(pcd_path: str | Path, traj_path, kind: str, out: s
         log.info("%d of %d map points within %.1f m of %d keyframes", int(seen.sum()), len(pts),
                  sensor_range_m, count)
 
-    if kind == "block":
-        from blockloc.maps.block_maps import BlockMapBuilder, write_block_map
+    if kind == "grid":
+        from blockloc.maps.grid_tiles import tile_global_map
 
-        builder = BlockMapBuilder(block_size_m, voxel_size_m)
-        for kf in keyframes():
-            builder.add(kf.index, kf.position, kf.points_map, kf.intensity)
+        for _, _, idx in crops:  # only which points some keyframe sees
+            seen[idx] = True
+            count += 1
         check_seen()
-        builder.finish()
-        return write_block_map(builder, out, params=params, overwrite=overwrite)
-    from blockloc.maps.grid_tiles import tile_global_map
+        return tile_global_map(pts[seen], None if inten is None else inten[seen], tile_size_m, out,
+                               frame=frame, params={**params, "voxel_size_m": voxel_size_m,
+                                                    "num_keyframes": count}, overwrite=overwrite)
 
-    for _ in keyframes():  # only which points some keyframe sees
-        pass
+    from blockloc.maps.block_maps import BlockMapBuilder, write_block_map
+
+    builder = BlockMapBuilder(block_size_m, voxel_size_m)
+    in_block = np.zeros(len(pts), bool)  # points the open block already holds
+    first = None
+    for i, T_map_lidar, idx in crops:
+        seen[idx] = True
+        count += 1
+        position = T_map_lidar[:3, 3]
+        # Algorithm 1 closes a block at the first keyframe farther than S from the block's first
+        # keyframe, and that keyframe also starts the next block: it goes in whole. Any other
+        # keyframe brings only the points its block lacks: the block's union of crops (so its
+        # voxel-filtered points and centroid) is the same, but each point passes the builder's
+        # voxel filter about once per block instead of once per keyframe.
+        if first is None or np.linalg.norm(position - first) > block_size_m:
+            in_block[:] = False
+            first = position
+            rows = idx
+        else:
+            rows = idx[~in_block[idx]]
+        in_block[idx] = True
+        builder.add(i, position, pts[rows].astype(np.float64), None if inten is None else inten[rows])
     check_seen()
-    return tile_global_map(pts[seen], None if inten is None else inten[seen], tile_size_m, out,
-                           frame=frame, params={**params, "voxel_size_m": voxel_size_m,
-                                                "num_keyframes": count}, overwrite=overwrite)
+    builder.finish()
+    return write_block_map(builder, out, params=params, overwrite=overwrite)
