@@ -28,7 +28,7 @@ log = logging.getLogger(__name__)
 
 class _GridIndex:
     """Points (N, 3) bucketed in square xy cells of ``cell_m``; ``within(c, r)`` -> indices of the
-    points within 3D distance r of c."""
+    points within 3D distance r of c (grouped by cell, a deterministic order)."""
 
     def __init__(self, points: np.ndarray, cell_m: float):
         from blockloc.maps.grid_tiles import split_into_tiles
@@ -55,7 +55,7 @@ class _GridIndex:
             return np.zeros(0, np.int64)
         idx = np.concatenate(parts)
         d = self.points[idx].astype(np.float64) - c
-        return np.sort(idx[np.einsum("ij,ij->i", d, d) <= radius_m * radius_m])
+        return idx[np.einsum("ij,ij->i", d, d) <= radius_m * radius_m]  # cell by cell, not sorted
 
 
 def _keyframe_crops(points: np.ndarray, trajectory: Trajectory, sensor_range_m: float,
