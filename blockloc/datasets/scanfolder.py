@@ -239,7 +239,8 @@ class ScanFolderSequence:
         self.min_range_m, self.max_range_m = float(min_range_m), float(max_range_m)
         self._options = dict(frame_name=frame_name, min_range_m=min_range_m,
                              max_range_m=max_range_m, name=name, rate_hz=rate_hz, max_gap_s=max_gap_s)
-        extr = read_extrinsics(self.root / "extrinsics.yaml") if (self.root / "extrinsics.yaml").is_file() else {}
+        extr_path = self.root / "extrinsics.yaml"
+        extr = read_extrinsics(extr_path) if extr_path.is_file() else {}
         self._imu_path = self.root / "imu.csv" if (self.root / "imu.csv").is_file() else None
         self._imu: ImuData | None = None
 

@@ -217,4 +217,4 @@ def refine_gravity_by_ndt(refiner, points_body: np.ndarray, T_map_body: np.ndarr
     direction = res.T_map_body[:3, :3].T @ (g / np.linalg.norm(g))
     conf = float(res.fitness) if res.converged else 0.0
     return res.T_map_body, GravityEstimate(direction, conf, "ndt",
-                                           int(round(res.fitness * len(points_body))))
+                                           round(res.fitness * len(points_body)))

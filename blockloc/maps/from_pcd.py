@@ -117,8 +117,8 @@ def build_map_from_global_pcd(pcd_path: str | Path, traj_path, kind: str, out: s
     within sensor range of the trajectory, tiles of ``tile_size_m``). The map is voxel-filtered
     (``voxel_size_m``) once before cropping, so overlapping crops repeat identical points; a block
     is given each of its points once (see the loop), with the same result as feeding
-    :func:`keyframes_from_global_map` to ``build_block_map``. frame_name: the trajectory's frame, recorded in the store
-    (grid: manifest ``frame``; block: ``parameters.trajectory_frame``). Written atomically to
+    :func:`keyframes_from_global_map` to ``build_block_map``. frame_name: the trajectory's
+    frame, recorded in the store (grid: manifest ``frame``; block: ``parameters.trajectory_frame``). Written atomically to
     ``out``; returns the opened MapStore.
     """
     from blockloc.datasets.pointclouds import read_point_cloud

@@ -71,7 +71,7 @@ def test_pcd_round_trip(tmp_path, encoding, kind):
 
 
 def test_absolute_times_relative_to_given_stamp(tmp_path):
-    pts, inten, ring, offs = _cloud()
+    pts, _, _, offs = _cloud()
     path = write_point_cloud(tmp_path / "a.pcd", pts, extra={"timestamp": T0 + offs},
                              encoding="binary_compressed")
     c = read_point_cloud(path, stamp=T0 + 0.1)  # stamped at the sweep end
@@ -89,7 +89,7 @@ def test_pcd_written_by_hand_ascii_with_count_and_padding(tmp_path):
             "-4 5 6 1 2 3 0 10 5 0.02"]
     header = ("# .PCD v0.7\nVERSION 0.7\nFIELDS x y z normal _ Intensity ring time\n"
               "SIZE 4 4 4 4 4 4 2 4\nTYPE F F F F F F U F\nCOUNT 1 1 1 3 1 1 1 1\n"
-              f"WIDTH 3\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 3\nDATA ascii\n")
+              "WIDTH 3\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 3\nDATA ascii\n")
     path = tmp_path / "hand.pcd"
     path.write_text(header + "\n".join(rows) + "\n")
     c = read_point_cloud(path)
