@@ -3,9 +3,10 @@
 Readers return a :class:`CloudData`: points (N, 3) in the file's own frame (metres), intensity,
 ring and per-point time offsets when the file carries them. Libraries do the parsing:
 ``pypcd4`` for PCD (``ascii``, ``binary``, ``binary_compressed``; any field set), ``plyfile``
-for PLY (ascii and binary, every vertex property kept, unlike open3d's legacy reader, which
-drops all but xyz/colour/normal, and its tensor reader, which returns an empty cloud on a
-malformed file instead of an error), numpy for KITTI ``.bin`` (float32 x y z intensity records).
+for PLY (ascii and binary, every vertex property of any type kept, and an exception for a
+truncated file; open3d's tensor reader, tried here, skipped uint16/uint32 properties such as
+``ring`` and Ouster's ``t``, returned a half-truncated file as a full cloud with only a warning,
+and a non-PLY file as an empty cloud), numpy for KITTI ``.bin`` (float32 x y z intensity records).
 
 Field names are matched case-insensitively, with CloudCompare's ``scalar_`` prefix stripped:
 - intensity: ``intensity``, ``i``, ``reflectance``, ``remission``, ``reflectivity`` (first found);
