@@ -96,7 +96,14 @@ def sim_cmd(
 # ----------------------------------------------------------------------------- map
 @map_app.command("build")
 def map_build_cmd(
-    seq: str = typer.Option(..., "--seq", metavar=SEQ, help="Mapping sequence: name (nclt_2, sim:small/map) or path."),
+    seq: Optional[str] = typer.Option(None, "--seq", metavar=SEQ,
+                                      help="Mapping sequence: name (nclt_2, sim:small/map) or path."),
+    poses: Optional[Path] = typer.Option(None, "--poses", metavar=FILE,
+                                         help="Mapping trajectory (TUM, KITTI): T_map_body at the scans' stamps."),
+    from_pcd: Optional[Path] = typer.Option(None, "--from-pcd", metavar=FILE,
+                                            help="Build from a global map PCD and --poses instead of --seq."),
+    sensor_range: float = typer.Option(60.0, "--sensor-range", metavar="M",
+                                       help="With --from-pcd: what a keyframe sees, m."),
     kind: str = typer.Option("block", "--kind", metavar="KIND", help="block | grid"),
     out: Path = typer.Option(..., "--out", metavar=DIR, help="Output map directory (written atomically)."),
     config: Optional[str] = typer.Option(None, "--config", metavar=FILE, help="Config file or preset name."),
@@ -107,10 +114,11 @@ def map_build_cmd(
     max_frames: Optional[int] = typer.Option(None, "--max-frames", metavar="N", help="Use only the first N frames."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing map store at --out (only a map store)."),
 ) -> None:
-    """Build a block map or grid tiles from a mapping sequence and its poses."""
+    """Build a block map or grid tiles from a mapping sequence and its poses (or a global PCD)."""
     from blockloc.commands.map import build_command
 
-    build_command(seq, kind, out, config, data_root, block_size, tile_size, voxel, max_frames, overwrite)
+    build_command(seq, kind, out, config, data_root, block_size, tile_size, voxel, max_frames, overwrite,
+                  poses=poses, from_pcd=from_pcd, sensor_range_m=sensor_range)
 
 
 @map_app.command("tile")
@@ -177,11 +185,13 @@ def init_cmd(
     json_out: bool = typer.Option(False, "--json", help="Print one JSON object."),
     data_root: Optional[str] = typer.Option(None, "--data-root", metavar=DIR, help="Root of the datasets."),
     config: Optional[str] = typer.Option(None, "--config", metavar=FILE, help="Config file or preset name."),
+    poses: Optional[Path] = typer.Option(None, "--poses", metavar=FILE,
+                                         help="Reference trajectory (TUM, KITTI): reports the error."),
 ) -> None:
     """Global initialization: the body's pose in the map by branch-and-bound + verification."""
     from blockloc.commands.init import init_command
 
-    init_command(seq, frame, map_path, pose_hint, window, yaw_window, json_out, data_root, config)
+    init_command(seq, frame, map_path, pose_hint, window, yaw_window, json_out, data_root, config, poses)
 
 
 # ----------------------------------------------------------------------------- track / demo
@@ -201,12 +211,14 @@ def track_cmd(
                                               help="ROS bags: the PointCloud2 topic (default from the config)."),
     imu_topic: Optional[str] = typer.Option(None, "--imu-topic", metavar="TOPIC",
                                             help="ROS bags: the Imu topic (default from the config)."),
+    poses: Optional[Path] = typer.Option(None, "--poses", metavar=FILE,
+                                         help="Reference trajectory (TUM, KITTI): ground truth for --init gt and the metrics."),
 ) -> None:
     """Track a sequence in a prior map (sliding-window IMU + scan-to-map factors); writes poses, metrics and plots."""
     from blockloc.commands.track import track_command
 
     track_command(seq, map_path, backend, init, init_pose, out, config, data_root, max_frames,
-                  lidar_topic, imu_topic)
+                  lidar_topic, imu_topic, poses=poses)
 
 
 @app.command("demo")

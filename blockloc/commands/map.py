@@ -32,21 +32,42 @@ def build_map(seq, kind: str, out: str | Path, map_cfg, *, overwrite: bool = Fal
     raise MapError(f"--kind {kind!r}: expected block or grid")
 
 
-def build_command(seq: str, kind: str, out: Path, config: str | None, data_root: str | None,
+def build_command(seq: str | None, kind: str, out: Path, config: str | None, data_root: str | None,
                   block_size: float | None, tile_size: float | None, voxel: float | None,
-                  max_frames: int | None, overwrite: bool) -> None:
+                  max_frames: int | None, overwrite: bool, *, poses: Path | None = None,
+                  from_pcd: Path | None = None, sensor_range_m: float = 60.0) -> None:
     import dataclasses
 
     from blockloc.commands.common import config_for, console
     from blockloc.datasets import open_sequence
+    from blockloc.errors import MapError
+    from blockloc.fileio import check_replaceable
     from blockloc.maps.summary import map_summary
 
+    if (seq is None) == (from_pcd is None):
+        raise MapError("map build: give --seq SEQ (a mapping sequence) or --from-pcd GLOBAL.pcd --poses TRAJ")
+    if kind not in ("block", "grid"):
+        raise MapError(f"--kind {kind!r}: expected block or grid")
+    if out.exists() and not overwrite:
+        raise MapError(f"--out {out}: already exists (choose another --out, or --overwrite to replace the map there)")
+    check_replaceable(out, "--out")  # before any work
     cfg = config_for(seq, config)
     overrides = {k: v for k, v in (("block_size_m", block_size), ("tile_size_m", tile_size),
                                    ("voxel_size_m", voxel)) if v is not None}
     map_cfg = dataclasses.replace(cfg.map, **overrides)
-    sequence = open_sequence(seq, data_root=data_root, dataset_cfg=cfg.dataset)
-    store = build_map(sequence, kind, out, map_cfg, overwrite=overwrite, max_frames=max_frames)
+    if from_pcd is not None:
+        from blockloc.maps.from_pcd import build_map_from_global_pcd
+
+        if poses is None:
+            raise MapError("--from-pcd needs --poses TRAJ (the mapping trajectory)")
+        store = build_map_from_global_pcd(
+            from_pcd, poses, kind, out, sensor_range_m=sensor_range_m,
+            keyframe_distance_m=map_cfg.keyframe_distance_m, keyframe_angle_deg=map_cfg.keyframe_angle_deg,
+            block_size_m=map_cfg.block_size_m, tile_size_m=map_cfg.tile_size_m, voxel_size_m=map_cfg.voxel_size_m,
+            overwrite=overwrite, progress=True)
+    else:
+        sequence = open_sequence(seq, data_root=data_root, dataset_cfg=cfg.dataset, poses=poses)
+        store = build_map(sequence, kind, out, map_cfg, overwrite=overwrite, max_frames=max_frames)
     print_summary(map_summary(store), console())
 
 

@@ -32,7 +32,7 @@ def resolve_map(ref, map_path: str | None, backend: str, cfg, data_root: str | N
 def open_session(seq: str, *, cfg, map_path: str | None = None, backend: str | None = None,
                  data_root: str | None = None, observers=(), out_dir: Path | None = None,
                  keep_estimates: bool = False, lidar_topic: str | None = None,
-                 imu_topic: str | None = None):
+                 imu_topic: str | None = None, poses=None):
     """The Session for ``--seq`` in its map (what ``track`` and the benchmarks run)."""
     from blockloc.datasets.refs import SequenceRef
     from blockloc.maps.store import open_map_from_config
@@ -40,7 +40,8 @@ def open_session(seq: str, *, cfg, map_path: str | None = None, backend: str | N
 
     ref = SequenceRef.parse(seq)
     backend = backend or cfg.map.backend
-    sequence = ref.open(data_root=data_root, dataset_cfg=cfg.dataset, lidar_topic=lidar_topic, imu_topic=imu_topic)
+    sequence = ref.open(data_root=data_root, dataset_cfg=cfg.dataset, lidar_topic=lidar_topic, imu_topic=imu_topic,
+                        poses=poses)
     path = resolve_map(ref, map_path, backend, cfg, data_root)
     store = open_map_from_config(path, cfg.map)
     return Session.from_config(cfg, sequence, store, backend=backend, observers=observers, out_dir=out_dir,
@@ -109,7 +110,7 @@ def print_track_summary(console, m: dict, out: Optional[Path]) -> None:
 
 def track_command(seq: str, map_path: str | None, backend: str | None, init: str | None, init_pose: str | None,
                   out: Path | None, config: str | None, data_root: str | None, max_frames: int | None,
-                  lidar_topic: str | None = None, imu_topic: str | None = None) -> None:
+                  lidar_topic: str | None = None, imu_topic: str | None = None, poses: Path | None = None) -> None:
     from blockloc.commands.common import check_results_dir, config_for, console, results_dir
     from blockloc.evaluation.results import RunWriter
 
@@ -121,6 +122,6 @@ def track_command(seq: str, map_path: str | None, backend: str | None, init: str
     check_results_dir(out_dir)  # before any work
     session = open_session(seq, cfg=cfg, map_path=map_path, backend=backend, data_root=data_root,
                            observers=[RunWriter(out_dir)], out_dir=out_dir, lidar_topic=lidar_topic,
-                           imu_topic=imu_topic)
+                           imu_topic=imu_topic, poses=poses)
     res = run_tracking(session, mode=mode, hint=hint, out_dir=out_dir, max_frames=max_frames)
     print_track_summary(console(), res.metrics, res.out_dir)

@@ -14,8 +14,13 @@ map (:meth:`build_hint`). Names:
   bag or in ``ground_truth/``; topics ``/velodyne_points`` and ``/handsfree/imu``.
 - ``sim:<preset>/<session>[@<seed>]``: a simulated session streamed on the fly, seed 1 by default.
 - a path: an NCLT-layout session directory (has ``velodyne_sync/``; written by ``blockloc sim``
-  when ``sim.json`` lies beside it), a ROS1 ``.bag`` file, or a ROS2 bag directory (has
-  ``metadata.yaml``).
+  when ``sim.json`` lies beside it), a ROS1 ``.bag`` file, a ROS2 bag directory (has
+  ``metadata.yaml``), or a folder of point clouds with a trajectory (``scans/*.pcd|bin|ply`` plus
+  ``poses.tum`` or ``poses.txt``: :mod:`blockloc.datasets.scanfolder`).
+
+Any sequence may be given its trajectory from a file (``poses=``, the commands' ``--poses``):
+the poses become its ground truth and mapping poses (:func:`blockloc.datasets.with_poses.
+with_trajectory`).
 
 The data root is the ``data_root`` argument, else the dataset settings' ``data_root``, else
 ``$BLOCKLOC_DATA``, else ``./data``.
@@ -50,6 +55,9 @@ M2DGR_IMU_TOPIC = "/handsfree/imu"
 
 _SIM_RE = re.compile(r"^sim:(?P<preset>[A-Za-z0-9_\-]+)/(?P<session>[A-Za-z0-9_\-]+)(@(?P<seed>\d+))?$")
 MAP_KINDS = ("block", "grid")
+_PATH_KINDS = ("an NCLT-layout session directory (with velodyne_sync/), a ROS1 .bag file, a ROS2 bag "
+               "directory (with metadata.yaml) or a folder of point clouds (.pcd/.bin/.ply, itself or "
+               "in scans/)")
 
 
 def known_names() -> list[str]:
@@ -74,7 +82,8 @@ def map_kind_for_backend(backend: str) -> str:
 class SequenceRef:
     """A parsed ``--seq`` value.
 
-    kind: ``sim`` | ``nclt`` | ``m2dgr`` (names), ``nclt_dir`` | ``sim_dir`` | ``rosbag`` (paths).
+    kind: ``sim`` | ``nclt`` | ``m2dgr`` (names), ``nclt_dir`` | ``sim_dir`` | ``rosbag`` |
+    ``scan_folder`` (paths).
     text: the value as given. sim: (preset, session, seed) for ``sim``. path: the file or
     directory for path kinds. preset: the config preset that fits (``sim`` | ``nclt`` | ``m2dgr``
     | None).
@@ -109,21 +118,40 @@ class SequenceRef:
         if (path.is_file() and path.suffix == ".bag") or (path.is_dir() and (path / "metadata.yaml").is_file()):
             sim_written = (path.parent / "sim.json").is_file()
             return cls(name, "rosbag", "sim" if sim_written else None, path=path)
+        if path.is_dir():
+            from blockloc.datasets.scanfolder import is_scan_folder
+
+            if is_scan_folder(path):
+                return cls(name, "scan_folder", None, path=path)
         if path.exists():
-            raise DatasetError(f"{path}: not a sequence; expected an NCLT-layout session directory "
-                               "(with velodyne_sync/), a ROS1 .bag file or a ROS2 bag directory "
-                               "(with metadata.yaml)")
+            raise DatasetError(f"{path}: not a sequence; expected {_PATH_KINDS}")
         if "/" in name or os.sep in name or name.endswith(".bag"):
-            raise DatasetError(f"{path}: no such file or directory (expected an NCLT-layout session "
-                               "directory, a ROS1 .bag or a ROS2 bag directory)")
+            raise DatasetError(f"{path}: no such file or directory (expected {_PATH_KINDS})")
         raise DatasetError(f"unknown sequence {name!r}: expected a path or one of "
                            f"{', '.join(known_names())}, sim:<preset>/<session>[@<seed>]")
 
     # ------------------------------------------------------------------ opening
     def open(self, *, data_root: str | Path | None = None, dataset_cfg: Any = None,
-             lidar_topic: str | None = None, imu_topic: str | None = None):
+             lidar_topic: str | None = None, imu_topic: str | None = None, poses=None,
+             poses_frame: str | None = None):
         """The Sequence this names. dataset_cfg: the dataset settings (range limits, hits use,
-        topics, data root; read by attribute); explicit arguments override it."""
+        topics, data root; read by attribute); explicit arguments override it. poses: a
+        trajectory file (TUM, KITTI, NCLT csv) or Trajectory giving its ground truth and mapping
+        poses (T_map_body); poses_frame: that trajectory's frame name."""
+        if self.kind == "scan_folder":  # its own poses file or these: one reading of the folder
+            from blockloc.datasets.scanfolder import ScanFolderSequence
+
+            return ScanFolderSequence(self.path, poses=poses, frame_name=poses_frame,
+                                      min_range_m=float(getattr(dataset_cfg, "min_range_m", 0.0)),
+                                      max_range_m=float(getattr(dataset_cfg, "max_range_m", 100.0)))
+        seq = self._open(data_root, dataset_cfg, lidar_topic, imu_topic)
+        if poses is None:
+            return seq
+        from blockloc.datasets.with_poses import with_trajectory
+
+        return with_trajectory(seq, poses, frame_name=poses_frame)
+
+    def _open(self, data_root, dataset_cfg, lidar_topic, imu_topic):
         ranges = dict(min_range_m=float(getattr(dataset_cfg, "min_range_m", 1.0)),
                       max_range_m=float(getattr(dataset_cfg, "max_range_m", 100.0)))
         use_hits = bool(getattr(dataset_cfg, "use_hits_times", True))

@@ -198,7 +198,7 @@ class BlockMapBuilder:
 
 def build_block_map(keyframes: Iterable[Keyframe | tuple], *, block_size_m: float = 100.0,
                     voxel_size_m: float = 0.2, out: str | Path | None = None,
-                    params: dict | None = None, overwrite: bool = False):
+                    params: dict | None = None, overwrite: bool = False, frame: str = "map"):
     """Block map from keyframes whose points are already in the map frame.
 
     keyframes: :class:`~blockloc.maps.mapping.Keyframe` objects, or tuples
@@ -220,11 +220,11 @@ def build_block_map(keyframes: Iterable[Keyframe | tuple], *, block_size_m: floa
     builder.finish()
     if out is None:
         return builder
-    return write_block_map(builder, out, params=params, overwrite=overwrite)
+    return write_block_map(builder, out, params=params, overwrite=overwrite, frame=frame)
 
 
 def write_block_map(builder: BlockMapBuilder, out: str | Path, *, params: dict | None = None,
-                    overwrite: bool = False):
+                    overwrite: bool = False, frame: str = "map"):
     """Write the builder's blocks as a block store (``%03d.pcd`` + CentroidCloud + manifest)."""
     from blockloc.maps.store import MapWriter
 
@@ -233,7 +233,7 @@ def write_block_map(builder: BlockMapBuilder, out: str | Path, *, params: dict |
          "events": {a: sum(e.action == a for e in builder.events)
                     for a in ("new", "merge", "skip", "tail")},
          **(params or {})}
-    with MapWriter(out, "block", params=p, overwrite=overwrite) as w:
+    with MapWriter(out, "block", frame=frame, params=p, overwrite=overwrite) as w:
         for i, b in enumerate(builder.blocks):
             w.add(f"{i:03d}", b.points, b.intensity, file=f"{i:03d}.pcd", centroid=b.centroid,
                   keyframes=builder.keyframe_positions_of(i))
@@ -255,4 +255,5 @@ def build_block_map_from_sequence(seq, *, block_size_m: float = 100.0,
     params = {"sequence": seq.info.name, "keyframe_distance_m": keyframe_distance_m,
               "keyframe_angle_deg": keyframe_angle_deg, "deskew": deskew}
     return build_block_map(kfs, block_size_m=block_size_m, voxel_size_m=voxel_size_m, out=out,
-                           params=params, overwrite=overwrite)
+                           params=params, overwrite=overwrite,
+                           frame=getattr(seq.info, "map_frame", "map"))

@@ -193,13 +193,14 @@ class GridMapBuilder:
             return np.zeros((0, 3), np.float32), np.zeros(0, np.float32)
         return np.concatenate(parts_p), np.concatenate(parts_i)
 
-    def finish(self, out: str | Path, *, params: dict | None = None, overwrite: bool = False):
+    def finish(self, out: str | Path, *, params: dict | None = None, overwrite: bool = False,
+               frame: str = "map"):
         """Write the grid store atomically to ``out``; returns the opened store."""
         if self.num_keyframes == 0:
             raise MapError("no keyframes to build a grid map from (empty session?)")
         pts, inten = self.points()
         p = {"voxel_size_m": self.voxel_size_m, "num_keyframes": self.num_keyframes, **(params or {})}
-        return tile_global_map(pts, inten, self.tile_size_m, out, params=p, overwrite=overwrite)
+        return tile_global_map(pts, inten, self.tile_size_m, out, frame=frame, params=p, overwrite=overwrite)
 
 
 def build_grid_map_from_sequence(seq, *, tile_size_m: float = 20.0, keyframe_distance_m: float = 1.0,
@@ -219,7 +220,7 @@ def build_grid_map_from_sequence(seq, *, tile_size_m: float = 20.0, keyframe_dis
               "keyframe_angle_deg": keyframe_angle_deg, "deskew": deskew}
     if builder.num_keyframes == 0:
         raise MapError(f"{seq.info.name}: no keyframes to build a grid map from")
-    return builder.finish(out, params=params, overwrite=overwrite)
+    return builder.finish(out, params=params, overwrite=overwrite, frame=getattr(seq.info, "map_frame", "map"))
 
 
 def _filtered(parts, voxel_size_m: float) -> tuple[np.ndarray, np.ndarray]:

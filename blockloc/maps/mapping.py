@@ -114,7 +114,8 @@ def mapping_keyframes(seq, *, keyframe_distance_m: float, keyframe_angle_deg: fl
     """Keyframes of a mapping sequence with their (deskewed) points in the map frame.
 
     Poses come from ``seq.mapping_poses()`` interpolated at the frame stamps; frames outside the
-    poses' time range are skipped. Only the keyframes' scans are read.
+    poses' time range, or that the sequence names in ``uncovered_frames()`` (a gap in its
+    trajectory), are skipped. Only the keyframes' scans are read.
     """
     traj = mapping_poses_or_fail(seq)
     stamps = np.asarray(seq.frame_stamps(), np.float64)
@@ -122,6 +123,9 @@ def mapping_keyframes(seq, *, keyframe_distance_m: float, keyframe_angle_deg: fl
         stamps = stamps[:max_frames]
     inside = np.flatnonzero((stamps >= traj.stamps[0] - POSE_TIME_TOLERANCE_S)
                             & (stamps <= traj.stamps[-1] + POSE_TIME_TOLERANCE_S))
+    uncovered = getattr(seq, "uncovered_frames", None)
+    if uncovered is not None:  # inside a gap of the trajectory: never interpolated across it
+        inside = np.setdiff1d(inside, uncovered())
     name = seq.info.name
     if len(inside) == 0:
         raise MapError(f"{name}: no LiDAR frame lies within the mapping poses' time range "
