@@ -37,6 +37,7 @@ SEQ = "SEQ"
 MAP = "MAP"
 DIR = "DIR"
 FILE = "FILE"
+SET_HELP = "Override one setting, e.g. registration.method=vgicp (repeatable)."
 
 
 def _version(value: bool) -> None:
@@ -187,11 +188,12 @@ def init_cmd(
     config: Optional[str] = typer.Option(None, "--config", metavar=FILE, help="Config file or preset name."),
     poses: Optional[Path] = typer.Option(None, "--poses", metavar=FILE,
                                          help="Reference trajectory (TUM, KITTI): reports the error."),
+    sets: Optional[list[str]] = typer.Option(None, "--set", metavar="SECTION.KEY=VALUE", help=SET_HELP),
 ) -> None:
     """Global initialization: the body's pose in the map by branch-and-bound + verification."""
     from blockloc.commands.init import init_command
 
-    init_command(seq, frame, map_path, pose_hint, window, yaw_window, json_out, data_root, config, poses)
+    init_command(seq, frame, map_path, pose_hint, window, yaw_window, json_out, data_root, config, poses, sets)
 
 
 # ----------------------------------------------------------------------------- track / demo
@@ -213,12 +215,13 @@ def track_cmd(
                                             help="ROS bags: the Imu topic (default from the config)."),
     poses: Optional[Path] = typer.Option(None, "--poses", metavar=FILE,
                                          help="Reference trajectory (TUM, KITTI): ground truth for --init gt and the metrics."),
+    sets: Optional[list[str]] = typer.Option(None, "--set", metavar="SECTION.KEY=VALUE", help=SET_HELP),
 ) -> None:
     """Track a sequence in a prior map (sliding-window IMU + scan-to-map factors); writes poses, metrics and plots."""
     from blockloc.commands.track import track_command
 
     track_command(seq, map_path, backend, init, init_pose, out, config, data_root, max_frames,
-                  lidar_topic, imu_topic, poses=poses)
+                  lidar_topic, imu_topic, poses=poses, sets=sets)
 
 
 @app.command("demo")

@@ -57,12 +57,31 @@ def parse_deltas(text: str, option: str = "--rpe-deltas") -> tuple[float, ...]:
     return deltas
 
 
-def config_for(seq: str | None, config: str | None):
+def config_for(seq: str | None, config: str | None, sets: list[str] | None = None):
     """The config: ``--config`` (a file or preset name) when given, else the preset that fits
-    the sequence (``SequenceRef.preset``), else the defaults."""
+    the sequence (``SequenceRef.preset``), else the defaults; then every ``--set SECTION.KEY=VALUE``
+    (VALUE read as YAML: numbers, true/false, lists)."""
     from blockloc.config import load_config, preset_for_sequence
 
-    return load_config(config or (preset_for_sequence(seq) if seq else None))
+    return load_config(config or (preset_for_sequence(seq) if seq else None), overrides=parse_sets(sets or []))
+
+
+def parse_sets(sets: list[str]) -> dict:
+    """['registration.method=vgicp', 'map.grid_n=3'] -> {'registration': {'method': 'vgicp'}, ...}."""
+    import yaml
+
+    out: dict = {}
+    for item in sets:
+        key, sep, value = item.partition("=")
+        parts = key.strip().split(".")
+        if not sep or len(parts) != 2 or not all(parts):
+            raise BlocklocError(f"--set {item!r}: expected SECTION.KEY=VALUE, e.g. registration.method=vgicp")
+        try:
+            parsed = yaml.safe_load(value) if value.strip() else ""
+        except yaml.YAMLError:
+            parsed = value
+        out.setdefault(parts[0], {})[parts[1]] = parsed
+    return out
 
 
 def map_params(map_cfg, kind: str) -> tuple:

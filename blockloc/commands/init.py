@@ -19,7 +19,8 @@ from blockloc.geometry import T_to_xyzrpy
 
 
 def run_init(seq_name: str, frame_index: int, map_path: str, hint: str | None, window_m: float | None,
-             yaw_window_deg: float | None, config: str | None, data_root: str | None, poses=None) -> tuple:
+             yaw_window_deg: float | None, config: str | None, data_root: str | None, poses=None,
+             sets: list[str] | None = None) -> tuple:
     """Returns (InitResult, summary dict for printing/JSON). Raises BlocklocError on bad input."""
     import dataclasses
 
@@ -30,7 +31,7 @@ def run_init(seq_name: str, frame_index: int, map_path: str, hint: str | None, w
     from blockloc.registration.engines import engine_from_settings
     from blockloc.tracking.scan_prep import prepare_for_init
 
-    cfg = config_for(seq_name, config)
+    cfg = config_for(seq_name, config, sets)
     gi, rc = cfg.global_init, cfg.registration
     window_m = gi.window_m if window_m is None else window_m
     yaw_window_deg = gi.yaw_window_deg if yaw_window_deg is None else yaw_window_deg
@@ -104,11 +105,11 @@ def print_result(summ: dict, console) -> None:
 
 
 def init_command(seq, frame, map_path, pose_hint, window, yaw_window, json_out, data_root, config,
-                 poses=None) -> None:
+                 poses=None, sets=None) -> None:
     """The command: run, print (JSON or tables), fail (exit 2) when nothing was verified."""
     from blockloc.commands.common import console
 
-    res, summ = run_init(seq, frame, map_path, pose_hint, window, yaw_window, config, data_root, poses)
+    res, summ = run_init(seq, frame, map_path, pose_hint, window, yaw_window, config, data_root, poses, sets)
     if json_out:
         print(json.dumps(summ))
     else:

@@ -110,14 +110,15 @@ def print_track_summary(console, m: dict, out: Optional[Path]) -> None:
 
 def track_command(seq: str, map_path: str | None, backend: str | None, init: str | None, init_pose: str | None,
                   out: Path | None, config: str | None, data_root: str | None, max_frames: int | None,
-                  lidar_topic: str | None = None, imu_topic: str | None = None, poses: Path | None = None) -> None:
+                  lidar_topic: str | None = None, imu_topic: str | None = None, poses: Path | None = None,
+                  sets: list[str] | None = None) -> None:
     from blockloc.commands.common import check_results_dir, config_for, console, results_dir
     from blockloc.evaluation.results import RunWriter
 
     mode, hint = init_mode(init, init_pose)
     if max_frames is not None and max_frames < 1:
         raise TrackingError(f"--max-frames {max_frames}: expected a positive number of frames")
-    cfg = config_for(seq, config)
+    cfg = config_for(seq, config, sets)
     out_dir = results_dir(out, seq)
     check_results_dir(out_dir)  # before any work
     session = open_session(seq, cfg=cfg, map_path=map_path, backend=backend, data_root=data_root,

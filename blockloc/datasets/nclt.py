@@ -696,3 +696,18 @@ def write_session(out_dir: str | Path, *, date: str, frames: Iterable[LidarFrame
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+# ----------------------------------------------------------------------------- as a --seq path
+PRESET = "nclt"  # the config preset of an NCLT session (a ``blockloc sim`` one: "sim")
+
+
+def detect(path: Path) -> bool:
+    """True for an NCLT-layout session directory (it has ``velodyne_sync/``)."""
+    return path.is_dir() and (path / "velodyne_sync").is_dir()
+
+
+def open_path(path: Path, options: dict) -> "NcltSequence":
+    """The session at ``path``; options: min_range_m, max_range_m, use_hits_times."""
+    return NcltSequence(path, use_hits_times=bool(options.get("use_hits_times", True)),
+                        min_range_m=options.get("min_range_m", 1.0), max_range_m=options.get("max_range_m", 100.0))

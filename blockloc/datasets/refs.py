@@ -55,9 +55,25 @@ M2DGR_IMU_TOPIC = "/handsfree/imu"
 
 _SIM_RE = re.compile(r"^sim:(?P<preset>[A-Za-z0-9_\-]+)/(?P<session>[A-Za-z0-9_\-]+)(@(?P<seed>\d+))?$")
 MAP_KINDS = ("block", "grid")
+
+#: Loaders of ``--seq`` paths, tried in this order: kind -> module with ``detect(path) -> bool``,
+#: ``open_path(path, options) -> Sequence`` and ``PRESET`` (config preset or None); one that
+#: reads ``options["poses"]`` itself sets ``TAKES_POSES = True`` (else the sequence is wrapped by
+#: ``with_trajectory``). A new loader is one module plus one line here.
+PATH_LOADERS = {
+    "nclt_dir": "blockloc.datasets.nclt",
+    "rosbag": "blockloc.datasets.rosbag",
+    "scan_folder": "blockloc.datasets.scanfolder",
+}
 _PATH_KINDS = ("an NCLT-layout session directory (with velodyne_sync/), a ROS1 .bag file, a ROS2 bag "
                "directory (with metadata.yaml) or a folder of point clouds (.pcd/.bin/.ply, itself or "
                "in scans/)")
+
+
+def _loader(kind: str):
+    import importlib
+
+    return importlib.import_module(PATH_LOADERS[kind])
 
 
 def known_names() -> list[str]:
@@ -82,8 +98,8 @@ def map_kind_for_backend(backend: str) -> str:
 class SequenceRef:
     """A parsed ``--seq`` value.
 
-    kind: ``sim`` | ``nclt`` | ``m2dgr`` (names), ``nclt_dir`` | ``sim_dir`` | ``rosbag`` |
-    ``scan_folder`` (paths).
+    kind: ``sim`` | ``nclt`` | ``m2dgr`` (names), or a key of ``PATH_LOADERS`` (``nclt_dir`` |
+    ``rosbag`` | ``scan_folder``) for paths.
     text: the value as given. sim: (preset, session, seed) for ``sim``. path: the file or
     directory for path kinds. preset: the config preset that fits (``sim`` | ``nclt`` | ``m2dgr``
     | None).
@@ -111,18 +127,12 @@ class SequenceRef:
         if name in M2DGR_NAMES:
             return cls(name, "m2dgr", "m2dgr")
         path = Path(name).expanduser()
-        if path.is_dir() and (path / "velodyne_sync").is_dir():
-            sim_written = (path.parent / "sim.json").is_file()
-            return cls(name, "sim_dir" if sim_written else "nclt_dir", "sim" if sim_written else "nclt",
-                       path=path)
-        if (path.is_file() and path.suffix == ".bag") or (path.is_dir() and (path / "metadata.yaml").is_file()):
-            sim_written = (path.parent / "sim.json").is_file()
-            return cls(name, "rosbag", "sim" if sim_written else None, path=path)
-        if path.is_dir():
-            from blockloc.datasets.scanfolder import is_scan_folder
-
-            if is_scan_folder(path):
-                return cls(name, "scan_folder", None, path=path)
+        for kind in PATH_LOADERS:
+            loader = _loader(kind)
+            if loader.detect(path):
+                # a session written by `blockloc sim` (sim.json beside it) is simulated data
+                preset = "sim" if (path.parent / "sim.json").is_file() else loader.PRESET
+                return cls(name, kind, preset, path=path)
         if path.exists():
             raise DatasetError(f"{path}: not a sequence; expected {_PATH_KINDS}")
         if "/" in name or os.sep in name or name.endswith(".bag"):
@@ -138,23 +148,26 @@ class SequenceRef:
         topics, data root; read by attribute); explicit arguments override it. poses: a
         trajectory file (TUM, KITTI, NCLT csv) or Trajectory giving its ground truth and mapping
         poses (T_map_body); poses_frame: that trajectory's frame name."""
-        if self.kind == "scan_folder":  # its own poses file or these: one reading of the folder
-            from blockloc.datasets.scanfolder import ScanFolderSequence
-
-            return ScanFolderSequence(self.path, poses=poses, frame_name=poses_frame,
-                                      min_range_m=float(getattr(dataset_cfg, "min_range_m", 0.0)),
-                                      max_range_m=float(getattr(dataset_cfg, "max_range_m", 100.0)))
-        seq = self._open(data_root, dataset_cfg, lidar_topic, imu_topic)
+        options = dict(min_range_m=float(getattr(dataset_cfg, "min_range_m", 1.0)),
+                       max_range_m=float(getattr(dataset_cfg, "max_range_m", 100.0)),
+                       use_hits_times=bool(getattr(dataset_cfg, "use_hits_times", True)),
+                       lidar_topic=lidar_topic or getattr(dataset_cfg, "lidar_topic", None),
+                       imu_topic=imu_topic or getattr(dataset_cfg, "imu_topic", None))
+        if self.kind in PATH_LOADERS:
+            loader = _loader(self.kind)
+            seq = loader.open_path(self.path, {**options, "poses": poses, "poses_frame": poses_frame})
+            if getattr(loader, "TAKES_POSES", False):  # it used ``poses`` itself
+                return seq
+        else:
+            seq = self._open_named(data_root, dataset_cfg, lidar_topic, imu_topic, options)
         if poses is None:
             return seq
         from blockloc.datasets.with_poses import with_trajectory
 
         return with_trajectory(seq, poses, frame_name=poses_frame)
 
-    def _open(self, data_root, dataset_cfg, lidar_topic, imu_topic):
-        ranges = dict(min_range_m=float(getattr(dataset_cfg, "min_range_m", 1.0)),
-                      max_range_m=float(getattr(dataset_cfg, "max_range_m", 100.0)))
-        use_hits = bool(getattr(dataset_cfg, "use_hits_times", True))
+    def _open_named(self, data_root, dataset_cfg, lidar_topic, imu_topic, options):
+        ranges = {k: options[k] for k in ("min_range_m", "max_range_m")}
         if self.kind == "sim":
             from blockloc.sim.stream import open_sim_sequence
 
@@ -167,24 +180,13 @@ class SequenceRef:
             cands = [root / "nclt" / date, root / "NCLT" / date, root / date]
             for c in cands:
                 if (c / "velodyne_sync").is_dir():
-                    return NcltSequence(c, use_hits_times=use_hits, date=date, name=self.text, **ranges)
+                    return NcltSequence(c, use_hits_times=options["use_hits_times"], date=date, name=self.text,
+                                        **ranges)
             raise DatasetError(
                 f"{self.text}: NCLT session {date} not found: expected {cands[0]}/velodyne_sync/ "
                 f"(unpack {date}_vel.tar.gz and {date}_sen.tar.gz from the NCLT site into {root / 'nclt'}, "
                 f"put groundtruth_{date}.csv in {cands[0]}; data root from --data-root or BLOCKLOC_DATA)")
-        if self.kind == "m2dgr":
-            return self._open_m2dgr(data_root, dataset_cfg, lidar_topic, imu_topic, ranges)
-        if self.kind in ("nclt_dir", "sim_dir"):
-            from blockloc.datasets.nclt import NcltSequence
-
-            return NcltSequence(self.path, use_hits_times=use_hits, **ranges)
-        from blockloc.datasets.rosbag import RosbagSequence
-
-        return RosbagSequence(self.path,
-                              lidar_topic=lidar_topic or getattr(dataset_cfg, "lidar_topic", None)
-                              or "/velodyne_points",
-                              imu_topic=imu_topic or getattr(dataset_cfg, "imu_topic", None) or "/imu",
-                              **ranges)
+        return self._open_m2dgr(data_root, dataset_cfg, lidar_topic, imu_topic, ranges)
 
     def _open_m2dgr(self, data_root, dataset_cfg, lidar_topic, imu_topic, ranges):
         from blockloc.datasets.rosbag import RosbagSequence
@@ -214,7 +216,7 @@ class SequenceRef:
             return f"sim:{preset}/map@{seed}"
         if self.kind == "nclt":
             return "nclt_1" if self.text != "nclt_1" else "nclt_3"
-        if self.kind in ("sim_dir", "rosbag") and self.preset == "sim" and (self.path.parent / "map").exists():
+        if self.path is not None and self.preset == "sim" and (self.path.parent / "map").exists():
             return str(self.path.parent / "map")
         return None
 
@@ -237,7 +239,7 @@ class SequenceRef:
             return cache_root() / "maps" / f"{preset}_{seed}_{kind}-{key}"
         if self.kind == "nclt":
             return resolve_data_root(data_root, dataset_cfg) / "maps" / f"nclt_{kind}"
-        if self.kind in ("sim_dir", "rosbag") and self.mapping_source() is not None:
+        if self.path is not None and self.mapping_source() is not None:
             return self.path.parent / f"{kind}_map"
         raise MapError(f"no default map for sequence {self.text!r}: give --map MAP (build one with "
                        f"'blockloc map build --seq <mapping session> --kind {kind} --out MAP')")

@@ -440,3 +440,19 @@ def write_rosbag(path: str | Path, frames: Iterable[LidarFrame], imu: ImuData, *
         return path
     finally:
         shutil.rmtree(tmpdir, ignore_errors=True)
+
+
+# ----------------------------------------------------------------------------- as a --seq path
+PRESET = None  # no preset fits every bag
+
+
+def detect(path: Path) -> bool:
+    """True for a ROS1 ``.bag`` file or a ROS2 bag directory (``metadata.yaml``)."""
+    return (path.is_file() and path.suffix == ".bag") or (path.is_dir() and (path / "metadata.yaml").is_file())
+
+
+def open_path(path: Path, options: dict) -> "RosbagSequence":
+    """The bag at ``path``; options: lidar_topic, imu_topic, min_range_m, max_range_m."""
+    return RosbagSequence(path, lidar_topic=options.get("lidar_topic") or "/velodyne_points",
+                          imu_topic=options.get("imu_topic") or "/imu",
+                          min_range_m=options.get("min_range_m", 0.0), max_range_m=options.get("max_range_m", np.inf))
