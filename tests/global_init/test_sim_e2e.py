@@ -49,4 +49,5 @@ def test_simulated_scan_is_localized_from_a_hint_12_m_off_with_unknown_yaw(sim_c
                    map_store=store, hint_xy=hint, window_m=40.0, cache_dir=cache)
     assert res.verified
     dt, dr = pose_error(res.T_map_body, T_true)
+    print("MEASURE sim_e2e", dt, dr)
     assert dt <= 0.3 and dr <= 2.0, (dt, dr)

@@ -28,6 +28,7 @@ def test_end_to_end_accuracy_and_outputs(full_run):
     m = res.metrics
     assert m["frames"] == len(seq) and m["estimated"] == len(seq)
     assert m["init"]["verified"] and m["init"]["error_m"] < 0.3  # branch-and-bound from a 4 m hint
+    print("MEASURE full_run ate", m["ate_trans_rmse_m"], "init err", m["init"]["error_m"])
     assert m["ate_trans_rmse_m"] <= 0.2
     assert m["failures"] == 0
     out = res.out_dir
@@ -44,6 +45,7 @@ def test_end_to_end_accuracy_and_outputs(full_run):
 
     est = read_tum(out / "poses.tum")
     gt = seq.ground_truth().interpolate(est.stamps)
+    print("MEASURE tum median", np.median(np.linalg.norm(est.positions - gt[:, :3, 3], axis=1)))
     assert np.median(np.linalg.norm(est.positions - gt[:, :3, 3], axis=1)) < 0.1
 
 
@@ -84,6 +86,7 @@ def test_one_second_lidar_dropout_is_bridged(small_world):
     assert len(dropped) == 10
     after = next(e for e in res.estimates if e.index == 110)
     assert after.diagnostics.status == "ok" and after.diagnostics.innovation_m < 0.5
+    print("MEASURE dropout ate", res.metrics["ate_trans_rmse_m"], "innov", after.diagnostics.innovation_m)
     assert res.metrics["failures"] == 0 and res.metrics["ate_trans_rmse_m"] < 0.2
 
 
@@ -111,4 +114,5 @@ def test_kidnapped_start_is_recovered_by_global_init(small_world):
     assert any(r["hint"] and r["verified"] for r in m["relocalizations"])
     gt = pipe.gt.interpolate(res.trajectory.stamps[-20:])
     err = np.linalg.norm(res.trajectory.positions[-20:] - gt[:, :3, 3], axis=1)
+    print("MEASURE kidnapped max", err.max())
     assert err.max() < 0.2
