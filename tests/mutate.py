@@ -176,6 +176,15 @@ MUTATIONS: list[Mutation] = [
       "tests/datasets/test_nclt_fixed_rows.py"),
     M("rpy_pitch_sign", "blockloc/geometry.py",
       "R[..., 2, 0] = -sp", "R[..., 2, 0] = sp", "tests/test_geometry.py"),
+    M("nclt_gt_writer_roll_pitch_swap", "blockloc/datasets/nclt.py",
+      "xyzrpy = T_to_xyzrpy(traj.poses)", "xyzrpy = T_to_xyzrpy(traj.poses)[:, [0, 1, 2, 4, 3, 5]]",
+      "tests/datasets/test_nclt_fixed_rows.py"),
+    M("tum_writer_scalar_first", "blockloc/evaluation/trajectory_io.py",
+      "for t, (x, y, z), (qx, qy, qz, qw) in zip(traj.stamps, p, q):",
+      "for t, (x, y, z), (qw, qx, qy, qz) in zip(traj.stamps, p, q):",
+      f"{T_EVAL}/test_eval_trajectory_io.py"),
+    M("ndt_information_scale_ignored", "blockloc/tracking/factors.py",
+      "H = 0.5 * (H + H.T) * params.information_scale", "H = 0.5 * (H + H.T)", T_FACTORS),
 ]
 
 
