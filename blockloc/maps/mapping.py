@@ -13,6 +13,7 @@ from typing import Iterator
 
 import numpy as np
 
+from blockloc.datasets.with_poses import POSE_TIME_TOLERANCE_S  # frames outside: not mapped
 from blockloc.errors import MapError
 from blockloc.geometry import Trajectory, rotation_angle
 
@@ -21,8 +22,6 @@ log = logging.getLogger(__name__)
 # Per-point deskew: poses are interpolated at this many instants across a sweep; at 10 Hz and
 # 1.5 m/s one bin is 3 ms, i.e. < 5 mm of motion.
 DESKEW_BINS = 32
-# Frames further than this from the pose time range are not mapped (no extrapolation).
-POSE_TIME_TOLERANCE_S = 0.05
 
 
 @dataclass

@@ -152,4 +152,4 @@ def test_tracking_recovers_when_the_server_returns(killed_run):
     assert files.stats.fetched_files >= 3  # block 001 fetched after the server came back
     gt = seq.ground_truth().interpolate(res.trajectory.stamps[-50:])
     err = np.linalg.norm(res.trajectory.poses[-50:, :3, 3] - gt[:, :3, 3], axis=1)
-    assert np.median(err) < 0.5
+    assert np.median(err) < 0.07  # measured on 700dd19: 0.035 m (max 0.038 m)

@@ -266,16 +266,37 @@ def test_gradient_direction_matches_gtsam_local_coordinates(scene):
         assert fd == pytest.approx(ev.b[i], rel=1e-4, abs=1e-3)
 
 
-def test_ndt_constants_match_magnusson():
-    d1, d2 = ndt_constants(1.0, 0.55)
-    # values printed by ndt_omp / PCL for resolution 1, outlier ratio 0.55
-    assert d1 < 0 and d2 > 0
-    c1, c2 = 10 * 0.45, 0.55
-    d3 = -np.log(c2)
-    assert d1 == pytest.approx(-np.log(c1 + c2) - d3)
-    # the fitted Gaussian-plus-uniform passes through the mixture at x = 0 and x = 1 sigma
-    assert -np.log(c1 + c2) - d3 == pytest.approx(d1)
-    assert -np.log(c1 * np.exp(-0.5) + c2) - d3 == pytest.approx(d1 * np.exp(-d2 / 2))
+# PCL's NormalDistributionsTransform::computeTransformation (and ndt_omp, which copies it) set
+# (Magnusson 2009, eq. 6.8):
+#   c1 = 10 (1 - outlier_ratio), c2 = outlier_ratio / resolution^3, d3 = -log(c2),
+#   d1 = -log(c1 + c2) - d3, d2 = -2 log((-log(c1 exp(-0.5) + c2) - d3) / d1).
+# The numbers below were evaluated once from that formula by hand (Python's math module in a
+# scratch shell, not this package), for outlier ratio 0.55:
+PCL_NDT_CONSTANTS = {
+    1.0: (-2.217225244042889, 0.43312300470355464),
+    2.0: (-4.196518186951408, 0.24847851012449546),
+}
+
+
+@pytest.mark.parametrize("resolution", sorted(PCL_NDT_CONSTANTS))
+def test_ndt_constants_match_magnusson(resolution):
+    """d1, d2 equal the literal values of PCL / ndt_omp's formula at 1 m and 2 m (ratio 0.55):
+    at 2 m every power of the resolution matters (c2 = 0.55 / 8)."""
+    d1, d2 = ndt_constants(resolution, 0.55)
+    want_d1, want_d2 = PCL_NDT_CONSTANTS[resolution]
+    assert d1 == pytest.approx(want_d1, rel=1e-12)
+    assert d2 == pytest.approx(want_d2, rel=1e-12)
+
+
+def test_ndt_constants_fit_the_gaussian_plus_uniform_mixture():
+    """The fitted -d1 exp(-d2 x^2 / 2) + d3 equals -log(c1 exp(-x^2 / 2) + c2) at x = 0 and x = 1."""
+    for res in (0.5, 1.0, 2.0, 3.0):
+        d1, d2 = ndt_constants(res, 0.55)
+        c1, c2 = 10 * 0.45, 0.55 / res**3
+        d3 = -np.log(c2)
+        assert d1 < 0 and d2 > 0
+        for x in (0.0, 1.0):
+            assert d1 * np.exp(-d2 * x * x / 2) + d3 == pytest.approx(-np.log(c1 * np.exp(-x * x / 2) + c2))
 
 
 # ------------------------------------------------------------------------------------------

@@ -29,8 +29,10 @@ def test_end_to_end_accuracy_and_outputs(full_run):
     res, seq = full_run
     m = res.metrics
     assert m["frames"] == len(seq) and m["estimated"] == len(seq)
-    assert m["init"]["verified"] and m["init"]["error_m"] < 0.3  # branch-and-bound from a 4 m hint
-    assert m["ate_trans_rmse_m"] <= 0.2
+    # limits about twice the values measured on 700dd19 (init error 0.020 m, ATE 0.043 m, median
+    # position error 0.033 m)
+    assert m["init"]["verified"] and m["init"]["error_m"] < 0.05  # branch-and-bound from a 4 m hint
+    assert m["ate_trans_rmse_m"] <= 0.09
     assert m["failures"] == 0
     out = res.out_dir
     for name in ("poses.tum", "poses_kitti.txt", "metrics.json", "config.yaml", "diagnostics.csv",
@@ -46,7 +48,7 @@ def test_end_to_end_accuracy_and_outputs(full_run):
 
     est = read_tum(out / "poses.tum")
     gt = seq.ground_truth().interpolate(est.stamps)
-    assert np.median(np.linalg.norm(est.positions - gt[:, :3, 3], axis=1)) < 0.1
+    assert np.median(np.linalg.norm(est.positions - gt[:, :3, 3], axis=1)) < 0.07
 
 
 def test_window_shrinks_at_switches_and_grows_back_without_jumps(full_run):
@@ -86,8 +88,9 @@ def test_one_second_lidar_dropout_is_bridged(small_world):
     res = session.finish()
     assert len(dropped) == 10 and res.metrics["lidar_gaps"] == 1
     after = next(e for e in res.estimates if e.index == 110)
-    assert after.diagnostics.status == "ok" and after.diagnostics.innovation_m < 0.5
-    assert res.metrics["failures"] == 0 and res.metrics["ate_trans_rmse_m"] < 0.2
+    assert after.diagnostics.status == "ok" and after.diagnostics.innovation_m < 0.04
+    # measured on 700dd19: innovation 0.016 m, ATE 0.011 m
+    assert res.metrics["failures"] == 0 and res.metrics["ate_trans_rmse_m"] < 0.025
 
 
 def test_kidnapped_start_is_recovered_by_global_init(small_world):
@@ -111,4 +114,4 @@ def test_kidnapped_start_is_recovered_by_global_init(small_world):
     assert any(r["hint"] and r["verified"] for r in m["relocalizations"])
     gt = seq.ground_truth().interpolate(res.trajectory.stamps[-20:])
     err = np.linalg.norm(res.trajectory.positions[-20:] - gt[:, :3, 3], axis=1)
-    assert err.max() < 0.2
+    assert err.max() < 0.03  # measured on 700dd19: 0.012 m
