@@ -148,6 +148,8 @@ class TrackingConfig:
     # scan counts as rejected.
     rotation_retry_yaw_deg: tuple[float, ...] = (15.0, -15.0, 30.0, -30.0, 45.0, -45.0)
     rotation_retry_tilt_deg: tuple[float, ...] = (15.0, -15.0)
+    # ... and one is accepted only with this fraction of the recent scans' fitness
+    rotation_retry_fitness_ratio: float = 0.8
 
 
 @dataclass

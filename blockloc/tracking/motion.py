@@ -70,18 +70,31 @@ def constant_velocity_error(T_i, twist_i: np.ndarray, T_j, twist_j: np.ndarray, 
 
     twist_i = np.asarray(twist_i, dtype=np.float64)
     twist_j = np.asarray(twist_j, dtype=np.float64)
+    e = np.empty(12)
+    e[6:] = twist_j - twist_i
     if not jacobians:
-        xi = gtsam.Pose3.Logmap(T_i.between(T_j))
-        return np.r_[xi - dt * twist_i, twist_j - twist_i], None
+        e[:6] = gtsam.Pose3.Logmap(T_i.between(T_j)) - dt * twist_i
+        return e, None
     H_i = np.zeros((6, 6), order="F")
     H_j = np.zeros((6, 6), order="F")
     T_ij = T_i.between(T_j, H_i, H_j)  # H_i = -Ad(T_ij^-1), H_j = I
     J_log = np.zeros((6, 6), order="F")
-    xi = gtsam.Pose3.Logmap(T_ij, J_log)  # J_r^-1(xi)
-    Z, I6 = np.zeros((6, 6)), np.eye(6)
-    Hs = [np.vstack([J_log @ H_i, Z]), np.vstack([-dt * I6, -I6]),
-          np.vstack([J_log @ H_j, Z]), np.vstack([Z, I6])]
-    return np.r_[xi - dt * twist_i, twist_j - twist_i], Hs
+    e[:6] = gtsam.Pose3.Logmap(T_ij, J_log) - dt * twist_i  # J_log = J_r^-1(xi)
+    H_xi, H_xj = np.zeros((12, 6)), np.zeros((12, 6))
+    H_xi[:6] = J_log @ H_i
+    H_xj[:6] = J_log @ H_j
+    return e, [H_xi, _twist_jacobian(dt, True), H_xj, _twist_jacobian(dt, False)]
+
+
+def _twist_jacobian(dt: float, first: bool) -> np.ndarray:
+    """d e / d twist_i = [-dt I; -I], d e / d twist_j = [0; I] (constant)."""
+    H = np.zeros((12, 6))
+    if first:
+        H[:6] = -dt * np.eye(6)
+        H[6:] = -np.eye(6)
+    else:
+        H[6:] = np.eye(6)
+    return H
 
 
 def constant_velocity_factor(key_xi, key_vi, key_xj, key_vj, dt: float, noise: MotionNoise):
@@ -122,6 +135,15 @@ def predict(T_map_body: np.ndarray, twist: np.ndarray, dt) -> np.ndarray:
     dts = np.atleast_1d(np.asarray(dt, dtype=np.float64))
     out = np.array([T @ gtsam.Pose3.Expmap(d * w).matrix() for d in dts])
     return out[0] if np.ndim(dt) == 0 else out
+
+
+def extrapolation_jacobians(twist: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray]:
+    """Jacobians (6, 6) of T' = T Exp(tau twist) w.r.t. a right perturbation of T and an
+    increment of the twist (Pose3 tangent of T'): Ad(Exp(-tau twist)) and tau J_r(tau twist)."""
+    import gtsam
+
+    xi = tau * np.asarray(twist, dtype=np.float64)
+    return gtsam.Pose3.Expmap(-xi).AdjointMap(), tau * gtsam.Pose3.ExpmapDerivative(xi)
 
 
 def twist_between(T_a: np.ndarray, T_b: np.ndarray, dt: float) -> np.ndarray:

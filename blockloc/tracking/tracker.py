@@ -23,8 +23,10 @@ tens of degrees off (the real walk turns up to 48 deg in 0.5 s), so:
    tuned for an IMU, says how far off a prediction can honestly be;
  - when registration from the prediction fails its health check, rotated predictions (yaw about
    the map's vertical, then roll/pitch, ``rotation_retry_*_deg``) are registered in turn and the
-   first healthy one is accepted (counted in ``rotation_retries``); only then does the frame count
-   as rejected, and relocalization follows as with an IMU.
+   first healthy one that also fits at least ``rotation_retry_fitness_ratio`` of the recent scans'
+   fitness is accepted (counters ``rotation_retries`` / ``rotation_recoveries``, diagnostics
+   ``rotation_retries`` / ``rotation_retry``); only then does the frame count as rejected, and
+   relocalization follows as with an IMU (after ``max_bad_frames``).
 Gravity for relocalization comes from the map's vertical and the last estimate.
 
 Collaborators are duck-typed so tests can hand in small fakes:
@@ -101,13 +103,18 @@ class TrackerParams:
     lidar_only_gate_sigmas: float = 5.0
     rotation_retry_yaw_deg: tuple = (15.0, -15.0, 30.0, -30.0, 45.0, -45.0)
     rotation_retry_tilt_deg: tuple = (15.0, -15.0)  # roll and pitch each
+    # A rotated prediction is accepted only with at least this fraction of the recent fitness
+    # (median of the last accepted scans; min_fitness alone before there are any).
+    rotation_retry_fitness_ratio: float = 0.8
 
 
 @dataclass
 class Diagnostics:
     """Per-frame health and cost; every field is plain data for JSON."""
 
-    status: str = "ok"  # ok | rejected | imu_only | lost | recovered | uninitialized
+    # ok | rejected | imu_only | lost | recovered | uninitialized; imu_only: no scan factor (no map
+    # or too few points), the IMU (LiDAR-only: the motion prior) carried the pose
+    status: str = "ok"
     fitness: float = float("nan")
     innovation_m: float = float("nan")
     innovation_deg: float = float("nan")
@@ -133,6 +140,8 @@ class Estimate:
 
     T_map_body: (4, 4) or None before the first successful initialization.
     covariance: (6, 6) Pose3 tangent (rotation rad, translation m) of T_map_body, or None.
+    (LiDAR-only with per-point times the keyframe sits at the scan's mean point time; pose and
+    covariance are carried to ``stamp`` with its twist.)
     velocity_map: (3,) m/s; acc_bias (3,) m/s^2 and gyro_bias (3,) rad/s in the imu frame (zeros
     in LiDAR-only mode, which estimates no biases).
     """
@@ -175,6 +184,7 @@ class Tracker:
         self._next_index = 0
         self._last_ndt: tuple[int, np.ndarray] | None = None  # (keyframe, T_map_body) of the last accepted NDT
         self._last_good: np.ndarray | None = None
+        self._recent_fitness: list[float] = []  # of the last accepted scans
         self._bad_streak = 0
         self._lost_frames = 0
         self.counters = {"frames": 0, "failures": 0, "recoveries": 0, "switches": 0, "rejected": 0,
@@ -207,7 +217,8 @@ class Tracker:
                                init_sigma_rate_rad_s=tc.init_sigma_rate_rad_s,
                                lidar_only_gate_sigmas=tc.lidar_only_gate_sigmas,
                                rotation_retry_yaw_deg=tuple(tc.rotation_retry_yaw_deg),
-                               rotation_retry_tilt_deg=tuple(tc.rotation_retry_tilt_deg))
+                               rotation_retry_tilt_deg=tuple(tc.rotation_retry_tilt_deg),
+                               rotation_retry_fitness_ratio=tc.rotation_retry_fitness_ratio)
         return cls(map_provider=map_provider, registration=registration, T_body_lidar=info.T_body_lidar,
                    T_body_imu=info.T_body_imu, gravity_map=info.gravity_map,
                    imu_noise=ImuNoise.from_config(cfg.imu), params=params, relocalize=relocalize)
@@ -256,6 +267,7 @@ class Tracker:
                 self.window.add_factor(f)
         self._last_ndt = None
         self._last_good = T.copy()
+        self._recent_fitness = []
         self._bad_streak = 0
         self._lost_frames = 0
 
@@ -364,6 +376,7 @@ class Tracker:
             self._bad_streak = 0
             self._lost_frames = 0
             self._last_good = est_T.copy()
+            self._recent_fitness = (self._recent_fitness + [diag.fitness])[-5:]
         elif diag.status == "rejected":  # a dropout (imu_only) is not a sign of divergence
             self._bad_streak += 1
             if self._bad_streak >= p.max_bad_frames:
@@ -507,8 +520,14 @@ class Tracker:
         """Register from rotated predictions in turn; the first healthy (T_ndt, result), or None.
 
         Innovation is still measured against the real prediction, so a retry is held to the
-        same gate as the prediction itself."""
+        same gate as the prediction itself. A retry explores poses the motion model finds
+        unlikely, and each try is one more chance of a wrong local minimum that happens to pass
+        ``min_fitness`` (the floor or walls near any guess), so it must also fit about as well as
+        the recent scans did (``rotation_retry_fitness_ratio``)."""
         p = self.params
+        min_fit = p.min_fitness
+        if self._recent_fitness:
+            min_fit = max(min_fit, p.rotation_retry_fitness_ratio * float(np.median(self._recent_fitness)))
         candidates = motion.rotated_predictions(T_pred, self.gravity_map, p.rotation_retry_yaw_deg,
                                                 p.rotation_retry_tilt_deg)
         if not candidates:
@@ -521,7 +540,7 @@ class Tracker:
             except Exception as exc:
                 log.debug("rotated prediction %s: registration failed: %s", label, exc)
                 continue
-            if ok:
+            if ok and fit >= min_fit:
                 self.counters["rotation_recoveries"] += 1
                 diag.rotation_retry = label
                 diag.fitness, diag.innovation_m, diag.innovation_deg = fit, inn_m, inn_deg
@@ -616,17 +635,23 @@ class Tracker:
 
     def _estimate(self, index, stamp, k, diag, t_start) -> Estimate:
         state, bias = self._state(k)
-        t_k = self.window.stamps[k]
-        if self.lidar_only and abs(stamp - t_k) > 1e-9:  # keyframe at the scan's mean point time
+        kx, kv, _ = keys_of(k)
+        tau = stamp - self.window.stamps[k]
+        moved = self.lidar_only and abs(tau) > 1e-9  # keyframe at the scan's mean point time
+        if moved:
             import gtsam
 
-            twist = self.window.values.atVector(keys_of(k)[1])
-            T = motion.predict(state.pose().matrix(), twist, stamp - t_k)
+            twist = self.window.values.atVector(kv)
+            T = motion.predict(state.pose().matrix(), twist, tau)
             state = gtsam.NavState(gtsam.Pose3(T), motion.map_velocity(T, twist))
         cov = None
         if self.params.compute_covariance:
             try:
-                cov = self.window.covariance(keys_of(k)[0])
+                if moved:  # first-order propagation of (pose, twist) to the stamp
+                    J = np.hstack(motion.extrapolation_jacobians(twist, tau))
+                    cov = J @ self.window.joint_covariance([kx, kv]) @ J.T
+                else:
+                    cov = self.window.covariance(kx)
             except RuntimeError as exc:  # an indeterminant system: report, do not crash
                 log.debug("no covariance: %s", exc)
         diag.update_ms = (time.perf_counter() - t_start) * 1e3

@@ -152,3 +152,45 @@ def test_rotated_prediction_recovers_a_scan_40_degrees_off_in_yaw(world, yaw_deg
     d0, err0, rot0, counters0 = results[False]
     assert d0.status == "rejected" and d0.rotation_retries == 0 and counters0["rejected"] == 1
     assert rot0 > 10.0
+
+
+def test_a_turn_beyond_the_retries_falls_back_to_relocalization(world):
+    """150 deg in 0.3 s: no rotated prediction reaches it. Those that converge somewhere near the
+    prediction fit far worse than the scans before (ground returns are left out: this scene's
+    gently sloped ground alone gives any nearby pose a fitness of 0.8 with the stand-in), so after
+    max_bad_frames rejected scans the relocalizer is asked, around the last good pose, with
+    gravity from the map and that pose."""
+    T0 = xyzrpy_to_T(20.0, 0.0, 1.0, 0.0, 0.0, np.pi / 2)
+    T1 = T0.copy()
+    T1[:3, :3] = rpy_to_R(0.0, 0.0, np.deg2rad(150.0)) @ T0[:3, :3]
+    step = StepTrajectory(T0, T1, 0.25)
+    calls = []
+
+    def relocalize(points, hint, gravity_body, stamp):
+        calls.append((hint.copy(), gravity_body.copy()))
+        return T1.copy()  # as a branch-and-bound search around the hint would find it
+
+    prov = ScriptedProvider(world["target"])
+    tr = Tracker(map_provider=prov, registration=world["reg"], T_body_lidar=T_BODY_LIDAR, T_body_imu=np.eye(4),
+                 gravity_map=world["traj"].gravity_map, params=TrackerParams(use_imu=False),
+                 relocalize=relocalize)
+    tr.initialize(T0, 0.0)
+    ests = []
+    for i, t in enumerate((0.0, 0.1, 0.2, 0.5, 1.0, 1.5, 2.0)):
+        frame = make_scan(world["scene"], step, t, T_BODY_LIDAR, index=i, max_points=6000, seed=7)
+        frame.time_offsets = None
+        T = step.pose(t)[0] @ T_BODY_LIDAR
+        z_map = (frame.points @ T[:3, :3].T + T[:3, 3])[:, 2]
+        ests.append(tr.insert_frame(frame.select(z_map > 0.4 + 0.5)))  # ground near (20, 0): 0.4 m
+    status = [e.diagnostics.status for e in ests]
+    assert status == ["ok"] * 3 + ["rejected", "rejected", "recovered", "ok"]
+    assert [e.diagnostics.rotation_retries for e in ests[3:6]] == [10] * 3  # 6 yaw + 2 x (roll, pitch)
+    assert tr.counters["rotation_retries"] == 3 and tr.counters["rotation_recoveries"] == 0
+    assert tr.counters["failures"] == 1 and tr.counters["recoveries"] == 1 and len(calls) == 1
+    hint, gravity = calls[0]
+    assert np.allclose(hint[:3, 3], T0[:3, 3], atol=0.05)  # the last good pose
+    # gravity in the body frame of the last estimate (the map's vertical; no accelerometer)
+    g_hint = hint[:3, :3].T @ world["traj"].gravity_map
+    assert np.linalg.norm(gravity) == pytest.approx(9.81)
+    assert np.degrees(np.arccos(gravity @ g_hint / 9.81**2)) < 5.0
+    assert np.linalg.norm(ests[-1].T_map_body[:3, 3] - T1[:3, 3]) < 0.05

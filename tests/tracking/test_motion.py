@@ -103,3 +103,22 @@ def test_rotated_predictions_turn_about_the_vertical_and_the_body_axes(gravity):
     roll = cands[2][1]
     assert np.allclose(T[:3, :3].T @ roll[:3, :3] @ [1, 0, 0], [1, 0, 0])  # about body x
     assert motion.rotated_predictions(T, gravity) == []
+
+
+def test_extrapolation_jacobians_match_finite_differences():
+    T = _pose([0.3, -0.2, 0.5, 1.0, -2.0, 0.4])
+    w = np.array([0.2, -0.1, 0.9, 1.5, 0.2, -0.1])
+    tau = -0.05
+    J_x, J_v = motion.extrapolation_jacobians(w, tau)
+
+    def out(Tp, wp):
+        return gtsam.Pose3(motion.predict(Tp.matrix(), wp, tau))
+
+    base = out(T, w)
+    h = 1e-6
+    for c in range(6):
+        d = np.zeros(6)
+        d[c] = h
+        num_x = (base.localCoordinates(out(T.retract(d), w)) - base.localCoordinates(out(T.retract(-d), w))) / (2 * h)
+        num_v = (base.localCoordinates(out(T, w + d)) - base.localCoordinates(out(T, w - d))) / (2 * h)
+        assert np.allclose(J_x[:, c], num_x, atol=1e-6) and np.allclose(J_v[:, c], num_v, atol=1e-6)
