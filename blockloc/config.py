@@ -137,7 +137,9 @@ class TrackingConfig:
     imu_noise_inflation: float = 1.0
     # LiDAR-only tracking (no IMU in the sequence, or use_imu false): a constant-velocity prior on
     # SE(3) between keyframes, white-noise acceleration of these densities (body frame, per axis).
-    use_imu: bool = True  # false: ignore the IMU even when the sequence has one
+    use_imu: bool = True  # true: the IMU when the sequence has one; false: ignore it (--no-imu)
+    # Measured on the real walk (held-out half, 2 Hz): 0.5 m/s^2 doubled the ATE (0.019 -> 0.036 m),
+    # 0.5 rad/s^2 lost the track (its prediction gate narrows to 29 deg); 2 rad/s^2 changed nothing.
     motion_sigma_acc_m_s2: float = 1.0  # m/s^2/sqrt(s)
     motion_sigma_acc_rad_s2: float = 1.0  # rad/s^2/sqrt(s)
     init_sigma_rate_rad_s: float = 1.0  # angular-rate prior of the first keyframe (starts at zero)

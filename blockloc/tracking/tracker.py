@@ -11,7 +11,7 @@ Per frame (``insert_frame``):
  7. marginalize: down to N_r keyframes on a map switch, else down to N_a,
  8. after ``max_bad_frames`` rejected frames in a row, relocalize around the last good pose.
 
-LiDAR-only mode (``use_imu=False``, or no IMU sample before the first frame): keyframes hold a
+LiDAR-only mode (``use_imu=False``, or ``None`` and no IMU sample before the first frame): keyframes hold a
 pose and a body twist (``blockloc.tracking.motion``) instead of pose, velocity and biases; step 1
 predicts with the last twist (constant velocity on SE(3)), step 2 deskews with the same constant
 twist over the sweep, step 6 links keyframes by the constant-velocity factor (noise from
@@ -53,8 +53,14 @@ from blockloc.errors import TrackingError
 from blockloc.geometry import inv_T, rotation_angle
 from blockloc.tracking import deskew as dsk
 from blockloc.tracking import motion
-from blockloc.tracking.factors import (NdtFactorParams, ndt_factor, ndt_information, odometry_factor, pose_prior,
-                                      state_priors)
+from blockloc.tracking.factors import (
+    NdtFactorParams,
+    ndt_factor,
+    ndt_information,
+    odometry_factor,
+    pose_prior,
+    state_priors,
+)
 from blockloc.tracking.imu import ImuBuffer, ImuNoise, integrate, make_preintegration_params, predict_states
 from blockloc.tracking.motion import MotionNoise
 from blockloc.tracking.window import SlidingWindow, keys_of
@@ -95,9 +101,10 @@ class TrackerParams:
     recover_sigma_vel_m_s: float = 1.5  # velocity prior after a relocalization (starts at zero)
     init_sigma_acc_bias: float = 0.2
     init_sigma_gyro_bias: float = 0.01
-    # LiDAR-only tracking (see the module doc). use_imu False: never use the IMU; True: use it
-    # when samples arrive before the first frame, else track LiDAR-only.
-    use_imu: bool = True
+    # LiDAR-only tracking (see the module doc). use_imu False: LiDAR-only, IMU samples ignored;
+    # True: IMU preintegration (as before LiDAR-only existed); None: decided at the first frame,
+    # the IMU when some sample has arrived by then, else LiDAR-only.
+    use_imu: bool | None = None
     motion: MotionNoise = field(default_factory=MotionNoise)
     init_sigma_rate_rad_s: float = 1.0  # angular-rate prior of a first keyframe (starts at zero)
     lidar_only_gate_sigmas: float = 5.0
@@ -178,7 +185,7 @@ class Tracker:
         self.imu = ImuBuffer()
         self.window = SlidingWindow(params.window_size, params.lm_iterations)
         # True: LiDAR-only; None: not decided yet (IMU unless no sample arrives before the first frame)
-        self.lidar_only: bool | None = True if not params.use_imu else None
+        self.lidar_only: bool | None = {False: True, True: False}.get(params.use_imu)
         self._imu_seen = False
         self._init_args: tuple | None = None  # the last initialize() call, to redo it LiDAR-only
         self._next_index = 0
@@ -196,8 +203,9 @@ class Tracker:
                     use_imu: bool | None = None) -> "Tracker":
         """From a ``blockloc.config.Config`` and a ``SequenceInfo``.
 
-        use_imu: False forces LiDAR-only tracking (None: ``cfg.tracking.use_imu``); with True the
-        tracker still runs LiDAR-only when the sequence delivers no IMU sample.
+        use_imu: True / False when the caller knows whether the sequence has an IMU (e.g.
+        ``len(seq.imu()) > 0 and cfg.tracking.use_imu``). None: ``cfg.tracking.use_imu`` false
+        means LiDAR-only, true means decided at the first frame (no IMU sample by then: LiDAR-only).
         """
         tc, lc, dc = cfg.tracking, cfg.lidar, cfg.dataset
         ndt = NdtFactorParams(information_scale=tc.ndt_information_scale,
@@ -212,7 +220,7 @@ class Tracker:
                                max_innovation_deg=tc.max_innovation_deg, max_bad_frames=tc.max_bad_frames,
                                use_odometry_factor=tc.use_odometry_factor, lm_iterations=tc.lm_iterations,
                                imu_noise_inflation=tc.imu_noise_inflation, ndt=ndt,
-                               use_imu=tc.use_imu if use_imu is None else bool(use_imu),
+                               use_imu=(None if tc.use_imu else False) if use_imu is None else bool(use_imu),
                                motion=MotionNoise(tc.motion_sigma_acc_rad_s2, tc.motion_sigma_acc_m_s2),
                                init_sigma_rate_rad_s=tc.init_sigma_rate_rad_s,
                                lidar_only_gate_sigmas=tc.lidar_only_gate_sigmas,
@@ -281,7 +289,7 @@ class Tracker:
             self._imu_seen = True
 
     def _decide_mode(self, index: int) -> None:
-        """At the first frame: LiDAR-only when no IMU sample has arrived (or use_imu is False)."""
+        """use_imu None, at the first frame: LiDAR-only when no IMU sample has arrived."""
         if self.lidar_only is not None:
             return
         self.lidar_only = not self._imu_seen

@@ -6,8 +6,15 @@ import pytest
 
 from blockloc.geometry import inv_T, rpy_to_R, so3_log, xyzrpy_to_T
 from blockloc.tracking.tracker import Tracker, TrackerParams
-from tests.tracking.synthetic import (T_BODY_LIDAR, CircleTrajectory, GicpRegistration, ScriptedProvider,
-                                      imu_from_trajectory, make_scan, make_scene)
+from tests.tracking.synthetic import (
+    T_BODY_LIDAR,
+    CircleTrajectory,
+    GicpRegistration,
+    ScriptedProvider,
+    imu_from_trajectory,
+    make_scan,
+    make_scene,
+)
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +96,7 @@ def test_use_imu_false_ignores_the_imu_and_with_it_nothing_changes(world):
     s0 = world["stamps"][0]
     stamps = world["stamps"][:30]
     runs = {}
-    for name, use_imu in (("forced", False), ("auto", True)):
+    for name, use_imu in (("forced", False), ("auto", None)):
         tr = make_tracker(world, use_imu=use_imu)
         tr.initialize(world["traj"].pose(s0)[0], s0, world["traj"].velocity(s0)[0])
         runs[name] = (tr, run(world, tr, stamps, feed_imu=True))
@@ -194,3 +201,28 @@ def test_a_turn_beyond_the_retries_falls_back_to_relocalization(world):
     assert np.linalg.norm(gravity) == pytest.approx(9.81)
     assert np.degrees(np.arccos(gravity @ g_hint / 9.81**2)) < 5.0
     assert np.linalg.norm(ests[-1].T_map_body[:3, 3] - T1[:3, 3]) < 0.05
+
+
+def test_mode_from_config_and_explicit_choice(world):
+    from blockloc.config import Config
+    from blockloc.datasets.base import SequenceInfo
+
+    cfg, info = Config(), SequenceInfo("x")
+    prov = ScriptedProvider(world["target"])
+
+    def mode(**kw):
+        return Tracker.from_config(cfg, info, map_provider=prov, registration=world["reg"], **kw).lidar_only
+
+    assert mode() is None  # decided at the first frame
+    assert mode(use_imu=True) is False and mode(use_imu=False) is True
+    cfg.tracking.use_imu = False  # --no-imu
+    assert mode() is True
+    p = Tracker.from_config(cfg, info, map_provider=prov, registration=world["reg"]).params
+    assert p.motion.sigma_rot == cfg.tracking.motion_sigma_acc_rad_s2
+    assert p.rotation_retry_yaw_deg == tuple(cfg.tracking.rotation_retry_yaw_deg)
+    # told there is an IMU, the tracker keeps preintegration even before the first sample
+    tr = make_tracker(world, use_imu=True)
+    s0 = world["stamps"][0]
+    tr.initialize(world["traj"].pose(s0)[0], s0)
+    tr.insert_frame(world["frames"][s0])
+    assert tr.lidar_only is False

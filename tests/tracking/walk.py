@@ -110,9 +110,7 @@ def build_walk_map(seq: WalkSequence, out: str | Path, cfg, scans: tuple[int, in
 def make_components(store, cfg):
     """(MapProvider, NdtRegistration) as the pipeline makes them for the block backend."""
     from blockloc.maps.provider import MapProvider
-    from blockloc.registration.ndt import NdtRegistration
-
-    from blockloc.registration.ndt import NdtTarget
+    from blockloc.registration.ndt import NdtRegistration, NdtTarget
 
     rc = cfg.registration
     options = NdtTarget.options_from_config(rc)  # with coarse_levels (ndt_target_builders has none)
