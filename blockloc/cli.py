@@ -215,13 +215,14 @@ def track_cmd(
                                             help="ROS bags: the Imu topic (default from the config)."),
     poses: Optional[Path] = typer.Option(None, "--poses", metavar=FILE,
                                          help="Reference trajectory (TUM, KITTI): ground truth for --init gt and the metrics."),
+    no_imu: bool = typer.Option(False, "--no-imu", help="Ignore the IMU: LiDAR-only tracking (a motion prior)."),
     sets: Optional[list[str]] = typer.Option(None, "--set", metavar="SECTION.KEY=VALUE", help=SET_HELP),
 ) -> None:
     """Track a sequence in a prior map (sliding-window IMU + scan-to-map factors); writes poses, metrics and plots."""
     from blockloc.commands.track import track_command
 
     track_command(seq, map_path, backend, init, init_pose, out, config, data_root, max_frames,
-                  lidar_topic, imu_topic, poses=poses, sets=sets)
+                  lidar_topic, imu_topic, poses=poses, sets=(sets or []) + (["tracking.use_imu=false"] if no_imu else []))
 
 
 @app.command("demo")

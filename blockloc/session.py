@@ -163,7 +163,8 @@ class Session:
                           facts={"backend": backend, "registration": rc.method, **(facts or {})},
                           config=cfg.to_dict())
             session.tracker = Tracker.from_config(cfg, seq.info, map_provider=provider, registration=engine,
-                                                  relocalize=session.relocalize)
+                                                  relocalize=session.relocalize,
+                                                  use_imu=len(session.imu) > 0 and cfg.tracking.use_imu)
         except BaseException:
             provider.close()
             raise

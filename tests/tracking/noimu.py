@@ -34,23 +34,23 @@ def main(argv=None) -> int:
     import argparse
     import os
 
+    from blockloc.commands.demo import prepare_small_world
     from blockloc.datasets import open_sequence
-    from blockloc.demo import prepare_small_world
-    from blockloc.pipeline import LocalizationPipeline
+    from blockloc.maps.store import open_map
+    from blockloc.session import Session
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--max-frames", type=int, default=None)
     args = ap.parse_args(argv)
     paths, cfg = prepare_small_world()
     seq = WithoutImu(open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset))
-    pipe = LocalizationPipeline(seq, cfg=cfg, map_path=paths.block_map, backend="block", init="gt",
-                                max_frames=args.max_frames)
-    m = pipe.run().metrics
+    session = Session.from_config(cfg, seq, open_map(paths.block_map), backend="block")
+    m = session.run(0, args.max_frames, init="gt").metrics
     for k in ("frames", "estimated", "failures", "recoveries", "rejected", "switches", "ate_trans_rmse_m",
               "ate_rot_rmse_deg", "rpe_1m_trans_rmse_m", "rpe_10m_trans_rmse_m", "rpe_100m_trans_rmse_m",
               "update_ms_median", "registration_ms_median", "smoother_ms_median"):
         print(k, m.get(k))
-    print("counters", pipe.tracker.counters, "lidar_only", pipe.tracker.lidar_only,
+    print("counters", session.tracker.counters, "lidar_only", session.tracker.lidar_only,
           f"load average {os.getloadavg()[0]:.1f}")
     return 0
 

@@ -7,7 +7,9 @@ import csv
 import numpy as np
 import pytest
 
-from blockloc.pipeline import LocalizationPipeline
+from blockloc.evaluation.results import RunWriter
+from blockloc.maps.store import open_map
+from blockloc.session import Session
 from tests.tracking.noimu import WithoutImu
 
 
@@ -19,9 +21,9 @@ def no_imu_run(small_world, tmp_path_factory):
     seq = WithoutImu(open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset))
     assert len(seq.imu()) == 0 and seq.frame(0).time_offsets is not None
     out = tmp_path_factory.mktemp("track_noimu") / "run"
-    pipe = LocalizationPipeline(seq, cfg=cfg, map_path=paths.block_map, backend="block", init="gt",
-                                out=out, keep_estimates=True)
-    return pipe.run(), pipe, seq
+    session = Session.from_config(cfg, seq, open_map(paths.block_map), backend="block", observers=[RunWriter(out)],
+                                  out_dir=out, keep_estimates=True)
+    return session.run(init="gt"), session, seq
 
 
 def test_small_world_without_imu_is_tracked(no_imu_run):

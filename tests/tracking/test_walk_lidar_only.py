@@ -7,34 +7,30 @@ import numpy as np
 import pytest
 
 from blockloc.geometry import inv_T, rotation_angle
-from tests.tracking.walk import WALK_DIR, WalkSequence, build_walk_map, errors, make_components, track, walk_config
+from tests.tracking.walk import WALK_DIR, build_walk_map, errors, open_walk, track, walk_config, walk_session
 
 START, STOP = 89, 121
 
 
 @pytest.fixture(scope="module")
 def walk_run(shared_data, tmp_path_factory):
-    from blockloc.tracking.tracker import Tracker
-
     root = shared_data / WALK_DIR
     if not (root / "poses_T_world_lidar.tum").is_file():
         pytest.skip(f"{root}: the real walk is not in the shared data (see its README)")
-    seq = WalkSequence(root)
     cfg = walk_config()
+    seq = open_walk(root, cfg)
     store = build_walk_map(seq, tmp_path_factory.mktemp("walk") / "map", cfg)
-    provider, reg = make_components(store, cfg)
+    session = walk_session(seq, store, cfg, START)
     try:
-        tr = Tracker.from_config(cfg, seq.info, map_provider=provider, registration=reg)
-        tr.initialize(seq.poses.poses[START], seq.poses.stamps[START])
-        ests = track(tr, seq, START, STOP)
+        ests = track(session, seq, START, STOP)
     finally:
-        provider.close()
-    return seq, store, tr, ests
+        session.close()
+    return seq, store, session.tracker, ests
 
 
 def test_the_stretch_holds_large_turns_and_crosses_blocks(walk_run):
     seq, store, tr, ests = walk_run
-    P = seq.poses.poses[START:STOP]
+    P = seq.ground_truth().poses[START:STOP]
     turns = np.rad2deg([rotation_angle((inv_T(a) @ b)[:3, :3]) for a, b in zip(P[:-1], P[1:])])
     assert turns.max() > 45.0 and np.sum(turns > 30.0) >= 3
     assert len(store.entries) >= 2
@@ -47,7 +43,7 @@ def test_lidar_only_walk_is_tracked_to_centimetres(walk_run):
     assert tr.counters["failures"] == 0 and tr.counters["rejected"] == 0
     err = errors(seq, ests)  # measured: RMSE 0.0086 m, max 0.023 m
     assert np.sqrt(np.mean(err**2)) < 0.02 and err.max() < 0.05
-    rot = [np.rad2deg(rotation_angle(e.T_map_body[:3, :3].T @ seq.poses.poses[e.index][:3, :3])) for e in ests]
+    rot = [np.rad2deg(rotation_angle(e.T_map_body[:3, :3].T @ seq.ground_truth().poses[e.index][:3, :3])) for e in ests]
     assert max(rot) < 0.5
 
 

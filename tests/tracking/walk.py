@@ -1,13 +1,9 @@
 """The real BALM/Hilti walk (``<shared data>/balm_hilti_walk``) for the LiDAR-only tracking tests.
 
-THIS IS THE TESTS' OWN MINIMAL READER, not the project's scan-folder loader
-(``blockloc.datasets.scanfolder`` is written separately): just enough of the ``Sequence`` protocol
-to drive the tracker over the walk: PCDs read with pypcd4 (fields x y z intensity, no per-point
-times), stamps and ``T_world_lidar`` from ``poses_T_world_lidar.tum`` (line i belongs to scan i),
-body = lidar, no IMU.
-
-Also: the split the issue's targets use (block map from scans 0-88 with their reference poses,
-localize 89-176), the map provider + NDT as the pipeline builds them, and a frame loop.
+The walk is opened as users open it: a scan folder plus its reference trajectory
+(``blockloc.datasets.scanfolder`` through ``open_sequence(..., poses=...)``): 177 keyframes at 2 Hz,
+body = lidar, no IMU. Also: the split the issue's targets use (block map from scans 0-88 with their
+reference poses, every scan a keyframe; localize 89-176) and a session over that map.
 
     python -m tests.tracking.walk [--start 89] [--stop 177] [--out DIR]
 
@@ -23,7 +19,6 @@ from pathlib import Path
 
 import numpy as np
 
-from blockloc.datasets.base import ImuData, LidarFrame, SequenceInfo
 from blockloc.geometry import Trajectory
 
 WALK_DIR = "balm_hilti_walk"
@@ -34,47 +29,12 @@ HELD_OUT = (89, 177)  # scans localized
 BLOCK_SIZE_M = 8.0
 
 
-class WalkSequence:
-    """The walk as a ``blockloc.datasets.base.Sequence``: 177 keyframes at 2 Hz, no IMU."""
+def open_walk(root: str | Path, cfg):
+    """The walk as a scan-folder sequence with its reference poses (T_world_lidar)."""
+    from blockloc.datasets import open_sequence
 
-    def __init__(self, root: str | Path) -> None:
-        from blockloc.evaluation.trajectory_io import read_tum
-
-        self.root = Path(root)
-        self.paths = sorted((self.root / "scans").glob("*.pcd"))
-        self.poses = read_tum(self.root / "poses_T_world_lidar.tum")
-        if len(self.paths) != len(self.poses):
-            raise ValueError(f"{self.root}: {len(self.paths)} scans but {len(self.poses)} poses")
-        # World frame = the first scan's, close to level (floor normal 2.8 deg off vertical): z up.
-        self.info = SequenceInfo("balm_hilti_walk", gravity_map=np.array([0.0, 0.0, -9.81]),
-                                 lidar_rate_hz=2.0, imu_rate_hz=0.0)
-
-    def __len__(self) -> int:
-        return len(self.paths)
-
-    def frame_stamps(self) -> np.ndarray:
-        return self.poses.stamps.copy()
-
-    def frame(self, index: int) -> LidarFrame:
-        from pypcd4 import PointCloud
-
-        a = PointCloud.from_path(self.paths[index]).numpy(("x", "y", "z", "intensity"))
-        a = a[np.all(np.isfinite(a[:, :3]), axis=1)]
-        return LidarFrame(index, float(self.poses.stamps[index]), a[:, :3].astype(np.float32),
-                          a[:, 3].astype(np.float32), None, None)
-
-    def frames(self, start: int = 0, stop: int | None = None):
-        for i in range(start, len(self) if stop is None else min(stop, len(self))):
-            yield self.frame(i)
-
-    def imu(self) -> ImuData:
-        return ImuData(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)))
-
-    def ground_truth(self) -> Trajectory:
-        return self.poses
-
-    def mapping_poses(self) -> Trajectory:
-        return self.poses
+    root = Path(root)
+    return open_sequence(root, dataset_cfg=cfg.dataset, poses=root / "poses_T_world_lidar.tum")
 
 
 def walk_config(coarse_levels: int = 2):
@@ -93,41 +53,33 @@ def walk_config(coarse_levels: int = 2):
     return cfg
 
 
-def build_walk_map(seq: WalkSequence, out: str | Path, cfg, scans: tuple[int, int] = MAP_SCANS):
-    """Block map of ``scans`` (start, stop) placed with their reference poses; the opened store."""
-    from blockloc.maps.block_maps import build_block_map
-    from blockloc.maps.mapping import Keyframe
+def build_walk_map(seq, out: str | Path, cfg, scans: tuple[int, int] = MAP_SCANS):
+    """Block map of scans 0..scans[1]-1, every scan a keyframe, placed with the reference poses."""
+    from blockloc.maps.block_maps import build_block_map_from_sequence
 
-    def keyframes():
-        for f in seq.frames(*scans):
-            T = seq.poses.poses[f.index]
-            pts = np.asarray(f.points, np.float64) @ T[:3, :3].T + T[:3, 3]
-            yield Keyframe(f.index, T, pts, f.intensity)
-
-    return build_block_map(keyframes(), block_size_m=cfg.map.block_size_m,
-                           voxel_size_m=cfg.map.voxel_size_m, out=out, overwrite=True)
+    assert scans[0] == 0, "maps are built from the first scans"
+    return build_block_map_from_sequence(seq, block_size_m=cfg.map.block_size_m, keyframe_distance_m=0.0,
+                                         keyframe_angle_deg=0.0, voxel_size_m=cfg.map.voxel_size_m, out=out,
+                                         deskew=False, overwrite=True, max_frames=scans[1])
 
 
-def make_components(store, cfg):
-    """(MapProvider, NdtRegistration) as the pipeline makes them for the block backend."""
-    from blockloc.maps.provider import MapProvider
-    from blockloc.registration.ndt import NdtRegistration, NdtTarget
+def walk_session(seq, store, cfg, start: int):
+    """A session over the walk's map (block backend), started at the reference pose of ``start``."""
+    from blockloc.session import Session
 
-    rc = cfg.registration
-    options = NdtTarget.options_from_config(rc)  # with coarse_levels (ndt_target_builders has none)
-    provider = MapProvider.from_config(store, cfg.map, target_builder=lambda pts: NdtTarget.build(pts, **options),
-                                       backend="block")
-    return provider, NdtRegistration.from_config(rc)
+    session = Session.from_config(cfg, seq, store, backend="block", keep_estimates=True)
+    session.initialize("gt", start)
+    return session
 
 
-def track(tracker, seq, start: int, stop: int) -> list:
-    """Feed frames start..stop-1 (and nothing else: the walk has no IMU); the estimates."""
-    return [tracker.insert_frame(f) for f in seq.frames(start, stop)]
+def track(session, seq, start: int, stop: int) -> list:
+    """Step frames start..stop-1 (the walk has no IMU); the estimates."""
+    return [session.step(f) for f in seq.frames(start, stop)]
 
 
-def errors(seq: WalkSequence, ests) -> np.ndarray:
+def errors(seq, ests) -> np.ndarray:
     """(N,) position errors (m) of the estimates against the reference poses."""
-    ref = seq.poses.poses[[e.index for e in ests]]
+    ref = seq.ground_truth().poses[[e.index for e in ests]]
     return np.linalg.norm(np.array([e.T_map_body[:3, 3] for e in ests]) - ref[:, :3, 3], axis=1)
 
 
@@ -136,7 +88,6 @@ def main(argv=None) -> int:
     import tempfile
 
     from blockloc.evaluation.report import evaluate_trajectories
-    from blockloc.tracking.tracker import Tracker
     from tests.conftest import shared_data_dir
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -146,8 +97,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-retries", action="store_true", help="disable the rotated predictions")
     ap.add_argument("--ndt-threads", type=int, default=None, help="NDT kernel threads (default: config)")
     args = ap.parse_args(argv)
-    seq = WalkSequence(shared_data_dir() / WALK_DIR)
     cfg = walk_config()
+    seq = open_walk(shared_data_dir() / WALK_DIR, cfg)
     if args.ndt_threads:
         cfg.registration.num_threads = args.ndt_threads
     if args.no_retries:
@@ -155,22 +106,21 @@ def main(argv=None) -> int:
         cfg.tracking.rotation_retry_tilt_deg = ()
     with tempfile.TemporaryDirectory() as tmp:
         store = build_walk_map(seq, args.out or Path(tmp) / "map", cfg)
-        provider, reg = make_components(store, cfg)
+        session = walk_session(seq, store, cfg, args.start)
+        tr = session.tracker
         try:
-            tr = Tracker.from_config(cfg, seq.info, map_provider=provider, registration=reg)
-            tr.initialize(seq.poses.poses[args.start], seq.poses.stamps[args.start])
-            frames = list(seq.frames(args.start, args.stop))  # read first: timing the tracker, not pypcd4
+            frames = list(seq.frames(args.start, args.stop))  # read first: timing the tracker, not the reader
             t0 = time.perf_counter()
             ests, cpu_ms = [], []
             for f in frames:
                 c0 = time.thread_time()
-                ests.append(tr.insert_frame(f))
+                ests.append(session.step(f))
                 cpu_ms.append((time.thread_time() - c0) * 1e3)
             wall = time.perf_counter() - t0
         finally:
-            provider.close()
+            session.close()
     est = Trajectory(np.array([e.stamp for e in ests]), np.array([e.T_map_body for e in ests]))
-    m = evaluate_trajectories(seq.poses, est, rpe_deltas_m=(1.0, 5.0), interpolate=False)
+    m = evaluate_trajectories(seq.ground_truth(), est, rpe_deltas_m=(1.0, 5.0), interpolate=False)
     upd = np.array([e.diagnostics.update_ms for e in ests])
     statuses = {s: sum(e.diagnostics.status == s for e in ests) for s in
                 sorted({e.diagnostics.status for e in ests})}
