@@ -13,8 +13,8 @@ import numpy as np
 from blockloc.geometry import Trajectory, make_T, rpy_to_R, so3_exp, xyzrpy_to_T
 from blockloc.viz.events import FrameEvent, RunInfo
 
-RADIUS_M = 30.0
-SPEED_M_S = 3.0
+RADIUS_M = 20.0
+SPEED_M_S = 6.0
 RATE_HZ = 10.0
 T0_S = 1000.0  # a sensor clock that does not start at zero
 
