@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import json
 import logging
-import socket
+import os
 from pathlib import Path
-from urllib.parse import quote, urlparse
+from urllib.parse import quote
 
 from blockloc.fileio import atomic_write_text
 from blockloc.viz.events import VizError
@@ -104,12 +104,13 @@ def websocket_app_urls(ws_url: str) -> tuple[str, str]:
     return f"{APP_URL}?{q}", f"foxglove://open?{q}"
 
 
-def _reachable(ws_url: str, timeout_s: float = 0.3) -> bool:
-    u = urlparse(ws_url)
+def _serving(pid) -> bool:
+    """Whether the process that wrote live.json still runs (checked without connecting: a bare
+    TCP probe would make the server log a failed handshake)."""
     try:
-        with socket.create_connection((u.hostname or "127.0.0.1", u.port or 80), timeout=timeout_s):
-            return True
-    except OSError:
+        os.kill(int(pid), 0)
+        return True
+    except (OSError, TypeError, ValueError):
         return False
 
 
@@ -163,10 +164,11 @@ def view_instructions(run_dir: str | Path) -> str:
                   "(3D view of map, scan, blocks and paths; fitness and per-scan time plots; diagnostics)."]
     if live.exists():
         try:
-            url = json.loads(live.read_text())["url"]
+            announced = json.loads(live.read_text())
+            url, pid = announced["url"], announced.get("pid")
         except (OSError, ValueError, KeyError):
-            url = None
-        if url and _reachable(url):
+            url = pid = None
+        if url and _serving(pid):
             web, desktop = websocket_app_urls(url)
             lines += [f"Live: {url} (serving now)", f"  {web}", f"  {desktop}"]
         elif url:

@@ -224,10 +224,10 @@ class FoxgloveSink:
             from blockloc.viz.layout import LAYOUT_NAME, LIVE_NAME, write_layout
 
             out = Path(info.out_dir)
-            self._live_file = out / LIVE_NAME
-            atomic_write_text(self._live_file, json.dumps({"url": self.url, "pid": os.getpid()}) + "\n")
             if not (out / LAYOUT_NAME).exists():
                 write_layout(out / LAYOUT_NAME)
+            self._live_file = out / LIVE_NAME
+            atomic_write_text(self._live_file, json.dumps({"url": self.url, "pid": os.getpid()}) + "\n")
         log.info("live view: %s (Foxglove: Open connection > Foxglove WebSocket)", self.url)
 
     def write(self, outgoing: list[Outgoing], stamp: float | None) -> None:
