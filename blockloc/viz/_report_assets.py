@@ -28,10 +28,10 @@ h2 { margin:0 0 10px; font-size:16px; }
 #now { font:12px ui-monospace, monospace; min-width:330px; color:var(--muted); }
 .hint { color:var(--muted); margin:6px 0 0; font-size:12px; }
 .chart { width:100%; height:220px; display:block; margin-top:6px; }
-table { border-collapse:collapse; width:100%; font-size:13px; }
-th, td { text-align:left; padding:3px 8px; border-bottom:1px solid #eef0f4; vertical-align:top; }
-th { font-weight:500; color:var(--muted); white-space:nowrap; width:30%; }
-td { font-family:ui-monospace, monospace; word-break:break-word; }
+.metrics { columns:3 340px; column-gap:28px; font-size:13px; }
+.metrics .row { display:flex; gap:10px; break-inside:avoid; padding:2px 0; border-bottom:1px solid #eef0f4; }
+.metrics .k { color:var(--muted); flex:0 0 48%; overflow-wrap:anywhere; }
+.metrics .v { font-family:ui-monospace, monospace; overflow-wrap:anywhere; }
 .plots { display:flex; flex-wrap:wrap; gap:14px; }
 figure { margin:0; flex:1 1 420px; } figure img { max-width:100%; border:1px solid var(--line); border-radius:6px; }
 figcaption { color:var(--muted); font-size:12px; }
@@ -148,7 +148,7 @@ SCRIPT = r"""
     ctx.stroke(); ctx.setLineDash([]);
   }
   function drawTop() {
-    var L = state.layers, stats = { map: 0, entries: 0, bad: 0 };
+    var L = state.layers, stats = { map: 0, entries: 0, bad: 0, labels: 0 };
     ctx.setTransform(1, 0, 0, 1, 0, 0);
     ctx.fillStyle = "#10141c"; ctx.fillRect(0, 0, cv.width, cv.height);
     if (L.map) stats.map = drawMap();
@@ -165,10 +165,12 @@ SCRIPT = r"""
       });
     }
     if (L.labels && view.scale * 40 > 30) {
-      ctx.font = "12px system-ui, sans-serif"; ctx.textAlign = "center";
-      D.entries.forEach(function (e) {
-        ctx.fillStyle = active[e.id] ? "#ffc078" : "rgba(206,212,218,0.85)";
-        ctx.fillText(e.id, sx(e.centroid[0]), sy(e.centroid[1]));
+      ctx.font = "600 13px system-ui, sans-serif"; ctx.textAlign = "center"; ctx.lineJoin = "round";
+      D.entries.forEach(function (e) {  // a dark halo keeps the name readable over dense points
+        var x = sx(e.centroid[0]), y = sy(e.centroid[1]);
+        ctx.strokeStyle = "rgba(16,20,28,0.9)"; ctx.lineWidth = 4; ctx.strokeText(e.id, x, y);
+        ctx.fillStyle = active[e.id] ? "#ffc078" : "#a5d8ff"; ctx.fillText(e.id, x, y);
+        stats.labels++;
       });
     }
     if (L.gt && gt.length) polyline(gt, "rgba(233,236,239,0.85)", 1.5, [6, 4]);

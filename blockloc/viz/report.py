@@ -88,7 +88,7 @@ def _config_text(config: dict) -> str:
     import yaml
 
     try:
-        return yaml.safe_dump(to_jsonable(config), sort_keys=False, default_flow_style=None, width=100)
+        return yaml.safe_dump(to_jsonable(config), sort_keys=False, default_flow_style=False, width=100)
     except yaml.YAMLError:
         return json.dumps(to_jsonable(config), indent=2)
 
@@ -165,7 +165,8 @@ def write_report(path: str | Path, *, metrics: dict, estimate, ground_truth, dia
         f'<div class="fig"><div class="v">{esc(_fmt(metrics[k]))}<small>{esc(unit)}</small></div>'
         f'<div class="k">{esc(label)}</div></div>'
         for k, label, unit in HEADLINE if metrics.get(k) is not None)
-    rows = "".join(f"<tr><th>{esc(k)}</th><td>{esc(_fmt(v))}</td></tr>" for k, v in _flatten(metrics))
+    rows = "".join(f'<div class="row"><span class="k">{esc(k)}</span><span class="v">{esc(_fmt(v))}</span></div>'
+                   for k, v in _flatten(metrics))
     figures = "".join(f'<figure><img alt="{esc(name)}" src="{_png_uri(p)}"><figcaption>{esc(name)}</figcaption></figure>'
                       for name, p in images.items())
     notes = "".join(f"<li>{esc(str(n))}</li>" for n in metrics.get("notes") or [])
@@ -194,7 +195,7 @@ served at the chosen time; red marks frames that were rejected, IMU-only or lost
 <section id="time"><h2>Over time</h2>
 <canvas id="timing" class="chart" aria-label="per-scan time"></canvas>
 <canvas id="fitness" class="chart" aria-label="fitness"></canvas></section>
-<section id="metrics"><h2>Metrics</h2><table>{rows}</table></section>
+<section id="metrics"><h2>Metrics</h2><div class="metrics">{rows}</div></section>
 {f'<section id="plots"><h2>Plots</h2><div class="plots">{figures}</div></section>' if figures else ''}
 <section id="config"><h2>Config used</h2><pre>{esc(_config_text(config))}</pre></section>
 </main>

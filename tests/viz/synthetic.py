@@ -72,9 +72,9 @@ def random_cov(rng: np.random.Generator) -> np.ndarray:
 
 def make_run(*, duration_s: float = 20.0, scan_points: int = 2000, lost_frames: tuple = (),
              map_every_s: float = 10.0, map_points: int = 5000, seed: int = 0,
-             with_gt: bool = True, out_dir=None) -> SyntheticRun:
+             with_gt: bool = True, out_dir=None, map_on_block_change: bool = True) -> SyntheticRun:
     """Frames at 10 Hz along the circle. ``lost_frames``: indices reported lost (no pose). The
-    local map changes every ``map_every_s`` and whenever the block changes."""
+    local map changes every ``map_every_s`` and (``map_on_block_change``) whenever the block changes."""
     rng = np.random.default_rng(seed)
     n = int(round(duration_s * RATE_HZ))
     t = np.arange(n) / RATE_HZ
@@ -89,7 +89,7 @@ def make_run(*, duration_s: float = 20.0, scan_points: int = 2000, lost_frames: 
         lost = i in lost_frames
         block = block_of(poses[i, :2, 3])
         switched = block != last_block and last_block is not None
-        new_map = block != last_block or t[i] - last_map_t >= map_every_s
+        new_map = (map_on_block_change and block != last_block) or t[i] - last_map_t >= map_every_s
         local_map = None
         if new_map:
             last_map_t = t[i]

@@ -62,8 +62,8 @@ def test_data_holds_the_run(report):
     assert len(data["frames"]["status"]) == len(inputs["diagnostics"])
     assert set(data["frames"]["series"]) >= {"fitness", "update_ms", "registration_ms"}
     for key in ("ate_trans_rmse_m", "switches", "map_stats.loads", "init.mode"):
-        assert f"<th>{key}</th>" in text
-    assert "window_size: 20" in text  # the config, as YAML
+        assert f'<span class="k">{key}</span>' in text
+    assert "tracking:\n  window_size: 20" in text  # the config, as YAML
 
 
 def test_without_ground_truth_or_images(tmp_path):

@@ -102,3 +102,20 @@ class FoxgloveClient:
                             self.last_time_ns = struct.unpack_from("<Q", data, 1)[0]
                     elif msg.type in (aiohttp.WSMsgType.CLOSED, aiohttp.WSMsgType.ERROR, aiohttp.WSMsgType.CLOSE):
                         return
+
+
+def main() -> None:
+    """``python -m tests.viz.ws_client URL`` subscribes to every topic until stdin closes, then
+    prints the message counts as JSON (a viewer in its own process, for overhead measurements)."""
+    import sys
+
+    client = FoxgloveClient(sys.argv[1], None).start()
+    client.wait_connected(60.0)
+    print("subscribed", flush=True)
+    sys.stdin.read()
+    client.stop()
+    print(json.dumps(dict(client.counts)), flush=True)
+
+
+if __name__ == "__main__":
+    main()
