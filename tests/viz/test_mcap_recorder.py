@@ -320,7 +320,9 @@ run = make_run(duration_s=6.0, scan_points=500)
 rec = McapRecorder({path!r}, background={background}, flush_period_s=0.5)
 rec.start(run.info)
 for ev in run.events[:40]:
-    rec.frame(ev)  # with the worker: in its pipe when frame() returns
+    rec.frame(ev)
+if {background}:
+    assert rec._host.drain()  # every frame in the worker's pipe: what a kill must not lose
 print("killing", flush=True)
 os.kill(os.getpid(), signal.SIGKILL)
 """
