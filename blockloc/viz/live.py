@@ -18,7 +18,6 @@ import logging
 
 from blockloc.viz.events import FrameEvent, RunInfo
 from blockloc.viz.ros_messages import Decimator
-from blockloc.viz.worker import pack_frame
 
 log = logging.getLogger(__name__)
 
@@ -35,7 +34,7 @@ class LiveServer:
     def __init__(self, host: str = "127.0.0.1", port: int = 8765, *, points_budget_mb_per_min: float | None = None,
                  scan_points_max: int = 8000, map_points_max: int = 100_000, background: bool = True,
                  message_options: dict | None = None, message_backlog_size: int = 256) -> None:
-        from blockloc.viz.worker import WorkerProxy, make_host
+        from blockloc.viz.worker import Hosted
 
         self.decimator = Decimator(points_budget_mb_per_min=points_budget_mb_per_min,
                                    scan_points_max=scan_points_max, map_points_max=map_points_max)
@@ -43,13 +42,8 @@ class LiveServer:
         options = {"path_period_s": 1.0, **(message_options or {})}
         spec = {"kind": "live", "messages": options,
                 "sink": {"host": host, "port": int(port), "message_backlog_size": int(message_backlog_size)}}
-        self.background = background
-        if background:
-            self._host = WorkerProxy(spec, drop_when_busy=True)
-            opened = self._host.opened
-        else:
-            self._host = make_host(spec)
-            opened = self._host.open()
+        self._host = Hosted(spec, background=background, drop_when_busy=True, what=f"live view on {host}:{port}")
+        opened = self._host.opened
         self.port: int = int(opened["port"])
         self.url: str = opened["url"]
         self.summary: dict | None = None
@@ -58,7 +52,7 @@ class LiveServer:
     @property
     def dropped(self) -> int:
         """Frames dropped because the worker was busy (always 0 with background=False)."""
-        return getattr(self._host, "dropped", 0)
+        return self._host.dropped
 
     def app_urls(self) -> tuple[str, str]:
         """(https://app.foxglove.dev link, foxglove:// desktop link) opening this server."""
@@ -68,24 +62,17 @@ class LiveServer:
 
     def start(self, info: RunInfo) -> None:
         self.decimator.start()
-        if self.background:
-            self._host.send(("start", info))
-        else:
-            self._host.start(info)
+        self._host.start(info)
 
     def frame(self, event: FrameEvent) -> None:
-        if self.summary is not None:
-            return
-        thin = self.decimator.thin(event)
-        if self.background:
-            self._host.send(("frame", pack_frame(thin)))
-        else:
-            self._host.frame(thin)
+        if self.summary is None:
+            self._host.frame(self.decimator.thin(event))
 
     def finish(self, metrics: dict, reason: str = "finished") -> None:
         """Stop the server (safe after an exception, and twice)."""
         if self.summary is not None:
             return
+        self.summary = {}  # set first: a finish that raises is not tried again
         self.summary = self._host.finish(metrics, reason)
         if self.dropped:
             log.info("live view: %d frames dropped while the viewer was busy", self.dropped)

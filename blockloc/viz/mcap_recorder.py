@@ -25,7 +25,6 @@ from pathlib import Path
 from blockloc.viz.events import FrameEvent, RunInfo
 from blockloc.viz.ros_messages import Decimator
 from blockloc.viz.sinks import PARTIAL_SUFFIX
-from blockloc.viz.worker import pack_frame
 
 log = logging.getLogger(__name__)
 
@@ -64,31 +63,23 @@ class McapRecorder:
         self._host = None
 
     def start(self, info: RunInfo) -> None:
-        from blockloc.viz.worker import WorkerProxy, make_host
+        from blockloc.viz.worker import Hosted
 
         self.decimator.start()
-        if self.background:
-            self._host = WorkerProxy(self.spec, drop_when_busy=False)
-            self._host.send(("start", info))
-        else:
-            self._host = make_host(self.spec)
-            self._host.open()
-            self._host.start(info)
+        self._host = Hosted(self.spec, background=self.background, drop_when_busy=False,
+                            what=f"recording {self.path}")
+        self._host.start(info)
 
     def frame(self, event: FrameEvent) -> None:
-        if self._host is None:
-            return
-        thin = self.decimator.thin(event)
-        if self.background:
-            self._host.send(("frame", pack_frame(thin)))
-        else:
-            self._host.frame(thin)
+        if self._host is not None and self.summary is None:
+            self._host.frame(self.decimator.thin(event))
 
     def finish(self, metrics: dict, reason: str = "finished") -> None:
         """Close the recording (safe after an exception, and twice). ``reason``: recorded in the
         file's ``blockloc.end`` metadata, e.g. the exception that ended the run."""
         if self._host is None or self.summary is not None:
             return
+        self.summary = {}  # set first: a finish that raises is not tried again
         self.summary = self._host.finish(metrics, reason)
-        if self.background and self._host.waited_s > 1.0:
+        if self._host.waited_s > 1.0:
             log.info("recording: tracking waited %.1f s in total for the viz worker", self._host.waited_s)

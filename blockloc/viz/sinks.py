@@ -286,5 +286,5 @@ class SinkHost:
         if self.started:
             self.sink.write(self.messages.finish(self.sink.wants), None)
         summary = self.sink.finish(metrics, reason)
-        summary["frames"] = self.frames
+        summary.update(frames=self.frames, reason=reason)
         return summary

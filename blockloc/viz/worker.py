@@ -42,6 +42,7 @@ log = logging.getLogger(__name__)
 
 _LEN = struct.Struct("<Q")
 ENDED_WITHOUT_FINISH = "the tracking process ended without finish() (killed or crashed)"
+WORKER_FAILED = "viz worker failed"
 
 
 def make_host(spec: dict):
@@ -143,7 +144,7 @@ def child_main() -> None:
         reason = str(exc)
     except Exception as exc:
         log.exception("viz worker failed; closing what it wrote")
-        reason = f"viz worker failed: {type(exc).__name__}: {exc}"
+        reason = f"{WORKER_FAILED}: {type(exc).__name__}: {exc}"
     try:
         answer({"ok": True, "summary": host.finish(metrics, reason)})
     except Exception as exc:
@@ -255,7 +256,11 @@ class WorkerProxy:
         self._queue.put(self._pack(("finish", metrics, reason)))
         self._queue.put(None)
         self._sender.join()
-        answer = self._answer(timeout_s) if not self.failed else {"ok": False, "error": self.failed}
+        # Read the answer even after a broken pipe: a worker that failed mid-run still closed its
+        # file and said why before exiting.
+        answer = self._answer(timeout_s)
+        if not answer.get("ok") and self.failed:
+            answer["error"] = f"{self.failed}; {answer.get('error')}"
         self._close_pipes()
         try:
             self.proc.wait(timeout=30)
@@ -296,3 +301,53 @@ def _unread_bytes(fd: int) -> int:
     except OSError:
         return 0
     return int(buf[0])
+
+
+class Hosted:
+    """One sink behind one interface: in a worker process (background) or in this one.
+
+    The observers' shared half: ``start``, ``frame`` (a thinned event), ``finish``. ``what``
+    names the output in errors (e.g. "recording run.mcap"). ``proxy`` is the WorkerProxy or None.
+    """
+
+    def __init__(self, spec: dict, *, background: bool, drop_when_busy: bool, what: str) -> None:
+        self.what = what
+        if background:
+            self.proxy = WorkerProxy(spec, drop_when_busy=drop_when_busy)
+            self._local = None
+            self.opened = self.proxy.opened
+        else:
+            self.proxy = None
+            self._local = make_host(spec)
+            self.opened = self._local.open()
+
+    @property
+    def dropped(self) -> int:
+        return self.proxy.dropped if self.proxy is not None else 0
+
+    @property
+    def waited_s(self) -> float:
+        return self.proxy.waited_s if self.proxy is not None else 0.0
+
+    def start(self, info) -> None:
+        if self.proxy is not None:
+            self.proxy.send(("start", info))
+        else:
+            self._local.start(info)
+
+    def frame(self, thin: FrameEvent) -> None:
+        if self.proxy is not None:
+            self.proxy.send(("frame", pack_frame(thin)))
+        else:
+            self._local.frame(thin)
+
+    def finish(self, metrics: dict | None, reason: str) -> dict:
+        """The sink's summary; raises VizError when the worker failed mid-run (its output was
+        still closed cleanly with what came before)."""
+        summary = (self.proxy.finish(metrics, reason) if self.proxy is not None
+                   else self._local.finish(metrics, reason))
+        failure = str(summary.get("reason", ""))
+        if failure.startswith(WORKER_FAILED):
+            raise VizError(f"{self.what}: {failure} (after {summary.get('frames', 0)} frames; "
+                           f"what came before is kept)")
+        return summary

@@ -93,7 +93,7 @@ def test_a_stalled_viewer_drops_frames_instead_of_blocking(server):
     """With the worker stopped (SIGSTOP), frame() still returns: frames are dropped."""
     run = make_run(duration_s=60.0, scan_points=2000)
     server.start(run.info)
-    pid = server._host.proc.pid
+    pid = server._host.proxy.proc.pid
     os.kill(pid, signal.SIGSTOP)
     try:
         done = threading.Event()

@@ -5,11 +5,9 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import signal
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from blockloc.evaluation.trajectory_io import read_tum
 from blockloc.geometry import inv_T
-from blockloc.viz.ros_messages import LATCHED, TOPICS, covariance_to_ros
+from blockloc.viz.ros_messages import TOPICS, covariance_to_ros
 from tests.viz.conftest import LOST, read_mcap_ros2
 from tests.viz.synthetic import make_run
 
@@ -322,7 +320,7 @@ rec.start(run.info)
 for ev in run.events[:40]:
     rec.frame(ev)
 if {background}:
-    assert rec._host.drain()  # every frame in the worker's pipe: what a kill must not lose
+    assert rec._host.proxy.drain()  # every frame in the worker's pipe: what a kill must not lose
 print("killing", flush=True)
 os.kill(os.getpid(), signal.SIGKILL)
 """
@@ -421,3 +419,59 @@ def test_decimator_drops_scans_never_delays():
     assert len(maps) == sum(e.local_map_points is not None for e in run.events) and max(maps) <= 60_000
     assert dec.counts["points_bytes"] <= 10e6 / 60 * (30.0 + 2.0) + 1000
     assert all(e.scan_lidar.shape == (20_000, 3) for e in run.events)  # inputs untouched
+
+
+def test_a_frame_the_worker_cannot_encode_ends_the_file_cleanly(tmp_path):
+    """A bad frame (a stamp before the epoch) fails in the worker: the file is closed with the
+    frames before it and finish() says what happened."""
+    import dataclasses
+
+    from mcap.reader import make_reader
+
+    from blockloc.viz.events import VizError
+    from blockloc.viz.mcap_recorder import McapRecorder
+
+    run = make_run(duration_s=2.0, scan_points=100)
+    rec = McapRecorder(tmp_path / "run.mcap", write_layout=False)
+    rec.start(run.info)
+    for ev in run.events[:8]:
+        rec.frame(ev)
+    rec.frame(dataclasses.replace(run.events[8], stamp=-1.0))
+    for ev in run.events[9:]:
+        rec.frame(ev)
+    with pytest.raises(VizError, match=r"recording .*run.mcap: viz worker failed: VizError: stamp -1.0 s"):
+        rec.finish({})
+    with open(tmp_path / "run.mcap", "rb") as f:
+        assert make_reader(f).get_summary() is not None
+    poses = [t for topic, t, _ in read_mcap_ros2(tmp_path / "run.mcap") if topic == "/localization/pose"]
+    assert len(poses) == 8
+
+
+def test_observer_group_isolates_a_failing_member():
+    from blockloc.viz.events import ObserverGroup, RunObserver
+
+    class Log:
+        def __init__(self, fail_at=None):
+            self.calls, self.fail_at = [], fail_at
+
+        def start(self, info):
+            self.calls.append("start")
+
+        def frame(self, ev):
+            if ev.index == self.fail_at:
+                raise RuntimeError("viewer broke")
+            self.calls.append(ev.index)
+
+        def finish(self, metrics):
+            self.calls.append("finish")
+
+    run = make_run(duration_s=0.5, scan_points=10)
+    good, bad = Log(), Log(fail_at=2)
+    assert isinstance(good, RunObserver)
+    group = ObserverGroup([bad, good])
+    group.start(run.info)
+    for ev in run.events:
+        group.frame(ev)
+    group.finish({})
+    assert good.calls == ["start", 0, 1, 2, 3, 4, "finish"]
+    assert bad.calls == ["start", 0, 1, "finish"]
