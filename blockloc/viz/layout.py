@@ -16,7 +16,7 @@ from urllib.parse import quote
 
 from blockloc.fileio import atomic_write_text
 from blockloc.viz.events import VizError
-from blockloc.viz.ros_messages import DIAG_HARDWARE_ID, DIAG_NAME, FRAME_BASE, FRAME_MAP
+from blockloc.viz.ros_codec import DIAG_HARDWARE_ID, DIAG_NAME, FRAME_BASE, FRAME_MAP
 
 log = logging.getLogger(__name__)
 

@@ -19,7 +19,8 @@ import numpy as np
 
 from blockloc.fileio import atomic_write_text, to_jsonable
 from blockloc.viz.events import FrameEvent, RunInfo, VizError
-from blockloc.viz.ros_messages import LATCHED, TOPICS, Outgoing, RunMessages, schema_text
+from blockloc.viz.ros_codec import schema_text
+from blockloc.viz.ros_messages import LATCHED, TOPICS, Outgoing, RunMessages
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +108,9 @@ class McapSink:
             self._last_flush = stamp
         elif stamp - self._last_flush >= self.flush_period_s:
             self._last_flush = stamp
-            self._guard(self._writer.flush)
+            flush = getattr(self._writer, "flush", None)  # Writer.flush: mcap >= 1.6; before, chunks close by size only
+            if flush is not None:
+                self._guard(flush)
 
     def finish(self, metrics: dict | None, reason: str) -> dict:
         """Summary, rename; ``reason`` ('finished' or why the run ended early) goes to the

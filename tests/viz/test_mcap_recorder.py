@@ -16,7 +16,8 @@ from scipy.spatial.transform import Rotation
 
 from blockloc.evaluation.trajectory_io import read_tum
 from blockloc.geometry import inv_T
-from blockloc.viz.ros_messages import TOPICS, covariance_to_ros
+from blockloc.viz.ros_codec import covariance_to_ros
+from blockloc.viz.ros_messages import TOPICS
 from tests.viz.conftest import LOST, read_mcap_ros2
 from tests.viz.synthetic import make_run
 
@@ -393,7 +394,7 @@ def test_covariance_to_ros_is_the_first_order_error_map(synthetic_run):
 
 
 def test_quaternion_matches_scipy():
-    from blockloc.viz.ros_messages import _quat_one, _rotvec
+    from blockloc.viz.ros_codec import _quat_one, rotation_vector
 
     rng = np.random.default_rng(1)
     Rs = list(Rotation.random(200, random_state=2).as_matrix())
@@ -403,7 +404,7 @@ def test_quaternion_matches_scipy():
         q = _quat_one(R)
         ref = Rotation.from_matrix(R).as_quat()
         assert min(np.abs(q - ref).max(), np.abs(q + ref).max()) < 1e-9
-        assert np.allclose(Rotation.from_rotvec(_rotvec(R)).as_matrix(), R, atol=1e-9)
+        assert np.allclose(Rotation.from_rotvec(rotation_vector(R)).as_matrix(), R, atol=1e-9)
 
 
 def test_decimator_drops_scans_never_delays():

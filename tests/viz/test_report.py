@@ -128,3 +128,19 @@ def test_renders_in_headless_chromium(report, tmp_path):
     # The top view's canvas is dark with drawn content: map, outlines, paths.
     top = img[300:900, 60:1220]
     assert (top.mean(axis=2) < 40).mean() > 0.4 and (top.max(axis=2) > 150).mean() > 0.005
+
+
+@needs_chromium
+def test_a_run_that_never_localized_renders(tmp_path):
+    """No pose, no ground truth, no map points, no plots: the page still renders without errors."""
+    from blockloc.geometry import Trajectory
+
+    diagnostics = [{"index": i, "stamp": 100.0 + 0.1 * i, "status": "uninitialized", "fitness": float("nan")}
+                   for i in range(20)]
+    path = write_report(tmp_path / "report.html", metrics={"frames": 20, "estimated": 0},
+                        estimate=Trajectory(np.zeros(0), np.zeros((0, 4, 4))), ground_truth=None,
+                        diagnostics=diagnostics, config={}, map_xy=np.zeros((0, 2)), map_entries=[], images={})
+    res = render(path.as_uri(), tmp_path / "shot.png",
+                 scripts={"ready": "window.blocklocReport.ready === true", "now": "document.getElementById('now').textContent"})
+    assert res.errors == [] and res.values["ready"] is True
+    assert "uninitialized" in res.values["now"]
