@@ -217,23 +217,43 @@ def track_cmd(
                                          help="Reference trajectory (TUM, KITTI): ground truth for --init gt and the metrics."),
     no_imu: bool = typer.Option(False, "--no-imu", help="Ignore the IMU: LiDAR-only tracking (a motion prior)."),
     sets: Optional[list[str]] = typer.Option(None, "--set", metavar="SECTION.KEY=VALUE", help=SET_HELP),
+    record: Optional[Path] = typer.Option(None, "--record", metavar="FILE",
+                                          help="MCAP recording for Foxglove / ROS 2 (default: run.mcap in --out)."),
+    no_record: bool = typer.Option(False, "--no-record", help="Write no MCAP recording."),
+    live: bool = typer.Option(False, "--live", help="Serve the run live to Foxglove over WebSocket."),
+    host: str = typer.Option("127.0.0.1", "--host", metavar="ADDRESS", help="--live: address to bind (loopback)."),
+    port: int = typer.Option(8765, "--port", metavar="PORT", help="--live: TCP port (0: any free port)."),
 ) -> None:
-    """Track a sequence in a prior map (sliding-window IMU + scan-to-map factors); writes poses, metrics and plots."""
+    """Track a sequence in a prior map (sliding-window IMU + scan-to-map factors); writes poses, metrics,
+    plots, an MCAP recording and report.html."""
     from blockloc.commands.track import track_command
 
     track_command(seq, map_path, backend, init, init_pose, out, config, data_root, max_frames,
-                  lidar_topic, imu_topic, poses=poses, sets=(sets or []) + (["tracking.use_imu=false"] if no_imu else []))
+                  lidar_topic, imu_topic, poses=poses, sets=(sets or []) + (["tracking.use_imu=false"] if no_imu else []),
+                  record=not no_record, record_path=record, live=live, host=host, port=port)
 
 
 @app.command("demo")
 def demo_cmd(
     out: Optional[Path] = typer.Option(None, "--out", metavar=DIR, help="Results directory (default results/demo_<time>)."),
     max_frames: Optional[int] = typer.Option(None, "--max-frames", metavar="N", help="Track only this many frames."),
+    no_record: bool = typer.Option(False, "--no-record", help="Write no MCAP recording."),
 ) -> None:
-    """Simulate the small world, build its block map, localize from a rough hint, track, evaluate."""
+    """Simulate the small world, build its block map, localize from a rough hint, track, evaluate;
+    writes the results folder with report.html and a Foxglove recording."""
     from blockloc.commands.demo import demo_command
 
-    demo_command(out, max_frames)
+    demo_command(out, max_frames, record=not no_record)
+
+
+@app.command("view")
+def view_cmd(
+    run_dir: Path = typer.Argument(..., metavar=DIR, help="A results folder (or one .mcap file)."),
+) -> None:
+    """How to look at a run: the recording and layout in Foxglove, the live server, report.html."""
+    from blockloc.viz.layout import view_instructions
+
+    print(view_instructions(run_dir))
 
 
 def _click_exception_modules() -> list:

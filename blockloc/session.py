@@ -35,7 +35,7 @@ import numpy as np
 
 from blockloc.errors import BlocklocError, GlobalInitError, MapError, RegistrationError, TrackingError
 from blockloc.geometry import Trajectory, transform_points
-from blockloc.viz.events import FrameEvent, RunInfo
+from blockloc.viz.events import FrameEvent, ObserverGroup, RunInfo
 
 log = logging.getLogger(__name__)
 
@@ -102,7 +102,7 @@ class Session:
         self.localizer = localizer
         self.store = store
         self.init_settings = init_settings
-        self.observers = list(observers)
+        self.observers = ObserverGroup(observers)  # a failing viewer is dropped, never stops tracking
         self.evaluation = evaluation or {}
         self.plots = plots
         self.facts = dict(facts or {})
@@ -263,9 +263,7 @@ class Session:
         if self._started:
             return
         self._started = True
-        info = self._run_info()
-        for obs in self.observers:
-            obs.start(info)
+        self.observers.start(self.run_info())
 
     def step(self, frame):
         """Process one scan: feed the IMU samples up to the end of its sweep, then the scan.
@@ -315,9 +313,7 @@ class Session:
         d = {"index": int(index), "stamp": float(stamp if stamp is not None else np.nan), "status": "skipped",
              "error": str(reason)}
         self.diagnostics.append(d)
-        ev = FrameEvent(int(index), d["stamp"], None, None, np.zeros(3), "skipped", d)
-        for obs in self.observers:
-            obs.frame(ev)
+        self.observers.frame(FrameEvent(int(index), d["stamp"], None, None, np.zeros(3), "skipped", d))
 
     def _uninitialized(self, frame, t0):
         from blockloc.tracking.tracker import Diagnostics, Estimate
@@ -335,7 +331,7 @@ class Session:
         self._last_stamp = stamp
 
     def _notify(self, frame, est, d: dict) -> None:
-        if not self.observers:
+        if not self.observers.observers:
             return
         local = self.provider.current() if hasattr(self.provider, "current") else None
         changed = local is not None and local.version != self._last_map_version
@@ -348,18 +344,21 @@ class Session:
                         local_map_points=local.points if changed else None,
                         local_map_id=None if local is None else local.region_id,
                         active_entries=() if local is None else tuple(local.entry_ids))
-        for obs in self.observers:
-            obs.frame(ev)
+        self.observers.frame(ev)
 
-    def _run_info(self) -> RunInfo:
+    def run_info(self) -> RunInfo:
+        """What observers are told at the start (the map's entries with their footprints, ...)."""
         entries = []
         kind = "block"
         tile = None
         if self.store is not None:
             kind = self.store.kind
             tile = self.store.params.get("tile_size_m") if kind == "grid" else None
+            from blockloc.maps.summary import entry_footprint
+
             entries = [{"id": e.id, "bounds_min": e.bounds_min, "bounds_max": e.bounds_max,
-                        "centroid": e.centroid, "footprint": None} for e in self.store.entries]
+                        "centroid": e.centroid, "footprint": entry_footprint(self.store, e)}
+                       for e in self.store.entries]
         return RunInfo(str(self.info.name), np.asarray(self.info.T_body_lidar), kind, entries, tile,
                        self.ground_truth, self.config, self.out_dir)
 
@@ -414,13 +413,17 @@ class Session:
                               interrupted=bool(interrupted), relocalizations=self.reloc_log,
                               map_stats=stats, track_s=self.timings.get("track_s"),
                               total_s=self.timings["total_s"])
-        for obs in self.observers:
-            try:
-                obs.finish(metrics)
-            except Exception as exc:  # noqa: BLE001 - one observer's failure must not lose the others'
-                log.error("%s could not finish: %s", type(obs).__name__, exc)
+        try:
+            self.observers.finish(metrics)  # every observer finishes, then the first failure is logged
+        except Exception as exc:  # noqa: BLE001 - what was computed is returned all the same
+            log.error("an observer could not finish: %s", exc)
         self._finished = RunResult(traj, self.diagnostics, metrics, self.out_dir,
                                    self.estimates if self.keep_estimates else [])
+        return self._finished
+
+    @property
+    def result(self) -> RunResult | None:
+        """What ``finish`` returned (None before it ran)."""
         return self._finished
 
     def close(self) -> None:

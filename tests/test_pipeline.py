@@ -26,6 +26,11 @@ def test_track_command_writes_results(small_world, tmp_path):  # noqa: F811
     rows = [ln for ln in (out / "poses.tum").read_text().splitlines() if ln and not ln.startswith("#")]
     assert len(rows) == 40 and len(rows[0].split()) == 8
     assert (tmp_path / "latest").is_symlink()
+    # the recording for Foxglove (with its layout) and the report sit beside the results
+    for name in ("run.mcap", "foxglove_layout.json", "report.html"):
+        assert (out / name).stat().st_size > 0, name
+    view = _blockloc("view", str(out))
+    assert view.returncode == 0 and "Recording:" in view.stdout and "report.html" in view.stdout
 
 
 def test_missing_nclt_map_names_the_build_command(tmp_path):

@@ -126,10 +126,10 @@ def demo_session(cfg=None, *, out: Path | None = None, observers=(), say: Callab
     return session, noisy_hint(seq)
 
 
-def demo_command(out: Path | None, max_frames: int | None) -> None:
+def demo_command(out: Path | None, max_frames: int | None, record: bool = True) -> None:
     from blockloc.commands.common import check_results_dir, console, results_dir
-    from blockloc.commands.track import print_track_summary, run_tracking
-    from blockloc.evaluation.results import RunWriter
+    from blockloc.commands.track import (print_track_summary, print_where, run_observers, run_tracking,
+                                         write_run_report)
 
     con = console()
     out_dir = results_dir(out, "demo")
@@ -138,10 +138,15 @@ def demo_command(out: Path | None, max_frames: int | None) -> None:
     def say(msg: str) -> None:
         con.print(f"[bold cyan]demo[/] {msg}")
 
-    session, hint = demo_session(out=out_dir, observers=[RunWriter(out_dir)], say=say)
+    session, hint = demo_session(out=out_dir, observers=run_observers(out_dir, record=record), say=say)
     say(f"global init: branch-and-bound around the hint ({hint[0]:.1f}, {hint[1]:.1f}), yaw unknown")
-    res = run_tracking(session, mode="pose", hint=hint, out_dir=out_dir, max_frames=max_frames)
+    try:
+        res = run_tracking(session, mode="pose", hint=hint, out_dir=out_dir, max_frames=max_frames)
+    finally:
+        if session.result is not None:
+            write_run_report(session, session.result, out_dir)
     init = res.metrics.get("init") or {}
     if init.get("time_s") is not None:
         say(f"global init: {init.get('error_m', float('nan')):.2f} m from the truth in {init['time_s']:.2f} s")
     print_track_summary(con, res.metrics, res.out_dir)
+    print_where(con, out_dir)
