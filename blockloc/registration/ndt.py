@@ -31,8 +31,29 @@ iterations). The step is capped to ``max_step_m`` / ``max_step_rad``, then a bac
 search (Armijo, halving up to 8 times) on the score: simpler than More-Thuente and enough with
 descent directions of the right scale (measured: on the real HDL-32E pair, 100/100 random starts
 within +-1 m, +-5 deg yaw, +-2 deg roll/pitch end within 5 cm / 0.5 deg with coarse-to-fine).
-Stops when the step norm ``|alpha * d|`` (rad and m together) < ``step_epsilon`` or after
-``max_iterations`` per level.
+A level stops when the next step ``|d|`` (rad and m together) is below its epsilon, without
+taking it (the pose then lies within about epsilon of the minimum of the quadratic model that b
+and H at that pose describe, and the evaluation after the step is saved), or when the step just
+taken is, or after ``max_iterations``.
+
+Stages of ``align`` (defaults): each coarse level (DIRECT1 at 2 m on every k-th point, <= 1500
+points, epsilon 10 x ``step_epsilon``), then the fine level: a DIRECT1 search (``search_neighbors``,
+epsilon 10 x ``step_epsilon``; one Gaussian per point, so about half the cost of a DIRECT7 pass)
+and the DIRECT7 polish (``neighbors``, ``step_epsilon``), whose evaluation at the result gives
+score, b and H. Measured on the real pair (docs/bench/ndt.md): the polish ends within 1 mm /
+0.01 deg of DIRECT7 alone's optimum when both converge tightly; with the default epsilon, a
+tight DIRECT7 run from the result moves it by 0.4 mm / 0.007 deg (median; at most about
+step_epsilon).
+
+Kernels (``_ndt_kernels``): an alignment makes one Python -> numba call, ``ndt_level``, per stage
+(default: 3, coarse + search + polish), each running its stage's whole Newton loop; inside, every
+iteration is one ``ndt_evaluate`` pass over the stage's points (plus one score-only pass per
+line-search halving and a derivative pass after it, and a Gauss-Newton pass where the exact
+Hessian is indefinite: after an indefinite one, exact and Gauss-Newton matrices come from the
+same pass). Counted on the real pair (docs/bench/ndt.md, tracking starts): median 5 coarse, 2
+search and 2 polish passes. Passes of <= 2048 points run serially, larger ones in parallel. The
+source array is used in place (a C-contiguous float64 (N, 3) array is not copied; coarse levels
+read it with a stride); per-point voxel look-ups are memoized per level for the alignment.
 
 Threading: an ``NdtTarget`` holds its search structure in an immutable snapshot replaced as a
 whole by ``add_tile`` / ``remove_tile`` (which serialize on a lock and use serial kernels that
@@ -408,9 +429,10 @@ class NdtResult:
     """Outcome of one NDT alignment.
 
     T_target_source: (4, 4) maps source points into the target (map) frame.
-    converged: the last step was below ``step_epsilon`` (False: stopped at max_iterations, or
-        no source point matched any Gaussian).
-    iterations: Newton iterations on the finest level; coarse_iterations: on coarser levels.
+    converged: the next (or the last) step was below ``step_epsilon`` (False: stopped at
+        max_iterations, or no source point matched any Gaussian).
+    iterations: Newton iterations on the finest level (search and polish); coarse_iterations:
+        on coarser levels. passes: passes of the kernels over the source points, all levels.
     score: NDT score (sum over points and neighbour Gaussians of -d1 exp(-d2 q / 2), maximized).
     error: ``-score`` (the minimized cost whose derivatives are ``b`` and ``H``).
     num_inliers: source points with some neighbour Gaussian within its 99% ellipsoid
@@ -487,16 +509,20 @@ class NdtRegistration:
     """NDT aligner: settings only; reuse one instance and one target for many scans.
 
     neighbors: DIRECT1 | DIRECT7 | DIRECT27, the voxel containing the transformed point, plus its 6
-    face neighbours, plus all 26 neighbours. coarse_to_fine: when the target has coarse levels,
-    first align on them (``coarse_neighbors``, stopping at 10 x ``step_epsilon``, with every k-th
-    source point so that at most about ``coarse_max_points`` are used), then on the finest level
-    with ``neighbors`` and all points; H, b and the score are always those of the finest level.
-    step: "newton" (default) or "gauss_newton", see the module doc. max_step_m (default: the
-    target resolution) and max_step_rad cap one step. num_threads: numba threads of the
-    alignment kernel, set for the calling thread (None: numba's current setting). On cores
-    shared with other busy processes or threads, 1 thread has a much better median latency than
-    2 (a parallel region waits for its slowest, descheduled worker): see docs/bench/ndt.md.
-    Source points in scan order (spatially coherent) run faster than shuffled ones.
+    face neighbours, plus all 26 neighbours: the objective of the finest level, whose score, H and
+    b the result reports. search_neighbors (default DIRECT1; None or equal to ``neighbors``: no
+    search stage): the finest level first iterates with these (cheaper) neighbours to 10 x
+    ``step_epsilon``, then polishes with ``neighbors``; the iteration counts of both share
+    ``max_iterations``. coarse_to_fine: when the target has coarse levels, first align on them
+    (``coarse_neighbors``, stopping at 10 x ``step_epsilon``, with every k-th source point so
+    that at most about ``coarse_max_points`` are used). step: "newton" (default) or
+    "gauss_newton", see the module doc. step_epsilon: stop when the next step (rad and m
+    together) is shorter. max_step_m (default: the level's resolution) and max_step_rad cap
+    one step. num_threads: numba threads of the alignment kernels, set for the calling thread
+    (None: numba's current setting). On cores shared with other busy processes or threads, 1
+    thread has a much better median latency than 2 (a parallel region waits for its slowest,
+    descheduled worker): see docs/bench/ndt.md. Source points in scan order (spatially
+    coherent) run faster than shuffled ones.
     """
 
     def __init__(self, neighbors: str = "DIRECT7", outlier_ratio: float = 0.55,
