@@ -11,7 +11,11 @@ Inputs, all from the real HDL-32E pair in ../shared/data/hdl32e_pair:
   turned by a random yaw and shifted up to 5 m, for the target build time of a 100 m block.
 Starts: "tracking" = reference perturbed by up to 0.2 m and 1 deg (what an IMU prediction
 gives); "wide" = up to 1 m, 5 deg yaw, 2 deg roll/pitch (the accuracy test's range).
-Writes docs/bench/ndt.md.
+Every start is aligned by every method in turn (round-robin). small_gicp VGICP's align rows
+exclude its per-scan source covariances, which are timed and printed on their own; the ratio of
+the NDT default's median to VGICP's is printed per start set. The NDT kernel calls (one
+``ndt_level`` per level and stage) and their passes over the points are counted in untimed
+alignments from the same starts. Writes docs/bench/ndt.md.
 """
 
 from __future__ import annotations

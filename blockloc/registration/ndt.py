@@ -50,8 +50,10 @@ Kernels (``_ndt_kernels``): an alignment makes one Python -> numba call, ``ndt_l
 iteration is one ``ndt_evaluate`` pass over the stage's points (plus one score-only pass per
 line-search halving and a derivative pass after it, and a Gauss-Newton pass where the exact
 Hessian is indefinite: after an indefinite one, exact and Gauss-Newton matrices come from the
-same pass). Counted on the real pair (docs/bench/ndt.md, tracking starts): median 5 coarse, 2
-search and 2 polish passes. Passes of <= 2048 points run serially, larger ones in parallel. The
+same pass). Counted on the real pair (docs/bench/ndt.md): median 5 coarse (1.5k points), 2
+search and 2 polish passes (10.8k points) from tracking starts, 10, 2 and 2 from wide starts
+(the former DIRECT7-only fine level: 3). Passes of <= 2048 points run serially, larger ones in
+parallel. The
 source array is used in place (a C-contiguous float64 (N, 3) array is not copied; coarse levels
 read it with a stride); per-point voxel look-ups are memoized per level for the alignment.
 
