@@ -40,10 +40,11 @@ Stages of ``align`` (defaults): each coarse level (DIRECT1 at 2 m on every k-th 
 points, epsilon 10 x ``step_epsilon``), then the fine level: a DIRECT1 search (``search_neighbors``,
 epsilon 10 x ``step_epsilon``; one Gaussian per point, so about half the cost of a DIRECT7 pass)
 and the DIRECT7 polish (``neighbors``, ``step_epsilon``), whose evaluation at the result gives
-score, b and H. Measured on the real pair (docs/bench/ndt.md): the polish ends within 1 mm /
-0.01 deg of DIRECT7 alone's optimum when both converge tightly; with the default epsilon, a
-tight DIRECT7 run from the result moves it by 0.4 mm / 0.007 deg (median; at most about
-step_epsilon).
+score, b and H. On the real pair the polish ends at DIRECT7 alone's optimum (within 0.1 mm /
+0.002 deg when both converge tightly, tests/registration); with the default epsilon a tight
+DIRECT7 run from the result moves it by 0.3 mm / 0.005 deg (median over the bench's 60 starts;
+at most about step_epsilon), far below the scan's error against the reference (about 2 cm /
+0.13 deg).
 
 Kernels (``_ndt_kernels``): an alignment makes one Python -> numba call, ``ndt_level``, per stage
 (default: 3, coarse + search + polish), each running its stage's whole Newton loop; inside, every
