@@ -144,7 +144,7 @@ def track_walk(seq, store, cfg, start: int, stop: int, mode: str, hint=None) -> 
     reader is not timed). Per scan: the tracker's update time, its core (deskew + registration +
     smoother), wall time of the step, CPU time of this thread and of the process."""
     from blockloc.evaluation.report import evaluate_trajectories
-    from blockloc.geometry import Trajectory
+    from blockloc.geometry import Trajectory, inv_T, rotation_angle
     from blockloc.session import Session
 
     session = Session.from_config(cfg, seq, store, backend="block", keep_estimates=True)
@@ -170,17 +170,31 @@ def track_walk(seq, store, cfg, start: int, stop: int, mode: str, hint=None) -> 
     ref = seq.ground_truth().poses[[e.index for e in ests]]
     err = np.linalg.norm(est.poses[:, :3, 3] - ref[:, :3, 3], axis=1)
     statuses = {s: sum(x.status == s for x in d) for s in sorted({x.status for x in d})}
+    P = seq.ground_truth().poses
+
+    def turn(i: int) -> float:  # the reference's rotation from scan i-1 to i, deg
+        return float(np.degrees(rotation_angle((inv_T(P[i - 1]) @ P[i])[:3, :3]))) if i > 0 else 0.0
+
+    def cv_miss(i: int) -> float:  # what a constant-velocity extrapolation of the reference misses at i, deg
+        if i < 2:
+            return 0.0
+        pred = P[i - 1] @ inv_T(P[i - 2]) @ P[i - 1]
+        return float(np.degrees(rotation_angle((inv_T(pred) @ P[i])[:3, :3])))
     return {
         "mode": mode, "init": init, "scans": len(ests), "statuses": statuses, "counters": counters,
         "metrics": m, "trajectory": est, "err_m": err, "worst_scan": int(ests[int(err.argmax())].index),
         "update_ms": stats_ms([x.update_ms for x in d]),
         "core_ms": stats_ms([x.deskew_ms + x.registration_ms + x.smoother_ms for x in d]),
         "registration_ms": stats_ms([x.registration_ms for x in d]),
-        "smoother_ms": stats_ms([x.smoother_ms for x in d]),
+        "smoother_ms": stats_ms([x.smoother_ms for x in d]), "map_ms": stats_ms([x.map_ms for x in d]),
+        "deskew_ms": stats_ms([x.deskew_ms for x in d]),
+        "rest_ms": stats_ms([x.update_ms - x.map_ms - x.deskew_ms - x.registration_ms - x.smoother_ms for x in d]),
+        "switches": [(int(e.index), str(e.diagnostics.block_id)) for e in ests if e.diagnostics.switched],
         "step_ms": stats_ms(step_ms), "thread_cpu_ms": stats_ms(thread_ms), "process_cpu_ms": stats_ms(proc_ms),
         "retried": [(int(e.index), int(e.diagnostics.rotation_retries), e.diagnostics.rotation_retry)
                     for e in ests if e.diagnostics.rotation_retries],
-        "not_ok": [(int(e.index), e.diagnostics.status) for e in ests if e.diagnostics.status != "ok"],
+        "not_ok": [(int(e.index), e.diagnostics.status, turn(int(e.index)), float(x), turn(int(e.index) - 1),
+                    cv_miss(int(e.index))) for e, x in zip(ests, err) if e.diagnostics.status != "ok"],
         "load": (load0, _load()),
     }
 
@@ -332,6 +346,10 @@ def run_walk(args, parts) -> dict:
                 out["hint"] = {"error": f"{type(exc).__name__}: {exc}"}
                 print("   ", out["hint"]["error"], flush=True)
             out["hint_xy"] = hints[0]
+            print("== the whole walk from scan 0 (for comparison: its first half is the map's)", flush=True)
+            out["whole"] = track_walk(seq, store, _variant(cfg, main_threads), 0, HELD_OUT[1], "gt")
+            out["whole"]["held_out_rmse_m"] = float(np.sqrt(np.mean(out["whole"]["err_m"][HELD_OUT[0]:] ** 2)))
+            _say_track(out["whole"])
         if "init" in parts:
             print(f"== global init on {len(frames)} scans, default verification thresholds", flush=True)
             out["init_default"] = global_init_walk(seq, store, _variant(cfg, main_threads, init_defaults=True),
@@ -455,6 +473,11 @@ def plot_walk(walk: dict, path: Path) -> Path:
             E = r["trajectory"].positions
             ax.plot(E[:, 0], E[:, 1], style, lw=1.4,
                     label=f"{name} (ATE {r['metrics']['ate_trans_rmse_m']:.3f} m)")
+    g = walk.get(f"gt_{walk['threads'][0]}")
+    if g and g.get("switches"):
+        sw = np.array([P[i, :2] for i, _ in g["switches"]])
+        ax.plot(sw[:, 0], sw[:, 1], "r*", ms=14, label="block switches (held-out, --init gt): "
+                + ", ".join(f"scan {i} to {b}" for i, b in g["switches"]))
     if "hint_xy" in walk:
         h = walk["hint_xy"]
         ax.plot(h[0], h[1], "bx", ms=10, mew=2, label="the hint (scan 89)")
@@ -540,7 +563,7 @@ def fragment(args, argv, walk: dict | None, fixture: list | None, sim: dict | No
          "sensitive to that load.", ""]
     if walk is not None:
         L += _walk_section(args, walk, png)
-    if walk is not None and any(k.startswith("init_") for k in walk):
+    if walk is not None and _init_runs(args, walk):
         L += _init_section(args, walk)
     L += _ndt_section()
     if fixture is not None:
@@ -576,6 +599,9 @@ def _walk_section(args, walk: dict, png: Path | None) -> list[str]:
             if f"gt_{n}" in walk]
     if "hint" in walk:
         runs.append((f"from a hint, {args.threads[0]} NDT thread{'s' if args.threads[0] > 1 else ''}", walk["hint"]))
+    if "whole" in walk:
+        runs.append(("for comparison: the whole walk 0-176 from `--init gt` at scan 0 (scans 0-88 are the map's)",
+                     walk["whole"]))
     L += ["| run | scans | ATE trans. RMSE (m) | max (m) | ATE rot. RMSE (deg) | RPE 1 m (m) | RPE 5 m (m) | "
           "RPE 10 m (m) | lost | recoveries | scans with rotation retries (accepted) |",
           "|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -590,19 +616,23 @@ def _walk_section(args, walk: dict, png: Path | None) -> list[str]:
                  f"{_f(m.get('rpe_5m_trans_rmse_m'), '{:.4f}')} | {_f(m.get('rpe_10m_trans_rmse_m'), '{:.4f}')} | "
                  f"{lost} | {c.get('recoveries', 0)} | {c.get('rotation_retries', 0)} "
                  f"({c.get('rotation_recoveries', 0)}) |")
-    L += ["", "Per-scan time (ms) over the held-out scans: `update` = the tracker's whole `insert_frame` (map "
-          "provider, deskew, NDT, smoother, covariance), `core` = deskew + registration + smoother (the figure "
-          "`bench.tracking` reports), `step` = the session's step, wall clock; CPU: this thread's, and the whole "
-          "process's (with the NDT kernel's worker threads and the map provider's prefetch thread).", "",
-          "| run | update median / p90 | core median / p90 | NDT median | smoother median | step max | thread CPU "
-          "median / p90 | process CPU median | load average (start, end) |", "|---|---|---|---|---|---|---|---|---|"]
+    L += ["", "Per-scan time (ms): `update` = the tracker's whole `insert_frame`, split into the map provider's "
+          "call, deskew, NDT registration (with rotated retries), the smoother and the rest (scan preparation, "
+          "pose covariance, bookkeeping); `core` = deskew + registration + smoother (the figure `bench.tracking` "
+          "reports); `step` = the session's step, wall clock (its maximum: the first scan, which loads compiled "
+          "kernels and builds the first NDT target). CPU: this thread's, and the whole process's (with the NDT "
+          "kernel's worker threads and the map provider's prefetch thread).", "",
+          "| run | update median / p90 | map / deskew / NDT / smoother / rest (medians) | core median / p90 | "
+          "step max | thread CPU median / p90 | process CPU median | load average (start, end) |",
+          "|---|---|---|---|---|---|---|---|"]
     for name, r in runs:
         if "metrics" not in r:
             continue
         u, c, t = r["update_ms"], r["core_ms"], r["thread_cpu_ms"]
-        L.append(f"| {name} | {u['median']:.1f} / {u['p90']:.1f} | {c['median']:.1f} / {c['p90']:.1f} | "
-                 f"{r['registration_ms']['median']:.1f} | {r['smoother_ms']['median']:.1f} | {r['step_ms']['max']:.0f} | "
-                 f"{t['median']:.1f} / {t['p90']:.1f} | {r['process_cpu_ms']['median']:.1f} | "
+        split = " / ".join(f"{r[k]['median']:.1f}" for k in ("map_ms", "deskew_ms", "registration_ms", "smoother_ms",
+                                                             "rest_ms"))
+        L.append(f"| {name} | {u['median']:.1f} / {u['p90']:.1f} | {split} | {c['median']:.1f} / {c['p90']:.1f} | "
+                 f"{r['step_ms']['max']:.0f} | {t['median']:.1f} / {t['p90']:.1f} | {r['process_cpu_ms']['median']:.1f} | "
                  f"{r['load'][0]:.1f}, {r['load'][1]:.1f} |")
     L.append("")
     for name, r in runs:
@@ -612,7 +642,10 @@ def _walk_section(args, walk: dict, png: Path | None) -> list[str]:
             L.append(f"- {name}: rotation retries at scans " + ", ".join(
                 f"{i} ({n} tried{', accepted ' + a if a else ''})" for i, n, a in r["retried"]) + ".")
         if r["not_ok"]:
-            L.append(f"- {name}: scans not `ok`: " + ", ".join(f"{i} {s}" for i, s in r["not_ok"]) + ".")
+            L.append(f"- {name}: scans not `ok`: " + ", ".join(
+                f"{i} {st} ({e:.2f} m off; the reference turned {t0:.0f} deg into the scan before and {t:.0f} deg "
+                f"into this one, a constant-velocity extrapolation of the reference misses it by {cv:.0f} deg)"
+                for i, st, t, e, t0, cv in r["not_ok"]) + ".")
     h = walk.get("hint")
     if h and "init" in h:
         ini = h["init"]
@@ -712,7 +745,7 @@ def _sim_section(sim: dict) -> list[str]:
     m = sim["metrics"]
     return ["### LiDAR-only on the simulated `small` world (IMU withheld)", "",
             "`sim:small/loc@1` through `tests/tracking/noimu.py`'s `WithoutImu` (the IMU stream empty, so the "
-            f"tracker runs LiDAR-only: {sim['lidar_only']}), in the small world's block map, the `sim` preset, from "
+            f"tracker ran LiDAR-only: {'yes' if sim['lidar_only'] else 'no'}), in the small world's block map, the `sim` preset, from "
             "the first ground-truth pose.", "",
             "| frames | estimated | ATE trans. RMSE (m) | ATE rot. RMSE (deg) | RPE 10 m (m) | failures | recoveries | "
             "rejected | statuses | update median (ms) | load (start, end) |",
@@ -734,6 +767,28 @@ def _limits(args, walk: dict) -> list[str]:
             f"{r['smoother_ms']['median']:.1f}), thread CPU {r['thread_cpu_ms']['median']:.1f} ms, process CPU "
             f"{r['process_cpu_ms']['median']:.1f} ms" for n, r in g) + ". The gap between wall and CPU time is "
             "time spent waiting for a core (see the load average).")
+    w = walk.get("whole")
+    if w and w.get("not_ok"):
+        tc = walk["config"].tracking
+        i, st, t, e, t0, cv = w["not_ok"][0]
+        L.append(f"- Turn-and-stop (whole-walk run, outside the held-out half): scan {i} is {st} because the "
+                 f"reference turned {t0:.0f} deg into scan {i - 1} and only {t:.0f} deg into scan {i}, so the "
+                 f"constant-velocity prior predicts a rotation {cv:.0f} deg off; the rotated retries (yaw "
+                 f"{', '.join(f'{v:+g}' for v in tc.rotation_retry_yaw_deg)} deg, tilt "
+                 f"{', '.join(f'{v:+g}' for v in tc.rotation_retry_tilt_deg)} deg, one axis at a time) did not "
+                 f"bring NDT into its basin; {len(w['not_ok'])} scans were not `ok`, "
+                 f"{w['counters'].get('recoveries', 0)} recovery by global init ended it. ATE over the whole walk "
+                 f"{w['metrics']['ate_trans_rmse_m']:.3f} m; its scans 89-176 alone {w['held_out_rmse_m']:.4f} m. Untried "
+                 "here (tracker code, not changed): a prior that damps the angular rate after a large turn, or "
+                 "retries about the last pose's orientation as well as about the prediction.")
+    b, b1 = walk.get(f"init_{args.threads[0]}"), walk.get("init_blas1")
+    if b and b1:
+        L.append(f"- Global init's largest stage is the refinement's map crop (`StoreMap.points_in_box`): every search "
+                 "loads and decodes each block the +-50 m refinement box touches (here all of them) and levels the "
+                 "points with a numpy matrix product, which runs on OpenBLAS threads; on shared cores those wait for "
+                 f"each other: crop median {b['crop_s']['median']:.2f} s with numpy's default BLAS threads, "
+                 f"{b1['crop_s']['median']:.2f} s with `OPENBLAS_NUM_THREADS=1` (whole init {b['total_s']['median']:.2f} "
+                 f"vs {b1['total_s']['median']:.2f} s).")
     for name, r in _init_runs(args, walk):
         L.append(f"- Global init, {name}: {r['total_s']['median']:.2f} s median = leveling {r['prep_s']['median']:.2f} "
                  f"+ branch and bound {r['bnb_s']['median']:.2f} + refinement {r['refine_s']['median']:.2f} (of which "
