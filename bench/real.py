@@ -28,7 +28,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "bench" / "real.md"
 NDT_FRAGMENT = ROOT / "docs" / "bench" / "ndt.md"
-PARTS = ("walk", "init", "blas", "fixture", "sim")
+PARTS = ("walk", "init", "blas", "thresholds", "fixture", "sim")
+THRESHOLD_SEED = 100  # hints of the threshold study: another draw than the init runs' (--seed)
 TOL_M, TOL_DEG = 0.3, 2.0  # global init success (the issue's, and bench.global_init's)
 RPE_DELTAS_M = (1.0, 5.0, 10.0)  # the held-out half is ~37 m long
 OPENCALIB_DIR = "opencalib_car5"
@@ -65,7 +66,7 @@ def stats_ms(values) -> dict:
     if not len(v):
         return {"median": math.nan, "p90": math.nan, "p95": math.nan, "max": math.nan, "n": 0}
     return {"median": float(np.median(v)), "p90": float(np.percentile(v, 90)),
-            "p95": float(np.percentile(v, 95)), "max": float(v.max()), "n": int(len(v))}
+            "p95": float(np.percentile(v, 95)), "max": float(v.max()), "n": len(v)}
 
 
 def quote_ndt(text: str) -> dict:
@@ -213,19 +214,73 @@ class _Timed:
             self.totals[self.name] = self.totals.get(self.name, 0.0) + time.perf_counter() - t0
 
 
+def localizer(seq, store, cfg, **params):
+    """The GlobalLocalizer ``blockloc init`` builds from ``cfg`` (``params`` override InitParams)."""
+    from blockloc.global_init.relocalize import GlobalLocalizer, InitParams
+    from blockloc.registration.engines import engine_from_settings
+
+    gi, rc = cfg.global_init, cfg.registration
+    engine = engine_from_settings(dataclasses.asdict(rc), resolution_m=gi.ndt_resolution_m)
+    init_params = dataclasses.replace(InitParams.from_config(gi, rc), **params)
+    return GlobalLocalizer.for_store(store, seq.info.gravity_map, init_params, engine=engine)
+
+
+def decide(cands: list[tuple], min_fitness: float, min_structure: float) -> str | None:
+    """What verification with these thresholds answers for one search whose every candidate was
+    refined: cands = [(correct, fitness, structure fitness, converged, ndt score)]; the best
+    candidate by NDT score among those passing (as ``GlobalLocalizer`` ranks verified ones) decides:
+    'ok' or 'wrong'; None when none passes (unverified)."""
+    passing = [c for c in cands if c[3] and c[1] >= min_fitness and c[2] >= min_structure]
+    if not passing:
+        return None
+    return "ok" if max(passing, key=lambda c: c[4])[0] else "wrong"
+
+
+def threshold_study(seq, store, cfg, frames: list[int], hints: np.ndarray, window_m: float) -> dict:
+    """Every candidate of every search refined with verification off: the fitness and
+    above-ground inlier ratio of correct (within 0.3 m / 2 deg) and wrong candidates, and what the
+    default and the configured thresholds would answer (``decide``)."""
+    from blockloc.config import GlobalInitConfig
+    from blockloc.global_init.relocalize import pose_error
+    from blockloc.tracking.scan_prep import prepare_for_init
+
+    loc = localizer(seq, store, cfg, min_fitness=0.0, min_structure_fitness=0.0, ambiguity_score_ratio=0.0)
+    gt = seq.ground_truth()
+    searches = []
+    for i, hint in zip(frames, hints):
+        scan = prepare_for_init(seq.frame(i), seq.imu(), seq.info)
+        res = loc.localize(scan.points_body, scan.gravity_body, (float(hint[0]), float(hint[1])), None,
+                           window_m, 360.0)
+        Tg = gt.interpolate(np.array([scan.stamp]))[0]
+        searches.append([(init_outcome(True, *pose_error(c.T_map_body, Tg)) == "ok", c.fitness, c.structure_fitness,
+                          c.converged, c.ndt_score) for c in res.candidates])
+    good = np.array([c[1:3] for s in searches for c in s if c[0]]).reshape(-1, 2)
+    bad = np.array([c[1:3] for s in searches for c in s if not c[0]]).reshape(-1, 2)
+    d, gi = GlobalInitConfig(), cfg.global_init
+    answers = {}
+    for name, fmin, smin in (("default", d.min_fitness, d.min_structure_fitness),
+                             ("configured", gi.min_fitness, gi.min_structure_fitness)):
+        a = [decide(s, fmin, smin) for s in searches]
+        answers[name] = {"thresholds": (fmin, smin), "ok": a.count("ok"), "wrong": a.count("wrong"),
+                         "unverified": a.count(None)}
+    return {"searches": len(searches), "with_correct": sum(any(c[0] for c in s) for s in searches),
+            "good_min": good.min(axis=0).tolist() if len(good) else None,
+            "bad_max": bad.max(axis=0).tolist() if len(bad) else None,
+            "good_n": len(good), "bad_n": len(bad), "answers": answers}
+
+
 def global_init_walk(seq, store, cfg, frames: list[int], hints: np.ndarray, window_m: float) -> dict:
     """Global init of each frame around its hint ((N, 2), yaw unknown) as ``blockloc init`` runs
     it (same config, engine and scan preparation); per frame: outcome, errors, the time of the
     scan's preparation (leveling by its floor) and of the search, the search's own split, and
     within the refinement: cropping the map around the candidates, building the NDT target,
     aligning and verifying."""
-    from blockloc.global_init.relocalize import GlobalLocalizer, InitParams, pose_error
-    from blockloc.registration.engines import engine_from_settings
+    from blockloc.global_init.relocalize import pose_error
     from blockloc.tracking.scan_prep import prepare_for_init
 
     gi, rc = cfg.global_init, cfg.registration
-    engine = engine_from_settings(dataclasses.asdict(rc), resolution_m=gi.ndt_resolution_m)
-    loc = GlobalLocalizer.for_store(store, seq.info.gravity_map, InitParams.from_config(gi, rc), engine=engine)
+    loc = localizer(seq, store, cfg)
+    engine = loc.engine
     t0 = time.perf_counter()
     loc.map.precompute()
     precompute_s = time.perf_counter() - t0
@@ -357,6 +412,12 @@ def run_walk(args, parts) -> dict:
             for n in args.threads:
                 print(f"== global init on {len(frames)} scans, registration.num_threads={n}", flush=True)
                 out[f"init_{n}"] = global_init_walk(seq, store, _variant(cfg, n), frames, hints, window)
+        if "thresholds" in parts:
+            study = init_frames(HELD_OUT[0], HELD_OUT[1], 1)
+            print(f"== verification thresholds: every candidate of {len(study)} searches", flush=True)
+            out["thresholds"] = threshold_study(seq, store, cfg, study,
+                                                draw_hints(ref.poses[study][:, :2, 3], args.hint_error,
+                                                           THRESHOLD_SEED), window)
     if "init" in parts and "blas" in parts:
         out["init_blas1"] = _blas_child(args)
     return out
@@ -407,7 +468,7 @@ def read_fixture(repeats: int = 3) -> list[dict]:
         rows.append({"file": str(p.relative_to(root)), "points": len(c), "dropped": c.num_dropped,
                      "ring_min": None if c.ring is None else int(c.ring.min()),
                      "ring_max": None if c.ring is None else int(c.ring.max()),
-                     "rings": None if c.ring is None else int(len(np.unique(c.ring))),
+                     "rings": None if c.ring is None else len(np.unique(c.ring)),
                      "time_field": c.time_field, "span_s": span, "read_ms": 1e3 * float(np.median(times)),
                      "bytes": p.stat().st_size})
     return rows
@@ -563,7 +624,7 @@ def fragment(args, argv, walk: dict | None, fixture: list | None, sim: dict | No
          "sensitive to that load.", ""]
     if walk is not None:
         L += _walk_section(args, walk, png)
-    if walk is not None and _init_runs(args, walk):
+    if walk is not None and (_init_runs(args, walk) or walk.get("thresholds")):
         L += _init_section(args, walk)
     L += _ndt_section()
     if fixture is not None:
@@ -592,13 +653,13 @@ def _walk_section(args, walk: dict, png: Path | None) -> list[str]:
          f"Config: `configs/handheld.yaml` with `map.block_size_m: {BLOCK_SIZE_M:g}` (NDT "
          f"{cfg.registration.resolution_m:g} m with {cfg.registration.coarse_levels} coarse levels, scans at "
          f"{cfg.lidar.voxel_size_m:g} m, map voxels {cfg.map.voxel_size_m:g} m, block blend {cfg.map.block_blend_m:g} m; "
-         "the same settings as the walk tests' `walk_config()` but for the global-init verification thresholds), "
+         "the walk tests' `walk_config()` but for the global-init verification thresholds; the map is built, "
+         "as there, with every scan a keyframe), "
          "block backend. "
          f"Scans 89-176 tracked LiDAR-only (constant-velocity prior, rotated retries, recovery by global init).", ""]
-    runs = [(f"`--init gt`, {n} NDT thread{'s' if n > 1 else ''}", walk[f"gt_{n}"]) for n in args.threads
-            if f"gt_{n}" in walk]
+    runs = [(f"`--init gt`, {_threads(n)}", walk[f"gt_{n}"]) for n in args.threads if f"gt_{n}" in walk]
     if "hint" in walk:
-        runs.append((f"from a hint, {args.threads[0]} NDT thread{'s' if args.threads[0] > 1 else ''}", walk["hint"]))
+        runs.append((f"from a hint, {_threads(args.threads[0])}", walk["hint"]))
     if "whole" in walk:
         runs.append(("for comparison: the whole walk 0-176 from `--init gt` at scan 0 (scans 0-88 are the map's)",
                      walk["whole"]))
@@ -663,11 +724,14 @@ def _walk_section(args, walk: dict, png: Path | None) -> list[str]:
     return L + [""]
 
 
+def _threads(n: int) -> str:
+    return f"{n} NDT thread{'s' if n > 1 else ''}"
+
+
 def _init_runs(args, walk: dict) -> list[tuple[str, dict]]:
     """(label, result) of every global-init run present, the main one (handheld, first thread
     count) first."""
-    n0 = args.threads[0]
-    t = lambda n: f"{n} NDT thread{'s' if n > 1 else ''}"  # noqa: E731
+    n0, t = args.threads[0], _threads
     runs = [(f"`handheld`, {t(n0)}", walk.get(f"init_{n0}"))]
     runs += [(f"`handheld`, {t(n)}", walk.get(f"init_{n}")) for n in args.threads[1:]]
     runs += [(f"`handheld`, {t(n0)}, `OPENBLAS_NUM_THREADS=1`", walk.get("init_blas1")),
@@ -697,18 +761,35 @@ def _init_section(args, walk: dict) -> list[str]:
                  + " / ".join(f"{r[k]['median']:.2f}" for k in ("prep_s", "bnb_s", "crop_s", "target_s", "align_s"))
                  + f" | {r['load'][0]:.1f}, {r['load'][1]:.1f} |")
     L.append("| no hint | - | no hint: see global_init | - | - | - | - | - |")
-    main = _init_runs(args, walk)[0][1]
-    good = [x["err_m"] for x in main["rows"] if x["outcome"] == "ok"]
-    L += ["", f"Pyramid precompute (or load from the cache) {main['precompute_s']:.2f} s. Main run: median error "
-          f"{np.median(good) if good else math.nan:.3f} m, median {np.median([x['angles'] for x in main['rows']]):.0f} "
-          f"angles and {np.median([x['nodes'] for x in main['rows']]):,.0f} search nodes; {main['ambiguous']} "
-          "results flagged ambiguous."]
-    for name, r in _init_runs(args, walk):
+    runs = _init_runs(args, walk)
+    if runs:
+        main = runs[0][1]
+        good = [x["err_m"] for x in main["rows"] if x["outcome"] == "ok"]
+        L += ["", f"Pyramid precompute (or load from the cache) {main['precompute_s']:.2f} s. Main run: median "
+              f"error {np.median(good) if good else math.nan:.3f} m, median "
+              f"{np.median([x['angles'] for x in main['rows']]):.0f} angles and "
+              f"{np.median([x['nodes'] for x in main['rows']]):,.0f} search nodes; {main['ambiguous']} results "
+              "flagged ambiguous."]
+    for name, r in runs:
         bad = [x for x in r["rows"] if x["outcome"] != "ok"]
         if bad:
             L.append(f"Not within tolerance ({name}): " + ", ".join(
                 f"scan {x['frame']} ({x['outcome']}, {_f(x['err_m'], '{:.2f}')} m / {_f(x['err_deg'], '{:.1f}')} deg, "
                 f"fitness {x['fitness']:.2f}, hint {x['hint_off_m']:.1f} m off)" for x in bad) + ".")
+    th = walk.get("thresholds")
+    if th:
+        a, b = th["answers"]["default"], th["answers"]["configured"]
+        L += ["", f"Where the `handheld` thresholds come from: all {th['searches']} held-out scans, hints drawn with "
+              f"seed {THRESHOLD_SEED} (another draw than above), every candidate refined with verification off: "
+              f"the correct pose was among the candidates in {th['with_correct']} searches; correct candidates "
+              f"({th['good_n']}) had fitness >= {th['good_min'][0]:.2f} and above-ground inlier ratio >= "
+              f"{th['good_min'][1]:.2f}, wrong ones ({th['bad_n']}) at most {th['bad_max'][0]:.2f} and "
+              f"{th['bad_max'][1]:.2f}. The best passing candidate by NDT score would be right / wrong / none in "
+              f"{a['ok']} / {a['wrong']} / {a['unverified']} searches with the defaults {a['thresholds'][0]:g} / "
+              f"{a['thresholds'][1]:g}, {b['ok']} / {b['wrong']} / {b['unverified']} with {b['thresholds'][0]:g} / "
+              f"{b['thresholds'][1]:g}. The thresholds were chosen on this walk, so the rows above are not an "
+              "independent test of them. Correct poses fit only part of a scan where the map (scans 0-88) covers "
+              "only part of what the scan sees, as on the scans the defaults left unverified."]
     return L + [""]
 
 
@@ -770,7 +851,7 @@ def _limits(args, walk: dict) -> list[str]:
     w = walk.get("whole")
     if w and w.get("not_ok"):
         tc = walk["config"].tracking
-        i, st, t, e, t0, cv = w["not_ok"][0]
+        i, st, t, _, t0, cv = w["not_ok"][0]
         L.append(f"- Turn-and-stop (whole-walk run, outside the held-out half): scan {i} is {st} because the "
                  f"reference turned {t0:.0f} deg into scan {i - 1} and only {t:.0f} deg into scan {i}, so the "
                  f"constant-velocity prior predicts a rotation {cv:.0f} deg off; the rotated retries (yaw "
@@ -827,7 +908,7 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"--parts: unknown {', '.join(sorted(unknown))} (expected {', '.join(PARTS)})")
     logging.basicConfig(level=logging.WARNING)
     started, load0 = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), _load()
-    walk = run_walk(args, parts) if parts & {"walk", "init"} else None
+    walk = run_walk(args, parts) if parts & {"walk", "init", "thresholds"} else None
     if args.json is not None:
         import json
 

@@ -119,3 +119,11 @@ def test_the_handheld_preset_is_the_walk_tests_config_but_for_documented_setting
     assert differ == {("global_init", "min_fitness"), ("global_init", "min_structure_fitness"),
                       ("map", "keyframe_distance_m"), ("map", "keyframe_angle_deg"), ("lidar", "deskew")}
     assert a["map"]["block_size_m"] == b["map"]["block_size_m"] == 8.0
+
+
+def test_decide_takes_the_best_passing_candidate_by_ndt_score():
+    # (correct, fitness, above-ground inlier ratio, converged, NDT score)
+    cands = [(True, 0.55, 0.80, True, 1.0), (False, 0.65, 0.65, True, 1.2), (False, 0.9, 0.9, False, 2.0)]
+    assert real.decide(cands, 0.75, 0.6) is None  # the only fit one did not converge
+    assert real.decide(cands, 0.5, 0.6) == "wrong"  # the wrong one scores higher and passes
+    assert real.decide(cands, 0.5, 0.7) == "ok"  # the above-ground ratio rules it out
