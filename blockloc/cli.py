@@ -13,9 +13,13 @@ import sys
 from pathlib import Path
 from typing import Optional
 
-import typer
+from blockloc.threads import limit_blas_threads
 
-from blockloc import __version__
+limit_blas_threads()  # before any command imports numpy
+
+import typer  # noqa: E402
+
+from blockloc import __version__  # noqa: E402
 
 app = typer.Typer(
     name="blockloc",

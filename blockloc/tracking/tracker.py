@@ -22,7 +22,8 @@ tens of degrees off (the real walk turns up to 48 deg in 0.5 s), so:
    1 rad/s^2/sqrt(s): 58 deg; at 10 Hz the fixed 10 deg gate applies): the prior, not a number
    tuned for an IMU, says how far off a prediction can honestly be;
  - when registration from the prediction fails its health check, rotated predictions (yaw about
-   the map's vertical, then roll/pitch, ``rotation_retry_*_deg``) are registered in turn and the
+   the map's vertical, then roll/pitch, ``rotation_retry_*_deg``; first of all the last estimate
+   itself, for a turn that stopped) are registered in turn and the
    first healthy one that also fits at least ``rotation_retry_fitness_ratio`` of the recent scans'
    fitness is accepted (counters ``rotation_retries`` / ``rotation_recoveries``, diagnostics
    ``rotation_retries`` / ``rotation_retry``); only then does the frame count as rejected, and
@@ -530,7 +531,7 @@ class Tracker:
         """Register from rotated predictions in turn; the first healthy (T_ndt, result), or None.
 
         Innovation is still measured against the real prediction, so a retry is held to the
-        same gate as the prediction itself. A retry explores poses the motion model finds
+        same gate as the prediction itself (the last estimate, a stop, against itself). A retry explores poses the motion model finds
         unlikely, and each try is one more chance of a wrong local minimum that happens to pass
         ``min_fitness`` (the floor or walls near any guess), so it must also fit about as well as
         the recent scans did (``rotation_retry_fitness_ratio``)."""
@@ -542,11 +543,18 @@ class Tracker:
                                                 p.rotation_retry_tilt_deg)
         if not candidates:
             return None
+        # First the last estimate itself: a turn that stopped (the walk turned 43 deg, then 9 deg:
+        # constant velocity predicted the second 52 deg wrong, every rotation of that was off too).
+        T_last = self.window.values.atPose3(keys_of(self.window.latest)[0]).matrix()
+        if np.linalg.norm(T_last[:3, 3] - T_pred[:3, 3]) > 0.05 or rotation_angle(T_last[:3, :3].T @ T_pred[:3, :3]) > np.deg2rad(2.0):
+            candidates.insert(0, ("stop", T_last))
         self.counters["rotation_retries"] += 1
         for label, T_guess in candidates:
             diag.rotation_retries += 1
+            # a stop is a motion hypothesis of its own: gated against itself, not the prediction
+            T_ref = T_guess if label == "stop" else T_pred
             try:
-                T_ndt, res, fit, inn_m, inn_deg, ok = self._align(target, scan_pts, T_guess, T_pred, gates)
+                T_ndt, res, fit, inn_m, inn_deg, ok = self._align(target, scan_pts, T_guess, T_ref, gates)
             except Exception as exc:
                 log.debug("rotated prediction %s: registration failed: %s", label, exc)
                 continue

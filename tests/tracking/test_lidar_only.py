@@ -226,3 +226,20 @@ def test_mode_from_config_and_explicit_choice(world):
     tr.initialize(world["traj"].pose(s0)[0], s0)
     tr.insert_frame(world["frames"][s0])
     assert tr.lidar_only is False
+
+
+def test_a_stop_after_fast_motion_is_found_from_the_last_estimate(world):
+    """Constant velocity predicts the robot 1.5 m on, but it stopped: no rotation of the prediction
+    fits, the last estimate does (the walk turned 43 deg, then 9 deg: scans 66-67)."""
+    T0 = xyzrpy_to_T(20.0, 0.0, 1.0, 0.0, 0.0, np.pi / 2)
+    still = StepTrajectory(T0, T0, 0.25)
+    frame = make_scan(world["scene"], still, 0.5, T_BODY_LIDAR, index=1, max_points=6000, seed=11)
+    frame.time_offsets = None
+    tr = make_tracker(world, use_imu=False)
+    v = T0[:3, :3] @ np.array([3.0, 0.0, 0.0])  # it was driving at 3 m/s
+    tr.initialize(T0, 0.0, velocity_map=v, sigma_vel_m_s=1.5)  # a velocity estimate, not a certainty
+    est = tr.insert_frame(frame)
+    d = est.diagnostics
+    assert d.status == "ok" and d.rotation_retry == "stop", (d.status, d.rotation_retry, d.innovation_m)
+    assert np.linalg.norm(est.T_map_body[:3, 3] - T0[:3, 3]) < 0.05
+    assert d.innovation_m < 0.2  # measured against the stop hypothesis itself
