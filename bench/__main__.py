@@ -20,7 +20,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 FRAGMENTS = ROOT / "docs" / "bench"
-ORDER = ["run", "datasets", "evaluation", "sim", "ndt", "maps", "global_init", "tracking", "scaling", "campus", "campus_backends",
+ORDER = ["run", "datasets", "evaluation", "sim", "realism", "ndt", "maps", "global_init", "tracking", "scaling", "campus", "campus_backends",
          "server", "summary"]  # summary last: it compares the fragments before it with the papers
 
 
