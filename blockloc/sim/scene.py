@@ -473,7 +473,8 @@ class SessionScene:
             dist = np.hypot(rel[:, 0], rel[:, 1])
             along = (rel[:, 0] * dv[:, 0] + rel[:, 1] * dv[:, 1]) / hx
             perp2 = np.maximum(dist * dist - along * along, 0.0)
-            sel_c |= (perp2 < 3.5 * 3.5) & ((along > 0) | (dist < 3.5))
+            # a column's beams fan out in xy when the sensor tilts: the margin grows with range
+            sel_c |= (perp2 < (3.5 + 0.1 * dist) ** 2) & ((along > 0) | (dist < 3.5))
         sel = np.repeat(sel_c, step)
         idx = np.flatnonzero(sel)
         if not len(idx):
