@@ -66,7 +66,7 @@ class SensorCalibration:
 
 #: Parts of the robot in the beams' way, boxes in the lidar frame (x forward, y left, z up,
 #: metres): the mast and GPS antenna behind the sensor and the handle bar in front of it.
-SELF_BOXES_FLU = np.array([[-1.02, -0.94, -0.04, 0.04, -0.9, 0.15],
+SELF_BOXES_FLU = np.array([[-1.02, -0.96, -0.025, 0.025, -0.9, 0.15],
                            [0.85, 0.95, -0.35, 0.35, -0.75, -0.55]])
 
 

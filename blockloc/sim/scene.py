@@ -218,7 +218,8 @@ class SessionScene:
         self._tri_owner = np.concatenate(owners)
         self._tri_xy = None
         self.terrain_cat = self._cat_index["terrain"]
-        self.building_cat = self._cat_index.get("building", -2)
+        # categories with facade rows (buildings, corridor walls and ceiling)
+        self._facade_cats = np.array([self._cat_index[c] for c in world.owners if c in self._cat_index])
         # the day's foliage: denser or sparser crowns than on the mapping day (seasons)
         vol = world.volumes
         self._vol_mfp = None
@@ -306,7 +307,7 @@ class SessionScene:
             reflect[on_ground] = self.world.ground_albedo(p[:, 0], p[:, 1])
             if self.detail.ground_relief:
                 self._ground_relief(np.flatnonzero(on_ground), origins, dirs, rng_, normals, reflect, rng)
-        on_bldg = cat == self.building_cat
+        on_bldg = np.isin(cat, self._facade_cats)
         if on_bldg.any():
             owner = self._tri_owner[tri[on_bldg]]
             reflect[on_bldg] = self.world.facades[owner, 6] if len(self.world.facades) else reflect[on_bldg]

@@ -400,8 +400,8 @@ def build_world(preset: Preset, seed: int) -> World:
     b = {k: MeshBuilder() for k in ("building", "wall", "fence", "pole", "trunk", "crown", "sign",
                                     "ceiling")}
     detail = preset.detail
-    veg = _Vegetation(detail.volumetric_vegetation)
-    facades: list[tuple] = []
+    veg = _Vegetation(detail.volumetric_vegetation, b)
+    facades = _Facades()
     mov_kind, mov_xy, mov_yaw = [], [], []
     H = terrain.height
 
@@ -425,8 +425,8 @@ def build_world(preset: Preset, seed: int) -> World:
                 a0 = x0 + (x1 - x0) * k / n_seg
                 a1 = x0 + (x1 - x0) * (k + 1) / n_seg
                 hs = H(np.array([a0, a1]), np.array([y, y]))
-                b["ceiling"].add(*box_mesh((a0 + a1) / 2, y, hs.max() + 3.4, hs.max() + 3.7,
-                                           a1 - a0 + 0.02, 2 * hw + 1.6, 0.0))
+                _add_building(b, facades, rng, *box_mesh((a0 + a1) / 2, y, hs.max() + 3.4, hs.max() + 3.7,
+                                                         a1 - a0 + 0.02, 2 * hw + 1.6, 0.0), "ceiling")
         for side in (-1, 1):
             yw = y + side * (hw + 0.6)
             n_seg = int(np.ceil((x1 - x0) / 10.0))
@@ -434,8 +434,8 @@ def build_world(preset: Preset, seed: int) -> World:
                 a0 = x0 + (x1 - x0) * k / n_seg
                 a1 = x0 + (x1 - x0) * (k + 1) / n_seg
                 hs = H(np.array([a0, a1]), np.array([yw, yw]))
-                b["wall"].add(*box_mesh((a0 + a1) / 2, yw, hs.min() - 0.5, hs.max() + 3.5,
-                                        a1 - a0 + 0.02, 0.3, 0.0))
+                _add_building(b, facades, rng, *box_mesh((a0 + a1) / 2, yw, hs.min() - 0.5, hs.max() + 3.5,
+                                                         a1 - a0 + 0.02, 0.3, 0.0), "wall")
 
     def in_corridor_strip(x, y):
         return any(c["x0"] - 2 <= x <= c["x1"] + 2 and abs(y - c["y"]) < hw + 9.0 for c in corridors)
@@ -485,7 +485,7 @@ def build_world(preset: Preset, seed: int) -> World:
                                                         rng.uniform(0, np.pi)))
                         else:
                             _tree(b, veg, rng, px + rng.uniform(-1, 1), py + rng.uniform(-1, 1), H)
-                        if detail.volumetric_vegetation and rng.random() < 0.6:
+                        if rng.random() < 0.6:
                             _bush(veg, rng, px + rng.uniform(-2, 2), py + rng.uniform(-2, 2), H)
             path = None
             if (detail.layout and ctype in ("field", "park", "parking") and 1 <= ix < len(roads.xs)
@@ -493,22 +493,36 @@ def build_world(preset: Preset, seed: int) -> World:
                 path = _footpath(roads, rng, ix, iy)
             clear = (lambda x, y: True) if path is None else (
                 lambda x, y, P=path: float(polyline_distance(P, x, y)) > 2.5)
+            if ctype == "field":
+                # an open quad: a line of trees along its edges, a few solitary ones on the lawn
+                for (ax, ay, bx, by) in ((ix0, iy0, ix1, iy0), (ix1, iy0, ix1, iy1),
+                                         (ix1, iy1, ix0, iy1), (ix0, iy1, ix0, iy0)):
+                    if rng.random() < 0.5:
+                        continue
+                    L = np.hypot(bx - ax, by - ay)
+                    for s_ in np.arange(rng.uniform(2, 10), L - 2, rng.uniform(9, 16)):
+                        x, y = ax + (bx - ax) * s_ / L, ay + (by - ay) * s_ / L
+                        if clear(x, y):
+                            _tree(b, veg, rng, x, y, H)
+                for _ in range(int((ix1 - ix0) * (iy1 - iy0) / 1500)):
+                    x, y = rng.uniform(ix0, ix1), rng.uniform(iy0, iy1)
+                    if clear(x, y):
+                        _tree(b, veg, rng, x, y, H)
             if ctype == "buildings":
                 _buildings(b, rng, (ix0, ix1, iy0, iy1), H, preset, facades)
-                if detail.volumetric_vegetation:  # hedges along the plot, shrubs at the walls
-                    _hedge(veg, rng, (ix0 - 3, ix1 + 3, iy0 - 3, iy1 + 3), H)
-                    _hedge(veg, rng, (ix0 - 0.5, ix1 + 0.5, iy0 - 0.5, iy1 + 0.5), H)
+                # hedges along the plot, shrubs at the walls
+                _hedge(veg, rng, (ix0 - 3, ix1 + 3, iy0 - 3, iy1 + 3), H)
+                _hedge(veg, rng, (ix0 - 0.5, ix1 + 0.5, iy0 - 0.5, iy1 + 0.5), H)
             elif ctype == "park":
                 area = (ix1 - ix0) * (iy1 - iy0)
                 for _ in range(int(area / rng.uniform(70, 140))):
                     x, y = rng.uniform(ix0, ix1), rng.uniform(iy0, iy1)
                     if clear(x, y):
                         _tree(b, veg, rng, x, y, H)
-                if detail.volumetric_vegetation:
-                    for _ in range(int(area / 150)):
-                        x, y = rng.uniform(ix0, ix1), rng.uniform(iy0, iy1)
-                        if clear(x, y):
-                            _bush(veg, rng, x, y, H)
+                for _ in range(int(area / 150)):
+                    x, y = rng.uniform(ix0, ix1), rng.uniform(iy0, iy1)
+                    if clear(x, y):
+                        _bush(veg, rng, x, y, H)
                 for _ in range(int(area / 400) + 1):
                     x, y = rng.uniform(ix0, ix1), rng.uniform(iy0, iy1)
                     if clear(x, y):
@@ -529,7 +543,7 @@ def build_world(preset: Preset, seed: int) -> World:
                 if rng.random() < 0.7:
                     _fence(b, rng, (ix0 - 2, ix1 + 2, iy0 - 2, iy1 + 2), H,
                            lambda x, y: in_corridor_strip(x, y) or not clear(x, y))
-                elif detail.volumetric_vegetation:
+                else:
                     _hedge(veg, rng, (ix0 - 2, ix1 + 2, iy0 - 2, iy1 + 2), H,
                            skip=lambda x, y: not clear(x, y))
             # cars parked along the kerb (movable) beside non-field cells
@@ -549,9 +563,7 @@ def build_world(preset: Preset, seed: int) -> World:
         V, F = mb.build()
         if len(F):
             meshes[k] = (V, F)
-    owners = {}
-    if "building" in meshes:  # 12 triangles a box, in the order of ``facades``
-        owners["building"] = np.repeat(np.arange(len(facades)), 12)
+    owners = {k: np.asarray(v, dtype=np.int64) for k, v in facades.owner.items() if k in meshes}
     movables = Movables(np.array(mov_kind, dtype="<U8"), np.array(mov_xy, dtype=float).reshape(-1, 2),
                         np.array(mov_yaw, dtype=float), np.arange(len(mov_kind)))
     world = World(preset, int(seed), terrain, roads, meshes, movables, cells, corridors,
@@ -564,15 +576,18 @@ def build_world(preset: Preset, seed: int) -> World:
 class _Vegetation:
     """Collects vegetation: scattering volumes (volumetric) or solid ellipsoid meshes."""
 
-    def __init__(self, volumetric: bool):
+    def __init__(self, volumetric: bool, b: dict):
         self.volumetric = volumetric
+        self.b = b
         self.rows: list[tuple] = []
 
     def add(self, b, cx, cy, cz, rxy, rz, mfp, kind) -> None:
+        """One crown / bush / hedge piece (the same draws either way: switching the volumes
+        off changes how rays meet vegetation, not where it grows)."""
         if self.volumetric:
             self.rows.append((cx, cy, cz, rxy, rxy, rz, mfp, kind))
         else:
-            b["crown"].add(*ellipsoid_mesh(cx, cy, cz, rxy, rz))
+            self.b["crown"].add(*ellipsoid_mesh(cx, cy, cz, rxy, rz))
 
     def build(self) -> Volumes | None:
         if not self.rows:
@@ -588,8 +603,9 @@ def _tree(b, veg, rng, x, y, H) -> None:
     b["trunk"].add(*cylinder_mesh(x, y, z - 0.3, z + h_trunk + 0.5 * r, rng.uniform(0.12, 0.3), n=6))
     rz = r * rng.uniform(0.9, 1.5)
     veg.add(b, x, y, z + h_trunk + r, r, rz, rng.uniform(0.5, 1.4), 0)
-    if veg.volumetric:  # a lower, denser shell of leaves and branches
-        veg.add(b, x, y, z + h_trunk + 0.6 * r, 0.7 * r, 0.5 * rz, rng.uniform(0.4, 0.9), 0)
+    mfp_inner = rng.uniform(0.4, 0.9)
+    if veg.volumetric:  # a lower, denser shell of leaves and branches (inside the solid crown)
+        veg.add(b, x, y, z + h_trunk + 0.6 * r, 0.7 * r, 0.5 * rz, mfp_inner, 0)
 
 
 def _bush(veg, rng, x, y, H) -> None:
@@ -692,12 +708,23 @@ def _passages(b, rng, roads: Roads, cells, corridors, H, preset, facades) -> lis
     return out
 
 
-def _add_building(b, facades, rng, V, F) -> None:
-    """One building box (12 triangles) and its facade row (see ``World``)."""
-    b["building"].add(V, F)
+def _add_building(b, facades, rng, V, F, cat: str = "building") -> None:
+    """One building (or wall, ceiling) box (12 triangles) and its facade row (see ``World``);
+    ``facades.owner[cat]`` collects the row of each of the category's triangles."""
+    b[cat].add(V, F)
     lo, hi = V.min(axis=0), V.max(axis=0)
-    facades.append((lo[0], hi[0], lo[1], hi[1], lo[2], hi[2], rng.uniform(0.12, 0.5),
+    facades.owner.setdefault(cat, []).extend([len(facades)] * len(F))
+    facades.append((lo[0], hi[0], lo[1], hi[1], lo[2], hi[2],
+                    rng.uniform(0.12, 0.5) if cat == "building" else ALBEDO[cat],
                     rng.uniform(3.2, 4.2), rng.uniform(2.4, 4.0), rng.uniform(0, 4.0)))
+
+
+class _Facades(list):
+    """Facade rows (see ``World``) and, per category, the row of each triangle."""
+
+    def __init__(self):
+        super().__init__()
+        self.owner: dict[str, list[int]] = {}
 
 
 def _fence(b, rng, rect, H, skip) -> None:

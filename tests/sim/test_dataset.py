@@ -57,13 +57,13 @@ def test_written_sessions_read_back_with_the_nclt_loader(written):
         for i in (0, 7):
             fd, fs = disk.frame(i), sim.frame(i)
             # the loader drops returns nearer than 1 m (the robot's own mast among them)
-            near = np.linalg.norm(fs.points, axis=1) >= 1.0
-            assert len(fd) == near.sum() and (~near).sum() < 0.05 * len(fs)
+            r = np.linalg.norm(fs.points, axis=1)  # (the 5 mm quantisation may move a point over 1 m)
+            assert (r >= 1.01).sum() <= len(fd) <= (r >= 0.99).sum() and (r < 1.0).sum() < 0.05 * len(fs)
             from scipy.spatial import cKDTree
 
-            dist, _ = cKDTree(fs.points).query(fd.points)
+            dist, j = cKDTree(fs.points).query(fd.points)
             assert dist.max() < 0.005  # 5 mm quantisation
-            assert np.allclose(np.sort(fd.time_offsets), np.sort(fs.time_offsets[near]), atol=3e-4)
+            assert np.allclose(fd.time_offsets, fs.time_offsets[j], atol=3e-4)
         gt_d, gt_s = disk.ground_truth(), sim.ground_truth()
         n = len(gt_d)
         assert n > 100 and np.allclose(gt_d.poses, gt_s.poses[:n], atol=1e-6)

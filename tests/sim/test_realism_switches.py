@@ -139,7 +139,9 @@ def test_imu_errors_and_drops_switch_off():
     on, off = _seq().imu(), _seq(imu=imu_off).imu()
     assert len(on.t) < len(off.t)  # lost samples
     assert np.all(np.diff(off.t) > 0.009)
-    assert np.max(np.diff(on.t)) > 0.025  # a burst
+    assert np.max(np.diff(on.t)) > 0.015  # a lost sample
+    burst = _seq(imu={**imu_off, "drop_burst_per_min": 30.0}).imu()
+    assert np.max(np.diff(burst.t)) > 0.035  # 3-12 samples lost in a row
     # the time offset: the IMU lags; its gyro matches the ideal one read 4 ms earlier
     seq = _seq(imu={**imu_off, "time_offset_s": 0.004})
     ideal_now = seq.trajectory.imu_ideal(seq.imu().t - seq.epoch_us * 1e-6)[1]
