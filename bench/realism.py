@@ -127,6 +127,8 @@ def main(argv: list[str] | None = None) -> Path:
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--skip-kiss", action="store_true")
+    ap.add_argument("--scans", type=int, default=24, help="scans per simulated column (>= 20)")
+    ap.add_argument("--kiss-frames", type=int, nargs=2, default=(1000, 650), metavar=("SMALL", "CAMPUS"))
     args = ap.parse_args(argv)
     from bench.__main__ import machine
 
@@ -135,7 +137,7 @@ def main(argv: list[str] | None = None) -> Path:
     sys.path.insert(0, str(ROOT / "tests"))
     from conftest import shared_data_dir  # the same place the tests look
 
-    n = 8 if args.quick else 24
+    n = 8 if args.quick else args.scans
     t_start = time.time()
     cols = {"real HDL-32E (2 scans)": median_stats(real_stats(shared_data_dir()))}
     for preset in ("small", "campus"):
@@ -144,8 +146,7 @@ def main(argv: list[str] | None = None) -> Path:
         cols[f"new sim {preset}"] = median_stats(new_sim_stats(preset, args.seed, n))
     names = list(cols)
     lines = ["## Simulator realism", "",
-             f"Machine: {machine()}. Command: `python -m bench.realism{' --quick' if args.quick else ''}"
-             f" --seed {args.seed}`, run {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. "
+             f"Machine: {machine()}. Command: `python -m bench.realism {' '.join(argv or sys.argv[1:])}`, run {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. "
              f"Statistics: `blockloc.evaluation.realism.scan_realism`, the same code on every column; "
              f"simulated columns are medians over {n} scans of the `loc` session (seed {args.seed}, a "
              f"seed the tests do not use); the old simulator runs from a temporary git worktree of "
@@ -158,13 +159,16 @@ def main(argv: list[str] | None = None) -> Path:
                                         f"<= {_fmt(key, fmt, band[1])}" if band[0] == 0 else
                                         f"{_fmt(key, fmt, band[0])} - {_fmt(key, fmt, band[1])}")
         lines.append(f"| {label} | " + " | ".join(vals) + f" | {tgt} |")
-    if not args.skip_kiss:
+    if args.skip_kiss:
+        lines += ["", "KISS-ICP drift: not measured in this run (`--skip-kiss`)."]
+    else:
         lines += ["", "KISS-ICP (LiDAR only, its defaults; bench._track.KissRun) on the new worlds' `loc` "
                   "sessions from the first frame, started at the true pose: horizontal error at the last "
                   "frame over the horizontal distance driven.", "",
                   "| world | scans | distance (m) | final horizontal error (m) | max (m) | drift | ms / scan |",
                   "|---|---|---|---|---|---|---|"]
-        for preset, nf in (("small", 300 if args.quick else 1000), ("campus", 200 if args.quick else 650)):
+        nfs = (300, 200) if args.quick else tuple(args.kiss_frames)
+        for preset, nf in zip(("small", "campus"), nfs):
             k = kiss_drift(preset, args.seed, nf)
             lines.append(f"| {preset} | {k['frames']} | {k['distance_m']:.0f} | {k['final_err_m']:.2f} | "
                          f"{k['max_err_m']:.2f} | {k['drift']:.2%} | {k['ms_per_scan']:.0f} |")
