@@ -483,7 +483,7 @@ def run_small_without_imu() -> dict:
     from tests.tracking.noimu import WithoutImu
 
     paths, cfg = prepare_small_world()
-    seq = WithoutImu(open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset))
+    seq = WithoutImu(open_sequence(paths.loc, dataset_cfg=cfg.dataset))
     session = Session.from_config(cfg, seq, open_map(paths.block_map), backend="block")
     load0 = _load()
     res = session.run(0, None, init="gt")

@@ -17,7 +17,7 @@ def _blockloc(*args, cwd=None):
 def test_track_command_writes_results(small_world, tmp_path):  # noqa: F811
     paths, _ = small_world
     out = tmp_path / "res"
-    r = _blockloc("track", "--seq", str(paths.dataset / "loc"), "--map", str(paths.block_map), "--init", "gt",
+    r = _blockloc("track", "--seq", paths.loc, "--map", str(paths.block_map), "--init", "gt",
                   "--config", "sim", "--max-frames", "40", "--out", str(out))
     assert r.returncode == 0, r.stderr
     assert "ATE translation RMSE" in r.stdout

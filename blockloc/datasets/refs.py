@@ -169,9 +169,10 @@ class SequenceRef:
     def _open_named(self, data_root, dataset_cfg, lidar_topic, imu_topic, options):
         ranges = {k: options[k] for k in ("min_range_m", "max_range_m")}
         if self.kind == "sim":
+            from blockloc.datasets.base import RangeLimited
             from blockloc.sim.stream import open_sim_sequence
 
-            return open_sim_sequence(*self.sim)
+            return RangeLimited(open_sim_sequence(*self.sim), ranges["min_range_m"], ranges["max_range_m"])
         if self.kind == "nclt":
             from blockloc.datasets.nclt import NcltSequence
 

@@ -63,7 +63,7 @@ def _track(small_world, map_path):
     from blockloc.datasets import open_sequence
 
     paths, cfg = small_world
-    seq = open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset)
+    seq = open_sequence(paths.loc, dataset_cfg=cfg.dataset)
     return _session(cfg, seq, map_path).run(0, N_FRAMES, init="gt").trajectory
 
 
@@ -124,7 +124,7 @@ def killed_run(small_world, tmp_path_factory):
     srv = MapServer(paths.block_map)
     srv.start()
 
-    seq = open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset)
+    seq = open_sequence(paths.loc, dataset_cfg=cfg.dataset)
     try:
         session = _session(cfg, seq, srv.url)
         session.initialize("gt", 0)

@@ -43,7 +43,7 @@ def main(argv=None) -> int:
     ap.add_argument("--max-frames", type=int, default=None)
     args = ap.parse_args(argv)
     paths, cfg = prepare_small_world()
-    seq = WithoutImu(open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset))
+    seq = WithoutImu(open_sequence(paths.loc, dataset_cfg=cfg.dataset))
     session = Session.from_config(cfg, seq, open_map(paths.block_map), backend="block")
     m = session.run(0, args.max_frames, init="gt").metrics
     for k in ("frames", "estimated", "failures", "recoveries", "rejected", "switches", "ate_trans_rmse_m",

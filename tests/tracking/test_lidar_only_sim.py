@@ -18,7 +18,7 @@ def no_imu_run(small_world, tmp_path_factory):
     from blockloc.datasets import open_sequence
 
     paths, cfg = small_world
-    seq = WithoutImu(open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset))
+    seq = WithoutImu(open_sequence(paths.loc, dataset_cfg=cfg.dataset))
     assert len(seq.imu()) == 0 and seq.frame(0).time_offsets is not None
     out = tmp_path_factory.mktemp("track_noimu") / "run"
     session = Session.from_config(cfg, seq, open_map(paths.block_map), backend="block", observers=[RunWriter(out)],

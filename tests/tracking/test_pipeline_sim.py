@@ -18,7 +18,7 @@ def full_run(small_world, tmp_path_factory):
     from blockloc.evaluation.results import RunWriter
 
     paths, cfg = small_world
-    seq = open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset)
+    seq = open_sequence(paths.loc, dataset_cfg=cfg.dataset)
     out = tmp_path_factory.mktemp("track") / "run"
     session = Session.from_config(cfg, seq, open_map(paths.block_map), backend="block", observers=[RunWriter(out)],
                                   out_dir=out, keep_estimates=True)
@@ -76,7 +76,7 @@ def test_one_second_lidar_dropout_is_bridged(small_world):
     from blockloc.datasets import open_sequence
 
     paths, cfg = small_world
-    seq = open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset)
+    seq = open_sequence(paths.loc, dataset_cfg=cfg.dataset)
     session = Session.from_config(cfg, seq, open_map(paths.block_map), keep_estimates=True)
     session.initialize("gt", 0)
     dropped = []
@@ -99,7 +99,7 @@ def test_kidnapped_start_is_recovered_by_global_init(small_world):
     from blockloc.geometry import rpy_to_R
 
     paths, cfg = small_world
-    seq = open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset)
+    seq = open_sequence(paths.loc, dataset_cfg=cfg.dataset)
     session = Session.from_config(cfg, seq, open_map(paths.block_map), keep_estimates=True)
     stamp = float(seq.frame_stamps()[0])
     T = seq.ground_truth().interpolate(np.array([stamp]))[0].copy()

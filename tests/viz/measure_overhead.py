@@ -105,64 +105,46 @@ def write_run_report(out: Path, res, store, cfg_dict: dict) -> Path:
 store_gt: dict = {}
 
 
-def run_once(mode: str, frames: int | None, report_dir: Path | None = None) -> dict:
-    from blockloc.demo import prepare_small_world
-    from blockloc.pipeline import LocalizationPipeline
-    from blockloc.viz.events import FrameEvent, RunInfo
+class _Timed:
+    """An observer wrapper that times what the session spends in the observer's calls."""
 
-    paths, cfg = prepare_small_world()
+    def __init__(self, inner, spent: dict) -> None:
+        self.inner, self.spent, self.finish_s = inner, spent, 0.0
+
+    def start(self, info) -> None:
+        store_gt["gt"] = info.ground_truth
+        self.inner.start(info)
+
+    def frame(self, event) -> None:
+        w0, c0 = time.perf_counter(), time.thread_time()
+        self.inner.frame(event)
+        self.spent["wall"] += time.perf_counter() - w0
+        self.spent["cpu"] += time.thread_time() - c0
+        self.spent["maps"] += event.local_map_points is not None
+
+    def finish(self, metrics: dict) -> None:
+        t0 = time.perf_counter()
+        self.inner.finish(metrics)
+        self.finish_s = time.perf_counter() - t0
+
+
+def run_once(mode: str, frames: int | None, report_dir: Path | None = None) -> dict:
+    from blockloc.commands.demo import prepare_small_world
+    from blockloc.datasets import open_sequence
+    from blockloc.maps.store import open_map
+    from blockloc.session import Session
+
+    world, cfg = prepare_small_world()
     tmp = report_dir if report_dir is not None else Path(tempfile.mkdtemp(prefix=f"viz-overhead-{mode}-"))
     observer, client = _observer_for(mode, tmp)
     spent = {"wall": 0.0, "cpu": 0.0, "maps": 0}
-
-    class Pipe(LocalizationPipeline):
-        def _make_tracker(self):
-            super()._make_tracker()
-            if observer is None:
-                return
-            store = self.store
-            entries = _entries(store)
-            store_gt["gt"] = self.gt
-            observer.start(RunInfo(sequence=self.seq_name, T_body_lidar=self.info.T_body_lidar, map_kind="block",
-                                   map_entries=entries, ground_truth=self.gt, config={}, out_dir=tmp))
-            insert, last = self.tracker.insert_frame, {"version": None, "map": None}
-            update = self.provider.update
-
-            def provider_update(*a, **k):
-                last["map"] = update(*a, **k)
-                return last["map"]
-
-            self.provider.update = provider_update
-
-            def insert_frame(frame):
-                est = insert(frame)
-                lm = last["map"]
-                lm_pts, lm_id, entries_now = None, None, ()
-                if lm is not None:
-                    lm_id, entries_now = lm.region_id, tuple(lm.entry_ids)
-                    if lm.version != last["version"]:
-                        last["version"] = lm.version
-                        lm_pts = lm.points
-                d = est.as_dict()
-                w0, c0 = time.perf_counter(), time.thread_time()
-                observer.frame(FrameEvent(index=est.index, stamp=est.stamp, T_map_body=est.T_map_body,
-                                          covariance=est.covariance, velocity_map=est.velocity_map,
-                                          status=d["status"], diagnostics=d, scan_lidar=frame.points,
-                                          local_map_points=lm_pts, local_map_id=lm_id, active_entries=entries_now))
-                spent["wall"] += time.perf_counter() - w0
-                spent["cpu"] += time.thread_time() - c0
-                spent["maps"] += lm_pts is not None
-                return est
-
-            self.tracker.insert_frame = insert_frame
-
-    pipe = Pipe(paths.dataset / "loc", cfg=cfg, map_path=paths.block_map, backend="block", init="gt",
-                max_frames=frames, out=report_dir)
-    res = pipe.run()
-    t0 = time.perf_counter()
-    if observer is not None:
-        observer.finish(res.metrics)
-    finish_s = time.perf_counter() - t0
+    timed = _Timed(observer, spent) if observer is not None else None
+    store = open_map(world.block_map)
+    seq = open_sequence(world.loc, dataset_cfg=cfg.dataset)
+    session = Session.from_config(cfg, seq, store, backend="block", observers=[timed] if timed else [],
+                                  out_dir=report_dir)
+    res = session.run(0, frames, init="gt")
+    finish_s = timed.finish_s if timed is not None else 0.0
     n = res.metrics["frames"]
     out = {"mode": mode, "frames": n, "track_s": res.metrics["track_s"], "finish_s": finish_s,
            "observer_ms_per_frame": 1e3 * spent["wall"] / n, "observer_cpu_ms_per_frame": 1e3 * spent["cpu"] / n,
@@ -173,7 +155,7 @@ def run_once(mode: str, frames: int | None, report_dir: Path | None = None) -> d
         span = float(res.trajectory.stamps[-1] - res.trajectory.stamps[0])
         out.update(file_mb=size / 1e6, mb_per_min=size / 1e6 / (span / 60.0), sensor_s=span)
     if report_dir is not None:
-        write_run_report(report_dir, res, pipe.store, cfg.to_dict())
+        write_run_report(report_dir, res, store, cfg.to_dict())
     if client is not None:
         out["client_messages"] = _viewer_count(client)
     return out
