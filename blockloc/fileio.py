@@ -15,10 +15,20 @@ from pathlib import Path
 from typing import Iterator
 
 
-def _umask_mode() -> int:
+def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
-    return 0o666 & ~mask
+    return mask
+
+
+def _umask_mode() -> int:
+    """The mode ``open(path, 'w')`` gives a new file."""
+    return 0o666 & ~_umask()
+
+
+def _umask_dir_mode() -> int:
+    """The mode ``mkdir`` gives a new directory (``tempfile.mkdtemp`` makes 0700)."""
+    return 0o777 & ~_umask()
 
 
 @contextlib.contextmanager
@@ -53,14 +63,60 @@ def atomic_write_text(path: str | Path, text: str) -> None:
         tmp.write_text(text)
 
 
+#: Image formats :func:`save_figure` writes (matplotlib's, without the optional ones).
+FIGURE_FORMATS = ("png", "pdf", "svg", "jpg", "jpeg", "eps", "ps", "tif", "tiff", "webp")
+
+
+def check_figure_path(path: str | Path, option: str = "--out") -> Path:
+    """Before any work: ``path`` must name an image file (a suffix of :data:`FIGURE_FORMATS`)
+    that is not a directory, with no file where its directory should be; BlocklocError (one
+    line naming ``option`` and ``path``) otherwise."""
+    from blockloc.errors import BlocklocError
+
+    path = Path(path)
+    if path.is_dir():
+        raise BlocklocError(f"{option} {path}: is a directory, expected an image file name (e.g. map.png)")
+    if path.suffix[1:].lower() not in FIGURE_FORMATS:
+        raise BlocklocError(f"{option} {path}: expected an image file name ending in "
+                            f"{', '.join('.' + f for f in FIGURE_FORMATS[:3])}, ...")
+    check_output_parent(path, option)
+    return path
+
+
+def check_output_parent(path: str | Path, option: str = "--out") -> None:
+    """BlocklocError unless every existing ancestor of ``path`` is a directory (so that
+    ``mkdir(parents=True)`` can make the rest)."""
+    from blockloc.errors import BlocklocError
+
+    for parent in Path(path).absolute().parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise BlocklocError(f"{option} {path}: {parent} is a file, not a directory")
+            return
+
+
+def check_output_dir(path: str | Path, option: str) -> Path:
+    """Before any work: ``path`` is a directory files will be written into (never emptied):
+    absent or a directory; BlocklocError naming ``option`` otherwise."""
+    from blockloc.errors import BlocklocError
+
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise BlocklocError(f"{option} {path}: exists and is not a directory (expected a directory for the files)")
+    check_output_parent(path, option)
+    return path
+
+
 def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
-    """Save a matplotlib figure atomically (the format from ``path``'s suffix) and close it."""
+    """Save a matplotlib figure atomically (the format from ``path``'s suffix, one of
+    :data:`FIGURE_FORMATS`) and close it."""
     import matplotlib.pyplot as plt
 
     path = Path(path)
     try:
+        check_figure_path(path, "figure")
         with atomic_path(path, suffix=path.suffix) as tmp:
-            fig.savefig(tmp, dpi=dpi)
+            fig.savefig(tmp, dpi=dpi, format=path.suffix[1:].lower())
     finally:
         plt.close(fig)
     return path
@@ -93,16 +149,19 @@ def check_replaceable(path: str | Path, option: str = "--out") -> None:
         raise BlocklocError(f"{option} {path}: a directory blockloc did not make (no "
                             f"{' / '.join(OUTPUT_MARKERS)}); not replacing it (choose another path "
                             "or empty it)")
+    check_output_parent(path, option)
 
 
 def replace_dir(src: str | Path, dst: str | Path) -> None:
     """Move the finished directory ``src`` to ``dst``, replacing any ``dst`` as whole as possible:
     the old one is renamed aside first and removed only after the new one is in place. A ``dst``
-    that blockloc did not make (:func:`check_replaceable`) is never replaced."""
+    that blockloc did not make (:func:`check_replaceable`) is never replaced. ``dst`` gets the
+    mode a plain ``mkdir`` would give it (the umask's), whatever ``src`` had."""
     import shutil
 
     src, dst = Path(src), Path(dst)
     check_replaceable(dst, "output")
+    os.chmod(src, _umask_dir_mode())  # a temp dir is 0700; the output gets a plain mkdir's mode
     old = None
     if dst.exists():
         old = Path(tempfile.mkdtemp(prefix=f".{dst.name}.old-", dir=dst.parent))
