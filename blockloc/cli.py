@@ -291,7 +291,9 @@ def _usage_error(exc) -> str:
     """One line for a click usage error, naming the option (or argument) it concerns."""
     param = getattr(exc, "param", None)
     name = None
-    if param is not None:
+    if param is not None and getattr(param, "param_type_name", None) == "argument":
+        name = getattr(param, "metavar", None) or getattr(param, "name", None)  # as --help shows it
+    elif param is not None:
         name = "/".join(getattr(param, "opts", []) or []) or getattr(param, "human_readable_name", None)
     if isinstance(exc, _classes("MissingParameter")):
         return f"missing {name or 'a required value'}" + (f" ({param.help})" if getattr(param, "help", None) else "")
@@ -306,33 +308,56 @@ def _usage_error(exc) -> str:
     return message
 
 
+def _end_progress_bars() -> None:
+    """Close the tqdm bars an error left open (a bar redraws with \\r and ends no line), so the
+    message starts a line of its own and no bar is redrawn after it."""
+    tqdm = sys.modules.get("tqdm")
+    for bar in list(getattr(getattr(tqdm, "tqdm", None), "_instances", ()) or ()):
+        try:
+            bar.close()
+        except Exception:  # noqa: BLE001 - a bar that cannot close must not hide the message
+            pass
+
+
+def _say(message: str) -> None:
+    _end_progress_bars()
+    typer.echo(message, err=True)
+
+
 def main() -> None:
     """Console-script entry point: run the app, turn known errors into one line.
 
     SIGINT and SIGTERM raise ``Stopped`` (blockloc.commands.common), which unwinds the command
     (temp directories removed, a tracking run's partial results kept) and exits 130 / 143."""
-    from blockloc.commands.common import Interrupted, Stopped, install_signal_handlers
+    from blockloc.commands.common import RECEIVED, Interrupted, Stopped, install_signal_handlers
     from blockloc.errors import BlocklocError
 
     install_signal_handlers()
     try:
-        code = app(standalone_mode=False)
+        try:
+            code = app(standalone_mode=False)
+        except (Exception, KeyboardInterrupt):
+            if RECEIVED:  # the Stopped a signal raised became another error where it landed
+                raise Stopped(RECEIVED[-1]) from None
+            raise
+        if RECEIVED:  # ... or was swallowed, and the command went on to its end
+            raise Stopped(RECEIVED[-1])
         # typer >= 0.29 without standalone mode returns the code of an Exit (and turns a
         # KeyboardInterrupt into Exit(130)) instead of exiting with it
         if isinstance(code, int) and code:
             if code == 130:
-                typer.echo("interrupted", err=True)
+                _say("interrupted")
             sys.exit(code)
     except Stopped as exc:
-        typer.echo(f"interrupted ({exc})", err=True)
+        _say(f"interrupted ({exc})")
         sys.exit(exc.exit_code)
     except Interrupted as exc:  # stopped after saving what was computed: the message says where
-        typer.echo(str(exc), err=True)
+        _say(str(exc))
         sys.exit(exc.exit_code)
     except BlocklocError as exc:
         if _state["debug"]:
             raise
-        typer.echo(f"error: {exc}", err=True)
+        _say(f"error: {exc}")
         sys.exit(getattr(exc, "exit_code", 2))
     except _classes("UsageError") as exc:
         if type(exc).__name__ == "NoArgsIsHelpError":  # a group without its command: its help
@@ -340,22 +365,22 @@ def main() -> None:
             sys.exit(2)
         ctx = getattr(exc, "ctx", None)
         where = ctx.command_path if ctx is not None else "blockloc"
-        typer.echo(f"error: {_usage_error(exc)} (see '{where} --help')", err=True)
+        _say(f"error: {_usage_error(exc)} (see '{where} --help')")
         sys.exit(2)
     except _classes("Abort") + (KeyboardInterrupt,):
-        typer.echo("interrupted", err=True)
+        _say("interrupted")
         sys.exit(130)
     except _classes("Exit") + (typer.Exit,) as exc:
         sys.exit(getattr(exc, "exit_code", 0) or 0)
     except _classes("ClickException") as exc:
-        typer.echo(f"error: {exc.format_message()}", err=True)
+        _say(f"error: {exc.format_message()}")
         sys.exit(getattr(exc, "exit_code", 1))
     except SystemExit:
         raise
     except Exception as exc:  # the unexpected: one line, the traceback with --debug
         if _state["debug"]:
             raise
-        typer.echo(f"error: {type(exc).__name__}: {exc} (rerun with --debug for a traceback)", err=True)
+        _say(f"error: {type(exc).__name__}: {exc} (rerun with --debug for a traceback)")
         sys.exit(1)
 
 

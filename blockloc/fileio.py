@@ -125,30 +125,34 @@ def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
 #: Files that mark a directory as blockloc's own output: a map store, a simulated dataset
 #: (``blockloc sim``), a results folder (``blockloc track``), an NCLT-layout session it wrote.
 OUTPUT_MARKERS = ("manifest.json", "sim.json", "metrics.json", "blockloc_session.json")
+#: The marker of each kind of output, for a command that replaces only its own kind.
+MAP_STORE, SIM_DATASET, RESULTS = ("manifest.json",), ("sim.json",), ("metrics.json",)
 
 
-def is_blockloc_output(path: str | Path) -> bool:
-    """True for a directory blockloc made (it holds one of :data:`OUTPUT_MARKERS`) or an empty one."""
+def is_blockloc_output(path: str | Path, markers: tuple[str, ...] = OUTPUT_MARKERS) -> bool:
+    """True for a directory blockloc made (it holds one of ``markers``) or an empty one."""
     path = Path(path)
     if not path.is_dir() or path.is_symlink():
         return False
     names = {p.name for p in path.iterdir()}
-    return not names or bool(names & set(OUTPUT_MARKERS))
+    return not names or bool(names & set(markers))
 
 
-def check_replaceable(path: str | Path, option: str = "--out") -> None:
+def check_replaceable(path: str | Path, option: str = "--out", markers: tuple[str, ...] = OUTPUT_MARKERS,
+                      kind: str | None = None) -> None:
     """Raise BlocklocError (one line naming ``path``) unless ``path`` is absent, an empty
-    directory, or a directory blockloc made: the check before any work that will replace it."""
+    directory, or a directory blockloc made (holding one of ``markers``; ``kind`` names what they
+    mark, e.g. "a map store"): the check before any work that will replace it."""
     from blockloc.errors import BlocklocError
 
     path = Path(path)
     if path.is_symlink() or (path.exists() and not path.is_dir()):
         raise BlocklocError(f"{option} {path}: exists and is not a directory; blockloc replaces only "
                             "directories it made (choose another path)")
-    if path.exists() and not is_blockloc_output(path):
-        raise BlocklocError(f"{option} {path}: a directory blockloc did not make (no "
-                            f"{' / '.join(OUTPUT_MARKERS)}); not replacing it (choose another path "
-                            "or empty it)")
+    if path.exists() and not is_blockloc_output(path, markers):
+        what = (f"not {kind} (no {' / '.join(markers)})" if kind and is_blockloc_output(path)
+                else f"a directory blockloc did not make (no {' / '.join(markers)})")
+        raise BlocklocError(f"{option} {path}: {what}; not replacing it (choose another path or empty it)")
     check_output_parent(path, option)
 
 
@@ -175,16 +179,27 @@ def replace_dir(src: str | Path, dst: str | Path) -> None:
 def atomic_dir(path: str | Path) -> Iterator[Path]:
     """Yield an empty temp directory beside ``path``; on success it replaces ``path``
     (:func:`replace_dir`), on any exception it is removed and ``path`` is left untouched."""
+    import secrets
     import shutil
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+    tmp = None
     try:
+        # the directory made inside the try: an exception a signal raises just after the mkdir
+        # (tempfile.mkdtemp returns through more Python code) still reaches the finally
+        while tmp is None:
+            name = path.parent / f".{path.name}.tmp-{secrets.token_hex(4)}"
+            try:
+                os.mkdir(name, 0o700)
+            except FileExistsError:
+                continue
+            tmp = name
         yield tmp
         replace_dir(tmp, path)
     finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
 
 
 def to_jsonable(x):

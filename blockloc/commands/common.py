@@ -44,8 +44,21 @@ class Stopped(BaseException):
         self.exit_code = EXIT_CODES.get(signum, 128 + signum)
 
 
+#: The signals :func:`install_signal_handlers`' handler received, in order.
+RECEIVED: list[int] = []
+
+
 def _raise_stopped(signum, _frame):
+    RECEIVED.append(signum)
     raise Stopped(signum)
+
+
+def raise_if_stopped() -> None:
+    """Raise :class:`Stopped` again if a signal arrived and the work goes on: an exception raised
+    by a signal handler can be swallowed where it lands (a module's import turns it into an
+    ImportError, a fallback catches that). Progress callbacks call this: the next step stops."""
+    if RECEIVED:
+        raise Stopped(RECEIVED[-1])
 
 
 def install_signal_handlers() -> None:
@@ -131,10 +144,11 @@ def results_dir(out: Path | None, name: str) -> Path:
 
 
 def check_results_dir(out: Path) -> None:
-    """Before any work: ``out`` must be absent, empty or a results folder blockloc wrote."""
-    from blockloc.fileio import check_replaceable
+    """Before any work: ``out`` must be absent, empty or a results folder blockloc wrote (not
+    another kind of blockloc output: a map store or a dataset is not replaced by results)."""
+    from blockloc.fileio import RESULTS, check_replaceable
 
-    check_replaceable(out, "--out")
+    check_replaceable(out, "--out", RESULTS, "a results folder")
 
 
 @contextlib.contextmanager
@@ -154,8 +168,12 @@ def progress(label: str, total: int | None = None, *, err_console=None,
         bar = Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
                        console=con, transient=True)
         task = bar.add_task(label, total=total)
+        def update(done: int, tot: int | None = None) -> None:
+            raise_if_stopped()
+            bar.update(task, completed=done, total=tot or total)
+
         with bar:
-            yield lambda done, tot=None: bar.update(task, completed=done, total=tot or total)
+            yield update
         return
     t0 = time.monotonic()
     state = {"last_t": t0, "last_pct": -10.0, "done": 0, "total": total}
@@ -166,10 +184,13 @@ def progress(label: str, total: int | None = None, *, err_console=None,
         return f"{label}: {done}/{tot or '?'}{pct}"
 
     def report(done: int, tot: int | None = None) -> None:
+        raise_if_stopped()
         tot = tot or total
         now = time.monotonic()
         pct = 100.0 * done / tot if tot else 0.0
         with lock:
+            if done < state["done"]:  # counting again (the next session of a simulation)
+                state["last_pct"] = -10.0
             state["done"], state["total"] = done, tot
             if (tot and (pct - state["last_pct"] >= 10.0 or done == tot)) or now - state["last_t"] >= heartbeat_s:
                 state["last_t"], state["last_pct"] = now, pct

@@ -41,7 +41,6 @@ def build_command(seq: str | None, kind: str, out: Path, config: str | None, dat
     from blockloc.commands.common import config_for, console
     from blockloc.datasets import open_sequence
     from blockloc.errors import MapError
-    from blockloc.fileio import check_replaceable
     from blockloc.maps.summary import map_summary
 
     if (seq is None) == (from_pcd is None):
@@ -52,9 +51,7 @@ def build_command(seq: str | None, kind: str, out: Path, config: str | None, dat
                    ("--sensor-range", "sensor range", sensor_range_m))
     if from_pcd is not None and poses is None:
         raise MapError("--from-pcd needs --poses TRAJ (the mapping trajectory)")
-    if out.exists() and not overwrite:
-        raise MapError(f"--out {out}: already exists (choose another --out, or --overwrite to replace the map there)")
-    check_replaceable(out, "--out")  # before any work
+    check_out(out, overwrite)
     cfg = config_for(seq, config)
     overrides = {k: v for k, v in (("block_size_m", block_size), ("tile_size_m", tile_size),
                                    ("voxel_size_m", voxel)) if v is not None}
@@ -71,6 +68,20 @@ def build_command(seq: str | None, kind: str, out: Path, config: str | None, dat
         sequence = open_sequence(seq, data_root=data_root, dataset_cfg=cfg.dataset, poses=poses)
         store = build_map(sequence, kind, out, map_cfg, overwrite=overwrite, max_frames=max_frames)
     print_summary(map_summary(store), console())
+
+
+def check_out(out: Path, overwrite: bool) -> None:
+    """Before any work: ``--out`` is absent, or ``--overwrite`` is given and it is a map store
+    (or an empty directory): MapError naming it otherwise."""
+    from blockloc.errors import BlocklocError, MapError
+    from blockloc.fileio import MAP_STORE, check_replaceable
+
+    if out.exists() and not overwrite:
+        raise MapError(f"--out {out}: already exists (choose another --out, or --overwrite to replace the map there)")
+    try:
+        check_replaceable(out, "--out", MAP_STORE, "a map store")
+    except BlocklocError as exc:
+        raise MapError(f"{exc}; --overwrite replaces only a map store") from None
 
 
 def check_positive(*options: tuple[str, str, float | None]) -> None:
@@ -91,6 +102,7 @@ def tile_command(global_pcd: Path, tile_size: float, out: Path, overwrite: bool)
     from blockloc.maps.summary import map_summary
 
     check_positive(("--tile-size", "tile size", tile_size))
+    check_out(out, overwrite)
     store = tile_pcd_file(global_pcd, tile_size, out, overwrite=overwrite, progress=True)
     print_summary(map_summary(store), console())
 
