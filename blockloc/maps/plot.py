@@ -2,10 +2,10 @@
 legend; the stored points coloured the same way; a trajectory.
 
 A block's stored bounds reach as far as its keyframes saw (sensor range), so on a real map they
-are several times the block size and nearly all overlap; its footprint is where the block is
-used: the convex hull of its keyframe positions, buffered by ``buffer_m``. A block without
-recorded keyframes (the released block-map layout) gets the hull of the cells where its points
-are densest. A grid tile's footprint is its cell.
+are several times the block size and nearly all overlap; it is drawn as its footprint, where the
+block is used (:func:`blockloc.maps.summary.entry_footprint`: the hull of its keyframe
+positions, grown by a margin). A block without recorded keyframes (the released block-map
+layout) gets the hull of the cells where its points are densest. A grid tile is its cell.
 """
 
 from __future__ import annotations
@@ -25,40 +25,21 @@ log = logging.getLogger(__name__)
 LEGEND_MAX_ENTRIES = 12
 
 
-def _hull(xy: np.ndarray) -> np.ndarray:
-    """Convex hull (K, 2) of points (N, 2), counter-clockwise; degenerate inputs give what they
-    span (a segment or a point)."""
+def dense_cells_hull(points_xy: np.ndarray, cell_m: float) -> np.ndarray:
+    """Convex hull (K, 2) of the cells of side ``cell_m`` holding at least the median count of
+    the occupied cells: where a block's points are densest, near the keyframes that saw them."""
     from scipy.spatial import ConvexHull, QhullError
 
-    xy = np.unique(np.asarray(xy, float).reshape(-1, 2), axis=0)
-    if len(xy) < 3:
-        return xy
-    try:
-        return xy[ConvexHull(xy).vertices]
-    except QhullError:  # collinear: the segment's two ends
-        d = xy - xy.mean(axis=0)
-        axis = np.linalg.svd(d, full_matrices=False)[2][0]
-        t = d @ axis
-        return xy[[int(np.argmin(t)), int(np.argmax(t))]]
-
-
-def buffered_hull(xy: np.ndarray, buffer_m: float, segments: int = 24) -> np.ndarray:
-    """The convex hull (K, 2) of points (N, 2) grown by ``buffer_m`` metres (the hull of discs
-    of that radius around them; a single point gives a disc)."""
-    a = np.linspace(0.0, 2.0 * np.pi, segments, endpoint=False)
-    disc = buffer_m * np.c_[np.cos(a), np.sin(a)]
-    core = _hull(xy)
-    return _hull((core[:, None, :] + disc[None]).reshape(-1, 2))
-
-
-def dense_cells_hull(points_xy: np.ndarray, cell_m: float) -> np.ndarray:
-    """Hull (K, 2) of the cells of side ``cell_m`` holding at least the median count of the
-    occupied cells (where the points are densest: near the keyframes that saw them)."""
     cells = np.floor(np.asarray(points_xy, float) / cell_m).astype(np.int64)
     keys, counts = np.unique(cells, axis=0, return_counts=True)
     dense = keys[counts >= np.median(counts)]
     corners = np.array([[0, 0], [1, 0], [0, 1], [1, 1]])
-    return _hull(((dense[:, None, :] + corners[None]) * cell_m).reshape(-1, 2))
+    pts = ((dense[:, None, :] + corners[None]) * cell_m).reshape(-1, 2).astype(float)
+    try:
+        return pts[ConvexHull(pts).vertices]
+    except QhullError:  # a single row of cells: their box
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        return np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
 
 
 def polygon_area(poly: np.ndarray) -> float:
@@ -69,26 +50,22 @@ def polygon_area(poly: np.ndarray) -> float:
     return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
 
 
-def entry_footprint(store: MapStore, entry: MapEntry, points: np.ndarray | None = None,
-                    buffer_m: float = 5.0) -> np.ndarray:
-    """The footprint (K, 2) of one block or tile, map frame xy, metres (see the module docstring).
-    ``points``: the entry's points (N, 3), needed only for a block without keyframes."""
-    if store.kind == "grid":
-        from blockloc.maps.grid_tiles import tile_bounds
+def plot_footprint(store: MapStore, entry: MapEntry, points: np.ndarray) -> np.ndarray:
+    """The outline (K, 2) drawn for one entry, map frame xy, metres: its footprint
+    (:func:`blockloc.maps.summary.entry_footprint`), or for a block without recorded keyframes the
+    hull of its densest cells (``points`` (N, 3), its points)."""
+    from blockloc.maps.summary import entry_footprint
 
-        s = float(store.params["tile_size_m"])
-        lo, _ = tile_bounds(entry.id, s)
-        return np.asarray(lo, float) + s * np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
-    if entry.keyframes is not None and len(entry.keyframes):
-        return buffered_hull(entry.keyframes[:, :2], buffer_m)
-    if points is not None and len(points):
+    poly = entry_footprint(store, entry)
+    if poly is not None:
+        return poly
+    if len(points):
         size = float(store.params.get("block_size_m") or 40.0)
         return dense_cells_hull(np.asarray(points)[:, :2], max(size / 10.0, 1.0))
-    return buffered_hull(entry.centroid[None, :2], buffer_m)
+    return np.asarray(entry.centroid, float)[None, :2]
 
 
-def map_figure(store: MapStore, trajectory=None, max_points: int = 200_000, title: str | None = None,
-               buffer_m: float = 5.0):
+def map_figure(store: MapStore, trajectory=None, max_points: int = 200_000, title: str | None = None):
     """(matplotlib Figure, {entry id: footprint (K, 2)}) of the map from above: subsampled points
     and footprints coloured by entry, entry ids, a legend, and the trajectory (a ``Trajectory``,
     (N, 3) positions, or None)."""
@@ -114,7 +91,7 @@ def map_figure(store: MapStore, trajectory=None, max_points: int = 200_000, titl
         except MapError as exc:
             log.warning("%s", exc)
             pts = np.zeros((0, 3), np.float32)
-        poly = entry_footprint(store, e, pts, buffer_m)
+        poly = plot_footprint(store, e, pts)
         footprints[e.id] = poly
         if len(pts) > per_entry:
             pts = pts[rng.choice(len(pts), per_entry, replace=False)]
@@ -129,8 +106,7 @@ def map_figure(store: MapStore, trajectory=None, max_points: int = 200_000, titl
     if n > LEGEND_MAX_ENTRIES:
         handles.append(Patch(facecolor="0.85", edgecolor="0.4", label=f"{n} {unit}s (one colour each)"))
     if store.kind == "block":
-        handles.append(Patch(facecolor="none", edgecolor="none",
-                             label=f"footprint: keyframe hull + {buffer_m:g} m"))
+        handles.append(Patch(facecolor="none", edgecolor="none", label="footprint: hull of the block's keyframes"))
     if trajectory is not None:
         pos = trajectory.positions if hasattr(trajectory, "positions") else np.asarray(trajectory)
         ax.plot(pos[:, 0], pos[:, 1], "k-", lw=1.0)

@@ -43,7 +43,7 @@ def case(finding: int, what: str, expect: str) -> Callable:
     """Register a test function as one case (its name is its id)."""
 
     def mark(fn):
-        REGISTRY.append((fn.__name__, Case(fn.__name__.removeprefix("test_"), finding, what, expect)))
+        _register(fn.__name__, Case(fn.__name__.removeprefix("test_"), finding, what, expect))
         return fn
 
     return mark
@@ -53,5 +53,12 @@ def table(test_name: str, cases: list[Case]) -> list[Case]:
     """Register a parametrized table (``test_name[case.id]`` each); returns ``cases``."""
     ids = [c.id for c in cases]
     assert len(set(ids)) == len(ids), f"duplicate case ids in {test_name}"
-    REGISTRY.extend((f"{test_name}[{c.id}]", c) for c in cases)
+    for c in cases:
+        _register(f"{test_name}[{c.id}]", c)
     return cases
+
+
+def _register(name: str, c: Case) -> None:
+    # a module imported a second time under another name registers nothing twice
+    if all(n != name for n, _ in REGISTRY):
+        REGISTRY.append((name, c))

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.faults import tiny
+from . import tiny
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -38,7 +38,8 @@ class Outcome:
 def _is_progress(line: str) -> bool:
     import re
 
-    return bool(re.match(r"^[\w .-]+: +(\d+%\|.*|\d+/(\d+|\?)( \(\d+%\))?(, working for \d+ s)?)$", line.strip()))
+    return bool(re.match(r"^[\w .-]+: +(\d+%\|.*|\d+/(\d+|\?)( \(\d+%\))?(, working for \d+ s)?"
+                         r"|session \w+, \d+ frames)$", line.strip()))
 
 
 def cli_in_process(*args: str) -> Outcome:

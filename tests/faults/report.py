@@ -1,7 +1,9 @@
 """Run the fault-injection suite and write ``docs/robustness.md``: every case of
-:mod:`tests.faults.cases`' registry with what is injected, what is asserted and its outcome.
+:mod:`tests.faults.cases`' registry with what is injected, what is asserted and its outcome,
+optionally beside its outcome on an earlier revision (the suite run against that revision's code).
 
-    python -m tests.faults.report            # from the repository root; ~5 min on 2 busy cores
+    python -m tests.faults.report                  # from the repository root; ~5 min on 2 busy cores
+    python -m tests.faults.report --before REV     # also run it on REV's blockloc (twice the time)
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import xml.etree.ElementTree as ET
 from collections import defaultdict
 from pathlib import Path
 
-from tests.faults import cases as registry
+from . import cases as registry
 
 REPO = Path(__file__).resolve().parents[2]
 DOC = REPO / "docs" / "robustness.md"
@@ -24,20 +26,36 @@ DOC = REPO / "docs" / "robustness.md"
 
 def load_registry() -> list[tuple[str, registry.Case]]:
     """Import every test module of the suite (their tables and ``@case`` marks fill the registry)."""
-    import tests.faults as pkg
-
+    pkg = importlib.import_module(__package__)  # tests.faults, or faults as pytest names it
     for mod in pkgutil.iter_modules(pkg.__path__):
         if mod.name.startswith("test_"):
-            importlib.import_module(f"tests.faults.{mod.name}")
+            importlib.import_module(f"{__package__}.{mod.name}")
     return list(registry.REGISTRY)
 
 
-def run_suite(xml: Path) -> float:
-    """Run the suite with a JUnit report; returns its wall time, s."""
+def run_suite(xml: Path, root: Path = REPO) -> float:
+    """Run the suite of ``root`` (a checkout) with a JUnit report; returns its wall time, s."""
+    import os
+
     t0 = time.monotonic()
+    env = dict(os.environ, PYTHONPATH=str(root))
     subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", f"--junitxml={xml}",
-                    "tests/faults"], cwd=REPO, check=False)
+                    "tests/faults"], cwd=root, env=env, check=False)
     return time.monotonic() - t0
+
+
+def run_suite_on(rev: str, xml: Path, tmp: Path) -> None:
+    """This suite run against the code of git revision ``rev`` (its tree, with today's tests/faults)."""
+    import shutil
+
+    tree = tmp / "before"
+    tree.mkdir()
+    archive = subprocess.run(["git", "-C", str(REPO), "archive", rev], capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(tree)], input=archive, check=True)
+    shutil.rmtree(tree / "tests" / "faults", ignore_errors=True)
+    shutil.copytree(REPO / "tests" / "faults", tree / "tests" / "faults",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    run_suite(xml, tree)
 
 
 def outcomes(xml: Path) -> dict[str, str]:
@@ -61,7 +79,8 @@ def outcome_of(name: str, results: dict[str, str]) -> str:
     return "passed"
 
 
-def render(entries, results: dict[str, str], wall_s: float) -> str:
+def render(entries, results: dict[str, str], wall_s: float, before: dict[str, str] | None = None,
+           before_rev: str | None = None) -> str:
     by_finding = defaultdict(list)
     for name, c in entries:
         by_finding[c.finding].append((name, c, outcome_of(name, results)))
@@ -86,13 +105,22 @@ def render(entries, results: dict[str, str], wall_s: float) -> str:
         "2 cores shared with other jobs: a noisy figure).",
         "",
     ]
+    if before is not None:
+        failed_before = sum(outcome_of(n, before) != "passed" for n, _ in entries)
+        lines += [f"*before*: the same suite against the code of `{before_rev}` (`--before {before_rev}`): "
+                  f"{failed_before} of {total} cases did not pass there. A case that passed there verifies "
+                  "a fix made earlier (the restructuring of issue 13).", ""]
+    head = "| case | injected | asserted | outcome |" + (" before |" if before is not None else "")
+    rule = "|---|---|---|---|" + ("---|" if before is not None else "")
     for finding in sorted(by_finding):
-        lines += [f"## Finding {finding}: {registry.FINDINGS[finding]}", "",
-                  "| case | injected | asserted | outcome |", "|---|---|---|---|"]
+        lines += [f"## Finding {finding}: {registry.FINDINGS[finding]}", "", head, rule]
         for name, c, outcome in by_finding[finding]:
             what = f"{c.what}: `{' '.join(('blockloc',) + c.args)}`" if c.args else c.what
             expect = c.expect + (f"; message has `{c.needle}`" if c.needle else "")
-            lines.append(f"| `{name.removeprefix('test_')}` | {_cell(what)} | {_cell(expect)} | {outcome} |")
+            row = f"| `{name.removeprefix('test_')}` | {_cell(what)} | {_cell(expect)} | {outcome} |"
+            if before is not None:
+                row += f" {outcome_of(name, before)} |"
+            lines.append(row)
         lines.append("")
     if unregistered:
         lines += ["## Tests not in the registry", ""] + [f"- `{n}`" for n in unregistered] + [""]
@@ -103,13 +131,25 @@ def _cell(text: str) -> str:
     return text.replace("|", "\\|").replace("\n", " ")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m tests.faults.report", description=__doc__.splitlines()[0])
+    ap.add_argument("--before", metavar="REV", help="also run the suite on the code of this git revision")
+    ap.add_argument("--before-xml", metavar="FILE", help="the JUnit report of such a run (instead of running it)")
+    args = ap.parse_args(argv)
     entries = load_registry()
+    before = None
     with tempfile.TemporaryDirectory() as tmp:
         xml = Path(tmp) / "faults.xml"
         wall = run_suite(xml)
         results = outcomes(xml)
-    DOC.write_text(render(entries, results, wall))
+        if args.before_xml:
+            before = outcomes(Path(args.before_xml))
+        elif args.before:
+            run_suite_on(args.before, Path(tmp) / "before.xml", Path(tmp))
+            before = outcomes(Path(tmp) / "before.xml")
+    DOC.write_text(render(entries, results, wall, before, args.before))
     print(f"wrote {DOC}: {len(entries)} cases")
 
 

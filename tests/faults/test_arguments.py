@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.faults.cases import Case, case, table
-from tests.faults.conftest import REPO, cli_in_process
+from .cases import Case, case, table
+from .conftest import REPO, cli_in_process
 
 S = "{sess}"  # placeholders filled from the tiny world (see ``_fill``)
 M = "{map}"
@@ -161,7 +161,7 @@ def places(tiny_world, tmp_path):
     import numpy as np
 
     from blockloc.maps.pcd import write_pcd
-    from tests.faults import tiny
+    from . import tiny
 
     user = tmp_path / "thesis"
     user.mkdir()
@@ -208,11 +208,11 @@ def test_bad_invocation(c: Case, places):
 
 # ----------------------------------------------------------------------------- --help
 COMMANDS = [(), ("eval",), ("sim",), ("map",), ("map", "build"), ("map", "tile"), ("map", "info"),
-            ("map", "plot"), ("map", "serve"), ("init",), ("track",), ("demo",)]
+            ("map", "plot"), ("map", "serve"), ("init",), ("track",), ("demo",), ("view",)]
 
 
 USAGE_METAVARS = {("map", "tile"): "GLOBAL_PCD", ("map", "info"): "MAP", ("map", "plot"): "MAP",
-                  ("map", "serve"): "MAP"}
+                  ("map", "serve"): "MAP", ("view",): "DIR"}
 
 
 @case(4, "--help of every command", "exit 0; real metavars: no <bool> or <int> on an option, no "
@@ -253,7 +253,7 @@ def readme_commands(text: str) -> tuple[list[list[str]], list[str]]:
 
 
 def _command_path(words: list[str]) -> tuple[str, ...]:
-    groups = {(): {"eval", "sim", "map", "init", "track", "demo"},
+    groups = {(): {"eval", "sim", "map", "init", "track", "demo", "view"},
               ("map",): {"build", "tile", "info", "plot", "serve"}}
     path: tuple[str, ...] = ()
     for w in words:

@@ -13,8 +13,8 @@ import time
 import numpy as np
 import pytest
 
-from tests.faults.cases import Case, case, table
-from tests.faults.conftest import cli_in_process
+from .cases import Case, case, table
+from .conftest import cli_in_process
 
 BINARY = bytes(range(128, 256)) * 16  # no line of valid UTF-8 text
 

@@ -6,13 +6,14 @@ import inspect
 
 
 def test_every_fault_test_is_a_registered_case():
-    from tests.faults.report import load_registry
+    from .report import load_registry
 
     entries = load_registry()
     names = {n.split("[")[0] for n, _ in entries}
     import sys
 
-    tests = {name for mod, m in sys.modules.items() if mod.startswith("tests.faults.test_")
+    package = __name__.rsplit(".", 1)[0]
+    tests = {name for mod, m in list(sys.modules.items()) if mod.startswith(f"{package}.test_")
              for name, fn in inspect.getmembers(m, inspect.isfunction)
              if name.startswith("test_") and fn.__module__ == mod}
     tests.discard("test_every_fault_test_is_a_registered_case")

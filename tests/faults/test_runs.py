@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.faults import tiny
-from tests.faults.cases import case
-from tests.faults.conftest import cli_process, cli_start
+from . import tiny
+from .cases import case
+from .conftest import cli_process, cli_start
 
 
 def track(seq: Path, out: Path, world: dict, *extra: str, config: Path | None = None):

@@ -7,8 +7,8 @@ import os
 import subprocess
 import sys
 
-from tests.faults.cases import case
-from tests.faults.conftest import REPO
+from .cases import case
+from .conftest import REPO
 
 REAL_DATA_TEST = "tests/datasets/test_pointclouds.py::test_opencalib_fixture"
 

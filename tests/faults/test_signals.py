@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.faults.cases import Case, case, table
-from tests.faults.conftest import Outcome, Running, cli_process
+from .cases import Case, case, table
+from .conftest import Outcome, Running, cli_process
 
 CODES = {signal.SIGINT: 130, signal.SIGTERM: 143}
 SIGNALS = [pytest.param(signal.SIGINT, id="SIGINT"), pytest.param(signal.SIGTERM, id="SIGTERM")]
