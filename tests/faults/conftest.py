@@ -46,11 +46,14 @@ def cli_in_process(*args: str) -> Outcome:
     """Run ``blockloc ARGS`` in this process through ``blockloc.cli.main`` (argument and
     validation errors: no process start-up per case). An exception escaping ``main`` is a
     traceback the user would have seen: it fails the test."""
+    import signal
+
     from blockloc import cli
 
     out, err = io.StringIO(), io.StringIO()
     argv = sys.argv
     sys.argv = ["blockloc", *map(str, args)]
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}  # main() installs its own
     code = 0
     try:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
@@ -60,6 +63,8 @@ def cli_in_process(*args: str) -> Outcome:
     finally:
         sys.argv = argv
         cli._state["debug"] = False
+        for s, h in handlers.items():
+            signal.signal(s, h)
     return Outcome(code, out.getvalue(), err.getvalue())
 
 
