@@ -151,13 +151,20 @@ def check_results_dir(out: Path) -> None:
     check_replaceable(out, "--out", RESULTS, "a results folder")
 
 
+#: Seconds without a progress line after which a piped progress prints one anyway.
+HEARTBEAT_S = 30.0
+
+
 @contextlib.contextmanager
 def progress(label: str, total: int | None = None, *, err_console=None,
-             heartbeat_s: float = 30.0) -> Iterator[Callable[[int, int | None], None]]:
+             heartbeat_s: float | None = None) -> Iterator[Callable[[int, int | None], None]]:
     """A progress callback ``(done, total)``: a rich bar in a terminal; otherwise a line to
-    stderr every 10%, and every ``heartbeat_s`` without one (also while a long step, such as a
-    global initialization, calls no callback), so piped output shows progress too."""
+    stderr every 10%, and every ``heartbeat_s`` (default :data:`HEARTBEAT_S`) without one (also
+    while a long step, such as a global initialization, calls no callback), so piped output
+    shows progress too."""
     import threading
+
+    heartbeat_s = HEARTBEAT_S if heartbeat_s is None else heartbeat_s
 
     from rich.console import Console
 

@@ -171,23 +171,26 @@ def test_progress_heartbeat_when_piped(capfd):
     assert len(beats) >= 2 and lines[-1] == "tracking: 100/100 (100%)"
 
 
-@case(6, "the demo's simulation phase (two sessions) with its output piped", "progress lines "
-      "'simulating: N/M' on stderr in 10% steps, for each session")
-def test_demo_simulation_prints_progress_when_piped(monkeypatch, tmp_path, capfd):
-    import blockloc.sim
-    from blockloc.commands.demo import DemoPaths, ensure_dataset
+@case(6, "`blockloc demo`'s global initialization (86 s on a fresh clone here) with its output piped",
+      "run_tracking, which the demo and track run, prints 'tracking: 0/N (0%), working for S s' while "
+      "the initialization reports nothing (every 30 s; 0.3 s here), then the frames in 10% steps")
+def test_demo_initialization_prints_progress_when_piped(tiny_world, monkeypatch, capfd):
+    from blockloc.commands import common
+    from blockloc.commands.track import open_session, run_tracking
+    from blockloc.config import load_config
+    from blockloc.session import Session
 
-    def generate(preset, seed, out, progress=None, **kw):
-        for session in ("map", "loc"):
-            for k in range(1, 21):
-                progress(session, k, 20)
-        (out / "map" / "velodyne_sync").mkdir(parents=True)
-        (out / "loc" / "velodyne_sync").mkdir(parents=True)
-        return out
+    monkeypatch.setattr(common, "HEARTBEAT_S", 0.3)
+    initialize = Session.initialize
 
-    monkeypatch.setattr(blockloc.sim, "generate_dataset", generate)
-    ensure_dataset(DemoPaths(tmp_path / "world", tmp_path / "map"))
+    def slow_initialize(self, *args, **kw):  # a global init: a long step that reports nothing
+        time.sleep(1.2)
+        return initialize(self, *args, **kw)
+
+    monkeypatch.setattr(Session, "initialize", slow_initialize)
+    session = open_session(str(tiny_world["session"]), cfg=load_config(tiny_world["config"]),
+                           map_path=str(tiny_world["map"]))
+    run_tracking(session, mode="gt", hint=None, out_dir=None, max_frames=5)
     err = capfd.readouterr().err.splitlines()
-    lines = [ln for ln in err if ln.startswith("simulating: ")]
-    # both sessions counted in 10% steps (the second one counted from 1 again)
-    assert lines.count("simulating: 11/20 (55%)") == 2 and lines.count("simulating: 20/20 (100%)") == 2
+    assert len([ln for ln in err if ln.startswith("tracking: 0/5 (0%), working for")]) >= 2
+    assert err[-1] == "tracking: 5/5 (100%)"
