@@ -98,7 +98,8 @@ def render(entries, results: dict[str, str], wall_s: float, before: dict[str, st
         "`tests/faults/` (part of `python -m pytest`); this page is generated from its case tables and a run:",
         "",
         "```bash",
-        "python -m tests.faults.report      # runs tests/faults, rewrites docs/robustness.md",
+        "python -m tests.faults.report                  # runs tests/faults, rewrites docs/robustness.md",
+        "python -m tests.faults.report --before REV     # adds the column \"before\": the suite on REV's code",
         "```",
         "",
         f"Last run: {passed} of {total} cases passed, suite wall time {wall_s:.0f} s (development machine,",
@@ -109,7 +110,7 @@ def render(entries, results: dict[str, str], wall_s: float, before: dict[str, st
         failed_before = sum(outcome_of(n, before) != "passed" for n, _ in entries)
         lines += [f"*before*: the same suite against the code of `{before_rev}` (`--before {before_rev}`): "
                   f"{failed_before} of {total} cases did not pass there. A case that passed there verifies "
-                  "a fix made earlier (the restructuring of issue 13).", ""]
+                  "a fix made earlier (the restructuring of issue 13, the tests of issue 20).", ""]
     head = "| case | injected | asserted | outcome |" + (" before |" if before is not None else "")
     rule = "|---|---|---|---|" + ("---|" if before is not None else "")
     for finding in sorted(by_finding):
