@@ -40,7 +40,7 @@ from blockloc.viz.events import FrameEvent, ObserverGroup, RunInfo
 log = logging.getLogger(__name__)
 
 INIT_MODES = ("gt", "pose", "global")
-IMU_GAP_WARN_S = 0.5  # an IMU gap longer than this within a frame is logged and counted
+IMU_GAP_WARN_S = 0.5  # an IMU gap longer than this is logged and counted (once per gap)
 LIDAR_GAP_FACTOR = 3.0  # a gap between scans of more than this many scan periods is logged
 
 
@@ -118,6 +118,7 @@ class Session:
         self._finished: RunResult | None = None
         self._last_map_version = None
         self._last_stamp: float | None = None
+        self._imu_gap_s = 0.0  # the longest gap of the IMU gap in progress, or 0
         self.init_info: dict = {}
         self.reloc_log: list[dict] = []
         self.diagnostics: list[dict] = []
@@ -290,10 +291,7 @@ class Session:
             est = self.tracker.insert_frame(frame)
         d = est.as_dict()
         d.update(index=int(frame.index), stamp=float(frame.stamp))
-        if d.get("imu_gap_s", 0.0) > IMU_GAP_WARN_S:
-            self.counters["imu_gaps"] += 1
-            log.warning("frame %d: no IMU samples for %.2f s before it (IMU-only prediction bridged the gap)",
-                        frame.index, d["imu_gap_s"])
+        self._check_imu_gap(frame.index, d.get("imu_gap_s", 0.0))
         self.diagnostics.append(d)
         if est.T_map_body is not None:
             self._poses.append(np.asarray(est.T_map_body))
@@ -321,6 +319,18 @@ class Session:
         diag = Diagnostics(status="uninitialized", num_points=len(frame.points),
                            update_ms=(time.perf_counter() - t0) * 1e3)
         return Estimate(frame.index, float(frame.stamp), None, None, np.zeros(3), np.zeros(3), np.zeros(3), diag)
+
+    def _check_imu_gap(self, index: int, gap_s: float) -> None:
+        """Count a gap of the IMU stream once, logged on the first frame it spans and on the
+        frame where samples are back (the frames between see the same gap, growing)."""
+        if gap_s > IMU_GAP_WARN_S:
+            if self._imu_gap_s == 0.0:
+                self.counters["imu_gaps"] += 1
+                log.warning("frame %d: an IMU gap: no samples for the last %.2f s", index, gap_s)
+            self._imu_gap_s = max(self._imu_gap_s, gap_s)
+        elif self._imu_gap_s > 0.0:
+            log.warning("frame %d: IMU samples again, after a gap of %.2f s", index, self._imu_gap_s)
+            self._imu_gap_s = 0.0
 
     def _check_lidar_gap(self, frame) -> None:
         stamp = float(frame.stamp)
@@ -402,6 +412,9 @@ class Session:
         traj = Trajectory(np.asarray(self._pose_stamps), np.asarray(self._poses).reshape(-1, 4, 4))
         stats = self.provider.stats() if hasattr(self.provider, "stats") else {}
         counters = dict(getattr(self.tracker, "counters", {}) if self.tracker is not None else {})
+        # the tracker counts the scans it was given; the metrics' "frames" counts every frame of
+        # the run, skipped ones included
+        counters["tracker_frames"] = counters.pop("frames", 0)
         counters.update(self.counters)
         counters["map_faults"] += int(stats.get("failed_loads", 0)) + int(stats.get("target_failures", 0))
         plot_dir = self.out_dir if (self.out_dir is not None and self.plots) else None

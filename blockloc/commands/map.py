@@ -41,16 +41,17 @@ def build_command(seq: str | None, kind: str, out: Path, config: str | None, dat
     from blockloc.commands.common import config_for, console
     from blockloc.datasets import open_sequence
     from blockloc.errors import MapError
-    from blockloc.fileio import check_replaceable
     from blockloc.maps.summary import map_summary
 
     if (seq is None) == (from_pcd is None):
         raise MapError("map build: give --seq SEQ (a mapping sequence) or --from-pcd GLOBAL.pcd --poses TRAJ")
     if kind not in ("block", "grid"):
         raise MapError(f"--kind {kind!r}: expected block or grid")
-    if out.exists() and not overwrite:
-        raise MapError(f"--out {out}: already exists (choose another --out, or --overwrite to replace the map there)")
-    check_replaceable(out, "--out")  # before any work
+    check_positive(("--block-size", "block size", block_size), ("--tile-size", "tile size", tile_size),
+                   ("--sensor-range", "sensor range", sensor_range_m))
+    if from_pcd is not None and poses is None:
+        raise MapError("--from-pcd needs --poses TRAJ (the mapping trajectory)")
+    check_out(out, overwrite)
     cfg = config_for(seq, config)
     overrides = {k: v for k, v in (("block_size_m", block_size), ("tile_size_m", tile_size),
                                    ("voxel_size_m", voxel)) if v is not None}
@@ -58,8 +59,6 @@ def build_command(seq: str | None, kind: str, out: Path, config: str | None, dat
     if from_pcd is not None:
         from blockloc.maps.from_pcd import build_map_from_global_pcd
 
-        if poses is None:
-            raise MapError("--from-pcd needs --poses TRAJ (the mapping trajectory)")
         store = build_map_from_global_pcd(
             from_pcd, poses, kind, out, sensor_range_m=sensor_range_m,
             keyframe_distance_m=map_cfg.keyframe_distance_m, keyframe_angle_deg=map_cfg.keyframe_angle_deg,
@@ -71,11 +70,39 @@ def build_command(seq: str | None, kind: str, out: Path, config: str | None, dat
     print_summary(map_summary(store), console())
 
 
+def check_out(out: Path, overwrite: bool) -> None:
+    """Before any work: ``--out`` is absent, or ``--overwrite`` is given and it is a map store
+    (or an empty directory): MapError naming it otherwise."""
+    from blockloc.errors import BlocklocError, MapError
+    from blockloc.fileio import MAP_STORE, check_replaceable
+
+    if out.exists() and not overwrite:
+        raise MapError(f"--out {out}: already exists (choose another --out, or --overwrite to replace the map there)")
+    try:
+        check_replaceable(out, "--out", MAP_STORE, "a map store")
+    except BlocklocError as exc:
+        raise MapError(f"{exc}; --overwrite replaces only a map store") from None
+
+
+def check_positive(*options: tuple[str, str, float | None]) -> None:
+    """MapError naming the first (option, what, value) whose value is given and is not a positive
+    number of metres (before any work)."""
+    import math
+
+    from blockloc.errors import MapError
+
+    for option, what, value in options:
+        if value is not None and not (value > 0 and math.isfinite(value)):
+            raise MapError(f"{option} {value:g}: expected a positive {what} in metres")
+
+
 def tile_command(global_pcd: Path, tile_size: float, out: Path, overwrite: bool) -> None:
     from blockloc.commands.common import console
     from blockloc.maps.grid_tiles import tile_pcd_file
     from blockloc.maps.summary import map_summary
 
+    check_positive(("--tile-size", "tile size", tile_size))
+    check_out(out, overwrite)
     store = tile_pcd_file(global_pcd, tile_size, out, overwrite=overwrite, progress=True)
     print_summary(map_summary(store), console())
 
@@ -93,9 +120,11 @@ def info_command(map_path: str, json_out: bool, quick: bool) -> None:
 
 
 def plot_command(map_path: str, seq: str | None, out: Path | None, data_root: str | None) -> None:
+    from blockloc.fileio import check_figure_path
     from blockloc.maps.plot import plot_map
     from blockloc.maps.store import open_map
 
+    png = check_figure_path(out or Path(str(map_path).rstrip("/") + ".png"), "--out")  # before any work
     store = open_map(map_path)
     traj = None
     if seq:
@@ -104,7 +133,6 @@ def plot_command(map_path: str, seq: str | None, out: Path | None, data_root: st
 
         s = open_sequence(seq, data_root=data_root, dataset_cfg=config_for(seq, None).dataset)
         traj = s.ground_truth() or s.mapping_poses()
-    png = out or Path(str(map_path).rstrip("/") + ".png")
     print(str(plot_map(store, png, traj)))
 
 
