@@ -319,7 +319,8 @@ def merge(base: Config, data: dict[str, Any], source: str = "<dict>") -> Config:
         raise ConfigError(f"{source}: {exc}") from None
 
 
-def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> Config:
+def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None,
+                overrides_source: str = "overrides") -> Config:
     """Defaults, then the YAML file ``path`` (a path or a preset name such as 'nclt'), then overrides."""
     import yaml
 
@@ -339,7 +340,7 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
             raise ConfigError(f"{file}: expected a mapping of sections at the top level")
         cfg = merge(cfg, data, str(file))
     if overrides:
-        cfg = merge(cfg, overrides, "overrides")
+        cfg = merge(cfg, overrides, overrides_source)
     return cfg
 
 

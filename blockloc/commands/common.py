@@ -108,7 +108,8 @@ def config_for(seq: str | None, config: str | None, sets: list[str] | None = Non
     (VALUE read as YAML: numbers, true/false, lists)."""
     from blockloc.config import load_config, preset_for_sequence
 
-    return load_config(config or (preset_for_sequence(seq) if seq else None), overrides=parse_sets(sets or []))
+    return load_config(config or (preset_for_sequence(seq) if seq else None), overrides=parse_sets(sets or []),
+                       overrides_source="--set")
 
 
 def parse_sets(sets: list[str]) -> dict:
