@@ -37,6 +37,7 @@ from blockloc.fileio import atomic_write_text
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "bench" / "tracking.md"
 MAP_BACKENDS = ("block", "grid", "srt", "global")
+VGICP_BLOCK = "block@vgicp"  # the block backend with small_gicp VGICP instead of NDT
 
 
 def grid_map(paths, cfg) -> Path:
@@ -59,8 +60,9 @@ def grid_map(paths, cfg) -> Path:
 
 
 def map_for(backend: str, block: Path, grid: Path) -> Path | None:
-    """block and global read the block store (global = all blocks); grid and srt the grid tiles."""
-    return {"block": block, "global": block, "grid": grid, "srt": grid}.get(backend)
+    """block and global read the block store (global = all blocks); grid and srt the grid tiles.
+    ``backend@engine`` (e.g. ``block@vgicp``) is that backend with another registration engine."""
+    return {"block": block, "global": block, "grid": grid, "srt": grid}.get(backend.partition("@")[0])
 
 
 def storage(block: Path, grid: Path) -> dict:
@@ -93,7 +95,8 @@ def main(argv=None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--repeats", type=int, default=3, help="runs per backend (figures: median over runs)")
-    ap.add_argument("--backends", default=",".join(MAP_BACKENDS + (ODOM, KISS)))
+    ap.add_argument("--backends", default=",".join(MAP_BACKENDS + (VGICP_BLOCK, ODOM, KISS)),
+                    help="backends; backend@engine runs it with registration.method=engine")
     ap.add_argument("--out", default=str(OUT))
     args = ap.parse_args(argv)
     cmd = "python -m bench.tracking " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
@@ -117,8 +120,9 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="bench-tracking-") as tmp:
         for rep in range(args.repeats):
             for b in backends:
-                res = run_in_child(seq_path, map_for(b, block, grid), b, Path(tmp) / f"{b}_{rep}.json",
-                                   max_frames=args.max_frames)
+                backend, _, method = b.partition("@")
+                res = run_in_child(seq_path, map_for(b, block, grid), backend, Path(tmp) / f"{b}_{rep}.json",
+                                   max_frames=args.max_frames, method=method or None)
                 m = summarize(res.pop("arrays"), gt)
                 m.update({k: res[k] for k in ("peak_rss_mb", "setup_s", "track_s", "load_avg")})
                 m.update({f"res_{k}": v for k, v in res["resources"].items()})
@@ -155,7 +159,7 @@ def main(argv=None) -> int:
         "recoveries | rejected | switches |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    desc = {"block": "block store, the block at the robot", "grid": "grid tiles, (2n+1)^2 window + k",
+    desc = {"block": "block store, the block at the robot", VGICP_BLOCK: "block store, small_gicp VGICP", "grid": "grid tiles, (2n+1)^2 window + k",
             "srt": f"grid tiles within R' = {cfg.map.srt_radius_m:g} m", "global": "all blocks",
             ODOM: "none: rolling map of its own scans (same IMU + NDT)", KISS: "none: KISS-ICP, LiDAR only"}
     for b in backends:
