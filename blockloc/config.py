@@ -139,6 +139,8 @@ class RegistrationConfig:
     # NDT target grids at 2x, 4x ... resolution (from the fine voxel sums)
     coarse_levels: int = bounded(1, NON_NEGATIVE)
     coarse_to_fine: bool = True  # align on the coarse levels first (wider basin of convergence)
+    # vgicp only: neighbours of the per-point covariances (configs/sim.yaml says why it sets 20)
+    num_neighbors: int = bounded(10, COUNT)
 
 
 @dataclass
