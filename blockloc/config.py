@@ -112,9 +112,24 @@ class GlobalInitConfig:
     s0_ratio: float = 0.9  # prune below this fraction of S0
     min_fitness: float = 0.75  # NDT inlier ratio for a verified match (sim: true 0.8-0.97, false <= 0.61)
     min_structure_fitness: float = 0.6  # same for the above-ground points alone (true >= 0.9, false <= 0.37)
-    ambiguity_distance_m: float = 2.0
+    ambiguity_distance_m: float = 0.5  # a rival NDT optimum this far away that fits as well: ambiguous
     ndt_resolution_m: float = 1.0
-    reloc_window_m: float = 100.0  # regions of the no-hint relocalization
+    reloc_window_m: float = 100.0  # regions of the no-hint relocalization (the place index's fallback)
+    # No-hint relocalization through the map's place index (blockloc/global_init/place_index.py).
+    use_place_index: bool = True
+    place_candidates: tuple[int, ...] = (32, 256)  # places whose windows are searched, stage by stage
+    place_window_m: float = 12.0  # window around each place (x, y), metres
+    place_yaw_window_deg: float = 16.0  # around each place's yaw guess
+    place_band_m: tuple[float, float] = (2.0, 4.0)  # static band: above people, cars and fences
+    place_max_range_m: float = 63.0
+    place_spacing_m: float = 3.0  # grid of places over the drivable area
+    place_tolerance_m: float = 1.5  # a scan this far from a place still matches it
+    place_max_offset_m: float = 20.0  # grid places within this of a mapping keyframe
+    whole_map_fallback: bool = True  # then the regions of reloc_window_m, as without an index
+    # Verification at the refined pose, in the static band (both the hinted and the no-hint path).
+    min_coverage: float = 0.7  # scan structure the map covers
+    max_see_through: float = 0.15  # bins the scan saw through that hold map structure
+    ambiguity_z: float = 3.0  # a rival is no ambiguity when the best fits this significantly better
 
 
 @dataclass
