@@ -127,9 +127,9 @@ class GlobalInitConfig:
     place_max_offset_m: float = 20.0  # grid places within this of a mapping keyframe
     whole_map_fallback: bool = True  # then the regions of reloc_window_m, as without an index
     # Verification at the refined pose, in the static band (both the hinted and the no-hint path).
-    min_coverage: float = 0.7  # scan structure the map covers
-    max_see_through: float = 0.15  # bins the scan saw through that hold map structure
-    ambiguity_z: float = 3.0  # a rival is no ambiguity when the best fits this significantly better
+    min_coverage: float = 0.9  # scan structure the map covers (true poses: >= 0.91 on campus)
+    max_see_through: float = 0.35  # share of the map's visible structure the scan saw through (true: <= 0.25)
+    ambiguity_z: float = 2.5  # a rival is no ambiguity when the best fits this significantly better
 
 
 @dataclass

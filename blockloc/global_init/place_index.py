@@ -54,6 +54,7 @@ FORMAT = "blockloc-place-index"
 FORMAT_VERSION = 1
 TILE_M = 256.0  # the index is built tile by tile: memory bounded by the tile, not the map
 OBSTACLE_M = 0.3  # a scan point this high above the local ground hides what lies behind it
+BAND_TOP_UNSEEN_M = 20.0  # a scan with no points near the band's top: seen-through only beyond this
 
 
 @dataclass(frozen=True)
@@ -65,8 +66,9 @@ class PlaceIndexParams:
     places along the mapping keyframes (m); max_offset_m: grid places within this of a keyframe (maps
     with keyframes); clearance_m: no structure this close to a grid place; min_bits: fewer occupied
     bins make a place too featureless to index. coverage, see_through: the matching model (module
-    docstring); free_min_range_m: closer bins are never counted as seen through (below the band
-    for a sensor about 1 m above the ground)."""
+    docstring); free_min_range_m: closer bins are never counted as seen through (a scan sees the
+    band only beyond the range where its highest beams reach the band's top: that range, measured
+    on each scan, raises this floor, see :func:`scan_cells`)."""
 
     resolution_m: float = 0.5
     band_m: tuple[float, float] = (2.0, 4.0)
@@ -212,11 +214,13 @@ def pack(occ: np.ndarray) -> np.ndarray:
 class ScanCells:
     """A levelled scan's cells (M, 2) int64, ``floor(xy / resolution)`` of the levelled body frame:
     ``band`` in the index's height band, ``obstacles`` of every point OBSTACLE_M or more above the
-    ground; R_tilt (3, 3) its levelling (p_lvl = R_tilt @ p_body)."""
+    ground; R_tilt (3, 3) its levelling (p_lvl = R_tilt @ p_body); free_from_m: the range from which
+    the scan sees the whole band (closer, structure high in the band is above its beams)."""
 
     band: np.ndarray
     obstacles: np.ndarray
     R_tilt: np.ndarray
+    free_from_m: float = 0.0
 
 
 @dataclass
@@ -252,7 +256,7 @@ def scan_cells(points_body: np.ndarray, gravity_body: np.ndarray, params: PlaceI
     lvl = lvl[(rng > 0.5) & (rng <= params.max_range_m + 5.0)]
     none = np.zeros((0, 2), np.int64)
     if len(lvl) == 0:
-        return ScanCells(none, none, R_tilt)
+        return ScanCells(none, none, R_tilt, BAND_TOP_UNSEEN_M)
     g_origin, g_grid = ground_grid(lvl)
     h = lvl[:, 2] - lookup_ground(g_origin, g_grid, lvl[:, :2])
     lo, hi = params.band_m
@@ -260,7 +264,12 @@ def scan_cells(points_body: np.ndarray, gravity_body: np.ndarray, params: PlaceI
     def cells(keep):
         return np.unique(np.floor(lvl[keep, :2] / params.resolution_m).astype(np.int64), axis=0)
 
-    return ScanCells(cells((h >= lo) & (h <= hi)), cells(h >= OBSTACLE_M), R_tilt)
+    # The nearest points at the band's top: closer, the beams pass below it (vertical field of view).
+    top = np.hypot(lvl[:, 0], lvl[:, 1])[np.abs(h - hi) <= 0.5]
+    top = top[top >= params.min_range_m]
+    free_from = float(np.percentile(top, 2)) if len(top) >= 20 else BAND_TOP_UNSEEN_M
+    return ScanCells(cells((h >= lo) & (h <= hi)), cells(h >= OBSTACLE_M), R_tilt,
+                     max(params.free_min_range_m, free_from))
 
 
 def consistency_at(source, xy_L: np.ndarray, theta: float, cells: ScanCells, params: PlaceIndexParams,
@@ -269,9 +278,11 @@ def consistency_at(source, xy_L: np.ndarray, theta: float, cells: ScanCells, par
 
     The pose: the body at ``xy_L`` (2,) of the levelled frame, its levelled scan turned by
     ``theta`` rad. coverage: share of the scan's occupied bins the map's structure (grown by the
-    tolerance) covers; see_through: share of the bins the scan saw through that hold map structure.
-    Each is NaN when the scan has fewer than ``min_bits`` such bins. source: a global-init map
-    source in ``params``' band (``base_raster``).
+    tolerance) covers, NaN below ``min_bits`` bins. see_through: of the sectors where the map's
+    nearest structure lies beyond ``free_min_range_m`` (what the scan should see there), the share
+    in which the scan saw through it (its free bins reach past it), NaN below ``min_bits / 4``
+    such sectors. A share, not a count of bins: a wall across a quarter of the view is a quarter.
+    source: a global-init map source in ``params``' band (``base_raster``).
     """
     from scipy.ndimage import binary_dilation
 
@@ -285,24 +296,31 @@ def consistency_at(source, xy_L: np.ndarray, theta: float, cells: ScanCells, par
     at = (corner - origin)[None]
     raw = unpack(descriptors_on_raster(occ, at, params)[0], S)
     grown = unpack(descriptors_on_raster(binary_dilation(occ, _disk(params.tolerance_m / res)), at, params)[0], S)
-    sd = scan_descriptor(cells.band, params, cells.obstacles)
+    sd = scan_descriptor(cells.band, params, cells.obstacles, cells.free_from_m)
     shift = int(round(theta / (2 * math.pi / S))) % S
     occ_s = np.roll(unpack(sd.occupied, S), shift, axis=-1)
     free_s = np.roll(unpack(sd.free, S), shift, axis=-1)
-    n_occ, n_free = int(occ_s.sum()), int(free_s.sum())
+    n_occ = int(occ_s.sum())
     coverage = float((occ_s & grown).sum()) / n_occ if n_occ >= min_bits else float("nan")
-    see = float((free_s & raw).sum()) / n_free if n_free >= min_bits else float("nan")
+    r0 = int(math.ceil((max(params.free_min_range_m, cells.free_from_m) - params.min_range_m)
+                       / params.ring_width_m))
+    has = raw.any(axis=0)
+    first = np.where(has, raw.argmax(axis=0), 0)
+    judged = has & (first >= r0)
+    through = judged & free_s[first, np.arange(S)]
+    n = int(judged.sum())
+    see = float(through.sum()) / n if n >= max(1, min_bits // 4) else float("nan")
     return coverage, see
 
 
 def scan_descriptor(cells: np.ndarray, params: PlaceIndexParams,
-                    obstacles: np.ndarray | None = None) -> ScanDescriptor:
+                    obstacles: np.ndarray | None = None, free_from_m: float = 0.0) -> ScanDescriptor:
     """Bits of a levelled scan from its occupied band cells (M, 2) int64, ``floor(xy / resolution)``
     of the levelled body frame (the body stands on the lattice corner 0, 0, as places do).
 
-    Free bits: in each sector, the rings lying wholly between ``free_min_range_m`` and the first
-    obstacle minus ``tolerance_m``, where the first obstacle is the nearest one over the sectors
-    within ``tolerance_m`` (plus one sector: bins are coarse) of the ring (a scan taken that far from
+    Free bits: in each sector, the rings lying wholly between ``free_min_range_m`` (or
+    ``free_from_m`` when farther, see :class:`ScanCells`) and the first obstacle minus ``tolerance_m``, where the first obstacle is the nearest one over the sectors
+    within ``tolerance_m`` of the ring (a scan taken that far from
     a place sees the place's walls shifted by as much). ``obstacles``: cells (K, 2) of every point
     above the ground, any height (default: the band cells): a wall close by, hit below the band,
     hides what is behind it although the band saw nothing there.
@@ -328,9 +346,9 @@ def scan_descriptor(cells: np.ndarray, params: PlaceIndexParams,
     for r in range(params.num_rings):
         inner = params.min_range_m + r * params.ring_width_m
         outer = inner + params.ring_width_m
-        if inner < params.free_min_range_m:
+        if inner < max(params.free_min_range_m, free_from_m):
             continue
-        half = int(math.ceil(params.tolerance_m / max(inner, 1e-6) / step)) + 1
+        half = int(math.ceil(params.tolerance_m / max(inner, 1e-6) / step))
         near = first.copy()
         for k in range(1, half + 1):
             near = np.minimum(near, np.minimum(np.roll(first, k), np.roll(first, -k)))
@@ -498,7 +516,7 @@ class PlaceIndex:
             return []
         p = self.params
         S = p.num_sectors
-        score = match_scores(scan_descriptor(cells.band, p, cells.obstacles), self)
+        score = match_scores(scan_descriptor(cells.band, p, cells.obstacles, cells.free_from_m), self)
         allowed = None
         if theta_window is not None and theta_window[1] < 2 * math.pi:
             ang = np.arange(S) * 2 * math.pi / S - theta_window[0]

@@ -73,7 +73,7 @@ class InitParams:
     scan_voxel_m: float = 0.5
     max_ndt_points: int = 3000
     ambiguity_score_ratio: float = 0.8  # once one is verified, refine others only above this x best
-    ambiguity_z: float = 3.0  # a rival is no ambiguity when the best fits significantly better (z)
+    ambiguity_z: float = 2.5  # a rival is no ambiguity when the best fits significantly better (z)
     refine_range_m: float = 50.0
     reloc_window_m: float = 500.0
     max_regions: int = 0  # 0: every region of the map
@@ -83,7 +83,7 @@ class InitParams:
     place_candidates: tuple[int, ...] = (32, 256)  # places searched per stage (then all yaws)
     place_window_m: float = 12.0  # window around each place (>= 2 x the index's tolerance + spacing)
     place_yaw_window_deg: float = 16.0  # around each place's yaw guess (its error: p95 ~5 deg)
-    place_top_k: int = 10  # leaves kept by the branch and bound over all windows
+    place_top_k: int = 6  # leaves kept by the branch and bound over all windows
     place_top_level: int = 3  # its roots' level (2^3 cells = 4 m at 0.5 m: tight bounds in small windows)
     place_band_m: tuple[float, float] = (2.0, 4.0)
     place_max_range_m: float = 63.0
@@ -92,8 +92,8 @@ class InitParams:
     place_max_offset_m: float = 20.0
     whole_map_fallback: bool = True
     # static-band consistency at the refined pose (verification)
-    min_coverage: float = 0.7
-    max_see_through: float = 0.15
+    min_coverage: float = 0.9
+    max_see_through: float = 0.35
     consistency_tolerance_m: float = 0.75
     min_consistency_bits: int = 20
 
@@ -664,7 +664,7 @@ def _gravity_body(gravity_body, roll_pitch, gravity_map) -> np.ndarray:
     return R_map_body.T @ np.asarray(gravity_map, float)
 
 
-def better_fit(points_body: np.ndarray, a: InitCandidate, b: InitCandidate, block_m: float = 5.0) -> float:
+def better_fit(points_body: np.ndarray, a: InitCandidate, b: InitCandidate, block_m: float = 2.0) -> float:
     """How significantly candidate ``a`` explains the scan better than ``b``: a z statistic.
 
     The points (N, 3), body frame, fall in blocks of ``block_m`` (body xy); per block, d = inliers at
