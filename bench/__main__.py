@@ -18,9 +18,12 @@ import sys
 import time
 from pathlib import Path
 
+from blockloc.fileio import atomic_write_text
+
 ROOT = Path(__file__).resolve().parent.parent
 FRAGMENTS = ROOT / "docs" / "bench"
-ORDER = ["run", "datasets", "evaluation", "sim", "ndt", "maps", "global_init", "tracking", "scaling", "campus", "campus_backends",
+ORDER = ["run", "datasets", "evaluation", "sim", "realism", "ndt", "maps", "global_init", "real", "tracking",
+         "scaling", "campus", "campus_backends",
          "server", "summary"]  # summary last: it compares the fragments before it with the papers
 
 
@@ -60,9 +63,7 @@ def assemble() -> Path:
         text = re.sub(r"(!\[[^\]]*\]\()([^/():]+\.png\))", r"\1bench/\2", text)
         parts.append(text)
     out = ROOT / "docs" / "benchmarks.md"
-    tmp = out.with_suffix(".md.tmp")
-    tmp.write_text("\n".join(parts))
-    tmp.replace(out)
+    atomic_write_text(out, "\n".join(parts))
     return out
 
 

@@ -21,7 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from blockloc.fileio import atomic_write_text, to_jsonable
+from blockloc.evaluation.results import peak_rss_mb
+from blockloc.fileio import atomic_path, atomic_write_text, to_jsonable
 
 # per-frame columns every run records (saved to its .npz)
 ROW_COLUMNS = ("index", "core_ms", "update_ms", "map_ms", "registration_ms", "switched", "status", "window",
@@ -118,11 +119,10 @@ class RollingMapProvider:
     the update's map time, not in deskew + registration + smoother).
     """
 
-    def __init__(self, resolution_m: float, min_points_per_voxel: int, *, radius_m: float = 60.0,
+    def __init__(self, engine, *, radius_m: float = 60.0,
                  voxel_m: float = 0.2, keyframe_m: float = 1.0, rebuild_m: float = 1.0,
                  max_keyframes: int = 400, seed_scans: int = 10) -> None:
-        self.resolution_m = resolution_m
-        self.min_points = min_points_per_voxel
+        self.engine = engine  # builds the rolling map's registration target
         self.radius_m = radius_m
         self.voxel_m = voxel_m
         self.keyframe_m = keyframe_m
@@ -139,13 +139,13 @@ class RollingMapProvider:
 
     def add_scan(self, position_map: np.ndarray, points_map: np.ndarray) -> None:
         """Keep ``points_map`` (N, 3) as a keyframe if the robot at ``position_map`` moved far enough."""
-        from blockloc.registration.voxels import voxel_downsample
+        from blockloc.voxels import voxel_downsample
 
         p = np.asarray(position_map, np.float64).reshape(3)
         if (len(self.keyframes) >= self.seed_scans
                 and np.linalg.norm(p - self.keyframes[-1][0]) < self.keyframe_m):
             return
-        self.keyframes.append((p, voxel_downsample(np.asarray(points_map), self.voxel_m).astype(np.float32)))
+        self.keyframes.append((p, voxel_downsample(np.asarray(points_map), self.voxel_m)[0].astype(np.float32)))
         if len(self.keyframes) > self.max_keyframes:
             self.keyframes.pop(0)
         self._dirty = True
@@ -158,14 +158,13 @@ class RollingMapProvider:
         return RollingLocalMap(self._target, self._num_points)
 
     def _rebuild(self, p: np.ndarray) -> None:
-        from blockloc.registration.ndt import NdtTarget
-        from blockloc.registration.voxels import voxel_downsample
+        from blockloc.voxels import voxel_downsample
 
         t0 = time.perf_counter()
         near = [pts for c, pts in self.keyframes if np.linalg.norm(c[:2] - p[:2]) <= self.radius_m]
         if near:
-            pts = voxel_downsample(np.concatenate(near).astype(np.float64), self.voxel_m)
-            self._target = NdtTarget.build(pts, self.resolution_m, self.min_points)
+            pts = voxel_downsample(np.concatenate(near), self.voxel_m)[0]
+            self._target = self.engine.build_target(pts)
             self._num_points = len(pts)
         self._built_at = p.copy()
         self._dirty = False
@@ -181,64 +180,41 @@ class RollingMapProvider:
         pass
 
 
-class _CapturingRegistration:
-    """Forwards to a registration and keeps the last source scan (deskewed, lidar frame)."""
-
-    def __init__(self, inner) -> None:
-        self.inner = inner
-        self.last_source: np.ndarray | None = None
-
-    def align(self, target, source_points, *args, **kwargs):
-        self.last_source = source_points
-        return self.inner.align(target, source_points, *args, **kwargs)
-
-    def __getattr__(self, name):
-        return getattr(self.inner, name)
-
-
 # --------------------------------------------------------------------------- one backend, stepped
 class BackendRun:
-    """One backend's pipeline, stepped frame by frame (the pipeline's own setup steps; the loop is
-    driven from outside so that several backends can share each scan). ``backend`` is a map policy
-    (block | grid | srt | global) or ``odom`` (no prior map, :class:`RollingMapProvider`)."""
+    """One backend's :class:`~blockloc.session.Session`, stepped frame by frame from outside (so
+    that several backends can share each scan), started at the ground-truth pose of frame
+    ``start``. ``backend`` is a map policy (block | grid | srt | global) or ``odom`` (no prior
+    map: :class:`RollingMapProvider` over the tracker's own scans)."""
 
     def __init__(self, seq, cfg, map_path: Path | None, backend: str, start: int = 0,
                  stop: int | None = None) -> None:
-        from blockloc.pipeline import LocalizationPipeline
+        import dataclasses
+
+        from blockloc.session import Session
 
         self.backend = backend
-        stop = len(seq) if stop is None else stop
-        p = LocalizationPipeline(seq, cfg=cfg, map_path=map_path, backend="global" if backend == ODOM else backend,
-                                 init="gt", start_frame=start, max_frames=stop - start)
-        p._open_sequence()
         if backend == ODOM:
-            rc = cfg.registration
-            from blockloc.registration.ndt import NdtRegistration
+            from blockloc.registration.engines import engine_from_settings
+            from blockloc.tracking.tracker import Tracker
 
+            rc = cfg.registration
             # 3 points per voxel: a map of a few sparse scans fills voxels more thinly than a prior map
-            p.provider = RollingMapProvider(rc.resolution_m, min(3, rc.min_points_per_voxel))
-            p.registration = _CapturingRegistration(NdtRegistration.from_config(rc))
-            p.localizer = None
-            p.relocalize = lambda *a, **k: None  # odometry has no map to relocalize in
+            engine = engine_from_settings(dataclasses.asdict(rc), min_points_per_voxel=min(3, rc.min_points_per_voxel))
+            provider = RollingMapProvider(engine)
+            tracker = Tracker.from_config(cfg, seq.info, map_provider=provider, registration=engine)
+            self.session = Session(seq, tracker, provider)  # odometry has no map to relocalize in
         else:
-            p._open_map()
-            p._make_components()
-        p._make_tracker()
-        p._initialize()
-        self.pipe = p
-        self.j = int(np.searchsorted(p.imu.t, p.stamps[start] - 1.0))
+            from blockloc.maps.store import open_map_from_config
+
+            self.session = Session.from_config(cfg, seq, open_map_from_config(map_path, cfg.map), backend=backend)
+        self.session.initialize("gt", start)
         self.stamps: list[float] = []
         self.poses: list[np.ndarray] = []
         self.rows: dict[str, list] = {c: [] for c in ROW_COLUMNS}
 
     def step(self, frame) -> None:
-        imu, tr = self.pipe.imu, self.pipe.tracker
-        t_end = frame.stamp + (float(np.max(frame.time_offsets)) if frame.time_offsets is not None
-                               and len(frame.time_offsets) else 0.0)
-        while self.j < len(imu.t) and imu.t[self.j] <= t_end:
-            tr.insert_imu(imu.t[self.j], imu.acc[self.j], imu.gyro[self.j])
-            self.j += 1
-        est = tr.insert_frame(frame)
+        est = self.session.step(frame)
         d = est.diagnostics
         if self.backend == ODOM and est.T_map_body is not None:
             self._grow_rolling_map(frame, est, d.status)
@@ -251,7 +227,7 @@ class BackendRun:
         r["switched"].append(bool(d.switched))
         r["status"].append(STATUS_CODES.get(d.status, 9))
         r["window"].append(d.window_size)
-        r["active_points"].append(int(self.pipe.provider.stats().get("active_points", 0)))
+        r["active_points"].append(int(self.session.provider.stats().get("active_points", 0)))
         if est.T_map_body is not None:
             self.stamps.append(est.stamp)
             self.poses.append(np.asarray(est.T_map_body))
@@ -262,31 +238,29 @@ class BackendRun:
         IMU's motion): a scan NDT rejected would otherwise be written in at a doubtful pose."""
         from blockloc.geometry import transform_points
 
-        prov, reg = self.pipe.provider, self.pipe.registration
-        T_map_lidar = np.asarray(est.T_map_body) @ self.pipe.info.T_body_lidar
-        if status == "ok" and reg.last_source is not None:
-            prov.add_scan(T_map_lidar[:3, 3], transform_points(T_map_lidar, reg.last_source))
+        prov, tracker = self.session.provider, self.session.tracker
+        T_map_lidar = np.asarray(est.T_map_body) @ self.session.info.T_body_lidar
+        scan = tracker.last_scan_lidar
+        if status == "ok" and scan is not None:
+            prov.add_scan(T_map_lidar[:3, 3], transform_points(T_map_lidar, scan))
         elif len(prov.keyframes) < prov.seed_scans:
-            pts = reg.last_source if reg.last_source is not None else frame.points
+            pts = scan if scan is not None else frame.points
             prov.add_scan(T_map_lidar[:3, 3], transform_points(T_map_lidar, pts))
-        reg.last_source = None
 
     def arrays(self) -> dict[str, np.ndarray]:
-        tr = self.pipe.tracker
         out = {k: np.asarray(v) for k, v in self.rows.items()}
         out["stamps"] = np.asarray(self.stamps, dtype=np.float64)
         out["poses"] = np.asarray(self.poses, dtype=np.float64).reshape(-1, 4, 4)
-        out["counters"] = np.array(json.dumps(tr.counters))
-        out["map_stats"] = np.array(json.dumps(to_jsonable(self.pipe.provider.stats())))
+        out["counters"] = np.array(json.dumps(self.session.tracker.counters))
+        out["map_stats"] = np.array(json.dumps(to_jsonable(self.session.provider.stats())))
         return out
 
     def save(self, path: Path) -> None:
-        tmp = path.with_name("." + path.stem + ".tmp.npz")
-        np.savez(tmp, **self.arrays())
-        tmp.replace(path)
+        with atomic_path(path, suffix=".npz") as tmp:
+            np.savez(tmp, **self.arrays())
 
     def close(self) -> None:
-        self.pipe.provider.close()
+        self.session.close()
 
 
 def write_json(path: Path, obj) -> None:
@@ -380,20 +354,6 @@ class ResourceSampler:
                 "samples": len(self.cpu), "wall_s": self.wall_s}
 
 
-def peak_rss_mb() -> float:
-    """This process's peak RSS in MB: VmHWM from /proc (reset at exec). ``ru_maxrss`` is not used: on
-    Linux a child started by a large parent inherits the parent's peak across fork + exec."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return float(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
 # --------------------------------------------------------------------------- child process
 def run_child(seq_name: str, map_path: str | None, backend: str, out_json: Path, *, cfg_preset: str = "sim",
               block_size_m: float | None = None, max_frames: int | None = None) -> dict:
@@ -419,10 +379,8 @@ def run_child(seq_name: str, map_path: str | None, backend: str, out_json: Path,
         track_s = time.perf_counter() - t0
     run.close()
     arrays = run.arrays()
-    npz = out_json.with_suffix(".npz")
-    tmp = npz.with_name("." + npz.stem + ".tmp.npz")
-    np.savez(tmp, **arrays)
-    tmp.replace(npz)
+    with atomic_path(out_json.with_suffix(".npz"), suffix=".npz") as tmp:
+        np.savez(tmp, **arrays)
     res = {"backend": backend, "sequence": seq_name, "map": map_path, "setup_s": setup_s, "track_s": track_s,
            "peak_rss_mb": peak_rss_mb(), "rss_before_setup_mb": rss0, "resources": sampler.summary(),
            "load_avg": os.getloadavg()[0]}

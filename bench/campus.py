@@ -28,7 +28,7 @@ import numpy as np
 import yaml
 
 from bench._track import STATUS_CODES, BackendRun
-from blockloc.fileio import to_jsonable as _jsonable
+from blockloc.fileio import atomic_write_text, save_figure
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "bench" / "campus.md"
@@ -49,7 +49,7 @@ def ensure_map(preset: str, seed: int, out: Path, map_cfg, kind: str = "block") 
     from blockloc.datasets import open_sequence
     from blockloc.errors import MapError
     from blockloc.maps.store import open_map
-    from blockloc.maps.tools import build_map
+    from blockloc.commands.map import build_map
 
     try:
         open_map(out)
@@ -62,9 +62,7 @@ def ensure_map(preset: str, seed: int, out: Path, map_cfg, kind: str = "block") 
 
 
 def _write_json(path: Path, obj) -> None:
-    tmp = path.with_name("." + path.name + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=1))
-    tmp.replace(path)
+    atomic_write_text(path, json.dumps(obj, indent=1))
 
 
 def summarize(state: Path, backend: str, gt) -> dict:
@@ -150,10 +148,7 @@ def plot(rows: dict, gt, state: Path, path: Path) -> None:
         ax.grid(True, alpha=0.3)
         ax.legend()
     fig.tight_layout()
-    tmp = path.with_name("." + path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    tmp.replace(path)
+    save_figure(fig, path, dpi=100)
 
 
 def write_fragment(state: Path, out: Path) -> str:
@@ -273,9 +268,7 @@ def write_fragment(state: Path, out: Path) -> str:
                          "resident_mb": m["map_stats"].get("resident_mb")} for b, m in rows.items()}})
     text = "\n".join(lines) + "\n"
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".md.tmp")
-    tmp.write_text(text)
-    tmp.replace(out)
+    atomic_write_text(out, text)
     return text
 
 

@@ -49,14 +49,14 @@ def ensure_map(seq_name: str, out: Path, kind: str, source: str = "builder") -> 
     """
     from blockloc.config import load_config
     from blockloc.datasets import open_sequence
-    from blockloc.maps.tools import build_map
+    from blockloc.commands.map import build_map
 
     if (out / "manifest.json").exists():
         return out
     if source == "gt":
         from blockloc.geometry import transform_points
-        from blockloc.global_init.command import scan_body_deskewed
-        from blockloc.global_init.refine import voxel_downsample
+        from blockloc.tracking.scan_prep import deskew_rotation
+        from blockloc.voxels import voxel_downsample
         from blockloc.maps.store import MapWriter
 
         seq = open_sequence(seq_name)
@@ -64,9 +64,9 @@ def ensure_map(seq_name: str, out: Path, kind: str, source: str = "builder") -> 
         parts = []
         imu = seq.imu()
         for i in range(0, len(seq), 5):
-            body, t_ref = scan_body_deskewed(seq.frame(i), seq, imu)
+            body, t_ref = deskew_rotation(seq.frame(i), imu, seq.info)
             parts.append(transform_points(gt.interpolate(t_ref)[0], body))
-        pts = voxel_downsample(np.concatenate(parts), 0.2)
+        pts = voxel_downsample(np.concatenate(parts), 0.2)[0]
         keys = np.floor(pts[:, :2] / 100.0).astype(int)
         with MapWriter(out, "grid", params={"tile_size_m": 100.0, "voxel_size_m": 0.2, "source": "ground truth"}) as w:
             for k in np.unique(keys, axis=0):
@@ -136,8 +136,10 @@ def run(argv: list[str]) -> dict:
 
     logging.basicConfig(level=logging.WARNING)
     from blockloc.datasets import open_sequence
-    from blockloc.global_init.command import gravity_at, scan_body_deskewed
-    from blockloc.global_init.refine import Refiner, voxel_downsample
+    from blockloc.tracking.scan_prep import prepare_for_init
+    from blockloc.global_init.refine import Refiner
+    from blockloc.registration.engines import make_engine
+    from blockloc.voxels import voxel_select
     from blockloc.global_init.relocalize import GlobalLocalizer, InitParams, pose_error
     from blockloc.maps.store import open_map
 
@@ -168,9 +170,9 @@ def run(argv: list[str]) -> dict:
     rows = {m: [] for m in methods}
     for k, i in enumerate(frames):
         f = seq.frame(int(i))
-        pts, t_ref = scan_body_deskewed(f, seq, imu)
+        scan = prepare_for_init(f, imu, seq.info)
+        pts, t_ref, g = scan.points_body, scan.stamp, scan.gravity_body
         T_gt = gt.interpolate(t_ref)[0]  # the pose at mid-sweep, the time the result is stamped
-        g = gravity_at(seq, t_ref)
         hint = T_gt[:2, 3] + rng.uniform(-args.hint_error, args.hint_error, 2)
         for m in methods:
             if m in ("bbs+s0", "bbs", "bbs+s0/all"):
@@ -187,10 +189,10 @@ def run(argv: list[str]) -> dict:
                 c = (loc.map.R_L_map @ np.r_[hint, 0.0])[:2]
                 d = 0.5 * args.window + params.max_range_m
                 mp = loc.map.points_in_box(c - d, c + d)
-                scan = voxel_downsample(pts, 0.5)
+                scan = pts[voxel_select(pts, 0.5)]
                 T0 = fpfh_ransac(mp, scan)
-                r = Refiner(mp, params.ndt_resolution_m, params.num_threads).align(
-                    voxel_downsample(pts, params.scan_voxel_m)[: params.max_ndt_points], T0)
+                r = Refiner(make_engine("ndt", resolution_m=params.ndt_resolution_m, num_threads=params.num_threads), mp).align(
+                    pts[voxel_select(pts, params.scan_voxel_m)][: params.max_ndt_points], T0)
                 T = r.T_map_body
                 dt = time.perf_counter() - t
                 extra = 0
@@ -208,10 +210,10 @@ def run(argv: list[str]) -> dict:
     rframes = np.sort(rng.choice(np.arange(20, len(seq)), size=min(args.reloc_frames, len(seq) - 20), replace=False))
     for i in rframes:
         f = seq.frame(int(i))
-        pts, t_ref = scan_body_deskewed(f, seq, imu)
-        T_gt = gt.interpolate(t_ref)[0]
+        scan = prepare_for_init(f, imu, seq.info)
+        T_gt = gt.interpolate(scan.stamp)[0]
         t = time.perf_counter()
-        res = loc.localize(pts, gravity_at(seq, t_ref), None, None, args.window, 360.0)
+        res = loc.localize(scan.points_body, scan.gravity_body, None, None, args.window, 360.0)
         dt = time.perf_counter() - t
         e_t, e_r = pose_error(res.T_map_body, T_gt) if res.T_map_body is not None else (math.inf, math.inf)
         reloc.append((int(i), e_t, e_r, dt, res.stats.get("regions_searched", 0), res.stats.get("regions", 0)))

@@ -33,10 +33,15 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def _provider_run(store, backend, positions, velocities, stamps, map_cfg):
+    import dataclasses
+
+    from blockloc.maps.policies import make_policy
     from blockloc.maps.provider import MapProvider
 
     resident, active, update_ms, switches = [], [], [], 0
-    with MapProvider.from_config(store, map_cfg, target_builder=None, backend=backend) as prov:
+    policy = make_policy(backend, store, **dataclasses.asdict(map_cfg))
+    with MapProvider(store, policy, prefetch=map_cfg.prefetch, lookahead_s=map_cfg.prefetch_lookahead_s,
+                     cache_mb=map_cfg.cache_mb) as prov:  # points only: no registration target
         for p, v, t in zip(positions, velocities, stamps):
             t0 = time.perf_counter()
             m = prov.update(p, v, t)
@@ -65,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     from blockloc.maps.grid_tiles import GridMapBuilder, tile_global_map
     from blockloc.maps.mapping import mapping_keyframes
     from blockloc.maps.pcd import write_pcd
-    from blockloc.maps.tools import overlap_ratio
+    from blockloc.maps.summary import overlap_ratio
 
     ap = argparse.ArgumentParser(prog="python -m bench.maps")
     ap.add_argument("--preset", default="campus")

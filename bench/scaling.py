@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from blockloc.fileio import atomic_write_text
+from blockloc.fileio import atomic_write_text, save_figure
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "bench" / "scaling.md"
@@ -100,10 +100,7 @@ def plot(results: dict, area0_km2: float, path: Path) -> None:
     axes[0].legend()
     fig.suptitle("Cost vs map size: the trajectory stays in the original area")
     fig.tight_layout()
-    tmp = path.with_name("." + path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
+    save_figure(fig, path, dpi=110)
 
 
 def main(argv=None) -> int:
@@ -122,7 +119,7 @@ def main(argv=None) -> int:
 
     from bench.__main__ import machine
     from blockloc.datasets import open_sequence
-    from blockloc.demo import prepare_small_world
+    from blockloc.commands.demo import prepare_small_world
     from blockloc.maps.store import open_map
 
     paths, cfg = prepare_small_world()
@@ -131,7 +128,7 @@ def main(argv=None) -> int:
     pitch = replication_pitch(block0, grid0, tile)
     scales = [int(s) for s in args.scales.split(",")]
     backends = [b for b in args.backends.split(",") if b]
-    seq_path = paths.dataset / "loc"
+    seq_path = paths.loc
     gt = open_sequence(seq_path, dataset_cfg=cfg.dataset).ground_truth()
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()

@@ -11,10 +11,11 @@ fragment measured is shown as "not measured", never estimated.
 from __future__ import annotations
 
 import json
-import re
 import sys
 import time
 from pathlib import Path
+
+from blockloc.fileio import atomic_write_text
 
 ROOT = Path(__file__).resolve().parent.parent
 FRAG = ROOT / "docs" / "bench"
@@ -167,9 +168,7 @@ def build() -> str:
 
 def main(argv=None) -> int:
     text = build()
-    tmp = OUT.with_suffix(".md.tmp")
-    tmp.write_text(text)
-    tmp.replace(OUT)
+    atomic_write_text(OUT, text)
     print(text)
     return 0
 

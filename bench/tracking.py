@@ -52,7 +52,7 @@ def grid_map(paths, cfg) -> Path:
         return out
     except MapError:
         pass
-    seq = open_sequence(paths.dataset / "map", dataset_cfg=cfg.dataset)
+    seq = open_sequence(paths.mapping, dataset_cfg=cfg.dataset)
     build_grid_map_from_sequence(seq, tile_size_m=cfg.map.tile_size_m, voxel_size_m=cfg.map.voxel_size_m,
                                  out=out, overwrite=True, progress=False)
     return out
@@ -100,11 +100,11 @@ def main(argv=None) -> int:
 
     from bench.__main__ import machine
     from blockloc.datasets import open_sequence
-    from blockloc.demo import prepare_small_world
+    from blockloc.commands.demo import prepare_small_world
 
     paths, cfg = prepare_small_world()
     block, grid = paths.block_map, grid_map(paths, cfg)
-    seq_path = paths.dataset / "loc"
+    seq_path = paths.loc
     gt = open_sequence(seq_path, dataset_cfg=cfg.dataset).ground_truth()
     backends = [b for b in args.backends.split(",") if b]
     skipped = []

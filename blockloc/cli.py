@@ -1,7 +1,9 @@
 """The ``blockloc`` command line: a thin typer app.
 
-Every command body imports what it needs lazily so ``blockloc --help`` stays instant; any
-BlocklocError becomes one ``error: ...`` line and exit code 2 (a traceback only with --debug).
+Options are declared here; every command body is in :mod:`blockloc.commands` and imported lazily,
+so ``blockloc --help`` stays instant. Errors end in one line and a non-zero exit, without a
+traceback unless ``--debug``: a BlocklocError (bad input, missing data, no match) exits 2 with
+``error: ...``; a usage error names the option and exits 2; Ctrl-C / SIGTERM exit 130 / 143.
 """
 
 from __future__ import annotations
@@ -11,9 +13,13 @@ import sys
 from pathlib import Path
 from typing import Optional
 
-import typer
+from blockloc.threads import limit_blas_threads
 
-from blockloc import __version__
+limit_blas_threads()  # before any command imports numpy
+
+import typer  # noqa: E402
+
+from blockloc import __version__  # noqa: E402
 
 app = typer.Typer(
     name="blockloc",
@@ -21,12 +27,21 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,
 )
-map_app = typer.Typer(help="Build, tile, inspect and serve map stores.", no_args_is_help=True)
+map_app = typer.Typer(help="Build, tile, inspect and serve map stores.", no_args_is_help=True,
+                      rich_markup_mode=None)
 app.add_typer(map_app, name="map")
 
 _state = {"debug": False}
 log = logging.getLogger("blockloc")
+
+# Option metavars shown in --help and usage lines.
+SEQ = "SEQ"
+MAP = "MAP"
+DIR = "DIR"
+FILE = "FILE"
+SET_HELP = "Override one setting, e.g. registration.method=vgicp (repeatable)."
 
 
 def _version(value: bool) -> None:
@@ -47,345 +62,338 @@ def _main(
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
 
 
-def _console():
-    from rich.console import Console
-
-    return Console()
-
-
 # ----------------------------------------------------------------------------- eval
-
-
 @app.command("eval")
 def eval_cmd(
-    gt: Path = typer.Option(..., "--gt", help="Ground truth: TUM, KITTI or NCLT groundtruth csv."),
-    est: Path = typer.Option(..., "--est", help="Estimate: TUM or KITTI."),
+    gt: Path = typer.Option(..., "--gt", metavar=FILE, help="Ground truth: TUM, KITTI or NCLT groundtruth csv."),
+    est: Path = typer.Option(..., "--est", metavar=FILE, help="Estimate: TUM or KITTI."),
     align: bool = typer.Option(False, "--align", help="Umeyama SE(3) alignment before ATE."),
     json_out: bool = typer.Option(False, "--json", help="Print one JSON object."),
-    plot: Optional[Path] = typer.Option(None, "--plot", help="Directory for PNG plots."),
-    max_time_diff: float = typer.Option(0.02, "--max-time-diff", help="Association tolerance, s."),
+    plot: Optional[Path] = typer.Option(None, "--plot", metavar=DIR, help="Directory for PNG plots."),
+    max_time_diff: float = typer.Option(0.02, "--max-time-diff", metavar="S", min=0.0,
+                                        help="Association tolerance, s."),
     interpolate: bool = typer.Option(False, "--interpolate",
                                      help="Interpolate ground truth to the estimate's stamps (else nearest)."),
-    rpe_deltas: str = typer.Option("1,10,100", "--rpe-deltas", help="RPE path-length deltas, m, comma separated."),
+    rpe_deltas: str = typer.Option("1,10,100", "--rpe-deltas", metavar="M,M,...",
+                                   help="RPE path-length deltas, m, comma separated."),
 ) -> None:
     """ATE (translation and full xyzrpy), rotation RMSE and RPE of an estimate against ground truth."""
-    from blockloc.evaluation.report import evaluate_files, parse_deltas, print_metrics
+    from blockloc.commands.eval import eval_command
 
-    metrics = evaluate_files(gt, est, align=align, max_time_diff_s=max_time_diff, plot_dir=plot,
-                             interpolate=interpolate, rpe_deltas_m=parse_deltas(rpe_deltas))
-    if json_out:
-        import json
+    if plot is not None:
+        from blockloc.fileio import check_output_dir
 
-        typer.echo(json.dumps(metrics))
-    else:
-        print_metrics(metrics, _console())
+        check_output_dir(plot, "--plot")  # before any work
+    eval_command(gt, est, align, json_out, plot, max_time_diff, interpolate, rpe_deltas)
 
 
 # ----------------------------------------------------------------------------- sim
 @app.command("sim")
 def sim_cmd(
-    preset: str = typer.Option("small", "--preset", help="World preset: small | campus."),
-    seed: int = typer.Option(1, "--seed", help="World and noise seed (same seed, same bytes)."),
-    out: Path = typer.Option(..., "--out", help="Output directory (replaced when complete)."),
-    fmt: str = typer.Option("nclt", "--format", help="nclt | rosbag1 | rosbag2."),
-    azimuth_steps: Optional[int] = typer.Option(None, "--azimuth-steps",
+    preset: str = typer.Option("small", "--preset", metavar="NAME", help="World preset: small | campus."),
+    seed: int = typer.Option(1, "--seed", metavar="N", min=0, help="World and noise seed (same seed, same bytes)."),
+    out: Path = typer.Option(..., "--out", metavar=DIR, help="Output directory (replaced when complete)."),
+    fmt: str = typer.Option("nclt", "--format", metavar="FORMAT", help="nclt | rosbag1 | rosbag2."),
+    azimuth_steps: Optional[int] = typer.Option(None, "--azimuth-steps", metavar="N", min=8,
                                                 help="Columns per revolution (preset default)."),
 ) -> None:
     """Simulate a world and write its sessions (map, loc[, loc2]) with HDL-32E scans, IMU and ground truth."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+    from blockloc.commands.sim import sim_command
 
-    from blockloc.sim.writer import generate_dataset
+    sim_command(preset, seed, out, fmt, azimuth_steps)
 
-    overrides = {} if azimuth_steps is None else {"azimuth_steps": azimuth_steps}
-    tasks: dict = {}
-    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                  TimeRemainingColumn(), console=_console()) as bar:
-        def progress(session: str, done: int, total: int) -> None:
-            if session not in tasks:
-                tasks[session] = bar.add_task(f"sim {preset}/{session}", total=total)
-            bar.update(tasks[session], completed=done)
-
-        path = generate_dataset(preset, seed, out, fmt, progress=progress, **overrides)
-    typer.echo(f"wrote {path}")
-
-
-# @sim-commands (anchor: the sim stage adds its command above this line)
 
 # ----------------------------------------------------------------------------- map
 @map_app.command("build")
 def map_build_cmd(
-    seq: str = typer.Option(..., "--seq", help="Mapping sequence: name (nclt_2, sim:small/map) or path."),
-    kind: str = typer.Option("block", "--kind", help="block | grid"),
-    out: Path = typer.Option(..., "--out", help="Output map directory (written atomically)."),
-    config: Optional[str] = typer.Option(None, "--config", help="Config file or preset name."),
-    data_root: Optional[str] = typer.Option(None, "--data-root", help="Root of the datasets."),
-    block_size: Optional[float] = typer.Option(None, "--block-size", help="Block size S, m."),
-    tile_size: Optional[float] = typer.Option(None, "--tile-size", help="Grid tile side, m."),
-    voxel: Optional[float] = typer.Option(None, "--voxel", help="Voxel filter size, m."),
-    max_frames: Optional[int] = typer.Option(None, "--max-frames", help="Use only the first N frames."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing map."),
+    seq: Optional[str] = typer.Option(None, "--seq", metavar=SEQ,
+                                      help="Mapping sequence: name (nclt_2, sim:small/map) or path."),
+    poses: Optional[Path] = typer.Option(None, "--poses", metavar=FILE,
+                                         help="Mapping trajectory (TUM, KITTI): T_map_body at the scans' stamps."),
+    from_pcd: Optional[Path] = typer.Option(None, "--from-pcd", metavar=FILE,
+                                            help="Build from a global map PCD and --poses instead of --seq."),
+    sensor_range: float = typer.Option(60.0, "--sensor-range", metavar="M", min=0.0,
+                                       help="With --from-pcd: what a keyframe sees, m."),
+    kind: str = typer.Option("block", "--kind", metavar="KIND", help="block | grid"),
+    out: Path = typer.Option(..., "--out", metavar=DIR, help="Output map directory (written atomically)."),
+    config: Optional[str] = typer.Option(None, "--config", metavar=FILE, help="Config file or preset name."),
+    data_root: Optional[str] = typer.Option(None, "--data-root", metavar=DIR, help="Root of the datasets."),
+    block_size: Optional[float] = typer.Option(None, "--block-size", metavar="M", min=0.0, help="Block size S, m."),
+    tile_size: Optional[float] = typer.Option(None, "--tile-size", metavar="M", min=0.0, help="Grid tile side, m."),
+    voxel: Optional[float] = typer.Option(None, "--voxel", metavar="M", min=0.0,
+                                          help="Voxel filter size, m (0: no filter)."),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", metavar="N", min=1,
+                                             help="Use only the first N frames."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing map store at --out (only a map store)."),
 ) -> None:
-    """Build a block map or grid tiles from a mapping sequence and its poses."""
-    import dataclasses
+    """Build a block map or grid tiles from a mapping sequence and its poses (or a global PCD)."""
+    from blockloc.commands.map import build_command
 
-    from blockloc.datasets import open_sequence
-    from blockloc.maps.tools import build_map, map_summary, print_summary
-
-    from blockloc.config import load_config_for_sequence
-
-    cfg = load_config_for_sequence(seq, config)
-    overrides = {k: v for k, v in (("block_size_m", block_size), ("tile_size_m", tile_size),
-                                   ("voxel_size_m", voxel)) if v is not None}
-    map_cfg = dataclasses.replace(cfg.map, **overrides)
-    sequence = open_sequence(seq, data_root=data_root, dataset_cfg=cfg.dataset)
-    store = build_map(sequence, kind, out, map_cfg, overwrite=overwrite, max_frames=max_frames)
-    print_summary(map_summary(store), _console())
+    build_command(seq, kind, out, config, data_root, block_size, tile_size, voxel, max_frames, overwrite,
+                  poses=poses, from_pcd=from_pcd, sensor_range_m=sensor_range)
 
 
 @map_app.command("tile")
 def map_tile_cmd(
-    global_pcd: Path = typer.Argument(..., help="Global map PCD file."),
-    tile_size: float = typer.Option(..., "--tile-size", help="Tile side, m."),
-    out: Path = typer.Option(..., "--out", help="Output map directory (written atomically)."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing map."),
+    global_pcd: Path = typer.Argument(..., metavar="GLOBAL_PCD", help="Global map PCD file."),
+    tile_size: float = typer.Option(..., "--tile-size", metavar="M", min=0.0, help="Tile side, m."),
+    out: Path = typer.Option(..., "--out", metavar=DIR, help="Output map directory (written atomically)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing map store at --out (only a map store)."),
 ) -> None:
     """Cut a global PCD map into grid-puzzle tiles named by their centre (Autoware metadata too)."""
-    from blockloc.maps.grid_tiles import tile_pcd_file
-    from blockloc.maps.tools import map_summary, print_summary
+    from blockloc.commands.map import tile_command
 
-    store = tile_pcd_file(global_pcd, tile_size, out, overwrite=overwrite, progress=True)
-    print_summary(map_summary(store), _console())
+    tile_command(global_pcd, tile_size, out, overwrite)
+
+
+@map_app.command("index")
+def map_index_cmd(
+    map_path: str = typer.Argument(..., metavar=MAP, help="Local map directory."),
+    gravity: Optional[str] = typer.Option(None, "--gravity", metavar="down|up|X,Y,Z",
+                                          help="Gravity in the map frame (default: the mapping sequence's)."),
+    config: Optional[str] = typer.Option(None, "--config", metavar=FILE, help="Config file or preset name."),
+) -> None:
+    """Build (or rebuild) the place index of a map: no-hint relocalization."""
+    from blockloc.commands.map import index_command
+
+    index_command(map_path, gravity, config)
 
 
 @map_app.command("info")
 def map_info_cmd(
-    map_path: str = typer.Argument(..., help="Map directory (or URL)."),
+    map_path: str = typer.Argument(..., metavar=MAP, help="Map directory (or URL)."),
     json_out: bool = typer.Option(False, "--json", help="Print one JSON object."),
     quick: bool = typer.Option(False, "--quick", help="Skip the overlap ratio (reads every file)."),
 ) -> None:
     """Blocks/tiles, points, bytes and overlap ratio of a map."""
-    from blockloc.maps.store import open_map
-    from blockloc.maps.tools import map_summary, print_summary
+    from blockloc.commands.map import info_command
 
-    summary = map_summary(open_map(map_path), with_overlap=not quick)
-    if json_out:
-        import json
-
-        typer.echo(json.dumps(summary))
-    else:
-        print_summary(summary, _console())
+    info_command(map_path, json_out, quick)
 
 
 @map_app.command("plot")
 def map_plot_cmd(
-    map_path: str = typer.Argument(..., help="Map directory (or URL)."),
-    seq: Optional[str] = typer.Option(None, "--seq", help="Sequence whose trajectory to draw."),
-    out: Optional[Path] = typer.Option(None, "--out", help="PNG path (default: <map>.png)."),
-    data_root: Optional[str] = typer.Option(None, "--data-root", help="Root of the datasets."),
+    map_path: str = typer.Argument(..., metavar=MAP, help="Map directory (or URL)."),
+    seq: Optional[str] = typer.Option(None, "--seq", metavar=SEQ, help="Sequence whose trajectory to draw."),
+    out: Optional[Path] = typer.Option(None, "--out", metavar=FILE, help="PNG path (default: <map>.png)."),
+    data_root: Optional[str] = typer.Option(None, "--data-root", metavar=DIR, help="Root of the datasets."),
 ) -> None:
     """PNG of the blocks/tiles from above, with a sequence's trajectory."""
-    from blockloc.maps.store import open_map
-    from blockloc.maps.tools import plot_map
+    from blockloc.commands.map import plot_command
 
-    store = open_map(map_path)
-    traj = None
-    if seq:
-        from blockloc.datasets import open_sequence
-
-        s = open_sequence(seq, data_root=data_root)
-        traj = s.ground_truth() or s.mapping_poses()
-    png = out or Path(str(map_path).rstrip("/") + ".png")
-    typer.echo(str(plot_map(store, png, traj)))
+    plot_command(map_path, seq, out, data_root)
 
 
 @map_app.command("serve")
 def map_serve_cmd(
-    map_path: Path = typer.Argument(..., help="Map store directory, or a directory of map stores."),
-    host: str = typer.Option("127.0.0.1", "--host", help="Address to bind (loopback by default)."),
-    port: int = typer.Option(8765, "--port", help="TCP port (0: any free port)."),
+    map_path: Path = typer.Argument(..., metavar=MAP, help="Map store directory, or a directory of map stores."),
+    host: str = typer.Option("127.0.0.1", "--host", metavar="ADDRESS", help="Address to bind (loopback by default)."),
+    port: int = typer.Option(8765, "--port", metavar="PORT", min=0, max=65535, help="TCP port (0: any free port)."),
 ) -> None:
     """Serve a map store read-only over HTTP (GET/HEAD, ETag/304, Range) until Ctrl-C."""
-    from blockloc.maps.server import serve
+    from blockloc.commands.map import serve_command
 
-    def ready(url: str, stores: list) -> None:
-        for s in stores:
-            typer.echo(f"serving {url}/{s + '/' if s else ''}", err=True)
-        typer.echo("press Ctrl-C to stop", err=True)
+    serve_command(map_path, host, port)
 
-    serve(map_path, host, port, on_ready=ready)
-
-
-# @map-commands (anchor: the maps stage adds its commands above this line)
 
 # ----------------------------------------------------------------------------- init
 @app.command("init")
 def init_cmd(
-    seq: str = typer.Option(..., "--seq", help="Sequence name (sim:small/loc, nclt_2, ...) or path."),
-    frame: int = typer.Option(..., "--frame", help="0-based index of the LiDAR scan (time order)."),
-    map_path: str = typer.Option(..., "--map", help="Map store directory or URL."),
-    pose_hint: Optional[str] = typer.Option(None, "--pose-hint",
+    seq: str = typer.Option(..., "--seq", metavar=SEQ, help="Sequence name (sim:small/loc, nclt_2, ...) or path."),
+    frame: int = typer.Option(..., "--frame", metavar="N", min=0, help="0-based index of the LiDAR scan (time order)."),
+    map_path: str = typer.Option(..., "--map", metavar=MAP, help="Map store directory or URL."),
+    pose_hint: Optional[str] = typer.Option(None, "--pose-hint", metavar="X,Y[,YAW]",
                                             help="x,y[,yaw] in the map frame (m, rad); none: whole map."),
-    window: Optional[float] = typer.Option(None, "--window", help="Search window side, m (default 40)."),
-    yaw_window: Optional[float] = typer.Option(None, "--yaw-window", help="Yaw window around the hint, deg."),
+    window: Optional[float] = typer.Option(None, "--window", metavar="M", min=0.0,
+                                           help="Search window side, m (default 40)."),
+    yaw_window: Optional[float] = typer.Option(None, "--yaw-window", metavar="DEG", min=0.0, max=360.0,
+                                               help="Yaw window around the hint, deg."),
     json_out: bool = typer.Option(False, "--json", help="Print one JSON object."),
-    data_root: Optional[str] = typer.Option(None, "--data-root", help="Root of the datasets."),
-    config: Optional[str] = typer.Option(None, "--config", help="Config file or preset name."),
+    data_root: Optional[str] = typer.Option(None, "--data-root", metavar=DIR, help="Root of the datasets."),
+    config: Optional[str] = typer.Option(None, "--config", metavar=FILE, help="Config file or preset name."),
+    poses: Optional[Path] = typer.Option(None, "--poses", metavar=FILE,
+                                         help="Reference trajectory (TUM, KITTI): reports the error."),
+    sets: Optional[list[str]] = typer.Option(None, "--set", metavar="SECTION.KEY=VALUE", help=SET_HELP),
 ) -> None:
-    """Global initialization: the body's pose in the map by branch-and-bound + NDT verification."""
-    from blockloc.errors import GlobalInitError
-    from blockloc.global_init.command import print_result, run_init, to_json
+    """Global initialization: the body's pose in the map by branch-and-bound + verification."""
+    from blockloc.commands.init import init_command
 
-    res, summ = run_init(seq, frame, map_path, pose_hint, window, yaw_window, config, data_root)
-    if json_out:
-        typer.echo(to_json(summ))
-    else:
-        print_result(summ, _console())
-    if not res.verified:
-        raise GlobalInitError(f"no verified match (best score {res.score:.3f}, fitness {res.fitness:.3f})")
+    init_command(seq, frame, map_path, pose_hint, window, yaw_window, json_out, data_root, config, poses, sets)
 
-
-# @init-commands (anchor: the global-init stage adds its command above this line)
 
 # ----------------------------------------------------------------------------- track / demo
-def _results_dir(out: Optional[Path], name: str) -> Path:
-    import time as _time
-
-    if out is not None:
-        return out
-    safe = name.replace(":", "_").replace("/", "_").replace("@", "_")
-    return Path("results") / f"{safe}_{_time.strftime('%Y%m%d-%H%M%S')}"
-
-
-def _track_progress(console, label: str):
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-    prog = Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                    console=console, transient=True)
-    task = prog.add_task(label, total=None)
-    return prog, (lambda done, total: prog.update(task, completed=done, total=total))
-
-
-def _print_track_summary(console, m: dict, out: Optional[Path]) -> None:
-    from rich.table import Table
-
-    def f(v, fmt="{:.3f}"):
-        return "-" if v is None else (fmt.format(v) if isinstance(v, float) else str(v))
-
-    t = Table(title=f"blockloc track: {m.get('sequence')} ({m.get('backend')} map)", show_header=False)
-    t.add_column(style="bold")
-    t.add_column(justify="right")
-    init = m.get("init") or {}
-    rows = [("frames", f(m.get("frames"))), ("init", f(init.get("mode"))),
-            ("init error (m)", f(init.get("error_m"))),
-            ("ATE translation RMSE (m)", f(m.get("ate_trans_rmse_m"))),
-            ("ATE full RMSE", f(m.get("ate_full_rmse"))), ("ATE rotation RMSE (deg)", f(m.get("ate_rot_rmse_deg"))),
-            ("failures / recoveries", f"{m.get('failures')} / {m.get('recoveries')}"),
-            ("map switches", f(m.get("switches"))),
-            ("update median / p99 (ms)", f"{f(m.get('update_ms_median'), '{:.1f}')} / {f(m.get('update_ms_p99'), '{:.1f}')}"),
-            ("peak RSS (MB)", f(m.get("peak_rss_mb"), "{:.0f}"))]
-    for k, v in rows:
-        if v != "-" or k.startswith("ATE"):
-            t.add_row(k, v)
-    console.print(t)
-    if out is not None:
-        console.print(f"results in {out}")
-
-
 @app.command("track")
 def track_cmd(
-    seq: str = typer.Option(..., "--seq", help="Sequence: sim:small/loc, nclt_2, m2dgr_1, or a path."),
-    map_path: Optional[str] = typer.Option(None, "--map", help="Map store (default: the sequence's map)."),
-    backend: Optional[str] = typer.Option(None, "--map-backend", help="block | grid | srt | global."),
-    init: Optional[str] = typer.Option(None, "--init", help="gt: start at the first ground-truth pose."),
-    init_pose: Optional[str] = typer.Option(None, "--init-pose", help="x,y[,yaw]: global init around a hint."),
-    out: Optional[Path] = typer.Option(None, "--out", help="Results directory (default results/<seq>_<time>)."),
-    config: Optional[str] = typer.Option(None, "--config", help="Config file or preset name."),
-    data_root: Optional[str] = typer.Option(None, "--data-root", help="Root of NCLT / M2DGR data."),
-    max_frames: Optional[int] = typer.Option(None, "--max-frames", help="Stop after this many frames."),
+    seq: str = typer.Option(..., "--seq", metavar=SEQ, help="Sequence: sim:small/loc, nclt_2, m2dgr_1, or a path."),
+    map_path: Optional[str] = typer.Option(None, "--map", metavar=MAP, help="Map store (default: the sequence's map)."),
+    backend: Optional[str] = typer.Option(None, "--map-backend", metavar="BACKEND", help="block | grid | srt | global."),
+    init: Optional[str] = typer.Option(None, "--init", metavar="gt", help="gt: start at the first ground-truth pose."),
+    init_pose: Optional[str] = typer.Option(None, "--init-pose", metavar="X,Y[,YAW]",
+                                            help="x,y[,yaw]: global init around a hint."),
+    out: Optional[Path] = typer.Option(None, "--out", metavar=DIR, help="Results directory (default results/<seq>_<time>)."),
+    config: Optional[str] = typer.Option(None, "--config", metavar=FILE, help="Config file or preset name."),
+    data_root: Optional[str] = typer.Option(None, "--data-root", metavar=DIR, help="Root of NCLT / M2DGR data."),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", metavar="N", min=1,
+                                             help="Stop after this many frames."),
+    lidar_topic: Optional[str] = typer.Option(None, "--lidar-topic", metavar="TOPIC",
+                                              help="ROS bags: the PointCloud2 topic (default from the config)."),
+    imu_topic: Optional[str] = typer.Option(None, "--imu-topic", metavar="TOPIC",
+                                            help="ROS bags: the Imu topic (default from the config)."),
+    poses: Optional[Path] = typer.Option(None, "--poses", metavar=FILE,
+                                         help="Reference trajectory (TUM, KITTI): ground truth for --init gt and the metrics."),
+    no_imu: bool = typer.Option(False, "--no-imu", help="Ignore the IMU: LiDAR-only tracking (a motion prior)."),
+    sets: Optional[list[str]] = typer.Option(None, "--set", metavar="SECTION.KEY=VALUE", help=SET_HELP),
+    record: Optional[Path] = typer.Option(None, "--record", metavar="FILE",
+                                          help="MCAP recording for Foxglove / ROS 2 (default: run.mcap in --out)."),
+    no_record: bool = typer.Option(False, "--no-record", help="Write no MCAP recording."),
+    live: bool = typer.Option(False, "--live", help="Serve the run live to Foxglove over WebSocket."),
+    host: str = typer.Option("127.0.0.1", "--host", metavar="ADDRESS", help="--live: address to bind (loopback)."),
+    port: int = typer.Option(8765, "--port", metavar="PORT", help="--live: TCP port (0: any free port)."),
 ) -> None:
-    """Track a sequence in a prior map (sliding-window IMU + NDT); writes poses, metrics and plots."""
-    from blockloc.config import load_config_for_sequence
-    from blockloc.errors import TrackingError
-    from blockloc.pipeline import LocalizationPipeline, parse_init_pose
+    """Track a sequence in a prior map (sliding-window IMU + scan-to-map factors); writes poses, metrics,
+    plots, an MCAP recording and report.html."""
+    from blockloc.commands.track import track_command
 
-    if init not in (None, "gt"):
-        raise TrackingError(f"--init {init!r}: expected 'gt' (or use --init-pose x,y[,yaw])")
-    if init and init_pose:
-        raise TrackingError("--init gt and --init-pose exclude each other")
-    cfg = load_config_for_sequence(seq, config)
-    mode = "gt" if init else ("pose" if init_pose else "global")
-    console = _console()
-    out_dir = _results_dir(out, seq)
-    prog, cb = _track_progress(console, "tracking")
-    pipe = LocalizationPipeline(seq, cfg=cfg, map_path=map_path, backend=backend, init=mode,
-                                init_pose=parse_init_pose(init_pose) if init_pose else None, out=out_dir,
-                                data_root=data_root, progress=cb, max_frames=max_frames)
-    with prog:
-        res = pipe.run()
-    _print_track_summary(console, res.metrics, res.out_dir)
+    track_command(seq, map_path, backend, init, init_pose, out, config, data_root, max_frames,
+                  lidar_topic, imu_topic, poses=poses, sets=(sets or []) + (["tracking.use_imu=false"] if no_imu else []),
+                  record=not no_record, record_path=record, live=live, host=host, port=port)
 
 
 @app.command("demo")
 def demo_cmd(
-    out: Optional[Path] = typer.Option(None, "--out", help="Results directory (default results/demo_<time>)."),
-    max_frames: Optional[int] = typer.Option(None, "--max-frames", help="Track only this many frames."),
+    out: Optional[Path] = typer.Option(None, "--out", metavar=DIR, help="Results directory (default results/demo_<time>)."),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", metavar="N", min=1,
+                                             help="Track only this many frames."),
+    no_record: bool = typer.Option(False, "--no-record", help="Write no MCAP recording."),
 ) -> None:
-    """Simulate the small world, build its block map, localize from a rough hint, track, evaluate."""
-    from blockloc.demo import run_demo
+    """Simulate the small world, build its block map, localize from a rough hint, track, evaluate;
+    writes the results folder with report.html and a Foxglove recording."""
+    from blockloc.commands.demo import demo_command
 
-    console = _console()
-    out_dir = _results_dir(out, "demo")
-    prog, cb = _track_progress(console, "tracking")
-    say = lambda msg: console.print(f"[bold cyan]demo[/] {msg}")  # noqa: E731
-    started = []
+    demo_command(out, max_frames, record=not no_record)
 
-    def progress(done, total):
-        if not started:
-            started.append(prog.start())
-        cb(done, total)
 
+@app.command("view")
+def view_cmd(
+    run_dir: Path = typer.Argument(..., metavar=DIR, help="A results folder (or one .mcap file)."),
+) -> None:
+    """How to look at a run: the recording and layout in Foxglove, the live server, report.html."""
+    from blockloc.viz.layout import view_instructions
+
+    print(view_instructions(run_dir))
+
+
+def _click_exception_modules() -> list:
+    """The exception modules of the click typer runs on: typer >= 0.29 vendors its own
+    (``typer._click``), older ones use click itself; both are handled."""
+    mods = [sys.modules[typer.BadParameter.__module__]]
     try:
-        res = run_demo(out_dir, say=say, progress=progress, max_frames=max_frames)
-    finally:
-        prog.stop()
-    init = res.metrics.get("init") or {}
-    if init.get("time_s") is not None:
-        say(f"global init: {init.get('error_m', float('nan')):.2f} m from the truth in {init['time_s']:.2f} s")
-    _print_track_summary(console, res.metrics, res.out_dir)
+        import click
+    except ImportError:  # typer >= 0.29 does not need click
+        return mods
+    if click.exceptions not in mods:
+        mods.append(click.exceptions)
+    return mods
 
 
-# @track-commands (anchor: the tracking stage adds its commands above this line)
+def _classes(name: str) -> tuple:
+    return tuple(getattr(m, name) for m in _click_exception_modules() if hasattr(m, name))
+
+
+def _usage_error(exc) -> str:
+    """One line for a click usage error, naming the option (or argument) it concerns."""
+    param = getattr(exc, "param", None)
+    name = None
+    if param is not None and getattr(param, "param_type_name", None) == "argument":
+        name = getattr(param, "metavar", None) or getattr(param, "name", None)  # as --help shows it
+    elif param is not None:
+        name = "/".join(getattr(param, "opts", []) or []) or getattr(param, "human_readable_name", None)
+    if isinstance(exc, _classes("MissingParameter")):
+        return f"missing {name or 'a required value'}" + (f" ({param.help})" if getattr(param, "help", None) else "")
+    if isinstance(exc, _classes("NoSuchOption")):
+        msg = f"no such option {exc.option_name}"
+        if exc.possibilities:
+            msg += f" (did you mean {', '.join(sorted(exc.possibilities))}?)"
+        return msg
+    message = exc.format_message() if hasattr(exc, "format_message") else str(exc)
+    if name and name not in message:
+        return f"{name}: {message}"
+    return message
+
+
+def _end_progress_bars() -> None:
+    """Close the tqdm bars an error left open (a bar redraws with \\r and ends no line), so the
+    message starts a line of its own and no bar is redrawn after it."""
+    tqdm = sys.modules.get("tqdm")
+    for bar in list(getattr(getattr(tqdm, "tqdm", None), "_instances", ()) or ()):
+        try:
+            bar.close()
+        except Exception:  # noqa: BLE001 - a bar that cannot close must not hide the message
+            pass
+
+
+def _say(message: str) -> None:
+    _end_progress_bars()
+    typer.echo(message, err=True)
 
 
 def main() -> None:
-    """Console-script entry point: run the app, turn known errors into one line."""
+    """Console-script entry point: run the app, turn known errors into one line.
+
+    SIGINT and SIGTERM raise ``Stopped`` (blockloc.commands.common), which unwinds the command
+    (temp directories removed, a tracking run's partial results kept) and exits 130 / 143."""
+    from blockloc.commands.common import RECEIVED, Interrupted, Stopped, install_signal_handlers
     from blockloc.errors import BlocklocError
 
+    install_signal_handlers()
     try:
-        app(standalone_mode=False)
+        try:
+            code = app(standalone_mode=False)
+        except (Exception, KeyboardInterrupt):
+            if RECEIVED:  # the Stopped a signal raised became another error where it landed
+                raise Stopped(RECEIVED[-1]) from None
+            raise
+        if RECEIVED:  # ... or was swallowed, and the command went on to its end
+            raise Stopped(RECEIVED[-1])
+        # typer >= 0.29 without standalone mode returns the code of an Exit (and turns a
+        # KeyboardInterrupt into Exit(130)) instead of exiting with it
+        if isinstance(code, int) and code:
+            if code == 130:
+                _say("interrupted")
+            sys.exit(code)
+    except Stopped as exc:
+        _say(f"interrupted ({exc})")
+        sys.exit(exc.exit_code)
+    except Interrupted as exc:  # stopped after saving what was computed: the message says where
+        _say(str(exc))
+        sys.exit(exc.exit_code)
     except BlocklocError as exc:
         if _state["debug"]:
             raise
-        typer.echo(f"error: {exc}", err=True)
+        _say(f"error: {exc}")
+        sys.exit(getattr(exc, "exit_code", 2))
+    except _classes("UsageError") as exc:
+        if type(exc).__name__ == "NoArgsIsHelpError":  # a group without its command: its help
+            typer.echo(exc.format_message(), err=True)
+            sys.exit(2)
+        ctx = getattr(exc, "ctx", None)
+        where = ctx.command_path if ctx is not None else "blockloc"
+        _say(f"error: {_usage_error(exc)} (see '{where} --help')")
         sys.exit(2)
-    except (typer.Exit, SystemExit) as exc:
-        code = getattr(exc, "exit_code", getattr(exc, "code", 0))
-        sys.exit(code or 0)
-    except typer.Abort:
-        typer.echo("aborted", err=True)
+    except _classes("Abort") + (KeyboardInterrupt,):
+        _say("interrupted")
         sys.exit(130)
-    except KeyboardInterrupt:
-        typer.echo("interrupted", err=True)
-        sys.exit(130)
-    except Exception as exc:  # click usage errors and the unexpected
-        import click
-
-        if isinstance(exc, click.exceptions.ClickException):
-            exc.show()
-            sys.exit(exc.exit_code)
+    except _classes("Exit") + (typer.Exit,) as exc:
+        sys.exit(getattr(exc, "exit_code", 0) or 0)
+    except _classes("ClickException") as exc:
+        _say(f"error: {exc.format_message()}")
+        sys.exit(getattr(exc, "exit_code", 1))
+    except SystemExit:
+        raise
+    except Exception as exc:  # the unexpected: one line, the traceback with --debug
         if _state["debug"]:
             raise
-        typer.echo(f"error: {type(exc).__name__}: {exc} (rerun with --debug for a traceback)", err=True)
+        _say(f"error: {type(exc).__name__}: {exc} (rerun with --debug for a traceback)")
         sys.exit(1)
 
 

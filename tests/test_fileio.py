@@ -32,16 +32,40 @@ def test_atomic_dir_replaces_whole_or_not_at_all(tmp_path):
 
     out = tmp_path / "session"
     with atomic_dir(out) as tmp:
-        (tmp / "a").write_text("1")
+        (tmp / "sim.json").write_text("1")  # blockloc's own output carries a marker
     with pytest.raises(RuntimeError):
         with atomic_dir(out) as tmp:
             (tmp / "b").write_text("2")
             raise RuntimeError("interrupted")
-    assert sorted(p.name for p in out.iterdir()) == ["a"]
+    assert sorted(p.name for p in out.iterdir()) == ["sim.json"]
     with atomic_dir(out) as tmp:
-        (tmp / "c").write_text("3")
-    assert sorted(p.name for p in out.iterdir()) == ["c"]
+        (tmp / "metrics.json").write_text("3")
+    assert sorted(p.name for p in out.iterdir()) == ["metrics.json"]
     assert [p.name for p in tmp_path.iterdir()] == ["session"]
+
+
+def test_a_directory_blockloc_did_not_make_is_never_replaced(tmp_path):
+    from blockloc.errors import BlocklocError
+    from blockloc.fileio import atomic_dir, check_replaceable, is_blockloc_output
+
+    mine = tmp_path / "thesis"
+    mine.mkdir()
+    (mine / "thesis.tex").write_text("years of work")
+    assert not is_blockloc_output(mine) and is_blockloc_output(tmp_path / "nothing") is False
+    with pytest.raises(BlocklocError, match=r"--out .*thesis: a directory blockloc did not make"):
+        check_replaceable(mine)
+    with pytest.raises(BlocklocError, match="did not make"):
+        with atomic_dir(mine) as tmp:
+            (tmp / "manifest.json").write_text("{}")
+    assert (mine / "thesis.tex").read_text() == "years of work"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["thesis"]  # the temp dir is gone too
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("x")
+    with pytest.raises(BlocklocError, match="not a directory"):
+        check_replaceable(a_file)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    check_replaceable(empty)  # an empty directory may be written into
 
 
 def test_to_jsonable_makes_numpy_and_nan_valid_json():

@@ -28,31 +28,12 @@ from blockloc.geometry import Trajectory
 log = logging.getLogger(__name__)
 
 DEFAULT_RPE_DELTAS_M = (1.0, 10.0, 100.0)
-_STATS = ("rmse", "mean", "median", "std", "max")
+ATE_STATS = ("rmse", "mean", "median", "std", "max")
 
 
 def rpe_key(delta_m: float) -> str:
     """Key prefix of one RPE delta, e.g. 10.0 -> 'rpe_10m'."""
     return f"rpe_{delta_m:g}m"
-
-
-def parse_deltas(text: str) -> tuple[float, ...]:
-    """'1,10,100' -> (1.0, 10.0, 100.0); an empty string -> () (no RPE)."""
-    try:
-        deltas = tuple(float(v) for v in text.replace(" ", "").split(",") if v)
-    except ValueError:
-        raise EvaluationError(f"RPE deltas {text!r}: expected positive distances in metres, e.g. 1,10,100") from None
-    if any(not d > 0 for d in deltas):
-        raise EvaluationError(f"RPE deltas {text!r}: expected positive distances in metres, e.g. 1,10,100")
-    return deltas
-
-
-def evaluate_with_config(gt: Trajectory, est: Trajectory, cfg, *, plot_dir: Path | None = None
-                         ) -> dict[str, Any]:
-    """``evaluate_trajectories`` with the ``evaluation`` config section (``EvaluationConfig``):
-    align, max_time_diff_s, rpe_deltas_m; plots only when ``cfg.plots`` and plot_dir is given."""
-    return evaluate_trajectories(gt, est, align=cfg.align, max_time_diff_s=cfg.max_time_diff_s,
-                                 rpe_deltas_m=cfg.rpe_deltas_m, plot_dir=plot_dir if cfg.plots else None)
 
 
 def _span(stamps: np.ndarray) -> str:
@@ -129,7 +110,7 @@ def evaluate_trajectories(gt: Trajectory, est: Trajectory, *, align: bool = Fals
     }
     stats = ate.stats()
     for name, field, unit in (("trans", "trans_m", "_m"), ("full", "full", ""), ("rot", "rot_deg", "_deg")):
-        for s in _STATS:
+        for s in ATE_STATS:
             out[f"ate_{name}_{s}{unit}"] = stats[field][s]
 
     deltas = [float(d) for d in rpe_deltas_m]
@@ -190,54 +171,3 @@ def evaluate_files(gt: Path, est: Path, *, align: bool = False, max_time_diff_s:
     except EvaluationError as exc:
         raise EvaluationError(f"{est} vs {gt}: {exc}") from None
     return {"gt_file": str(gt), "est_file": str(est), **out}
-
-
-def _fmt(value: Any, digits: int = 4) -> str:
-    if value is None:
-        return "-"
-    if isinstance(value, float):
-        return f"{value:.{digits}f}"
-    return str(value)
-
-
-def print_metrics(metrics: dict[str, Any], console) -> None:
-    """Print ``metrics`` (from ``evaluate_*``) as rich tables on ``console``."""
-    from rich.markup import escape
-    from rich.table import Table
-
-    head = Table(title="trajectory evaluation", show_header=False, box=None)
-    head.add_column("what", style="bold")
-    head.add_column("value")
-    for key in ("gt_file", "est_file"):
-        if key in metrics:
-            head.add_row(key.replace("_", " "), escape(str(metrics[key])))
-    head.add_row("matched", f"{metrics['matched']} of {metrics['est_poses']} estimated "
-                            f"({metrics['gt_poses']} ground truth), by {metrics['association']}")
-    if metrics.get("duration_s") is not None:
-        head.add_row("duration", f"{metrics['duration_s']:.1f} s")
-    head.add_row("path length", f"{metrics['path_length_m']:.1f} m")
-    head.add_row("aligned", "yes (Umeyama SE(3))" if metrics["aligned"] else "no (map frame)")
-    console.print(head)
-
-    ate = Table(title="ATE (absolute pose error)")
-    ate.add_column("error")
-    for s in _STATS:
-        ate.add_column(s, justify="right")
-    ate.add_row(escape("translation [m]"), *[_fmt(metrics[f"ate_trans_{s}_m"]) for s in _STATS])
-    ate.add_row(escape("full ||E-I||_F"), *[_fmt(metrics[f"ate_full_{s}"]) for s in _STATS])
-    ate.add_row(escape("rotation [deg]"), *[_fmt(metrics[f"ate_rot_{s}_deg"], 3) for s in _STATS])
-    console.print(ate)
-
-    rpe = Table(title="RPE (relative pose error over path length)")
-    for col in ("delta", "pairs", "trans RMSE\n[m]", "trans mean\n[%]", "rot RMSE\n[deg]", "rot mean\n[deg/m]"):
-        rpe.add_column(escape(col), justify="right")
-    for delta in metrics.get("rpe_deltas_m", []):
-        k = rpe_key(delta)
-        rpe.add_row(f"{delta:g} m", _fmt(metrics[f"{k}_pairs"]), _fmt(metrics[f"{k}_trans_rmse_m"]),
-                    _fmt(metrics[f"{k}_trans_mean_pct"], 2), _fmt(metrics[f"{k}_rot_rmse_deg"], 3),
-                    _fmt(metrics[f"{k}_rot_mean_deg_per_m"], 4))
-    console.print(rpe)
-    for note in metrics.get("notes", []):
-        console.print(f"note: {escape(note)}", style="yellow")
-    for plot in metrics.get("plots", []):
-        console.print(f"plot: {escape(plot)}")

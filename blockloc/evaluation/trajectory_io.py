@@ -173,14 +173,21 @@ def read_tum(path: str | Path) -> Trajectory:
     return _sorted_unique(path, data[:, 0], poses)
 
 
+TUM_HEADER = "# timestamp x y z qx qy qz qw"
+
+
+def tum_lines(stamps: np.ndarray, poses: np.ndarray) -> list[str]:
+    """TUM rows (no newline) for stamps (N,) s and poses (N, 4, 4): stamps to 1 ns, positions to
+    1 nm, quaternions (x y z w) to 1e-12."""
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    q = R_to_quat_xyzw(poses[:, :3, :3]) if len(poses) else np.zeros((0, 4))
+    return [f"{t:.9f} {x:.9f} {y:.9f} {z:.9f} {qx:.12f} {qy:.12f} {qz:.12f} {qw:.12f}"
+            for t, (x, y, z), (qx, qy, qz, qw) in zip(np.asarray(stamps), poses[:, :3, 3], q)]
+
+
 def format_tum(traj: Trajectory) -> str:
-    """TUM text for ``traj``: stamps to 1 ns, positions to 1 nm, quaternions to 1e-12."""
-    q = R_to_quat_xyzw(traj.poses[:, :3, :3]) if len(traj) else np.zeros((0, 4))
-    p = traj.positions
-    lines = ["# timestamp x y z qx qy qz qw"]
-    for t, (x, y, z), (qx, qy, qz, qw) in zip(traj.stamps, p, q):
-        lines.append(f"{t:.9f} {x:.9f} {y:.9f} {z:.9f} {qx:.12f} {qy:.12f} {qz:.12f} {qw:.12f}")
-    return "\n".join(lines) + "\n"
+    """TUM text for ``traj`` (header line, then :func:`tum_lines`)."""
+    return "\n".join([TUM_HEADER] + tum_lines(traj.stamps, traj.poses)) + "\n"
 
 
 def write_tum(path: str | Path, traj: Trajectory) -> Path:

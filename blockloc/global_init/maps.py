@@ -16,14 +16,14 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
-import tempfile
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from blockloc.cache import cache_root
+from blockloc.fileio import atomic_path
 from blockloc.global_init.projection import GROUND_CELL_M, R_level_from_gravity, lookup_ground, rasterize_map
 from blockloc.global_init.pyramid import Pyramid, assemble, build_pyramid
 
@@ -115,8 +115,7 @@ def _grid_centers(lo: np.ndarray, hi: np.ndarray, window_m: float) -> np.ndarray
 
 
 def default_cache_dir() -> Path:
-    root = os.environ.get("BLOCKLOC_CACHE")
-    return Path(root) if root else Path.home() / ".cache" / "blockloc"
+    return cache_root()
 
 
 class StoreMap:
@@ -177,13 +176,10 @@ class StoreMap:
     @staticmethod
     def _write(path: Path, piece: _Piece) -> None:
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(prefix=path.name, suffix=".tmp", dir=path.parent)
-            with os.fdopen(fd, "wb") as f:
+            with atomic_path(path) as tmp, open(tmp, "wb") as f:
                 np.savez_compressed(f, origin=piece.pyramid.origin, levels=piece.pyramid.levels,
                                     resolution=piece.pyramid.resolution,
                                     ground_origin=piece.ground_origin, ground=piece.ground)
-            os.replace(tmp, path)
         except OSError as exc:  # a read-only cache only costs time
             log.warning("cannot write global-init cache %s (%s)", path, exc)
 
@@ -299,11 +295,9 @@ class _BucketedPoints:
     def save(self, path: Path) -> None:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(prefix=path.name, suffix=".tmp", dir=path.parent)
-            with os.fdopen(fd, "wb") as f:
+            with atomic_path(path) as tmp, open(tmp, "wb") as f:
                 np.savez(f, points=self.points, starts=self._starts, lo=self._lo, span=self._span,
                          R_xy=self._R_xy)
-            os.replace(tmp, path)
         except OSError as exc:  # a read-only cache only costs time
             log.warning("cannot write global-init cache %s (%s)", path, exc)
 

@@ -54,7 +54,8 @@ FORMAT = "blockloc-place-index"
 FORMAT_VERSION = 1
 TILE_M = 256.0  # the index is built tile by tile: memory bounded by the tile, not the map
 OBSTACLE_M = 0.3  # a scan point this high above the local ground hides what lies behind it
-BAND_TOP_UNSEEN_M = 20.0  # a scan with no points near the band's top: seen-through only beyond this
+BAND_TOP_UNSEEN_M = 20.0
+STATIC_POINTS = 3000  # the static points kept per scan (verification's structure test)  # a scan with no points near the band's top: seen-through only beyond this
 
 
 @dataclass(frozen=True)
@@ -215,12 +216,16 @@ class ScanCells:
     """A levelled scan's cells (M, 2) int64, ``floor(xy / resolution)`` of the levelled body frame:
     ``band`` in the index's height band, ``obstacles`` of every point OBSTACLE_M or more above the
     ground; R_tilt (3, 3) its levelling (p_lvl = R_tilt @ p_body); free_from_m: the range from which
-    the scan sees the whole band (closer, structure high in the band is above its beams)."""
+    the scan sees the whole band (closer, structure high in the band is above its beams);
+    static_body: up to STATIC_POINTS of the scan's points (K, 3), body frame, at or above the band's
+    bottom (above people, cars and fences: what a map of another day still holds), fixed-seed
+    sample."""
 
     band: np.ndarray
     obstacles: np.ndarray
     R_tilt: np.ndarray
     free_from_m: float = 0.0
+    static_body: np.ndarray | None = None  # (K, 3) body-frame points at or above the band's bottom
 
 
 @dataclass
@@ -256,7 +261,7 @@ def scan_cells(points_body: np.ndarray, gravity_body: np.ndarray, params: PlaceI
     lvl = lvl[(rng > 0.5) & (rng <= params.max_range_m + 5.0)]
     none = np.zeros((0, 2), np.int64)
     if len(lvl) == 0:
-        return ScanCells(none, none, R_tilt, BAND_TOP_UNSEEN_M)
+        return ScanCells(none, none, R_tilt, BAND_TOP_UNSEEN_M, np.zeros((0, 3)))
     g_origin, g_grid = ground_grid(lvl)
     h = lvl[:, 2] - lookup_ground(g_origin, g_grid, lvl[:, :2])
     lo, hi = params.band_m
@@ -268,8 +273,11 @@ def scan_cells(points_body: np.ndarray, gravity_body: np.ndarray, params: PlaceI
     top = np.hypot(lvl[:, 0], lvl[:, 1])[np.abs(h - hi) <= 0.5]
     top = top[top >= params.min_range_m]
     free_from = float(np.percentile(top, 2)) if len(top) >= 20 else BAND_TOP_UNSEEN_M
+    static = lvl[h >= lo]
+    if len(static) > STATIC_POINTS:
+        static = static[np.sort(np.random.default_rng(0).choice(len(static), STATIC_POINTS, replace=False))]
     return ScanCells(cells((h >= lo) & (h <= hi)), cells(h >= OBSTACLE_M), R_tilt,
-                     max(params.free_min_range_m, free_from))
+                     max(params.free_min_range_m, free_from), static @ R_tilt)
 
 
 def consistency_at(source, xy_L: np.ndarray, theta: float, cells: ScanCells, params: PlaceIndexParams,

@@ -17,7 +17,8 @@ Tracking uses the same entry points to start and to recover.
 
 Verification (``_refine``) asks more than a good NDT fit, because a wrong place with similar
 structure can fit well: NDT converged, its inlier ratio >= ``min_fitness``, the above-ground
-points' inlier ratio >= ``min_structure_fitness``, and, in the place index's static band, the
+points' inlier ratio >= ``min_structure_fitness`` (the points at or above the static band's
+bottom when the scan has ``min_static_points`` of them, else those of the projection band), and, in the place index's static band, the
 scan's structure covered by the map (>= ``min_coverage``) and the map's structure not where the
 scan saw through (<= ``max_see_through`` of the bins seen through). Another verified candidate
 more than ``ambiguity_distance_m`` away that fits nearly as well makes the result ambiguous, and an
@@ -40,7 +41,8 @@ from blockloc.global_init.bnb import (Candidate2D, Window, make_angles, required
 from blockloc.global_init.maps import ArrayMap, ProjectionParams, StoreMap
 from blockloc.global_init.pyramid import extend
 from blockloc.global_init.projection import ScanProjection, heading_offset, project_scan
-from blockloc.global_init.refine import Refiner, voxel_downsample
+from blockloc.global_init.refine import Refiner
+from blockloc.voxels import voxel_select
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +77,7 @@ class InitParams:
     ambiguity_score_ratio: float = 0.8  # once one is verified, refine others only above this x best
     ambiguity_z: float = 2.5  # a rival is no ambiguity when the best fits significantly better (z)
     refine_range_m: float = 50.0
-    reloc_window_m: float = 500.0
+    reloc_window_m: float = 100.0
     max_regions: int = 0  # 0: every region of the map
     num_threads: int = 2
     # no-hint relocalization through the place index
@@ -96,6 +98,7 @@ class InitParams:
     max_see_through: float = 0.35
     consistency_tolerance_m: float = 0.75
     min_consistency_bits: int = 20
+    min_static_points: int = 300  # fewer static-band points: the structure test uses the low band
 
     @property
     def projection_params(self) -> ProjectionParams:
@@ -175,9 +178,15 @@ def _check_args(window_m: float, yaw_window_deg: float) -> None:
 class GlobalLocalizer:
     """Global initialization against one map (ArrayMap or StoreMap), reusable across scans."""
 
-    def __init__(self, map_source, params: InitParams | None = None, place_index=None):
+    def __init__(self, map_source, params: InitParams | None = None, engine=None, place_index=None):
         self.map = map_source
         self.params = params or InitParams()
+        if engine is None:  # the default engine at the refinement resolution
+            from blockloc.registration.engines import make_engine
+
+            engine = make_engine("ndt", resolution_m=self.params.ndt_resolution_m,
+                                 num_threads=self.params.num_threads)
+        self.engine = engine  # refines and verifies candidates
         self._place_index = place_index
         self._place_source = None
         self._index_load_s = 0.0
@@ -202,14 +211,16 @@ class GlobalLocalizer:
         return self._place_source
 
     @classmethod
-    def for_store(cls, store, gravity_map, params: InitParams | None = None, cache_dir=None) -> "GlobalLocalizer":
+    def for_store(cls, store, gravity_map, params: InitParams | None = None, cache_dir=None,
+                  engine=None) -> "GlobalLocalizer":
         params = params or InitParams()
-        return cls(StoreMap(store, gravity_map, params.projection_params, cache_dir), params)
+        return cls(StoreMap(store, gravity_map, params.projection_params, cache_dir), params, engine)
 
     @classmethod
-    def for_points(cls, map_points, gravity_map, params: InitParams | None = None) -> "GlobalLocalizer":
+    def for_points(cls, map_points, gravity_map, params: InitParams | None = None,
+                   engine=None) -> "GlobalLocalizer":
         params = params or InitParams()
-        return cls(ArrayMap(map_points, gravity_map, params.projection_params), params)
+        return cls(ArrayMap(map_points, gravity_map, params.projection_params), params, engine)
 
     # ------------------------------------------------------------------------- public
 
@@ -226,7 +237,7 @@ class GlobalLocalizer:
         _check_args(window_m, yaw_window_deg)
         scan = project_scan(points_body, gravity_body, p.resolution_m, p.band_m, p.projection, p.max_range_m,
                             p.max_scan_cells, p.min_scan_cells)
-        scan_ndt = voxel_downsample(points_body, p.scan_voxel_m)
+        scan_ndt = points_body[voxel_select(points_body, p.scan_voxel_m)]
         scan_ndt = scan_ndt[np.linalg.norm(scan_ndt, axis=1) <= p.max_range_m]
         if len(scan_ndt) > p.max_ndt_points:
             rng = np.random.default_rng(0)
@@ -336,7 +347,7 @@ class GlobalLocalizer:
                 if np.all(np.abs(xy - centre) <= 0.5 * d):
                     return ref
             pts = self.map.points_in_box(xy - d, xy + d)
-            ref = Refiner(pts, p.ndt_resolution_m, p.num_threads) if len(pts) >= 100 else None
+            ref = Refiner(self.engine, pts) if len(pts) >= 100 else None
             targets.append((xy, ref))
             return ref
 
@@ -362,7 +373,12 @@ class GlobalLocalizer:
                 r = refiner.align(scan_ndt, r.T_map_body)  # out of iterations, e.g. sliding along a corridor
             finite = bool(np.all(np.isfinite(r.T_map_body)))
             # Ground points fit the ground almost anywhere: the structure above it must fit too.
-            sfit = refiner.inlier_ratio(scan.structure_body, r.T_map_body) if finite else 0.0
+            # Judged on the static structure (at or above the place band's bottom) when the scan
+            # has enough of it: people, cars and bushes near the sensor fill the low band with
+            # points no map holds (seen: 0.16 of the low points within 10 m fit at the true pose).
+            static = cells.static_body if cells is not None and cells.static_body is not None else None
+            structure = static if static is not None and len(static) >= p.min_static_points else scan.structure_body
+            sfit = refiner.inlier_ratio(structure, r.T_map_body) if finite else 0.0
             ok = bool(r.converged and finite and r.fitness >= p.min_fitness
                       and sfit >= p.min_structure_fitness)
             cov, see = self._consistency(r.T_map_body, scan, cells) if (ok and cells is not None) else (np.nan, np.nan)

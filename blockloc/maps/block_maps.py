@@ -28,7 +28,8 @@ from typing import Iterable
 import numpy as np
 
 from blockloc.errors import MapError
-from blockloc.maps.mapping import Keyframe, mapping_keyframes, voxel_downsample
+from blockloc.maps.mapping import Keyframe, mapping_keyframes
+from blockloc.voxels import voxel_downsample
 
 log = logging.getLogger(__name__)
 
@@ -125,8 +126,8 @@ class BlockMapBuilder:
         self._raw_count += len(pts)
         if self._raw_count > _COMPACT_POINTS and self.voxel_size_m > 0:
             p, i = self._gather()
-            p, i = voxel_downsample(p, i, self.voxel_size_m)
-            self._parts = [(p, i)]
+            p, i = voxel_downsample(p, self.voxel_size_m, i)
+            self._parts = [(p.astype(np.float32), i)]
             self._raw_count = len(p)
 
     def _gather(self) -> tuple[np.ndarray, np.ndarray | None]:
@@ -137,7 +138,8 @@ class BlockMapBuilder:
 
     def _close(self, tail_into: int | None = None) -> None:
         pts, inten = self._gather()
-        pts, inten = voxel_downsample(pts, inten, self.voxel_size_m)
+        pts, inten = voxel_downsample(pts, self.voxel_size_m, inten)
+        pts = pts.astype(np.float32)
         kf_ids = list(self._kf_ids)
         self._parts, self._raw_count, self._kf_ids, self._carried = [], 0, [], None
         if len(pts) == 0:
@@ -177,8 +179,9 @@ class BlockMapBuilder:
     def _merge(self, j, pts, inten, kf_ids, d, action) -> None:
         b = self.blocks[j]
         merged_i = None if (b.intensity is None or inten is None) else np.concatenate([b.intensity, inten])
-        b.points, b.intensity = voxel_downsample(np.concatenate([b.points, pts]), merged_i,
-                                                 self.voxel_size_m)
+        merged, b.intensity = voxel_downsample(np.concatenate([b.points, pts]), self.voxel_size_m,
+                                               merged_i)
+        b.points = merged.astype(np.float32)
         b.centroid = b.points.astype(np.float64).mean(axis=0)
         b.keyframes.extend(k for k in kf_ids if k not in set(b.keyframes))
         self._last_target = j
@@ -195,7 +198,7 @@ class BlockMapBuilder:
 
 def build_block_map(keyframes: Iterable[Keyframe | tuple], *, block_size_m: float = 100.0,
                     voxel_size_m: float = 0.2, out: str | Path | None = None,
-                    params: dict | None = None, overwrite: bool = False):
+                    params: dict | None = None, overwrite: bool = False, frame: str = "map"):
     """Block map from keyframes whose points are already in the map frame.
 
     keyframes: :class:`~blockloc.maps.mapping.Keyframe` objects, or tuples
@@ -217,11 +220,11 @@ def build_block_map(keyframes: Iterable[Keyframe | tuple], *, block_size_m: floa
     builder.finish()
     if out is None:
         return builder
-    return write_block_map(builder, out, params=params, overwrite=overwrite)
+    return write_block_map(builder, out, params=params, overwrite=overwrite, frame=frame)
 
 
 def write_block_map(builder: BlockMapBuilder, out: str | Path, *, params: dict | None = None,
-                    overwrite: bool = False):
+                    overwrite: bool = False, frame: str = "map"):
     """Write the builder's blocks as a block store (``%03d.pcd`` + CentroidCloud + manifest)."""
     from blockloc.maps.store import MapWriter
 
@@ -230,7 +233,7 @@ def write_block_map(builder: BlockMapBuilder, out: str | Path, *, params: dict |
          "events": {a: sum(e.action == a for e in builder.events)
                     for a in ("new", "merge", "skip", "tail")},
          **(params or {})}
-    with MapWriter(out, "block", params=p, overwrite=overwrite) as w:
+    with MapWriter(out, "block", frame=frame, params=p, overwrite=overwrite) as w:
         for i, b in enumerate(builder.blocks):
             w.add(f"{i:03d}", b.points, b.intensity, file=f"{i:03d}.pcd", centroid=b.centroid,
                   keyframes=builder.keyframe_positions_of(i))
@@ -252,4 +255,5 @@ def build_block_map_from_sequence(seq, *, block_size_m: float = 100.0,
     params = {"sequence": seq.info.name, "keyframe_distance_m": keyframe_distance_m,
               "keyframe_angle_deg": keyframe_angle_deg, "deskew": deskew}
     return build_block_map(kfs, block_size_m=block_size_m, voxel_size_m=voxel_size_m, out=out,
-                           params=params, overwrite=overwrite)
+                           params=params, overwrite=overwrite,
+                           frame=getattr(seq.info, "map_frame", "map"))

@@ -169,8 +169,6 @@ class GridMapBuilder:
 
     def add(self, points_map: np.ndarray, intensity: np.ndarray | None = None) -> None:
         """One keyframe's points (N, 3) map frame, metres, and intensity (N,) or None."""
-        from blockloc.maps.mapping import voxel_downsample
-
         self.num_keyframes += 1
         pts = np.asarray(points_map)
         inten = np.zeros(len(pts), np.float32) if intensity is None else np.asarray(intensity, np.float32)
@@ -178,18 +176,16 @@ class GridMapBuilder:
             self._acc.setdefault(cell, []).append((pts[idx].astype(np.float32), inten[idx]))
             self._raw[cell] = self._raw.get(cell, 0) + len(idx)
             if self._raw[cell] > self.compact_points and self.voxel_size_m > 0:
-                p, i = voxel_downsample(*_cat(self._acc[cell]), self.voxel_size_m)
+                p, i = _filtered(self._acc[cell], self.voxel_size_m)
                 self._acc[cell], self._raw[cell] = [(p, i)], len(p)
 
     def points(self) -> tuple[np.ndarray, np.ndarray]:
         """The voxel-filtered map so far: points (N, 3) float32, intensity (N,) float32."""
-        from blockloc.maps.mapping import voxel_downsample
-
         parts_p, parts_i = [], []
         for cell in sorted(self._acc):
             # a voxel straddling a cell border (s not a multiple of the voxel) may put its mean
             # in the neighbour cell: tile_global_map re-bins every point, so none is lost
-            p, i = voxel_downsample(*_cat(self._acc[cell]), self.voxel_size_m)
+            p, i = _filtered(self._acc[cell], self.voxel_size_m)
             self._acc[cell], self._raw[cell] = [(p, i)], len(p)
             parts_p.append(p)
             parts_i.append(i)
@@ -197,13 +193,14 @@ class GridMapBuilder:
             return np.zeros((0, 3), np.float32), np.zeros(0, np.float32)
         return np.concatenate(parts_p), np.concatenate(parts_i)
 
-    def finish(self, out: str | Path, *, params: dict | None = None, overwrite: bool = False):
+    def finish(self, out: str | Path, *, params: dict | None = None, overwrite: bool = False,
+               frame: str = "map"):
         """Write the grid store atomically to ``out``; returns the opened store."""
         if self.num_keyframes == 0:
             raise MapError("no keyframes to build a grid map from (empty session?)")
         pts, inten = self.points()
         p = {"voxel_size_m": self.voxel_size_m, "num_keyframes": self.num_keyframes, **(params or {})}
-        return tile_global_map(pts, inten, self.tile_size_m, out, params=p, overwrite=overwrite)
+        return tile_global_map(pts, inten, self.tile_size_m, out, frame=frame, params=p, overwrite=overwrite)
 
 
 def build_grid_map_from_sequence(seq, *, tile_size_m: float = 20.0, keyframe_distance_m: float = 1.0,
@@ -223,11 +220,16 @@ def build_grid_map_from_sequence(seq, *, tile_size_m: float = 20.0, keyframe_dis
               "keyframe_angle_deg": keyframe_angle_deg, "deskew": deskew}
     if builder.num_keyframes == 0:
         raise MapError(f"{seq.info.name}: no keyframes to build a grid map from")
-    return builder.finish(out, params=params, overwrite=overwrite)
+    return builder.finish(out, params=params, overwrite=overwrite, frame=getattr(seq.info, "map_frame", "map"))
 
 
-def _cat(parts):
-    return np.concatenate([p for p, _ in parts]), np.concatenate([i for _, i in parts])
+def _filtered(parts, voxel_size_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """One tile's accumulated (points, intensity) parts, concatenated and voxel-filtered (float32)."""
+    from blockloc.voxels import voxel_downsample
+
+    p, i = voxel_downsample(np.concatenate([p for p, _ in parts]), voxel_size_m,
+                            np.concatenate([i for _, i in parts]))
+    return p.astype(np.float32), i
 
 
 # --------------------------------------------------------------------------- Algorithm 2 window

@@ -13,6 +13,7 @@ from typing import Iterator
 
 import numpy as np
 
+from blockloc.datasets.with_poses import POSE_TIME_TOLERANCE_S  # frames outside: not mapped
 from blockloc.errors import MapError
 from blockloc.geometry import Trajectory, rotation_angle
 
@@ -21,8 +22,6 @@ log = logging.getLogger(__name__)
 # Per-point deskew: poses are interpolated at this many instants across a sweep; at 10 Hz and
 # 1.5 m/s one bin is 3 ms, i.e. < 5 mm of motion.
 DESKEW_BINS = 32
-# Frames further than this from the pose time range are not mapped (no extrapolation).
-POSE_TIME_TOLERANCE_S = 0.05
 
 
 @dataclass
@@ -55,36 +54,6 @@ def select_keyframes(poses: np.ndarray, distance_m: float, angle_deg: float) -> 
             keep.append(i)
             last = poses[i]
     return np.asarray(keep, dtype=np.int64)
-
-
-def voxel_downsample(points: np.ndarray, intensity: np.ndarray | None, voxel_size_m: float
-                     ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Mean of the points (and intensities) in each cubic voxel of side ``voxel_size_m``.
-
-    points: (N, 3) map frame, metres -> (M, 3) float32 (voxels in a deterministic order).
-    ``voxel_size_m <= 0`` returns the input unchanged (as float32).
-    """
-    pts = np.asarray(points)
-    if voxel_size_m <= 0 or len(pts) == 0:
-        return pts.astype(np.float32), None if intensity is None else np.asarray(intensity, np.float32)
-    keys = np.floor(pts.astype(np.float64) / voxel_size_m).astype(np.int64)
-    keys -= keys.min(axis=0)
-    span = keys.max(axis=0) + 1
-    if np.prod(span.astype(np.float64)) < 2**62:
-        flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
-        _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    else:  # astronomically large extents: unique rows instead of a flat key
-        _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
-    m = len(counts)
-    out = np.empty((m, 3), np.float64)
-    for k in range(3):
-        out[:, k] = np.bincount(inverse, weights=pts[:, k], minlength=m) / counts
-    out_i = None
-    if intensity is not None:
-        out_i = (np.bincount(inverse, weights=np.asarray(intensity, np.float64), minlength=m)
-                 / counts).astype(np.float32)
-    return out.astype(np.float32), out_i
 
 
 def scan_to_map(points: np.ndarray, time_offsets: np.ndarray | None, stamp: float,
@@ -144,7 +113,8 @@ def mapping_keyframes(seq, *, keyframe_distance_m: float, keyframe_angle_deg: fl
     """Keyframes of a mapping sequence with their (deskewed) points in the map frame.
 
     Poses come from ``seq.mapping_poses()`` interpolated at the frame stamps; frames outside the
-    poses' time range are skipped. Only the keyframes' scans are read.
+    poses' time range, or that the sequence names in ``uncovered_frames()`` (a gap in its
+    trajectory), are skipped. Only the keyframes' scans are read.
     """
     traj = mapping_poses_or_fail(seq)
     stamps = np.asarray(seq.frame_stamps(), np.float64)
@@ -152,6 +122,9 @@ def mapping_keyframes(seq, *, keyframe_distance_m: float, keyframe_angle_deg: fl
         stamps = stamps[:max_frames]
     inside = np.flatnonzero((stamps >= traj.stamps[0] - POSE_TIME_TOLERANCE_S)
                             & (stamps <= traj.stamps[-1] + POSE_TIME_TOLERANCE_S))
+    uncovered = getattr(seq, "uncovered_frames", None)
+    if uncovered is not None:  # inside a gap of the trajectory: never interpolated across it
+        inside = np.setdiff1d(inside, uncovered())
     name = seq.info.name
     if len(inside) == 0:
         raise MapError(f"{name}: no LiDAR frame lies within the mapping poses' time range "

@@ -10,13 +10,12 @@ Every malformed input raises :class:`~blockloc.errors.MapError` naming the file.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from blockloc.errors import MapError
+from blockloc.fileio import atomic_write_bytes
 
 _NP_TYPES = {
     ("F", 4): np.float32, ("F", 8): np.float64,
@@ -60,14 +59,7 @@ def write_pcd(path: str | Path, points: np.ndarray, intensity: np.ndarray | None
     """
     path = Path(path)
     data = encode_pcd(points, intensity)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write_bytes(path, data)
     return len(data)
 
 

@@ -1,6 +1,6 @@
 """Which blocks/tiles should be resident: the four map policies as small pure state machines.
 
-Each policy turns the robot's position (map frame, metres), velocity (m/s) and time (s) into a
+Each policy (``POLICIES``, built by :func:`make_policy`) turns the robot's position (map frame, metres), velocity (m/s) and time (s) into a
 *region*: a sorted tuple of store entry ids. ``select`` advances the policy's state (call it once
 per frame); ``peek`` answers the same question for a hypothetical future position without
 changing state; ``ahead`` predicts the next region the robot will need when it keeps its
@@ -28,6 +28,10 @@ class GlobalPolicy:
 
     def __init__(self, ids: Sequence[str]):
         self.region: Region = tuple(sorted(ids))
+
+    @classmethod
+    def for_store(cls, store, **_settings) -> "GlobalPolicy":
+        return cls(store.ids)
 
     def select(self, position, velocity, stamp) -> Region:
         return self.region
@@ -106,6 +110,15 @@ class BlockPolicy:
         self.blend_m = float(blend_m)
         self.current: int | None = None
 
+    @classmethod
+    def for_store(cls, store, *, switch_hysteresis_m: float = 5.0, block_blend_m: float = 15.0,
+                  **_settings) -> "BlockPolicy":
+        if store.kind != "block":
+            raise MapError(f"{store.path}: the 'block' backend needs a block map, this is a "
+                           f"{store.kind} map (use --map-backend grid, srt or global)")
+        return cls(store.ids, store.centroids(), switch_hysteresis_m,
+                   keyframes=[e.keyframes for e in store.entries], blend_m=block_blend_m)
+
     def _choose(self, position, current: int | None) -> int:
         p = np.asarray(position, np.float64)
         d_new, a = self.tree.query(p)
@@ -167,6 +180,10 @@ class GridPolicy:
         self.centre: tuple[int, int] | None = None
         self.sector: int | None = None
 
+    @classmethod
+    def for_store(cls, store, *, grid_n: int = 2, grid_k: int = 1, **_settings) -> "GridPolicy":
+        return cls(store.ids, grid_tile_size(store, "grid"), grid_n, grid_k)
+
     def _window(self, position, velocity) -> tuple[Region, tuple[int, int], int | None]:
         cell = tuple(int(v) for v in cell_of(np.asarray(position, float)[None, :2], self.tile_size_m)[0])
         sector = heading_sector(None if velocity is None else np.asarray(velocity)[:2])
@@ -223,6 +240,11 @@ class SrtPolicy:
         self.last_stamp: float = -math.inf
         self.region: Region | None = None
 
+    @classmethod
+    def for_store(cls, store, *, srt_radius_m: float = 60.0, srt_rebuild_period_s: float = 10.0,
+                  **_settings) -> "SrtPolicy":
+        return cls(store.ids, grid_tile_size(store, "srt"), srt_radius_m, srt_rebuild_period_s)
+
     def _tiles(self, position) -> Region:
         p = np.asarray(position, np.float64)[:2]
         nearest = np.clip(p, self.cell_min, self.cell_max)
@@ -262,3 +284,34 @@ class SrtPolicy:
 
     def region_name(self, region: Region) -> str:
         return "srt" if self.cell is None else f"srt:{tile_name(*self.cell, self.tile_size_m)}"
+
+
+def grid_tile_size(store, backend: str) -> float:
+    """The tile size of a grid store, or MapError saying the backend needs a grid map."""
+    if store.kind != "grid":
+        raise MapError(f"{store.path}: the '{backend}' backend needs a grid map, this is a "
+                       f"{store.kind} map (build one with 'blockloc map build --kind grid')")
+    size = float(store.params.get("tile_size_m", 0) or 0)
+    if not size > 0:
+        raise MapError(f"{store.path}: grid map without a positive tile_size_m parameter")
+    return size
+
+
+#: Map backends by name: a new backend is a policy class with ``for_store`` plus one line here.
+POLICIES = {"block": BlockPolicy, "grid": GridPolicy, "srt": SrtPolicy, "global": GlobalPolicy}
+BACKENDS = tuple(POLICIES)
+
+
+def make_policy(backend: str, store, /, **settings):
+    """The policy ``backend`` (block | grid | srt | global) for ``store``.
+
+    settings: the policies' keywords, named as in the ``map`` config section (switch_hysteresis_m,
+    block_blend_m, grid_n, grid_k, srt_radius_m, srt_rebuild_period_s); each policy takes the
+    ones it knows and ignores the rest (so ``**dataclasses.asdict(map_cfg)`` can be passed).
+    """
+    cls = POLICIES.get(backend)
+    if cls is None:
+        raise MapError(f"map backend {backend!r}: expected one of {', '.join(POLICIES)}")
+    if len(store.entries) == 0:
+        raise MapError(f"{store.path}: the map has no blocks or tiles")
+    return cls.for_store(store, **settings)

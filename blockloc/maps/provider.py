@@ -10,30 +10,29 @@ when needed. Regions are swapped double-buffered: the target being used is never
 incremental target (``add_tile``/``remove_tile``) is updated only in the spare buffer.
 
 A block/tile that is missing or corrupt while tracking is logged, counted (``failed_loads``) and
-treated as unmapped; tracking is not stopped.
+treated as unmapped; tracking is not stopped. So is a region whose registration target cannot be
+built (``target_failures``).
 
 Thread contract: a LocalMap's ``target`` stays valid until the next ``update`` call returns.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Any, Callable, Mapping
+from typing import Any
 
 import numpy as np
 
 from blockloc.errors import MapError
-from blockloc.maps.policies import BlockPolicy, GlobalPolicy, GridPolicy, Region, SrtPolicy
+from blockloc.maps.policies import Region
 from blockloc.maps.store import MapStore
 
 log = logging.getLogger(__name__)
 
-BACKENDS = ("block", "grid", "srt", "global")
 _MB = 1024.0 * 1024.0
 
 
@@ -41,7 +40,7 @@ _MB = 1024.0 * 1024.0
 class LocalMap:
     """The resident local map.
 
-    target: what ``target_builder`` returned for ``points`` (None when nothing is mapped here or no
+    target: the engine's registration target for ``points`` (None when nothing is mapped here or no
     builder was given). points: (N, 3) float32 map frame, metres (read-only; do not modify).
     region_id: a readable name of the region; entry_ids: its blocks/tiles. switched: True exactly
     on the update at which the active region changed to one that does not hold every entry of the
@@ -74,39 +73,34 @@ class _Buffer:
 
 
 class MapProvider:
-    """Serve the local map for the current pose from ``store`` with one of the four policies.
+    """Serve the local map for the current pose from ``store`` under a policy.
 
-    target_builder: ``points (N, 3) -> target`` (e.g. ``lambda p: NdtTarget.build(p, 1.0)``), or
-    None to serve points only. tiles_target_builder: optional ``{tile_id: points} -> target`` whose
-    result has ``add_tile(id, points)`` / ``remove_tile(id)``; when given (grid/srt/global) targets
-    are updated incrementally by tile instead of rebuilt.
-    hysteresis_m: block switching margin. block_blend_m: see BlockPolicy. grid_n, grid_k: grid window half-size and widening.
-    srt_radius_m, srt_rebuild_period_s: SRT-PM radius R' and period T. prefetch: build the region
-    the robot will need next if it keeps its velocity for ``lookahead_s`` seconds (at least
-    ``min_lookahead_m`` metres). cache_mb: bound on resident map memory (entry cache plus
-    region buffers; the active region is never evicted). retry_missing_s: while entries of the
-    active region are missing (a file failed to load, e.g. a map server went away), it is rebuilt
-    in the background every this many seconds of sensor time and swapped in once more of it loads.
+    policy: which region should be resident (:func:`blockloc.maps.policies.make_policy`).
+    engine: the registration engine whose targets are built (``build_target(points)``; when
+    ``engine.incremental``, grid/srt/global regions are built with ``build_tiled_target(tiles)``
+    and updated by tile with ``update_tiles``: see :mod:`blockloc.registration.engines`), or None
+    to serve points only. prefetch: build the region the robot will need next if it keeps its
+    velocity for ``lookahead_s`` seconds (at least ``min_lookahead_m`` metres). cache_mb: bound on
+    resident map memory (entry cache plus region buffers; the active region is never evicted).
+    retry_missing_s: while entries of the active region are missing (a file failed to load, e.g.
+    a map server went away), it is rebuilt in the background every this many seconds of sensor
+    time and swapped in once more of it loads.
     """
 
-    def __init__(self, store: MapStore, backend: str = "block", *,
-                 target_builder: Callable[[np.ndarray], Any] | None = None,
-                 tiles_target_builder: Callable[[Mapping[str, np.ndarray]], Any] | None = None,
-                 hysteresis_m: float = 5.0, block_blend_m: float = 15.0, grid_n: int = 2, grid_k: int = 1,
-                 srt_radius_m: float = 60.0, srt_rebuild_period_s: float = 10.0,
-                 prefetch: bool = True, lookahead_s: float = 5.0, min_lookahead_m: float = 2.0,
-                 cache_mb: float = 1024.0, max_spare_regions: int = 2,
-                 retry_missing_s: float = 5.0):
-        if backend not in BACKENDS:
-            raise MapError(f"map backend {backend!r}: expected one of {', '.join(BACKENDS)}")
+    def __init__(self, store: MapStore, policy, *, engine=None, prefetch: bool = True,
+                 lookahead_s: float = 5.0, min_lookahead_m: float = 2.0, cache_mb: float = 1024.0,
+                 max_spare_regions: int = 2, retry_missing_s: float = 5.0):
         if len(store.entries) == 0:
             raise MapError(f"{store.path}: the map has no blocks or tiles")
         if not cache_mb > 0:
             raise MapError(f"map cache {cache_mb!r} MB: expected a positive number")
         self.store = store
-        self.backend = backend
-        self.target_builder = target_builder
-        self.tiles_target_builder = tiles_target_builder if backend != "block" else None
+        self.policy = policy
+        self.backend = policy.name
+        self.engine = engine
+        # Block regions are one or two whole blocks: rebuilt, never patched by tile.
+        self.incremental = bool(engine is not None and getattr(engine, "incremental", False)
+                                and self.backend != "block")
         self.prefetch = bool(prefetch)
         self.lookahead_s = float(lookahead_s)
         self.min_lookahead_m = float(min_lookahead_m)
@@ -115,8 +109,6 @@ class MapProvider:
         self.retry_missing_s = float(retry_missing_s)
         self._last_retry = -np.inf
         self._rebuilding: set[Region] = set()  # the active region, being rebuilt to fill gaps
-        self.policy = self._make_policy(hysteresis_m, block_blend_m, grid_n, grid_k, srt_radius_m,
-                                        srt_rebuild_period_s)
 
         self._lock = threading.Condition()
         self._cache: OrderedDict[str, np.ndarray] = OrderedDict()  # entry id -> points (N, 3)
@@ -136,37 +128,6 @@ class MapProvider:
         self._errors: list[BaseException] = []
         self._thread = threading.Thread(target=self._run, name="blockloc-map-provider", daemon=True)
         self._thread.start()
-
-    @classmethod
-    def from_config(cls, store: MapStore, cfg, target_builder=None, tiles_target_builder=None,
-                    backend: str | None = None) -> "MapProvider":
-        """From a :class:`~blockloc.config.MapConfig` (``backend`` overrides ``cfg.backend``)."""
-        return cls(store, backend or cfg.backend, target_builder=target_builder,
-                   tiles_target_builder=tiles_target_builder, hysteresis_m=cfg.switch_hysteresis_m,
-                   block_blend_m=cfg.block_blend_m, grid_n=cfg.grid_n, grid_k=cfg.grid_k, srt_radius_m=cfg.srt_radius_m,
-                   srt_rebuild_period_s=cfg.srt_rebuild_period_s, prefetch=cfg.prefetch,
-                   lookahead_s=cfg.prefetch_lookahead_s, cache_mb=cfg.cache_mb,
-                   retry_missing_s=cfg.retry_missing_s)
-
-    def _make_policy(self, hysteresis_m, block_blend_m, grid_n, grid_k, srt_radius_m, srt_rebuild_period_s):
-        st = self.store
-        if self.backend == "global":
-            return GlobalPolicy(st.ids)
-        if self.backend == "block":
-            if st.kind != "block":
-                raise MapError(f"{st.path}: the 'block' backend needs a block map, this is a "
-                               f"{st.kind} map (use --map-backend grid, srt or global)")
-            return BlockPolicy(st.ids, st.centroids(), hysteresis_m,
-                               keyframes=[e.keyframes for e in st.entries], blend_m=block_blend_m)
-        if st.kind != "grid":
-            raise MapError(f"{st.path}: the '{self.backend}' backend needs a grid map, this is a "
-                           f"{st.kind} map (build one with 'blockloc map build --kind grid')")
-        size = float(st.params.get("tile_size_m", 0) or 0)
-        if not size > 0:
-            raise MapError(f"{st.path}: grid map without a positive tile_size_m parameter")
-        if self.backend == "grid":
-            return GridPolicy(st.ids, size, grid_n, grid_k)
-        return SrtPolicy(st.ids, size, srt_radius_m, srt_rebuild_period_s)
 
     # ------------------------------------------------------------------ public API
     def update(self, position_map: np.ndarray, velocity_map: np.ndarray | None,
@@ -216,6 +177,11 @@ class MapProvider:
                     self._submit(ahead, demand=False)
         self._raise_worker_error()
         return self._local(switched)
+
+    def current(self) -> LocalMap | None:
+        """The local map served now (None before the first ``update``); does not change state."""
+        with self._lock:
+            return None if self._active is None else self._local(False)
 
     def stats(self) -> dict:
         """Counters: resident_mb (entry cache + region buffers), active_mb / active_points (the
@@ -389,14 +355,12 @@ class MapProvider:
 
     def _take_spare(self, region: Region) -> _Buffer | None:
         """A non-active built buffer to update incrementally (removed from ``_ready``)."""
-        if self.tiles_target_builder is None or not self._ready:
+        if not self.incremental or not self._ready:
             return None
         spares = [b for b in self._ready.values() if b.region != self._wanted]
         if not spares:
             return None
         best = max(spares, key=lambda b: len(b.tiles & set(region)))
-        if not hasattr(best.target, "add_tile"):
-            return None
         return self._ready.pop(best.region)
 
     def _load_entry(self, entry_id: str) -> np.ndarray | None:
@@ -447,8 +411,6 @@ class MapProvider:
         if len(points):
             try:
                 target = self._build_target(tiles, points, spare)
-            except MapError:
-                raise
             except Exception as exc:  # noqa: BLE001 - a bad region must not stop tracking
                 log.error("region %s: building the registration target failed (%s: %s); treated "
                           "as unmapped", region, type(exc).__name__, exc)
@@ -466,18 +428,16 @@ class MapProvider:
                        tuple(missing), nbytes, prefetched=is_prefetch)
 
     def _build_target(self, tiles: dict, points: np.ndarray, spare: _Buffer | None):
-        if self.tiles_target_builder is not None:
+        if self.engine is None:
+            return None
+        if self.incremental:
             if spare is not None and spare.target is not None:
-                target = spare.target  # the spare buffer: nobody registers against it now
-                for eid in spare.tiles - set(tiles):
-                    target.remove_tile(eid)
-                for eid in set(tiles) - spare.tiles:
-                    target.add_tile(eid, tiles[eid])
-                return target
-            return self.tiles_target_builder(tiles)
-        if self.target_builder is not None:
-            return self.target_builder(points)
-        return None
+                # the spare buffer: nobody registers against it now
+                return self.engine.update_tiles(spare.target,
+                                                {e: tiles[e] for e in set(tiles) - spare.tiles},
+                                                spare.tiles - set(tiles))
+            return self.engine.build_tiled_target(tiles)
+        return self.engine.build_target(points)
 
     def _raise_worker_error(self) -> None:
         if self._errors:
@@ -498,17 +458,3 @@ class MapProvider:
                 self._lock.wait(min(remaining, 0.05))
         return True
 
-
-def ndt_target_builders(resolution: float = 1.0, min_points_per_voxel: int = 6):
-    """(target_builder, tiles_target_builder) building ``blockloc.registration.ndt.NdtTarget``."""
-    def build(points):
-        from blockloc.registration.ndt import NdtTarget
-
-        return NdtTarget.build(points, resolution, min_points_per_voxel)
-
-    def build_tiles(tiles):
-        from blockloc.registration.ndt import NdtTarget
-
-        return NdtTarget.from_tiles(tiles, resolution, min_points_per_voxel)
-
-    return build, build_tiles

@@ -1,6 +1,6 @@
 """Map stores over HTTP(S) and object storage, with a checksum-validated on-disk cache.
 
-:class:`RemoteMapFiles` has the interface of :class:`blockloc.maps.store.MapFiles` (``url``,
+:class:`RemoteMapFiles` has the interface of :class:`blockloc.maps.files.MapFiles` (``url``,
 ``read_bytes``, ``exists``, ``is_dir``, ``list_names``) for ``http(s)://`` and ``s3://`` URLs (any
 fsspec protocol works; s3 needs the ``s3fs`` package). Every byte goes through fsspec; nothing
 here opens a socket itself.
@@ -40,11 +40,13 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Callable, TypeVar
 
+from blockloc.cache import cache_root
 from blockloc.errors import MapError
+from blockloc.fileio import atomic_path, atomic_write_bytes
 
 log = logging.getLogger(__name__)
 
-MANIFEST_NAME = "manifest.json"  # == blockloc.maps.store.MANIFEST_NAME (not imported: no cycle)
+MANIFEST_NAME = "manifest.json"  # == blockloc.maps.store.MANIFEST_NAME (store imports this module)
 DEFAULT_CACHE_BYTES = 2 * 1024**3
 _SHA256 = re.compile(r"^[0-9a-f]{64}$")
 _T = TypeVar("_T")
@@ -53,10 +55,7 @@ _T = TypeVar("_T")
 def default_cache_dir() -> Path:
     """``$BLOCKLOC_MAP_CACHE``, else ``<$BLOCKLOC_CACHE or ~/.cache/blockloc>/remote-maps``."""
     env = os.environ.get("BLOCKLOC_MAP_CACHE")
-    if env:
-        return Path(env).expanduser()
-    base = os.environ.get("BLOCKLOC_CACHE")
-    return (Path(base).expanduser() if base else Path.home() / ".cache" / "blockloc") / "remote-maps"
+    return Path(env).expanduser() if env else cache_root() / "remote-maps"
 
 
 def is_url(url_or_path: str | os.PathLike) -> bool:
@@ -159,20 +158,17 @@ class TileCache:
         if len(data) > self.max_bytes:
             return False
         path = self._path(sha256)
-        tmp = path.with_name(f".{sha256}.{os.getpid()}.{threading.get_ident()}.tmp")
         try:
-            path.parent.mkdir(exist_ok=True)
-            with open(tmp, "wb") as f:
-                f.write(data)
-            with self._lock:  # the rename and the index change together (eviction unlinks)
-                os.replace(tmp, path)
+            # the rename and the index change together (eviction unlinks)
+            with self._lock, atomic_path(path) as tmp:
+                tmp.write_bytes(data)
+            with self._lock:
                 self._forget(sha256)
                 self._index[sha256] = len(data)
                 self._bytes += len(data)
                 self._evict()
         except OSError as exc:
             log.warning("%s: cannot write to the map cache (%s)", path, exc)
-            _unlink(tmp)
             return False
         return True
 
@@ -290,7 +286,7 @@ def _describe(exc: BaseException) -> str:
 class RemoteMapFiles:
     """Read-only access to the files of a store at a URL (``http(s)://``, ``s3://``, ...).
 
-    Same interface as :class:`blockloc.maps.store.MapFiles`. ``cache_dir``: directory of the
+    Same interface as :class:`blockloc.maps.files.MapFiles`. ``cache_dir``: directory of the
     shared :class:`TileCache` (None: :func:`default_cache_dir`; False: no cache); ``cache_bytes``:
     its bound. ``storage_options``: extra fsspec options (e.g. ``{"client_kwargs":
     {"endpoint_url": ...}}`` for an S3-compatible server; ``AWS_ENDPOINT_URL`` works too).
@@ -443,14 +439,9 @@ class RemoteMapFiles:
     def _save_manifest(self, data: bytes) -> None:
         if self._manifest_copy is None:
             return
-        tmp = self._manifest_copy.with_name(f".{self._manifest_copy.name}.{os.getpid()}."
-                                            f"{threading.get_ident()}.tmp")
         try:
-            self._manifest_copy.parent.mkdir(parents=True, exist_ok=True)
-            tmp.write_bytes(data)
-            os.replace(tmp, self._manifest_copy)
+            atomic_write_bytes(self._manifest_copy, data)
         except OSError as exc:
-            _unlink(tmp)
             log.debug("cannot keep a copy of the manifest (%s)", exc)
 
     def _shared_fetch(self, name: str, sha: str | None) -> bytes:
@@ -612,19 +603,6 @@ def _make_fs(url: str, retry: RetryPolicy, storage_options: dict[str, Any]):
     if protocol in ("s3", "s3a"):
         fs.retries = 1  # s3fs's own retry loop (an attribute, not a constructor option)
     return fs, root
-
-
-def open_map_files(url_or_path: str | os.PathLike, **remote_options: Any):
-    """``MapFiles`` for a local directory (or ``file://``), ``RemoteMapFiles`` for a URL.
-
-    ``remote_options`` go to :class:`RemoteMapFiles` (cache_dir, cache_bytes, retry,
-    storage_options, seed) and are ignored for local paths.
-    """
-    from blockloc.maps.store import MapFiles
-
-    if is_url(url_or_path):
-        return RemoteMapFiles(str(url_or_path), **remote_options)
-    return MapFiles(url_or_path)
 
 
 def remote_options_from_config(map_cfg: Any) -> dict[str, Any]:

@@ -19,8 +19,9 @@ verifies the checksum. Readers that predate extras ignore the key.
 A directory in the released block-map layout (``%03d.pcd`` + ``CentroidCloud.pcd``, no manifest)
 opens as a block map without checksums.
 
-All reads of a store go through :class:`MapFiles`, the single file-access layer: local paths read
-with the standard library, URLs (``http://``, ``s3://``, ...) through fsspec when it is installed.
+All reads of a store go through :class:`blockloc.maps.files.MapFiles`, the single file-access
+layer: local paths read with the standard library, URLs (``http://``, ``s3://``, ...) through
+fsspec (:mod:`blockloc.maps.remote`).
 
 Builds are atomic: :class:`MapWriter` writes into a hidden temporary directory beside the output
 carrying an ``.incomplete`` marker and renames it into place only after the manifest is written;
@@ -43,8 +44,9 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from blockloc.errors import MapError
-from blockloc.fileio import replace_dir
+from blockloc.errors import BlocklocError, MapError
+from blockloc.fileio import check_replaceable, replace_dir
+from blockloc.maps.files import MapFiles, open_map_files
 from blockloc.maps.pcd import decode_pcd, encode_pcd
 
 log = logging.getLogger(__name__)
@@ -133,45 +135,6 @@ class ExtraFile:
 def _is_plain_name(name: str) -> bool:
     return bool(name) and "/" not in name and "\\" not in name and name not in (".", "..") \
         and not name.startswith(".")
-
-
-class MapFiles:
-    """Read-only access to the files of one local store directory.
-
-    Every read of a store goes through this interface; URLs (http(s)://, s3://) are served by
-    :class:`blockloc.maps.remote.RemoteMapFiles`, which has the same methods plus a cache.
-    """
-
-    is_remote = False
-
-    def __init__(self, root: str | Path):
-        root_s = str(root)
-        if root_s.startswith("file://"):
-            root_s = root_s[len("file://"):]
-        self.root = str(Path(root_s))
-
-    def url(self, name: str) -> str:
-        """Full path of a file of the store (for messages)."""
-        return str(Path(self.root) / name)
-
-    def read_bytes(self, name: str) -> bytes:
-        """Bytes of the file ``name``; MapError naming it when missing or unreadable."""
-        try:
-            return (Path(self.root) / name).read_bytes()
-        except FileNotFoundError:
-            raise MapError(f"{self.url(name)}: missing map file") from None
-        except OSError as exc:
-            raise MapError(f"{self.url(name)}: cannot read ({exc})") from None
-
-    def exists(self, name: str) -> bool:
-        return (Path(self.root) / name).exists()
-
-    def is_dir(self) -> bool:
-        return Path(self.root).is_dir()
-
-    def list_names(self) -> list[str]:
-        """Names of the files directly in the store."""
-        return sorted(p.name for p in Path(self.root).iterdir() if p.is_file())
 
 
 class MapStore:
@@ -297,8 +260,6 @@ def open_map(path: str | Path, **remote_options: Any) -> MapStore:
     the released block-map layout. ``remote_options`` go to
     :class:`blockloc.maps.remote.RemoteMapFiles` (cache_dir, cache_bytes, retry, ...) and are
     ignored for local paths (see ``remote_options_from_config``)."""
-    from blockloc.maps.remote import open_map_files
-
     files = open_map_files(path, **remote_options)
     if not files.is_remote and not Path(files.root).exists():
         raise MapError(f"{path}: no such map directory")
@@ -408,10 +369,17 @@ class MapWriter:
         self._ids: set[str] = set()
         self._committed = False
         if self.out.exists() and not overwrite:
-            raise MapError(f"{self.out}: already exists (choose another --out or allow overwrite)")
+            raise MapError(f"{self.out}: already exists (choose another --out, or --overwrite to "
+                           "replace the map there)")
+        if self.out.exists():
+            try:
+                check_replaceable(self.out)
+            except BlocklocError as exc:
+                raise MapError(f"{exc}; --overwrite replaces only a map store") from None
         parent = self.out.parent
         try:
             parent.mkdir(parents=True, exist_ok=True)
+            remove_stale_builds(parent)
             self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.building-", dir=parent))
         except OSError as exc:
             raise MapError(f"{self.out}: cannot create the output directory ({exc})") from None
@@ -529,6 +497,37 @@ def add_extra(path: str | Path, name: str, data: bytes) -> MapStore:
         (root / old.file).unlink(missing_ok=True)
     log.info("%s: extra %s written (%d bytes)", root, file, len(data))
     return open_map(root)
+
+
+def remove_stale_builds(parent: Path) -> list[Path]:
+    """Remove ``.NAME.building-*`` directories in ``parent`` left by builds whose process is gone
+    (killed: nothing could clean up). A build whose process still runs, or whose marker cannot be
+    read, is left alone. Returns what was removed."""
+    removed = []
+    for d in Path(parent).glob(".*.building-*"):
+        marker = d / INCOMPLETE_MARKER
+        try:
+            pid = int(marker.read_text().split("pid")[-1].split()[0])
+        except (OSError, ValueError, IndexError):
+            continue
+        if _process_alive(pid):
+            continue
+        shutil.rmtree(d, ignore_errors=True)
+        log.warning("removed %s, left by an interrupted build (process %d is gone)", d, pid)
+        removed.append(d)
+    return removed
+
+
+def _process_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    return True
 
 
 def autoware_metadata(entries: list[MapEntry], params: dict[str, Any]) -> str:

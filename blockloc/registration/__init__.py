@@ -7,7 +7,5 @@ from blockloc.registration.ndt import (
     NdtTarget,
     align,
 )
-from blockloc.registration.voxels import voxel_downsample
 
-__all__ = ["NdtEvaluation", "NdtRegistration", "NdtResult", "NdtTarget", "align",
-           "voxel_downsample"]
+__all__ = ["NdtEvaluation", "NdtRegistration", "NdtResult", "NdtTarget", "align"]

@@ -27,23 +27,15 @@ def range_filter(points: np.ndarray, min_range_m: float, max_range_m: float) -> 
 
 def voxel_downsample_indices(points: np.ndarray, voxel_size_m: float, max_points: int = 0,
                              seed: int = 0) -> np.ndarray:
-    """Indices of one point per occupied voxel (the first in input order), sorted.
+    """Indices of one point per occupied voxel (the first in input order, ``blockloc.voxels.
+    voxel_select``), sorted.
 
     points: (N, 3) any frame, metres. Keeping a real point (not a centroid) keeps its time offset
     exact for deskewing. When more than ``max_points`` (> 0) remain, a fixed-seed random subset.
     """
-    n = len(points)
-    if n == 0:
-        return np.zeros(0, dtype=np.int64)
-    if voxel_size_m > 0:
-        q = np.floor(np.asarray(points, dtype=np.float64) / voxel_size_m).astype(np.int64)
-        q -= q.min(axis=0)
-        span = q.max(axis=0) + 1
-        key = (q[:, 0] * span[1] + q[:, 1]) * span[2] + q[:, 2]
-        _, idx = np.unique(key, return_index=True)
-        idx.sort()
-    else:
-        idx = np.arange(n)
+    from blockloc.voxels import voxel_select
+
+    idx = voxel_select(points, voxel_size_m)
     if max_points > 0 and len(idx) > max_points:
         rng = np.random.default_rng(seed)
         idx = np.sort(rng.choice(idx, size=max_points, replace=False))

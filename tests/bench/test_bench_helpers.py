@@ -8,6 +8,8 @@ import json
 import numpy as np
 import pytest
 
+from blockloc.registration.engines import make_engine
+
 from bench import summary
 from bench._track import RollingMapProvider, STATUS_CODES, summarize, trajectory_rmse
 from bench.scaling import lattice_offsets, replicate_store, replication_pitch
@@ -81,7 +83,7 @@ def test_replicated_blocks_get_unique_ids_and_shifted_centroids(stores, tmp_path
 
 def test_rolling_map_keeps_seed_scans_then_keyframes_by_distance():
     rng = np.random.default_rng(0)
-    prov = RollingMapProvider(1.0, 3, seed_scans=3, keyframe_m=1.0, rebuild_m=1.0)
+    prov = RollingMapProvider(make_engine("ndt", min_points_per_voxel=3), seed_scans=3, keyframe_m=1.0, rebuild_m=1.0)
     assert prov.update(np.zeros(3), None, 0.0).target is None  # no scan yet: nothing to register to
     wall = np.c_[rng.uniform(-20, 20, 3000), np.full(3000, 5.0), rng.uniform(0, 3, 3000)]
     for _ in range(5):  # standing still: only the seed scans are kept
@@ -99,7 +101,8 @@ def test_rolling_map_keeps_seed_scans_then_keyframes_by_distance():
 
 
 def test_rolling_map_serves_only_keyframes_within_radius():
-    prov = RollingMapProvider(1.0, 3, radius_m=10.0, voxel_m=0.05, seed_scans=1, keyframe_m=1.0)
+    prov = RollingMapProvider(make_engine("ndt", min_points_per_voxel=3), radius_m=10.0, voxel_m=0.05, seed_scans=1,
+                              keyframe_m=1.0)
     near = np.c_[np.arange(50.0) * 0.1, np.zeros(50), np.arange(50.0) % 5 * 0.1]
     prov.add_scan(np.zeros(3), near)
     prov.add_scan(np.array([100.0, 0, 0]), near + [100.0, 0, 0])

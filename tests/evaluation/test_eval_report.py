@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from rich.console import Console
 
-from blockloc.errors import EvaluationError
-from blockloc.evaluation.report import evaluate_files, evaluate_trajectories, print_metrics
+from blockloc.errors import BlocklocError, EvaluationError
+from blockloc.commands.eval import print_metrics
+from blockloc.evaluation.report import evaluate_files, evaluate_trajectories
 from blockloc.evaluation.trajectory_io import write_kitti, write_tum
 from blockloc.geometry import Trajectory
 
@@ -114,23 +115,12 @@ def test_interpolation_removes_time_skew_bias(rng):
         evaluate_trajectories(gt, far, interpolate=True)
 
 
-def test_evaluate_with_config_uses_the_section(rng):
-    from blockloc.config import EvaluationConfig
-    from blockloc.evaluation.report import evaluate_with_config
-
-    gt = random_trajectory(rng, n=200)
-    est = perturb(rng, gt, 0.1, 0.01)
-    m = evaluate_with_config(gt, est, EvaluationConfig(align=True, rpe_deltas_m=(2.0,)))
-    assert m["aligned"] is True and m["rpe_deltas_m"] == [2.0] and m["rpe_2m_pairs"] > 0
-    assert m["ate_trans_rmse_m"] == pytest.approx(evaluate_trajectories(gt, est, align=True)["ate_trans_rmse_m"])
-
-
 def test_parse_deltas():
-    from blockloc.evaluation.report import parse_deltas
+    from blockloc.commands.common import parse_deltas
 
     assert parse_deltas("1, 10,100") == (1.0, 10.0, 100.0) and parse_deltas("") == ()
     for bad in ("1,x", "0", "-5"):
-        with pytest.raises(EvaluationError, match="expected positive distances"):
+        with pytest.raises(BlocklocError, match="--rpe-deltas .* expected positive distances"):
             parse_deltas(bad)
 
 

@@ -8,7 +8,8 @@ search around the last pose cannot: the robot is outside its window), and track 
 import numpy as np
 import pytest
 
-from blockloc.pipeline import LocalizationPipeline
+from blockloc.maps.store import open_map
+from blockloc.session import Session
 
 from .kidnap import SplicedSequence
 
@@ -21,10 +22,9 @@ def kidnapped_run(small_world):
     from blockloc.datasets import open_sequence
 
     paths, cfg = small_world
-    seq = SplicedSequence(open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset), FIRST, SECOND)
-    pipe = LocalizationPipeline(seq, cfg=cfg, map_path=paths.block_map, backend="block", init="gt",
-                                keep_estimates=True)
-    return pipe.run(), seq
+    seq = SplicedSequence(open_sequence(paths.loc, dataset_cfg=cfg.dataset), FIRST, SECOND)
+    session = Session.from_config(cfg, seq, open_map(paths.block_map), backend="block", keep_estimates=True)
+    return session.run(init="gt"), seq
 
 
 def test_the_splice_is_a_jump_of_more_than_the_local_search_window(kidnapped_run):

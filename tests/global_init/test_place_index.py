@@ -127,19 +127,16 @@ def test_bad_index_bytes_raise_a_map_error_naming_them():
 
 def test_retrieval_recall_on_the_small_world(small_world, tmp_path):
     from blockloc.datasets import open_sequence
-    from blockloc.global_init.command import gravity_at, scan_body_deskewed
+
+    from .conftest import prepared_scans
 
     paths, cfg = small_world
-    seq = open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset)
+    seq = open_sequence(paths.loc, dataset_cfg=cfg.dataset)
     index = load_place_index(open_map(paths.block_map), seq.info.gravity_map, cache_dir=tmp_path)
     assert index.stats["keyframe_places"] > 0 and index.stats["grid_places"] > 0
-    gt = seq.ground_truth()
-    imu = seq.imu()
     ranks = []
-    for i in np.linspace(20, len(seq) - 1, 25).astype(int):
-        pts, t = scan_body_deskewed(seq.frame(int(i)), seq, imu)
-        T = gt.interpolate(np.array([t]))[0]
-        cands = index.query(pts, gravity_at(seq, t), k=10)
+    for scan, T in prepared_scans(seq, np.linspace(20, len(seq) - 1, 25).astype(int)):
+        cands = index.query(scan.points_body, scan.gravity_body, k=10)
         near = [k for k, c in enumerate(cands) if math.hypot(c.x - T[0, 3], c.y - T[1, 3]) < 5.0]
         ranks.append(near[0] if near else 99)
     ranks = np.array(ranks)

@@ -76,21 +76,60 @@ def test_a_scan_of_a_place_not_in_the_map_is_not_verified_without_a_hint(other_s
         assert res.stats["regions_searched"] >= 1  # it did widen to the whole map
 
 
-def test_scans_of_another_simulated_world_are_not_verified_in_the_small_world_map(small_world):
-    # The same generator with another seed: streets, buildings and trees alike, places different.
-    from blockloc.datasets import open_sequence
+def _small_world_localizer(small_world):
     from blockloc.maps.store import open_map
 
     paths, cfg = small_world
-    loc = GlobalLocalizer.for_store(open_map(paths.block_map), np.array([0.0, 0.0, 9.81]),
-                                    InitParams.from_config(cfg.global_init, cfg.registration))
-    other = open_sequence("sim:small/loc@2")
-    imu = other.imu()
-    from blockloc.global_init.command import gravity_at, scan_body_deskewed
+    return GlobalLocalizer.for_store(open_map(paths.block_map), np.array([0.0, 0.0, 9.81]),
+                                     InitParams.from_config(cfg.global_init, cfg.registration))
 
-    verified = []
-    for i in np.linspace(30, len(other) - 1, 6).astype(int):
-        pts, t = scan_body_deskewed(other.frame(int(i)), other, imu)
-        res = loc.localize(pts, gravity_at(other, t), None, None)
-        verified.append(res.verified)
+
+def test_scans_of_another_simulated_world_are_not_verified_in_the_small_world_map(small_world):
+    # The same generator with another seed: streets, buildings and trees alike, places different.
+    from blockloc.datasets import open_sequence
+
+    from .conftest import prepared_scans
+
+    loc = _small_world_localizer(small_world)
+    other = open_sequence("sim:small/loc@2")
+    verified = [loc.localize(scan.points_body, scan.gravity_body, None, None).verified
+                for scan, _ in prepared_scans(other, np.linspace(30, len(other) - 1, 5).astype(int))]
     assert not any(verified), verified
+
+
+def test_no_hint_relocalization_on_the_small_world_verifies_only_right_poses(small_world):
+    # Frames spread over the localization session (crowds, vegetation, sensor errors): every
+    # verified pose is within 1 m / 5 deg of the truth, and most frames are verified (a
+    # verification that rejects everything would pass the first half alone).
+    from blockloc.datasets import open_sequence
+
+    from .conftest import prepared_scans
+
+    paths, cfg = small_world
+    loc = _small_world_localizer(small_world)
+    seq = open_sequence(paths.loc, dataset_cfg=cfg.dataset)
+    results = []
+    for scan, T in prepared_scans(seq, np.linspace(15, len(seq) - 1, 8).astype(int)):
+        res = loc.localize(scan.points_body, scan.gravity_body, None, None)
+        err = pose_error(res.T_map_body, T) if res.T_map_body is not None else (np.inf, np.inf)
+        results.append((res.verified, res.ambiguous, err))
+    wrong = [r for r in results if r[0] and (r[2][0] > 1.0 or r[2][1] > 5.0)]
+    assert not wrong, results
+    assert all(not (v and a) for v, a, _ in results)  # ambiguous is never verified
+    assert sum(v for v, _, _ in results) >= 6, results
+
+
+def test_no_hint_in_a_repetitive_corridor_never_verifies_the_wrong_copy():
+    # Identical boxes every 12 m along x: without a hint the scan cannot tell the copies apart.
+    # Whatever is returned, a pose on another copy must not be verified.
+    from .synthetic import periodic_world_up
+
+    m = periodic_world_up() @ Z_DOWN.T
+    loc = GlobalLocalizer.for_points(m, GRAVITY_Z_DOWN, InitParams(reloc_window_m=60.0))
+    for x, yaw in ((6.0, 0.4), (-30.0, 2.5)):
+        T = xyzrpy_to_T(x, 0.5, -1.8, 0.0, 0.0, yaw)
+        res = loc.localize(scan_from(m, T, radius=30.0), gravity_body(T))
+        if res.verified:
+            err = pose_error(res.T_map_body, T)
+            assert err[0] <= 1.0 and err[1] <= 5.0, err
+        assert not (res.verified and res.ambiguous)

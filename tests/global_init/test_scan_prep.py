@@ -4,10 +4,13 @@ import math
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
+from blockloc.errors import BlocklocError
 from blockloc.datasets.base import ImuData, LidarFrame, SequenceInfo
 from blockloc.geometry import rpy_to_R
-from blockloc.global_init.command import gravity_at, parse_hint, scan_body_deskewed
+from blockloc.commands.common import parse_pose_hint
+from blockloc.tracking.scan_prep import deskew_rotation, gravity_from_imu
 from blockloc.global_init.projection import R_level_from_gravity, heading_offset, rotation_aligning
 
 
@@ -28,7 +31,8 @@ def test_gyro_deskew_undoes_a_turn_in_place_during_the_sweep():
     R_i = rpy_to_R(0.0, 0.0, omega * (stamp + offs - t_ref))
     measured = np.einsum("nji,nj->ni", R_i, world)
     frame = LidarFrame(0, stamp, measured.astype(np.float64), time_offsets=offs.astype(np.float32))
-    out, t_out = scan_body_deskewed(frame, _fake_seq(omega))
+    seq = _fake_seq(omega)
+    out, t_out = deskew_rotation(frame, seq.imu(), seq.info)
     assert abs(t_out - t_ref) < 1e-6
     err = np.linalg.norm(out - world, axis=1)
     raw = np.linalg.norm(measured - world, axis=1)
@@ -41,7 +45,7 @@ def test_gravity_from_the_accelerometer_and_levelling():
     R_map_body = rpy_to_R(math.radians(5), math.radians(-3), 0.7)
     g_body = R_map_body.T @ np.array([0.0, 0.0, 9.81])
     seq = _fake_seq(0.0, acc=-g_body)
-    g = gravity_at(seq, 1.0)
+    g = gravity_from_imu(seq.imu(), 1.0, seq.info.T_body_imu)
     np.testing.assert_allclose(g, g_body, atol=1e-9)
     R_tilt = R_level_from_gravity(g)
     np.testing.assert_allclose(R_tilt @ (g / np.linalg.norm(g)), [0, 0, -1], atol=1e-12)
@@ -52,14 +56,9 @@ def test_gravity_from_the_accelerometer_and_levelling():
     assert abs(np.linalg.det(R) - 1) < 1e-12
 
 
-def test_parse_hint():
-    assert parse_hint("1.5,-2") == ((1.5, -2.0), None)
-    assert parse_hint("1,2,0.5") == ((1.0, 2.0), 0.5)
-    assert parse_hint(None) == (None, None)
+def test_parse_pose_hint():
+    assert parse_pose_hint("1.5,-2") == (1.5, -2.0, None)
+    assert parse_pose_hint("1,2,0.5") == (1.0, 2.0, 0.5)
     for bad in ("1", "1,2,3,4", "a,b", "nan,1"):
-        try:
-            parse_hint(bad)
-        except Exception as exc:  # noqa: BLE001
-            assert type(exc).__name__ == "GlobalInitError" and "--pose-hint" in str(exc)
-        else:
-            raise AssertionError(f"{bad!r} accepted")
+        with pytest.raises(BlocklocError, match="--init-pose .* expected x,y or x,y,yaw"):
+            parse_pose_hint(bad, "--init-pose")

@@ -10,9 +10,43 @@ import pytest
 from blockloc.config import MapConfig
 from blockloc.errors import MapError
 from blockloc.maps.grid_tiles import tile_global_map
-from blockloc.maps.policies import BlockPolicy, GridPolicy, SrtPolicy
-from blockloc.maps.provider import MapProvider
+from blockloc.maps.policies import BlockPolicy, GridPolicy, SrtPolicy, make_policy
+from blockloc.maps.provider import MapProvider as _MapProvider
 from blockloc.maps.store import MapWriter
+
+_PROVIDER_KEYS = {"prefetch", "lookahead_s", "min_lookahead_m", "cache_mb", "max_spare_regions", "retry_missing_s"}
+
+
+class FakeEngine:
+    """A registration engine made of target builders (the provider only builds and updates targets)."""
+
+    def __init__(self, build=None, build_tiles=None):
+        self.build, self.build_tiles = build, build_tiles
+        self.incremental = build_tiles is not None
+
+    def build_target(self, points):
+        return self.build(points)
+
+    def build_tiled_target(self, tiles):
+        return self.build_tiles(tiles)
+
+    def update_tiles(self, target, add, remove):
+        for key in remove:
+            target.remove_tile(key)
+        for key, pts in add.items():
+            target.add_tile(key, pts)
+        return target
+
+
+def MapProvider(store, backend, *, target_builder=None, tiles_target_builder=None, hysteresis_m=None, **kw):
+    """The provider with ``backend``'s policy and an engine of the given builders."""
+    policy_kw = {k: v for k, v in kw.items() if k not in _PROVIDER_KEYS}
+    if hysteresis_m is not None:
+        policy_kw["switch_hysteresis_m"] = hysteresis_m
+    engine = None if target_builder is None and tiles_target_builder is None else FakeEngine(
+        target_builder, tiles_target_builder)
+    return _MapProvider(store, make_policy(backend, store, **policy_kw), engine=engine,
+                        **{k: v for k, v in kw.items() if k in _PROVIDER_KEYS})
 
 
 def _block_store(path, centres, n=2000, seed=0):
@@ -304,8 +338,11 @@ def test_incremental_tile_targets(tmp_path):
 
 def test_global_backend_and_config(tmp_path):
     store = _grid_store(tmp_path / "g", extent=30.0)
+    import dataclasses
+
     cfg = MapConfig(backend="global", cache_mb=64.0)
-    with MapProvider.from_config(store, cfg, target_builder=CountingBuilder()) as prov:
+    with _MapProvider(store, make_policy(cfg.backend, store, **dataclasses.asdict(cfg)),
+                      engine=FakeEngine(CountingBuilder()), cache_mb=cfg.cache_mb) as prov:
         maps = _drive(prov, np.arange(0, 30, 5.0))
     assert all(m.entry_ids == tuple(sorted(store.ids)) for m in maps)
     assert maps[0].num_points == store.total_points and not any(m.switched for m in maps)

@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 
 from blockloc.errors import MapError
-from blockloc.maps.remote import RemoteMapFiles, RetryPolicy, open_map_files
+from blockloc.maps.files import MapFiles, open_map_files
+from blockloc.maps.remote import RemoteMapFiles, RetryPolicy
 from blockloc.maps.server import MapServer
-from blockloc.maps.store import MapFiles, _open_manifest, open_map
+from blockloc.maps.store import _open_manifest, open_map
 
 from .conftest import FAST_RETRY, AppThread, write_grid_store
 

@@ -1,7 +1,7 @@
 """Tracking a short stretch of the small simulated session with the map from HTTP and from s3://
 gives the same trajectory as with the map on disk.
 
-The pipeline opens maps with ``blockloc.maps.store.open_map``, which reads URLs through
+Sessions open maps with ``blockloc.maps.store.open_map``, which reads URLs through
 ``RemoteMapFiles``; the tests only record the instances it makes and give them a private cache.
 """
 
@@ -22,10 +22,17 @@ N_FRAMES = 40
 
 @pytest.fixture(scope="module")
 def small_world():
-    from blockloc.demo import prepare_small_world
+    from blockloc.commands.demo import prepare_small_world
 
     paths, cfg = prepare_small_world()
     return paths, cfg
+
+
+def _session(cfg, seq, map_path):
+    from blockloc.maps.store import open_map_from_config
+    from blockloc.session import Session
+
+    return Session.from_config(cfg, seq, open_map_from_config(str(map_path), cfg.map), backend="block")
 
 
 class _Remote:
@@ -54,13 +61,10 @@ def remote_open_map(monkeypatch, tmp_path):
 
 def _track(small_world, map_path):
     from blockloc.datasets import open_sequence
-    from blockloc.pipeline import LocalizationPipeline
 
     paths, cfg = small_world
-    seq = open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset)
-    res = LocalizationPipeline(seq, cfg=cfg, map_path=map_path, backend="block", init="gt",
-                               max_frames=N_FRAMES).run()
-    return res.trajectory
+    seq = open_sequence(paths.loc, dataset_cfg=cfg.dataset)
+    return _session(cfg, seq, map_path).run(0, N_FRAMES, init="gt").trajectory
 
 
 @pytest.fixture(scope="module")
@@ -106,7 +110,6 @@ STOP_AT, BACK_AT, N_LONG = 40, 100, 450  # block 001 is first needed near frame 
 def killed_run(small_world, tmp_path_factory):
     """Track 450 frames from HTTP; the server is stopped at frame 40 and back at frame 100."""
     from blockloc.datasets import open_sequence
-    from blockloc.pipeline import LocalizationPipeline
 
     paths, cfg = small_world
     # One block at a time, so that block 001 is first asked for while the server is down (a
@@ -121,17 +124,17 @@ def killed_run(small_world, tmp_path_factory):
     srv = MapServer(paths.block_map)
     srv.start()
 
-    def kill_and_revive(frame):
-        if frame.index == STOP_AT:
-            srv.stop()
-        elif frame.index == BACK_AT:
-            srv.start()
-        return frame
-
-    seq = open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset)
+    seq = open_sequence(paths.loc, dataset_cfg=cfg.dataset)
     try:
-        res = LocalizationPipeline(seq, cfg=cfg, map_path=srv.url, backend="block", init="gt",
-                                   max_frames=N_LONG, frame_filter=kill_and_revive).run()
+        session = _session(cfg, seq, srv.url)
+        session.initialize("gt", 0)
+        for frame in seq.frames(0, N_LONG):
+            if frame.index == STOP_AT:
+                srv.stop()
+            elif frame.index == BACK_AT:
+                srv.start()
+            session.step(frame)
+        res = session.finish()
     finally:
         srv.stop()
         mp.undo()
@@ -149,4 +152,4 @@ def test_tracking_recovers_when_the_server_returns(killed_run):
     assert files.stats.fetched_files >= 3  # block 001 fetched after the server came back
     gt = seq.ground_truth().interpolate(res.trajectory.stamps[-50:])
     err = np.linalg.norm(res.trajectory.poses[-50:, :3, 3] - gt[:, :3, 3], axis=1)
-    assert np.median(err) < 0.5
+    assert np.median(err) < 0.07  # measured on 700dd19: 0.035 m (max 0.038 m)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from blockloc.registration.voxels import voxel_downsample
+from blockloc.voxels import voxel_downsample
 
 
 def read_pcd_xyz(path) -> np.ndarray:
@@ -23,7 +23,7 @@ def hdl_pair(shared_data):
     target = read_pcd_xyz(d / "target.pcd")
     source = read_pcd_xyz(d / "source.pcd")
     T_ref = np.loadtxt(d / "T_target_source.txt")
-    return target, voxel_downsample(source, 0.5), T_ref
+    return target, voxel_downsample(source, 0.5)[0], T_ref
 
 
 def synthetic_scene(seed: int = 0, n_per_m2: float = 40.0) -> np.ndarray:

@@ -1,0 +1,264 @@
+"""What every command shares: the console, option parsing, config for a sequence, progress that
+shows in a terminal and in a log, results folders, and honest interruption (Ctrl-C, SIGTERM)."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Iterator
+
+from blockloc.errors import BlocklocError
+
+log = logging.getLogger("blockloc")
+
+#: Exit codes of an interrupted command (the shell's convention: 128 + the signal number).
+EXIT_CODES = {signal.SIGINT: 130, signal.SIGTERM: 143}
+
+
+class Interrupted(BlocklocError):
+    """The user stopped the command after its work was saved (a tracking run's partial results);
+    ``exit_code`` is 130 (SIGINT) or 143 (SIGTERM)."""
+
+    def __init__(self, message: str, exit_code: int = 130) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
+class Stopped(BaseException):
+    """SIGINT or SIGTERM arrived (see :func:`install_signal_handlers`): raised in the main thread
+    where it runs, it unwinds every ``with`` and ``finally`` on its way out (map builds and the
+    simulator remove their temp directories), then the CLI prints one line and exits 130 / 143.
+
+    A BaseException, as KeyboardInterrupt is, so that ``except Exception`` (a frame skipped, an
+    observer's failure logged) never swallows it; not a KeyboardInterrupt, which typer would turn
+    into a silent exit code."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+        self.exit_code = EXIT_CODES.get(signum, 128 + signum)
+
+
+#: The signals :func:`install_signal_handlers`' handler received, in order.
+RECEIVED: list[int] = []
+
+
+def _raise_stopped(signum, _frame):
+    RECEIVED.append(signum)
+    raise Stopped(signum)
+
+
+def raise_if_stopped() -> None:
+    """Raise :class:`Stopped` again if a signal arrived and the work goes on: an exception raised
+    by a signal handler can be swallowed where it lands (a module's import turns it into an
+    ImportError, a fallback catches that). Progress callbacks call this: the next step stops."""
+    if RECEIVED:
+        raise Stopped(RECEIVED[-1])
+
+
+def install_signal_handlers() -> None:
+    """Make SIGINT and SIGTERM raise :class:`Stopped` (main thread only). A signal the parent set
+    to be ignored (``nohup``, a background job of a script) stays ignored."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for sig in EXIT_CODES:
+        if signal.getsignal(sig) in (signal.SIG_DFL, signal.default_int_handler):
+            signal.signal(sig, _raise_stopped)
+
+
+def console():
+    """The rich console (stdout)."""
+    from rich.console import Console
+
+    return Console()
+
+
+def parse_pose_hint(text: str, option: str = "--pose-hint") -> tuple[float, float, float | None]:
+    """'x,y' or 'x,y,yaw' (metres, metres, radians; map frame) -> (x, y, yaw or None)."""
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) not in (2, 3) or not all(math.isfinite(v) for v in vals):
+        raise BlocklocError(f"{option} {text!r}: expected x,y or x,y,yaw (metres, radians)")
+    return vals[0], vals[1], (vals[2] if len(vals) == 3 else None)
+
+
+def parse_deltas(text: str, option: str = "--rpe-deltas") -> tuple[float, ...]:
+    """'1,10,100' -> (1.0, 10.0, 100.0); an empty string -> () (no RPE)."""
+    try:
+        deltas = tuple(float(v) for v in text.replace(" ", "").split(",") if v)
+    except ValueError:
+        deltas = (-1.0,)
+    if any(not (d > 0 and math.isfinite(d)) for d in deltas):
+        raise BlocklocError(f"{option} {text!r}: expected positive distances in metres, e.g. 1,10,100")
+    return deltas
+
+
+def config_for(seq: str | None, config: str | None, sets: list[str] | None = None):
+    """The config: ``--config`` (a file or preset name) when given, else the preset that fits
+    the sequence (``SequenceRef.preset``), else the defaults; then every ``--set SECTION.KEY=VALUE``
+    (VALUE read as YAML: numbers, true/false, lists)."""
+    from blockloc.config import load_config, preset_for_sequence
+
+    return load_config(config or (preset_for_sequence(seq) if seq else None), overrides=parse_sets(sets or []),
+                       overrides_source="--set")
+
+
+def parse_sets(sets: list[str]) -> dict:
+    """['registration.method=vgicp', 'map.grid_n=3'] -> {'registration': {'method': 'vgicp'}, ...}."""
+    import yaml
+
+    out: dict = {}
+    for item in sets:
+        key, sep, value = item.partition("=")
+        parts = key.strip().split(".")
+        if not sep or len(parts) != 2 or not all(parts):
+            raise BlocklocError(f"--set {item!r}: expected SECTION.KEY=VALUE, e.g. registration.method=vgicp")
+        try:
+            parsed = yaml.safe_load(value) if value.strip() else ""
+        except yaml.YAMLError:
+            parsed = value
+        out.setdefault(parts[0], {})[parts[1]] = parsed
+    return out
+
+
+def map_params(map_cfg, kind: str) -> tuple:
+    """The map-building settings a cached map depends on (part of its cache key)."""
+    size = map_cfg.block_size_m if kind == "block" else map_cfg.tile_size_m
+    return (size, map_cfg.keyframe_distance_m, map_cfg.keyframe_angle_deg, map_cfg.voxel_size_m)
+
+
+def results_dir(out: Path | None, name: str) -> Path:
+    """``out``, or ``results/<name>_<time>`` (name made file-safe)."""
+    if out is not None:
+        return Path(out)
+    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in name.strip("/")).strip("_") or "run"
+    return Path("results") / f"{safe[-60:]}_{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def check_results_dir(out: Path) -> None:
+    """Before any work: ``out`` must be absent, empty or a results folder blockloc wrote (not
+    another kind of blockloc output: a map store or a dataset is not replaced by results)."""
+    from blockloc.fileio import RESULTS, check_replaceable
+
+    check_replaceable(out, "--out", RESULTS, "a results folder")
+
+
+#: Seconds without a progress line after which a piped progress prints one anyway.
+HEARTBEAT_S = 30.0
+
+
+@contextlib.contextmanager
+def progress(label: str, total: int | None = None, *, err_console=None,
+             heartbeat_s: float | None = None) -> Iterator[Callable[[int, int | None], None]]:
+    """A progress callback ``(done, total)``: a rich bar in a terminal; otherwise a line to
+    stderr every 10%, and every ``heartbeat_s`` (default :data:`HEARTBEAT_S`) without one (also
+    while a long step, such as a global initialization, calls no callback), so piped output
+    shows progress too."""
+    import threading
+
+    heartbeat_s = HEARTBEAT_S if heartbeat_s is None else heartbeat_s
+
+    from rich.console import Console
+
+    con = err_console or Console(stderr=True)
+    if con.is_terminal:
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+        bar = Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                       console=con, transient=True)
+        task = bar.add_task(label, total=total)
+        def update(done: int, tot: int | None = None) -> None:
+            raise_if_stopped()
+            bar.update(task, completed=done, total=tot or total)
+
+        with bar:
+            yield update
+        return
+    t0 = time.monotonic()
+    state = {"last_t": t0, "last_pct": -10.0, "done": 0, "total": total}
+    lock = threading.Lock()
+
+    def line(done: int, tot: int | None) -> str:
+        pct = f" ({100.0 * done / tot:.0f}%)" if tot else ""
+        return f"{label}: {done}/{tot or '?'}{pct}"
+
+    def report(done: int, tot: int | None = None) -> None:
+        raise_if_stopped()
+        tot = tot or total
+        now = time.monotonic()
+        pct = 100.0 * done / tot if tot else 0.0
+        with lock:
+            if done < state["done"]:  # counting again (the next session of a simulation)
+                state["last_pct"] = -10.0
+            state["done"], state["total"] = done, tot
+            if (tot and (pct - state["last_pct"] >= 10.0 or done == tot)) or now - state["last_t"] >= heartbeat_s:
+                state["last_t"], state["last_pct"] = now, pct
+                print(line(done, tot), file=sys.stderr, flush=True)
+
+    stop = threading.Event()
+
+    def heartbeat() -> None:
+        while not stop.wait(heartbeat_s / 4.0):
+            now = time.monotonic()
+            with lock:
+                if now - state["last_t"] >= heartbeat_s:
+                    state["last_t"] = now
+                    print(f"{line(state['done'], state['total'])}, working for {now - t0:.0f} s",
+                          file=sys.stderr, flush=True)
+
+    beat = threading.Thread(target=heartbeat, name=f"progress {label}", daemon=True)
+    beat.start()
+    try:
+        yield report
+    finally:
+        stop.set()
+        beat.join()
+
+
+class StopRequest:
+    """Set by SIGINT/SIGTERM while :func:`interruptible` is active; the work checks it between
+    steps, finishes the current one and stops (so what was computed is kept)."""
+
+    def __init__(self) -> None:
+        self.signal: int | None = None
+
+    def __call__(self) -> bool:
+        return self.signal is not None
+
+    @property
+    def exit_code(self) -> int:
+        return EXIT_CODES.get(self.signal, 130)
+
+
+@contextlib.contextmanager
+def interruptible() -> Iterator[StopRequest]:
+    """Turn the first SIGINT/SIGTERM into a stop request (a second one raises :class:`Stopped`
+    at once). Outside the main thread nothing is installed."""
+    import threading
+
+    stop = StopRequest()
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+
+    def handler(signum, _frame):
+        if stop.signal is not None:
+            raise Stopped(signum)
+        stop.signal = signum
+        print("stopping after the current frame (Ctrl-C again to abort)", file=sys.stderr, flush=True)
+
+    old = {s: signal.signal(s, handler) for s in EXIT_CODES if signal.getsignal(s) is not signal.SIG_IGN}
+    try:
+        yield stop
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)

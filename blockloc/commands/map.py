@@ -1,0 +1,248 @@
+"""``blockloc map build | tile | info | plot | serve | index``."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger("blockloc")
+
+
+def build_map(seq, kind: str, out: str | Path, map_cfg, *, overwrite: bool = False,
+              progress: bool = True, max_frames: int | None = None):
+    """Build a block or grid store from a mapping sequence with the ``MapConfig`` settings."""
+    from blockloc.errors import MapError
+
+    if kind == "block":
+        from blockloc.maps.block_maps import build_block_map_from_sequence
+
+        return build_block_map_from_sequence(
+            seq, block_size_m=map_cfg.block_size_m, keyframe_distance_m=map_cfg.keyframe_distance_m,
+            keyframe_angle_deg=map_cfg.keyframe_angle_deg, voxel_size_m=map_cfg.voxel_size_m, out=out,
+            progress=progress, overwrite=overwrite, max_frames=max_frames)
+    if kind == "grid":
+        from blockloc.maps.grid_tiles import build_grid_map_from_sequence
+
+        return build_grid_map_from_sequence(
+            seq, tile_size_m=map_cfg.tile_size_m, keyframe_distance_m=map_cfg.keyframe_distance_m,
+            keyframe_angle_deg=map_cfg.keyframe_angle_deg, voxel_size_m=map_cfg.voxel_size_m, out=out,
+            progress=progress, overwrite=overwrite, max_frames=max_frames)
+    raise MapError(f"--kind {kind!r}: expected block or grid")
+
+
+def build_command(seq: str | None, kind: str, out: Path, config: str | None, data_root: str | None,
+                  block_size: float | None, tile_size: float | None, voxel: float | None,
+                  max_frames: int | None, overwrite: bool, *, poses: Path | None = None,
+                  from_pcd: Path | None = None, sensor_range_m: float = 60.0) -> None:
+    import dataclasses
+
+    from blockloc.commands.common import config_for, console
+    from blockloc.datasets import open_sequence
+    from blockloc.errors import MapError
+    from blockloc.maps.summary import map_summary
+
+    if (seq is None) == (from_pcd is None):
+        raise MapError("map build: give --seq SEQ (a mapping sequence) or --from-pcd GLOBAL.pcd --poses TRAJ")
+    if kind not in ("block", "grid"):
+        raise MapError(f"--kind {kind!r}: expected block or grid")
+    check_positive(("--block-size", "block size", block_size), ("--tile-size", "tile size", tile_size),
+                   ("--sensor-range", "sensor range", sensor_range_m))
+    if from_pcd is not None and poses is None:
+        raise MapError("--from-pcd needs --poses TRAJ (the mapping trajectory)")
+    check_out(out, overwrite)
+    cfg = config_for(seq, config)
+    overrides = {k: v for k, v in (("block_size_m", block_size), ("tile_size_m", tile_size),
+                                   ("voxel_size_m", voxel)) if v is not None}
+    map_cfg = dataclasses.replace(cfg.map, **overrides)
+    if from_pcd is not None:
+        from blockloc.maps.from_pcd import build_map_from_global_pcd
+
+        store = build_map_from_global_pcd(
+            from_pcd, poses, kind, out, sensor_range_m=sensor_range_m,
+            keyframe_distance_m=map_cfg.keyframe_distance_m, keyframe_angle_deg=map_cfg.keyframe_angle_deg,
+            block_size_m=map_cfg.block_size_m, tile_size_m=map_cfg.tile_size_m, voxel_size_m=map_cfg.voxel_size_m,
+            overwrite=overwrite, progress=True)
+    else:
+        sequence = open_sequence(seq, data_root=data_root, dataset_cfg=cfg.dataset, poses=poses)
+        store = build_map(sequence, kind, out, map_cfg, overwrite=overwrite, max_frames=max_frames)
+        store = add_place_index(out, sequence.info.gravity_map, cfg)
+    print_summary(map_summary(store), console())
+
+
+def check_out(out: Path, overwrite: bool) -> None:
+    """Before any work: ``--out`` is absent, or ``--overwrite`` is given and it is a map store
+    (or an empty directory): MapError naming it otherwise."""
+    from blockloc.errors import BlocklocError, MapError
+    from blockloc.fileio import MAP_STORE, check_replaceable
+
+    if out.exists() and not overwrite:
+        raise MapError(f"--out {out}: already exists (choose another --out, or --overwrite to replace the map there)")
+    try:
+        check_replaceable(out, "--out", MAP_STORE, "a map store")
+    except BlocklocError as exc:
+        raise MapError(f"{exc}; --overwrite replaces only a map store") from None
+
+
+def check_positive(*options: tuple[str, str, float | None]) -> None:
+    """MapError naming the first (option, what, value) whose value is given and is not a positive
+    number of metres (before any work)."""
+    import math
+
+    from blockloc.errors import MapError
+
+    for option, what, value in options:
+        if value is not None and not (value > 0 and math.isfinite(value)):
+            raise MapError(f"{option} {value:g}: expected a positive {what} in metres")
+
+
+def tile_command(global_pcd: Path, tile_size: float, out: Path, overwrite: bool) -> None:
+    from blockloc.commands.common import console
+    from blockloc.maps.grid_tiles import tile_pcd_file
+    from blockloc.maps.summary import map_summary
+
+    check_positive(("--tile-size", "tile size", tile_size))
+    check_out(out, overwrite)
+    store = tile_pcd_file(global_pcd, tile_size, out, overwrite=overwrite, progress=True)
+    print_summary(map_summary(store), console())
+
+
+def info_command(map_path: str, json_out: bool, quick: bool) -> None:
+    from blockloc.commands.common import console
+    from blockloc.maps.store import open_map
+    from blockloc.maps.summary import map_summary
+
+    summary = map_summary(open_map(map_path), with_overlap=not quick)
+    if json_out:
+        print(json.dumps(summary))
+    else:
+        print_summary(summary, console())
+
+
+def plot_command(map_path: str, seq: str | None, out: Path | None, data_root: str | None) -> None:
+    from blockloc.fileio import check_figure_path
+    from blockloc.maps.plot import plot_map
+    from blockloc.maps.store import open_map
+
+    png = check_figure_path(out or Path(str(map_path).rstrip("/") + ".png"), "--out")  # before any work
+    store = open_map(map_path)
+    traj = None
+    if seq:
+        from blockloc.commands.common import config_for
+        from blockloc.datasets import open_sequence
+
+        s = open_sequence(seq, data_root=data_root, dataset_cfg=config_for(seq, None).dataset)
+        traj = s.ground_truth() or s.mapping_poses()
+    print(str(plot_map(store, png, traj)))
+
+
+def serve_command(map_path: Path, host: str, port: int) -> None:
+    import sys
+
+    from blockloc.maps.server import serve
+
+    def ready(url: str, stores: list) -> None:
+        for s in stores:
+            print(f"serving {url}/{s + '/' if s else ''}", file=sys.stderr)
+        print("press Ctrl-C to stop", file=sys.stderr, flush=True)
+
+    serve(map_path, host, port, on_ready=ready)
+
+
+def print_summary(summary: dict[str, Any], console) -> None:
+    from rich.table import Table
+
+    t = Table(title=f"{summary['kind']} map {summary['path']}", show_header=False)
+    t.add_column("", style="bold")
+    t.add_column("")
+    unit = "blocks" if summary["kind"] == "block" else "tiles"
+    t.add_row(unit, f"{summary['entries']:,}")
+    t.add_row("points", f"{summary['points']:,}")
+    t.add_row("bytes", f"{summary['bytes']:,} ({summary['bytes'] / 2**20:.1f} MiB, headers "
+                       f"{summary['header_overhead_pct']:.2f}%)")
+    ppe = summary["points_per_entry"]
+    t.add_row(f"points per {unit[:-1]}", f"min {ppe['min']:,}  median {ppe['median']:,.0f}  "
+                                         f"max {ppe['max']:,}")
+    t.add_row("bounds", f"{summary['bounds_min']} .. {summary['bounds_max']}")
+    if "overlap_ratio" in summary:
+        t.add_row("overlap", f"{100 * summary['overlap_ratio']:.1f}% of stored points repeat "
+                             "another entry's")
+    params = {k: v for k, v in summary["parameters"].items() if not isinstance(v, (dict, list))}
+    t.add_row("parameters", ", ".join(f"{k}={v}" for k, v in params.items()))
+    if summary["legacy_layout"]:
+        t.add_row("layout", "released block-map layout (no manifest, no checksums)")
+    console.print(t)
+
+
+
+
+# ----------------------------------------------------------------------------- map index
+GRAVITY_WORDS = {"down": (0.0, 0.0, 9.81), "up": (0.0, 0.0, -9.81)}
+
+
+def add_place_index(path: str | Path, gravity_map, cfg):
+    """Build the place index (no-hint relocalization) of the local store at ``path`` with the
+    ``global_init`` settings of ``cfg`` and add it to the store; returns the reopened store."""
+    import time
+
+    from blockloc.global_init.place_index import PLACE_INDEX_NAME, write_place_index
+    from blockloc.global_init.relocalize import InitParams
+
+    t0 = time.perf_counter()
+    store, index = write_place_index(path, gravity_map, InitParams.from_config(cfg.global_init).place_index_params)
+    log.info("place index: %d places, %d bytes in %.1f s", len(index), store.extras[PLACE_INDEX_NAME].bytes,
+             time.perf_counter() - t0)
+    return store
+
+
+def parse_gravity(text: str):
+    """``down`` (the map's z axis points down: NCLT, the simulator), ``up`` or ``X,Y,Z`` (m/s^2)
+    -> gravity (3,) in the map frame; MapError naming --gravity otherwise."""
+    import numpy as np
+
+    from blockloc.errors import MapError
+
+    word = text.strip().lower()
+    if word in GRAVITY_WORDS:
+        return np.array(GRAVITY_WORDS[word])
+    try:
+        g = np.array([float(v) for v in word.split(",")])
+    except ValueError:
+        g = np.zeros(0)
+    if g.shape != (3,) or not np.all(np.isfinite(g)) or np.linalg.norm(g) < 1e-6:
+        raise MapError(f"--gravity {text!r}: expected down, up or X,Y,Z (a non-zero vector, map frame, m/s^2)")
+    return g
+
+
+def index_command(map_path: str, gravity: str | None, config: str | None) -> None:
+    """``blockloc map index MAP``: (re)build the place index of an existing local map store.
+    Gravity: ``--gravity``, else that of the sequence the map was built from (its manifest's
+    ``sequence``)."""
+    from blockloc.commands.common import config_for, console
+    from blockloc.errors import BlocklocError, MapError
+    from blockloc.maps.store import open_map
+
+    store = open_map(map_path)
+    if store.files.is_remote:
+        raise MapError(f"{map_path}: a place index can be added only to a local map store")
+    source = store.params.get("sequence")
+    if gravity is not None:
+        g = parse_gravity(gravity)
+    elif source:
+        from blockloc.datasets import open_sequence
+
+        try:
+            g = open_sequence(str(source)).info.gravity_map
+        except BlocklocError as exc:
+            raise MapError(f"{map_path}: cannot open its mapping sequence {source!r} for gravity ({exc}); "
+                           "give --gravity down|up|X,Y,Z") from None
+    else:
+        raise MapError(f"{map_path}: the manifest names no mapping sequence; give --gravity down|up|X,Y,Z")
+    cfg = config_for(str(source) if source else None, config)
+    store = add_place_index(map_path, g, cfg)
+    from blockloc.global_init.place_index import PLACE_INDEX_NAME
+
+    e = store.extras[PLACE_INDEX_NAME]
+    console().print(f"place index of {map_path}: {e.file}, {e.bytes / 1e6:.2f} MB "
+                    f"({100.0 * e.bytes / max(sum(x.bytes for x in store.entries), 1):.1f}% of the map's bytes)")

@@ -1,0 +1,169 @@
+"""A tracking run's results: the metrics of a run and the results folder, written as it goes.
+
+:func:`run_metrics` turns what a session collected (per-frame diagnostics, counters, the
+estimated trajectory, ground truth) into the flat dict saved as ``metrics.json``.
+
+:class:`RunWriter` is a run observer (``start`` / ``frame`` / ``finish``) that fills a results
+folder: ``poses.tum`` (time s, T_map_body) and ``diagnostics.csv`` are appended and flushed after
+every frame, so a crash or a kill still leaves every pose computed so far; ``config.yaml`` is
+written at the start; ``poses_kitti.txt`` (+ times), ``metrics.json`` and the plots at the end;
+then a ``latest`` link beside the folder points at it. ``metrics.json`` is also what marks a
+folder as blockloc's own (see :func:`blockloc.fileio.is_blockloc_output`).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from blockloc.fileio import atomic_write_text, to_jsonable
+from blockloc.geometry import Trajectory
+
+log = logging.getLogger(__name__)
+
+#: The files a results folder holds (the first two grow during the run).
+RESULT_FILES = ("poses.tum", "diagnostics.csv", "config.yaml", "poses_kitti.txt", "poses_kitti.times.txt",
+                "metrics.json", "trajectories.png", "errors.png")
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident memory, MB: VmHWM from /proc, which restarts at exec (Linux's
+    ``ru_maxrss`` carries a parent's peak into a child started by fork + exec: a tracking run
+    launched by a large process reported its parent's peak)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return float(line.split()[1]) / 1024.0
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        import resource
+
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+    except (ImportError, OSError):
+        import psutil
+
+        return psutil.Process().memory_info().rss / 2**20
+
+
+def _q(values: Sequence[float], q: float) -> float | None:
+    a = np.asarray(values, dtype=np.float64)
+    a = a[np.isfinite(a)]
+    return float(np.percentile(a, q)) if len(a) else None
+
+
+def run_metrics(*, diagnostics: list[dict], counters: dict, trajectory: Trajectory,
+                ground_truth: Trajectory | None, evaluation: dict | None = None,
+                plot_dir: Path | None = None, **facts: Any) -> dict:
+    """The metrics of a run, JSON-ready.
+
+    diagnostics: one dict per frame (the tracker's fields plus index, stamp; status
+    ``skipped`` for frames that could not be read). counters: the tracker's and the session's
+    counts. trajectory: the estimate (T_map_body). ground_truth: or None (no accuracy figures).
+    evaluation: keywords of :func:`~blockloc.evaluation.report.evaluate_trajectories` (align,
+    max_time_diff_s, rpe_deltas_m); plot_dir: where its plots go (None: no plots). facts:
+    anything else to record (sequence, map, backend, init, timings, map_stats, ...).
+    """
+    d = [x for x in diagnostics if x.get("status") != "skipped"]
+    tracked = [x for x in d if x["status"] != "uninitialized"]
+    upd = [x["update_ms"] for x in tracked]
+    m: dict[str, Any] = dict(facts)
+    m.update({
+        "frames": len(diagnostics), "processed": len(d), "estimated": len(trajectory), **counters,
+        "update_ms_median": _q(upd, 50), "update_ms_mean": float(np.mean(upd)) if upd else None,
+        "update_ms_p99": _q(upd, 99), "update_ms_max": float(np.max(upd)) if upd else None,
+        "switch_update_ms_p99": _q([x["update_ms"] for x in d if x.get("switched")], 99),
+        "fitness_median": _q([x["fitness"] for x in d], 50),
+        "window_size_min": int(min((x["window_size"] for x in d), default=0)),
+        "window_size_max": int(max((x["window_size"] for x in d), default=0)),
+        "peak_rss_mb": peak_rss_mb(),
+    })
+    for key in ("deskew_ms", "registration_ms", "smoother_ms", "map_ms"):
+        m[f"{key}_median"] = _q([x[key] for x in d if key in x], 50)
+    if ground_truth is not None and len(trajectory) > 1:
+        from blockloc.errors import EvaluationError
+        from blockloc.evaluation.report import evaluate_trajectories
+
+        if plot_dir is not None:
+            Path(plot_dir).mkdir(parents=True, exist_ok=True)
+        try:
+            m.update(evaluate_trajectories(ground_truth, trajectory, plot_dir=plot_dir, interpolate=True,
+                                           **(evaluation or {})))
+        except EvaluationError as exc:  # e.g. no estimate overlaps the ground truth
+            log.warning("no accuracy figures: %s", exc)
+            m["evaluation_error"] = str(exc)
+    return to_jsonable(m)
+
+
+class RunWriter:
+    """Run observer that writes the results folder ``out`` (see the module docstring)."""
+
+    def __init__(self, out: str | Path) -> None:
+        self.out = Path(out)
+        self._poses = None
+        self._diag = None
+        self._diag_writer = None
+        self._stamps: list[float] = []
+        self._T: list[np.ndarray] = []
+
+    def start(self, info) -> None:
+        import yaml
+
+        from blockloc.evaluation.trajectory_io import TUM_HEADER
+
+        self.out.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(self.out / "config.yaml", yaml.safe_dump(to_jsonable(info.config), sort_keys=False))
+        self._poses = open(self.out / "poses.tum", "w")
+        self._poses.write(TUM_HEADER + "\n")
+        self._poses.flush()
+        self._diag = open(self.out / "diagnostics.csv", "w", newline="")
+
+    def frame(self, event) -> None:
+        from blockloc.evaluation.trajectory_io import tum_lines
+
+        if event.T_map_body is not None and self._poses is not None:
+            self._poses.write(tum_lines([event.stamp], event.T_map_body[None])[0] + "\n")
+            self._poses.flush()
+            self._stamps.append(float(event.stamp))
+            self._T.append(np.asarray(event.T_map_body))
+        if self._diag is not None:
+            row = {"index": event.index, "stamp": f"{event.stamp:.9f}", "status": event.status,
+                   **{k: v for k, v in event.diagnostics.items() if k != "status"}}
+            if self._diag_writer is None:
+                self._diag_writer = csv.DictWriter(self._diag, fieldnames=list(row), extrasaction="ignore")
+                self._diag_writer.writeheader()
+            self._diag_writer.writerow(row)
+            self._diag.flush()
+
+    def finish(self, metrics: dict) -> None:
+        from blockloc.evaluation.trajectory_io import write_kitti
+
+        for fh in (self._poses, self._diag):
+            if fh is not None:
+                fh.close()
+        self._poses = self._diag = None
+        if self._T:
+            write_kitti(self.out / "poses_kitti.txt", Trajectory(np.asarray(self._stamps), np.asarray(self._T)))
+        atomic_write_text(self.out / "metrics.json", json.dumps(to_jsonable(metrics), indent=2))
+        _point_latest(self.out)
+
+
+def _point_latest(out: Path) -> None:
+    """``latest`` beside ``out`` -> ``out`` (only when ``latest`` is absent or already a link)."""
+    import os
+
+    latest = out.parent / "latest"
+    try:
+        if latest.is_symlink() or not latest.exists():
+            tmp = out.parent / f".latest.{os.getpid()}.tmp"
+            if tmp.is_symlink():
+                tmp.unlink()
+            tmp.symlink_to(out.name)
+            tmp.replace(latest)
+    except OSError as exc:  # e.g. a file system without symlinks
+        log.info("no 'latest' link: %s", exc)
