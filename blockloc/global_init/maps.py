@@ -37,7 +37,7 @@ BUCKET_M = 25.0
 @dataclass(frozen=True)
 class ProjectionParams:
     """resolution_m: base cell (m); num_levels: pyramid levels; band_m: height band above ground (m);
-    mode: 'band' | 'all'."""
+    mode: 'band' | 'vertical' | 'all' (see ``projection.select_structure``)."""
 
     resolution_m: float = 0.5
     num_levels: int = 6

@@ -51,10 +51,11 @@ log = logging.getLogger(__name__)
 
 PLACE_INDEX_NAME = "place_index.npz"
 FORMAT = "blockloc-place-index"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: the "vertical" projection of the band
 TILE_M = 256.0  # the index is built tile by tile: memory bounded by the tile, not the map
 OBSTACLE_M = 0.3  # a scan point this high above the local ground hides what lies behind it
 BAND_TOP_UNSEEN_M = 20.0
+SCAN_VERTICAL_RANGE_M = 20.0  # a scan's wall closer than this has band points >= 0.5 m apart in height
 STATIC_POINTS = 3000  # the static points kept per scan (verification's structure test)  # a scan with no points near the band's top: seen-through only beyond this
 
 
@@ -73,7 +74,7 @@ class PlaceIndexParams:
 
     resolution_m: float = 0.5
     band_m: tuple[float, float] = (2.0, 4.0)
-    mode: str = "band"
+    mode: str = "vertical"  # map structure with height (see projection.select_structure)
     num_levels: int = 6
     num_sectors: int = 64
     min_range_m: float = 3.0
@@ -251,7 +252,7 @@ def scan_cells(points_body: np.ndarray, gravity_body: np.ndarray, params: PlaceI
 
     points_body: (N, 3) body frame, metres; gravity_body: (3,) gravity in the body frame.
     """
-    from blockloc.global_init.projection import R_level_from_gravity, ground_grid, lookup_ground
+    from blockloc.global_init.projection import R_level_from_gravity, ground_grid, lookup_ground, tall_columns
 
     pts = np.asarray(points_body, float).reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]
@@ -273,10 +274,17 @@ def scan_cells(points_body: np.ndarray, gravity_body: np.ndarray, params: PlaceI
     top = np.hypot(lvl[:, 0], lvl[:, 1])[np.abs(h - hi) <= 0.5]
     top = top[top >= params.min_range_m]
     free_from = float(np.percentile(top, 2)) if len(top) >= 20 else BAND_TOP_UNSEEN_M
+    band = (h >= lo) & (h <= hi)
+    if params.mode == "vertical":
+        # As the map's raster (projection.select_structure): near the sensor, where a wall is hit
+        # by several beams, drop layers (the ceiling of a passage) and stray returns.
+        idx = np.flatnonzero(band)
+        near = np.hypot(lvl[idx, 0], lvl[idx, 1]) < SCAN_VERTICAL_RANGE_M
+        band[idx[near & ~tall_columns(lvl[idx, :2], h[idx], min_points=3)]] = False
     static = lvl[h >= lo]
     if len(static) > STATIC_POINTS:
         static = static[np.sort(np.random.default_rng(0).choice(len(static), STATIC_POINTS, replace=False))]
-    return ScanCells(cells((h >= lo) & (h <= hi)), cells(h >= OBSTACLE_M), R_tilt,
+    return ScanCells(cells(band), cells(h >= OBSTACLE_M), R_tilt,
                      max(params.free_min_range_m, free_from), static @ R_tilt)
 
 
