@@ -55,7 +55,8 @@ FORMAT_VERSION = 2  # 2: the "vertical" projection of the band
 TILE_M = 256.0  # the index is built tile by tile: memory bounded by the tile, not the map
 OBSTACLE_M = 0.3  # a scan point this high above the local ground hides what lies behind it
 BAND_TOP_UNSEEN_M = 20.0
-SCAN_VERTICAL_RANGE_M = 20.0  # a scan's wall closer than this has band points >= 0.5 m apart in height
+SCAN_COLUMN_POINTS = 3  # a scan column needs this many band points ("vertical" mode; a map 5: it is denser)
+SCAN_VERTICAL_RANGE_M = 20.0  # ... within this range (a wall there gets band points >= 0.5 m apart)
 STATIC_POINTS = 3000  # the static points kept per scan (verification's structure test)  # a scan with no points near the band's top: seen-through only beyond this
 
 
@@ -276,11 +277,12 @@ def scan_cells(points_body: np.ndarray, gravity_body: np.ndarray, params: PlaceI
     free_from = float(np.percentile(top, 2)) if len(top) >= 20 else BAND_TOP_UNSEEN_M
     band = (h >= lo) & (h <= hi)
     if params.mode == "vertical":
-        # As the map's raster (projection.select_structure): near the sensor, where a wall is hit
-        # by several beams, drop layers (the ceiling of a passage) and stray returns.
+        # As the map's raster (projection.select_structure): drop layers (the ceiling of a
+        # passage) and stray returns, where walls are hit by several beams; farther away one beam
+        # may be all a wall gets.
         idx = np.flatnonzero(band)
         near = np.hypot(lvl[idx, 0], lvl[idx, 1]) < SCAN_VERTICAL_RANGE_M
-        band[idx[near & ~tall_columns(lvl[idx, :2], h[idx], min_points=3)]] = False
+        band[idx[near & ~tall_columns(lvl[idx, :2], h[idx], min_points=SCAN_COLUMN_POINTS)]] = False
     static = lvl[h >= lo]
     if len(static) > STATIC_POINTS:
         static = static[np.sort(np.random.default_rng(0).choice(len(static), STATIC_POINTS, replace=False))]
@@ -289,7 +291,7 @@ def scan_cells(points_body: np.ndarray, gravity_body: np.ndarray, params: PlaceI
 
 
 def consistency_at(source, xy_L: np.ndarray, theta: float, cells: ScanCells, params: PlaceIndexParams,
-                   min_bits: int = 20) -> tuple[float, float]:
+                   min_bits: int = 20, coverage_source=None) -> tuple[float, float]:
     """How well the map's static band around a pose agrees with a scan: (coverage, see_through).
 
     The pose: the body at ``xy_L`` (2,) of the levelled frame, its levelled scan turned by
@@ -298,7 +300,9 @@ def consistency_at(source, xy_L: np.ndarray, theta: float, cells: ScanCells, par
     nearest structure lies beyond ``free_min_range_m`` (what the scan should see there), the share
     in which the scan saw through it (its free bins reach past it), NaN below ``min_bits / 4``
     such sectors. A share, not a count of bins: a wall across a quarter of the view is a quarter.
-    source: a global-init map source in ``params``' band (``base_raster``).
+    source: a global-init map source in ``params``' band (``base_raster``); coverage_source: one
+    for the coverage when not ``source`` (the plain band: a scan's column that the "vertical"
+    projection would drop on the map's lattice is still covered).
     """
     from scipy.ndimage import binary_dilation
 
@@ -311,6 +315,10 @@ def consistency_at(source, xy_L: np.ndarray, theta: float, cells: ScanCells, par
     occ = base == 255
     at = (corner - origin)[None]
     raw = unpack(descriptors_on_raster(occ, at, params)[0], S)
+    if coverage_source is not None:
+        origin, base = coverage_source.base_raster(corner - t.radius - pad, corner + t.radius + pad)
+        occ = base == 255
+        at = (corner - origin)[None]
     grown = unpack(descriptors_on_raster(binary_dilation(occ, _disk(params.tolerance_m / res)), at, params)[0], S)
     sd = scan_descriptor(cells.band, params, cells.obstacles, cells.free_from_m)
     shift = int(round(theta / (2 * math.pi / S))) % S

@@ -30,8 +30,8 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 VERTICAL_CELL_M = 0.5  # columns of the "vertical" projection mode
-VERTICAL_EXTENT_M = 0.5  # band points of a column spanning less: a layer or a stray return
-VERTICAL_MIN_POINTS = 5  # fewer in a column: stray returns (a 0.2 m voxel map's wall column holds ~25)
+VERTICAL_EXTENT_M = 0.5  # band points of a column spanning less: a layer (a ceiling) or stray returns
+VERTICAL_MIN_POINTS = 5  # fewer in a column: stray returns (half the band cells of a simulated map held <= 2)
 
 GROUND_CELL_M = 1.0
 GROUND_ERODE_CELLS = 1

@@ -189,6 +189,7 @@ class GlobalLocalizer:
         self.engine = engine  # refines and verifies candidates
         self._place_index = place_index
         self._place_source = None
+        self._coverage_source = None
         self._index_load_s = 0.0
 
     @property
@@ -209,6 +210,15 @@ class GlobalLocalizer:
             p = self._place_index.params if self._place_index is not None else self.params.place_index_params
             self._place_source = self.map.with_params(p.projection_params)
         return self._place_source
+
+    @property
+    def coverage_source(self):
+        """The map in the place index's band, every point (``band`` mode): what covers a scan."""
+        if self._coverage_source is None:
+            from dataclasses import replace
+
+            self._coverage_source = self.map.with_params(replace(self.place_source.params, mode="band"))
+        return self._coverage_source
 
     @classmethod
     def for_store(cls, store, gravity_map, params: InitParams | None = None, cache_dir=None,
@@ -413,7 +423,8 @@ class GlobalLocalizer:
         R_heading = T_L_body[:3, :3] @ cells.R_tilt.T
         theta = math.atan2(R_heading[1, 0], R_heading[0, 0])
         try:
-            return consistency_at(self.place_source, T_L_body[:2, 3], theta, cells, ip, p.min_consistency_bits)
+            return consistency_at(self.place_source, T_L_body[:2, 3], theta, cells, ip, p.min_consistency_bits,
+                                  coverage_source=self.coverage_source)
         except GlobalInitError:
             return np.nan, np.nan
 
