@@ -158,7 +158,7 @@ class GlobalInitConfig:
     reloc_window_m: float = bounded(100.0, POSITIVE)  # regions of the no-hint relocalization (the place index's fallback)
     # No-hint relocalization through the map's place index (blockloc/global_init/place_index.py).
     use_place_index: bool = True
-    place_candidates: tuple[int, ...] = (32, 256)  # places whose windows are searched, stage by stage
+    place_candidates: tuple[int, ...] = (8, 64, 256)  # places whose windows are searched, stage by stage
     place_window_m: float = bounded(12.0, POSITIVE)  # window around each place (x, y), metres
     place_yaw_window_deg: float = bounded(16.0, ANGLE_WINDOW)  # around each place's yaw guess
     place_band_m: tuple[float, float] = (2.0, 4.0)  # static band: above people, cars and fences
