@@ -13,8 +13,8 @@ from blockloc.session import Session
 
 from .kidnap import SplicedSequence
 
-FIRST = (100, 180)  # ends at (-24.4, 0.8) m on the small world's loop
-SECOND = (950, 1040)  # starts at (22.5, 1.8) m: 47 m away, beyond the 40 m local search window
+FIRST = (140, 180)  # ends at (-24.4, 0.8) m on the small world's loop
+SECOND = (950, 1020)  # starts at (22.5, 1.8) m: 47 m away, beyond the 40 m local search window
 
 
 @pytest.fixture(scope="module")

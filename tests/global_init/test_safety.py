@@ -96,7 +96,7 @@ def test_scans_of_another_simulated_world_are_not_verified_in_the_small_world_ma
     loc = _small_world_localizer(small_world, whole_map_fallback=False)
     other = open_sequence("sim:small/loc@2")
     verified = [loc.localize(scan.points_body, scan.gravity_body, None, None).verified
-                for scan, _ in prepared_scans(other, np.linspace(30, len(other) - 1, 4).astype(int))]
+                for scan, _ in prepared_scans(other, np.linspace(30, len(other) - 1, 3).astype(int))]
     assert not any(verified), verified
 
 
@@ -112,14 +112,14 @@ def test_no_hint_relocalization_on_the_small_world_verifies_only_right_poses(sma
     loc = _small_world_localizer(small_world, whole_map_fallback=False)  # short: the place-index stages
     seq = open_sequence(paths.loc, dataset_cfg=cfg.dataset)
     results = []
-    for scan, T in prepared_scans(seq, np.linspace(15, len(seq) - 1, 8).astype(int)):
+    for scan, T in prepared_scans(seq, np.linspace(15, len(seq) - 1, 6).astype(int)):
         res = loc.localize(scan.points_body, scan.gravity_body, None, None)
         err = pose_error(res.T_map_body, T) if res.T_map_body is not None else (np.inf, np.inf)
         results.append((res.verified, res.ambiguous, err))
     wrong = [r for r in results if r[0] and (r[2][0] > 1.0 or r[2][1] > 5.0)]
     assert not wrong, results
     assert all(not (v and a) for v, a, _ in results)  # ambiguous is never verified
-    assert sum(v for v, _, _ in results) >= 6, results
+    assert sum(v for v, _, _ in results) >= 5, results
 
 
 def test_no_hint_in_a_repetitive_corridor_never_verifies_the_wrong_copy():
