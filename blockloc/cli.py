@@ -146,6 +146,19 @@ def map_tile_cmd(
     tile_command(global_pcd, tile_size, out, overwrite)
 
 
+@map_app.command("index")
+def map_index_cmd(
+    map_path: str = typer.Argument(..., metavar=MAP, help="Local map directory."),
+    gravity: Optional[str] = typer.Option(None, "--gravity", metavar="down|up|X,Y,Z",
+                                          help="Gravity in the map frame (default: the mapping sequence's)."),
+    config: Optional[str] = typer.Option(None, "--config", metavar=FILE, help="Config file or preset name."),
+) -> None:
+    """Build (or rebuild) the place index of a map: no-hint relocalization."""
+    from blockloc.commands.map import index_command
+
+    index_command(map_path, gravity, config)
+
+
 @map_app.command("info")
 def map_info_cmd(
     map_path: str = typer.Argument(..., metavar=MAP, help="Map directory (or URL)."),

@@ -159,9 +159,24 @@ class GlobalInitConfig:
     min_fitness: float = bounded(0.75, PROBABILITY)
     # same for the above-ground points alone (true >= 0.9, false <= 0.37)
     min_structure_fitness: float = bounded(0.6, PROBABILITY)
-    ambiguity_distance_m: float = bounded(2.0, NON_NEGATIVE)
+    ambiguity_distance_m: float = bounded(0.5, NON_NEGATIVE)  # rivals farther than this (NDT merges closer ones)
     ndt_resolution_m: float = bounded(1.0, POSITIVE)
-    reloc_window_m: float = bounded(100.0, POSITIVE)  # regions of the no-hint relocalization
+    reloc_window_m: float = bounded(100.0, POSITIVE)  # regions of the no-hint relocalization (the place index's fallback)
+    # No-hint relocalization through the map's place index (blockloc/global_init/place_index.py).
+    use_place_index: bool = True
+    place_candidates: tuple[int, ...] = (8, 64, 256)  # places whose windows are searched, stage by stage
+    place_window_m: float = bounded(12.0, POSITIVE)  # window around each place (x, y), metres
+    place_yaw_window_deg: float = bounded(16.0, ANGLE_WINDOW)  # around each place's yaw guess
+    place_band_m: tuple[float, float] = (2.0, 4.0)  # static band: above people, cars and fences
+    place_max_range_m: float = bounded(63.0, POSITIVE)
+    place_spacing_m: float = bounded(3.0, POSITIVE)  # grid of places over the drivable area
+    place_tolerance_m: float = bounded(1.5, POSITIVE)  # a scan this far from a place still matches it
+    place_max_offset_m: float = bounded(20.0, POSITIVE)  # grid places within this of a mapping keyframe
+    whole_map_fallback: bool = True  # then the regions of reloc_window_m, as without an index
+    # Verification at the refined pose, in the static band (both the hinted and the no-hint path).
+    min_coverage: float = bounded(0.9, FRACTION)  # scan structure the map covers (true poses: >= 0.91 on campus)
+    max_see_through: float = bounded(0.35, FRACTION)  # share of the map's visible structure the scan saw through (true: <= 0.25)
+    ambiguity_z: float = bounded(2.5, NON_NEGATIVE)  # a rival is no ambiguity when the best fits this significantly better
 
 
 @dataclass

@@ -13,7 +13,10 @@ or, driven from outside (the benchmarks step several sessions in lockstep):
     result = session.finish()
 
 Initialization: ``gt`` (the first ground-truth pose), ``pose`` (global init around an x, y[, yaw]
-hint) or ``global`` (global init over the whole map on the first frames, until one is verified).
+hint) or ``global`` (global init over the whole map on the first frames, until one is verified:
+the map's place index, see :mod:`blockloc.global_init.place_index`). A tracker that is lost
+relocalizes around its last good pose, then over the whole map (:meth:`Session.relocalize`);
+only verified poses restart it, and the frames in between are reported lost, never ok.
 Every path prepares its scan with :func:`blockloc.tracking.scan_prep.prepare_for_init`, as
 ``blockloc init`` does.
 
@@ -230,11 +233,35 @@ class Session:
     def relocalize(self, points_lidar: np.ndarray, hint: Optional[np.ndarray], gravity_body: np.ndarray,
                    stamp: float) -> Optional[np.ndarray]:
         """The tracker's recovery: global init of a scan (lidar frame) around ``hint``
-        (T_map_body) or over the whole map. A failed or impossible attempt returns None."""
+        (T_map_body), and, when nothing there is verified, over the whole map (the place index:
+        a kidnapped robot is outside any window around its last pose). Only a verified pose is
+        returned; a failed or impossible attempt returns None. Every attempt is in ``reloc_log``."""
         if self.localizer is None:
             return None
-        s = self.init_settings
         pts_body = transform_points(self.info.T_body_lidar, points_lidar)
+        T, searched = self._relocalize_once(pts_body, hint, gravity_body, stamp)
+        if T is None and searched and hint is not None:
+            # The hint's attitude comes from a state that has diverged: level the scan by the
+            # accelerometer when there is one.
+            T, _ = self._relocalize_once(pts_body, None, self._gravity_at(stamp, gravity_body), stamp)
+        return T
+
+    def _gravity_at(self, stamp: float, fallback: np.ndarray) -> np.ndarray:
+        """Gravity (3,) in the body frame at ``stamp`` from the accelerometer, else ``fallback``."""
+        if self.imu is None or len(self.imu) == 0:
+            return np.asarray(fallback, float)
+        from blockloc.tracking.scan_prep import gravity_from_imu
+
+        try:
+            return gravity_from_imu(self.imu, float(stamp), self.info.T_body_imu)
+        except GlobalInitError:
+            return np.asarray(fallback, float)
+
+    def _relocalize_once(self, pts_body: np.ndarray, hint: Optional[np.ndarray], gravity_body: np.ndarray,
+                         stamp: float) -> tuple[Optional[np.ndarray], bool]:
+        """(verified T_map_body or None, whether the search ran: False when global init could not
+        start, e.g. a scan too sparse to project, which another search would not change)."""
+        s = self.init_settings
         entry = {"stamp": float(stamp), "hint": hint is not None}
         try:
             if hint is None:
@@ -250,13 +277,14 @@ class Session:
                 self.counters["map_faults"] += 1
             log.warning("relocalization at t=%.2f failed: %s", stamp, exc)
             self.reloc_log.append({**entry, "verified": False, "fitness": 0.0, "time_s": 0.0, "error": str(exc)})
-            return None
-        self.reloc_log.append({**entry, "verified": bool(res.verified), "fitness": float(res.fitness),
-                               "time_s": float(res.time_s)})
+            return None, False
+        self.reloc_log.append({**entry, "verified": bool(res.verified), "ambiguous": bool(res.ambiguous),
+                               "fitness": float(res.fitness), "time_s": float(res.time_s)})
         if not res.verified or res.T_map_body is None:
-            log.info("relocalization at t=%.2f: no verified match (best fitness %.2f)", stamp, res.fitness)
-            return None
-        return np.asarray(res.T_map_body)
+            log.info("relocalization at t=%.2f%s: no verified match (best fitness %.2f)", stamp,
+                     "" if hint is not None else " over the whole map", res.fitness)
+            return None, True
+        return np.asarray(res.T_map_body), True
 
     # ----------------------------------------------------------------- the frame step
     def start(self) -> None:

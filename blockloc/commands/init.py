@@ -52,7 +52,8 @@ def run_init(seq_name: str, frame_index: int, map_path: str, hint: str | None, w
     res = loc.localize(scan.points_body, scan.gravity_body, None if x is None else (x, y), hint_yaw,
                        window_m, yaw_window_deg if hint_yaw is not None else 360.0)
     summ = summary(res, scan.stamp)
-    summ["time_s"] = round(time.perf_counter() - t0, 3)  # search and refinement, not map opening
+    # search and refinement: not process start, map opening or loading the place index
+    summ["time_s"] = round(min(float(res.time_s), time.perf_counter() - t0), 3)
     gt = seq.ground_truth()
     if gt is not None and gt.stamps[0] <= scan.stamp <= gt.stamps[-1]:
         Tg = gt.interpolate(np.array([scan.stamp]))[0]
@@ -71,9 +72,11 @@ def summary(res, stamp: float | None = None) -> dict:
                  "time_s": round(float(res.time_s), 3), "num_candidates": len(res.candidates)}
     if stamp is not None:
         out["stamp"] = float(stamp)
+    out["pose"] = None  # x, y, z (m), roll, pitch, yaw (rad); also flat, below
     if res.T_map_body is not None:
         x, y, z, roll, pitch, yaw = (float(v) for v in T_to_xyzrpy(res.T_map_body))
         out.update(x=x, y=y, z=z, roll=roll, pitch=pitch, yaw=yaw)
+        out["pose"] = {"x": x, "y": y, "z": z, "roll": roll, "pitch": pitch, "yaw": yaw}
     out["candidates"] = [
         dict(zip(("x", "y", "z", "roll", "pitch", "yaw"), (round(float(v), 4) for v in T_to_xyzrpy(c.T_map_body))),
              score=round(c.score, 4), fitness=round(c.fitness, 4), verified=c.verified)

@@ -1,4 +1,4 @@
-"""``blockloc map build | tile | info | plot | serve``."""
+"""``blockloc map build | tile | info | plot | serve | index``."""
 
 from __future__ import annotations
 
@@ -67,6 +67,7 @@ def build_command(seq: str | None, kind: str, out: Path, config: str | None, dat
     else:
         sequence = open_sequence(seq, data_root=data_root, dataset_cfg=cfg.dataset, poses=poses)
         store = build_map(sequence, kind, out, map_cfg, overwrite=overwrite, max_frames=max_frames)
+        store = add_place_index(out, sequence.info.gravity_map, cfg)
     print_summary(map_summary(store), console())
 
 
@@ -174,3 +175,74 @@ def print_summary(summary: dict[str, Any], console) -> None:
     console.print(t)
 
 
+
+
+# ----------------------------------------------------------------------------- map index
+GRAVITY_WORDS = {"down": (0.0, 0.0, 9.81), "up": (0.0, 0.0, -9.81)}
+
+
+def add_place_index(path: str | Path, gravity_map, cfg):
+    """Build the place index (no-hint relocalization) of the local store at ``path`` with the
+    ``global_init`` settings of ``cfg`` and add it to the store; returns the reopened store."""
+    import time
+
+    from blockloc.global_init.place_index import PLACE_INDEX_NAME, write_place_index
+    from blockloc.global_init.relocalize import InitParams
+
+    t0 = time.perf_counter()
+    store, index = write_place_index(path, gravity_map, InitParams.from_config(cfg.global_init).place_index_params)
+    log.info("place index: %d places, %d bytes in %.1f s", len(index), store.extras[PLACE_INDEX_NAME].bytes,
+             time.perf_counter() - t0)
+    return store
+
+
+def parse_gravity(text: str):
+    """``down`` (the map's z axis points down: NCLT, the simulator), ``up`` or ``X,Y,Z`` (m/s^2)
+    -> gravity (3,) in the map frame; MapError naming --gravity otherwise."""
+    import numpy as np
+
+    from blockloc.errors import MapError
+
+    word = text.strip().lower()
+    if word in GRAVITY_WORDS:
+        return np.array(GRAVITY_WORDS[word])
+    try:
+        g = np.array([float(v) for v in word.split(",")])
+    except ValueError:
+        g = np.zeros(0)
+    if g.shape != (3,) or not np.all(np.isfinite(g)) or np.linalg.norm(g) < 1e-6:
+        raise MapError(f"--gravity {text!r}: expected down, up or X,Y,Z (a non-zero vector, map frame, m/s^2)")
+    return g
+
+
+def index_command(map_path: str, gravity: str | None, config: str | None) -> None:
+    """``blockloc map index MAP``: (re)build the place index of an existing local map store.
+    Gravity: ``--gravity``, else that of the sequence the map was built from (its manifest's
+    ``sequence``)."""
+    from blockloc.commands.common import config_for, console
+    from blockloc.errors import BlocklocError, MapError
+    from blockloc.maps.store import open_map
+
+    store = open_map(map_path)
+    if store.files.is_remote:
+        raise MapError(f"{map_path}: a place index can be added only to a local map store")
+    source = store.params.get("sequence")
+    if gravity is not None:
+        g = parse_gravity(gravity)
+    elif source:
+        from blockloc.datasets import open_sequence
+
+        try:
+            g = open_sequence(str(source)).info.gravity_map
+        except BlocklocError as exc:
+            raise MapError(f"{map_path}: cannot open its mapping sequence {source!r} for gravity ({exc}); "
+                           "give --gravity down|up|X,Y,Z") from None
+    else:
+        raise MapError(f"{map_path}: the manifest names no mapping sequence; give --gravity down|up|X,Y,Z")
+    cfg = config_for(str(source) if source else None, config)
+    store = add_place_index(map_path, g, cfg)
+    from blockloc.global_init.place_index import PLACE_INDEX_NAME
+
+    e = store.extras[PLACE_INDEX_NAME]
+    console().print(f"place index of {map_path}: {e.file}, {e.bytes / 1e6:.2f} MB "
+                    f"({100.0 * e.bytes / max(sum(x.bytes for x in store.entries), 1):.1f}% of the map's bytes)")

@@ -9,7 +9,22 @@ At level 0 the bound is the exact score.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from llvmlite import ir
+from numba import njit, prange, types
+from numba.extending import intrinsic
+
+
+@intrinsic
+def _ctpop(typingctx, x):
+    """Set bits of a uint64: the CPU's popcount instruction (llvm.ctpop)."""
+    if x != types.uint64:
+        return None
+
+    def codegen(context, builder, signature, args):
+        fn = builder.module.declare_intrinsic("llvm.ctpop", [ir.IntType(64)])
+        return builder.call(fn, args)
+
+    return types.uint64(types.uint64), codegen
 
 
 @njit(cache=True, inline="always")
@@ -104,13 +119,14 @@ def _insert(cs, ca, cx, cy, n, K, s, a, tx, ty, nms_cells, nms_angles, num_angle
 
 @njit(cache=True)
 def branch_and_bound(levels, dx, dy, ra, rtx, rty, rbound, top, tx_end, ty_end, threshold0, K,
-                     nms_cells, nms_angles, num_angles, wrap):
+                     nms_cells, nms_angles, num_angles, wrap, rel_ratio):
     """Depth-first branch and bound from the roots (sorted by ascending bound) at level ``top``.
 
     A node is expanded only if its bound exceeds the pruning threshold: ``threshold0`` until K
-    distinct leaves are held, then the K-th best leaf score (never below ``threshold0``). Children
-    are visited best bound first. Returns (scores, angles, tx, ty) of up to K leaves and the number
-    of nodes whose bound was computed.
+    distinct leaves are held, then the K-th best leaf score (never below ``threshold0``), and never
+    below ``rel_ratio`` times the best leaf found (0: off; leaves far below the best are of no use).
+    Children are visited best bound first. Returns (scores, angles, tx, ty) of up to K leaves and
+    the number of nodes whose bound was computed.
     """
     cs = np.full(K, -1, dtype=np.int64)
     ca = np.zeros(K, dtype=np.int64)
@@ -154,6 +170,10 @@ def branch_and_bound(levels, dx, dy, ra, rtx, rty, rbound, top, tx_end, ty_end, 
                         worst = cs[i]
                 if worst > threshold:
                     threshold = worst
+            if rel_ratio > 0.0:
+                rel = np.int64(rel_ratio * b) - 1
+                if rel > threshold:
+                    threshold = rel
             continue
         half = 1 << (h - 1)
         m = 0
@@ -186,3 +206,169 @@ def branch_and_bound(levels, dx, dy, ra, rtx, rty, rbound, top, tx_end, ty_end, 
             sb[sp] = cb[i]
             sp += 1
     return cs[:n], ca[:n], cx[:n], cy[:n], visited
+
+
+
+@njit(cache=True, parallel=True)
+def polar_bits(occ, pi, pj, tab_s0, tab_n, tab_ring, num_sectors, num_rings):
+    """Polar occupancy of places on an occupancy raster, as bits.
+
+    occ: (NX, NY) bool occupied cells. pi, pj: (P,) int64 raster indices of the lattice corner each
+    place stands on. tab_s0, tab_n, tab_ring: (2R, 2R) tables indexed [di + R, dj + R] for the cell
+    at offset (di, dj) from the corner: first sector, number of sectors it subtends (0: outside the
+    range annulus) and ring. Returns (P, num_rings, W) uint64, W = ceil(num_sectors / 64): bit s of
+    ring r is set when an occupied cell of ring r covers sector s.
+    """
+    P = pi.shape[0]
+    nx = occ.shape[0]
+    ny = occ.shape[1]
+    R2 = tab_s0.shape[0]
+    R = R2 // 2
+    W = (num_sectors + 63) // 64
+    out = np.zeros((P, num_rings, W), dtype=np.uint64)
+    one = np.uint64(1)
+    for p in prange(P):
+        for a in range(R2):
+            i = pi[p] + a - R
+            if i < 0 or i >= nx:
+                continue
+            for b in range(R2):
+                j = pj[p] + b - R
+                if j < 0 or j >= ny:
+                    continue
+                n = tab_n[a, b]
+                if n == 0 or not occ[i, j]:
+                    continue
+                r = tab_ring[a, b]
+                s0 = tab_s0[a, b]
+                for k in range(n):
+                    sk = (s0 + k) % num_sectors
+                    out[p, r, sk >> 6] |= one << np.uint64(sk & 63)
+    return out
+
+
+@njit(cache=True, inline="always")
+def _popcount(x):
+    return _ctpop(x)
+
+
+@njit(cache=True, parallel=True)
+def polar_overlaps(scan_shifted, places, rows):
+    """Common bits of every shifted scan (K, NR, W) uint64 with places[rows] (P, NR, W) uint64:
+    (len(rows), K) int32."""
+    n = rows.shape[0]
+    K = scan_shifted.shape[0]
+    NR = places.shape[1]
+    W = places.shape[2]
+    out = np.zeros((n, K), dtype=np.int32)
+    for q in prange(n):
+        p = rows[q]
+        for k in range(K):
+            c = np.uint64(0)
+            for r in range(NR):
+                for w in range(W):
+                    c += _popcount(scan_shifted[k, r, w] & places[p, r, w])
+            out[q, k] = np.int32(c)
+    return out
+
+
+@njit(cache=True, parallel=True)
+def polar_weighted_overlaps(scan_shifted, places, rows, weights):
+    """Like :func:`polar_overlaps`, with the common bits of ring r of place p weighted by
+    ``weights[p, r]`` (P, NR) float32: (len(rows), K) float32."""
+    n = rows.shape[0]
+    K = scan_shifted.shape[0]
+    NR = places.shape[1]
+    W = places.shape[2]
+    out = np.zeros((n, K), dtype=np.float32)
+    for q in prange(n):
+        p = rows[q]
+        for k in range(K):
+            acc = 0.0
+            for r in range(NR):
+                c = np.uint64(0)
+                for w in range(W):
+                    c += _popcount(scan_shifted[k, r, w] & places[p, r, w])
+                acc += weights[p, r] * np.float32(c)
+            out[q, k] = acc
+    return out
+
+
+@njit(cache=True, parallel=True)
+def polar_llr(occ_shifted, grown, occ_w, free_shifted, raw, free_w):
+    """Per place p and shift k: sum over rings r of occ_w[p, r] * |occ_shifted[k, r] & grown[p, r]|
+    + free_w[p, r] * |free_shifted[k, r] & raw[p, r]| (bit sets (K, NR, W) and (P, NR, W) uint64,
+    weights (P, NR) float32): the hit terms of the place index's log-likelihood ratio. (P, K) float32."""
+    P = grown.shape[0]
+    K = occ_shifted.shape[0]
+    NR = grown.shape[1]
+    W = grown.shape[2]
+    out = np.zeros((P, K), dtype=np.float32)
+    for p in prange(P):
+        for k in range(K):
+            acc = np.float32(0.0)
+            for r in range(NR):
+                c1 = np.uint64(0)
+                c2 = np.uint64(0)
+                for w in range(W):
+                    c1 += _popcount(occ_shifted[k, r, w] & grown[p, r, w])
+                    c2 += _popcount(free_shifted[k, r, w] & raw[p, r, w])
+                acc += occ_w[p, r] * np.float32(c1) + free_w[p, r] * np.float32(c2)
+            out[p, k] = acc
+    return out
+
+
+@njit(cache=True)
+def popcounts(bits):
+    """Set bits per row of (P, NR, W) uint64: (P, NR) int32."""
+    P, NR, W = bits.shape
+    out = np.zeros((P, NR), dtype=np.int32)
+    for p in range(P):
+        for r in range(NR):
+            c = np.uint64(0)
+            for w in range(W):
+                c += _popcount(bits[p, r, w])
+            out[p, r] = np.int32(c)
+    return out
+
+
+@njit(cache=True, parallel=True)
+def visible_polar_bits(occ, ci, cj, res, num_rays, min_range, ring_width, num_rings, num_sectors, depth):
+    """Polar occupancy bits of the cells a 2D scan from each place would see.
+
+    occ: (NX, NY) bool. ci, cj: (P,) int64 raster indices of the lattice corner each place stands on.
+    From each place ``num_rays`` rays march outwards in steps of res / 2 from ``min_range`` to
+    ``min_range + num_rings * ring_width``; a ray stops ``depth`` metres past its first occupied
+    cell, and every occupied cell it passes sets the bit of its (ring, sector).
+    Returns (P, num_rings, W) uint64.
+    """
+    P = ci.shape[0]
+    nx = occ.shape[0]
+    ny = occ.shape[1]
+    W = (num_sectors + 63) // 64
+    out = np.zeros((P, num_rings, W), dtype=np.uint64)
+    one = np.uint64(1)
+    step = 0.5 * res
+    max_range = min_range + num_rings * ring_width
+    for p in prange(P):
+        x0 = ci[p] * res
+        y0 = cj[p] * res
+        for k in range(num_rays):
+            ang = (k + 0.5) * 2.0 * np.pi / num_rays
+            c = np.cos(ang)
+            s = np.sin(ang)
+            sector = int(ang / (2.0 * np.pi) * num_sectors) % num_sectors
+            stop = max_range
+            r = min_range
+            while r < stop:
+                i = int(np.floor((x0 + r * c) / res))
+                j = int(np.floor((y0 + r * s) / res))
+                if i < 0 or j < 0 or i >= nx or j >= ny:
+                    break
+                if occ[i, j]:
+                    if stop == max_range:
+                        stop = min(max_range, r + depth)
+                    ring = int((r - min_range) / ring_width)
+                    out[p, ring, sector >> 6] |= one << np.uint64(sector & 63)
+                r += step
+    return out

@@ -41,6 +41,7 @@ class SearchStats:
     nodes_visited: int
     s0: float  # greedy initial score, [0, 1]; 0 when not used
     time_s: float
+    regions: int = 1  # pyramid crops searched (search_windows groups nearby windows)
 
 
 def angle_step(resolution: float, max_range: float) -> float:
@@ -123,7 +124,7 @@ def search(pyramid: Pyramid, scan_xy: np.ndarray, center_xy: np.ndarray, window_
     nms_angles = int(math.ceil(math.radians(nms_deg) / step))
     cs, ca, ctx, cty, visited = K.branch_and_bound(
         pyramid.levels, dx, dy, ra, rtx, rty, rb, top, tx_end, ty_end, threshold, top_k,
-        nms_cells, nms_angles, A, wrap)
+        nms_cells, nms_angles, A, wrap, 0.0)
     order = np.argsort(-cs, kind="stable")
     cands = [Candidate2D(float(ctx[i] * r), float(cty[i] * r), float(angles[ca[i]]), float(cs[i] / full))
              for i in order]
@@ -141,3 +142,94 @@ def required_cells(scan_xy: np.ndarray, center_xy: np.ndarray, window_m: float,
     lo = np.floor((c - 0.5 * window_m - d) / resolution).astype(np.int64) - 2
     hi = np.floor((c + 0.5 * window_m + d) / resolution).astype(np.int64) + 3
     return lo, hi
+
+
+@dataclass
+class Window:
+    """A search window: the body within ``size_m`` x ``size_m`` around ``center`` (2,) (levelled
+    frame L, metres), the levelled scan turned by ``theta`` +- ``yaw_window`` / 2 (rad)."""
+
+    center: np.ndarray
+    size_m: float
+    theta: float
+    yaw_window: float
+
+
+def search_windows(pyramid: Pyramid, scan_xy: np.ndarray, windows: list[Window], top_k: int = 5,
+                   use_s0: bool = True, s0_ratio: float = 0.9, min_score: float = 0.05,
+                   nms_m: float = 1.0, nms_deg: float = 5.0, n_dives: int = 8,
+                   max_range: float | None = None, keep_ratio: float = 0.0,
+                   min_leaf_score: float = 0.0, top_level: int | None = None) -> tuple[list[Candidate2D], SearchStats]:
+    """Top-K poses over the union of several windows in one branch and bound (one threshold for all,
+    so a window whose bound cannot beat the best leaf found elsewhere is never expanded).
+
+    keep_ratio: leaves below this fraction of the best leaf are pruned (they matter neither as the
+    answer nor as its runner-up); min_leaf_score: prune below this score from the start (the best
+    leaf of an earlier search times keep_ratio). top_level: the level roots start at (default the
+    pyramid's top); small windows prune better from a lower level, whose bounds are tighter.
+
+    The angles are the full circle at the range-derived step; each window takes those within its
+    yaw window. The pyramid must cover every window plus 2^top cells plus the scan's reach (children
+    of a window's last roots may extend past it). Scores are in [0, 1].
+    """
+    from blockloc.global_init import _kernels as K
+
+    t0 = time.perf_counter()
+    r = pyramid.resolution
+    top = pyramid.num_levels - 1 if top_level is None else min(top_level, pyramid.num_levels - 1)
+    n_pts = len(scan_xy)
+    d_max = max_range if max_range is not None else float(np.hypot(*scan_xy.T).max())
+    step = angle_step(r, d_max)
+    angles, _ = make_angles(0.0, 2 * math.pi, step)
+    A = len(angles)
+    width = 1 << top
+    ra, rtx, rty = [], [], []
+    for w in windows:
+        if w.yaw_window >= 2 * math.pi - 1e-9:
+            a_idx = np.arange(A)
+        else:
+            d = (angles - w.theta + math.pi) % (2 * math.pi) - math.pi
+            a_idx = np.flatnonzero(np.abs(d) <= 0.5 * w.yaw_window + 0.5 * step)
+        half = int(math.ceil(0.5 * w.size_m / r))
+        c0 = np.floor(np.asarray(w.center, float) / r).astype(np.int64)
+        gx = np.arange(c0[0] - half, c0[0] + half + 1, width)
+        gy = np.arange(c0[1] - half, c0[1] + half + 1, width)
+        n = len(gx) * len(gy)
+        ra.append(np.repeat(a_idx, n))
+        rtx.append(np.tile(np.repeat(gx, len(gy)), len(a_idx)))
+        rty.append(np.tile(np.tile(gy, len(gx)), len(a_idx)))
+    if not ra:
+        return [], SearchStats(A, step, 0, 0, 0.0, time.perf_counter() - t0)
+    roots = np.unique(np.stack([np.concatenate(ra), np.concatenate(rtx), np.concatenate(rty)], axis=1), axis=0)
+    cx, cy = rotated_cells(scan_xy, angles, r)
+    dx = (cx - pyramid.origin[0]).astype(np.int32)
+    dy = (cy - pyramid.origin[1]).astype(np.int32)
+    ra = roots[:, 0].astype(np.int64)
+    rtx = roots[:, 1].astype(np.int64)
+    rty = roots[:, 2].astype(np.int64)
+    rb = K.root_scores(pyramid.levels, top, dx, dy, ra, rtx, rty)
+    order = np.argsort(rb, kind="stable")
+    ra, rtx, rty, rb = ra[order], rtx[order], rty[order], rb[order]
+    full = 255 * n_pts
+    threshold = int(max(min_score, min_leaf_score) * full)
+    big = np.iinfo(np.int64).max // 4
+    s0 = 0.0
+    if use_s0 and len(rb):
+        best = -1
+        for i in range(1, min(n_dives, len(rb)) + 1):
+            s, _, _ = K.greedy_dive(pyramid.levels, dx, dy, ra[-i], rtx[-i], rty[-i], top, big, big)
+            best = max(best, int(s))
+        s0 = best / full
+        threshold = max(threshold, int(s0_ratio * best) - 1)
+    nms_cells = int(math.ceil(nms_m / r))
+    nms_angles = int(math.ceil(math.radians(nms_deg) / step))
+    cs, ca, ctx, cty, visited = K.branch_and_bound(
+        pyramid.levels, dx, dy, ra, rtx, rty, rb, top, big, big, threshold, top_k,
+        nms_cells, nms_angles, A, True, float(keep_ratio))
+    order = np.argsort(-cs, kind="stable")
+    cands = [Candidate2D(float(ctx[i] * r), float(cty[i] * r), float(angles[ca[i]]), float(cs[i] / full))
+             for i in order]
+    stats = SearchStats(A, step, len(ra), int(visited), s0, time.perf_counter() - t0)
+    log.debug("bnb over %d windows: %d roots, %d nodes, best %.3f, %.3f s", len(windows), len(ra), visited,
+              cands[0].score if cands else -1, stats.time_s)
+    return cands, stats

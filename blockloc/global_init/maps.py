@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,12 +30,14 @@ from blockloc.global_init.pyramid import Pyramid, assemble, build_pyramid
 log = logging.getLogger(__name__)
 
 CACHE_VERSION = 2
+POINTS_CACHE_POINTS = 8_000_000  # decoded map points kept in memory (float32: ~100 MB)
+BUCKET_M = 25.0
 
 
 @dataclass(frozen=True)
 class ProjectionParams:
     """resolution_m: base cell (m); num_levels: pyramid levels; band_m: height band above ground (m);
-    mode: 'band' | 'all'."""
+    mode: 'band' | 'vertical' | 'all' (see ``projection.select_structure``)."""
 
     resolution_m: float = 0.5
     num_levels: int = 6
@@ -53,7 +56,7 @@ class _Piece:
 
 
 def _piece_from_points(points_map: np.ndarray, R_L_map: np.ndarray, params: ProjectionParams) -> _Piece:
-    lvl = np.asarray(points_map, dtype=np.float64) @ R_L_map.T
+    lvl = np.asarray(points_map, dtype=np.float64) @ np.ascontiguousarray(R_L_map.T)
     ras = rasterize_map(lvl, params.resolution_m, params.band_m, params.mode)
     return _Piece(build_pyramid(ras, params.num_levels), ras.ground_origin, ras.ground)
 
@@ -70,16 +73,26 @@ class ArrayMap:
 
     def __init__(self, points_map: np.ndarray, gravity_map, params: ProjectionParams = ProjectionParams()):
         self.params = params
+        self.gravity_map = np.asarray(gravity_map, float).reshape(3)
         self.R_L_map = R_level_from_gravity(gravity_map)
+        self.keyframes_map = None  # an array of points records no mapping keyframes
         self._points = np.asarray(points_map, dtype=np.float64).reshape(-1, 3)
-        self._lvl_xy = self._points @ self.R_L_map[:2].T
+        self._lvl_xy = self._points @ np.ascontiguousarray(self.R_L_map[:2].T)
         self._piece = _piece_from_points(self._points, self.R_L_map, params)
 
     def bounds_L(self) -> tuple[np.ndarray, np.ndarray]:
         return self._lvl_xy.min(axis=0), self._lvl_xy.max(axis=0)
 
+    def with_params(self, params: ProjectionParams) -> "ArrayMap":
+        """The same points projected with other parameters (e.g. the place index's band)."""
+        return ArrayMap(self._points, self.gravity_map, params)
+
     def pyramid(self, lo: np.ndarray, hi: np.ndarray) -> Pyramid:
         return assemble([self._piece.pyramid], lo, hi)
+
+    def base_raster(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(origin (2,) int64 = lo, (NX, NY) uint8 base raster over global cells [lo, hi))."""
+        return np.asarray(lo, np.int64), assemble([self._piece.pyramid], lo, hi, 1).levels[0]
 
     def ground_at(self, xy_L: np.ndarray) -> np.ndarray:
         return lookup_ground(self._piece.ground_origin, self._piece.ground, xy_L, GROUND_CELL_M)
@@ -112,7 +125,9 @@ class StoreMap:
                  cache_dir: str | Path | None = None):
         self.store = store
         self.params = params
+        self.gravity_map = np.asarray(gravity_map, float).reshape(3)
         self.R_L_map = R_level_from_gravity(gravity_map)
+        self._points: OrderedDict[str, _BucketedPoints] = OrderedDict()  # decoded entries, most recent last
         self.cache_dir = Path(cache_dir) if cache_dir else default_cache_dir() / "global_init"
         self._pieces: dict[str, _Piece] = {}
         g = np.asarray(gravity_map, float)
@@ -124,6 +139,10 @@ class StoreMap:
 
     def bounds_L(self) -> tuple[np.ndarray, np.ndarray]:
         return self._lo.min(axis=0), self._hi.max(axis=0)
+
+    def with_params(self, params: ProjectionParams) -> "StoreMap":
+        """The same store projected with other parameters (e.g. the place index's band)."""
+        return StoreMap(self.store, self.gravity_map, params, self.cache_dir)
 
     def _entries_in(self, lo_L: np.ndarray, hi_L: np.ndarray) -> list[int]:
         hit = np.all(self._hi >= lo_L, axis=1) & np.all(self._lo <= hi_L, axis=1)
@@ -164,10 +183,14 @@ class StoreMap:
         except OSError as exc:  # a read-only cache only costs time
             log.warning("cannot write global-init cache %s (%s)", path, exc)
 
-    def precompute(self) -> int:
-        """Build (or load) the pyramid of every entry; returns the number of entries."""
+    def precompute(self, points: bool = False) -> int:
+        """Build (or load) the pyramid of every entry and, with ``points``, write the on-disk copy
+        of its points sorted for box queries (refinement then reads no PCD); returns the number of
+        entries."""
         for i in range(len(self.store.entries)):
             self._piece(i)
+            if points:
+                self._entry_points(i)
         return len(self.store.entries)
 
     def pyramid(self, lo: np.ndarray, hi: np.ndarray) -> Pyramid:
@@ -179,6 +202,21 @@ class StoreMap:
             raise GlobalInitError(f"{self.store.path}: no map block/tile near the search window")
         return assemble([self._piece(i).pyramid for i in ids], lo, hi)
 
+    def base_raster(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(origin (2,) int64 = lo, (NX, NY) uint8 base raster over global cells [lo, hi)); only the
+        base level is assembled (the place index covers whole maps tile by tile)."""
+        r = self.params.resolution_m
+        ids = self._entries_in(np.asarray(lo) * r, np.asarray(hi) * r)
+        if not ids:
+            from blockloc.errors import GlobalInitError
+
+            raise GlobalInitError(f"{self.store.path}: no map block/tile in cells {lo}..{hi}")
+        return np.asarray(lo, np.int64), assemble([self._piece(i).pyramid for i in ids], lo, hi, 1).levels[0]
+
+    def release(self) -> None:
+        """Drop the pieces held in memory (they reload from the on-disk cache)."""
+        self._pieces.clear()
+
     def ground_at(self, xy_L: np.ndarray) -> np.ndarray:
         xy_L = np.asarray(xy_L, float).reshape(-1, 2)
         out = np.full(len(xy_L), np.nan)
@@ -188,13 +226,43 @@ class StoreMap:
             out = np.fmin(out, g)
         return out
 
+    @property
+    def keyframes_map(self) -> np.ndarray | None:
+        """(K, 3) mapping keyframe positions recorded by the entries (map frame, m), or None."""
+        kf = [e.keyframes for e in self.store.entries if e.keyframes is not None and len(e.keyframes)]
+        return np.concatenate(kf) if kf else None
+
     def points_in_box(self, lo_L: np.ndarray, hi_L: np.ndarray) -> np.ndarray:
+        """Map points (N, 3) float64, map frame, whose levelled xy lies in [lo_L, hi_L]."""
         ids = self._entries_in(lo_L, hi_L)
-        if not ids:
-            return np.zeros((0, 3))
-        pts = self.store.load_points([self.store.entries[i].id for i in ids]).astype(np.float64)
-        xy = pts @ self.R_L_map[:2].T
-        return pts[np.all((xy >= lo_L) & (xy <= hi_L), axis=1)]
+        parts = [self._entry_points(i).in_box(lo_L, hi_L) for i in ids]
+        return np.concatenate(parts).astype(np.float64) if parts else np.zeros((0, 3))
+
+    def _entry_points(self, i: int) -> "_BucketedPoints":
+        """Entry i's points bucketed by levelled cell; decoded entries are kept up to
+        POINTS_CACHE_POINTS points (least recently used dropped first): relocalization refines
+        candidates in the same entries again and again, and an entry's box spans ~3x its blocks'."""
+        e = self.store.entries[i]
+        eid = e.id
+        if eid in self._points:
+            self._points.move_to_end(eid)
+            return self._points[eid]
+        # Decoding, checking and sorting an entry costs ~10x reading the sorted copy back.
+        path = self._cache_path(e).parent.parent / f"points-b{BUCKET_M:g}-g{self._gkey}" / self._cache_path(e).name
+        entry = None
+        if path.exists():
+            try:
+                entry = _BucketedPoints.load(path)
+            except (OSError, ValueError, KeyError) as exc:
+                log.warning("ignoring unreadable cache %s (%s)", path, exc)
+        if entry is None:
+            entry = _BucketedPoints(self.store.load(eid)[0], self.R_L_map)
+            if e.sha256 is not None:
+                entry.save(path)
+        self._points[eid] = entry
+        while sum(len(e) for e in self._points.values()) > POINTS_CACHE_POINTS and len(self._points) > 1:
+            self._points.popitem(last=False)
+        return entry
 
     def region_centers(self, window_m: float) -> np.ndarray:
         """Centres (R, 2) of square regions tiling the map, keeping those that touch an entry."""
@@ -202,6 +270,55 @@ class StoreMap:
         c = _grid_centers(lo, hi, window_m)
         h = 0.5 * window_m
         return np.array([x for x in c if self._entries_in(x - h, x + h)]).reshape(-1, 2)
+
+
+class _BucketedPoints:
+    """An entry's points (N, 3) float32, map frame, sorted by levelled BUCKET_M cell, so that a box
+    query gathers only the cells it overlaps."""
+
+    def __init__(self, points: np.ndarray | None, R_L_map: np.ndarray):
+        self._R_xy = np.ascontiguousarray(R_L_map[:2].T)  # a transposed view is ~100x slower in matmul
+        if points is None:
+            return
+        pts = np.asarray(points, np.float32).reshape(-1, 3)
+        ij = np.floor((pts.astype(np.float64) @ self._R_xy) / BUCKET_M).astype(np.int64)
+        self._lo = ij.min(axis=0) if len(ij) else np.zeros(2, np.int64)
+        self._span = (ij.max(axis=0) - self._lo + 1) if len(ij) else np.ones(2, np.int64)
+        key = (ij[:, 0] - self._lo[0]) * int(self._span[1]) + (ij[:, 1] - self._lo[1])
+        order = np.argsort(key, kind="stable")
+        self.points = pts[order]
+        self._starts = np.searchsorted(key[order], np.arange(int(self._span[0] * self._span[1]) + 1))
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def save(self, path: Path) -> None:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with atomic_path(path) as tmp, open(tmp, "wb") as f:
+                np.savez(f, points=self.points, starts=self._starts, lo=self._lo, span=self._span,
+                         R_xy=self._R_xy)
+        except OSError as exc:  # a read-only cache only costs time
+            log.warning("cannot write global-init cache %s (%s)", path, exc)
+
+    @classmethod
+    def load(cls, path: Path) -> "_BucketedPoints":
+        with np.load(path) as z:
+            out = cls(None, z["R_xy"].T)
+            out.points, out._starts, out._lo, out._span = z["points"], z["starts"], z["lo"], z["span"]
+        return out
+
+    def in_box(self, lo_L: np.ndarray, hi_L: np.ndarray) -> np.ndarray:
+        """Points (M, 3) float32 whose levelled xy lies in [lo_L, hi_L]."""
+        a = np.maximum(np.floor(np.asarray(lo_L) / BUCKET_M).astype(np.int64) - self._lo, 0)
+        b = np.minimum(np.floor(np.asarray(hi_L) / BUCKET_M).astype(np.int64) - self._lo, self._span - 1)
+        if len(self.points) == 0 or np.any(b < a):
+            return np.zeros((0, 3), np.float32)
+        ny = int(self._span[1])
+        pts = np.concatenate([self.points[self._starts[ix * ny + int(a[1])]:self._starts[ix * ny + int(b[1]) + 1]]
+                              for ix in range(int(a[0]), int(b[0]) + 1)])
+        xy = pts.astype(np.float64) @ self._R_xy
+        return pts[np.all((xy >= lo_L) & (xy <= hi_L), axis=1)]
 
 
 def box_L_from_map(bmin: np.ndarray, bmax: np.ndarray, R_L_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -29,6 +29,10 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
+VERTICAL_CELL_M = 0.5  # columns of the "vertical" projection mode
+VERTICAL_EXTENT_M = 0.5  # band points of a column spanning less: a layer (a ceiling) or stray returns
+VERTICAL_MIN_POINTS = 5  # fewer in a column: stray returns (half the band cells of a simulated map held <= 2)
+
 GROUND_CELL_M = 1.0
 GROUND_ERODE_CELLS = 1
 GROUND_WIDE_CELLS = 5
@@ -137,20 +141,44 @@ def select_structure(points_lvl: np.ndarray, band_m: tuple[float, float],
     """Points that enter the 2D projection, and the ground grid used.
 
     mode "band": points whose height above the local ground is within ``band_m`` (lo, hi) metres;
+    mode "vertical": of those, the ones in VERTICAL_CELL_M columns whose band points (at least
+    VERTICAL_MIN_POINTS) span at least VERTICAL_EXTENT_M in height (walls, trunks, poles, crowns), not thin horizontal layers
+    (ceilings of passages and indoor corridors, which would fill every cell under them) nor the
+    stray single returns a map accumulates (sensor noise: a third of a simulated map's band cells
+    held one point);
     mode "all": every point (plain 2D occupancy; kept for the measurement that justifies "band").
     Returns ((K, 3) selected points, (ground origin, ground grid)).
     """
     ground = ground_grid(points_lvl)
     if mode == "all":
         return points_lvl, ground
-    if mode != "band":
+    if mode not in ("band", "vertical"):
         from blockloc.errors import GlobalInitError
 
-        raise GlobalInitError(f"projection mode {mode!r}: expected 'band' or 'all'")
+        raise GlobalInitError(f"projection mode {mode!r}: expected 'band', 'vertical' or 'all'")
     g = lookup_ground(ground[0], ground[1], points_lvl[:, :2])
     h = points_lvl[:, 2] - g
     keep = (h >= band_m[0]) & (h <= band_m[1])
+    if mode == "vertical" and keep.any():
+        idx = np.flatnonzero(keep)
+        keep[idx[~tall_columns(points_lvl[idx, :2], h[idx])]] = False
     return points_lvl[keep], ground
+
+
+def tall_columns(xy: np.ndarray, h: np.ndarray, min_points: int = VERTICAL_MIN_POINTS) -> np.ndarray:
+    """(N,) bool: the points (xy (N, 2), levelled frame, metres; h (N,) height, m) whose
+    VERTICAL_CELL_M column holds at least ``min_points`` points spanning at least
+    VERTICAL_EXTENT_M in height."""
+    if len(h) == 0:
+        return np.zeros(0, bool)
+    _, col = np.unique(np.floor(np.asarray(xy) / VERTICAL_CELL_M).astype(np.int64), axis=0, return_inverse=True)
+    col = col.reshape(-1)
+    lo = np.full(col.max() + 1, np.inf)
+    hi = np.full(col.max() + 1, -np.inf)
+    np.minimum.at(lo, col, h)
+    np.maximum.at(hi, col, h)
+    n = np.bincount(col)
+    return ((hi - lo) >= VERTICAL_EXTENT_M)[col] & (n >= min_points)[col]
 
 
 # ----------------------------------------------------------------------------- map raster
@@ -265,7 +293,7 @@ def project_scan(points_body: np.ndarray, gravity_body: np.ndarray, resolution: 
     pts = np.asarray(points_body, dtype=np.float64).reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     R_tilt = R_level_from_gravity(gravity_body)
-    lvl = pts @ R_tilt.T
+    lvl = pts @ np.ascontiguousarray(R_tilt.T)  # matmul with a transposed view is ~100x slower
     rng_xy = np.hypot(lvl[:, 0], lvl[:, 1])
     lvl = lvl[(rng_xy > 0.5) & (rng_xy <= max_range_m)]  # ground estimate uses the near points too
     if len(lvl) < min_cells:

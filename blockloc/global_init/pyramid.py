@@ -58,13 +58,14 @@ def _next_level(prev: np.ndarray, h: int) -> np.ndarray:
     return out
 
 
-def assemble(pyramids: list[Pyramid], lo: np.ndarray, hi: np.ndarray) -> Pyramid:
-    """Pyramid over global cells [lo, hi) (2,) int64: element-wise max of the pieces overlapping it."""
+def assemble(pyramids: list[Pyramid], lo: np.ndarray, hi: np.ndarray, num_levels: int | None = None) -> Pyramid:
+    """Pyramid over global cells [lo, hi) (2,) int64: element-wise max of the pieces overlapping it
+    (only the lowest ``num_levels`` levels when given, e.g. 1 for the base raster)."""
     if not pyramids:
         raise ValueError("no pyramids to assemble")
     lo = np.asarray(lo, np.int64)
     hi = np.asarray(hi, np.int64)
-    H = pyramids[0].num_levels
+    H = pyramids[0].num_levels if num_levels is None else min(num_levels, pyramids[0].num_levels)
     out = np.zeros((H,) + tuple(int(v) for v in (hi - lo)), dtype=np.uint8)
     for p in pyramids:
         a = np.maximum(lo, p.origin)
@@ -72,7 +73,7 @@ def assemble(pyramids: list[Pyramid], lo: np.ndarray, hi: np.ndarray) -> Pyramid
         if np.any(b <= a):
             continue
         dst = out[:, a[0] - lo[0]:b[0] - lo[0], a[1] - lo[1]:b[1] - lo[1]]
-        src = p.levels[:, a[0] - p.origin[0]:b[0] - p.origin[0], a[1] - p.origin[1]:b[1] - p.origin[1]]
+        src = p.levels[:H, a[0] - p.origin[0]:b[0] - p.origin[0], a[1] - p.origin[1]:b[1] - p.origin[1]]
         np.maximum(dst, src, out=dst)
     return Pyramid(lo, out, pyramids[0].resolution)
 

@@ -7,9 +7,23 @@ Steps (``GlobalLocalizer.localize``):
 3. refine every candidate in 6-DoF with NDT and verify it by fitness (``refine``);
 4. the best verified candidate wins; another verified candidate nearly as good but more than
    ``ambiguity_distance_m`` away marks the result ambiguous (reported, never hidden).
-Without a hint, square regions tiling the map are ordered by a cheap score (the best coarse bound
-of a subsampled scan over coarse angles) and searched in that order until one gives a verified
-match. Tracking uses the same entry points to start and to recover.
+Without a hint (``_relocalize_places``), the map's place index (``place_index``) ranks the places
+that look like the scan, with a yaw guess each; one branch and bound runs over small windows
+around the best ``place_candidates[0]`` of them (yaw within ``place_yaw_window_deg`` of the guess),
+then, while nothing is verified, around more of them (optionally around the first ones at every
+yaw: ``place_all_yaw_candidates``); only then
+(``whole_map_fallback``) are square regions tiling the map searched in the order of a cheap score
+(the best coarse bound of a subsampled scan over coarse angles) until one gives a verified match.
+Tracking uses the same entry points to start and to recover.
+
+Verification (``_refine``) asks more than a good NDT fit, because a wrong place with similar
+structure can fit well: NDT converged, its inlier ratio >= ``min_fitness``, the above-ground
+points' inlier ratio >= ``min_structure_fitness`` (the points at or above the static band's
+bottom when the scan has ``min_static_points`` of them, else those of the projection band), and, in the place index's static band, the
+scan's structure covered by the map (>= ``min_coverage``) and the map's structure not where the
+scan saw through (<= ``max_see_through`` of the bins seen through). Another verified candidate
+more than ``ambiguity_distance_m`` away that fits nearly as well makes the result ambiguous, and an
+ambiguous result is never reported as verified.
 """
 
 from __future__ import annotations
@@ -23,7 +37,8 @@ import numpy as np
 
 from blockloc.errors import GlobalInitError
 from blockloc.geometry import inv_T, transform_points
-from blockloc.global_init.bnb import Candidate2D, make_angles, required_cells, rotated_cells, search
+from blockloc.global_init.bnb import (Candidate2D, Window, make_angles, required_cells, rotated_cells, search,
+                                     search_windows)
 from blockloc.global_init.maps import ArrayMap, ProjectionParams, StoreMap
 from blockloc.global_init.pyramid import extend
 from blockloc.global_init.projection import ScanProjection, heading_offset, project_scan
@@ -31,6 +46,8 @@ from blockloc.global_init.refine import Refiner
 from blockloc.voxels import voxel_select
 
 log = logging.getLogger(__name__)
+
+GROUP_M = 400.0  # windows of the no-hint search share one pyramid crop per square of this side
 
 
 @dataclass
@@ -52,20 +69,51 @@ class InitParams:
     nms_deg: float = 5.0
     min_fitness: float = 0.75
     min_structure_fitness: float = 0.6
-    ambiguity_distance_m: float = 2.0
+    ambiguity_distance_m: float = 0.5  # rivals farther than this (NDT merges closer ones) count
+    probe_m: tuple[float, ...] = (1.0, 2.0)  # NDT restarts from the best moved this far look for rivals
     ambiguity_fitness_margin: float = 0.05
     ndt_resolution_m: float = 1.0
     scan_voxel_m: float = 0.5
     max_ndt_points: int = 3000
     ambiguity_score_ratio: float = 0.8  # once one is verified, refine others only above this x best
+    ambiguity_z: float = 2.5  # a rival is no ambiguity when the best fits significantly better (z)
     refine_range_m: float = 50.0
     reloc_window_m: float = 100.0
     max_regions: int = 0  # 0: every region of the map
     num_threads: int = 2
+    # no-hint relocalization through the place index
+    use_place_index: bool = True
+    place_candidates: tuple[int, ...] = (8, 64, 256)  # places searched per stage (around the yaw guesses)
+    place_all_yaw_candidates: int = 0  # then this many of them at every yaw (0: none)
+    place_window_m: float = 12.0  # window around each place (>= 2 x the index's tolerance + spacing)
+    place_yaw_window_deg: float = 16.0  # around each place's yaw guess (its error: p95 ~5 deg)
+    place_top_k: int = 6  # leaves kept by the branch and bound over all windows
+    place_top_level: int = 3  # its roots' level (2^3 cells = 4 m at 0.5 m: tight bounds in small windows)
+    place_band_m: tuple[float, float] = (2.0, 4.0)
+    place_max_range_m: float = 63.0
+    place_spacing_m: float = 3.0
+    place_tolerance_m: float = 1.5
+    place_max_offset_m: float = 20.0
+    whole_map_fallback: bool = True
+    # static-band consistency at the refined pose (verification)
+    min_coverage: float = 0.9
+    max_see_through: float = 0.35
+    consistency_tolerance_m: float = 0.75
+    min_consistency_bits: int = 20
+    min_static_points: int = 300  # fewer static-band points: the structure test uses the low band
 
     @property
     def projection_params(self) -> ProjectionParams:
         return ProjectionParams(self.resolution_m, self.pyramid_levels, tuple(self.band_m), self.projection)
+
+    @property
+    def place_index_params(self):
+        from blockloc.global_init.place_index import PlaceIndexParams
+
+        return PlaceIndexParams(resolution_m=self.resolution_m, num_levels=self.pyramid_levels,
+                                band_m=tuple(self.place_band_m), max_range_m=self.place_max_range_m,
+                                spacing_m=self.place_spacing_m, tolerance_m=self.place_tolerance_m,
+                                max_offset_m=self.place_max_offset_m)
 
     @classmethod
     def from_config(cls, gi, registration=None) -> "InitParams":
@@ -93,6 +141,9 @@ class InitCandidate:
     T_map_body_2d: np.ndarray | None = None  # before refinement
     ndt_score: float = 0.0  # NDT score per scan point (higher is better)
     structure_fitness: float = 0.0  # inlier ratio of the scan's above-ground (band) points
+    coverage: float = float("nan")  # static-band scan bins the map covers (NaN: not tested)
+    see_through: float = float("nan")  # static-band bins seen through that the map fills
+    refiner: object = field(default=None, repr=False, compare=False)  # its NDT target, while deciding
 
 
 @dataclass
@@ -101,9 +152,12 @@ class InitResult:
 
     T_map_body: (4, 4) best pose (the best verified candidate; without one, the best-scoring
     refined candidate, or None when the search found nothing); verified candidates are ranked by
-    NDT score per point. verified: it passed the fitness check.
+    NDT score per point. verified: the best candidate passed verification and the result is not
+    ambiguous (only then may the pose be used).
     ambiguous: another verified candidate nearly as good lies > ambiguity_distance_m away.
-    candidates: every refined candidate, best first. time_s: wall time. stats: search details.
+    candidates: every refined candidate, best first. time_s: wall time of the search and refinement
+    (map pieces and the place index load lazily on the first call; ``stats['index_load_s']``).
+    stats: search details.
     """
 
     T_map_body: np.ndarray | None
@@ -126,7 +180,7 @@ def _check_args(window_m: float, yaw_window_deg: float) -> None:
 class GlobalLocalizer:
     """Global initialization against one map (ArrayMap or StoreMap), reusable across scans."""
 
-    def __init__(self, map_source, params: InitParams | None = None, engine=None):
+    def __init__(self, map_source, params: InitParams | None = None, engine=None, place_index=None):
         self.map = map_source
         self.params = params or InitParams()
         if engine is None:  # the default engine at the refinement resolution
@@ -135,6 +189,38 @@ class GlobalLocalizer:
             engine = make_engine("ndt", resolution_m=self.params.ndt_resolution_m,
                                  num_threads=self.params.num_threads)
         self.engine = engine  # refines and verifies candidates
+        self._place_index = place_index
+        self._place_source = None
+        self._coverage_source = None
+        self._index_load_s = 0.0
+
+    @property
+    def place_index(self):
+        """The map's place index (``place_index``), loaded (or built) on first use."""
+        if self._place_index is None:
+            from blockloc.global_init.place_index import index_for_source
+
+            t = time.perf_counter()
+            self._place_index = index_for_source(self.map, self.params.place_index_params)
+            self._index_load_s = time.perf_counter() - t
+        return self._place_index
+
+    @property
+    def place_source(self):
+        """The map projected in the place index's static band (consistency checks)."""
+        if self._place_source is None:
+            p = self._place_index.params if self._place_index is not None else self.params.place_index_params
+            self._place_source = self.map.with_params(p.projection_params)
+        return self._place_source
+
+    @property
+    def coverage_source(self):
+        """The map in the place index's band, every point (``band`` mode): what covers a scan."""
+        if self._coverage_source is None:
+            from dataclasses import replace
+
+            self._coverage_source = self.map.with_params(replace(self.place_source.params, mode="band"))
+        return self._coverage_source
 
     @classmethod
     def for_store(cls, store, gravity_map, params: InitParams | None = None, cache_dir=None,
@@ -175,11 +261,27 @@ class GlobalLocalizer:
             yaw_win = min(math.radians(yaw_window_deg), 2 * math.pi)
         if hint_xy is not None:
             center = self._hint_to_L(hint_xy)
-            cands, stats = self._search_region(scan, scan_ndt, center, window_m, theta_c, yaw_win)
+            cells = self._scan_cells(points_body, gravity_body)
+            cands, stats = self._search_region(scan, scan_ndt, center, window_m, theta_c, yaw_win, cells=cells)
             stats["regions_searched"] = 1
-        else:
-            cands, stats = self._relocalize(scan, scan_ndt, theta_c, yaw_win)
-        return self._decide(cands, stats, time.perf_counter() - t0)
+            return self._decide(cands, stats, time.perf_counter() - t0, scan_ndt)
+        cands, stats = [], {}
+        if p.use_place_index:
+            t_idx = time.perf_counter()
+            index = self.place_index
+            t0 += time.perf_counter() - t_idx  # loading the index is opening the map, not searching
+            stats["index_load_s"] = self._index_load_s
+        cells = self._scan_cells(points_body, gravity_body)
+        if p.use_place_index:
+            cands, stats = self._relocalize_places(scan, scan_ndt, cells, index, theta_c, yaw_win, stats)
+            res = self._decide(cands, stats, time.perf_counter() - t0, scan_ndt, final=False)
+            # An ambiguous result stays ambiguous however much more is searched.
+            if res.verified or res.ambiguous or not p.whole_map_fallback:
+                return self._decide(cands, stats, time.perf_counter() - t0, scan_ndt)
+        more, st = self._relocalize(scan, scan_ndt, theta_c, yaw_win, cells)
+        stats.update({k: v + stats.get(k, 0) if k in ("bnb_time_s", "refine_time_s", "nodes_visited") else v
+                      for k, v in st.items()})
+        return self._decide(cands + more, stats, time.perf_counter() - t0, scan_ndt)
 
     # ------------------------------------------------------------------------- steps
 
@@ -218,7 +320,7 @@ class GlobalLocalizer:
         return T_map_L @ T_L_body
 
     def _search_region(self, scan: ScanProjection, scan_ndt: np.ndarray, center: np.ndarray, window_m: float,
-                       theta_c: float, yaw_win: float, use_s0: bool | None = None):
+                       theta_c: float, yaw_win: float, use_s0: bool | None = None, cells=None):
         p = self.params
         lo, hi = required_cells(scan.xy, center, window_m, p.resolution_m)
         t = time.perf_counter()
@@ -235,11 +337,15 @@ class GlobalLocalizer:
                  "num_roots": st.num_roots, "nodes_visited": st.nodes_visited, "s0": st.s0,
                  "bnb_time_s": st.time_s, "pyramid_time_s": t_pyr, "scan_cells": len(scan.xy)}
         t = time.perf_counter()
-        cands = self._refine(c2d, scan, scan_ndt)
+        cands = self._refine(c2d, scan, scan_ndt, cells)
         stats["refine_time_s"] = time.perf_counter() - t
         return cands, stats
 
-    def _refine(self, c2d: list[Candidate2D], scan: ScanProjection, scan_ndt: np.ndarray) -> list[InitCandidate]:
+    def _refine(self, c2d: list[Candidate2D], scan: ScanProjection, scan_ndt: np.ndarray, cells=None,
+                skip: list[Candidate2D] | None = None) -> list[InitCandidate]:
+        """Refine 2D candidates best first with NDT and verify them (module docstring); once one is
+        verified, only those scoring within ``ambiguity_score_ratio`` of the best are refined.
+        ``skip``: candidates refined before (a later stage finds them again)."""
         if not c2d:
             return []
         p = self.params
@@ -264,6 +370,12 @@ class GlobalLocalizer:
             # result ambiguous; the others need no NDT run.
             if any(o.verified for o in out) and c.score < p.ambiguity_score_ratio * best_score:
                 break
+            if skip is not None and any(abs(c.x - o.x) < 0.5 and abs(c.y - o.y) < 0.5
+                                        and abs((c.theta - o.theta + math.pi) % (2 * math.pi) - math.pi) < 0.02
+                                        for o in skip):
+                continue
+            if skip is not None:
+                skip.append(c)
             T0 = self._pose_from_2d(c, scan)
             refiner = refiner_for(np.array([c.x, c.y]))
             if refiner is None:
@@ -273,13 +385,138 @@ class GlobalLocalizer:
                 r = refiner.align(scan_ndt, r.T_map_body)  # out of iterations, e.g. sliding along a corridor
             finite = bool(np.all(np.isfinite(r.T_map_body)))
             # Ground points fit the ground almost anywhere: the structure above it must fit too.
-            sfit = refiner.inlier_ratio(scan.structure_body, r.T_map_body) if finite else 0.0
+            # Judged on the static structure (at or above the place band's bottom) when the scan
+            # has enough of it: people, cars and bushes near the sensor fill the low band with
+            # points no map holds (seen: 0.16 of the low points within 10 m fit at the true pose).
+            static = cells.static_body if cells is not None and cells.static_body is not None else None
+            structure = static if static is not None and len(static) >= p.min_static_points else scan.structure_body
+            sfit = refiner.inlier_ratio(structure, r.T_map_body) if finite else 0.0
             ok = bool(r.converged and finite and r.fitness >= p.min_fitness
                       and sfit >= p.min_structure_fitness)
-            out.append(InitCandidate(r.T_map_body, c.score, r.fitness, r.converged, ok, T0, r.ndt_score, sfit))
+            cov, see = self._consistency(r.T_map_body, scan, cells) if (ok and cells is not None) else (np.nan, np.nan)
+            if math.isfinite(cov) and cov < p.min_coverage:
+                ok = False
+            if math.isfinite(see) and see > p.max_see_through:
+                ok = False
+            out.append(InitCandidate(r.T_map_body, c.score, r.fitness, r.converged, ok, T0, r.ndt_score, sfit,
+                                     cov, see, refiner))
         return out
 
-    def _relocalize(self, scan: ScanProjection, scan_ndt: np.ndarray, theta_c: float, yaw_win: float):
+    def _scan_cells(self, points_body: np.ndarray, gravity_body: np.ndarray):
+        """The scan's cells in the place index's band (consistency checks, place queries)."""
+        from blockloc.global_init.place_index import scan_cells
+
+        ip = self._place_index.params if self._place_index is not None else self.params.place_index_params
+        return scan_cells(points_body, gravity_body, ip)
+
+    def _consistency(self, T_map_body: np.ndarray, scan: ScanProjection, cells) -> tuple[float, float]:
+        """(coverage, see_through) of the scan's static-band bins at a refined pose; NaN where
+        fewer than ``min_consistency_bits`` bins were observed (nothing to judge by)."""
+        from dataclasses import replace
+
+        from blockloc.global_init.place_index import consistency_at
+
+        p = self.params
+        ip = self._place_index.params if self._place_index is not None else p.place_index_params
+        ip = replace(ip, tolerance_m=p.consistency_tolerance_m)
+        T_L_body = np.eye(4)
+        T_L_body[:3, :3] = self.map.R_L_map @ T_map_body[:3, :3]
+        T_L_body[:3, 3] = self.map.R_L_map @ T_map_body[:3, 3]
+        R_heading = T_L_body[:3, :3] @ cells.R_tilt.T
+        theta = math.atan2(R_heading[1, 0], R_heading[0, 0])
+        try:
+            return consistency_at(self.place_source, T_L_body[:2, 3], theta, cells, ip, p.min_consistency_bits,
+                                  coverage_source=self.coverage_source)
+        except GlobalInitError:
+            return np.nan, np.nan
+
+    def _relocalize_places(self, scan: ScanProjection, scan_ndt: np.ndarray, cells, index, theta_c: float,
+                           yaw_win: float, stats: dict):
+        """No-hint search through the place index, widening stage by stage (module docstring)."""
+        p = self.params
+        t = time.perf_counter()
+        theta_window = (theta_c, yaw_win) if yaw_win < 2 * math.pi else None
+        places = index.query_cells(cells, max(p.place_candidates), theta_window=theta_window)
+        stats.update(place_query_s=time.perf_counter() - t, places=len(index), place_stage=0)
+        if not places:
+            return [], stats
+        yaw_guess = math.radians(p.place_yaw_window_deg)
+        # An optional last stage tries every yaw around the best places (a yaw guess off by more
+        # than the window: a symmetric scene); it costs most of a search that finds nothing (seen:
+        # 15 of 20 s on the small world), so by default the regions' search (all yaws) follows.
+        stages = [(k, yaw_guess) for k in p.place_candidates]
+        if p.place_all_yaw_candidates > 0:
+            stages.append((p.place_all_yaw_candidates, min(yaw_win, 2 * math.pi)))
+        out: list[InitCandidate] = []
+        done: list[Candidate2D] = []
+        for i, (k, yaw) in enumerate(stages):
+            if yaw >= min(yaw_win, 2 * math.pi) and yaw_guess >= min(yaw_win, 2 * math.pi) and i > 0:
+                break  # the guesses' windows already covered every allowed yaw
+            windows = [Window(c.xy_L, p.place_window_m, c.theta if yaw < 2 * math.pi else theta_c, yaw)
+                       for c in places[:k]]
+            t = time.perf_counter()
+            c2d, st = self._search_windows(scan, windows)
+            stats["bnb_time_s"] = stats.get("bnb_time_s", 0.0) + time.perf_counter() - t
+            stats["nodes_visited"] = stats.get("nodes_visited", 0) + st.nodes_visited
+            t = time.perf_counter()
+            out.extend(self._refine(c2d, scan, scan_ndt, cells, skip=done))
+            stats["refine_time_s"] = stats.get("refine_time_s", 0.0) + time.perf_counter() - t
+            stats["place_stage"] = i + 1
+            stats["windows"] = len(windows)
+            stats["regions_searched"] = st.regions  # the GROUP_M squares holding windows
+            res = self._decide(list(out), {}, 0.0, scan_ndt, final=False)
+            if res.verified or res.ambiguous:
+                break  # found; or two places fit, which searching more would not change
+        return out, stats
+
+    def _search_windows(self, scan: ScanProjection, windows: list[Window]):
+        """Branch and bound over the windows, one pyramid per group of nearby windows."""
+        from blockloc.global_init.bnb import SearchStats
+
+        p = self.params
+        r = p.resolution_m
+        top = min(p.pyramid_levels - 1, p.place_top_level)
+        reach = float(np.hypot(*scan.xy.T).max()) + (1 << top) * r + 2 * r
+        # Windows (best place first) in groups spanning at most GROUP_M: one pyramid crop each,
+        # however large the map.
+        groups: list[tuple[np.ndarray, np.ndarray, list[Window]]] = []
+        for w in windows:
+            c = np.asarray(w.center, float)
+            for g in groups:
+                lo, hi = np.minimum(g[0], c), np.maximum(g[1], c)
+                if np.all(hi - lo <= GROUP_M):
+                    g[0][:], g[1][:] = lo, hi
+                    g[2].append(w)
+                    break
+            else:
+                groups.append((c.copy(), c.copy(), [w]))
+        cands: list[Candidate2D] = []
+        total = SearchStats(0, 0.0, 0, 0, 0.0, 0.0)
+        best = 0.0
+        for _, _, ws in groups:
+            c = np.array([w.center for w in ws])
+            half = 0.5 * max(w.size_m for w in ws) + reach
+            lo = np.floor((c.min(axis=0) - half) / r).astype(np.int64) - 2
+            hi = np.floor((c.max(axis=0) + half) / r).astype(np.int64) + 3
+            try:
+                pyr = self.map.pyramid(lo, hi)
+            except GlobalInitError:
+                continue
+            # Leaves below ambiguity_score_ratio x the best matter neither as the answer nor as its
+            # runner-up (_refine would not refine them): prune them, across groups too.
+            c2d, st = search_windows(pyr, scan.xy, ws, p.place_top_k, p.use_s0, p.s0_ratio, p.min_score, p.nms_m,
+                                     p.nms_deg, max_range=scan.max_range, keep_ratio=p.ambiguity_score_ratio,
+                                     min_leaf_score=p.ambiguity_score_ratio * best, top_level=p.place_top_level)
+            cands.extend(c2d)
+            best = max([best] + [c.score for c in c2d])
+            total = SearchStats(st.num_angles, st.angle_step_rad, total.num_roots + st.num_roots,
+                                total.nodes_visited + st.nodes_visited, max(total.s0, st.s0),
+                                total.time_s + st.time_s)
+        cands.sort(key=lambda c: -c.score)
+        total.regions = len(groups)
+        return cands[: p.place_top_k], total
+
+    def _relocalize(self, scan: ScanProjection, scan_ndt: np.ndarray, theta_c: float, yaw_win: float, cells=None):
         p = self.params
         w = p.reloc_window_m
         centers = self.map.region_centers(w)
@@ -295,7 +532,8 @@ class GlobalLocalizer:
         stats: dict = {"regions": len(centers), "cheap_time_s": t_cheap, "regions_searched": 0}
         for k, i in enumerate(order):
             # Regions overlap by the scan's reach, so a pose near a border is inside some window.
-            cands, st = self._search_region(scan, scan_ndt, centers[i], w + 2.0 * p.resolution_m, theta_c, yaw_win)
+            cands, st = self._search_region(scan, scan_ndt, centers[i], w + 2.0 * p.resolution_m, theta_c, yaw_win,
+                                            cells=cells)
             stats["regions_searched"] = k + 1
             for key in ("bnb_time_s", "refine_time_s", "nodes_visited"):
                 stats[key] = stats.get(key, 0) + st[key]
@@ -336,7 +574,39 @@ class GlobalLocalizer:
         b = K.root_scores(pyr.levels, level, dx, dy, ra, rtx, rty)
         return float(b.max()) / (255.0 * len(sub))
 
-    def _decide(self, cands: list[InitCandidate], stats: dict, elapsed: float) -> InitResult:
+    def _nearby_rival(self, best: InitCandidate, scan_ndt: np.ndarray) -> InitCandidate | None:
+        """Another NDT optimum near the best that fits about as well, or None.
+
+        NDT started from the best moved by ``probe_m`` along the map axes slides to the nearest other
+        local optimum where the scan constrains a direction weakly (a corridor: walls fit along
+        their length). One more than ``ambiguity_distance_m`` away, within the fitness margin and
+        not significantly worse (:func:`better_fit` < ``ambiguity_z``) means the scan cannot tell
+        where along that direction the body is: the result must not be verified.
+        """
+        p = self.params
+        for d in p.probe_m:
+            for dx, dy in ((d, 0.0), (-d, 0.0), (0.0, d), (0.0, -d)):
+                T0 = best.T_map_body.copy()
+                T0[:2, 3] += (dx, dy)
+                r = best.refiner.align(scan_ndt, T0)
+                if not (np.all(np.isfinite(r.T_map_body)) and r.fitness >= p.min_fitness):
+                    continue
+                dist = float(np.linalg.norm(r.T_map_body[:3, 3] - best.T_map_body[:3, 3]))
+                if dist <= p.ambiguity_distance_m or r.fitness < best.fitness - p.ambiguity_fitness_margin:
+                    continue
+                rival = InitCandidate(r.T_map_body, 0.0, r.fitness, r.converged, False, T0, r.ndt_score,
+                                      refiner=best.refiner)
+                if better_fit(scan_ndt, best, rival) < p.ambiguity_z:
+                    log.info("a rival NDT optimum %.2f m from the best fits about as well", dist)
+                    return rival
+        return None
+
+    def _decide(self, cands: list[InitCandidate], stats: dict, elapsed: float,
+                scan_ndt: np.ndarray | None = None, final: bool = True) -> InitResult:
+        """The result from refined candidates (see the module docstring). With ``scan_ndt`` (the
+        points refined, body frame), a plausible rival far from the best is no ambiguity when the
+        best explains the scan significantly better (:func:`better_fit`). ``final``: drop the
+        candidates' NDT targets."""
         p = self.params
         # Verified first, then by the NDT score per point: smoother than the inlier ratio, which
         # ties along weakly constrained directions (corridors).
@@ -361,13 +631,24 @@ class GlobalLocalizer:
                 # Unconverged candidates count too: fitting as well elsewhere is what matters.
                 plausible = c.fitness >= p.min_fitness and c.structure_fitness >= p.min_structure_fitness
                 if plausible and far and c.fitness >= best.fitness - p.ambiguity_fitness_margin:
+                    if scan_ndt is not None and best.refiner is not None and c.refiner is not None \
+                            and better_fit(scan_ndt, best, c) >= p.ambiguity_z:
+                        continue
                     ambiguous = True
                     break
+        if final and best.verified and not ambiguous and scan_ndt is not None and best.refiner is not None:
+            rival = self._nearby_rival(best, scan_ndt)
+            if rival is not None:
+                ambiguous = True
+                cands.append(rival)
+        if final:
+            for c in cands:
+                c.refiner = None
         if ambiguous:
             log.warning("global init is ambiguous: two verified candidates more than %.1f m apart",
                         p.ambiguity_distance_m)
         return InitResult(best.T_map_body, best.score, best.fitness, cands, ambiguous, elapsed,
-                          best.verified, stats)
+                          best.verified and not ambiguous, stats)
 
 
 # ----------------------------------------------------------------------------- one-shot API
@@ -414,6 +695,28 @@ def _gravity_body(gravity_body, roll_pitch, gravity_map) -> np.ndarray:
 
     R_map_body = rpy_to_R(roll_pitch[0], roll_pitch[1], 0.0)
     return R_map_body.T @ np.asarray(gravity_map, float)
+
+
+def better_fit(points_body: np.ndarray, a: InitCandidate, b: InitCandidate, block_m: float = 2.0) -> float:
+    """How significantly candidate ``a`` explains the scan better than ``b``: a z statistic.
+
+    The points (N, 3), body frame, fall in blocks of ``block_m`` (body xy); per block, d = inliers at
+    ``a`` (against a's map) - inliers at ``b`` (against b's). Under "equally good", d is symmetric
+    about 0 and sum(d) / sqrt(sum(d^2)) is about standard normal (a sign-flip test; blocks, not
+    points, because neighbouring points on one surface pass or fail together). Large: ``a`` fits
+    better; around 0: the scan cannot tell them apart.
+    """
+    pts = np.asarray(points_body, float).reshape(-1, 3)
+    keys = np.floor(pts[:, :2] / block_m).astype(np.int64)
+    _, block = np.unique(keys, axis=0, return_inverse=True)
+    block = block.reshape(-1)
+    d = []
+    for k in range(int(block.max()) + 1 if len(block) else 0):
+        q = pts[block == k]
+        d.append(len(q) * (a.refiner.inlier_ratio(q, a.T_map_body) - b.refiner.inlier_ratio(q, b.T_map_body)))
+    d = np.asarray(d)
+    den = math.sqrt(float(np.sum(d * d)))
+    return float(np.sum(d) / den) if den > 0 else 0.0
 
 
 def pose_error(T_est: np.ndarray, T_ref: np.ndarray) -> tuple[float, float]:

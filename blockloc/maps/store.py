@@ -11,6 +11,11 @@ Layout of a store directory::
 Every entry of the manifest records id, file, bounds (min, max; map frame, metres), centroid,
 point count, file size and sha256; :meth:`MapStore.load` verifies the checksum.
 
+*Extras* are further files that belong to the map (e.g. the global-init place index): the
+manifest's ``extras`` object maps a name to its file, size and sha256 (``MapWriter.add_extra``
+during a build, :func:`add_extra` on an existing local store); :meth:`MapStore.load_extra`
+verifies the checksum. Readers that predate extras ignore the key.
+
 A directory in the released block-map layout (``%03d.pcd`` + ``CentroidCloud.pcd``, no manifest)
 opens as a block map without checksums.
 
@@ -103,12 +108,43 @@ class MapEntry:
             raise MapError(f"{where}: malformed manifest entry {d!r:.80} ({exc})") from None
 
 
+@dataclass(frozen=True)
+class ExtraFile:
+    """An extra file of a store (see the module docstring): its name (the key in the manifest's
+    ``extras``), file name in the store, size in bytes and sha256 hex digest."""
+
+    name: str
+    file: str
+    bytes: int
+    sha256: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"file": self.file, "bytes": int(self.bytes), "sha256": self.sha256}
+
+    @classmethod
+    def from_dict(cls, name: str, d: Any, where: str) -> "ExtraFile":
+        try:
+            extra = cls(str(name), str(d["file"]), int(d["bytes"]), str(d["sha256"]))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MapError(f"{where}: malformed 'extras' entry {name!r} ({exc})") from None
+        if not _is_plain_name(extra.file):
+            raise MapError(f"{where}: extra {name!r} names file {extra.file!r}, expected a plain file name")
+        return extra
+
+
+def _is_plain_name(name: str) -> bool:
+    return bool(name) and "/" not in name and "\\" not in name and name not in (".", "..") \
+        and not name.startswith(".")
+
+
 class MapStore:
     """An opened map store (see the module docstring). Entries are kept in manifest order."""
 
     def __init__(self, files: MapFiles, kind: str, frame: str, params: dict[str, Any],
-                 entries: list[MapEntry], version: int = MANIFEST_VERSION, legacy: bool = False):
+                 entries: list[MapEntry], version: int = MANIFEST_VERSION, legacy: bool = False,
+                 extras: dict[str, ExtraFile] | None = None):
         self.files = files
+        self.extras: dict[str, ExtraFile] = dict(extras or {})
         self.kind = kind
         self.frame = frame
         self.params = dict(params)
@@ -193,6 +229,31 @@ class MapStore:
         parts = [self.load(i)[0] for i in ids]
         return np.concatenate(parts) if parts else np.zeros((0, 3), np.float32)
 
+    def has_extra(self, name: str) -> bool:
+        """Whether the manifest lists the extra file ``name``."""
+        return name in self.extras
+
+    def load_extra(self, name: str) -> bytes:
+        """Bytes of the extra ``name``, checked against the manifest's size and sha256.
+
+        MapError naming the file when the store has no such extra, the file is missing, or its
+        checksum differs. Over HTTP/S3 the file goes through the store's checksum-validated cache.
+        """
+        extra = self.extras.get(name)
+        if extra is None:
+            have = ", ".join(sorted(self.extras)) or "none"
+            raise MapError(f"{self.files.url(MANIFEST_NAME)}: the map has no extra {name!r} (extras: {have})")
+        expect = getattr(self.files, "expect", None)
+        if expect is not None:  # remote stores: cache the file under its sha256
+            expect(extra.file, extra.sha256)
+        data = self.files.read_bytes(extra.file)
+        digest = hashlib.sha256(data).hexdigest()
+        if digest != extra.sha256 or len(data) != extra.bytes:
+            raise MapError(f"{self.files.url(extra.file)}: checksum mismatch (sha256 {digest[:12]}..., "
+                           f"{len(data)} bytes; manifest says {extra.sha256[:12]}..., {extra.bytes} bytes): "
+                           "the file is corrupt or was changed")
+        return data
+
 
 def open_map(path: str | Path, **remote_options: Any) -> MapStore:
     """Open a store: a local directory or a URL (http(s)://, s3://), holding a manifest store or
@@ -243,8 +304,12 @@ def _open_manifest(files: MapFiles) -> MapStore:
     if not isinstance(raw_entries, list):
         raise MapError(f"{where}: 'entries' must be a list")
     entries = [MapEntry.from_dict(d, where) for d in raw_entries]
+    raw_extras = doc.get("extras") or {}
+    if not isinstance(raw_extras, dict):
+        raise MapError(f"{where}: 'extras' must be an object (name -> file, bytes, sha256)")
+    extras = {n: ExtraFile.from_dict(n, d, where) for n, d in raw_extras.items()}
     return MapStore(files, kind, str(doc.get("frame", "map")), doc.get("parameters") or {},
-                    entries, version)
+                    entries, version, extras=extras)
 
 
 def _open_legacy_block(files: MapFiles) -> MapStore:
@@ -300,6 +365,7 @@ class MapWriter:
         self.params = dict(params or {})
         self.overwrite = overwrite
         self.entries: list[MapEntry] = []
+        self.extras: dict[str, ExtraFile] = {}
         self._ids: set[str] = set()
         self._committed = False
         if self.out.exists() and not overwrite:
@@ -356,6 +422,19 @@ class MapWriter:
         """An extra file in the store directory (not an entry)."""
         (self.tmp / name).write_bytes(data)
 
+    def add_extra(self, name: str, data: bytes) -> ExtraFile:
+        """An extra file ``name`` recorded in the manifest with its size and sha256 (e.g. the
+        global-init place index); read it back with :meth:`MapStore.load_extra`."""
+        if self._committed:
+            raise MapError(f"{self.out}: writer already committed")
+        if not _is_plain_name(name) or name in (MANIFEST_NAME, CENTROID_CLOUD, AUTOWARE_METADATA, INCOMPLETE_MARKER) \
+                or any(e.file == name for e in self.entries):
+            raise MapError(f"{self.out}: extra name {name!r} is not a plain file name free in the store")
+        self.write_extra(name, data)
+        extra = ExtraFile(name, name, len(data), hashlib.sha256(data).hexdigest())
+        self.extras[name] = extra
+        return extra
+
     def commit(self) -> MapStore:
         """Write the kind's extra files and the manifest, rename into place, return the open store."""
         if self.kind == "block":
@@ -368,6 +447,8 @@ class MapWriter:
             "parameters": self.params, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             "entries": [e.to_dict() for e in self.entries],
         }
+        if self.extras:
+            doc["extras"] = {n: x.to_dict() for n, x in self.extras.items()}
         (self.tmp / MANIFEST_NAME).write_text(json.dumps(doc, indent=1))
         _fsync_dir_files(self.tmp)
         (self.tmp / INCOMPLETE_MARKER).unlink()
@@ -378,6 +459,44 @@ class MapWriter:
         self._committed = True
         log.info("wrote %s map %s: %d entries", self.kind, self.out, len(self.entries))
         return open_map(self.out)
+
+
+def add_extra(path: str | Path, name: str, data: bytes) -> MapStore:
+    """Add (or replace) the extra file ``name`` of the existing local manifest store at ``path``.
+
+    The file is written under a new name (temporary file, fsync, rename), then the manifest is
+    replaced atomically: a reader sees the old manifest with the old file or the new one with
+    the new file, never a mismatch. A replaced extra's old file is removed afterwards. Returns the
+    reopened store.
+    """
+    from blockloc.fileio import atomic_write_bytes
+
+    root = Path(path)
+    store = open_map(root)
+    if store.files.is_remote or store.legacy:
+        raise MapError(f"{path}: extras can be added only to a local store with a manifest")
+    if not _is_plain_name(name) or name in (MANIFEST_NAME, CENTROID_CLOUD, AUTOWARE_METADATA, INCOMPLETE_MARKER) \
+            or any(e.file == name for e in store.entries):
+        raise MapError(f"{path}: extra name {name!r} is not a plain file name free in the store")
+    sha = hashlib.sha256(data).hexdigest()
+    old = store.extras.get(name)
+    if old is not None and old.sha256 == sha and old.bytes == len(data) and (root / old.file).exists():
+        return store  # the same content is there already
+    # A new file name when one is in use, so the old manifest never points at new bytes.
+    file = name if old is None and not (root / name).exists() else f"{name}.{sha[:12]}"
+    atomic_write_bytes(root / file, data)
+    _fsync_dir_files_named(root, [file])
+    where = root / MANIFEST_NAME
+    try:
+        doc = json.loads(where.read_text())
+    except (OSError, ValueError) as exc:
+        raise MapError(f"{where}: cannot read the manifest ({exc})") from None
+    doc.setdefault("extras", {})[name] = ExtraFile(name, file, len(data), sha).to_dict()
+    atomic_write_bytes(where, json.dumps(doc, indent=1).encode())
+    if old is not None and old.file != file:
+        (root / old.file).unlink(missing_ok=True)
+    log.info("%s: extra %s written (%d bytes)", root, file, len(data))
+    return open_map(root)
 
 
 def remove_stale_builds(parent: Path) -> list[Path]:
@@ -422,7 +541,11 @@ def autoware_metadata(entries: list[MapEntry], params: dict[str, Any]) -> str:
 
 
 def _fsync_dir_files(path: Path) -> None:
-    for p in path.iterdir():
+    _fsync_dir_files_named(path, [p.name for p in path.iterdir()])
+
+
+def _fsync_dir_files_named(path: Path, names: list[str]) -> None:
+    for p in (path / n for n in names):
         try:
             fd = os.open(p, os.O_RDONLY)
             try:

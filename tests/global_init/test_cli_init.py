@@ -107,3 +107,43 @@ def test_init_no_match_says_so_with_the_best_score(setup):
              "--pose-hint", "8,-6")
     assert p.returncode != 0
     assert "no verified match (best score" in p.stderr
+
+
+def _blockloc(env, *args):
+    return subprocess.run([sys.executable, "-m", "blockloc.cli", *args], capture_output=True, text=True, env=env,
+                          timeout=300)
+
+
+def test_map_index_then_init_without_a_hint_uses_the_place_index(setup, tmp_path):
+    import shutil
+
+    root, T, env = setup
+    shutil.copytree(root / "map", tmp_path / "map")
+    p = _blockloc(env, "map", "index", str(tmp_path / "map"), "--gravity", "down")
+    assert p.returncode == 0, p.stderr
+    manifest = json.loads((tmp_path / "map" / "manifest.json").read_text())
+    extra = manifest["extras"]["place_index.npz"]
+    assert (tmp_path / "map" / extra["file"]).stat().st_size == extra["bytes"]
+    p = _run(env, "--seq", str(root / "session"), "--frame", "0", "--map", str(tmp_path / "map"), "--json")
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout)
+    assert set(out) >= {"pose", "verified", "ambiguous", "time_s", "candidates"}
+    assert out["verified"] and not out["ambiguous"] and out["time_s"] > 0 and out["candidates"]
+    T_est = xyzrpy_to_T(*(out["pose"][k] for k in ("x", "y", "z", "roll", "pitch", "yaw")))
+    dt, dr = pose_error(T_est, T)
+    assert dt < 0.1 and dr < 0.5, (dt, dr)
+    assert out["stats"]["place_stage"] >= 1 and out["stats"]["places"] > 0  # found through the index
+    assert "error_m" in out and out["error_m"] < 0.1  # the session has ground truth
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--gravity", "sideways"], "--gravity 'sideways'"),
+    (["--gravity", "0,0,0"], "--gravity '0,0,0'"),
+    ([], "give --gravity"),  # the test map's manifest names no mapping sequence
+])
+def test_map_index_bad_input_is_one_line_and_non_zero(setup, args, message):
+    root, _, env = setup
+    p = _blockloc(env, "map", "index", str(root / "map"), *args)
+    assert p.returncode != 0
+    assert message in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
+    assert "extras" not in json.loads((root / "map" / "manifest.json").read_text())

@@ -1,0 +1,771 @@
+"""The place index: what a scan would see at sample places of the map, for no-hint relocalization.
+
+Descriptor (Scan Context's polar layout, Kim and Kim 2018). In the levelled frame (z up, see
+``projection``), map structure in a *static* height band above the local ground (default 2-4 m:
+above pedestrians, cars, bins and fences, whose trails and parked copies fill accumulated maps but
+change between sessions; walls, trunks, poles and crowns stay) is a 2D occupancy raster at 0.5 m.
+Around a place, the raster is binned into rings (``ring_width_m``) and azimuth sectors
+(``num_sectors``) between ``min_range_m`` and ``max_range_m``: one bit per bin, set when an occupied
+cell covers it. A place stores two such bit sets: of the raster itself, and of the raster grown by
+``tolerance_m`` (a disk), which is where a scan taken up to that far from the place can see
+structure. A scan gives the same bits from its own band cells (the same tables), plus *free* bits:
+bins it saw through, in front of its first hit in each sector, shrunk by the tolerance.
+
+Matching (every place, every column shift s = a yaw). A log-likelihood ratio per observed scan bit,
+of "taken at this place, turned by s" against "taken anywhere": an occupied scan bit falls on the
+place's grown bits with probability ``coverage`` here and with the place's density (per ring)
+elsewhere; a free scan bit falls on the place's own bits with probability ``see_through`` here
+and with its density elsewhere. So dense places, which explain any scan by chance, are discounted,
+and places with structure where the scan saw through are penalised. No rotation-invariant key
+prefilters the places: the match is asymmetric (a scan sees part of what the map holds), which a
+KD-tree over keys cannot express, and bit counting over every place and shift is fast (numba).
+The best shift is the yaw estimate (sub-sector by a parabola through the maximum).
+
+Places. Along the mapping keyframes (block maps record them per entry) every
+``keyframe_spacing_m``, and on a ``spacing_m`` grid over the drivable area: cells whose ground was
+seen, with no structure within ``clearance_m``, with at least ``min_bits`` bits, and, when the map
+has keyframes, within ``max_offset_m`` of one with a clear line of sight to it (the localization
+route may leave the mapping route; a place behind a wall was never seen).
+
+Stored as the map store extra ``place_index.npz`` (``MapStore.load_extra`` checks its sha256):
+:func:`write_place_index` builds and adds it to a local store (after ``map build``, or for
+``blockloc map index MAP``); :func:`load_place_index` reads it, or builds and caches one for a map
+without.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from blockloc.errors import GlobalInitError, MapError
+
+log = logging.getLogger(__name__)
+
+PLACE_INDEX_NAME = "place_index.npz"
+FORMAT = "blockloc-place-index"
+FORMAT_VERSION = 2  # 2: the "vertical" projection of the band
+TILE_M = 256.0  # the index is built tile by tile: memory bounded by the tile, not the map
+OBSTACLE_M = 0.3  # a scan point this high above the local ground hides what lies behind it
+BAND_TOP_UNSEEN_M = 20.0
+SCAN_COLUMN_POINTS = 3  # a scan column needs this many band points ("vertical" mode; a map 5: it is denser)
+SCAN_VERTICAL_RANGE_M = 20.0  # ... within this range (a wall there gets band points >= 0.5 m apart)
+STATIC_POINTS = 3000  # the static points kept per scan (verification's structure test)  # a scan with no points near the band's top: seen-through only beyond this
+
+
+@dataclass(frozen=True)
+class PlaceIndexParams:
+    """resolution_m, band_m, mode, num_levels: the 2D projection (the global-init raster's, with
+    its own band; equal values share its per-entry cache). num_sectors, min_range_m, max_range_m,
+    ring_width_m: the polar bins (m). tolerance_m: how far from a place a scan may be taken and
+    still match it (m). spacing_m: grid of places over the drivable area (m); keyframe_spacing_m:
+    places along the mapping keyframes (m); max_offset_m: grid places within this of a keyframe (maps
+    with keyframes); clearance_m: no structure this close to a grid place; min_bits: fewer occupied
+    bins make a place too featureless to index. coverage, see_through: the matching model (module
+    docstring); free_min_range_m: closer bins are never counted as seen through (a scan sees the
+    band only beyond the range where its highest beams reach the band's top: that range, measured
+    on each scan, raises this floor, see :func:`scan_cells`)."""
+
+    resolution_m: float = 0.5
+    band_m: tuple[float, float] = (2.0, 4.0)
+    mode: str = "vertical"  # map structure with height (see projection.select_structure)
+    num_levels: int = 6
+    num_sectors: int = 64
+    min_range_m: float = 3.0
+    max_range_m: float = 63.0
+    ring_width_m: float = 3.0
+    tolerance_m: float = 1.5
+    spacing_m: float = 3.0
+    keyframe_spacing_m: float = 2.0
+    max_offset_m: float = 20.0
+    clearance_m: float = 0.75
+    min_bits: int = 40
+    coverage: float = 0.85
+    see_through: float = 0.05
+    free_min_range_m: float = 7.0
+
+    def __post_init__(self):
+        if not (0 < self.min_range_m < self.max_range_m and self.ring_width_m > 0 and self.num_sectors >= 8
+                and self.spacing_m > 0 and self.resolution_m > 0 and self.tolerance_m >= 0
+                and 0 < self.see_through < self.coverage < 1):
+            raise GlobalInitError(f"place index parameters {self}: expected 0 < min_range_m < max_range_m, "
+                                  "positive ring width, spacing and resolution, num_sectors >= 8, "
+                                  "tolerance >= 0 and 0 < see_through < coverage < 1")
+
+    @property
+    def num_rings(self) -> int:
+        return int(math.ceil((self.max_range_m - self.min_range_m) / self.ring_width_m))
+
+    @property
+    def words(self) -> int:
+        return (self.num_sectors + 63) // 64
+
+    @property
+    def projection_params(self):
+        from blockloc.global_init.maps import ProjectionParams
+
+        return ProjectionParams(self.resolution_m, self.num_levels, tuple(self.band_m), self.mode)
+
+    @classmethod
+    def from_config(cls, gi) -> "PlaceIndexParams":
+        """From ``GlobalInitConfig`` (its ``place_*`` fields)."""
+        return cls(resolution_m=gi.resolution_m, num_levels=gi.pyramid_levels, band_m=tuple(gi.place_band_m),
+                   spacing_m=gi.place_spacing_m, max_offset_m=gi.place_max_offset_m,
+                   max_range_m=gi.place_max_range_m, tolerance_m=gi.place_tolerance_m)
+
+
+@dataclass
+class PlaceCandidate:
+    """A place that looks like the scan.
+
+    x, y: the place in the map frame (m). yaw: the body's yaw in the map frame there (rad), from the
+    best column shift (NaN from :meth:`PlaceIndex.query_cells`, which knows no body tilt). score:
+    log-likelihood ratio per observed scan bit (higher is better; > 0: more likely here than
+    anywhere). xy_L: (2,) the place in the levelled frame; theta: the levelled scan's rotation into
+    the levelled frame (rad; what branch and bound searches). index: row in the index.
+    """
+
+    x: float
+    y: float
+    yaw: float
+    score: float
+    xy_L: np.ndarray
+    theta: float
+    index: int
+
+
+# ----------------------------------------------------------------------------- descriptors
+
+
+@dataclass(frozen=True)
+class _Tables:
+    s0: np.ndarray  # (2R, 2R) int16 first sector a cell covers
+    n: np.ndarray  # (2R, 2R) int16 sectors it covers (0: outside the range annulus)
+    ring: np.ndarray  # (2R, 2R) int16 ring
+    range_m: np.ndarray  # (2R, 2R) float32 range of the cell centre
+    radius: int
+
+
+_TABLES: dict = {}
+
+
+def _tables(p: PlaceIndexParams) -> _Tables:
+    """Per cell offset (di, dj) from a lattice corner (index [di + R, dj + R]): the sectors the
+    cell subtends, its ring and range."""
+    key = (p.resolution_m, p.num_sectors, p.min_range_m, p.max_range_m, p.ring_width_m)
+    if key in _TABLES:
+        return _TABLES[key]
+    res = p.resolution_m
+    R = int(math.ceil(p.max_range_m / res)) + 1
+    d = np.arange(-R, R)
+    di, dj = np.meshgrid(d, d, indexing="ij")
+    cx, cy = (di + 0.5) * res, (dj + 0.5) * res
+    r = np.hypot(cx, cy)
+    centre = np.arctan2(cy, cx)
+    rel = []
+    for a in (0, 1):
+        for b in (0, 1):
+            ang = np.arctan2((dj + b) * res, (di + a) * res) - centre
+            rel.append((ang + np.pi) % (2 * np.pi) - np.pi)
+    rel = np.array(rel)
+    step = 2 * np.pi / p.num_sectors
+    s_lo = np.floor((centre + rel.min(axis=0)) / step).astype(np.int64)
+    s_hi = np.floor((centre + rel.max(axis=0)) / step).astype(np.int64)
+    inside = (r >= p.min_range_m) & (r < p.min_range_m + p.num_rings * p.ring_width_m)
+    n = np.where(inside, s_hi - s_lo + 1, 0).astype(np.int16)
+    s0 = np.mod(s_lo, p.num_sectors).astype(np.int16)
+    ring = np.clip(np.floor((r - p.min_range_m) / p.ring_width_m), 0, p.num_rings - 1).astype(np.int16)
+    t = _Tables(s0, n, ring, r.astype(np.float32), R)
+    _TABLES[key] = t
+    return t
+
+
+def descriptors_on_raster(occ: np.ndarray, corners: np.ndarray, params: PlaceIndexParams) -> np.ndarray:
+    """Polar occupancy bits (P, rings, W) uint64 of places standing on lattice corners (P, 2)
+    int64 (raster indices) of the occupancy raster ``occ`` (NX, NY) bool."""
+    from blockloc.global_init import _kernels as K
+
+    t = _tables(params)
+    c = np.asarray(corners, np.int64).reshape(-1, 2)
+    return K.polar_bits(np.ascontiguousarray(occ, dtype=np.bool_), c[:, 0].copy(), c[:, 1].copy(),
+                        t.s0, t.n, t.ring, params.num_sectors, params.num_rings)
+
+
+def unpack(bits: np.ndarray, num_sectors: int) -> np.ndarray:
+    """(..., rings, W) uint64 -> (..., rings, num_sectors) bool (bit s of a ring: sector s)."""
+    b = np.ascontiguousarray(bits).view(np.uint8)
+    return np.unpackbits(b, axis=-1, bitorder="little")[..., :num_sectors].astype(bool)
+
+
+def pack(occ: np.ndarray) -> np.ndarray:
+    """(..., rings, S) bool -> (..., rings, W) uint64 (inverse of :func:`unpack`)."""
+    S = occ.shape[-1]
+    W = (S + 63) // 64
+    pad = np.zeros(occ.shape[:-1] + (64 * W,), np.uint8)
+    pad[..., :S] = occ
+    return np.ascontiguousarray(np.packbits(pad, axis=-1, bitorder="little")).view(np.uint64)
+
+
+@dataclass
+class ScanCells:
+    """A levelled scan's cells (M, 2) int64, ``floor(xy / resolution)`` of the levelled body frame:
+    ``band`` in the index's height band, ``obstacles`` of every point OBSTACLE_M or more above the
+    ground; R_tilt (3, 3) its levelling (p_lvl = R_tilt @ p_body); free_from_m: the range from which
+    the scan sees the whole band (closer, structure high in the band is above its beams);
+    static_body: up to STATIC_POINTS of the scan's points (K, 3), body frame, at or above the band's
+    bottom (above people, cars and fences: what a map of another day still holds), fixed-seed
+    sample."""
+
+    band: np.ndarray
+    obstacles: np.ndarray
+    R_tilt: np.ndarray
+    free_from_m: float = 0.0
+    static_body: np.ndarray | None = None  # (K, 3) body-frame points at or above the band's bottom
+
+
+@dataclass
+class ScanDescriptor:
+    """A scan's bits: occupied (rings, W) and seen-through (rings, W) uint64; per-ring counts."""
+
+    occupied: np.ndarray
+    free: np.ndarray
+
+    def counts(self, num_sectors: int) -> tuple[np.ndarray, np.ndarray]:
+        return (unpack(self.occupied, num_sectors).sum(axis=-1).astype(np.float32),
+                unpack(self.free, num_sectors).sum(axis=-1).astype(np.float32))
+
+
+def _inside(cells: np.ndarray, R: int) -> np.ndarray:
+    c = np.asarray(cells, np.int64).reshape(-1, 2)
+    return c[np.all((c >= -R) & (c < R), axis=1)]
+
+
+def scan_cells(points_body: np.ndarray, gravity_body: np.ndarray, params: PlaceIndexParams) -> ScanCells:
+    """A scan's cells (levelled body frame, ``floor(xy / resolution)``): in the band, and of every
+    obstacle (OBSTACLE_M or more above the local ground); and its levelling R_tilt.
+
+    points_body: (N, 3) body frame, metres; gravity_body: (3,) gravity in the body frame.
+    """
+    from blockloc.global_init.projection import R_level_from_gravity, ground_grid, lookup_ground, tall_columns
+
+    pts = np.asarray(points_body, float).reshape(-1, 3)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    R_tilt = R_level_from_gravity(gravity_body)
+    lvl = pts @ np.ascontiguousarray(R_tilt.T)
+    rng = np.hypot(lvl[:, 0], lvl[:, 1])
+    lvl = lvl[(rng > 0.5) & (rng <= params.max_range_m + 5.0)]
+    none = np.zeros((0, 2), np.int64)
+    if len(lvl) == 0:
+        return ScanCells(none, none, R_tilt, BAND_TOP_UNSEEN_M, np.zeros((0, 3)))
+    g_origin, g_grid = ground_grid(lvl)
+    h = lvl[:, 2] - lookup_ground(g_origin, g_grid, lvl[:, :2])
+    lo, hi = params.band_m
+
+    def cells(keep):
+        return np.unique(np.floor(lvl[keep, :2] / params.resolution_m).astype(np.int64), axis=0)
+
+    # The nearest points at the band's top: closer, the beams pass below it (vertical field of view).
+    top = np.hypot(lvl[:, 0], lvl[:, 1])[np.abs(h - hi) <= 0.5]
+    top = top[top >= params.min_range_m]
+    free_from = float(np.percentile(top, 2)) if len(top) >= 20 else BAND_TOP_UNSEEN_M
+    band = (h >= lo) & (h <= hi)
+    if params.mode == "vertical":
+        # As the map's raster (projection.select_structure): drop layers (the ceiling of a
+        # passage) and stray returns, where walls are hit by several beams; farther away one beam
+        # may be all a wall gets.
+        idx = np.flatnonzero(band)
+        near = np.hypot(lvl[idx, 0], lvl[idx, 1]) < SCAN_VERTICAL_RANGE_M
+        band[idx[near & ~tall_columns(lvl[idx, :2], h[idx], min_points=SCAN_COLUMN_POINTS)]] = False
+    static = lvl[h >= lo]
+    if len(static) > STATIC_POINTS:
+        static = static[np.sort(np.random.default_rng(0).choice(len(static), STATIC_POINTS, replace=False))]
+    return ScanCells(cells(band), cells(h >= OBSTACLE_M), R_tilt,
+                     max(params.free_min_range_m, free_from), static @ R_tilt)
+
+
+def consistency_at(source, xy_L: np.ndarray, theta: float, cells: ScanCells, params: PlaceIndexParams,
+                   min_bits: int = 20, coverage_source=None) -> tuple[float, float]:
+    """How well the map's static band around a pose agrees with a scan: (coverage, see_through).
+
+    The pose: the body at ``xy_L`` (2,) of the levelled frame, its levelled scan turned by
+    ``theta`` rad. coverage: share of the scan's occupied bins the map's structure (grown by the
+    tolerance) covers, NaN below ``min_bits`` bins. see_through: of the sectors where the map's
+    nearest structure lies beyond ``free_min_range_m`` (what the scan should see there), the share
+    in which the scan saw through it (its free bins reach past it), NaN below ``min_bits / 4``
+    such sectors. A share, not a count of bins: a wall across a quarter of the view is a quarter.
+    source: a global-init map source in ``params``' band (``base_raster``); coverage_source: one
+    for the coverage when not ``source`` (the plain band: a scan's column that the "vertical"
+    projection would drop on the map's lattice is still covered).
+    """
+    from scipy.ndimage import binary_dilation
+
+    t = _tables(params)
+    res = params.resolution_m
+    S = params.num_sectors
+    corner = np.round(np.asarray(xy_L, float) / res).astype(np.int64)
+    pad = int(math.ceil(params.tolerance_m / res)) + 1
+    origin, base = source.base_raster(corner - t.radius - pad, corner + t.radius + pad)
+    occ = base == 255
+    at = (corner - origin)[None]
+    raw = unpack(descriptors_on_raster(occ, at, params)[0], S)
+    if coverage_source is not None:
+        origin, base = coverage_source.base_raster(corner - t.radius - pad, corner + t.radius + pad)
+        occ = base == 255
+        at = (corner - origin)[None]
+    grown = unpack(descriptors_on_raster(binary_dilation(occ, _disk(params.tolerance_m / res)), at, params)[0], S)
+    sd = scan_descriptor(cells.band, params, cells.obstacles, cells.free_from_m)
+    shift = int(round(theta / (2 * math.pi / S))) % S
+    occ_s = np.roll(unpack(sd.occupied, S), shift, axis=-1)
+    free_s = np.roll(unpack(sd.free, S), shift, axis=-1)
+    n_occ = int(occ_s.sum())
+    coverage = float((occ_s & grown).sum()) / n_occ if n_occ >= min_bits else float("nan")
+    r0 = int(math.ceil((max(params.free_min_range_m, cells.free_from_m) - params.min_range_m)
+                       / params.ring_width_m))
+    has = raw.any(axis=0)
+    first = np.where(has, raw.argmax(axis=0), 0)
+    judged = has & (first >= r0)
+    through = judged & free_s[first, np.arange(S)]
+    n = int(judged.sum())
+    see = float(through.sum()) / n if n >= max(1, min_bits // 4) else float("nan")
+    return coverage, see
+
+
+def scan_descriptor(cells: np.ndarray, params: PlaceIndexParams,
+                    obstacles: np.ndarray | None = None, free_from_m: float = 0.0) -> ScanDescriptor:
+    """Bits of a levelled scan from its occupied band cells (M, 2) int64, ``floor(xy / resolution)``
+    of the levelled body frame (the body stands on the lattice corner 0, 0, as places do).
+
+    Free bits: in each sector, the rings lying wholly between ``free_min_range_m`` (or
+    ``free_from_m`` when farther, see :class:`ScanCells`) and the first obstacle minus ``tolerance_m``, where the first obstacle is the nearest one over the sectors
+    within ``tolerance_m`` of the ring (a scan taken that far from
+    a place sees the place's walls shifted by as much). ``obstacles``: cells (K, 2) of every point
+    above the ground, any height (default: the band cells): a wall close by, hit below the band,
+    hides what is behind it although the band saw nothing there.
+    """
+    t = _tables(params)
+    R = t.radius
+    S = params.num_sectors
+    c = _inside(cells, R)
+    occ = np.zeros((2 * R, 2 * R), dtype=np.bool_)
+    occ[c[:, 0] + R, c[:, 1] + R] = True
+    occupied = descriptors_on_raster(occ, np.array([[R, R]]), params)[0]
+    # First obstacle per sector (every sector an obstacle cell covers).
+    o = c if obstacles is None else np.concatenate([c, _inside(obstacles, R)])
+    first = np.full(S, np.inf)
+    a, b = o[:, 0] + R, o[:, 1] + R
+    n = t.n[a, b]
+    a, b, n = a[n > 0], b[n > 0], n[n > 0]
+    for k in range(int(n.max()) if len(n) else 0):
+        m = n > k
+        np.minimum.at(first, (t.s0[a[m], b[m]] + k) % S, t.range_m[a[m], b[m]])
+    step = 2 * math.pi / S
+    free = np.zeros((params.num_rings, S), bool)
+    for r in range(params.num_rings):
+        inner = params.min_range_m + r * params.ring_width_m
+        outer = inner + params.ring_width_m
+        if inner < max(params.free_min_range_m, free_from_m):
+            continue
+        half = int(math.ceil(params.tolerance_m / max(inner, 1e-6) / step))
+        near = first.copy()
+        for k in range(1, half + 1):
+            near = np.minimum(near, np.minimum(np.roll(first, k), np.roll(first, -k)))
+        free[r] = outer <= near - params.tolerance_m
+    return ScanDescriptor(occupied, pack(free))
+
+
+def shifted(bits: np.ndarray, num_sectors: int) -> np.ndarray:
+    """(S, rings, W): bits turned by every shift s (bit m of shift s = sector m - s)."""
+    occ = unpack(bits, num_sectors)
+    return np.stack([pack(np.roll(occ, s, axis=-1)) for s in range(num_sectors)])
+
+
+def match_scores(scan: ScanDescriptor, index: "PlaceIndex") -> np.ndarray:
+    """(P, S) log-likelihood ratio per observed scan bit of "the scan was taken at place p, turned by
+    shift s" against "taken anywhere" (see the module docstring)."""
+    from blockloc.global_init import _kernels as K
+
+    p = index.params
+    S = p.num_sectors
+    occ_ring, free_ring = scan.counts(S)
+    total = float(occ_ring.sum() + free_ring.sum())
+    if total == 0 or len(index) == 0:
+        return np.zeros((len(index), S), np.float32)
+    dens_grown, dens_raw = index.densities()
+
+    def weights(q, density):
+        rho = np.clip(density, 0.01, 0.99)
+        miss = np.log((1 - q) / (1 - rho))
+        return (np.log(q / rho) - miss).astype(np.float32), miss.astype(np.float32)
+
+    occ_hit, occ_miss = weights(p.coverage, dens_grown)
+    free_hit, free_miss = weights(p.see_through, dens_raw)
+    hits = K.polar_llr(shifted(scan.occupied, S), index.grown, occ_hit, shifted(scan.free, S), index.bits, free_hit)
+    return (hits + (occ_miss @ occ_ring + free_miss @ free_ring)[:, None]) / total
+
+
+def best_shift(score: np.ndarray, allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(best score (N,), fractional shift (N,) in sectors) of each row of ``score`` (N, S) over all
+    S shifts, refined by a parabola through the neighbours; ``allowed`` (S,) bool restricts them."""
+    L = np.where(allowed[None, :], score, -np.inf) if allowed is not None else score
+    N, S = L.shape
+    k = np.argmax(L, axis=1)
+    rows = np.arange(N)
+    l0 = score[rows, (k - 1) % S]
+    l1 = score[rows, k]
+    l2 = score[rows, (k + 1) % S]
+    den = l0 - 2 * l1 + l2
+    off = np.where(den < -1e-9, 0.5 * (l0 - l2) / np.where(den < -1e-9, den, -1.0), 0.0)
+    return l1, k + np.clip(off, -0.5, 0.5)
+
+
+# ----------------------------------------------------------------------------- the index
+
+
+@dataclass
+class PlaceIndex:
+    """Places and their descriptors. xy_L: (P, 2) float32 places in the levelled frame (m), on
+    lattice corners; source: (P,) uint8 (0 keyframe, 1 grid); bits, grown: (P, rings, W) uint64
+    polar occupancy of the raster and of the raster grown by the tolerance; gravity_map: (3,) the
+    map's gravity the levelled frame comes from; stats: build figures."""
+
+    params: PlaceIndexParams
+    gravity_map: np.ndarray
+    xy_L: np.ndarray
+    source: np.ndarray
+    bits: np.ndarray
+    grown: np.ndarray
+    stats: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        from blockloc.global_init.projection import R_level_from_gravity
+
+        self.R_L_map = R_level_from_gravity(self.gravity_map)
+        self._densities = None
+
+    def __len__(self) -> int:
+        return len(self.xy_L)
+
+    def densities(self) -> tuple[np.ndarray, np.ndarray]:
+        """(P, rings) float32 share of set bits per ring of ``grown`` and of ``bits``."""
+        if self._densities is None:
+            from blockloc.global_init import _kernels as K
+
+            S = self.params.num_sectors
+            self._densities = (K.popcounts(self.grown).astype(np.float32) / S,
+                               K.popcounts(self.bits).astype(np.float32) / S)
+        return self._densities
+
+    # -- serialization -------------------------------------------------------------------
+
+    def to_bytes(self) -> bytes:
+        """A compressed .npz (no pickles): arrays plus a JSON header of the parameters."""
+        meta = {"format": FORMAT, "version": FORMAT_VERSION, "params": asdict(self.params),
+                "gravity_map": [float(v) for v in self.gravity_map], "stats": self.stats}
+        buf = io.BytesIO()
+        np.savez_compressed(buf, meta=np.frombuffer(json.dumps(meta).encode(), np.uint8),
+                            xy_L=self.xy_L.astype(np.float32), source=self.source.astype(np.uint8),
+                            bits=np.ascontiguousarray(self.bits, np.uint64).view(np.uint8),
+                            grown=np.ascontiguousarray(self.grown, np.uint64).view(np.uint8))
+        return buf.getvalue()
+
+    @classmethod
+    def from_bytes(cls, data: bytes, where: str = PLACE_INDEX_NAME) -> "PlaceIndex":
+        """Parse :meth:`to_bytes` output; MapError naming ``where`` when it is not one."""
+        try:
+            with np.load(io.BytesIO(data), allow_pickle=False) as z:
+                meta = json.loads(bytes(z["meta"]).decode())
+                xy, src, raw, grown = z["xy_L"], z["source"], z["bits"], z["grown"]
+        except (OSError, ValueError, KeyError, UnicodeDecodeError, EOFError) as exc:
+            raise MapError(f"{where}: not a place index ({exc})") from None
+        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+            got = meta.get("format") if isinstance(meta, dict) else None
+            raise MapError(f"{where}: not a place index (format {got!r})")
+        if meta.get("version") != FORMAT_VERSION:
+            raise MapError(f"{where}: place index version {meta.get('version')!r}, this blockloc reads "
+                           f"{FORMAT_VERSION}; rebuild it with 'blockloc map index'")
+        try:
+            p = dict(meta["params"])
+            p["band_m"] = tuple(p["band_m"])
+            params = PlaceIndexParams(**p)
+            gravity = np.asarray(meta["gravity_map"], float).reshape(3)
+        except (KeyError, TypeError, ValueError, GlobalInitError) as exc:
+            raise MapError(f"{where}: bad place index header ({exc})") from None
+        P, NR, W = len(xy), params.num_rings, params.words
+        if xy.shape != (P, 2) or src.shape != (P,) or raw.dtype != np.uint8 or grown.dtype != np.uint8 \
+                or raw.shape != (P, NR, 8 * W) or grown.shape != raw.shape:
+            raise MapError(f"{where}: place index arrays disagree (xy {xy.shape}, source {src.shape}, "
+                           f"bits {raw.shape}, grown {grown.shape}; {NR} rings of {params.num_sectors} sectors)")
+
+        def words(a):
+            return np.ascontiguousarray(a).view(np.uint64).reshape(P, NR, W)
+
+        return cls(params, gravity, xy.astype(np.float32), src.astype(np.uint8), words(raw), words(grown),
+                   meta.get("stats", {}))
+
+    # -- queries ---------------------------------------------------------------------------
+
+    def query(self, points_body: np.ndarray, gravity_body: np.ndarray, k: int = 10) -> list[PlaceCandidate]:
+        """The ``k`` places (at least ``nms_m`` apart) that look most like a scan, best first.
+
+        points_body: (N, 3) body frame, metres; gravity_body: (3,) gravity in the body frame.
+        """
+        sc = self.scan_cells(points_body, gravity_body)
+        cands = self.query_cells(sc, k)
+        for c in cands:
+            c.yaw = self.yaw_map(c.theta, sc.R_tilt)
+        return cands
+
+    def scan_cells(self, points_body: np.ndarray, gravity_body: np.ndarray) -> "ScanCells":
+        """:func:`scan_cells` with this index's parameters."""
+        return scan_cells(points_body, gravity_body, self.params)
+
+    def yaw_map(self, theta: float, R_tilt: np.ndarray) -> float:
+        """Map-frame yaw (rad) of a body whose levelled scan turns by ``theta`` into the levelled frame."""
+        c, s = math.cos(theta), math.sin(theta)
+        R = self.R_L_map.T @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ R_tilt
+        return float(math.atan2(R[1, 0], R[0, 0]))
+
+    def query_cells(self, cells: "ScanCells", k: int = 10, nms_m: float = 4.0,
+                    theta_window: tuple[float, float] | None = None) -> list[PlaceCandidate]:
+        """Top ``k`` places for a scan's cells (:meth:`scan_cells`), at least ``nms_m`` apart, best
+        first; ``theta_window`` (centre, width) rad restricts the yaw."""
+        if len(self) == 0 or k <= 0:
+            return []
+        p = self.params
+        S = p.num_sectors
+        score = match_scores(scan_descriptor(cells.band, p, cells.obstacles, cells.free_from_m), self)
+        allowed = None
+        if theta_window is not None and theta_window[1] < 2 * math.pi:
+            ang = np.arange(S) * 2 * math.pi / S - theta_window[0]
+            allowed = np.abs((ang + math.pi) % (2 * math.pi) - math.pi) <= 0.5 * theta_window[1] + math.pi / S
+        best, shift = best_shift(score, allowed)
+        order = np.argsort(-best, kind="stable")
+        out: list[PlaceCandidate] = []
+        kept: dict[tuple[int, int], list[np.ndarray]] = {}  # accepted places by nms_m cell
+        for o in order:
+            xy = self.xy_L[o].astype(np.float64)
+            ci, cj = (int(v) for v in np.floor(xy / nms_m))
+            if any(np.hypot(*(q - xy)) < nms_m for di in (-1, 0, 1) for dj in (-1, 0, 1)
+                   for q in kept.get((ci + di, cj + dj), ())):
+                continue
+            kept.setdefault((ci, cj), []).append(xy)
+            m = self.R_L_map.T @ np.r_[xy, 0.0]
+            out.append(PlaceCandidate(float(m[0]), float(m[1]), float("nan"), float(best[o]), xy,
+                                      float(shift[o] * 2 * math.pi / S), int(o)))
+            if len(out) >= k:
+                break
+        return out
+
+
+# ----------------------------------------------------------------------------- building
+
+
+def build_place_index(store, gravity_map, params: PlaceIndexParams | None = None, *,
+                      cache_dir=None) -> PlaceIndex:
+    """The place index of a map store (block or grid; keyframes from block entries when recorded).
+
+    gravity_map: (3,) gravity in the map frame (NCLT and the simulator: (0, 0, +9.81)). The
+    per-entry rasters are global init's (built or loaded from its on-disk cache, see ``maps``).
+    """
+    from blockloc.global_init.maps import StoreMap
+
+    params = params or PlaceIndexParams()
+    source = StoreMap(store, gravity_map, params.projection_params, cache_dir)
+    kf = [e.keyframes for e in store.entries if e.keyframes is not None and len(e.keyframes)]
+    return build_place_index_from_source(source, gravity_map, params,
+                                         np.concatenate(kf) if kf else None)
+
+
+def write_place_index(path, gravity_map, params: PlaceIndexParams | None = None, *, cache_dir=None):
+    """Build the place index of the local store at ``path`` and add it to the store (replacing an
+    older one; atomic, see ``blockloc.maps.store.add_extra``). For right after ``map build`` and for
+    ``blockloc map index MAP``. Returns (the reopened MapStore, the PlaceIndex)."""
+    from blockloc.maps.store import add_extra, open_map
+
+    store = open_map(path)
+    index = build_place_index(store, gravity_map, params, cache_dir=cache_dir)
+    return add_extra(path, PLACE_INDEX_NAME, index.to_bytes()), index
+
+
+def build_place_index_from_source(source, gravity_map, params: PlaceIndexParams,
+                                  keyframes_map: np.ndarray | None = None) -> PlaceIndex:
+    """Place index of a global-init map source (``StoreMap`` or ``ArrayMap``): see the module
+    docstring. keyframes_map: (K, 3) mapping sensor positions, map frame, metres, or None."""
+    from scipy.ndimage import binary_dilation
+    from scipy.spatial import cKDTree
+
+    from blockloc.global_init import _kernels as K
+
+    t0 = time.perf_counter()
+    p = params
+    res = p.resolution_m
+    lo_L, hi_L = source.bounds_L()
+    R_L_map = source.R_L_map
+    kf_xy = None
+    if keyframes_map is not None and len(keyframes_map):
+        kf_xy = (np.asarray(keyframes_map, float).reshape(-1, 3) @ R_L_map.T)[:, :2]
+    # Candidate places: along the keyframes, then the grid (on lattice corners: multiples of res).
+    cand, kinds = [], []
+    if kf_xy is not None:
+        _, first = np.unique(np.floor(kf_xy / p.keyframe_spacing_m).astype(np.int64), axis=0, return_index=True)
+        cand.append(kf_xy[np.sort(first)])
+        kinds.append(np.zeros(len(first), np.uint8))
+    step = max(1, int(round(p.spacing_m / res))) * res
+    gx = np.arange(math.ceil(lo_L[0] / step), math.floor(hi_L[0] / step) + 1) * step
+    gy = np.arange(math.ceil(lo_L[1] / step), math.floor(hi_L[1] / step) + 1) * step
+    grid = np.array(np.meshgrid(gx, gy, indexing="ij")).reshape(2, -1).T
+    if kf_xy is not None:
+        d, nearest = cKDTree(kf_xy).query(grid, distance_upper_bound=p.max_offset_m)
+        grid, nearest = grid[np.isfinite(d)], nearest[np.isfinite(d)]
+        if cand:
+            dk, _ = cKDTree(cand[0]).query(grid, distance_upper_bound=0.5 * p.spacing_m)
+            grid, nearest = grid[~np.isfinite(dk)], nearest[~np.isfinite(dk)]
+    cand.append(grid)
+    kinds.append(np.ones(len(grid), np.uint8))
+    xy = np.concatenate(cand) if cand else np.zeros((0, 2))
+    kind = np.concatenate(kinds) if kinds else np.zeros(0, np.uint8)
+    corner = np.round(xy / res).astype(np.int64)
+    anchor = np.full((len(xy), 2), np.nan)
+    if kf_xy is not None:
+        anchor[kind == 1] = kf_xy[nearest]
+    n_cand = len(xy)
+
+    # Tile by tile: the base raster of the tile plus the profile reach.
+    tab = _tables(p)
+    margin = tab.radius + 2
+    clear_cells = int(math.ceil(p.clearance_m / res))
+    keep = np.zeros(len(xy), bool)
+    bits = np.zeros((len(xy), p.num_rings, p.words), np.uint64)
+    grown = np.zeros_like(bits)
+    disk = _disk(p.tolerance_m / res)
+    tile = int(TILE_M / res)
+    c_lo = np.floor(lo_L / res).astype(np.int64)
+    c_hi = np.floor(hi_L / res).astype(np.int64) + 1
+    for tx in range(int(c_lo[0]), int(c_hi[0]) + 1, tile):
+        for ty in range(int(c_lo[1]), int(c_hi[1]) + 1, tile):
+            inside = np.flatnonzero((corner[:, 0] >= tx) & (corner[:, 0] < tx + tile)
+                                    & (corner[:, 1] >= ty) & (corner[:, 1] < ty + tile))
+            if len(inside) == 0:
+                continue
+            lo = np.array([tx, ty]) - margin
+            hi = np.array([tx, ty]) + tile + margin
+            try:
+                origin, base = source.base_raster(lo, hi)
+            except GlobalInitError:
+                continue  # no map entry here
+            occ = base == 255
+            ci = corner[inside] - origin
+            ok = _drivable(occ, ci, clear_cells, source, xy[inside], anchor[inside], origin, res,
+                           kind[inside] == 0)
+            ci, inside = ci[ok], inside[ok]
+            if len(inside) == 0:
+                continue
+            desc = descriptors_on_raster(occ, ci, p)
+            good = K.popcounts(desc).sum(axis=1) >= p.min_bits
+            bits[inside[good]] = desc[good]
+            grown[inside[good]] = descriptors_on_raster(binary_dilation(occ, disk), ci[good], p)
+            keep[inside[good]] = True
+        if hasattr(source, "release"):
+            source.release()  # the pieces stay in the on-disk cache
+    index = PlaceIndex(p, np.asarray(gravity_map, float).reshape(3), (corner[keep] * res).astype(np.float32),
+                       kind[keep], bits[keep], grown[keep])
+    index.stats = {"build_s": round(time.perf_counter() - t0, 3), "candidates": int(n_cand),
+                   "places": int(keep.sum()), "keyframe_places": int(np.sum(kind[keep] == 0)),
+                   "grid_places": int(np.sum(kind[keep] == 1))}
+    log.info("place index: %d places (%d along keyframes) of %d candidates in %.1f s", keep.sum(),
+             index.stats["keyframe_places"], n_cand, index.stats["build_s"])
+    return index
+
+
+def _disk(radius_cells: float) -> np.ndarray:
+    r = int(math.floor(radius_cells))
+    d = np.arange(-r, r + 1)
+    return (d[:, None] ** 2 + d[None, :] ** 2) <= radius_cells ** 2 + 1e-9
+
+
+def _drivable(occ: np.ndarray, ci: np.ndarray, clear_cells: int, source, xy_L: np.ndarray,
+              anchor_L: np.ndarray, origin: np.ndarray, res: float, is_keyframe: np.ndarray) -> np.ndarray:
+    """Which places (raster corners ci (P, 2)) are drivable: ground seen, no structure within the
+    clearance (unless a keyframe place), and (grid places of maps with keyframes: ``anchor_L``
+    finite) a clear 2D line of sight to their keyframe."""
+    from scipy.ndimage import maximum_filter
+
+    # An even window covers offsets -c..c-1: the cells within c of corner (i, j), which touches
+    # cells i-1..i and j-1..j.
+    near = maximum_filter(occ, size=max(2 * clear_cells, 1), mode="constant", cval=False)
+    i = np.clip(ci[:, 0], 0, occ.shape[0] - 1)
+    j = np.clip(ci[:, 1], 0, occ.shape[1] - 1)
+    ok = ~near[i, j] | is_keyframe  # the mapping sensor stood at a keyframe place
+    ok &= np.isfinite(source.ground_at(xy_L))
+    los = np.isfinite(anchor_L[:, 0]) & ok
+    if np.any(los):
+        a, b = anchor_L[los], xy_L[los]
+        n = int(np.ceil(np.max(np.hypot(*(b - a).T)) / (0.5 * res))) + 1
+        u = np.linspace(0.0, 1.0, max(n, 2))[None, :, None]
+        pts = a[:, None, :] + u * (b - a)[:, None, :]
+        cells = np.floor(pts / res).astype(np.int64) - origin
+        inside = np.all((cells >= 0) & (cells < np.array(occ.shape)), axis=2)
+        cells = np.clip(cells, 0, np.array(occ.shape) - 1)
+        blocked = np.any(occ[cells[..., 0], cells[..., 1]] & inside, axis=1)
+        idx = np.flatnonzero(los)
+        ok[idx[blocked]] = False
+    return ok
+
+
+def load_place_index(store, gravity_map, params: PlaceIndexParams | None = None, cache_dir=None,
+                     build_missing: bool = True) -> PlaceIndex | None:
+    """The store's place index: its extra when present, else built once and kept in the on-disk
+    cache (a warning suggests ``blockloc map index``); None when ``build_missing`` is False and the
+    store has none. MapError when the stored index is corrupt (checksum) or unreadable."""
+    from blockloc.global_init.maps import default_cache_dir
+
+    if store.has_extra(PLACE_INDEX_NAME):
+        index = PlaceIndex.from_bytes(store.load_extra(PLACE_INDEX_NAME), store.files.url(PLACE_INDEX_NAME))
+        g = np.asarray(gravity_map, float)
+        if np.linalg.norm(index.gravity_map / np.linalg.norm(index.gravity_map) - g / np.linalg.norm(g)) > 1e-3:
+            raise MapError(f"{store.files.url(PLACE_INDEX_NAME)}: built for gravity {index.gravity_map.tolist()}, "
+                           f"the sequence says {g.tolist()}; rebuild it with 'blockloc map index'")
+        return index
+    if not build_missing:
+        return None
+    import hashlib
+
+    params = params or PlaceIndexParams()
+    ident = hashlib.sha256(json.dumps([[e.id, e.sha256 or f"{e.num_points}:{e.bytes}"] for e in store.entries]
+                                      + [asdict(params), np.round(np.asarray(gravity_map, float), 6).tolist(),
+                                         FORMAT_VERSION]).encode()).hexdigest()[:24]
+    root = default_cache_dir() / "global_init" if cache_dir is None else Path(cache_dir)
+    path = root / "place_index" / f"{ident}.npz"
+    if path.exists():
+        try:
+            return PlaceIndex.from_bytes(path.read_bytes(), str(path))
+        except (OSError, MapError) as exc:
+            log.warning("ignoring unreadable cached place index %s (%s)", path, exc)
+    log.warning("%s has no place index: building one (store it with 'blockloc map index %s')", store.path,
+                store.path)
+    index = build_place_index(store, gravity_map, params, cache_dir=cache_dir)
+    try:
+        from blockloc.fileio import atomic_write_bytes
+
+        atomic_write_bytes(path, index.to_bytes())
+    except OSError as exc:  # a read-only cache only costs time
+        log.warning("cannot cache the place index at %s (%s)", path, exc)
+    return index
+
+
+def index_for_source(source, params: PlaceIndexParams | None = None) -> PlaceIndex:
+    """The place index of a global-init map source: a ``StoreMap``'s stored (or cached) index, or
+    one built in memory for an ``ArrayMap``."""
+    params = params or PlaceIndexParams()
+    store = getattr(source, "store", None)
+    if store is not None:
+        return load_place_index(store, source.gravity_map, params, cache_dir=source.cache_dir)
+    return build_place_index_from_source(source.with_params(params.projection_params), source.gravity_map,
+                                         params, source.keyframes_map)

@@ -1,0 +1,144 @@
+"""The place index: descriptors, yaw from the column shift, storage in the map store, retrieval."""
+
+import math
+
+import numpy as np
+import pytest
+
+from blockloc.errors import MapError
+from blockloc.geometry import T_to_xyzrpy, xyzrpy_to_T
+from blockloc.global_init.maps import ArrayMap
+from blockloc.global_init.place_index import (PLACE_INDEX_NAME, PlaceIndex, PlaceIndexParams,
+                                              build_place_index_from_source, load_place_index, pack,
+                                              scan_descriptor, unpack, write_place_index)
+from blockloc.maps.store import MapWriter, open_map
+
+from .synthetic import GRAVITY_Z_DOWN, Z_DOWN, box_outline, gravity_body, scan_from
+
+PARAMS = PlaceIndexParams(spacing_m=2.0)
+
+
+def tall_world_up(seed=11, size=120.0, n_boxes=40):
+    """(N, 3) z-up points: flat ground and box outlines 2.5-8 m tall (the index's band is 2-4 m)."""
+    rng = np.random.default_rng(seed)
+    n_g = int(8.0 * size * size)
+    g = rng.uniform(-size / 2, size / 2, (n_g, 2))
+    parts = [np.c_[g, rng.normal(0, 0.02, n_g)]]
+    for _ in range(n_boxes):
+        cx, cy = rng.uniform(-size / 2, size / 2, 2)
+        if math.hypot(cx, cy) < 6.0:
+            continue  # keep the middle free to stand in
+        w, d = rng.uniform(1, 7, 2)
+        parts.append(box_outline(rng, cx, cy, w, d, rng.uniform(2.5, 8.0), rng.uniform(0, np.pi), 0.0, per_m=40))
+    return np.concatenate(parts)
+
+
+@pytest.fixture(scope="module")
+def world():
+    m = tall_world_up() @ Z_DOWN.T
+    return m, build_place_index_from_source(ArrayMap(m, GRAVITY_Z_DOWN, PARAMS.projection_params), GRAVITY_Z_DOWN,
+                                            PARAMS)
+
+
+def test_bits_pack_and_unpack():
+    rng = np.random.default_rng(0)
+    occ = rng.random((3, 20, 64)) < 0.3
+    assert np.array_equal(unpack(pack(occ), 64), occ)
+    occ = rng.random((20, 100)) < 0.3
+    assert np.array_equal(unpack(pack(occ), 100), occ)
+
+
+def test_places_cover_the_free_middle_and_skip_the_inside_of_boxes(world):
+    m, index = world
+    assert len(index) > 500 and np.all(index.source == 1)  # no keyframes: grid places only
+    d = np.hypot(*index.xy_L.T)
+    assert d.min() < 2.0  # a place near the free middle
+    occ_bits = np.array([unpack(b, index.params.num_sectors).sum() for b in index.bits])
+    assert occ_bits.min() >= index.params.min_bits
+
+
+def test_yaw_from_the_column_shift_on_rotated_copies_of_a_scan(world):
+    m, index = world
+    S = index.params.num_sectors
+    for yaw in np.radians([0.0, 37.0, 90.0, 155.0, -100.0, -20.0]):
+        T = xyzrpy_to_T(1.0, -1.0, -1.8, 0.0, 0.0, yaw)  # z-down body, as in the simulator
+        cands = index.query(scan_from(m, T, radius=60.0), gravity_body(T), k=3)
+        best = cands[0]
+        assert math.hypot(best.x - 1.0, best.y + 1.0) <= 2.0, (best.x, best.y)
+        err = (best.yaw - T_to_xyzrpy(T)[5] + math.pi) % (2 * math.pi) - math.pi
+        assert abs(err) <= 2 * math.pi / S, math.degrees(err)  # within one sector (5.6 deg)
+
+
+def test_the_scan_descriptor_turns_with_the_scan(world):
+    m, index = world
+    p = index.params
+    T0 = xyzrpy_to_T(1.0, -1.0, -1.8, 0.0, 0.0, 0.0)
+    cells0 = index.scan_cells(scan_from(m, T0, radius=60.0), gravity_body(T0))
+    T1 = xyzrpy_to_T(1.0, -1.0, -1.8, 0.0, 0.0, math.radians(90.0))
+    cells1 = index.scan_cells(scan_from(m, T1, radius=60.0), gravity_body(T1))
+    a = unpack(scan_descriptor(cells0.band, p).occupied, p.num_sectors)
+    b = unpack(scan_descriptor(cells1.band, p).occupied, p.num_sectors)
+    # 90 deg = 16 of 64 sectors; the body turned left, so the world turns right in the scan
+    # (z-down body: the levelled frame's y is the body's -y).
+    overlap = [np.mean(np.roll(b, s, axis=1)[a]) for s in range(p.num_sectors)]
+    assert int(np.argmax(overlap)) in (15, 16, 17, 47, 48, 49)
+    assert max(overlap) > 0.8
+
+
+def test_index_round_trips_through_the_store_and_a_corrupt_file_is_named(world, tmp_path):
+    m, _ = world
+    keys = np.floor(m[:, :2] / 40.0).astype(int)
+    with MapWriter(tmp_path / "map", "grid", params={"tile_size_m": 40.0}) as w:
+        for k in np.unique(keys, axis=0):
+            w.add(f"{k[0] * 40 + 20.0:.1f}_{k[1] * 40 + 20.0:.1f}", m[np.all(keys == k, axis=1)].astype(np.float32))
+        w.commit()
+    store, index = write_place_index(tmp_path / "map", GRAVITY_Z_DOWN, PARAMS, cache_dir=tmp_path / "cache")
+    assert store.has_extra(PLACE_INDEX_NAME)
+    extra = store.extras[PLACE_INDEX_NAME]
+    assert extra.bytes == (tmp_path / "map" / extra.file).stat().st_size
+    again = load_place_index(open_map(tmp_path / "map"), GRAVITY_Z_DOWN, PARAMS, build_missing=False)
+    assert again.params == index.params and len(again) == len(index)
+    assert np.array_equal(again.xy_L, index.xy_L) and np.array_equal(again.bits, index.bits)
+    assert np.array_equal(again.grown, index.grown)
+    # writing it again replaces it atomically: a new file name, then the old file is removed
+    store2, _ = write_place_index(tmp_path / "map", GRAVITY_Z_DOWN, PlaceIndexParams(spacing_m=3.0),
+                                  cache_dir=tmp_path / "cache")
+    new = store2.extras[PLACE_INDEX_NAME]
+    assert new.sha256 != extra.sha256 and new.file != extra.file
+    assert not (tmp_path / "map" / extra.file).exists() and (tmp_path / "map" / new.file).exists()
+    # a flipped byte: the error names the file
+    f = tmp_path / "map" / new.file
+    good = f.read_bytes()
+    bad = bytearray(good)
+    bad[len(bad) // 2] ^= 0xFF
+    f.write_bytes(bytes(bad))
+    with pytest.raises(MapError, match=rf"{new.file}: checksum mismatch"):
+        load_place_index(open_map(tmp_path / "map"), GRAVITY_Z_DOWN, build_missing=False)
+    # the index of a map with other gravity is refused, naming the file
+    f.write_bytes(good)
+    with pytest.raises(MapError, match=rf"{PLACE_INDEX_NAME}: built for gravity"):
+        load_place_index(open_map(tmp_path / "map"), np.array([0.0, 0.0, -9.81]), build_missing=False)
+
+
+def test_bad_index_bytes_raise_a_map_error_naming_them():
+    with pytest.raises(MapError, match="somewhere.npz: not a place index"):
+        PlaceIndex.from_bytes(b"not an npz", "somewhere.npz")
+
+
+def test_retrieval_recall_on_the_small_world(small_world, tmp_path):
+    from blockloc.datasets import open_sequence
+
+    from .conftest import prepared_scans
+
+    paths, cfg = small_world
+    seq = open_sequence(paths.loc, dataset_cfg=cfg.dataset)
+    index = load_place_index(open_map(paths.block_map), seq.info.gravity_map, cache_dir=tmp_path)
+    assert index.stats["keyframe_places"] > 0 and index.stats["grid_places"] > 0
+    ranks = []
+    for scan, T in prepared_scans(seq, np.linspace(20, len(seq) - 1, 25).astype(int)):
+        cands = index.query(scan.points_body, scan.gravity_body, k=10)
+        near = [k for k, c in enumerate(cands) if math.hypot(c.x - T[0, 3], c.y - T[1, 3]) < 5.0]
+        ranks.append(near[0] if near else 99)
+    ranks = np.array(ranks)
+    assert np.mean(ranks < 5) >= 0.95, ranks  # recall@5
+    assert np.mean(ranks < 1) >= 0.8, ranks  # recall@1
