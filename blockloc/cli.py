@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import sys
 from pathlib import Path
-from typing import Optional
+from typing import List, Optional
 
 import typer
 
@@ -96,21 +96,30 @@ def sim_cmd(
 # ----------------------------------------------------------------------------- map
 @map_app.command("build")
 def map_build_cmd(
-    seq: str = typer.Option(..., "--seq", metavar=SEQ, help="Mapping sequence: name (nclt_2, sim:small/map) or path."),
+    seq: List[str] = typer.Option(..., "--seq", metavar=SEQ,
+                                  help="Mapping sequence: name (nclt_2, sim:small/map) or path; NAME[START:STOP] "
+                                       "maps frames START..STOP-1. Repeat to merge drives sharing one map frame."),
     kind: str = typer.Option("block", "--kind", metavar="KIND", help="block | grid"),
-    out: Path = typer.Option(..., "--out", metavar=DIR, help="Output map directory (written atomically)."),
+    out: str = typer.Option(..., "--out", metavar=DIR, help="Output map directory or s3:// URL (written atomically)."),
     config: Optional[str] = typer.Option(None, "--config", metavar=FILE, help="Config file or preset name."),
     data_root: Optional[str] = typer.Option(None, "--data-root", metavar=DIR, help="Root of the datasets."),
     block_size: Optional[float] = typer.Option(None, "--block-size", metavar="M", help="Block size S, m."),
     tile_size: Optional[float] = typer.Option(None, "--tile-size", metavar="M", help="Grid tile side, m."),
     voxel: Optional[float] = typer.Option(None, "--voxel", metavar="M", help="Voxel filter size, m."),
-    max_frames: Optional[int] = typer.Option(None, "--max-frames", metavar="N", help="Use only the first N frames."),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", metavar="N", help="Use only the first N frames of each drive."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing map store at --out (only a map store)."),
+    poses: Optional[List[str]] = typer.Option(None, "--poses", metavar=FILE,
+                                              help="Trajectory (TUM, KITTI, NCLT csv) of the --seq at the same position "
+                                                   "('-': its own poses); once per --seq."),
+    cluster: Optional[str] = typer.Option(None, "--cluster", metavar="local:N|tcp://HOST:PORT",
+                                          help="Build on Dask: local:N starts N worker processes here; tcp://HOST:PORT "
+                                               "uses a running scheduler. Default: serial, same bytes."),
 ) -> None:
-    """Build a block map or grid tiles from a mapping sequence and its poses."""
+    """Build a block map or grid tiles from mapping sequences and their poses (serial or on a Dask cluster)."""
     from blockloc.commands.map import build_command
 
-    build_command(seq, kind, out, config, data_root, block_size, tile_size, voxel, max_frames, overwrite)
+    build_command(seq, kind, out, config, data_root, block_size, tile_size, voxel, max_frames, overwrite,
+                  poses, cluster)
 
 
 @map_app.command("tile")

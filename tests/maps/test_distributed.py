@@ -1,0 +1,193 @@
+"""Map builds on Dask (blockloc.maps.build_plan + distributed): the serial and the distributed
+build write the same bytes, drives merge the same in any order, a killed worker's tasks are rerun,
+a failed task leaves nothing behind."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from blockloc.cli import app
+from blockloc.maps.build_plan import Drive, build_map_from_drives
+from blockloc.maps.distributed import ProcessCluster, open_executor
+from blockloc.maps.store import open_map
+
+from .slow_sequences import FailingSequence, SlowSequence
+from .synthetic import MemorySequence, route, world_points
+
+TESTS = Path(__file__).resolve().parents[1]
+runner = CliRunner()
+KW = dict(block_size_m=30.0, tile_size_m=10.0, voxel_size_m=0.3, keyframe_distance_m=2.0)
+
+
+@pytest.fixture(autouse=True)
+def _reproducible(monkeypatch):
+    # manifests carry their creation time; a fixed one makes two builds byte-comparable
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
+
+
+def store_files(path) -> dict[str, bytes]:
+    """Every file of a store directory: name -> bytes."""
+    return {p.name: p.read_bytes() for p in sorted(Path(path).iterdir())}
+
+
+def leftovers(parent: Path) -> list[str]:
+    return sorted(p.name for p in parent.iterdir() if ".building-" in p.name)
+
+
+@pytest.fixture(scope="module")
+def world():
+    return world_points(extent=(-40, 160), seed=5, density=0.25)
+
+
+def two_drives(world, cls=MemorySequence, **kw):
+    """Out along y = 0 and, a minute later, back along a parallel road 8 m away: the second
+    drive merges into and skips the first's blocks."""
+    out = route([[0, 0], [110, 0]], speed=4.0, t0=100.0)
+    back = route([[110, 8], [0, 8], [0, 40]], speed=4.0, t0=200.0)
+    return [Drive.of(cls(world, out, radius=22.0, name="out", **kw)),
+            Drive.of(cls(world, back, radius=22.0, name="back", **kw))]
+
+
+@pytest.fixture(scope="module")
+def dask_cluster(tmp_path_factory):
+    """A scheduler and two single-threaded workers on 127.0.0.1, each its own process started by
+    the dask command lines; stopped by PID at the end."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(TESTS)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
+    cluster = ProcessCluster(2, tmp_path_factory.mktemp("dask"), env=env)
+    yield cluster
+    pids = cluster.worker_pids + [cluster.scheduler.pid]
+    cluster.stop()
+    for pid in pids:
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
+
+
+@pytest.mark.parametrize("kind", ["block", "grid"])
+def test_drives_merge_the_same_in_either_order(tmp_path, world, kind):
+    a = build_map_from_drives(two_drives(world), kind, tmp_path / "ab", **KW)
+    b = build_map_from_drives(two_drives(world)[::-1], kind, tmp_path / "ba", **KW)
+    assert store_files(tmp_path / "ab") == store_files(tmp_path / "ba")
+    assert a.params["sequence"] == "out + back" == b.params["sequence"]
+    assert [d["sequence"] for d in a.params["drives"]] == ["out", "back"]
+    one = build_map_from_drives(two_drives(world)[:1], kind, tmp_path / "a", **KW)
+    assert a.params["num_keyframes"] > one.params["num_keyframes"]
+    assert a.total_points > one.total_points  # the second drive's road is in the map
+    if kind == "block":
+        ev = a.params["events"]
+        assert ev["merge"] + ev["skip"] + ev["tail"] >= 1  # the way back repeats the way out
+        kf = np.concatenate([e.keyframes for e in a.entries])
+        assert len(np.unique(kf, axis=0)) == a.params["num_keyframes"]
+
+
+@pytest.mark.parametrize("kind", ["block", "grid"])
+def test_running_scheduler_writes_the_serial_bytes(tmp_path, world, dask_cluster, kind):
+    build_map_from_drives(two_drives(world), kind, tmp_path / "serial", **KW)
+    with open_executor(dask_cluster.address) as ex:
+        build_map_from_drives(two_drives(world), kind, tmp_path / "dask", executor=ex, **KW)
+    assert store_files(tmp_path / "serial") == store_files(tmp_path / "dask")
+    assert leftovers(tmp_path) == []
+
+
+@pytest.mark.parametrize("kind", ["block", "grid"])
+def test_failed_task_writes_no_manifest(tmp_path, world, dask_cluster, kind):
+    drives = two_drives(world, FailingSequence, fail_after=60)
+    with open_executor(dask_cluster.address) as ex, pytest.raises(OSError, match="unplugged"):
+        build_map_from_drives(drives, kind, tmp_path / "m", executor=ex, **KW)
+    assert list(tmp_path.iterdir()) == []  # no store, no temporary build directory
+    with pytest.raises(Exception):
+        open_map(tmp_path / "m")
+
+
+def test_killed_worker_build_completes_with_the_same_bytes(tmp_path, world, dask_cluster):
+    from distributed import Client
+
+    build_map_from_drives(two_drives(world), "block", tmp_path / "serial", **KW)
+    result: dict = {}
+
+    def build():
+        try:
+            with open_executor(dask_cluster.address) as ex:
+                result["store"] = build_map_from_drives(two_drives(world, SlowSequence, delay_s=0.1),
+                                                        "block", tmp_path / "dask", executor=ex, **KW)
+        except BaseException as exc:  # reported below
+            result["error"] = exc
+
+    thread = threading.Thread(target=build)
+    thread.start()
+    killed = None
+    with Client(dask_cluster.address) as client:
+        pids = client.run(os.getpid)
+        deadline = time.monotonic() + 120
+        while killed is None and thread.is_alive() and time.monotonic() < deadline:
+            for worker, keys in client.processing().items():
+                if any(str(k).startswith("candidate-") for k in keys):
+                    killed = pids[worker]
+                    os.kill(killed, signal.SIGKILL)
+                    break
+            time.sleep(0.05)
+    thread.join(300)
+    assert killed is not None, "no worker was seen working on a candidate block"
+    assert "error" not in result, result.get("error")
+    assert store_files(tmp_path / "serial") == store_files(tmp_path / "dask")
+    assert leftovers(tmp_path) == []
+    dask_cluster.add_worker()  # the fixture's other tests expect two workers
+    dask_cluster.wait_for_workers(2)
+
+
+def small_world_drives():
+    """Two slices of the small world's mapping drive as two drives (scans ray-cast on the fly)."""
+    import functools
+
+    from blockloc.sim.stream import open_sim_sequence
+
+    opener = functools.partial(open_sim_sequence, "small", "map", 1)
+    return [Drive(f"sim:small/map@1[{a}:{b}]", opener, "sim-small-map-1", a, b)
+            for a, b in ((0, 300), (300, 600))]
+
+
+def test_local2_matches_serial_on_the_small_world(tmp_path):
+    kw = dict(block_size_m=40.0, tile_size_m=20.0, keyframe_distance_m=2.0)
+    for kind in ("block", "grid"):
+        build_map_from_drives(small_world_drives(), kind, tmp_path / f"{kind}_serial", **kw)
+    with open_executor("local:2") as ex:
+        assert len(ex.client.scheduler_info()["workers"]) == 2
+        for kind in ("block", "grid"):
+            build_map_from_drives(small_world_drives(), kind, tmp_path / f"{kind}_local2",
+                                  executor=ex, **kw)
+    for kind in ("block", "grid"):
+        serial = store_files(tmp_path / f"{kind}_serial")
+        assert serial == store_files(tmp_path / f"{kind}_local2")
+        assert open_map(tmp_path / f"{kind}_local2").total_points > 50_000
+    assert leftovers(tmp_path) == []
+
+
+def test_cli_on_a_running_scheduler(tmp_path, dask_cluster):
+    common = ["map", "build", "--seq", "sim:small/map[0:300]", "--seq", "sim:small/map[300:600]",
+              "--kind", "block", "--block-size", "40"]
+    res = runner.invoke(app, [*common, "--out", str(tmp_path / "serial")])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(app, [*common, "--out", str(tmp_path / "dask"), "--cluster", dask_cluster.address])
+    assert res.exit_code == 0, res.output
+    assert store_files(tmp_path / "serial") == store_files(tmp_path / "dask")
+    assert open_map(tmp_path / "dask").params["sequence"] == "sim:small/map[0:300] + sim:small/map[300:600]"
+
+
+def test_cli_bad_cluster_and_poses_are_one_line(tmp_path):
+    from blockloc.errors import MapError
+
+    res = runner.invoke(app, ["map", "build", "--seq", "sim:small/map", "--out", str(tmp_path / "m"),
+                              "--cluster", "lokal:2"])
+    assert isinstance(res.exception, MapError) and "local:N" in str(res.exception)
+    res = runner.invoke(app, ["map", "build", "--seq", "sim:small/map", "--seq", "sim:small/map",
+                              "--poses", "x.tum", "--out", str(tmp_path / "m")])
+    assert isinstance(res.exception, MapError) and "one --poses per --seq" in str(res.exception)
+    assert not (tmp_path / "m").exists()
