@@ -87,7 +87,7 @@ def median_over(runs: list[dict], key: str):
 
 
 def main(argv=None) -> int:
-    from bench._track import KISS, ODOM, kiss_available, run_in_child, summarize, trajectory_rmse, write_json
+    from bench._track import KISS, ODOM, kiss_available, summarize, trajectory_rmse, write_json
 
     ap = argparse.ArgumentParser(prog="python -m bench.tracking", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -95,6 +95,8 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3, help="runs per backend (figures: median over runs)")
     ap.add_argument("--backends", default=",".join(MAP_BACKENDS + (ODOM, KISS)))
     ap.add_argument("--out", default=str(OUT))
+    ap.add_argument("--cluster", default=None, metavar="local:N|tcp://HOST:PORT",
+                    help="run the backends x repeats as Dask tasks (each still in its own child process)")
     args = ap.parse_args(argv)
     cmd = "python -m bench.tracking " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
 
@@ -115,16 +117,17 @@ def main(argv=None) -> int:
     t_start = time.perf_counter()
     rows: dict[str, list[dict]] = {}
     with tempfile.TemporaryDirectory(prefix="bench-tracking-") as tmp:
-        for rep in range(args.repeats):
-            for b in backends:
-                res = run_in_child(seq_path, map_for(b, block, grid), b, Path(tmp) / f"{b}_{rep}.json",
-                                   max_frames=args.max_frames)
-                m = summarize(res.pop("arrays"), gt)
-                m.update({k: res[k] for k in ("peak_rss_mb", "setup_s", "track_s", "load_avg")})
-                m.update({f"res_{k}": v for k, v in res["resources"].items()})
-                rows.setdefault(b, []).append(m)
-                print(f"{b} #{rep + 1}: ATE {m.get('ate_trans_rmse_m') or float('nan'):.3f} m, core median "
-                      f"{m['core_ms_median']:.1f} ms, peak RSS {m['peak_rss_mb']:.0f} MB", file=sys.stderr, flush=True)
+        jobs = [(rep, b) for rep in range(args.repeats) for b in backends]
+        runs = fan_out(jobs, args.cluster, seq_path, lambda b: map_for(b, block, grid), Path(tmp),
+                       args.max_frames)
+        for rep, b in jobs:  # one row per (repeat, backend), in that order
+            res = runs[(rep, b)]
+            m = summarize(res.pop("arrays"), gt)
+            m.update({k: res[k] for k in ("peak_rss_mb", "setup_s", "track_s", "load_avg")})
+            m.update({f"res_{k}": v for k, v in res["resources"].items()})
+            rows.setdefault(b, []).append(m)
+            print(f"{b} #{rep + 1}: ATE {m.get('ate_trans_rmse_m') or float('nan'):.3f} m, core median "
+                  f"{m['core_ms_median']:.1f} ms, peak RSS {m['peak_rss_mb']:.0f} MB", file=sys.stderr, flush=True)
     load1 = os.getloadavg()[0]
     wall = time.perf_counter() - t_start
     st = storage(block, grid)
@@ -134,6 +137,9 @@ def main(argv=None) -> int:
     first = {b: rs[0] for b, rs in rows.items()}
     f = lambda v, s="{:.1f}": "-" if v is None else s.format(v)  # noqa: E731
     rep_note = "one run per backend" if args.repeats == 1 else f"median over {args.repeats} runs per backend"
+    if args.cluster:
+        rep_note += (f"; runs fanned out as Dask tasks on `{args.cluster}`, several at once, so per-scan "
+                     "times include their contention")
     lines = [
         "## Tracking: the papers' tables on the small world",
         "",
@@ -253,6 +259,28 @@ def main(argv=None) -> int:
     atomic_write_text(out, "\n".join(lines))
     print(out)
     return 0
+
+
+def fan_out(jobs, cluster, seq_path, map_of, tmp: Path, max_frames) -> dict:
+    """Each (repeat, backend) job's ``run_in_child`` result: one after another here, or with
+    ``cluster`` (local:N, tcp://HOST:PORT) as Dask tasks, each still running its backend in a
+    fresh child process of the worker (so peak RSS stays that run's alone). ``tmp`` must be
+    reachable by the workers (this machine, or a shared file system)."""
+    from bench._track import run_in_child
+
+    def job_args(rep, b):
+        return (seq_path, map_of(b), b, tmp / f"{b}_{rep}.json")
+
+    if not cluster:
+        return {(rep, b): run_in_child(*job_args(rep, b), max_frames=max_frames) for rep, b in jobs}
+    from blockloc.maps.distributed import open_executor
+
+    with open_executor(cluster) as ex:
+        print(f"tracking runs on {ex.description}", file=sys.stderr, flush=True)
+        futures = {(rep, b): ex.client.submit(run_in_child, *job_args(rep, b), max_frames=max_frames,
+                                              key=f"track-{b}-{rep}", pure=False)
+                   for rep, b in jobs}
+        return {job: f.result() for job, f in futures.items()}
 
 
 def _est_path(m: dict) -> float:

@@ -98,7 +98,8 @@ def sim_cmd(
 def map_build_cmd(
     seq: List[str] = typer.Option(..., "--seq", metavar=SEQ,
                                   help="Mapping sequence: name (nclt_2, sim:small/map) or path; NAME[START:STOP] "
-                                       "maps frames START..STOP-1. Repeat to merge drives sharing one map frame."),
+                                       "maps frames START..STOP-1. Repeat to merge drives sharing one map frame "
+                                       "(any order: they are taken by first keyframe stamp, then name)."),
     kind: str = typer.Option("block", "--kind", metavar="KIND", help="block | grid"),
     out: str = typer.Option(..., "--out", metavar=DIR, help="Output map directory or s3:// URL (written atomically)."),
     config: Optional[str] = typer.Option(None, "--config", metavar=FILE, help="Config file or preset name."),

@@ -106,6 +106,7 @@ class DrivePlan:
     stamps: np.ndarray  # (K,) float64 s
     num_frames: int
     map_frame: str
+    seconds: float = 0.0  # the planning task's wall time (opening the drive included)
 
     @property
     def positions(self) -> np.ndarray:
@@ -198,12 +199,14 @@ class BuildTarget:
             shutil.rmtree(Path(self.root) / SCRATCH, ignore_errors=True)
 
 
-def _save_cloud(target: BuildTarget, name: str, points: np.ndarray, intensity) -> None:
-    """Scratch cloud: (N, 3) float32, or (N, 4) with intensity as the last column."""
+def _save_cloud(target: BuildTarget, name: str, points: np.ndarray, intensity) -> int:
+    """Scratch cloud: (N, 3) float32, or (N, 4) with intensity as the last column; returns the
+    bytes written."""
     arr = points if intensity is None else np.c_[points, intensity]
     buf = io.BytesIO()
     np.save(buf, np.ascontiguousarray(arr, np.float32), allow_pickle=False)
     target.write(name, buf.getvalue())
+    return buf.getbuffer().nbytes
 
 
 def _load_cloud(target: BuildTarget, name: str) -> tuple[np.ndarray, np.ndarray | None]:
@@ -229,15 +232,42 @@ def _write_entry(target: BuildTarget, file: str, points: np.ndarray, intensity) 
 # ----------------------------------------------------------------------------- the tasks
 
 
+def _timed(fn):
+    """A task that also reports its own wall time (``seconds`` in its result): the measured
+    per-task costs of the benchmark's projection, the same whoever runs the task."""
+    import functools
+    import time
+
+    @functools.wraps(fn)
+    def task(*args):
+        t0 = time.perf_counter()
+        out = fn(*args)
+        if isinstance(out, dict):
+            out["seconds"] = time.perf_counter() - t0
+        return out
+
+    return task
+
+
+def open_drive_task(drive: Drive) -> None:
+    """Task: open a drive in this process ahead of its first scan task (a simulated world or a
+    bag index takes seconds to build; every worker does it at once, while the drives are
+    planned)."""
+    _opened(drive)
+
+
 def plan_drive_task(drive: Drive, keyframe_distance_m: float, keyframe_angle_deg: float) -> DrivePlan:
     """Task: the drive's keyframes and poses (reads stamps and poses, no scan)."""
+    import time
+
     from blockloc.maps.mapping import plan_keyframes
 
+    t0 = time.perf_counter()
     seq, _, _ = _opened(drive)
     plan = plan_keyframes(seq, keyframe_distance_m=keyframe_distance_m,
                           keyframe_angle_deg=keyframe_angle_deg, start=drive.start, stop=drive.stop)
     return DrivePlan(drive, plan.frames, plan.T_map_lidar, plan.stamps, plan.num_frames,
-                     str(getattr(seq.info, "map_frame", "map")))
+                     str(getattr(seq.info, "map_frame", "map")), time.perf_counter() - t0)
 
 
 def _keyframe_clouds(drive: Drive, frames: list[int], deskew: bool):
@@ -248,24 +278,28 @@ def _keyframe_clouds(drive: Drive, frames: list[int], deskew: bool):
         yield keyframe_points(seq, i, traj, T_body_lidar, deskew)
 
 
+@_timed
 def block_candidate_task(drive: Drive, frames: list[int], voxel_size_m: float, deskew: bool,
                          target: BuildTarget, name: str) -> dict | None:
     """Task: a candidate block's points (its keyframes read, deskewed, voxel-filtered in order)
-    saved as ``name``; returns centroid (3,), bounds lo/hi (3,) and the point count, or None
-    when the keyframes hold no point."""
+    saved as ``name``; returns centroid (3,), bounds lo/hi (3,) and the point counts (``name``
+    None when the keyframes hold no point)."""
     from blockloc.maps.block_maps import VoxelAccumulator, block_centroid
 
     acc = VoxelAccumulator(voxel_size_m)
+    raw = 0
     for pts, inten in _keyframe_clouds(drive, frames, deskew):
         acc.add(pts, inten)
+        raw += len(pts)
     pts, inten = acc.result()
     if len(pts) == 0:
-        return None
-    _save_cloud(target, name, pts, inten)
+        return {"name": None, "raw_points": raw, "bytes": 0}
     return {"name": name, "centroid": block_centroid(pts), "lo": pts.min(axis=0).astype(np.float64),
-            "hi": pts.max(axis=0).astype(np.float64), "num_points": len(pts)}
+            "hi": pts.max(axis=0).astype(np.float64), "num_points": len(pts), "raw_points": raw,
+            "bytes": _save_cloud(target, name, pts, inten)}
 
 
+@_timed
 def block_merge_task(target: BuildTarget, block_name: str, candidate_name: str, out_name: str,
                      voxel_size_m: float, *after) -> dict:
     """Task: block version ``block_name`` merged with a candidate, saved as ``out_name``;
@@ -275,16 +309,18 @@ def block_merge_task(target: BuildTarget, block_name: str, candidate_name: str, 
     pts, inten = _load_cloud(target, block_name)
     more, more_inten = _load_cloud(target, candidate_name)
     pts, inten = merge_block_points(pts, inten, more, more_inten, voxel_size_m)
-    _save_cloud(target, out_name, pts, inten)
-    return {"name": out_name, "centroid": block_centroid(pts), "num_points": len(pts)}
+    return {"name": out_name, "centroid": block_centroid(pts), "num_points": len(pts),
+            "bytes": _save_cloud(target, out_name, pts, inten)}
 
 
+@_timed
 def block_write_task(target: BuildTarget, version_name: str, file: str, *after) -> dict:
     """Task: a block's last version written as its entry ``file``; returns its manifest numbers."""
     pts, inten = _load_cloud(target, version_name)
     return _write_entry(target, file, pts, inten)
 
 
+@_timed
 def grid_chunk_task(drive: Drive, frames: list[int], tile_size_m: float, voxel_size_m: float,
                     deskew: bool, target: BuildTarget, name: str) -> dict:
     """Task: a run of keyframes read, deskewed, binned into tiles and summed by voxel; the
@@ -304,10 +340,12 @@ def grid_chunk_task(drive: Drive, frames: list[int], tile_size_m: float, voxel_s
         tiles.append((ix, iy, row, row + len(rec)))
         parts.append(rec)
         row += len(rec)
-    target.write(name, b"".join(r.tobytes() for r in parts))
-    return {"name": name, "tiles": tiles, "raw_points": int(len(pts))}
+    data = b"".join(r.tobytes() for r in parts)
+    target.write(name, data)
+    return {"name": name, "tiles": tiles, "raw_points": int(len(pts)), "bytes": len(data)}
 
 
+@_timed
 def grid_tile_task(target: BuildTarget, cell: tuple[int, int], parts: list[tuple[str, int, int]],
                    tile_size_m: float, voxel_size_m: float, file: str) -> dict:
     """Task: one tile's voxel sums from every chunk (``parts``: chunk file, first and end record,
@@ -367,6 +405,8 @@ class _Tasks:
         self.executor = executor
         self.build_id = uuid.uuid4().hex[:10]
         self.futures: list = []
+        self.names: list[str] = []
+        self.side: list = []  # tasks outside the plan (opening drives ahead): cancelled with it
         self._expected = 0
         self._lock = threading.Lock()
         self._done = 0
@@ -389,6 +429,7 @@ class _Tasks:
             self.expect(1)
         fut = self.executor.submit(fn, *args, key=f"{name}-{self.build_id}", priority=priority)
         self.futures.append(fut)
+        self.names.append(name)
         fut.add_done_callback(self._tick)
         return fut
 
@@ -413,7 +454,23 @@ class _Tasks:
             self._show()
 
     def cancel(self) -> None:
-        self.executor.cancel(self.futures)
+        self.executor.cancel(self.futures + self.side)
+
+    def stats(self) -> dict:
+        """Per task kind (candidate, merge, write, chunk, tile, plan): count, seconds (the tasks'
+        own wall time, summed), bytes written, raw points read."""
+        out: dict[str, dict] = {}
+        for name, fut in zip(self.names, self.futures):
+            r = fut.result()
+            row = out.setdefault(name.split("-")[0], {"count": 0, "seconds": 0.0, "bytes": 0,
+                                                      "raw_points": 0})
+            row["count"] += 1
+            if isinstance(r, DrivePlan):
+                row["seconds"] += r.seconds
+                continue
+            for k in ("seconds", "bytes", "raw_points"):
+                row[k] += r.get(k, 0)
+        return out
 
     def close(self) -> None:
         if self._bar is not None:
@@ -427,17 +484,19 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
                           block_size_m: float = 100.0, tile_size_m: float = 20.0,
                           voxel_size_m: float = 0.2, keyframe_distance_m: float = 1.0,
                           keyframe_angle_deg: float = 15.0, deskew: bool = True,
-                          executor=None, progress: bool = False, overwrite: bool = False,
-                          chunk_keyframes: int = CHUNK_KEYFRAMES, params: dict | None = None):
+                          executor=None, progress=False, overwrite: bool = False,
+                          chunk_keyframes: int = CHUNK_KEYFRAMES, params: dict | None = None,
+                          stats: dict | None = None):
     """Build a block or grid store at ``out`` from mapping drives sharing one map frame.
 
     drives: :class:`Drive` list (any order: the plan sorts them). kind: 'block' (S =
     ``block_size_m``) or 'grid' (tiles of ``tile_size_m``). voxel_size_m: voxel filter of blocks
     and tiles (<= 0: none). executor: None = :class:`InlineExecutor`, or a Dask executor
-    (:func:`blockloc.maps.distributed.open_executor`): the same plan, the same bytes. Returns
-    the opened :class:`~blockloc.maps.store.MapStore`.
+    (:func:`blockloc.maps.distributed.open_executor`): the same plan, the same bytes.
+    progress: False, True (a tqdm bar over tasks) or a callback ``(done, total)``. stats: a dict
+    to fill with per-task-kind counts, seconds, bytes and raw points (:meth:`_Tasks.stats`).
+    Returns the opened :class:`~blockloc.maps.store.MapStore`.
     """
-    from blockloc.maps.store import MapWriter
 
     if kind not in ("block", "grid"):
         raise MapError(f"map kind {kind!r}: expected block or grid")
@@ -455,7 +514,11 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
     writer = _open_writer(out, kind, overwrite)
     target = BuildTarget(writer.tmp if isinstance(writer.tmp, str) else str(Path(writer.tmp).resolve()))
     tasks = _Tasks(executor, progress, f"{kind} map")
+    warm = getattr(executor, "on_each_worker", None)
     try:
+        if warm is not None:  # not counted as tasks of the plan: they only fill a cache
+            tasks.side = [f for n, d in enumerate(drives[:_OPENED_MAX])
+                          for f in warm(open_drive_task, d, key=f"open-{n}-{tasks.build_id}")]
         tasks.expect(len(drives))
         plans = [f.result() for f in [tasks.submit(plan_drive_task, d, keyframe_distance_m,
                                                    keyframe_angle_deg, name=f"plan-{n}")
@@ -484,15 +547,21 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
         writer.params = {**p, **common}
         writer.frame = frames[0]
         store = writer.commit()
-        tasks.finished()
     except BaseException:
         tasks.cancel()
         writer.abort()
         raise
     finally:
+        tasks.finished()
         tasks.close()
+        tasks.side = []  # releases them (a worker that died never ran its own)
         if isinstance(executor, InlineExecutor):
             forget_drives(drives)
+    if stats is not None:
+        stats.update(tasks=tasks.stats(), drives=len(plans),
+                     keyframes=int(sum(len(p.frames) for p in plans)),
+                     path_m=float(sum(np.linalg.norm(np.diff(p.positions, axis=0), axis=1).sum()
+                                      for p in plans)))
     log.info("%s map %s: %d entries from %d drive(s), %d tasks (%s)", kind, out, len(store),
              len(plans), len(tasks.futures), getattr(executor, "description", executor))
     return store
@@ -622,7 +691,7 @@ def _blocks(tasks: _Tasks, target: BuildTarget, plans: list[DrivePlan], block_si
             ledger.start_drive()
             drive = d
         r = futures[n].result()
-        if r is None:
+        if r["name"] is None:
             log.debug("candidate %d (%s): no points, no block", n, plans[d].drive.name)
             continue
         ev = ledger.decide(cand.keys, r["centroid"], cand.short, resolve)

@@ -49,6 +49,13 @@ class DaskExecutor:
         # pure=False: every build gets fresh tasks (keys carry the build's id)
         return self.client.submit(fn, *args, key=key, priority=priority, pure=False)
 
+    def on_each_worker(self, fn, *args, key: str) -> list:
+        """Submit ``fn(*args)`` once to every worker now connected (each pinned to its worker):
+        e.g. open a drive everywhere at the start instead of on each worker's first task."""
+        workers = sorted(self.client.scheduler_info().get("workers", {}))
+        return [self.client.submit(fn, *args, key=f"{key}-{i}", workers=[w], allow_other_workers=False,
+                                   priority=100, pure=False) for i, w in enumerate(workers)]
+
     def cancel(self, futures, wait_s: float = 60.0) -> None:
         """Cancel the build's tasks and wait (up to ``wait_s``) until none of them still runs, so
         that none writes into a build directory being removed."""
