@@ -107,14 +107,15 @@ def map_build_cmd(
     block_size: Optional[float] = typer.Option(None, "--block-size", metavar="M", help="Block size S, m."),
     tile_size: Optional[float] = typer.Option(None, "--tile-size", metavar="M", help="Grid tile side, m."),
     voxel: Optional[float] = typer.Option(None, "--voxel", metavar="M", help="Voxel filter size, m."),
-    max_frames: Optional[int] = typer.Option(None, "--max-frames", metavar="N", help="Use only the first N frames of each drive."),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", metavar="N",
+                                             help="Use only the first N frames of each drive."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing map store at --out (only a map store)."),
     poses: Optional[List[str]] = typer.Option(None, "--poses", metavar=FILE,
-                                              help="Trajectory (TUM, KITTI, NCLT csv) of the --seq at the same position "
-                                                   "('-': its own poses); once per --seq."),
+                                              help="Trajectory (TUM, KITTI, NCLT csv) of the --seq at the same "
+                                                   "position ('-': its own poses); once per --seq."),
     cluster: Optional[str] = typer.Option(None, "--cluster", metavar="local:N|tcp://HOST:PORT",
-                                          help="Build on Dask: local:N starts N worker processes here; tcp://HOST:PORT "
-                                               "uses a running scheduler. Default: serial, same bytes."),
+                                          help="Build on Dask: local:N starts N worker processes here; "
+                                               "tcp://HOST:PORT uses a running scheduler. Default: serial, same bytes."),
 ) -> None:
     """Build a block map or grid tiles from mapping sequences and their poses (serial or on a Dask cluster)."""
     from blockloc.commands.map import build_command
