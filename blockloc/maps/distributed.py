@@ -93,6 +93,24 @@ def _worker_info() -> dict:
     return {"pid": os.getpid(), "peak_rss_mb": peak_rss_mb(), "cpu_s": t.user + t.system}
 
 
+_SPAWN_ENV = "distributed.nanny.pre-spawn-environ"
+
+
+def _spawn_environ() -> dict:
+    """The environment Dask's nanny gives its workers, without ``MALLOC_TRIM_THRESHOLD_``.
+
+    Dask sets it to return freed memory to the system early; setting it also switches off
+    glibc's adaptive mmap threshold, so every large numpy temporary of a scan is mmapped and
+    page-faulted afresh: a ray-cast and deskewed keyframe cost 60% more CPU (system time) in such
+    a worker than in a plain process (campus scans, measured). Workers started by ``dask worker``
+    get it from their nanny too: start them with ``--no-nanny`` (as :class:`ProcessCluster`
+    does), or with a Dask config whose ``distributed.nanny.pre-spawn-environ`` lacks it."""
+    import dask
+
+    return {k: v for k, v in (dask.config.get(_SPAWN_ENV, None) or {}).items()
+            if k != "MALLOC_TRIM_THRESHOLD_"}
+
+
 def _has_bokeh() -> bool:
     import importlib.util
 
@@ -133,6 +151,7 @@ def open_executor(cluster: str | None, *, startup_timeout_s: float = 60.0) -> It
         raise MapError(f"--cluster {spec!r}: expected local:N (N worker processes here) or a "
                        "scheduler address tcp://HOST:PORT")
     try:
+        import dask
         from distributed import Client, LocalCluster
     except ImportError:
         raise MapError("--cluster needs dask[distributed] (pip install 'dask[distributed]')") from None
@@ -140,10 +159,11 @@ def open_executor(cluster: str | None, *, startup_timeout_s: float = 60.0) -> It
         n = int(m.group(1))
         if n < 1:
             raise MapError(f"--cluster {spec!r}: expected at least one worker")
-        with _quiet_distributed(), LocalCluster(
-                n_workers=n, threads_per_worker=1, processes=True,
-                dashboard_address=":0",  # a free port: the machine may be shared
-                silence_logs=logging.ERROR) as lc, Client(lc) as client:
+        with _quiet_distributed(), dask.config.set({_SPAWN_ENV: _spawn_environ()}):
+            lc = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                              dashboard_address=":0",  # a free port: the machine may be shared
+                              silence_logs=logging.CRITICAL)  # task errors reach the client
+        with lc, Client(lc) as client:
             yield DaskExecutor(client, f"local cluster of {n} worker process(es)")
         return
     try:
