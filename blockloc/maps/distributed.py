@@ -94,6 +94,9 @@ def _worker_info() -> dict:
 
 
 _SPAWN_ENV = "distributed.nanny.pre-spawn-environ"
+#: Worker settings of the clusters blockloc starts: no statistical profiler (it samples the task
+#: thread's stack every 10 ms for the dashboard's profile page; the task stream stays).
+WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
 
 
 def _spawn_environ() -> dict:
@@ -159,7 +162,7 @@ def open_executor(cluster: str | None, *, startup_timeout_s: float = 60.0) -> It
         n = int(m.group(1))
         if n < 1:
             raise MapError(f"--cluster {spec!r}: expected at least one worker")
-        with _quiet_distributed(), dask.config.set({_SPAWN_ENV: _spawn_environ()}):
+        with _quiet_distributed(), dask.config.set({_SPAWN_ENV: _spawn_environ(), **WORKER_CONFIG}):
             lc = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                               dashboard_address=":0",  # a free port: the machine may be shared
                               silence_logs=logging.CRITICAL)  # task errors reach the client
@@ -192,10 +195,13 @@ class ProcessCluster:
     def __init__(self, n_workers: int, workdir, *, host: str = "127.0.0.1", env: dict | None = None,
                  timeout_s: float = 120.0) -> None:
         import json
+        import os
         import subprocess
         import sys
         from pathlib import Path
 
+        env = dict(os.environ if env is None else env)
+        env.setdefault("DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED", "False")  # WORKER_CONFIG
         self.workdir = Path(workdir)
         self.workdir.mkdir(parents=True, exist_ok=True)
         self.scheduler_file = self.workdir / "scheduler.json"
