@@ -154,17 +154,18 @@ class _Tasks:
 
     def stats(self) -> dict:
         """Per task kind (candidate, merge, write, chunk, tile, plan): count, seconds (the tasks'
-        own wall time, summed), bytes written, raw points read."""
+        own wall time, summed), cpu_s (their CPU time, summed, and ``cpu_each`` in submission
+        order), bytes written, raw points read."""
         out: dict[str, dict] = {}
         for name, fut in zip(self.names, self.futures):
             r = fut.result()
-            row = out.setdefault(name.split("-")[0], {"count": 0, "seconds": 0.0, "bytes": 0,
-                                                      "raw_points": 0})
-            row["count"] += 1
             if isinstance(r, DrivePlan):
-                row["seconds"] += r.seconds
-                continue
-            for k in ("seconds", "bytes", "raw_points"):
+                r = {"seconds": r.seconds, "cpu_s": r.cpu_s}
+            row = out.setdefault(name.split("-")[0], {"count": 0, "seconds": 0.0, "cpu_s": 0.0,
+                                                      "bytes": 0, "raw_points": 0, "cpu_each": []})
+            row["count"] += 1
+            row["cpu_each"].append(r.get("cpu_s", 0.0))
+            for k in ("seconds", "cpu_s", "bytes", "raw_points"):
                 row[k] += r.get(k, 0)
         return out
 

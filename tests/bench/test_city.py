@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from bench.city import TARGET, preset_sessions, projection
+from bench.city import TARGET, cpu_model, preset_sessions, projection
 
 
 def test_missing_preset_is_one_line():
@@ -26,3 +26,12 @@ def test_projection_scales_counts_and_divides_work():
     w8, w32, w128 = (pj["times_s"][w] for w in TARGET["workers"])
     assert w8 > w32 > w128 >= pj["merge_chain_s"] + pj["tasks"] * 0.001
     assert w8 == pytest.approx(pj["work_s"] / 8 + pj["tasks"] * 0.001 + pj["merge_chain_s"])
+
+
+def test_cpu_model_schedules_reading_tasks_on_the_first_free_worker():
+    st = {"tasks": {"plan": {"cpu_each": [2.0], "cpu_s": 2.0},
+                    "candidate": {"cpu_each": [4.0, 3.0, 3.0, 2.0], "cpu_s": 12.0},
+                    "write": {"cpu_each": [0.5] * 4, "cpu_s": 2.0}}}
+    assert cpu_model(st, 1) == pytest.approx(16.0)  # everything in sequence
+    # two workers: 2 + (4 | 3 + 3 -> 2 on the first free) = 2 + max(4 + 2, 6) = 8, then writes / 2
+    assert cpu_model(st, 2) == pytest.approx(2.0 + 6.0 + 1.0)
