@@ -362,6 +362,8 @@ def main(argv=None) -> int:
     ap.add_argument("--kill-at", type=float, default=0.4, help="kill:2: fraction of cluster:2's wall time")
     ap.add_argument("--work", default=None, help="directory for the maps (default: the cache)")
     ap.add_argument("--out", default=str(OUT))
+    ap.add_argument("--report-from", default=None, metavar="JSON",
+                    help="only write the fragment again from a run's .json (give that run's options too)")
     args = ap.parse_args(argv)
     cmd = "python -m bench.city " + " ".join(shlex.quote(a) for a in argv)
     try:
@@ -372,7 +374,6 @@ def main(argv=None) -> int:
     args.loc_seq = f"sim:{args.preset}/{loc}@{args.seed}" if loc else None
     from blockloc.cache import cache_root
     from blockloc.config import load_config
-    from blockloc.fileio import atomic_write_text
     from blockloc.maps.distributed import ProcessCluster
 
     cfg = load_config("sim", overrides={"map": {"block_size_m": 100.0}})
@@ -382,6 +383,9 @@ def main(argv=None) -> int:
     work = Path(args.work) if args.work else cache_root() / "bench" / f"city-{args.preset}-{args.seed}"
     work.mkdir(parents=True, exist_ok=True)
     started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    if args.report_from:
+        saved = json.loads(Path(args.report_from).read_text())
+        return write_report(args, saved["command"], saved["results"], saved["tracking"], saved.get("started", "?"))
     runs = [r for r in args.runs.split(",") if r]
     results: dict[str, dict] = {}
     for kind in [k for k in args.kinds.split(",") if k]:
@@ -408,19 +412,27 @@ def main(argv=None) -> int:
                       f"workers {[round(w['peak_rss_mb']) for w in res['workers']]} MB", file=sys.stderr, flush=True)
             if name != "serial":
                 shutil.rmtree(spec["out"], ignore_errors=True)
-    projections = {k: projection(r["serial"], r.get("local:2"), k) for k, r in results.items()
-                   if "serial" in r and "error" not in r["serial"]}
     tracking = None
     block_map = work / "block-serial"
     if not args.no_track and args.loc_seq and (block_map / "manifest.json").exists():
         print(f"== tracking {args.loc_seq} through the served map", file=sys.stderr, flush=True)
         tracking = track_served(block_map, args.loc_seq, work, args.track_frames)
+    return write_report(args, cmd, results, tracking, started)
+
+
+def write_report(args, cmd: str, results: dict, tracking: dict | None, started: str) -> int:
+    """docs/bench/city.md (``--out``) and its .json from the runs' results."""
+    from blockloc.fileio import atomic_write_text
+
+    projections = {k: projection(r["serial"], r.get("local:2"), k) for k, r in results.items()
+                   if "serial" in r and "error" not in r["serial"]}
     text = report(args, cmd, results, projections, tracking, started)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, text)
     atomic_write_text(out.with_suffix(".json"), json.dumps(
-        {"command": cmd, "results": results, "projections": projections, "tracking": tracking}, indent=1, default=str))
+        {"command": cmd, "started": started, "results": results, "projections": projections,
+         "tracking": tracking}, indent=1, default=str))
     print(out)
     return 0
 
