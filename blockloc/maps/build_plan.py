@@ -51,6 +51,9 @@ log = logging.getLogger(__name__)
 #: Keyframes per grid chunk task: a fixed plan parameter (never derived from the number of
 #: workers), so the sums, and the bytes, are the same on any cluster.
 CHUNK_KEYFRAMES = 32
+#: Tiles per grid tile task: one tile is milliseconds of work, about what Dask spends scheduling
+#: a task; a fixed plan parameter (each tile is computed alone: it does not change the bytes).
+TILES_PER_TASK = 16
 #: Margin (m) added to the box a held block's centroid lies in (float32 rounding of the points).
 _BOX_PAD_M = 0.01
 
@@ -445,10 +448,13 @@ def _tiles(tasks: _Tasks, target: BuildTarget, plans: list[DrivePlan], tile_size
     dec = name_decimals(tile_size_m)
     cells = sorted(parts)
     names = [tile_name(ix, iy, tile_size_m, dec) for ix, iy in cells]
-    tasks.expect(len(cells))
-    writes = [tasks.submit(grid_tile_task, target, cell, parts[cell], tile_size_m, voxel_size_m,
-                           f"{nm}.pcd", name=f"tile-{nm}") for cell, nm in zip(cells, names)]
-    entries = [_entry(f.result(), nm) for f, nm in zip(writes, names)]
+    batches = [list(zip(cells[i:i + TILES_PER_TASK], names[i:i + TILES_PER_TASK]))
+               for i in range(0, len(cells), TILES_PER_TASK)]
+    tasks.expect(len(batches))
+    writes = [tasks.submit(grid_tile_task, target, [(c, parts[c], f"{nm}.pcd") for c, nm in batch],
+                           tile_size_m, voxel_size_m, name=f"tiles-{n}") for n, batch in enumerate(batches)]
+    entries = [_entry(r, nm) for f, batch in zip(writes, batches)
+               for r, (_, nm) in zip(f.result()["entries"], batch)]
     log.info("tiled %d points into %d tiles of %.3g m", sum(e.num_points for e in entries),
              len(entries), tile_size_m)
     p = {"tile_size_m": tile_size_m, "origin": [0.0, 0.0], "name_decimals": dec,

@@ -315,14 +315,18 @@ def grid_chunk_task(drive: Drive, frames: list[int], tile_size_m: float, voxel_s
 
 
 @_timed
-def grid_tile_task(target: BuildTarget, cell: tuple[int, int], parts: list[tuple[str, int, int]],
-                   tile_size_m: float, voxel_size_m: float, file: str) -> dict:
-    """Task: one tile's voxel sums from every chunk (``parts``: chunk file, first and end record,
-    in plan order) merged and written as entry ``file``; returns its manifest numbers."""
+def grid_tile_task(target: BuildTarget, tiles: list[tuple[tuple[int, int], list, str]],
+                   tile_size_m: float, voxel_size_m: float) -> dict:
+    """Task: tiles, one after another: each tile's voxel sums from every chunk (``(cell, parts,
+    file)``, parts: (chunk file, first record, end record) in plan order) merged and written as
+    entry ``file``. Returns ``entries``: their manifest numbers, in the given order."""
     from blockloc.maps.grid_tiles import VOXEL_SUM, merge_voxel_sums, voxel_sum_points
 
     size = VOXEL_SUM.itemsize
-    recs = [np.frombuffer(target.read(name, r0 * size, r1 * size), VOXEL_SUM)
-            for name, r0, r1 in parts]
-    pts, inten = voxel_sum_points(merge_voxel_sums(recs, voxel_size_m), cell, tile_size_m)
-    return _write_entry(target, file, pts, inten)
+    entries = []
+    for cell, parts, file in tiles:
+        recs = [np.frombuffer(target.read(name, r0 * size, r1 * size), VOXEL_SUM)
+                for name, r0, r1 in parts]
+        pts, inten = voxel_sum_points(merge_voxel_sums(recs, voxel_size_m), cell, tile_size_m)
+        entries.append(_write_entry(target, file, pts, inten))
+    return {"entries": entries, "bytes": sum(e["bytes"] for e in entries)}
