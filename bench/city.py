@@ -175,8 +175,8 @@ def projection(serial: dict, local2: dict | None, kind: str) -> dict:
     area_ratio = TARGET["area_km2"] / area
     revisit_ratio = (TARGET["path_km"] / TARGET["area_km2"]) / (km / area)
     scale = {"plan": 1.0, "candidate": length_ratio, "merge": length_ratio, "chunk": length_ratio,
-             "write": area_ratio, "tile": area_ratio}
-    cost_scale = {"tile": revisit_ratio}
+             "write": area_ratio, "tile": area_ratio, "tiles": area_ratio}
+    cost_scale = {"tile": revisit_ratio, "tiles": revisit_ratio}
     rows, work, n_tasks = {}, 0.0, 0.0
     for k, r in tasks.items():
         mean = r.get("cpu_s", r["seconds"]) / max(r["count"], 1)  # CPU: a dedicated core's cost
