@@ -128,7 +128,7 @@ def main(argv=None) -> int:
     pitch = replication_pitch(block0, grid0, tile)
     scales = [int(s) for s in args.scales.split(",")]
     backends = [b for b in args.backends.split(",") if b]
-    seq_path = paths.dataset / "loc"
+    seq_path = paths.loc
     gt = open_sequence(seq_path, dataset_cfg=cfg.dataset).ground_truth()
     load0 = os.getloadavg()[0]
     t0 = time.perf_counter()

@@ -43,7 +43,7 @@ def grid_map(paths, cfg) -> Path:
     """The small world's grid store (tiles of ``cfg.map.tile_size_m``), built beside the block map."""
     from blockloc.datasets import open_sequence
     from blockloc.errors import MapError
-    from blockloc.maps.grid_tiles import build_grid_map_from_sequence
+    from blockloc.maps.build_plan import build_grid_map_from_sequence
     from blockloc.maps.store import open_map
 
     out = paths.block_map.parent / paths.block_map.name.replace("block", "grid")
@@ -52,7 +52,7 @@ def grid_map(paths, cfg) -> Path:
         return out
     except MapError:
         pass
-    seq = open_sequence(paths.dataset / "map", dataset_cfg=cfg.dataset)
+    seq = open_sequence(paths.mapping, dataset_cfg=cfg.dataset)
     build_grid_map_from_sequence(seq, tile_size_m=cfg.map.tile_size_m, voxel_size_m=cfg.map.voxel_size_m,
                                  out=out, overwrite=True, progress=False)
     return out
@@ -106,7 +106,7 @@ def main(argv=None) -> int:
 
     paths, cfg = prepare_small_world()
     block, grid = paths.block_map, grid_map(paths, cfg)
-    seq_path = paths.dataset / "loc"
+    seq_path = paths.loc
     gt = open_sequence(seq_path, dataset_cfg=cfg.dataset).ground_truth()
     backends = [b for b in args.backends.split(",") if b]
     skipped = []

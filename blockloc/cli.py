@@ -13,9 +13,13 @@ import sys
 from pathlib import Path
 from typing import List, Optional
 
-import typer
+from blockloc.threads import limit_blas_threads
 
-from blockloc import __version__
+limit_blas_threads()  # before any command imports numpy
+
+import typer  # noqa: E402
+
+from blockloc import __version__  # noqa: E402
 
 app = typer.Typer(
     name="blockloc",
@@ -37,6 +41,7 @@ SEQ = "SEQ"
 MAP = "MAP"
 DIR = "DIR"
 FILE = "FILE"
+SET_HELP = "Override one setting, e.g. registration.method=vgicp (repeatable)."
 
 
 def _version(value: bool) -> None:
@@ -65,7 +70,8 @@ def eval_cmd(
     align: bool = typer.Option(False, "--align", help="Umeyama SE(3) alignment before ATE."),
     json_out: bool = typer.Option(False, "--json", help="Print one JSON object."),
     plot: Optional[Path] = typer.Option(None, "--plot", metavar=DIR, help="Directory for PNG plots."),
-    max_time_diff: float = typer.Option(0.02, "--max-time-diff", metavar="S", help="Association tolerance, s."),
+    max_time_diff: float = typer.Option(0.02, "--max-time-diff", metavar="S", min=0.0,
+                                        help="Association tolerance, s."),
     interpolate: bool = typer.Option(False, "--interpolate",
                                      help="Interpolate ground truth to the estimate's stamps (else nearest)."),
     rpe_deltas: str = typer.Option("1,10,100", "--rpe-deltas", metavar="M,M,...",
@@ -74,6 +80,10 @@ def eval_cmd(
     """ATE (translation and full xyzrpy), rotation RMSE and RPE of an estimate against ground truth."""
     from blockloc.commands.eval import eval_command
 
+    if plot is not None:
+        from blockloc.fileio import check_output_dir
+
+        check_output_dir(plot, "--plot")  # before any work
     eval_command(gt, est, align, json_out, plot, max_time_diff, interpolate, rpe_deltas)
 
 
@@ -81,10 +91,10 @@ def eval_cmd(
 @app.command("sim")
 def sim_cmd(
     preset: str = typer.Option("small", "--preset", metavar="NAME", help="World preset: small | campus."),
-    seed: int = typer.Option(1, "--seed", metavar="N", help="World and noise seed (same seed, same bytes)."),
+    seed: int = typer.Option(1, "--seed", metavar="N", min=0, help="World and noise seed (same seed, same bytes)."),
     out: Path = typer.Option(..., "--out", metavar=DIR, help="Output directory (replaced when complete)."),
     fmt: str = typer.Option("nclt", "--format", metavar="FORMAT", help="nclt | rosbag1 | rosbag2."),
-    azimuth_steps: Optional[int] = typer.Option(None, "--azimuth-steps", metavar="N",
+    azimuth_steps: Optional[int] = typer.Option(None, "--azimuth-steps", metavar="N", min=8,
                                                 help="Columns per revolution (preset default)."),
 ) -> None:
     """Simulate a world and write its sessions (map, loc[, loc2]) with HDL-32E scans, IMU and ground truth."""
@@ -96,38 +106,46 @@ def sim_cmd(
 # ----------------------------------------------------------------------------- map
 @map_app.command("build")
 def map_build_cmd(
-    seq: List[str] = typer.Option(..., "--seq", metavar=SEQ,
-                                  help="Mapping sequence: name (nclt_2, sim:small/map) or path; NAME[START:STOP] "
-                                       "maps frames START..STOP-1. Repeat to merge drives sharing one map frame "
-                                       "(any order: they are taken by first keyframe stamp, then name)."),
+    seq: Optional[List[str]] = typer.Option(
+        None, "--seq", metavar=SEQ,
+        help="Mapping sequence: name (nclt_2, sim:small/map) or path; NAME[START:STOP] maps frames "
+             "START..STOP-1. Repeat to merge drives sharing one map frame (any order: they are "
+             "taken by first keyframe stamp, then name)."),
+    poses: Optional[List[str]] = typer.Option(
+        None, "--poses", metavar=FILE,
+        help="Mapping trajectory (TUM, KITTI): T_map_body at the scans' stamps. With several --seq: "
+             "once per --seq, same order ('-': that sequence's own poses)."),
+    from_pcd: Optional[Path] = typer.Option(None, "--from-pcd", metavar=FILE,
+                                            help="Build from a global map PCD and --poses instead of --seq."),
+    sensor_range: float = typer.Option(60.0, "--sensor-range", metavar="M", min=0.0,
+                                       help="With --from-pcd: what a keyframe sees, m."),
     kind: str = typer.Option("block", "--kind", metavar="KIND", help="block | grid"),
     out: str = typer.Option(..., "--out", metavar=DIR, help="Output map directory or s3:// URL (written atomically)."),
     config: Optional[str] = typer.Option(None, "--config", metavar=FILE, help="Config file or preset name."),
     data_root: Optional[str] = typer.Option(None, "--data-root", metavar=DIR, help="Root of the datasets."),
-    block_size: Optional[float] = typer.Option(None, "--block-size", metavar="M", help="Block size S, m."),
-    tile_size: Optional[float] = typer.Option(None, "--tile-size", metavar="M", help="Grid tile side, m."),
-    voxel: Optional[float] = typer.Option(None, "--voxel", metavar="M", help="Voxel filter size, m."),
-    max_frames: Optional[int] = typer.Option(None, "--max-frames", metavar="N",
+    block_size: Optional[float] = typer.Option(None, "--block-size", metavar="M", min=0.0, help="Block size S, m."),
+    tile_size: Optional[float] = typer.Option(None, "--tile-size", metavar="M", min=0.0, help="Grid tile side, m."),
+    voxel: Optional[float] = typer.Option(None, "--voxel", metavar="M", min=0.0,
+                                          help="Voxel filter size, m (0: no filter)."),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", metavar="N", min=1,
                                              help="Use only the first N frames of each drive."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing map store at --out (only a map store)."),
-    poses: Optional[List[str]] = typer.Option(None, "--poses", metavar=FILE,
-                                              help="Trajectory (TUM, KITTI, NCLT csv) of the --seq at the same "
-                                                   "position ('-': its own poses); once per --seq."),
     cluster: Optional[str] = typer.Option(None, "--cluster", metavar="local:N|tcp://HOST:PORT",
                                           help="Build on Dask: local:N starts N worker processes here; "
                                                "tcp://HOST:PORT uses a running scheduler. Default: serial, same bytes."),
 ) -> None:
-    """Build a block map or grid tiles from mapping sequences and their poses (serial or on a Dask cluster)."""
+    """Build a block map or grid tiles from mapping sequences and their poses (or a global PCD),
+    serial or on a Dask cluster."""
     from blockloc.commands.map import build_command
 
     build_command(seq, kind, out, config, data_root, block_size, tile_size, voxel, max_frames, overwrite,
-                  poses, cluster)
+                  poses=poses, from_pcd=from_pcd, sensor_range_m=sensor_range, cluster=cluster)
 
 
 @map_app.command("tile")
 def map_tile_cmd(
     global_pcd: Path = typer.Argument(..., metavar="GLOBAL_PCD", help="Global map PCD file."),
-    tile_size: float = typer.Option(..., "--tile-size", metavar="M", help="Tile side, m."),
+    tile_size: float = typer.Option(..., "--tile-size", metavar="M", min=0.0, help="Tile side, m."),
     out: Path = typer.Option(..., "--out", metavar=DIR, help="Output map directory (written atomically)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing map store at --out (only a map store)."),
 ) -> None:
@@ -166,7 +184,7 @@ def map_plot_cmd(
 def map_serve_cmd(
     map_path: Path = typer.Argument(..., metavar=MAP, help="Map store directory, or a directory of map stores."),
     host: str = typer.Option("127.0.0.1", "--host", metavar="ADDRESS", help="Address to bind (loopback by default)."),
-    port: int = typer.Option(8765, "--port", metavar="PORT", help="TCP port (0: any free port)."),
+    port: int = typer.Option(8765, "--port", metavar="PORT", min=0, max=65535, help="TCP port (0: any free port)."),
 ) -> None:
     """Serve a map store read-only over HTTP (GET/HEAD, ETag/304, Range) until Ctrl-C."""
     from blockloc.commands.map import serve_command
@@ -178,21 +196,25 @@ def map_serve_cmd(
 @app.command("init")
 def init_cmd(
     seq: str = typer.Option(..., "--seq", metavar=SEQ, help="Sequence name (sim:small/loc, nclt_2, ...) or path."),
-    frame: int = typer.Option(..., "--frame", metavar="N", help="0-based index of the LiDAR scan (time order)."),
+    frame: int = typer.Option(..., "--frame", metavar="N", min=0, help="0-based index of the LiDAR scan (time order)."),
     map_path: str = typer.Option(..., "--map", metavar=MAP, help="Map store directory or URL."),
     pose_hint: Optional[str] = typer.Option(None, "--pose-hint", metavar="X,Y[,YAW]",
                                             help="x,y[,yaw] in the map frame (m, rad); none: whole map."),
-    window: Optional[float] = typer.Option(None, "--window", metavar="M", help="Search window side, m (default 40)."),
-    yaw_window: Optional[float] = typer.Option(None, "--yaw-window", metavar="DEG",
+    window: Optional[float] = typer.Option(None, "--window", metavar="M", min=0.0,
+                                           help="Search window side, m (default 40)."),
+    yaw_window: Optional[float] = typer.Option(None, "--yaw-window", metavar="DEG", min=0.0, max=360.0,
                                                help="Yaw window around the hint, deg."),
     json_out: bool = typer.Option(False, "--json", help="Print one JSON object."),
     data_root: Optional[str] = typer.Option(None, "--data-root", metavar=DIR, help="Root of the datasets."),
     config: Optional[str] = typer.Option(None, "--config", metavar=FILE, help="Config file or preset name."),
+    poses: Optional[Path] = typer.Option(None, "--poses", metavar=FILE,
+                                         help="Reference trajectory (TUM, KITTI): reports the error."),
+    sets: Optional[list[str]] = typer.Option(None, "--set", metavar="SECTION.KEY=VALUE", help=SET_HELP),
 ) -> None:
     """Global initialization: the body's pose in the map by branch-and-bound + verification."""
     from blockloc.commands.init import init_command
 
-    init_command(seq, frame, map_path, pose_hint, window, yaw_window, json_out, data_root, config)
+    init_command(seq, frame, map_path, pose_hint, window, yaw_window, json_out, data_root, config, poses, sets)
 
 
 # ----------------------------------------------------------------------------- track / demo
@@ -207,28 +229,54 @@ def track_cmd(
     out: Optional[Path] = typer.Option(None, "--out", metavar=DIR, help="Results directory (default results/<seq>_<time>)."),
     config: Optional[str] = typer.Option(None, "--config", metavar=FILE, help="Config file or preset name."),
     data_root: Optional[str] = typer.Option(None, "--data-root", metavar=DIR, help="Root of NCLT / M2DGR data."),
-    max_frames: Optional[int] = typer.Option(None, "--max-frames", metavar="N", help="Stop after this many frames."),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", metavar="N", min=1,
+                                             help="Stop after this many frames."),
     lidar_topic: Optional[str] = typer.Option(None, "--lidar-topic", metavar="TOPIC",
                                               help="ROS bags: the PointCloud2 topic (default from the config)."),
     imu_topic: Optional[str] = typer.Option(None, "--imu-topic", metavar="TOPIC",
                                             help="ROS bags: the Imu topic (default from the config)."),
+    poses: Optional[Path] = typer.Option(None, "--poses", metavar=FILE,
+                                         help="Reference trajectory (TUM, KITTI): ground truth for --init gt and the metrics."),
+    no_imu: bool = typer.Option(False, "--no-imu", help="Ignore the IMU: LiDAR-only tracking (a motion prior)."),
+    sets: Optional[list[str]] = typer.Option(None, "--set", metavar="SECTION.KEY=VALUE", help=SET_HELP),
+    record: Optional[Path] = typer.Option(None, "--record", metavar="FILE",
+                                          help="MCAP recording for Foxglove / ROS 2 (default: run.mcap in --out)."),
+    no_record: bool = typer.Option(False, "--no-record", help="Write no MCAP recording."),
+    live: bool = typer.Option(False, "--live", help="Serve the run live to Foxglove over WebSocket."),
+    host: str = typer.Option("127.0.0.1", "--host", metavar="ADDRESS", help="--live: address to bind (loopback)."),
+    port: int = typer.Option(8765, "--port", metavar="PORT", help="--live: TCP port (0: any free port)."),
 ) -> None:
-    """Track a sequence in a prior map (sliding-window IMU + scan-to-map factors); writes poses, metrics and plots."""
+    """Track a sequence in a prior map (sliding-window IMU + scan-to-map factors); writes poses, metrics,
+    plots, an MCAP recording and report.html."""
     from blockloc.commands.track import track_command
 
     track_command(seq, map_path, backend, init, init_pose, out, config, data_root, max_frames,
-                  lidar_topic, imu_topic)
+                  lidar_topic, imu_topic, poses=poses, sets=(sets or []) + (["tracking.use_imu=false"] if no_imu else []),
+                  record=not no_record, record_path=record, live=live, host=host, port=port)
 
 
 @app.command("demo")
 def demo_cmd(
     out: Optional[Path] = typer.Option(None, "--out", metavar=DIR, help="Results directory (default results/demo_<time>)."),
-    max_frames: Optional[int] = typer.Option(None, "--max-frames", metavar="N", help="Track only this many frames."),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", metavar="N", min=1,
+                                             help="Track only this many frames."),
+    no_record: bool = typer.Option(False, "--no-record", help="Write no MCAP recording."),
 ) -> None:
-    """Simulate the small world, build its block map, localize from a rough hint, track, evaluate."""
+    """Simulate the small world, build its block map, localize from a rough hint, track, evaluate;
+    writes the results folder with report.html and a Foxglove recording."""
     from blockloc.commands.demo import demo_command
 
-    demo_command(out, max_frames)
+    demo_command(out, max_frames, record=not no_record)
+
+
+@app.command("view")
+def view_cmd(
+    run_dir: Path = typer.Argument(..., metavar=DIR, help="A results folder (or one .mcap file)."),
+) -> None:
+    """How to look at a run: the recording and layout in Foxglove, the live server, report.html."""
+    from blockloc.viz.layout import view_instructions
+
+    print(view_instructions(run_dir))
 
 
 def _click_exception_modules() -> list:
@@ -252,7 +300,9 @@ def _usage_error(exc) -> str:
     """One line for a click usage error, naming the option (or argument) it concerns."""
     param = getattr(exc, "param", None)
     name = None
-    if param is not None:
+    if param is not None and getattr(param, "param_type_name", None) == "argument":
+        name = getattr(param, "metavar", None) or getattr(param, "name", None)  # as --help shows it
+    elif param is not None:
         name = "/".join(getattr(param, "opts", []) or []) or getattr(param, "human_readable_name", None)
     if isinstance(exc, _classes("MissingParameter")):
         return f"missing {name or 'a required value'}" + (f" ({param.help})" if getattr(param, "help", None) else "")
@@ -267,16 +317,56 @@ def _usage_error(exc) -> str:
     return message
 
 
+def _end_progress_bars() -> None:
+    """Close the tqdm bars an error left open (a bar redraws with \\r and ends no line), so the
+    message starts a line of its own and no bar is redrawn after it."""
+    tqdm = sys.modules.get("tqdm")
+    for bar in list(getattr(getattr(tqdm, "tqdm", None), "_instances", ()) or ()):
+        try:
+            bar.close()
+        except Exception:  # noqa: BLE001 - a bar that cannot close must not hide the message
+            pass
+
+
+def _say(message: str) -> None:
+    _end_progress_bars()
+    typer.echo(message, err=True)
+
+
 def main() -> None:
-    """Console-script entry point: run the app, turn known errors into one line."""
+    """Console-script entry point: run the app, turn known errors into one line.
+
+    SIGINT and SIGTERM raise ``Stopped`` (blockloc.commands.common), which unwinds the command
+    (temp directories removed, a tracking run's partial results kept) and exits 130 / 143."""
+    from blockloc.commands.common import RECEIVED, Interrupted, Stopped, install_signal_handlers
     from blockloc.errors import BlocklocError
 
+    install_signal_handlers()
     try:
-        app(standalone_mode=False)
+        try:
+            code = app(standalone_mode=False)
+        except (Exception, KeyboardInterrupt):
+            if RECEIVED:  # the Stopped a signal raised became another error where it landed
+                raise Stopped(RECEIVED[-1]) from None
+            raise
+        if RECEIVED:  # ... or was swallowed, and the command went on to its end
+            raise Stopped(RECEIVED[-1])
+        # typer >= 0.29 without standalone mode returns the code of an Exit (and turns a
+        # KeyboardInterrupt into Exit(130)) instead of exiting with it
+        if isinstance(code, int) and code:
+            if code == 130:
+                _say("interrupted")
+            sys.exit(code)
+    except Stopped as exc:
+        _say(f"interrupted ({exc})")
+        sys.exit(exc.exit_code)
+    except Interrupted as exc:  # stopped after saving what was computed: the message says where
+        _say(str(exc))
+        sys.exit(exc.exit_code)
     except BlocklocError as exc:
         if _state["debug"]:
             raise
-        typer.echo(f"error: {exc}", err=True)
+        _say(f"error: {exc}")
         sys.exit(getattr(exc, "exit_code", 2))
     except _classes("UsageError") as exc:
         if type(exc).__name__ == "NoArgsIsHelpError":  # a group without its command: its help
@@ -284,22 +374,22 @@ def main() -> None:
             sys.exit(2)
         ctx = getattr(exc, "ctx", None)
         where = ctx.command_path if ctx is not None else "blockloc"
-        typer.echo(f"error: {_usage_error(exc)} (see '{where} --help')", err=True)
+        _say(f"error: {_usage_error(exc)} (see '{where} --help')")
         sys.exit(2)
     except _classes("Abort") + (KeyboardInterrupt,):
-        typer.echo("interrupted", err=True)
+        _say("interrupted")
         sys.exit(130)
     except _classes("Exit") + (typer.Exit,) as exc:
         sys.exit(getattr(exc, "exit_code", 0) or 0)
     except _classes("ClickException") as exc:
-        typer.echo(f"error: {exc.format_message()}", err=True)
+        _say(f"error: {exc.format_message()}")
         sys.exit(getattr(exc, "exit_code", 1))
     except SystemExit:
         raise
     except Exception as exc:  # the unexpected: one line, the traceback with --debug
         if _state["debug"]:
             raise
-        typer.echo(f"error: {type(exc).__name__}: {exc} (rerun with --debug for a traceback)", err=True)
+        _say(f"error: {type(exc).__name__}: {exc} (rerun with --debug for a traceback)")
         sys.exit(1)
 
 

@@ -1,13 +1,16 @@
 """One typed config tree, a section per stage, loaded from YAML.
 
 Every field has a default (the values of ``configs/default.yaml``); a preset file only names what
-differs. Loading checks every key and type and names the file, the key and what was expected.
+differs. Loading checks every key, type and range and names the file, the key and what was
+expected: numbers must be finite, and a field declared ``bounded(default, BOUNDS)`` must lie in
+its bounds (``POSITIVE`` sizes and rates, ``COUNT`` integers >= 1, ``PROBABILITY`` in (0, 1), ...).
 Stages take explicit arguments; ``from_config`` factories at the boundaries read these sections.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from dataclasses import dataclass, field
@@ -19,129 +22,185 @@ from blockloc.errors import ConfigError
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 
 
+@dataclass(frozen=True)
+class Bounds:
+    """The range a config value must lie in: ``low`` / ``high`` (None: unbounded), each open
+    (excluded) or closed. Tuples are checked value by value."""
+
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+
+    def contains(self, value: float) -> bool:
+        if self.low is not None and (value <= self.low if self.low_open else value < self.low):
+            return False
+        return not (self.high is not None and (value >= self.high if self.high_open else value > self.high))
+
+    def __str__(self) -> str:
+        if self.high is None:
+            return f"{'>' if self.low_open else '>='} {self.low:g}"
+        return (f"in {'(' if self.low_open else '['}{self.low:g}, {self.high:g}"
+                f"{')' if self.high_open else ']'}")
+
+
+POSITIVE = Bounds(0.0, low_open=True)  # sizes, rates, noise densities
+NON_NEGATIVE = Bounds(0.0)  # distances where 0 switches a feature off, retries, extra levels
+COUNT = Bounds(1.0)  # integer counts of at least one
+PROBABILITY = Bounds(0.0, 1.0, low_open=True, high_open=True)
+FRACTION = Bounds(0.0, 1.0)
+ANGLE_WINDOW = Bounds(0.0, 360.0, low_open=True)  # degrees
+
+
+def bounded(default: Any, bounds: Bounds):
+    """A dataclass field with ``default`` whose loaded values must lie in ``bounds``."""
+    return field(default=default, metadata={"bounds": bounds})
+
+
 @dataclass
 class DatasetConfig:
     data_root: str = ""  # empty: $BLOCKLOC_DATA, then ./data
     lidar_topic: str = "/velodyne_points"
     imu_topic: str = "/imu"
     use_hits_times: bool = True  # NCLT: per-point times from velodyne_hits.bin when present
-    min_range_m: float = 1.0
-    max_range_m: float = 100.0
+    min_range_m: float = bounded(1.0, NON_NEGATIVE)
+    max_range_m: float = bounded(100.0, POSITIVE)
 
 
 @dataclass
 class ImuConfig:
-    rate_hz: float = 100.0
+    rate_hz: float = bounded(100.0, POSITIVE)
     # Continuous-time noise densities and bias random walks (Microstrain 3DM-GX3-25 class).
-    acc_noise_density: float = 0.004  # m/s^2/sqrt(Hz)
-    gyro_noise_density: float = 0.0003  # rad/s/sqrt(Hz)
-    acc_bias_random_walk: float = 0.0002  # m/s^3/sqrt(Hz)
-    gyro_bias_random_walk: float = 0.00002  # rad/s^2/sqrt(Hz)
-    integration_sigma: float = 1e-4
-    gravity_m_s2: float = 9.81
+    acc_noise_density: float = bounded(0.004, POSITIVE)  # m/s^2/sqrt(Hz)
+    gyro_noise_density: float = bounded(0.0003, POSITIVE)  # rad/s/sqrt(Hz)
+    acc_bias_random_walk: float = bounded(0.0002, POSITIVE)  # m/s^3/sqrt(Hz)
+    gyro_bias_random_walk: float = bounded(0.00002, POSITIVE)  # rad/s^2/sqrt(Hz)
+    integration_sigma: float = bounded(1e-4, POSITIVE)
+    gravity_m_s2: float = bounded(9.81, POSITIVE)
 
 
 @dataclass
 class LidarConfig:
-    rate_hz: float = 10.0
+    rate_hz: float = bounded(10.0, POSITIVE)
     deskew: bool = True
-    voxel_size_m: float = 0.5  # scan downsampling before registration
-    max_points: int = 20000
+    voxel_size_m: float = bounded(0.5, NON_NEGATIVE)  # scan downsampling before registration
+    max_points: int = bounded(20000, COUNT)
 
 
 @dataclass
 class MapConfig:
     backend: str = "block"  # block | grid | srt | global
     path: str = ""
-    voxel_size_m: float = 0.2
+    voxel_size_m: float = bounded(0.2, NON_NEGATIVE)
     # block maps (Feng et al.)
-    block_size_m: float = 100.0
-    keyframe_distance_m: float = 1.0
-    keyframe_angle_deg: float = 15.0
-    switch_hysteresis_m: float = 5.0
+    block_size_m: float = bounded(100.0, POSITIVE)
+    keyframe_distance_m: float = bounded(1.0, NON_NEGATIVE)
+    keyframe_angle_deg: float = bounded(15.0, NON_NEGATIVE)
+    switch_hysteresis_m: float = bounded(5.0, NON_NEGATIVE)
     # Also serve the nearest other block with a keyframe this close (0: one block, as the paper).
     # 15 m: campus, first 1.1 km, ATE 0.063 -> 0.040 m (max 0.55 -> 0.11 m), resident map 59 -> 87 MB.
-    block_blend_m: float = 15.0
+    block_blend_m: float = bounded(15.0, NON_NEGATIVE)
     # grid puzzle tiles (Byeon et al.)
-    tile_size_m: float = 20.0
+    tile_size_m: float = bounded(20.0, POSITIVE)
     # n = 2: a (2n+1)s = 100 m window. With n = 1 (60 m) a straight street between long walls left
     # the window without a feature along the street and tracking slid (campus bench, issue 8).
-    grid_n: int = 2
-    grid_k: int = 1
+    grid_n: int = bounded(2, NON_NEGATIVE)
+    grid_k: int = bounded(1, NON_NEGATIVE)
     # SRT-PM (Kim et al.)
-    srt_radius_m: float = 60.0
-    srt_rebuild_period_s: float = 10.0
+    srt_radius_m: float = bounded(60.0, POSITIVE)
+    srt_rebuild_period_s: float = bounded(10.0, POSITIVE)
     # provider
-    cache_mb: float = 1024.0
+    cache_mb: float = bounded(1024.0, POSITIVE)
     prefetch: bool = True
-    prefetch_lookahead_s: float = 5.0  # prefetch the region needed after this much motion
-    retry_missing_s: float = 5.0  # rebuild a region whose entries failed to load this often
+    prefetch_lookahead_s: float = bounded(5.0, NON_NEGATIVE)  # prefetch the region needed after this much motion
+    retry_missing_s: float = bounded(5.0, NON_NEGATIVE)  # rebuild a region whose entries failed to load this often
     # maps read from http(s):// or s3:// (blockloc.maps.remote)
     remote_cache_dir: str = ""  # empty: $BLOCKLOC_MAP_CACHE or ~/.cache/blockloc/remote-maps
-    remote_cache_mb: float = 2048.0
-    remote_timeout_s: float = 10.0
-    remote_retries: int = 3
-    remote_backoff_s: float = 0.25
+    remote_cache_mb: float = bounded(2048.0, POSITIVE)
+    remote_timeout_s: float = bounded(10.0, POSITIVE)
+    remote_retries: int = bounded(3, NON_NEGATIVE)
+    remote_backoff_s: float = bounded(0.25, NON_NEGATIVE)
 
 
 @dataclass
 class RegistrationConfig:
     method: str = "ndt"
-    resolution_m: float = 1.0
+    resolution_m: float = bounded(1.0, POSITIVE)
     neighbors: str = "DIRECT7"  # DIRECT1 | DIRECT7 | DIRECT27
-    outlier_ratio: float = 0.55
-    min_points_per_voxel: int = 6
-    max_iterations: int = 30
-    step_epsilon: float = 1e-3
-    num_threads: int = 2
-    coarse_levels: int = 1  # NDT target grids at 2x, 4x ... resolution (from the fine voxel sums)
+    outlier_ratio: float = bounded(0.55, PROBABILITY)
+    min_points_per_voxel: int = bounded(6, COUNT)
+    max_iterations: int = bounded(30, COUNT)
+    step_epsilon: float = bounded(1e-3, POSITIVE)
+    num_threads: int = bounded(2, COUNT)
+    # NDT target grids at 2x, 4x ... resolution (from the fine voxel sums)
+    coarse_levels: int = bounded(1, NON_NEGATIVE)
     coarse_to_fine: bool = True  # align on the coarse levels first (wider basin of convergence)
 
 
 @dataclass
 class GlobalInitConfig:
-    window_m: float = 40.0
-    yaw_window_deg: float = 360.0
-    resolution_m: float = 0.5  # 2D cell of the branch and bound (NDT refines afterwards)
-    pyramid_levels: int = 6  # top level: a sliding max over 2^5 cells = 16 m
+    window_m: float = bounded(40.0, POSITIVE)
+    yaw_window_deg: float = bounded(360.0, ANGLE_WINDOW)
+    resolution_m: float = bounded(0.5, POSITIVE)  # 2D cell of the branch and bound (NDT refines afterwards)
+    pyramid_levels: int = bounded(6, COUNT)  # top level: a sliding max over 2^5 cells = 16 m
     height_band_m: tuple[float, float] = (0.3, 3.0)  # projected points: height above local ground
     projection: str = "band"  # band (height band above local ground) | all (plain occupancy)
-    max_range_m: float = 60.0  # scan cells used by the 2D search (sets the angular step)
-    top_k: int = 5
+    max_range_m: float = bounded(60.0, POSITIVE)  # scan cells used by the 2D search (sets the angular step)
+    top_k: int = bounded(5, COUNT)
     use_s0: bool = True  # greedy initial score S0 (block-map paper); False: plain BBS
-    s0_ratio: float = 0.9  # prune below this fraction of S0
-    min_fitness: float = 0.75  # NDT inlier ratio for a verified match (sim: true 0.8-0.97, false <= 0.61)
-    min_structure_fitness: float = 0.6  # same for the above-ground points alone (true >= 0.9, false <= 0.37)
-    ambiguity_distance_m: float = 2.0
-    ndt_resolution_m: float = 1.0
-    reloc_window_m: float = 100.0  # regions of the no-hint relocalization
+    s0_ratio: float = bounded(0.9, FRACTION)  # prune below this fraction of S0
+    # NDT inlier ratio for a verified match (sim: true 0.8-0.97, false <= 0.61)
+    min_fitness: float = bounded(0.75, PROBABILITY)
+    # same for the above-ground points alone (true >= 0.9, false <= 0.37)
+    min_structure_fitness: float = bounded(0.6, PROBABILITY)
+    ambiguity_distance_m: float = bounded(2.0, NON_NEGATIVE)
+    ndt_resolution_m: float = bounded(1.0, POSITIVE)
+    reloc_window_m: float = bounded(100.0, POSITIVE)  # regions of the no-hint relocalization
 
 
 @dataclass
 class TrackingConfig:
-    window_size: int = 20  # N_a: keyframes inside a block
-    window_size_on_switch: int = 5  # N_r: keyframes kept when the map switches
-    keyframe_distance_m: float = 0.0  # 0: every scan is a keyframe
-    ndt_information_scale: float = 1.0
-    degeneracy_eigenvalue_ratio: float = 0.01
+    window_size: int = bounded(20, COUNT)  # N_a: keyframes inside a block
+    window_size_on_switch: int = bounded(5, COUNT)  # N_r: keyframes kept when the map switches
+    keyframe_distance_m: float = bounded(0.0, NON_NEGATIVE)  # 0: every scan is a keyframe
+    ndt_information_scale: float = bounded(1.0, POSITIVE)
+    degeneracy_eigenvalue_ratio: float = bounded(0.01, FRACTION)
     robust_loss: str = "huber"
-    min_fitness: float = 0.4
-    max_innovation_m: float = 1.0
+    min_fitness: float = bounded(0.4, FRACTION)
+    max_innovation_m: float = bounded(1.0, POSITIVE)
     use_odometry_factor: bool = False
-    max_innovation_deg: float = 10.0
-    max_bad_frames: int = 3  # rejected scans in a row before relocalizing around the last good pose
-    ndt_min_sigma_trans_m: float = 0.02  # floor of the NDT factor's standard deviations
-    ndt_min_sigma_rot_deg: float = 0.1
-    huber_k: float = 1.345
-    lm_iterations: int = 6
-    imu_noise_inflation: float = 1.0
+    max_innovation_deg: float = bounded(10.0, POSITIVE)
+    # rejected scans in a row before relocalizing around the last good pose
+    max_bad_frames: int = bounded(3, COUNT)
+    ndt_min_sigma_trans_m: float = bounded(0.02, POSITIVE)  # floor of the NDT factor's standard deviations
+    ndt_min_sigma_rot_deg: float = bounded(0.1, POSITIVE)
+    huber_k: float = bounded(1.345, POSITIVE)
+    lm_iterations: int = bounded(6, COUNT)
+    imu_noise_inflation: float = bounded(1.0, POSITIVE)
+    # LiDAR-only tracking (no IMU in the sequence, or use_imu false): a constant-velocity prior on
+    # SE(3) between keyframes, white-noise acceleration of these densities (body frame, per axis).
+    use_imu: bool = True  # true: the IMU when the sequence has one; false: ignore it (--no-imu)
+    # Measured on the real walk (held-out half, 2 Hz): 0.5 m/s^2 doubled the ATE (0.019 -> 0.036 m),
+    # 0.5 rad/s^2 lost the track (its prediction gate narrows to 29 deg); 2 rad/s^2 changed nothing.
+    motion_sigma_acc_m_s2: float = bounded(1.0, POSITIVE)  # m/s^2/sqrt(s)
+    motion_sigma_acc_rad_s2: float = bounded(1.0, POSITIVE)  # rad/s^2/sqrt(s)
+    init_sigma_rate_rad_s: float = bounded(1.0, POSITIVE)  # angular-rate prior of the first keyframe (starts at zero)
+    # LiDAR-only innovation gates: max(max_innovation_*, this many sigmas of the prior's prediction)
+    lidar_only_gate_sigmas: float = bounded(5.0, POSITIVE)
+    # LiDAR-only: when registration from the prediction fails its health check, these rotated
+    # predictions are tried in turn (yaw about the vertical, then roll and pitch), before the
+    # scan counts as rejected.
+    rotation_retry_yaw_deg: tuple[float, ...] = (15.0, -15.0, 30.0, -30.0, 45.0, -45.0)
+    rotation_retry_tilt_deg: tuple[float, ...] = (15.0, -15.0)
+    # ... and one is accepted only with this fraction of the recent scans' fitness
+    rotation_retry_fitness_ratio: float = bounded(0.8, FRACTION)
 
 
 @dataclass
 class EvaluationConfig:
     align: bool = False
-    rpe_deltas_m: tuple[float, ...] = (1.0, 10.0, 100.0)
-    max_time_diff_s: float = 0.02
+    rpe_deltas_m: tuple[float, ...] = bounded((1.0, 10.0, 100.0), POSITIVE)
+    max_time_diff_s: float = bounded(0.02, POSITIVE)
     plots: bool = True
 
 
@@ -206,6 +265,8 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
         raise ConfigError(f"{where}: expected true or false, got {value!r}")
     if tp is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
+            if not math.isfinite(value):
+                raise ConfigError(f"{where}: expected a finite number, got {value!r}")
             return float(value)
         raise ConfigError(f"{where}: expected a number, got {value!r}")
     if tp is int:
@@ -236,9 +297,18 @@ def _build(cls: type, data: dict[str, Any], where: str, base: Any = None) -> Any
                 kwargs[f.name] = _build(hints[f.name], data[f.name], sub_where, current)
             else:
                 kwargs[f.name] = _coerce(data[f.name], hints[f.name], sub_where)
+                _check_bounds(kwargs[f.name], f.metadata.get("bounds"), sub_where)
         elif current is not None:
             kwargs[f.name] = current
     return cls(**kwargs)
+
+
+def _check_bounds(value: Any, bounds: Bounds | None, where: str) -> None:
+    if bounds is None:
+        return
+    for v in (value if isinstance(value, tuple) else (value,)):
+        if not bounds.contains(v):
+            raise ConfigError(f"{where}: expected a value {bounds}, got {v!r}")
 
 
 def merge(base: Config, data: dict[str, Any], source: str = "<dict>") -> Config:
@@ -249,7 +319,8 @@ def merge(base: Config, data: dict[str, Any], source: str = "<dict>") -> Config:
         raise ConfigError(f"{source}: {exc}") from None
 
 
-def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> Config:
+def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None,
+                overrides_source: str = "overrides") -> Config:
     """Defaults, then the YAML file ``path`` (a path or a preset name such as 'nclt'), then overrides."""
     import yaml
 
@@ -269,7 +340,7 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
             raise ConfigError(f"{file}: expected a mapping of sections at the top level")
         cfg = merge(cfg, data, str(file))
     if overrides:
-        cfg = merge(cfg, overrides, "overrides")
+        cfg = merge(cfg, overrides, overrides_source)
     return cfg
 
 

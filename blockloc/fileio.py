@@ -15,10 +15,20 @@ from pathlib import Path
 from typing import Iterator
 
 
-def _umask_mode() -> int:
+def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
-    return 0o666 & ~mask
+    return mask
+
+
+def _umask_mode() -> int:
+    """The mode ``open(path, 'w')`` gives a new file."""
+    return 0o666 & ~_umask()
+
+
+def _umask_dir_mode() -> int:
+    """The mode ``mkdir`` gives a new directory (``tempfile.mkdtemp`` makes 0700)."""
+    return 0o777 & ~_umask()
 
 
 @contextlib.contextmanager
@@ -53,14 +63,60 @@ def atomic_write_text(path: str | Path, text: str) -> None:
         tmp.write_text(text)
 
 
+#: Image formats :func:`save_figure` writes (matplotlib's, without the optional ones).
+FIGURE_FORMATS = ("png", "pdf", "svg", "jpg", "jpeg", "eps", "ps", "tif", "tiff", "webp")
+
+
+def check_figure_path(path: str | Path, option: str = "--out") -> Path:
+    """Before any work: ``path`` must name an image file (a suffix of :data:`FIGURE_FORMATS`)
+    that is not a directory, with no file where its directory should be; BlocklocError (one
+    line naming ``option`` and ``path``) otherwise."""
+    from blockloc.errors import BlocklocError
+
+    path = Path(path)
+    if path.is_dir():
+        raise BlocklocError(f"{option} {path}: is a directory, expected an image file name (e.g. map.png)")
+    if path.suffix[1:].lower() not in FIGURE_FORMATS:
+        raise BlocklocError(f"{option} {path}: expected an image file name ending in "
+                            f"{', '.join('.' + f for f in FIGURE_FORMATS[:3])}, ...")
+    check_output_parent(path, option)
+    return path
+
+
+def check_output_parent(path: str | Path, option: str = "--out") -> None:
+    """BlocklocError unless every existing ancestor of ``path`` is a directory (so that
+    ``mkdir(parents=True)`` can make the rest)."""
+    from blockloc.errors import BlocklocError
+
+    for parent in Path(path).absolute().parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise BlocklocError(f"{option} {path}: {parent} is a file, not a directory")
+            return
+
+
+def check_output_dir(path: str | Path, option: str) -> Path:
+    """Before any work: ``path`` is a directory files will be written into (never emptied):
+    absent or a directory; BlocklocError naming ``option`` otherwise."""
+    from blockloc.errors import BlocklocError
+
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise BlocklocError(f"{option} {path}: exists and is not a directory (expected a directory for the files)")
+    check_output_parent(path, option)
+    return path
+
+
 def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
-    """Save a matplotlib figure atomically (the format from ``path``'s suffix) and close it."""
+    """Save a matplotlib figure atomically (the format from ``path``'s suffix, one of
+    :data:`FIGURE_FORMATS`) and close it."""
     import matplotlib.pyplot as plt
 
     path = Path(path)
     try:
+        check_figure_path(path, "figure")
         with atomic_path(path, suffix=path.suffix) as tmp:
-            fig.savefig(tmp, dpi=dpi)
+            fig.savefig(tmp, dpi=dpi, format=path.suffix[1:].lower())
     finally:
         plt.close(fig)
     return path
@@ -69,40 +125,47 @@ def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
 #: Files that mark a directory as blockloc's own output: a map store, a simulated dataset
 #: (``blockloc sim``), a results folder (``blockloc track``), an NCLT-layout session it wrote.
 OUTPUT_MARKERS = ("manifest.json", "sim.json", "metrics.json", "blockloc_session.json")
+#: The marker of each kind of output, for a command that replaces only its own kind.
+MAP_STORE, SIM_DATASET, RESULTS = ("manifest.json",), ("sim.json",), ("metrics.json",)
 
 
-def is_blockloc_output(path: str | Path) -> bool:
-    """True for a directory blockloc made (it holds one of :data:`OUTPUT_MARKERS`) or an empty one."""
+def is_blockloc_output(path: str | Path, markers: tuple[str, ...] = OUTPUT_MARKERS) -> bool:
+    """True for a directory blockloc made (it holds one of ``markers``) or an empty one."""
     path = Path(path)
     if not path.is_dir() or path.is_symlink():
         return False
     names = {p.name for p in path.iterdir()}
-    return not names or bool(names & set(OUTPUT_MARKERS))
+    return not names or bool(names & set(markers))
 
 
-def check_replaceable(path: str | Path, option: str = "--out") -> None:
+def check_replaceable(path: str | Path, option: str = "--out", markers: tuple[str, ...] = OUTPUT_MARKERS,
+                      kind: str | None = None) -> None:
     """Raise BlocklocError (one line naming ``path``) unless ``path`` is absent, an empty
-    directory, or a directory blockloc made: the check before any work that will replace it."""
+    directory, or a directory blockloc made (holding one of ``markers``; ``kind`` names what they
+    mark, e.g. "a map store"): the check before any work that will replace it."""
     from blockloc.errors import BlocklocError
 
     path = Path(path)
     if path.is_symlink() or (path.exists() and not path.is_dir()):
         raise BlocklocError(f"{option} {path}: exists and is not a directory; blockloc replaces only "
                             "directories it made (choose another path)")
-    if path.exists() and not is_blockloc_output(path):
-        raise BlocklocError(f"{option} {path}: a directory blockloc did not make (no "
-                            f"{' / '.join(OUTPUT_MARKERS)}); not replacing it (choose another path "
-                            "or empty it)")
+    if path.exists() and not is_blockloc_output(path, markers):
+        what = (f"not {kind} (no {' / '.join(markers)})" if kind and is_blockloc_output(path)
+                else f"a directory blockloc did not make (no {' / '.join(markers)})")
+        raise BlocklocError(f"{option} {path}: {what}; not replacing it (choose another path or empty it)")
+    check_output_parent(path, option)
 
 
 def replace_dir(src: str | Path, dst: str | Path) -> None:
     """Move the finished directory ``src`` to ``dst``, replacing any ``dst`` as whole as possible:
     the old one is renamed aside first and removed only after the new one is in place. A ``dst``
-    that blockloc did not make (:func:`check_replaceable`) is never replaced."""
+    that blockloc did not make (:func:`check_replaceable`) is never replaced. ``dst`` gets the
+    mode a plain ``mkdir`` would give it (the umask's), whatever ``src`` had."""
     import shutil
 
     src, dst = Path(src), Path(dst)
     check_replaceable(dst, "output")
+    os.chmod(src, _umask_dir_mode())  # a temp dir is 0700; the output gets a plain mkdir's mode
     old = None
     if dst.exists():
         old = Path(tempfile.mkdtemp(prefix=f".{dst.name}.old-", dir=dst.parent))
@@ -116,16 +179,27 @@ def replace_dir(src: str | Path, dst: str | Path) -> None:
 def atomic_dir(path: str | Path) -> Iterator[Path]:
     """Yield an empty temp directory beside ``path``; on success it replaces ``path``
     (:func:`replace_dir`), on any exception it is removed and ``path`` is left untouched."""
+    import secrets
     import shutil
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+    tmp = None
     try:
+        # the directory made inside the try: an exception a signal raises just after the mkdir
+        # (tempfile.mkdtemp returns through more Python code) still reaches the finally
+        while tmp is None:
+            name = path.parent / f".{path.name}.tmp-{secrets.token_hex(4)}"
+            try:
+                os.mkdir(name, 0o700)
+            except FileExistsError:
+                continue
+            tmp = name
         yield tmp
         replace_dir(tmp, path)
     finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
 
 
 def to_jsonable(x):

@@ -35,12 +35,12 @@ import numpy as np
 
 from blockloc.errors import BlocklocError, GlobalInitError, MapError, RegistrationError, TrackingError
 from blockloc.geometry import Trajectory, transform_points
-from blockloc.viz.events import FrameEvent, RunInfo
+from blockloc.viz.events import FrameEvent, ObserverGroup, RunInfo
 
 log = logging.getLogger(__name__)
 
 INIT_MODES = ("gt", "pose", "global")
-IMU_GAP_WARN_S = 0.5  # an IMU gap longer than this within a frame is logged and counted
+IMU_GAP_WARN_S = 0.5  # an IMU gap longer than this is logged and counted (once per gap)
 LIDAR_GAP_FACTOR = 3.0  # a gap between scans of more than this many scan periods is logged
 
 
@@ -102,7 +102,7 @@ class Session:
         self.localizer = localizer
         self.store = store
         self.init_settings = init_settings
-        self.observers = list(observers)
+        self.observers = ObserverGroup(observers)  # a failing viewer is dropped, never stops tracking
         self.evaluation = evaluation or {}
         self.plots = plots
         self.facts = dict(facts or {})
@@ -118,6 +118,7 @@ class Session:
         self._finished: RunResult | None = None
         self._last_map_version = None
         self._last_stamp: float | None = None
+        self._imu_gap_s = 0.0  # the longest gap of the IMU gap in progress, or 0
         self.init_info: dict = {}
         self.reloc_log: list[dict] = []
         self.diagnostics: list[dict] = []
@@ -163,7 +164,8 @@ class Session:
                           facts={"backend": backend, "registration": rc.method, **(facts or {})},
                           config=cfg.to_dict())
             session.tracker = Tracker.from_config(cfg, seq.info, map_provider=provider, registration=engine,
-                                                  relocalize=session.relocalize)
+                                                  relocalize=session.relocalize,
+                                                  use_imu=len(session.imu) > 0 and cfg.tracking.use_imu)
         except BaseException:
             provider.close()
             raise
@@ -262,9 +264,7 @@ class Session:
         if self._started:
             return
         self._started = True
-        info = self._run_info()
-        for obs in self.observers:
-            obs.start(info)
+        self.observers.start(self.run_info())
 
     def step(self, frame):
         """Process one scan: feed the IMU samples up to the end of its sweep, then the scan.
@@ -291,10 +291,7 @@ class Session:
             est = self.tracker.insert_frame(frame)
         d = est.as_dict()
         d.update(index=int(frame.index), stamp=float(frame.stamp))
-        if d.get("imu_gap_s", 0.0) > IMU_GAP_WARN_S:
-            self.counters["imu_gaps"] += 1
-            log.warning("frame %d: no IMU samples for %.2f s before it (IMU-only prediction bridged the gap)",
-                        frame.index, d["imu_gap_s"])
+        self._check_imu_gap(frame.index, d.get("imu_gap_s", 0.0))
         self.diagnostics.append(d)
         if est.T_map_body is not None:
             self._poses.append(np.asarray(est.T_map_body))
@@ -314,9 +311,7 @@ class Session:
         d = {"index": int(index), "stamp": float(stamp if stamp is not None else np.nan), "status": "skipped",
              "error": str(reason)}
         self.diagnostics.append(d)
-        ev = FrameEvent(int(index), d["stamp"], None, None, np.zeros(3), "skipped", d)
-        for obs in self.observers:
-            obs.frame(ev)
+        self.observers.frame(FrameEvent(int(index), d["stamp"], None, None, np.zeros(3), "skipped", d))
 
     def _uninitialized(self, frame, t0):
         from blockloc.tracking.tracker import Diagnostics, Estimate
@@ -324,6 +319,18 @@ class Session:
         diag = Diagnostics(status="uninitialized", num_points=len(frame.points),
                            update_ms=(time.perf_counter() - t0) * 1e3)
         return Estimate(frame.index, float(frame.stamp), None, None, np.zeros(3), np.zeros(3), np.zeros(3), diag)
+
+    def _check_imu_gap(self, index: int, gap_s: float) -> None:
+        """Count a gap of the IMU stream once, logged on the first frame it spans and on the
+        frame where samples are back (the frames between see the same gap, growing)."""
+        if gap_s > IMU_GAP_WARN_S:
+            if self._imu_gap_s == 0.0:
+                self.counters["imu_gaps"] += 1
+                log.warning("frame %d: an IMU gap: no samples for the last %.2f s", index, gap_s)
+            self._imu_gap_s = max(self._imu_gap_s, gap_s)
+        elif self._imu_gap_s > 0.0:
+            log.warning("frame %d: IMU samples again, after a gap of %.2f s", index, self._imu_gap_s)
+            self._imu_gap_s = 0.0
 
     def _check_lidar_gap(self, frame) -> None:
         stamp = float(frame.stamp)
@@ -334,7 +341,7 @@ class Session:
         self._last_stamp = stamp
 
     def _notify(self, frame, est, d: dict) -> None:
-        if not self.observers:
+        if not self.observers.observers:
             return
         local = self.provider.current() if hasattr(self.provider, "current") else None
         changed = local is not None and local.version != self._last_map_version
@@ -347,18 +354,21 @@ class Session:
                         local_map_points=local.points if changed else None,
                         local_map_id=None if local is None else local.region_id,
                         active_entries=() if local is None else tuple(local.entry_ids))
-        for obs in self.observers:
-            obs.frame(ev)
+        self.observers.frame(ev)
 
-    def _run_info(self) -> RunInfo:
+    def run_info(self) -> RunInfo:
+        """What observers are told at the start (the map's entries with their footprints, ...)."""
         entries = []
         kind = "block"
         tile = None
         if self.store is not None:
             kind = self.store.kind
             tile = self.store.params.get("tile_size_m") if kind == "grid" else None
+            from blockloc.maps.summary import entry_footprint
+
             entries = [{"id": e.id, "bounds_min": e.bounds_min, "bounds_max": e.bounds_max,
-                        "centroid": e.centroid, "footprint": None} for e in self.store.entries]
+                        "centroid": e.centroid, "footprint": entry_footprint(self.store, e)}
+                       for e in self.store.entries]
         return RunInfo(str(self.info.name), np.asarray(self.info.T_body_lidar), kind, entries, tile,
                        self.ground_truth, self.config, self.out_dir)
 
@@ -402,6 +412,9 @@ class Session:
         traj = Trajectory(np.asarray(self._pose_stamps), np.asarray(self._poses).reshape(-1, 4, 4))
         stats = self.provider.stats() if hasattr(self.provider, "stats") else {}
         counters = dict(getattr(self.tracker, "counters", {}) if self.tracker is not None else {})
+        # the tracker counts the scans it was given; the metrics' "frames" counts every frame of
+        # the run, skipped ones included
+        counters["tracker_frames"] = counters.pop("frames", 0)
         counters.update(self.counters)
         counters["map_faults"] += int(stats.get("failed_loads", 0)) + int(stats.get("target_failures", 0))
         plot_dir = self.out_dir if (self.out_dir is not None and self.plots) else None
@@ -413,13 +426,17 @@ class Session:
                               interrupted=bool(interrupted), relocalizations=self.reloc_log,
                               map_stats=stats, track_s=self.timings.get("track_s"),
                               total_s=self.timings["total_s"])
-        for obs in self.observers:
-            try:
-                obs.finish(metrics)
-            except Exception as exc:  # noqa: BLE001 - one observer's failure must not lose the others'
-                log.error("%s could not finish: %s", type(obs).__name__, exc)
+        try:
+            self.observers.finish(metrics)  # every observer finishes, then the first failure is logged
+        except Exception as exc:  # noqa: BLE001 - what was computed is returned all the same
+            log.error("an observer could not finish: %s", exc)
         self._finished = RunResult(traj, self.diagnostics, metrics, self.out_dir,
                                    self.estimates if self.keep_estimates else [])
+        return self._finished
+
+    @property
+    def result(self) -> RunResult | None:
+        """What ``finish`` returned (None before it ran)."""
         return self._finished
 
     def close(self) -> None:

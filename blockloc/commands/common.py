@@ -21,11 +21,56 @@ EXIT_CODES = {signal.SIGINT: 130, signal.SIGTERM: 143}
 
 
 class Interrupted(BlocklocError):
-    """The user stopped the command; ``exit_code`` is 130 (SIGINT) or 143 (SIGTERM)."""
+    """The user stopped the command after its work was saved (a tracking run's partial results);
+    ``exit_code`` is 130 (SIGINT) or 143 (SIGTERM)."""
 
     def __init__(self, message: str, exit_code: int = 130) -> None:
         super().__init__(message)
         self.exit_code = exit_code
+
+
+class Stopped(BaseException):
+    """SIGINT or SIGTERM arrived (see :func:`install_signal_handlers`): raised in the main thread
+    where it runs, it unwinds every ``with`` and ``finally`` on its way out (map builds and the
+    simulator remove their temp directories), then the CLI prints one line and exits 130 / 143.
+
+    A BaseException, as KeyboardInterrupt is, so that ``except Exception`` (a frame skipped, an
+    observer's failure logged) never swallows it; not a KeyboardInterrupt, which typer would turn
+    into a silent exit code."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+        self.exit_code = EXIT_CODES.get(signum, 128 + signum)
+
+
+#: The signals :func:`install_signal_handlers`' handler received, in order.
+RECEIVED: list[int] = []
+
+
+def _raise_stopped(signum, _frame):
+    RECEIVED.append(signum)
+    raise Stopped(signum)
+
+
+def raise_if_stopped() -> None:
+    """Raise :class:`Stopped` again if a signal arrived and the work goes on: an exception raised
+    by a signal handler can be swallowed where it lands (a module's import turns it into an
+    ImportError, a fallback catches that). Progress callbacks call this: the next step stops."""
+    if RECEIVED:
+        raise Stopped(RECEIVED[-1])
+
+
+def install_signal_handlers() -> None:
+    """Make SIGINT and SIGTERM raise :class:`Stopped` (main thread only). A signal the parent set
+    to be ignored (``nohup``, a background job of a script) stays ignored."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for sig in EXIT_CODES:
+        if signal.getsignal(sig) in (signal.SIG_DFL, signal.default_int_handler):
+            signal.signal(sig, _raise_stopped)
 
 
 def console():
@@ -57,12 +102,32 @@ def parse_deltas(text: str, option: str = "--rpe-deltas") -> tuple[float, ...]:
     return deltas
 
 
-def config_for(seq: str | None, config: str | None):
+def config_for(seq: str | None, config: str | None, sets: list[str] | None = None):
     """The config: ``--config`` (a file or preset name) when given, else the preset that fits
-    the sequence (``SequenceRef.preset``), else the defaults."""
+    the sequence (``SequenceRef.preset``), else the defaults; then every ``--set SECTION.KEY=VALUE``
+    (VALUE read as YAML: numbers, true/false, lists)."""
     from blockloc.config import load_config, preset_for_sequence
 
-    return load_config(config or (preset_for_sequence(seq) if seq else None))
+    return load_config(config or (preset_for_sequence(seq) if seq else None), overrides=parse_sets(sets or []),
+                       overrides_source="--set")
+
+
+def parse_sets(sets: list[str]) -> dict:
+    """['registration.method=vgicp', 'map.grid_n=3'] -> {'registration': {'method': 'vgicp'}, ...}."""
+    import yaml
+
+    out: dict = {}
+    for item in sets:
+        key, sep, value = item.partition("=")
+        parts = key.strip().split(".")
+        if not sep or len(parts) != 2 or not all(parts):
+            raise BlocklocError(f"--set {item!r}: expected SECTION.KEY=VALUE, e.g. registration.method=vgicp")
+        try:
+            parsed = yaml.safe_load(value) if value.strip() else ""
+        except yaml.YAMLError:
+            parsed = value
+        out.setdefault(parts[0], {})[parts[1]] = parsed
+    return out
 
 
 def map_params(map_cfg, kind: str) -> tuple:
@@ -80,16 +145,28 @@ def results_dir(out: Path | None, name: str) -> Path:
 
 
 def check_results_dir(out: Path) -> None:
-    """Before any work: ``out`` must be absent, empty or a results folder blockloc wrote."""
-    from blockloc.fileio import check_replaceable
+    """Before any work: ``out`` must be absent, empty or a results folder blockloc wrote (not
+    another kind of blockloc output: a map store or a dataset is not replaced by results)."""
+    from blockloc.fileio import RESULTS, check_replaceable
 
-    check_replaceable(out, "--out")
+    check_replaceable(out, "--out", RESULTS, "a results folder")
+
+
+#: Seconds without a progress line after which a piped progress prints one anyway.
+HEARTBEAT_S = 30.0
 
 
 @contextlib.contextmanager
-def progress(label: str, total: int | None = None, *, err_console=None) -> Iterator[Callable[[int, int | None], None]]:
-    """A progress callback ``(done, total)``: a rich bar in a terminal; otherwise a log line to
-    stderr every 10% (and at least every 30 s), so piped output shows progress too."""
+def progress(label: str, total: int | None = None, *, err_console=None,
+             heartbeat_s: float | None = None) -> Iterator[Callable[[int, int | None], None]]:
+    """A progress callback ``(done, total)``: a rich bar in a terminal; otherwise a line to
+    stderr every 10%, and every ``heartbeat_s`` (default :data:`HEARTBEAT_S`) without one (also
+    while a long step, such as a global initialization, calls no callback), so piped output
+    shows progress too."""
+    import threading
+
+    heartbeat_s = HEARTBEAT_S if heartbeat_s is None else heartbeat_s
+
     from rich.console import Console
 
     con = err_console or Console(stderr=True)
@@ -99,20 +176,56 @@ def progress(label: str, total: int | None = None, *, err_console=None) -> Itera
         bar = Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
                        console=con, transient=True)
         task = bar.add_task(label, total=total)
+        def update(done: int, tot: int | None = None) -> None:
+            raise_if_stopped()
+            bar.update(task, completed=done, total=tot or total)
+
         with bar:
-            yield lambda done, tot=None: bar.update(task, completed=done, total=tot or total)
+            yield update
         return
-    state = {"last_t": time.monotonic(), "last_pct": -10.0}
+    t0 = time.monotonic()
+    state = {"last_t": t0, "last_pct": -10.0, "done": 0, "total": total, "last_line": None}
+    lock = threading.Lock()
+
+    def line(done: int, tot: int | None) -> str:
+        pct = f" ({100.0 * done / tot:.0f}%)" if tot else ""
+        return f"{label}: {done}/{tot or '?'}{pct}"
 
     def report(done: int, tot: int | None = None) -> None:
+        raise_if_stopped()
         tot = tot or total
         now = time.monotonic()
         pct = 100.0 * done / tot if tot else 0.0
-        if (tot and (pct - state["last_pct"] >= 10.0 or done == tot)) or now - state["last_t"] >= 30.0:
-            state["last_t"], state["last_pct"] = now, pct
-            print(f"{label}: {done}/{tot or '?'}" + (f" ({pct:.0f}%)" if tot else ""), file=sys.stderr, flush=True)
+        with lock:
+            # counting again (the next session of a simulation), or a total that grew (a map
+            # build plans its next tasks as results come in): 10% steps of the new count
+            if done < state["done"] or pct < state["last_pct"]:
+                state["last_pct"] = -10.0
+            state["done"], state["total"] = done, tot
+            text = line(done, tot)
+            if text != state["last_line"] and (
+                    (tot and (pct - state["last_pct"] >= 10.0 or done == tot)) or now - state["last_t"] >= heartbeat_s):
+                state["last_t"], state["last_pct"], state["last_line"] = now, pct, text
+                print(text, file=sys.stderr, flush=True)
 
-    yield report
+    stop = threading.Event()
+
+    def heartbeat() -> None:
+        while not stop.wait(heartbeat_s / 4.0):
+            now = time.monotonic()
+            with lock:
+                if now - state["last_t"] >= heartbeat_s:
+                    state["last_t"] = now
+                    print(f"{line(state['done'], state['total'])}, working for {now - t0:.0f} s",
+                          file=sys.stderr, flush=True)
+
+    beat = threading.Thread(target=heartbeat, name=f"progress {label}", daemon=True)
+    beat.start()
+    try:
+        yield report
+    finally:
+        stop.set()
+        beat.join()
 
 
 class StopRequest:
@@ -132,8 +245,8 @@ class StopRequest:
 
 @contextlib.contextmanager
 def interruptible() -> Iterator[StopRequest]:
-    """Turn the first SIGINT/SIGTERM into a stop request (a second SIGINT raises
-    KeyboardInterrupt at once). Outside the main thread nothing is installed."""
+    """Turn the first SIGINT/SIGTERM into a stop request (a second one raises :class:`Stopped`
+    at once). Outside the main thread nothing is installed."""
     import threading
 
     stop = StopRequest()
@@ -142,12 +255,12 @@ def interruptible() -> Iterator[StopRequest]:
         return
 
     def handler(signum, _frame):
-        if stop.signal is not None and signum == signal.SIGINT:
-            raise KeyboardInterrupt
+        if stop.signal is not None:
+            raise Stopped(signum)
         stop.signal = signum
         print("stopping after the current frame (Ctrl-C again to abort)", file=sys.stderr, flush=True)
 
-    old = {s: signal.signal(s, handler) for s in EXIT_CODES}
+    old = {s: signal.signal(s, handler) for s in EXIT_CODES if signal.getsignal(s) is not signal.SIG_IGN}
     try:
         yield stop
     finally:

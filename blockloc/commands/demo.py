@@ -1,10 +1,11 @@
 """``blockloc demo``: the whole system on the `small` simulated world, from nothing, in minutes.
 
-Steps: simulate the world's two sessions (cached under ``$BLOCKLOC_CACHE`` or ``~/.cache/blockloc``),
-build the block map from the mapping session (cached where ``blockloc track --seq sim:small/loc``
-looks for it), initialize on the localization session by branch-and-bound from a noisy position
-hint (yaw unknown), track with the sliding window, evaluate against ground truth and write the
-results folder.
+Steps: build the block map of the world's mapping session (simulated on the fly: only its
+keyframes are rendered; cached where ``blockloc track --seq sim:small/loc`` looks for it),
+initialize on the localization session by branch-and-bound from a noisy position hint (yaw
+unknown), track it with the sliding window while it is simulated scan by scan, evaluate against
+ground truth and write the results folder (poses, metrics, plots, report.html, a Foxglove
+recording). Nothing but the map is written to disk: a full-density session would be gigabytes.
 """
 
 from __future__ import annotations
@@ -25,16 +26,18 @@ HINT_NOISE_M = 4.0  # the hint is this far (each axis, uniform) from the truth; 
 
 
 @dataclass
-class DemoPaths:
-    dataset: Path  # <dataset>/map, <dataset>/loc (NCLT layout)
+class SmallWorld:
+    """The demo's world: its mapping and localization sessions (``--seq`` names, simulated on the
+    fly) and the block map built from the first (a cache entry keyed by the code that made it)."""
+
+    mapping: str
+    loc: str
     block_map: Path
 
     @classmethod
-    def default(cls, preset: str = PRESET, seed: int = SEED, map_cfg=None) -> "DemoPaths":
-        """Cache paths keyed by what made them: the simulator's code, preset and seed; the block
-        map is the default map of ``sim:<preset>/loc@<seed>`` for the block settings of
-        ``map_cfg`` (default: the sim preset's)."""
-        from blockloc.cache import cache_root, fingerprint
+    def default(cls, preset: str = PRESET, seed: int = SEED, map_cfg=None) -> "SmallWorld":
+        """The block map is the default map of ``sim:<preset>/loc@<seed>`` for the block settings
+        of ``map_cfg`` (default: the sim preset's)."""
         from blockloc.commands.common import map_params
         from blockloc.datasets.refs import SequenceRef
 
@@ -42,64 +45,45 @@ class DemoPaths:
             from blockloc.config import load_config
 
             map_cfg = load_config("sim").map
-        world = fingerprint("blockloc.sim", "blockloc.datasets.nclt", params=(preset, seed))
-        ref = SequenceRef.parse(f"sim:{preset}/loc@{seed}")
-        return cls(cache_root() / "sim" / f"{preset}_{seed}-{world}",
-                   ref.default_map_path("block", map_params=map_params(map_cfg, "block")))
+        loc = f"sim:{preset}/loc@{seed}"
+        ref = SequenceRef.parse(loc)
+        return cls(ref.mapping_source(), loc, ref.default_map_path("block", map_params=map_params(map_cfg, "block")))
 
 
-def ensure_dataset(paths: DemoPaths, preset: str = PRESET, seed: int = SEED,
-                   say: Callable[[str], None] = log.info) -> Path:
-    """The simulated dataset (written once, reused while complete)."""
-    from blockloc.sim import generate_dataset
-
-    if (paths.dataset / "loc" / "velodyne_sync").is_dir() and (paths.dataset / "map" / "velodyne_sync").is_dir():
-        say(f"world: cached at {paths.dataset}")
-        return paths.dataset
-    say(f"world: simulating the '{preset}' world (seed {seed}) into {paths.dataset} ...")
-    t0 = time.perf_counter()
-    from blockloc.commands.common import progress
-
-    with progress("simulating") as cb:
-        generate_dataset(preset, seed, paths.dataset, progress=lambda session, done, total: cb(done, total))
-    say(f"world: done in {time.perf_counter() - t0:.0f} s")
-    return paths.dataset
-
-
-def ensure_block_map(paths: DemoPaths, cfg, say: Callable[[str], None] = log.info) -> Path:
+def ensure_block_map(world: SmallWorld, cfg, say: Callable[[str], None] = log.info) -> Path:
     """The block map of the mapping session (built once, reused)."""
     from blockloc.datasets import open_sequence
     from blockloc.errors import MapError
-    from blockloc.maps.block_maps import build_block_map_from_sequence
+    from blockloc.maps.build_plan import build_block_map_from_sequence
     from blockloc.maps.store import open_map
 
     try:
-        store = open_map(paths.block_map)
-        say(f"block map: cached at {paths.block_map} ({len(store)} blocks)")
-        return paths.block_map
+        store = open_map(world.block_map)
+        say(f"block map: cached at {world.block_map} ({len(store)} blocks)")
+        return world.block_map
     except MapError:
         pass
-    say(f"block map: building from {paths.dataset / 'map'} (blocks of {cfg.map.block_size_m:g} m) ...")
+    say(f"block map: simulating the keyframes of {world.mapping} and stitching blocks of "
+        f"{cfg.map.block_size_m:g} m ...")
     t0 = time.perf_counter()
-    seq = open_sequence(paths.dataset / "map", dataset_cfg=cfg.dataset)
+    seq = open_sequence(world.mapping, dataset_cfg=cfg.dataset)
     store = build_block_map_from_sequence(seq, block_size_m=cfg.map.block_size_m,
                                           keyframe_distance_m=cfg.map.keyframe_distance_m,
                                           keyframe_angle_deg=cfg.map.keyframe_angle_deg,
-                                          voxel_size_m=cfg.map.voxel_size_m, out=paths.block_map,
-                                          overwrite=True)
+                                          voxel_size_m=cfg.map.voxel_size_m, out=world.block_map,
+                                          overwrite=True, progress=True)
     say(f"block map: {len(store)} blocks in {time.perf_counter() - t0:.0f} s")
-    return paths.block_map
+    return world.block_map
 
 
 def prepare_small_world(cfg=None, say: Callable[[str], None] = log.info):
-    """The cached `small` world and its block map: (DemoPaths, Config used, default the sim preset)."""
+    """The `small` world and its (cached) block map: (SmallWorld, Config used, default the sim preset)."""
     from blockloc.config import load_config
 
     cfg = cfg or load_config("sim")
-    paths = DemoPaths.default(map_cfg=cfg.map)
-    ensure_dataset(paths, say=say)
-    ensure_block_map(paths, cfg, say=say)
-    return paths, cfg
+    world = SmallWorld.default(map_cfg=cfg.map)
+    ensure_block_map(world, cfg, say=say)
+    return world, cfg
 
 
 def noisy_hint(seq, seed: int = SEED, noise_m: float = HINT_NOISE_M) -> tuple[float, float, None]:
@@ -118,18 +102,18 @@ def demo_session(cfg=None, *, out: Path | None = None, observers=(), say: Callab
     from blockloc.maps.store import open_map
     from blockloc.session import Session
 
-    paths, cfg = prepare_small_world(cfg, say=say)
-    seq = open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset)
-    session = Session.from_config(cfg, seq, open_map(paths.block_map), backend="block", observers=observers,
+    world, cfg = prepare_small_world(cfg, say=say)
+    seq = open_sequence(world.loc, dataset_cfg=cfg.dataset)
+    session = Session.from_config(cfg, seq, open_map(world.block_map), backend="block", observers=observers,
                                   out_dir=out, keep_estimates=keep_estimates,
-                                  facts={"map": str(paths.block_map)})
+                                  facts={"map": str(world.block_map)})
     return session, noisy_hint(seq)
 
 
-def demo_command(out: Path | None, max_frames: int | None) -> None:
+def demo_command(out: Path | None, max_frames: int | None, record: bool = True) -> None:
     from blockloc.commands.common import check_results_dir, console, results_dir
-    from blockloc.commands.track import print_track_summary, run_tracking
-    from blockloc.evaluation.results import RunWriter
+    from blockloc.commands.track import (print_track_summary, print_where, run_observers, run_tracking,
+                                         write_run_report)
 
     con = console()
     out_dir = results_dir(out, "demo")
@@ -138,10 +122,15 @@ def demo_command(out: Path | None, max_frames: int | None) -> None:
     def say(msg: str) -> None:
         con.print(f"[bold cyan]demo[/] {msg}")
 
-    session, hint = demo_session(out=out_dir, observers=[RunWriter(out_dir)], say=say)
+    session, hint = demo_session(out=out_dir, observers=run_observers(out_dir, record=record), say=say)
     say(f"global init: branch-and-bound around the hint ({hint[0]:.1f}, {hint[1]:.1f}), yaw unknown")
-    res = run_tracking(session, mode="pose", hint=hint, out_dir=out_dir, max_frames=max_frames)
+    try:
+        res = run_tracking(session, mode="pose", hint=hint, out_dir=out_dir, max_frames=max_frames)
+    finally:
+        if session.result is not None:
+            write_run_report(session, session.result, out_dir)
     init = res.metrics.get("init") or {}
     if init.get("time_s") is not None:
         say(f"global init: {init.get('error_m', float('nan')):.2f} m from the truth in {init['time_s']:.2f} s")
     print_track_summary(con, res.metrics, res.out_dir)
+    print_where(con, out_dir)

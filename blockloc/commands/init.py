@@ -19,7 +19,8 @@ from blockloc.geometry import T_to_xyzrpy
 
 
 def run_init(seq_name: str, frame_index: int, map_path: str, hint: str | None, window_m: float | None,
-             yaw_window_deg: float | None, config: str | None, data_root: str | None) -> tuple:
+             yaw_window_deg: float | None, config: str | None, data_root: str | None, poses=None,
+             sets: list[str] | None = None) -> tuple:
     """Returns (InitResult, summary dict for printing/JSON). Raises BlocklocError on bad input."""
     import dataclasses
 
@@ -30,7 +31,7 @@ def run_init(seq_name: str, frame_index: int, map_path: str, hint: str | None, w
     from blockloc.registration.engines import engine_from_settings
     from blockloc.tracking.scan_prep import prepare_for_init
 
-    cfg = config_for(seq_name, config)
+    cfg = config_for(seq_name, config, sets)
     gi, rc = cfg.global_init, cfg.registration
     window_m = gi.window_m if window_m is None else window_m
     yaw_window_deg = gi.yaw_window_deg if yaw_window_deg is None else yaw_window_deg
@@ -39,7 +40,7 @@ def run_init(seq_name: str, frame_index: int, map_path: str, hint: str | None, w
         raise GlobalInitError(f"--window {window_m}: expected a positive size in metres")
     if not (0 < yaw_window_deg <= 360):
         raise GlobalInitError(f"--yaw-window {yaw_window_deg}: expected an angle in (0, 360] degrees")
-    seq = open_sequence(seq_name, data_root=data_root, dataset_cfg=cfg.dataset)
+    seq = open_sequence(seq_name, data_root=data_root, dataset_cfg=cfg.dataset, poses=poses)
     if not 0 <= frame_index < len(seq):
         raise GlobalInitError(f"--frame {frame_index}: expected 0..{len(seq) - 1} ({seq.info.name} has "
                               f"{len(seq)} frames)")
@@ -103,11 +104,12 @@ def print_result(summ: dict, console) -> None:
     console.print(table)
 
 
-def init_command(seq, frame, map_path, pose_hint, window, yaw_window, json_out, data_root, config) -> None:
+def init_command(seq, frame, map_path, pose_hint, window, yaw_window, json_out, data_root, config,
+                 poses=None, sets=None) -> None:
     """The command: run, print (JSON or tables), fail (exit 2) when nothing was verified."""
     from blockloc.commands.common import console
 
-    res, summ = run_init(seq, frame, map_path, pose_hint, window, yaw_window, config, data_root)
+    res, summ = run_init(seq, frame, map_path, pose_hint, window, yaw_window, config, data_root, poses, sets)
     if json_out:
         print(json.dumps(summ))
     else:

@@ -53,13 +53,8 @@ class SequenceSpec:
     def __call__(self):
         from blockloc.datasets.refs import SequenceRef
 
-        seq = SequenceRef.parse(self.text).open(data_root=self.data_root,
-                                                dataset_cfg=self.dataset_cfg)
-        if self.poses:
-            from blockloc.datasets.with_poses import with_trajectory
-
-            seq = with_trajectory(seq, self.poses)
-        return seq
+        return SequenceRef.parse(self.text).open(data_root=self.data_root,
+                                                 dataset_cfg=self.dataset_cfg, poses=self.poses)
 
 
 #: ``--seq NAME[START:STOP]``: frames START..STOP-1 of a sequence as one drive.
@@ -96,28 +91,55 @@ def parse_drive(text: str, poses: str | None = None, *, data_root: str | None = 
     return Drive(text, spec, key, start, stop)
 
 
-def build_command(seqs: list[str], kind: str, out: Path, config: str | None, data_root: str | None,
-                  block_size: float | None, tile_size: float | None, voxel: float | None,
-                  max_frames: int | None, overwrite: bool, poses: list[str] | None = None,
-                  cluster: str | None = None) -> None:
+def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: str | None,
+                  data_root: str | None, block_size: float | None, tile_size: float | None,
+                  voxel: float | None, max_frames: int | None, overwrite: bool, *,
+                  poses: list[str] | None = None, from_pcd: Path | None = None,
+                  sensor_range_m: float = 60.0, cluster: str | None = None) -> None:
     import dataclasses
     import sys
 
     from blockloc.commands.common import config_for, console, progress
     from blockloc.errors import MapError
-    from blockloc.maps.distributed import open_executor
+    from blockloc.maps.remote import is_url
     from blockloc.maps.summary import map_summary
 
-    if not seqs:
-        raise MapError("--seq: give at least one mapping sequence")
-    if poses and len(poses) != len(seqs):
+    seqs = list(seqs or [])
+    poses = list(poses or [])
+    if bool(seqs) == (from_pcd is not None):
+        raise MapError("map build: give --seq SEQ (a mapping sequence) or --from-pcd GLOBAL.pcd --poses TRAJ")
+    if kind not in ("block", "grid"):
+        raise MapError(f"--kind {kind!r}: expected block or grid")
+    check_positive(("--block-size", "block size", block_size), ("--tile-size", "tile size", tile_size),
+                   ("--sensor-range", "sensor range", sensor_range_m))
+    if from_pcd is not None:
+        if len(poses) != 1 or poses[0] in ("", "-"):
+            raise MapError("--from-pcd needs one --poses TRAJ (the mapping trajectory)")
+        if cluster:
+            raise MapError("--cluster builds from --seq drives; --from-pcd runs in this process")
+    elif poses and len(poses) != len(seqs):
         raise MapError(f"--poses given {len(poses)} time(s) for {len(seqs)} --seq: give one "
                        "--poses per --seq, in the same order ('-': the sequence's own poses)")
-    cfg = config_for(_SLICE.sub(r"\g<seq>", seqs[0]), config)
+    if not is_url(str(out)):  # an object store is checked by its writer (no local path to look at)
+        out = Path(out)
+        check_out(out, overwrite)
+    cfg = config_for(_SLICE.sub(r"\g<seq>", seqs[0]) if seqs else None, config)
     overrides = {k: v for k, v in (("block_size_m", block_size), ("tile_size_m", tile_size),
                                    ("voxel_size_m", voxel)) if v is not None}
     map_cfg = dataclasses.replace(cfg.map, **overrides)
-    drives = [parse_drive(s, None if not poses or poses[i] in ("", "-") else poses[i],
+    if from_pcd is not None:
+        from blockloc.maps.from_pcd import build_map_from_global_pcd
+
+        store = build_map_from_global_pcd(
+            from_pcd, Path(poses[0]), kind, out, sensor_range_m=sensor_range_m,
+            keyframe_distance_m=map_cfg.keyframe_distance_m, keyframe_angle_deg=map_cfg.keyframe_angle_deg,
+            block_size_m=map_cfg.block_size_m, tile_size_m=map_cfg.tile_size_m, voxel_size_m=map_cfg.voxel_size_m,
+            overwrite=overwrite, progress=True)
+        print_summary(map_summary(store), console())
+        return
+    from blockloc.maps.distributed import open_executor
+
+    drives = [parse_drive(s, poses[i] if poses and poses[i] not in ("", "-") else None,
                           data_root=data_root, dataset_cfg=cfg.dataset, max_frames=max_frames)
               for i, s in enumerate(seqs)]
     with open_executor(cluster) as ex:
@@ -126,10 +148,36 @@ def build_command(seqs: list[str], kind: str, out: Path, config: str | None, dat
             print(f"dask: {ex.description}; dashboard "
                   + (link if link else "not available (it needs the bokeh package)"),
                   file=sys.stderr, flush=True)
-        with progress(f"{kind} map build: tasks") as report:
+        with progress(f"{kind} map build tasks") as report:
             store = build_map_from_specs(drives, kind, out, map_cfg, overwrite=overwrite,
                                          progress=report, executor=ex)
     print_summary(map_summary(store), console())
+
+
+def check_out(out: Path, overwrite: bool) -> None:
+    """Before any work: ``--out`` is absent, or ``--overwrite`` is given and it is a map store
+    (or an empty directory): MapError naming it otherwise."""
+    from blockloc.errors import BlocklocError, MapError
+    from blockloc.fileio import MAP_STORE, check_replaceable
+
+    if out.exists() and not overwrite:
+        raise MapError(f"--out {out}: already exists (choose another --out, or --overwrite to replace the map there)")
+    try:
+        check_replaceable(out, "--out", MAP_STORE, "a map store")
+    except BlocklocError as exc:
+        raise MapError(f"{exc}; --overwrite replaces only a map store") from None
+
+
+def check_positive(*options: tuple[str, str, float | None]) -> None:
+    """MapError naming the first (option, what, value) whose value is given and is not a positive
+    number of metres (before any work)."""
+    import math
+
+    from blockloc.errors import MapError
+
+    for option, what, value in options:
+        if value is not None and not (value > 0 and math.isfinite(value)):
+            raise MapError(f"{option} {value:g}: expected a positive {what} in metres")
 
 
 def tile_command(global_pcd: Path, tile_size: float, out: Path, overwrite: bool) -> None:
@@ -137,6 +185,8 @@ def tile_command(global_pcd: Path, tile_size: float, out: Path, overwrite: bool)
     from blockloc.maps.grid_tiles import tile_pcd_file
     from blockloc.maps.summary import map_summary
 
+    check_positive(("--tile-size", "tile size", tile_size))
+    check_out(out, overwrite)
     store = tile_pcd_file(global_pcd, tile_size, out, overwrite=overwrite, progress=True)
     print_summary(map_summary(store), console())
 
@@ -154,9 +204,11 @@ def info_command(map_path: str, json_out: bool, quick: bool) -> None:
 
 
 def plot_command(map_path: str, seq: str | None, out: Path | None, data_root: str | None) -> None:
+    from blockloc.fileio import check_figure_path
     from blockloc.maps.plot import plot_map
     from blockloc.maps.store import open_map
 
+    png = check_figure_path(out or Path(str(map_path).rstrip("/") + ".png"), "--out")  # before any work
     store = open_map(map_path)
     traj = None
     if seq:
@@ -165,7 +217,6 @@ def plot_command(map_path: str, seq: str | None, out: Path | None, data_root: st
 
         s = open_sequence(seq, data_root=data_root, dataset_cfg=config_for(seq, None).dataset)
         traj = s.ground_truth() or s.mapping_poses()
-    png = out or Path(str(map_path).rstrip("/") + ".png")
     print(str(plot_map(store, png, traj)))
 
 

@@ -2,21 +2,24 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 
 def sim_command(preset: str, seed: int, out: Path, fmt: str, azimuth_steps: int | None) -> None:
     from blockloc.commands.common import progress
-    from blockloc.fileio import check_replaceable
+    from blockloc.fileio import SIM_DATASET, check_replaceable
     from blockloc.sim.writer import generate_dataset
 
-    check_replaceable(out, "--out")  # before any work: never replace what blockloc did not make
+    # before any work: never replace what blockloc did not make, nor another kind of its output
+    check_replaceable(out, "--out", SIM_DATASET, "a simulated dataset")
     overrides = {} if azimuth_steps is None else {"azimuth_steps": azimuth_steps}
     current = {"session": None}
     with progress(f"sim {preset}") as cb:
         def report(session: str, done: int, total: int) -> None:
             if session != current["session"]:
                 current["session"] = session
+                print(f"sim {preset}: session {session}, {total} frames", file=sys.stderr, flush=True)
             cb(done, total)
 
         path = generate_dataset(preset, seed, out, fmt, progress=report, **overrides)

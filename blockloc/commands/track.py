@@ -32,7 +32,7 @@ def resolve_map(ref, map_path: str | None, backend: str, cfg, data_root: str | N
 def open_session(seq: str, *, cfg, map_path: str | None = None, backend: str | None = None,
                  data_root: str | None = None, observers=(), out_dir: Path | None = None,
                  keep_estimates: bool = False, lidar_topic: str | None = None,
-                 imu_topic: str | None = None):
+                 imu_topic: str | None = None, poses=None):
     """The Session for ``--seq`` in its map (what ``track`` and the benchmarks run)."""
     from blockloc.datasets.refs import SequenceRef
     from blockloc.maps.store import open_map_from_config
@@ -40,7 +40,8 @@ def open_session(seq: str, *, cfg, map_path: str | None = None, backend: str | N
 
     ref = SequenceRef.parse(seq)
     backend = backend or cfg.map.backend
-    sequence = ref.open(data_root=data_root, dataset_cfg=cfg.dataset, lidar_topic=lidar_topic, imu_topic=imu_topic)
+    sequence = ref.open(data_root=data_root, dataset_cfg=cfg.dataset, lidar_topic=lidar_topic, imu_topic=imu_topic,
+                        poses=poses)
     path = resolve_map(ref, map_path, backend, cfg, data_root)
     store = open_map_from_config(path, cfg.map)
     return Session.from_config(cfg, sequence, store, backend=backend, observers=observers, out_dir=out_dir,
@@ -79,6 +80,46 @@ def run_tracking(session, *, mode: str, hint, out_dir: Path | None, label: str =
     return res
 
 
+def run_observers(out_dir: Path, *, record: bool = True, record_path: Path | None = None, live: bool = False,
+                  host: str = "127.0.0.1", port: int = 8765) -> list:
+    """The results folder writer, the MCAP recording (default ``<out>/run.mcap``, with a Foxglove
+    layout beside it) and, with ``live``, a Foxglove WebSocket server on ``host:port``."""
+    from blockloc.evaluation.results import RunWriter
+
+    observers = [RunWriter(out_dir)]
+    if record:
+        from blockloc.viz.layout import RECORDING_NAME
+        from blockloc.viz.mcap_recorder import McapRecorder
+
+        observers.append(McapRecorder(record_path or out_dir / RECORDING_NAME))
+    if live:
+        import sys
+
+        from blockloc.viz.live import LiveServer
+
+        server = LiveServer(host, port)
+        web, _ = server.app_urls
+        print(f"live view: {server.url} (Foxglove: {web})", file=sys.stderr, flush=True)
+        observers.append(server)
+    return observers
+
+
+def write_run_report(session, res, out_dir: Path) -> Path:
+    """``report.html`` in the results folder: metrics, plots, config and an interactive top view."""
+    from blockloc.maps.summary import map_points_xy
+    from blockloc.viz.layout import REPORT_NAME
+    from blockloc.viz.report import write_report
+
+    images = {caption: out_dir / name for caption, name in (("trajectories", "trajectories.png"),
+                                                             ("errors over time", "errors.png"))
+              if (out_dir / name).is_file()}
+    return write_report(out_dir / REPORT_NAME, metrics=res.metrics, estimate=res.trajectory,
+                        ground_truth=session.ground_truth, diagnostics=res.diagnostics, config=session.config,
+                        map_xy=map_points_xy(session.store) if session.store is not None else None,
+                        map_entries=session.run_info().map_entries, images=images,
+                        title=f"{res.metrics.get('sequence')}")
+
+
 def print_track_summary(console, m: dict, out: Optional[Path]) -> None:
     from rich.table import Table
 
@@ -109,18 +150,35 @@ def print_track_summary(console, m: dict, out: Optional[Path]) -> None:
 
 def track_command(seq: str, map_path: str | None, backend: str | None, init: str | None, init_pose: str | None,
                   out: Path | None, config: str | None, data_root: str | None, max_frames: int | None,
-                  lidar_topic: str | None = None, imu_topic: str | None = None) -> None:
+                  lidar_topic: str | None = None, imu_topic: str | None = None, poses: Path | None = None,
+                  sets: list[str] | None = None, record: bool = True, record_path: Path | None = None,
+                  live: bool = False, host: str = "127.0.0.1", port: int = 8765) -> None:
     from blockloc.commands.common import check_results_dir, config_for, console, results_dir
-    from blockloc.evaluation.results import RunWriter
 
     mode, hint = init_mode(init, init_pose)
     if max_frames is not None and max_frames < 1:
         raise TrackingError(f"--max-frames {max_frames}: expected a positive number of frames")
-    cfg = config_for(seq, config)
+    cfg = config_for(seq, config, sets)
     out_dir = results_dir(out, seq)
     check_results_dir(out_dir)  # before any work
+    observers = run_observers(out_dir, record=record, record_path=record_path, live=live, host=host, port=port)
     session = open_session(seq, cfg=cfg, map_path=map_path, backend=backend, data_root=data_root,
-                           observers=[RunWriter(out_dir)], out_dir=out_dir, lidar_topic=lidar_topic,
-                           imu_topic=imu_topic)
-    res = run_tracking(session, mode=mode, hint=hint, out_dir=out_dir, max_frames=max_frames)
+                           observers=observers, out_dir=out_dir, lidar_topic=lidar_topic,
+                           imu_topic=imu_topic, poses=poses)
+    try:
+        res = run_tracking(session, mode=mode, hint=hint, out_dir=out_dir, max_frames=max_frames)
+    finally:
+        if session.result is not None:  # whatever was computed, also when interrupted
+            write_run_report(session, session.result, out_dir)
     print_track_summary(console(), res.metrics, res.out_dir)
+    print_where(console(), out_dir)
+
+
+def print_where(console, out_dir: Path) -> None:
+    """Where the results are and how to look at them."""
+    from blockloc.viz.layout import RECORDING_NAME, REPORT_NAME
+
+    for name, what in ((REPORT_NAME, "report"), (RECORDING_NAME, "recording (Foxglove)")):
+        if (out_dir / name).exists():
+            console.print(f"{what}: {out_dir / name}")
+    console.print(f"how to view: blockloc view {out_dir}")

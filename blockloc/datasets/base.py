@@ -115,3 +115,34 @@ class Sequence(Protocol):
 
     def mapping_poses(self) -> Trajectory | None:
         """T_map_body poses maps are built from: offline-SLAM poses when present, else ground truth."""
+
+
+class RangeLimited:
+    """A sequence whose frames keep only points with range in [min_range_m, max_range_m] (lidar
+    frame), as the NCLT and bag loaders do while reading: for sources that return every point
+    (a streamed simulation, whose vehicle-body hits lie within ~1.5 m). Everything else passes
+    through."""
+
+    def __init__(self, seq, min_range_m: float, max_range_m: float) -> None:
+        self.inner = seq
+        self.info = seq.info
+        self.min_range_m, self.max_range_m = float(min_range_m), float(max_range_m)
+
+    def __len__(self) -> int:
+        return len(self.inner)
+
+    def _limit(self, frame: LidarFrame) -> LidarFrame:
+        r2 = np.einsum("ij,ij->i", frame.points, frame.points)
+        return frame.select((r2 >= self.min_range_m**2) & (r2 <= self.max_range_m**2))
+
+    def frame(self, index: int) -> LidarFrame:
+        return self._limit(self.inner.frame(index))
+
+    def frames(self, start: int = 0, stop: int | None = None) -> Iterator[LidarFrame]:
+        for frame in self.inner.frames(start, stop):
+            yield self._limit(frame)
+
+    def __getattr__(self, name):
+        if name == "inner":
+            raise AttributeError(name)
+        return getattr(self.inner, name)

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -53,6 +54,8 @@ NCLT_POINT_DTYPE = np.dtype([("x", "<u2"), ("y", "<u2"), ("z", "<u2"), ("intensi
                              ("laser_id", "u1")])
 NCLT_HITS_HEADER_DTYPE = np.dtype([("magic", "<u2", (4,)), ("num_hits", "<u4"), ("utime", "<u8"),
                                    ("pad", "<u4")])
+
+_DATE_RE = re.compile(r"\d{4}-\d{2}-\d{2}")
 
 #: NCLT session dates in the order of the registry names nclt_1..nclt_5.
 NCLT_SESSIONS = ("2012-01-15", "2012-01-22", "2012-02-02", "2012-04-29", "2012-05-11")
@@ -87,6 +90,20 @@ NCLT_T_BODY_IMU = np.eye(4)
 NCLT_GRAVITY_MAP = (0.0, 0.0, 9.81)
 
 
+# --- text files -------------------------------------------------------------------------------
+
+def _text_lines(path: Path, expected: str) -> Iterator[tuple[int, str]]:
+    """(line number, text) of a CSV file; DatasetError naming the file and line at the first
+    bytes that are not UTF-8 text (a binary file given where a CSV of ``expected`` belongs)."""
+    with open(path, "rb") as fh:
+        for lineno, raw in enumerate(fh, start=1):
+            try:
+                yield lineno, raw.decode("utf-8")
+            except UnicodeDecodeError as exc:
+                raise DatasetError(f"{path}:{lineno}: binary bytes (not UTF-8 text at byte {exc.start} of "
+                                   f"the line), expected a text CSV of {expected}") from None
+
+
 # --- ground truth csv -------------------------------------------------------------------------
 
 def read_groundtruth_csv(path: str | Path) -> Trajectory:
@@ -104,20 +121,19 @@ def read_groundtruth_csv(path: str | Path) -> Trajectory:
     if not path.is_file():
         raise DatasetError(f"{path}: ground-truth file not found (expected NCLT csv: utime,x,y,z,roll,pitch,yaw)")
     rows = []
-    with open(path, "r") as fh:
-        for lineno, line in enumerate(fh, start=1):
-            s = line.strip()
-            if not s or s[0] == "#" or (lineno == 1 and s[0].isalpha()):
-                continue
-            parts = s.split(",")
-            if len(parts) < 7:
-                raise DatasetError(f"{path}:{lineno}: {len(parts)} columns, expected 7 "
-                                   "(utime,x,y,z,roll,pitch,yaw)")
-            try:
-                rows.append([float(p) for p in parts[:7]])
-            except ValueError:
-                raise DatasetError(f"{path}:{lineno}: non-numeric value in {s[:80]!r}, "
-                                   "expected utime,x,y,z,roll,pitch,yaw") from None
+    for lineno, line in _text_lines(path, "utime,x,y,z,roll,pitch,yaw"):
+        s = line.strip()
+        if not s or s[0] == "#" or (lineno == 1 and s[0].isalpha()):
+            continue
+        parts = s.split(",")
+        if len(parts) < 7:
+            raise DatasetError(f"{path}:{lineno}: {len(parts)} columns, expected 7 "
+                               "(utime,x,y,z,roll,pitch,yaw)")
+        try:
+            rows.append([float(p) for p in parts[:7]])
+        except ValueError:
+            raise DatasetError(f"{path}:{lineno}: non-numeric value in {s[:80]!r}, "
+                               "expected utime,x,y,z,roll,pitch,yaw") from None
     data = np.asarray(rows, dtype=np.float64).reshape(-1, 7)
     bad = ~np.isfinite(data).all(axis=1)
     if bad.any():
@@ -299,24 +315,23 @@ def read_ms25_csv(path: str | Path) -> ImuData:
     recovery logs one warning with the count. Fewer than 10 columns -> DatasetError naming the line.
     """
     path = Path(path)
+    what = "utime, mag xyz, accel xyz, gyro xyz"
     try:
         data = np.loadtxt(path, delimiter=",", ndmin=2, dtype=np.float64)
-    except ValueError:
+    except (ValueError, UnicodeDecodeError):  # the line scan below says where and why
         data = None
     if data is None or (data.size and data.shape[1] < 10):
-        with open(path) as fh:
-            for lineno, line in enumerate(fh, start=1):
-                parts = line.strip().split(",")
-                if not line.strip():
-                    continue
-                if len(parts) < 10:
-                    raise DatasetError(f"{path}:{lineno}: {len(parts)} columns, expected 10 "
-                                       "(utime, mag xyz, accel xyz, gyro xyz)")
-                try:
-                    [float(p) for p in parts]
-                except ValueError:
-                    raise DatasetError(f"{path}:{lineno}: non-numeric value in {line.strip()[:80]!r}, "
-                                       "expected utime, mag xyz, accel xyz, gyro xyz") from None
+        for lineno, line in _text_lines(path, what):
+            parts = line.strip().split(",")
+            if not line.strip():
+                continue
+            if len(parts) < 10:
+                raise DatasetError(f"{path}:{lineno}: {len(parts)} columns, expected 10 ({what})")
+            try:
+                [float(p) for p in parts]
+            except ValueError:
+                raise DatasetError(f"{path}:{lineno}: non-numeric value in {line.strip()[:80]!r}, "
+                                   f"expected {what}") from None
         raise DatasetError(f"{path}: rows of unequal length, expected 10 columns each")
     data = data.reshape(-1, data.shape[1] if data.size else 10)
     return _imu_from_rows(path, data[:, 0], data[:, 4:7], data[:, 7:10])
@@ -449,10 +464,28 @@ class NcltSequence:
         return float(1e6 / np.median(np.diff(self._utimes)))
 
     def _guess_date(self) -> str:
-        gts = sorted(self.session_dir.glob("groundtruth_*.csv"))
-        if gts:
-            return gts[0].stem[len("groundtruth_"):]
+        """The session's date: from its ``groundtruth_<date>.csv`` or ``slam_poses_<date>.csv``,
+        else the directory's name when it is a date (NCLT's downloads unpack into ``<date>/``),
+        else the date of the one ``groundtruth_<date>.csv`` where ground truth is searched,
+        else the directory's name."""
+        for prefix in ("groundtruth_", "slam_poses_"):
+            found = sorted(self.session_dir.glob(f"{prefix}*.csv"))
+            if found:
+                return found[0].stem[len(prefix):]
+        if _DATE_RE.fullmatch(self.session_dir.name):
+            return self.session_dir.name
+        found = self._ground_truth_candidates()
+        if len(found) == 1:
+            return found[0].stem[len("groundtruth_"):]
         return self.session_dir.name
+
+    def _ground_truth_candidates(self) -> list[Path]:
+        return sorted({p for d in self._ground_truth_dirs() for p in d.glob("groundtruth_*.csv")})
+
+    def _ground_truth_dirs(self) -> list[Path]:
+        """Where ``_find_csv`` looks for ``groundtruth_<date>.csv``, in order."""
+        parent = self.session_dir.parent
+        return [self.session_dir, parent, parent / "ground_truth", parent.parent / "ground_truth"]
 
     @staticmethod
     def _list_sync(sync_dir: Path) -> np.ndarray:
@@ -480,10 +513,8 @@ class NcltSequence:
             f"from the NCLT site and unpack it into {self.session_dir.parent})")
 
     def _find_csv(self, fname: str, only_session: bool = False) -> Path | None:
-        cands = [self.session_dir / fname]
-        if not only_session:
-            cands += [self.session_dir.parent / fname, self.session_dir.parent / "ground_truth" / fname,
-                      self.session_dir.parent.parent / "ground_truth" / fname]
+        dirs = self._ground_truth_dirs()
+        cands = [d / fname for d in (dirs[:1] if only_session else dirs)]
         for c in cands:
             if c.is_file():
                 return c
@@ -491,15 +522,14 @@ class NcltSequence:
 
     def _peek_imu_rate(self) -> float:
         stamps = []
-        with open(self._ms25_path) as fh:
-            for line in fh:
-                head = line.split(",", 1)[0].strip()
-                try:
-                    stamps.append(float(head))
-                except ValueError:
-                    continue
-                if len(stamps) >= 200:
-                    break
+        for _, line in _text_lines(self._ms25_path, "utime, mag xyz, accel xyz, gyro xyz"):
+            head = line.split(",", 1)[0].strip()
+            try:
+                stamps.append(float(head))
+            except ValueError:
+                continue
+            if len(stamps) >= 200:
+                break
         dt = np.diff(np.sort(np.asarray(stamps))) * 1e-6
         dt = dt[dt > 0]
         return float(round(1.0 / np.median(dt), 1)) if len(dt) else 100.0
@@ -562,8 +592,15 @@ class NcltSequence:
     def ground_truth(self) -> Trajectory | None:
         if self._gt is False:
             if self._gt_path is None:
-                log.warning("%s: no groundtruth_%s.csv found; sequence has no ground truth",
-                            self.session_dir, self.date)
+                # name the date as well as the pattern: a guessed date (the directory's name,
+                # e.g. 'loc') is not a file name anyone should create
+                others = self._ground_truth_candidates()
+                # a date guessed from a directory called e.g. 'loc' is no file name to create
+                date = self.date if _DATE_RE.fullmatch(self.date) else "<date>"
+                log.warning("%s: no ground truth: no groundtruth_%s.csv in %s%s; --poses FILE gives a "
+                            "reference trajectory", self.session_dir, date,
+                            ", ".join(str(d) for d in self._ground_truth_dirs()),
+                            f" (found {', '.join(p.name for p in others)}, of other dates)" if others else "")
                 self._gt = None
             else:
                 self._gt = read_groundtruth_csv(self._gt_path)
@@ -696,3 +733,18 @@ def write_session(out_dir: str | Path, *, date: str, frames: Iterable[LidarFrame
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+# ----------------------------------------------------------------------------- as a --seq path
+PRESET = "nclt"  # the config preset of an NCLT session (a ``blockloc sim`` one: "sim")
+
+
+def detect(path: Path) -> bool:
+    """True for an NCLT-layout session directory (it has ``velodyne_sync/``)."""
+    return path.is_dir() and (path / "velodyne_sync").is_dir()
+
+
+def open_path(path: Path, options: dict) -> "NcltSequence":
+    """The session at ``path``; options: min_range_m, max_range_m, use_hits_times."""
+    return NcltSequence(path, use_hits_times=bool(options.get("use_hits_times", True)),
+                        min_range_m=options.get("min_range_m", 1.0), max_range_m=options.get("max_range_m", 100.0))

@@ -14,8 +14,13 @@ map (:meth:`build_hint`). Names:
   bag or in ``ground_truth/``; topics ``/velodyne_points`` and ``/handsfree/imu``.
 - ``sim:<preset>/<session>[@<seed>]``: a simulated session streamed on the fly, seed 1 by default.
 - a path: an NCLT-layout session directory (has ``velodyne_sync/``; written by ``blockloc sim``
-  when ``sim.json`` lies beside it), a ROS1 ``.bag`` file, or a ROS2 bag directory (has
-  ``metadata.yaml``).
+  when ``sim.json`` lies beside it), a ROS1 ``.bag`` file, a ROS2 bag directory (has
+  ``metadata.yaml``), or a folder of point clouds with a trajectory (``scans/*.pcd|bin|ply`` plus
+  ``poses.tum`` or ``poses.txt``: :mod:`blockloc.datasets.scanfolder`).
+
+Any sequence may be given its trajectory from a file (``poses=``, the commands' ``--poses``):
+the poses become its ground truth and mapping poses (:func:`blockloc.datasets.with_poses.
+with_trajectory`).
 
 The data root is the ``data_root`` argument, else the dataset settings' ``data_root``, else
 ``$BLOCKLOC_DATA``, else ``./data``.
@@ -51,6 +56,25 @@ M2DGR_IMU_TOPIC = "/handsfree/imu"
 _SIM_RE = re.compile(r"^sim:(?P<preset>[A-Za-z0-9_\-]+)/(?P<session>[A-Za-z0-9_\-]+)(@(?P<seed>\d+))?$")
 MAP_KINDS = ("block", "grid")
 
+#: Loaders of ``--seq`` paths, tried in this order: kind -> module with ``detect(path) -> bool``,
+#: ``open_path(path, options) -> Sequence`` and ``PRESET`` (config preset or None); one that
+#: reads ``options["poses"]`` itself sets ``TAKES_POSES = True`` (else the sequence is wrapped by
+#: ``with_trajectory``). A new loader is one module plus one line here.
+PATH_LOADERS = {
+    "nclt_dir": "blockloc.datasets.nclt",
+    "rosbag": "blockloc.datasets.rosbag",
+    "scan_folder": "blockloc.datasets.scanfolder",
+}
+_PATH_KINDS = ("an NCLT-layout session directory (with velodyne_sync/), a ROS1 .bag file, a ROS2 bag "
+               "directory (with metadata.yaml) or a folder of point clouds (.pcd/.bin/.ply, itself or "
+               "in scans/)")
+
+
+def _loader(kind: str):
+    import importlib
+
+    return importlib.import_module(PATH_LOADERS[kind])
+
 
 def known_names() -> list[str]:
     """Dataset names besides paths and ``sim:`` names."""
@@ -74,7 +98,8 @@ def map_kind_for_backend(backend: str) -> str:
 class SequenceRef:
     """A parsed ``--seq`` value.
 
-    kind: ``sim`` | ``nclt`` | ``m2dgr`` (names), ``nclt_dir`` | ``sim_dir`` | ``rosbag`` (paths).
+    kind: ``sim`` | ``nclt`` | ``m2dgr`` (names), or a key of ``PATH_LOADERS`` (``nclt_dir`` |
+    ``rosbag`` | ``scan_folder``) for paths.
     text: the value as given. sim: (preset, session, seed) for ``sim``. path: the file or
     directory for path kinds. preset: the config preset that fits (``sim`` | ``nclt`` | ``m2dgr``
     | None).
@@ -102,35 +127,52 @@ class SequenceRef:
         if name in M2DGR_NAMES:
             return cls(name, "m2dgr", "m2dgr")
         path = Path(name).expanduser()
-        if path.is_dir() and (path / "velodyne_sync").is_dir():
-            sim_written = (path.parent / "sim.json").is_file()
-            return cls(name, "sim_dir" if sim_written else "nclt_dir", "sim" if sim_written else "nclt",
-                       path=path)
-        if (path.is_file() and path.suffix == ".bag") or (path.is_dir() and (path / "metadata.yaml").is_file()):
-            sim_written = (path.parent / "sim.json").is_file()
-            return cls(name, "rosbag", "sim" if sim_written else None, path=path)
+        for kind in PATH_LOADERS:
+            loader = _loader(kind)
+            if loader.detect(path):
+                # a session written by `blockloc sim` (sim.json beside it) is simulated data
+                preset = "sim" if (path.parent / "sim.json").is_file() else loader.PRESET
+                return cls(name, kind, preset, path=path)
         if path.exists():
-            raise DatasetError(f"{path}: not a sequence; expected an NCLT-layout session directory "
-                               "(with velodyne_sync/), a ROS1 .bag file or a ROS2 bag directory "
-                               "(with metadata.yaml)")
+            raise DatasetError(f"{path}: not a sequence; expected {_PATH_KINDS}")
         if "/" in name or os.sep in name or name.endswith(".bag"):
-            raise DatasetError(f"{path}: no such file or directory (expected an NCLT-layout session "
-                               "directory, a ROS1 .bag or a ROS2 bag directory)")
+            raise DatasetError(f"{path}: no such file or directory (expected {_PATH_KINDS})")
         raise DatasetError(f"unknown sequence {name!r}: expected a path or one of "
                            f"{', '.join(known_names())}, sim:<preset>/<session>[@<seed>]")
 
     # ------------------------------------------------------------------ opening
     def open(self, *, data_root: str | Path | None = None, dataset_cfg: Any = None,
-             lidar_topic: str | None = None, imu_topic: str | None = None):
+             lidar_topic: str | None = None, imu_topic: str | None = None, poses=None,
+             poses_frame: str | None = None):
         """The Sequence this names. dataset_cfg: the dataset settings (range limits, hits use,
-        topics, data root; read by attribute); explicit arguments override it."""
-        ranges = dict(min_range_m=float(getattr(dataset_cfg, "min_range_m", 1.0)),
-                      max_range_m=float(getattr(dataset_cfg, "max_range_m", 100.0)))
-        use_hits = bool(getattr(dataset_cfg, "use_hits_times", True))
+        topics, data root; read by attribute); explicit arguments override it. poses: a
+        trajectory file (TUM, KITTI, NCLT csv) or Trajectory giving its ground truth and mapping
+        poses (T_map_body); poses_frame: that trajectory's frame name."""
+        options = dict(min_range_m=float(getattr(dataset_cfg, "min_range_m", 1.0)),
+                       max_range_m=float(getattr(dataset_cfg, "max_range_m", 100.0)),
+                       use_hits_times=bool(getattr(dataset_cfg, "use_hits_times", True)),
+                       lidar_topic=lidar_topic or getattr(dataset_cfg, "lidar_topic", None),
+                       imu_topic=imu_topic or getattr(dataset_cfg, "imu_topic", None))
+        if self.kind in PATH_LOADERS:
+            loader = _loader(self.kind)
+            seq = loader.open_path(self.path, {**options, "poses": poses, "poses_frame": poses_frame})
+            if getattr(loader, "TAKES_POSES", False):  # it used ``poses`` itself
+                return seq
+        else:
+            seq = self._open_named(data_root, dataset_cfg, lidar_topic, imu_topic, options)
+        if poses is None:
+            return seq
+        from blockloc.datasets.with_poses import with_trajectory
+
+        return with_trajectory(seq, poses, frame_name=poses_frame)
+
+    def _open_named(self, data_root, dataset_cfg, lidar_topic, imu_topic, options):
+        ranges = {k: options[k] for k in ("min_range_m", "max_range_m")}
         if self.kind == "sim":
+            from blockloc.datasets.base import RangeLimited
             from blockloc.sim.stream import open_sim_sequence
 
-            return open_sim_sequence(*self.sim)
+            return RangeLimited(open_sim_sequence(*self.sim), ranges["min_range_m"], ranges["max_range_m"])
         if self.kind == "nclt":
             from blockloc.datasets.nclt import NcltSequence
 
@@ -139,24 +181,13 @@ class SequenceRef:
             cands = [root / "nclt" / date, root / "NCLT" / date, root / date]
             for c in cands:
                 if (c / "velodyne_sync").is_dir():
-                    return NcltSequence(c, use_hits_times=use_hits, date=date, name=self.text, **ranges)
+                    return NcltSequence(c, use_hits_times=options["use_hits_times"], date=date, name=self.text,
+                                        **ranges)
             raise DatasetError(
                 f"{self.text}: NCLT session {date} not found: expected {cands[0]}/velodyne_sync/ "
                 f"(unpack {date}_vel.tar.gz and {date}_sen.tar.gz from the NCLT site into {root / 'nclt'}, "
                 f"put groundtruth_{date}.csv in {cands[0]}; data root from --data-root or BLOCKLOC_DATA)")
-        if self.kind == "m2dgr":
-            return self._open_m2dgr(data_root, dataset_cfg, lidar_topic, imu_topic, ranges)
-        if self.kind in ("nclt_dir", "sim_dir"):
-            from blockloc.datasets.nclt import NcltSequence
-
-            return NcltSequence(self.path, use_hits_times=use_hits, **ranges)
-        from blockloc.datasets.rosbag import RosbagSequence
-
-        return RosbagSequence(self.path,
-                              lidar_topic=lidar_topic or getattr(dataset_cfg, "lidar_topic", None)
-                              or "/velodyne_points",
-                              imu_topic=imu_topic or getattr(dataset_cfg, "imu_topic", None) or "/imu",
-                              **ranges)
+        return self._open_m2dgr(data_root, dataset_cfg, lidar_topic, imu_topic, ranges)
 
     def _open_m2dgr(self, data_root, dataset_cfg, lidar_topic, imu_topic, ranges):
         from blockloc.datasets.rosbag import RosbagSequence
@@ -186,7 +217,7 @@ class SequenceRef:
             return f"sim:{preset}/map@{seed}"
         if self.kind == "nclt":
             return "nclt_1" if self.text != "nclt_1" else "nclt_3"
-        if self.kind in ("sim_dir", "rosbag") and self.preset == "sim" and (self.path.parent / "map").exists():
+        if self.path is not None and self.preset == "sim" and (self.path.parent / "map").exists():
             return str(self.path.parent / "map")
         return None
 
@@ -209,7 +240,7 @@ class SequenceRef:
             return cache_root() / "maps" / f"{preset}_{seed}_{kind}-{key}"
         if self.kind == "nclt":
             return resolve_data_root(data_root, dataset_cfg) / "maps" / f"nclt_{kind}"
-        if self.kind in ("sim_dir", "rosbag") and self.mapping_source() is not None:
+        if self.path is not None and self.mapping_source() is not None:
             return self.path.parent / f"{kind}_map"
         raise MapError(f"no default map for sequence {self.text!r}: give --map MAP (build one with "
                        f"'blockloc map build --seq <mapping session> --kind {kind} --out MAP')")

@@ -121,21 +121,88 @@ def _open_reader(path: Path):
     return reader
 
 
+SIDECAR_SUFFIX = ".blockloc.json"
+
+
+def sidecar_path(bag: str | Path) -> Path:
+    """The calibration / ground-truth sidecar beside a bag: ``<bag>.blockloc.json`` (a ROS1
+    ``x.bag`` -> ``x.bag.blockloc.json``; a ROS2 bag directory ``x/`` -> ``x.blockloc.json``)."""
+    bag = Path(bag)
+    return bag.with_name(bag.name.rstrip("/") + SIDECAR_SUFFIX)
+
+
+def write_sidecar(bag: str | Path, *, T_body_lidar, T_body_imu, gravity_map,
+                  ground_truth: str | None = None, mapping_poses: str | None = None) -> Path:
+    """Write the sidecar the loader reads (see ``RosbagSequence``): extrinsics (4x4, body <- sensor),
+    gravity in the map frame (m/s^2) and the names of the ground-truth / mapping-pose files
+    (relative to the bag's directory; NCLT csv or TUM, T_map_body)."""
+    import json
+
+    from blockloc.fileio import atomic_write_text
+
+    doc = {"format": "blockloc bag sidecar", "version": 1,
+           "T_body_lidar": np.asarray(T_body_lidar, float).tolist(),
+           "T_body_imu": np.asarray(T_body_imu, float).tolist(),
+           "gravity_map": [float(g) for g in gravity_map]}
+    if ground_truth:
+        doc["ground_truth"] = str(ground_truth)
+    if mapping_poses:
+        doc["mapping_poses"] = str(mapping_poses)
+    out = sidecar_path(bag)
+    atomic_write_text(out, json.dumps(doc, indent=1) + "\n")
+    return out
+
+
+def _read_sidecar(bag: Path) -> dict:
+    import json
+
+    p = sidecar_path(bag)
+    if not p.is_file():
+        return {}
+    try:
+        doc = json.loads(p.read_text())
+        for k in ("T_body_lidar", "T_body_imu"):
+            if k in doc and np.asarray(doc[k], float).shape != (4, 4):
+                raise ValueError(f"{k} is not 4x4")
+        if "gravity_map" in doc and np.asarray(doc["gravity_map"], float).shape != (3,):
+            raise ValueError("gravity_map is not 3 numbers")
+    except (ValueError, TypeError) as exc:
+        raise DatasetError(f"{p}: not a valid bag sidecar ({exc}); expected JSON with T_body_lidar "
+                           "(4x4), T_body_imu (4x4), gravity_map (3) and optional ground_truth") from None
+    for k in ("ground_truth", "mapping_poses"):
+        if k in doc:
+            doc[k] = p.parent / doc[k]
+    return doc
+
+
 class RosbagSequence:
     """A ROS1/ROS2 bag as a ``Sequence``.
 
     On open, the lidar topic is indexed (bag time and header stamp of every message, read from
     the raw message bytes without decoding the clouds); ``frame(i)`` then reads the one message.
-    Points are in the cloud's own frame (``lidar``); ``T_body_lidar``/``T_body_imu`` default to
-    identity, ``gravity_map`` to z-up. ``ground_truth_path``: a TUM file (``t x y z qx qy qz qw``)
-    or an NCLT-style csv, T_map_body. ``mapping_poses()`` returns the ground truth.
+    Points are in the cloud's own frame (``lidar``). Calibration and ground truth come from the
+    arguments, else from a sidecar ``<bag>.blockloc.json`` beside the bag (``write_sidecar``;
+    ``blockloc sim --format rosbag1|rosbag2`` writes one), else ``T_body_lidar``/``T_body_imu``
+    are identity and ``gravity_map`` z-up. ``ground_truth_path``: a TUM file (``t x y z qx qy
+    qz qw``) or an NCLT-style csv, T_map_body. ``mapping_poses()``: the sidecar's mapping poses
+    (a mapping drive's offline-SLAM poses) or the ground truth.
     """
 
     def __init__(self, path: str | Path, *, lidar_topic: str, imu_topic: str,
                  T_body_lidar: np.ndarray | None = None, T_body_imu: np.ndarray | None = None,
-                 gravity_map=(0.0, 0.0, -9.81), ground_truth_path: str | Path | None = None,
+                 gravity_map=None, ground_truth_path: str | Path | None = None,
                  min_range_m: float = 0.0, max_range_m: float = np.inf, name: str | None = None):
         self.path = Path(path)
+        side = _read_sidecar(self.path)
+        if side:
+            log.info("%s: calibration and ground truth from %s", self.path, sidecar_path(self.path))
+        T_body_lidar = side.get("T_body_lidar") if T_body_lidar is None else T_body_lidar
+        T_body_imu = side.get("T_body_imu") if T_body_imu is None else T_body_imu
+        if gravity_map is None:
+            gravity_map = side.get("gravity_map", (0.0, 0.0, -9.81))
+        ground_truth_path = ground_truth_path or side.get("ground_truth")
+        self._mp_path = side.get("mapping_poses")
+        self._mp: Trajectory | None = None
         self.lidar_topic, self.imu_topic = lidar_topic, imu_topic
         self.min_range_m, self.max_range_m = float(min_range_m), float(max_range_m)
         self._reader = _open_reader(self.path)
@@ -258,6 +325,10 @@ class RosbagSequence:
         return self._gt
 
     def mapping_poses(self) -> Trajectory | None:
+        if self._mp_path is not None:
+            if self._mp is None:
+                self._mp = read_trajectory_file(self._mp_path)
+            return self._mp
         return self.ground_truth()
 
     def close(self) -> None:
@@ -440,3 +511,19 @@ def write_rosbag(path: str | Path, frames: Iterable[LidarFrame], imu: ImuData, *
         return path
     finally:
         shutil.rmtree(tmpdir, ignore_errors=True)
+
+
+# ----------------------------------------------------------------------------- as a --seq path
+PRESET = None  # no preset fits every bag
+
+
+def detect(path: Path) -> bool:
+    """True for a ROS1 ``.bag`` file or a ROS2 bag directory (``metadata.yaml``)."""
+    return (path.is_file() and path.suffix == ".bag") or (path.is_dir() and (path / "metadata.yaml").is_file())
+
+
+def open_path(path: Path, options: dict) -> "RosbagSequence":
+    """The bag at ``path``; options: lidar_topic, imu_topic, min_range_m, max_range_m."""
+    return RosbagSequence(path, lidar_topic=options.get("lidar_topic") or "/velodyne_points",
+                          imu_topic=options.get("imu_topic") or "/imu",
+                          min_range_m=options.get("min_range_m", 0.0), max_range_m=options.get("max_range_m", np.inf))

@@ -386,3 +386,20 @@ def _rate(stamps: np.ndarray, default: float) -> float:
     dt = np.diff(np.asarray(stamps, np.float64))
     dt = dt[dt > 0]
     return float(round(1.0 / np.median(dt), 2)) if len(dt) else float(default)
+
+
+# ----------------------------------------------------------------------------- as a --seq path
+PRESET = None  # any sensor
+TAKES_POSES = True  # a trajectory replaces the folder's own poses file
+
+
+def detect(path: Path) -> bool:
+    return is_scan_folder(path)
+
+
+def open_path(path: Path, options: dict) -> ScanFolderSequence:
+    """The folder at ``path``; options: min_range_m, max_range_m, poses, poses_frame (its own
+    trajectory file is overridden by ``poses``: one reading of the folder either way)."""
+    return ScanFolderSequence(path, poses=options.get("poses"), frame_name=options.get("poses_frame"),
+                              min_range_m=options.get("min_range_m", 0.0),
+                              max_range_m=options.get("max_range_m", np.inf))

@@ -35,9 +35,11 @@ from blockloc.errors import DatasetError
 from blockloc.geometry import Trajectory
 # A frame this far outside the trajectory's time range is still covered (the end pose is held,
 # not extrapolated): map building's own tolerance.
-from blockloc.maps.mapping import POSE_TIME_TOLERANCE_S
 
 log = logging.getLogger(__name__)
+
+# Frames further than this from a trajectory's time range are not given poses (no extrapolation).
+POSE_TIME_TOLERANCE_S = 0.05
 
 #: Default gap rule: a gap between poses longer than this many median spacings (and than
 #: MIN_GAP_S) leaves the frames inside it uncovered.
@@ -233,14 +235,13 @@ def with_trajectory(seq, traj, frame_name: str | None = None, *, max_gap_s: floa
     traj: a trajectory file path (TUM, KITTI with or without times, NCLT csv), a
     :class:`~blockloc.geometry.Trajectory` or a ``TrajectoryFile``; poses T_map_body of the
     sequence's body frame. frame_name: the trajectory's frame, recorded as ``info.map_frame``
-    (default "map"; for a scan folder, its extrinsics.yaml ``map_frame`` if set). A scan folder
-    is reopened with these poses (so equal counts pair by index); any other sequence is wrapped
-    in a :class:`TrajectorySequence` (poses interpolated at its frame stamps).
+    (default "map"; for a scan folder, its extrinsics.yaml ``map_frame`` if set). A sequence
+    with a ``with_poses`` method (a scan folder) is reopened with these poses (so equal counts
+    pair by index); any other sequence is wrapped in a :class:`TrajectorySequence` (poses
+    interpolated at its frame stamps).
     """
-    from blockloc.datasets.scanfolder import ScanFolderSequence
-
     if isinstance(seq, TrajectorySequence):
         seq = seq.inner
-    if isinstance(seq, ScanFolderSequence):
+    if hasattr(seq, "with_poses"):  # a sequence that reopens itself with poses (a scan folder)
         return seq.with_poses(traj, frame_name=frame_name, max_gap_s=max_gap_s)
     return TrajectorySequence(seq, traj, frame_name=frame_name, max_gap_s=max_gap_s)

@@ -202,8 +202,8 @@ def refine_gravity_by_ndt(refiner, points_body: np.ndarray, T_map_body: np.ndarr
                           gravity_map) -> tuple[np.ndarray, GravityEstimate]:
     """Refine a candidate pose by NDT and read gravity in the body frame off the refined attitude.
 
-    refiner: a :class:`~blockloc.global_init.refine.Refiner` (NDT target over the map, built once)
-    or map points (M, 3), map frame, metres. points_body: (N, 3) the scan, body frame.
+    refiner: a :class:`~blockloc.global_init.refine.Refiner` (a registration target over the map,
+    built once) or map points (M, 3), map frame, metres (an NDT target at 1 m is built). points_body: (N, 3) the scan, body frame.
     T_map_body: (4, 4) the candidate (its roll and pitch from :func:`gravity_from_scan`).
     gravity_map: (3,) gravity in the map frame. Returns (refined T_map_body (4, 4), the estimate
     with method 'ndt', confidence = NDT inlier ratio, 0 when NDT did not converge).
@@ -211,7 +211,9 @@ def refine_gravity_by_ndt(refiner, points_body: np.ndarray, T_map_body: np.ndarr
     from blockloc.global_init.refine import Refiner
 
     if not isinstance(refiner, Refiner):
-        refiner = Refiner(np.asarray(refiner, np.float64))
+        from blockloc.registration.engines import make_engine
+
+        refiner = Refiner(make_engine("ndt", resolution_m=1.0), np.asarray(refiner, np.float64))
     res = refiner.align(np.asarray(points_body, np.float64), np.asarray(T_map_body, np.float64))
     g = np.asarray(gravity_map, np.float64).reshape(3)
     direction = res.T_map_body[:3, :3].T @ (g / np.linalg.norm(g))

@@ -383,7 +383,7 @@ class BlockMapBuilder:
 
 def build_block_map(keyframes: Iterable[Keyframe | tuple], *, block_size_m: float = 100.0,
                     voxel_size_m: float = 0.2, out: str | Path | None = None,
-                    params: dict | None = None, overwrite: bool = False):
+                    params: dict | None = None, overwrite: bool = False, frame: str = "map"):
     """Block map from keyframes whose points are already in the map frame.
 
     keyframes: :class:`~blockloc.maps.mapping.Keyframe` objects, or tuples
@@ -405,11 +405,11 @@ def build_block_map(keyframes: Iterable[Keyframe | tuple], *, block_size_m: floa
     builder.finish()
     if out is None:
         return builder
-    return write_block_map(builder, out, params=params, overwrite=overwrite)
+    return write_block_map(builder, out, params=params, overwrite=overwrite, frame=frame)
 
 
 def write_block_map(builder: BlockMapBuilder, out: str | Path, *, params: dict | None = None,
-                    overwrite: bool = False):
+                    overwrite: bool = False, frame: str = "map"):
     """Write the builder's blocks as a block store (``%03d.pcd`` + CentroidCloud + manifest)."""
     from blockloc.maps.store import MapWriter
 
@@ -418,29 +418,8 @@ def write_block_map(builder: BlockMapBuilder, out: str | Path, *, params: dict |
          "events": {a: sum(e.action == a for e in builder.events)
                     for a in ("new", "merge", "skip", "tail")},
          **(params or {})}
-    with MapWriter(out, "block", params=p, overwrite=overwrite) as w:
+    with MapWriter(out, "block", frame=frame, params=p, overwrite=overwrite) as w:
         for i, b in enumerate(builder.blocks):
             w.add(f"{i:03d}", b.points, b.intensity, file=f"{i:03d}.pcd", centroid=b.centroid,
                   keyframes=builder.keyframe_positions_of(i))
         return w.commit()
-
-
-def build_block_map_from_sequence(seq, *, block_size_m: float = 100.0,
-                                  keyframe_distance_m: float = 1.0, keyframe_angle_deg: float = 15.0,
-                                  voxel_size_m: float = 0.2, out: str | Path,
-                                  deskew: bool = True, progress: bool = False,
-                                  overwrite: bool = False, max_frames: int | None = None,
-                                  executor=None):
-    """Block map from a mapping sequence and its ``mapping_poses()``; written atomically to ``out``.
-
-    Runs the build plan of :mod:`blockloc.maps.build_plan` (``executor``: None = in this
-    process; a Dask executor from :mod:`blockloc.maps.distributed` = on a cluster, same bytes).
-    Returns the opened :class:`~blockloc.maps.store.MapStore`.
-    """
-    from blockloc.maps.build_plan import Drive, build_map_from_drives
-
-    return build_map_from_drives(
-        [Drive.of(seq, stop=max_frames)], "block", out, block_size_m=block_size_m,
-        keyframe_distance_m=keyframe_distance_m, keyframe_angle_deg=keyframe_angle_deg,
-        voxel_size_m=voxel_size_m, deskew=deskew, progress=progress, overwrite=overwrite,
-        executor=executor)

@@ -135,7 +135,13 @@ class _Tasks:
     def _tick(self, _fut) -> None:  # Dask calls it from its own thread
         with self._lock:
             self._done += 1
-            self._show()
+            try:
+                self._show()
+            except BaseException:
+                # the callback stops a build by raising (a signal came): in the main thread that
+                # ends the build; in Dask's thread the main thread's own signal handler does
+                if threading.current_thread() is threading.main_thread():
+                    raise
 
     def _show(self) -> None:
         total = max(self._expected, len(self.futures))
@@ -265,6 +271,22 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
     log.info("%s map %s: %d entries from %d drive(s), %d tasks (%s)", kind, out, len(store),
              len(plans), len(tasks.futures), getattr(executor, "description", executor))
     return store
+
+
+def build_block_map_from_sequence(seq, *, out: str | Path, max_frames: int | None = None,
+                                  **settings):
+    """Block map from one mapping sequence and its ``mapping_poses()`` (its first ``max_frames``
+    frames), written atomically to ``out``: :func:`build_map_from_drives` with one drive;
+    ``settings``: its keyword arguments (block_size_m, keyframe_distance_m, keyframe_angle_deg,
+    voxel_size_m, deskew, executor, progress, overwrite). Returns the opened store."""
+    return build_map_from_drives([Drive.of(seq, stop=max_frames)], "block", out, **settings)
+
+
+def build_grid_map_from_sequence(seq, *, out: str | Path, max_frames: int | None = None,
+                                 **settings):
+    """Grid store from one mapping sequence (tile_size_m and the rest of ``settings`` as for
+    :func:`build_block_map_from_sequence`): each tile holds the voxel filter of its points."""
+    return build_map_from_drives([Drive.of(seq, stop=max_frames)], "grid", out, **settings)
 
 
 def _open_writer(out, kind: str, overwrite: bool):

@@ -21,7 +21,8 @@ import numpy as np
 
 from blockloc.errors import MapError
 from blockloc.geometry import Trajectory
-from blockloc.maps.mapping import Keyframe, select_keyframes, voxel_downsample
+from blockloc.maps.mapping import Keyframe, select_keyframes
+from blockloc.voxels import voxel_downsample
 
 log = logging.getLogger(__name__)
 
@@ -131,7 +132,8 @@ def build_map_from_global_pcd(pcd_path: str | Path, traj_path, kind: str, out: s
         raise MapError(f"{pcd_path}: holds no finite points, nothing to build a map from")
     traj, _, label = load_trajectory(traj_path, what="mapping trajectory")
     frame = frame_name or "map"
-    pts, inten = voxel_downsample(cloud.points.astype(np.float64), cloud.intensity, voxel_size_m)
+    pts, inten = voxel_downsample(cloud.points.astype(np.float64), voxel_size_m, cloud.intensity)
+    pts = pts.astype(np.float32)
     log.info("%s: %d points, %d after the %.2f m voxel filter", pcd_path, len(cloud), len(pts),
              voxel_size_m)
     params = {"source": str(pcd_path), "trajectory": label, "trajectory_frame": frame,

@@ -276,33 +276,14 @@ class GridMapBuilder:
             return np.zeros((0, 3), np.float32), np.zeros(0, np.float32)
         return np.concatenate(parts_p), np.concatenate(parts_i)
 
-    def finish(self, out: str | Path, *, params: dict | None = None, overwrite: bool = False):
+    def finish(self, out: str | Path, *, params: dict | None = None, overwrite: bool = False,
+               frame: str = "map"):
         """Write the grid store atomically to ``out``; returns the opened store."""
         if self.num_keyframes == 0:
             raise MapError("no keyframes to build a grid map from (empty session?)")
         pts, inten = self.points()
         p = {"voxel_size_m": self.voxel_size_m, "num_keyframes": self.num_keyframes, **(params or {})}
-        return tile_global_map(pts, inten, self.tile_size_m, out, params=p, overwrite=overwrite)
-
-
-def build_grid_map_from_sequence(seq, *, tile_size_m: float = 20.0, keyframe_distance_m: float = 1.0,
-                                 keyframe_angle_deg: float = 15.0, voxel_size_m: float = 0.2,
-                                 out: str | Path, deskew: bool = True, progress: bool = False,
-                                 overwrite: bool = False, max_frames: int | None = None,
-                                 executor=None):
-    """Grid store from a mapping sequence: keyframes into the map frame (deskewed), voxel filter
-    per tile, tiles written atomically to ``out``. Returns the opened store.
-
-    Runs the build plan of :mod:`blockloc.maps.build_plan` (``executor``: None = in this
-    process; a Dask executor from :mod:`blockloc.maps.distributed` = on a cluster, same bytes).
-    """
-    from blockloc.maps.build_plan import Drive, build_map_from_drives
-
-    return build_map_from_drives(
-        [Drive.of(seq, stop=max_frames)], "grid", out, tile_size_m=tile_size_m,
-        keyframe_distance_m=keyframe_distance_m, keyframe_angle_deg=keyframe_angle_deg,
-        voxel_size_m=voxel_size_m, deskew=deskew, progress=progress, overwrite=overwrite,
-        executor=executor)
+        return tile_global_map(pts, inten, self.tile_size_m, out, frame=frame, params=p, overwrite=overwrite)
 
 
 # --------------------------------------------------------------------------- Algorithm 2 window

@@ -13,6 +13,7 @@ from typing import Iterator
 
 import numpy as np
 
+from blockloc.datasets.with_poses import POSE_TIME_TOLERANCE_S  # frames outside: not mapped
 from blockloc.errors import MapError
 from blockloc.geometry import Trajectory, rotation_angle
 
@@ -21,8 +22,6 @@ log = logging.getLogger(__name__)
 # Per-point deskew: poses are interpolated at this many instants across a sweep; at 10 Hz and
 # 1.5 m/s one bin is 3 ms, i.e. < 5 mm of motion.
 DESKEW_BINS = 32
-# Frames further than this from the pose time range are not mapped (no extrapolation).
-POSE_TIME_TOLERANCE_S = 0.05
 
 
 @dataclass
@@ -38,16 +37,6 @@ class Keyframe:
     @property
     def position(self) -> np.ndarray:
         return self.T_map_lidar[:3, 3]
-
-
-def voxel_downsample(points: np.ndarray, intensity: np.ndarray | None, voxel_size_m: float
-                     ) -> tuple[np.ndarray, np.ndarray | None]:
-    """:func:`blockloc.voxels.voxel_downsample` in this module's older argument order
-    (``maps.from_pcd`` uses it), points returned as (M, 3) float32."""
-    from blockloc.voxels import voxel_downsample as centroids
-
-    pts, inten = centroids(points, voxel_size_m, intensity)
-    return pts.astype(np.float32), inten
 
 
 def select_keyframes(poses: np.ndarray, distance_m: float, angle_deg: float) -> np.ndarray:

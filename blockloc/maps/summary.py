@@ -53,3 +53,51 @@ def map_summary(store: MapStore, with_overlap: bool = True) -> dict[str, Any]:
     if with_overlap:
         out["overlap_ratio"] = overlap_ratio(store)
     return out
+
+
+def entry_footprint(store: MapStore, entry, margin_m: float | None = None) -> np.ndarray | None:
+    """(K, 2) polygon, map frame x/y metres, of the area an entry serves, or None when unknown.
+
+    Grid tiles: the tile's square. Blocks: the convex hull of the keyframe positions the block was
+    built from, grown by ``margin_m`` (default: a tenth of the block size, at least 2 m): where the
+    robot is when this block is the one served. A block's stored bounds are not that: its points
+    reach sensor range, so the bounds of neighbouring blocks nearly all overlap. Blocks of the
+    released layout (no keyframes) have no footprint (None).
+    """
+    if store.kind == "grid":
+        from blockloc.maps.grid_tiles import tile_bounds
+
+        lo, hi = tile_bounds(entry.id, float(store.params["tile_size_m"]))
+        return np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]], np.float64)
+    if entry.keyframes is None or len(entry.keyframes) == 0:
+        return None
+    if margin_m is None:
+        margin_m = max(0.1 * float(store.params.get("block_size_m", 20.0) or 20.0), 2.0)
+    angles = np.linspace(0.0, 2 * np.pi, 16, endpoint=False)
+    ring = margin_m * np.c_[np.cos(angles), np.sin(angles)]
+    pts = (np.asarray(entry.keyframes, np.float64)[:, None, :2] + ring[None]).reshape(-1, 2)
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        return pts[ConvexHull(pts).vertices]
+    except QhullError:  # all keyframes on a line: the grown segment's box
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        return np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
+
+
+def map_points_xy(store: MapStore, max_points: int = 150_000) -> np.ndarray:
+    """(K, 2) map x/y of at most about ``max_points`` points, strided entry by entry (the whole
+    map is never loaded at once; entries that fail to load are skipped)."""
+    from blockloc.errors import MapError
+
+    per_entry = max(max_points // max(len(store.entries), 1), 1)
+    parts = []
+    for e in store.entries:
+        try:
+            pts, _ = store.load(e.id)
+        except MapError as exc:
+            log.warning("%s", exc)
+            continue
+        stride = max(1, len(pts) // per_entry)
+        parts.append(np.asarray(pts[::stride, :2], np.float32))
+    return np.concatenate(parts) if parts else np.zeros((0, 2), np.float32)

@@ -31,8 +31,32 @@ iterations). The step is capped to ``max_step_m`` / ``max_step_rad``, then a bac
 search (Armijo, halving up to 8 times) on the score: simpler than More-Thuente and enough with
 descent directions of the right scale (measured: on the real HDL-32E pair, 100/100 random starts
 within +-1 m, +-5 deg yaw, +-2 deg roll/pitch end within 5 cm / 0.5 deg with coarse-to-fine).
-Stops when the step norm ``|alpha * d|`` (rad and m together) < ``step_epsilon`` or after
-``max_iterations`` per level.
+A level stops when the next step ``|d|`` (rad and m together) is below its epsilon, without
+taking it (the pose then lies within about epsilon of the minimum of the quadratic model that b
+and H at that pose describe, and the evaluation after the step is saved), or when the step just
+taken is, or after ``max_iterations``.
+
+Stages of ``align`` (defaults): each coarse level (DIRECT1 at 2 m on every k-th point, <= 1500
+points, epsilon 10 x ``step_epsilon``), then the fine level: a DIRECT1 search (``search_neighbors``,
+epsilon 10 x ``step_epsilon``; one Gaussian per point, so about half the cost of a DIRECT7 pass)
+and the DIRECT7 polish (``neighbors``, ``step_epsilon``), whose evaluation at the result gives
+score, b and H. On the real pair the polish ends at DIRECT7 alone's optimum (within 0.1 mm /
+0.002 deg when both converge tightly, tests/registration); with the default epsilon a tight
+DIRECT7 run from the result moves it by 0.3 mm / 0.005 deg (median over the bench's 60 starts;
+at most about step_epsilon), far below the scan's error against the reference (about 2 cm /
+0.13 deg).
+
+Kernels (``_ndt_kernels``): an alignment makes one Python -> numba call, ``ndt_level``, per stage
+(default: 3, coarse + search + polish), each running its stage's whole Newton loop; inside, every
+iteration is one ``ndt_evaluate`` pass over the stage's points (plus one score-only pass per
+line-search halving and a derivative pass after it, and a Gauss-Newton pass where the exact
+Hessian is indefinite: after an indefinite one, exact and Gauss-Newton matrices come from the
+same pass). Counted on the real pair (docs/bench/ndt.md): median 5 coarse (1.5k points), 2
+search and 2 polish passes (10.8k points) from tracking starts, 10, 2 and 2 from wide starts
+(the former DIRECT7-only fine level: 3). Passes of <= 2048 points run serially, larger ones in
+parallel. The
+source array is used in place (a C-contiguous float64 (N, 3) array is not copied; coarse levels
+read it with a stride); per-point voxel look-ups are memoized per level for the alignment.
 
 Threading: an ``NdtTarget`` holds its search structure in an immutable snapshot replaced as a
 whole by ``add_tile`` / ``remove_tile`` (which serialize on a lock and use serial kernels that
@@ -74,22 +98,10 @@ def _kernels():
 
 def se3_exp(xi: np.ndarray) -> np.ndarray:
     """(6,) tangent (rotation rad, translation m) -> (4, 4), GTSAM ``Pose3.Expmap``."""
-    w = np.asarray(xi[:3], dtype=np.float64)
-    v = np.asarray(xi[3:], dtype=np.float64)
-    theta2 = float(w @ w)
-    W = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    W2 = W @ W
-    if theta2 < 1e-12:
-        A, B, C = 1.0 - theta2 / 6.0, 0.5 - theta2 / 24.0, 1.0 / 6.0 - theta2 / 120.0
-    else:
-        theta = np.sqrt(theta2)
-        A = np.sin(theta) / theta
-        B = (1.0 - np.cos(theta)) / theta2
-        C = (theta - np.sin(theta)) / (theta2 * theta)
-    T = np.eye(4)
-    T[:3, :3] = np.eye(3) + A * W + B * W2
-    T[:3, 3] = (np.eye(3) + B * W + C * W2) @ v
-    return T
+    xi = np.ascontiguousarray(xi, dtype=np.float64)
+    if xi.shape != (6,):
+        raise RegistrationError(f"se3_exp: expected a (6,) tangent vector, got shape {xi.shape}")
+    return _kernels().se3_exp(xi)
 
 
 def _orthonormalize(T: np.ndarray) -> np.ndarray:
@@ -117,8 +129,8 @@ def _as_points(points: Any, what: str, min_points: int) -> np.ndarray:
     xyz = np.ascontiguousarray(arr[:, :3], dtype=np.float64)
     if len(xyz) < min_points:
         raise RegistrationError(f"{what}: {len(xyz)} points, expected at least {min_points}")
-    bad = ~np.isfinite(xyz).all(axis=1)
-    if bad.any():
+    if not np.isfinite(xyz).all():  # one flat reduction; the per-row count only on failure
+        bad = ~np.isfinite(xyz).all(axis=1)
         raise RegistrationError(f"{what}: {int(bad.sum())} of {len(xyz)} points are NaN or inf")
     return xyz
 
@@ -182,7 +194,7 @@ class _Snapshot:
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     def neighbor_table(self) -> tuple:
-        """DIRECT7 neighbour lists (built on first use, then cached; immutable afterwards).
+        """DIRECT1/7 neighbour lists (built on first use, then cached; immutable afterwards).
 
         Two threads racing here both build the same table; either result is kept.
         """
@@ -194,17 +206,15 @@ class _Snapshot:
             self._cache["nbr7"] = table
         return table
 
-
-_NO_NEIGHBOR_TABLE = None
-
-
-def _empty_neighbor_table() -> tuple:
-    global _NO_NEIGHBOR_TABLE
-    if _NO_NEIGHBOR_TABLE is None:
-        tab = np.zeros((16, 2), np.int64)
-        tab[:, 0] = -1
-        _NO_NEIGHBOR_TABLE = (tab[:, 0], tab[:, 1], 60, np.full((1, 7), -1, np.int32))
-    return _NO_NEIGHBOR_TABLE
+    def kernel_level(self) -> tuple:
+        """This level as the ``level`` tuple of the alignment kernels (see ``ndt_evaluate``)."""
+        level = self._cache.get("level")
+        if level is None:
+            ntk, ntv, nshift, nbr = self.neighbor_table()
+            level = (self.table_keys, self.table_vals, self.shift, self.gauss,
+                     1.0 / self.resolution, ntk, ntv, nshift, nbr)
+            self._cache["level"] = level
+        return level
 
 
 class NdtTarget:
@@ -358,8 +368,9 @@ class NdtTarget:
             self._combine([t.levels[level] for t in tiles], self.resolution * 2**level,
                           num_points)
             for level in range(self.coarse_levels + 1))
-        # DIRECT7 lists of the fine level now (in the updating thread), not in the first align
-        levels[0].neighbor_table()
+        # neighbour lists now (in the updating thread), not in the first align
+        for snap in levels:
+            snap.kernel_level()
         self._levels = levels
         log.debug("NDT target: %d voxels from %d tiles, %d points", self.num_voxels,
                   len(tiles), num_points)
@@ -421,9 +432,10 @@ class NdtResult:
     """Outcome of one NDT alignment.
 
     T_target_source: (4, 4) maps source points into the target (map) frame.
-    converged: the last step was below ``step_epsilon`` (False: stopped at max_iterations, or
-        no source point matched any Gaussian).
-    iterations: Newton iterations on the finest level; coarse_iterations: on coarser levels.
+    converged: the next (or the last) step was below ``step_epsilon`` (False: stopped at
+        max_iterations, or no source point matched any Gaussian).
+    iterations: Newton iterations on the finest level (search and polish); coarse_iterations:
+        on coarser levels. passes: passes of the kernels over the source points, all levels.
     score: NDT score (sum over points and neighbour Gaussians of -d1 exp(-d2 q / 2), maximized).
     error: ``-score`` (the minimized cost whose derivatives are ``b`` and ``H``).
     num_inliers: source points with some neighbour Gaussian within its 99% ellipsoid
@@ -450,6 +462,7 @@ class NdtResult:
     eigenvectors: np.ndarray = field(repr=False)
     H_exact: np.ndarray = field(repr=False, default=None)
     coarse_iterations: int = 0
+    passes: int = 0
 
     def degenerate_directions(self, threshold: float = 0.01) -> np.ndarray:
         """Tangent directions (K, 6) whose H eigenvalue < threshold x the largest (weak axes).
@@ -499,16 +512,20 @@ class NdtRegistration:
     """NDT aligner: settings only; reuse one instance and one target for many scans.
 
     neighbors: DIRECT1 | DIRECT7 | DIRECT27, the voxel containing the transformed point, plus its 6
-    face neighbours, plus all 26 neighbours. coarse_to_fine: when the target has coarse levels,
-    first align on them (``coarse_neighbors``, stopping at 10 x ``step_epsilon``, with every k-th
-    source point so that at most about ``coarse_max_points`` are used), then on the finest level
-    with ``neighbors`` and all points; H, b and the score are always those of the finest level.
-    step: "newton" (default) or "gauss_newton", see the module doc. max_step_m (default: the
-    target resolution) and max_step_rad cap one step. num_threads: numba threads of the
-    alignment kernel, set for the calling thread (None: numba's current setting). On cores
-    shared with other busy processes or threads, 1 thread has a much better median latency than
-    2 (a parallel region waits for its slowest, descheduled worker): see docs/bench/ndt.md.
-    Source points in scan order (spatially coherent) run faster than shuffled ones.
+    face neighbours, plus all 26 neighbours: the objective of the finest level, whose score, H and
+    b the result reports. search_neighbors (default DIRECT1; None or equal to ``neighbors``: no
+    search stage): the finest level first iterates with these (cheaper) neighbours to 10 x
+    ``step_epsilon``, then polishes with ``neighbors``; the iteration counts of both share
+    ``max_iterations``. coarse_to_fine: when the target has coarse levels, first align on them
+    (``coarse_neighbors``, stopping at 10 x ``step_epsilon``, with every k-th source point so
+    that at most about ``coarse_max_points`` are used). step: "newton" (default) or
+    "gauss_newton", see the module doc. step_epsilon: stop when the next step (rad and m
+    together) is shorter. max_step_m (default: the level's resolution) and max_step_rad cap
+    one step. num_threads: numba threads of the alignment kernels, set for the calling thread
+    (None: numba's current setting). On cores shared with other busy processes or threads, 1
+    thread has a much better median latency than 2 (a parallel region waits for its slowest,
+    descheduled worker): see docs/bench/ndt.md. Source points in scan order (spatially
+    coherent) run faster than shuffled ones.
     """
 
     def __init__(self, neighbors: str = "DIRECT7", outlier_ratio: float = 0.55,
@@ -516,8 +533,9 @@ class NdtRegistration:
                  coarse_to_fine: bool = True, coarse_neighbors: str = "DIRECT1",
                  coarse_max_points: int = 1500, step: str = "newton",
                  max_step_m: float | None = None, max_step_rad: float = 0.2,
-                 num_threads: int | None = None):
-        for name, value in (("neighbors", neighbors), ("coarse_neighbors", coarse_neighbors)):
+                 num_threads: int | None = None, search_neighbors: str | None = "DIRECT1"):
+        for name, value in (("neighbors", neighbors), ("coarse_neighbors", coarse_neighbors),
+                            ("search_neighbors", search_neighbors or neighbors)):
             if value not in NEIGHBORS:
                 raise RegistrationError(
                     f"{name} {value!r}: expected one of {', '.join(NEIGHBORS)}")
@@ -528,6 +546,7 @@ class NdtRegistration:
         if not float(step_epsilon) > 0.0:
             raise RegistrationError(f"step_epsilon {step_epsilon!r}: expected > 0")
         self.neighbors = neighbors
+        self.search_neighbors = search_neighbors
         self.coarse_neighbors = coarse_neighbors
         self.outlier_ratio = float(outlier_ratio)
         self.max_iterations = int(max_iterations)
@@ -564,95 +583,42 @@ class NdtRegistration:
               memo: tuple | None = None) -> NdtEvaluation:
         k = _kernels()
         d1, d2 = ndt_constants(snap.resolution, self.outlier_ratio)
-        R = np.ascontiguousarray(T[:3, :3])
-        t = np.ascontiguousarray(T[:3, 3])
-        nchunks = max(1, min(64, len(src) // 256))
-        mode = 0 if not derivatives else (2 if gauss_newton else 1)
-        ntk, ntv, nshift, nbr = (snap.neighbor_table() if neighbors == 7
-                                 else _empty_neighbor_table())
+        mode = (k.MODE_SCORE if not derivatives
+                else (k.MODE_GN if gauss_newton else k.MODE_EXACT))
         if memo is None:
-            memo = _new_memo(len(src) if neighbors == 7 else 0)
-        acc = k.ndt_kernel(src, R, t, snap.table_keys, snap.table_vals, snap.shift, snap.gauss,
-                           1.0 / snap.resolution, neighbors, d1, d2, INLIER_MAHALANOBIS_SQ,
-                           mode, nchunks, ntk, ntv, nshift, nbr, memo[0], memo[1]).sum(axis=0)
+            memo = _new_memo(len(src))
+        acc = k.ndt_evaluate(src, 1, T, snap.kernel_level(), neighbors, d1, d2,
+                             INLIER_MAHALANOBIS_SQ, mode, memo[0], memo[1])
         score = float(acc[0])
         inliers = int(round(acc[1]))
         if not derivatives:
             return NdtEvaluation(score, inliers, None, None)
-        # left frame (u = R p) -> right perturbation: J_right = J_left diag(R, R)
-        Rb = np.zeros((6, 6))
-        Rb[:3, :3] = R
-        Rb[3:, 3:] = R
-        b = Rb.T @ acc[2:8]
-        H = Rb.T @ _unpack_sym6(acc[8:29], k) @ Rb
-        return NdtEvaluation(score, inliers, b, 0.5 * (H + H.T))
+        b = np.empty(6)
+        H = np.empty((6, 6))
+        Hgn = np.empty((6, 6))
+        k.right_derivatives(acc, T, b, H, Hgn)
+        return NdtEvaluation(score, inliers, b, Hgn if gauss_newton else H)
 
-    def _direction(self, snap, neighbors, src, T, ev: NdtEvaluation, gn: bool,
-                   memo: tuple) -> np.ndarray:
-        """Step direction -H^-1 b. With ``gn`` ev.H is already the Gauss-Newton matrix. Else
-        ev.H is exact: used where positive definite; elsewhere the Gauss-Newton / IRLS matrix
-        (PSD, so the direction is a descent direction) is evaluated and used instead."""
-        lam, V = np.linalg.eigh(ev.H)
-        if not gn:
-            if lam[0] > 1e-9 * max(lam[-1], 1e-300):
-                return -(V @ ((V.T @ ev.b) / lam))
-            lam, V = np.linalg.eigh(self._eval(snap, neighbors, src, T, True, True, memo).H)
-        lam = np.maximum(lam, max(1e-9 * float(lam[-1]), 1e-12))
-        return -(V @ ((V.T @ ev.b) / lam))
-
-    def _newton(self, snap: _Snapshot, neighbors: int, src: np.ndarray, T: np.ndarray,
-                epsilon: float) -> tuple[np.ndarray, NdtEvaluation, int, bool, tuple]:
-        """Iterations on one level; returns (T, evaluation at T, iterations, converged, memo).
-
-        The evaluation holds the Gauss-Newton matrix as H when ``self.step == "gauss_newton"``.
-        """
-        gn = self.step == "gauss_newton"
-        memo = _new_memo(len(src) if neighbors == 7 else 0)  # this level's per-point voxel rows
+    def _level(self, snap: _Snapshot, neighbors: str, src: np.ndarray, stride: int,
+               T: np.ndarray, epsilon: float, max_iterations: int, memo: tuple,
+               first_both: bool):
+        """One ``ndt_level`` kernel call: (T, acc, b, H, iterations, converged, passes)."""
+        k = _kernels()
+        d1, d2 = ndt_constants(snap.resolution, self.outlier_ratio)
         max_step_m = self.max_step_m if self.max_step_m is not None else snap.resolution
-        converged = False
-        iterations = 0
-        ev = self._eval(snap, neighbors, src, T, True, gn, memo)
-        while iterations < self.max_iterations:
-            d = self._direction(snap, neighbors, src, T, ev, gn, memo)
-            # cap the step so that one Newton step cannot leap across many voxels
-            scale = 1.0
-            nr = np.linalg.norm(d[:3])
-            nt = np.linalg.norm(d[3:])
-            if nr > self.max_step_rad:
-                scale = min(scale, self.max_step_rad / nr)
-            if nt > max_step_m:
-                scale = min(scale, max_step_m / nt)
-            d = d * scale
-            slope = float(ev.b @ d)  # directional derivative of the cost (< 0)
-            alpha = 1.0
-            accepted = None
-            for trial_no in range(9):
-                T_try = _orthonormalize(T @ se3_exp(alpha * d))
-                # the full step is usually accepted: evaluate its derivatives at once
-                trial = self._eval(snap, neighbors, src, T_try, trial_no == 0, gn, memo)
-                if -trial.score <= -ev.score + 1e-4 * alpha * slope:
-                    accepted = trial
-                    break
-                alpha *= 0.5
-            iterations += 1
-            if accepted is None:
-                # no decrease along a descent direction: at the optimum to numerical precision
-                converged = bool(np.linalg.norm(d) < 10 * epsilon or abs(slope) < 1e-9)
-                break
-            T = T_try
-            ev = (accepted if accepted.H is not None
-                  else self._eval(snap, neighbors, src, T, True, gn, memo))
-            if np.linalg.norm(alpha * d) < epsilon:
-                converged = True
-                break
-        return T, ev, iterations, converged, memo
+        return k.ndt_level(src, stride, T, snap.kernel_level(), NEIGHBORS[neighbors], d1, d2,
+                           INLIER_MAHALANOBIS_SQ, memo[0], memo[1], max_iterations, epsilon,
+                           max_step_m, self.max_step_rad,
+                           self.step == "gauss_newton",
+                           k.MODE_BOTH if first_both else k.MODE_EXACT)
 
     def align(self, target: NdtTarget, source_points: np.ndarray,
               T_init: np.ndarray | None = None) -> NdtResult:
         """Register source points to the target.
 
         target: an ``NdtTarget`` (map frame). source_points: (N, 3) float, sensor frame, metres
-        (downsample beforehand, e.g. a 0.5 m voxel grid; extra columns after xyz are ignored).
+        (downsample beforehand, e.g. a 0.5 m voxel grid; extra columns after xyz are ignored;
+        a C-contiguous float64 (N, 3) array is used without a copy).
         T_init: (4, 4) initial ``T_target_source`` (identity if None).
         """
         levels = target.levels()  # one consistent set even if a tile update swaps them now
@@ -663,20 +629,38 @@ class NdtRegistration:
 
             numba.set_num_threads(min(int(self.num_threads), numba.config.NUMBA_NUM_THREADS))
         coarse_iterations = 0
+        passes = 0
         if self.coarse_to_fine and len(levels) > 1:
             # the coarse levels only bring T into the fine basin: a subset of the points will do
             stride = max(1, len(src) // self.coarse_max_points)
-            coarse_src = src[::stride] if stride > 1 else src
+            coarse_memo = _new_memo(len(src))
             for snap in reversed(levels[1:]):
                 if len(snap.keys) == 0:
                     continue
-                T, _, it, _, _ = self._newton(snap, NEIGHBORS[self.coarse_neighbors], coarse_src,
-                                           T, 10.0 * self.step_epsilon)
+                coarse_memo[0][:] = -1
+                T, _, _, _, it, _, p = self._level(snap, self.coarse_neighbors, src, stride, T,
+                                                   10.0 * self.step_epsilon, self.max_iterations,
+                                                   coarse_memo, True)
                 coarse_iterations += it
-        T, ev, iterations, converged, memo = self._newton(
-            levels[0], NEIGHBORS[self.neighbors], src, T, self.step_epsilon)
+                passes += p
+        fine = levels[0]
+        memo = _new_memo(len(src))  # per-point voxel rows, shared by search and polish
+        iterations = 0
+        if self.search_neighbors not in (None, self.neighbors):
+            T, _, _, _, iterations, _, p = self._level(fine, self.search_neighbors, src, 1, T,
+                                                       10.0 * self.step_epsilon,
+                                                       self.max_iterations, memo, False)
+            passes += p
+        T, acc, b, H, it, converged, p = self._level(fine, self.neighbors, src, 1, T,
+                                                     self.step_epsilon,
+                                                     self.max_iterations - iterations, memo,
+                                                     False)
+        iterations += it
+        passes += p
+        ev = NdtEvaluation(float(acc[0]), int(round(acc[1])), b, H)
         if self.step == "gauss_newton":  # exact H at the result
-            ev = self._eval(levels[0], NEIGHBORS[self.neighbors], src, T, True, False, memo)
+            ev = self._eval(fine, NEIGHBORS[self.neighbors], src, T, True, False, memo)
+            passes += 1
         if ev.num_inliers == 0:
             converged = False  # nothing matched: the pose is unconstrained, not converged
         lam, V = np.linalg.eigh(ev.H)
@@ -684,20 +668,16 @@ class NdtRegistration:
         if lam[0] < 0.0:
             log.debug("NDT Hessian has negative eigenvalue %.3g; clamped to 0 in H", lam[0])
         return NdtResult(
-            T_target_source=T, converged=converged, iterations=iterations, score=ev.score,
-            error=-ev.score, fitness=ev.num_inliers / len(src), num_inliers=ev.num_inliers,
+            T_target_source=_orthonormalize(T), converged=bool(converged),
+            iterations=int(iterations), score=ev.score, error=-ev.score,
+            fitness=ev.num_inliers / len(src), num_inliers=ev.num_inliers,
             num_points=len(src), H=0.5 * (H + H.T), b=ev.b, eigenvalues=lam, eigenvectors=V,
-            H_exact=ev.H, coarse_iterations=coarse_iterations)
+            H_exact=ev.H, coarse_iterations=coarse_iterations, passes=passes)
 
 
 def _new_memo(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per-point (voxel key, neighbour-list row) memo for the DIRECT7 kernel; key -1: empty."""
-    return np.full(max(n, 1), -1, dtype=np.int64), np.full(max(n, 1), -1, dtype=np.int64)
-
-
-def _unpack_sym6(tri: np.ndarray, k) -> np.ndarray:
-    """Upper triangle (21,) in the kernels' order -> symmetric (6, 6)."""
-    return tri[k.TRI_FULL]
+    """Per-point (voxel key, neighbour-list row) memo of the DIRECT1/7 kernels; key -1: empty."""
+    return np.full(max(n, 1), -1, dtype=np.int64), np.empty(max(n, 1), dtype=np.int64)
 
 
 def align(target_points: np.ndarray, source_points: np.ndarray,

@@ -37,46 +37,158 @@ class ScanResult:
     category: np.ndarray
 
 
-def beam_directions(azimuth_steps: int, az0: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Unit directions (A, 32, 3) in the lidar frame (z down) and column azimuths (A,) rad."""
+@dataclass
+class SensorCalibration:
+    """One sensor's deviations from the nominal HDL-32E, drawn once per sensor (per seed).
+
+    range_offset_m: (32,) added to every range of the laser; elevation_offset_deg,
+    azimuth_offset_deg: (32,) the true beam angles minus the nominal ones (points are computed
+    from the nominal ones, as the driver does); gain: (32,) intensity gain (mean 1).
+    """
+
+    range_offset_m: np.ndarray
+    elevation_offset_deg: np.ndarray
+    azimuth_offset_deg: np.ndarray
+    gain: np.ndarray
+
+    def fingerprint(self) -> bytes:
+        return np.concatenate([self.range_offset_m, self.elevation_offset_deg,
+                               self.azimuth_offset_deg, self.gain]).tobytes()
+
+    @classmethod
+    def draw(cls, model: LidarModel, seed: int) -> "SensorCalibration":
+        rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5E_450]))
+        r = rng.normal(0.0, 1.0, (4, 32))
+        gain = np.exp(r[3] * model.laser_gain_sigma - 0.5 * model.laser_gain_sigma ** 2)
+        return cls(r[0] * model.laser_range_offset_m, r[1] * model.laser_angle_offset_deg,
+                   r[2] * model.laser_angle_offset_deg, gain)
+
+
+#: Parts of the robot in the beams' way, boxes in the lidar frame (x forward, y left, z up,
+#: metres): the mast and GPS antenna behind the sensor and the handle bar in front of it.
+SELF_BOXES_FLU = np.array([[-1.02, -0.96, -0.025, 0.025, -0.9, 0.15],
+                           [0.85, 0.95, -0.35, 0.35, -0.75, -0.55]])
+
+
+def _self_hits(d_flu: np.ndarray) -> np.ndarray:
+    """(N,) range at which directions (N, 3) from the lidar centre (x fwd, y left, z up) hit the
+    robot (inf: they do not); slab test against SELF_BOXES_FLU."""
+    out = np.full(len(d_flu), np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d_flu
+        for b in SELF_BOXES_FLU:
+            t1 = b[0::2] * inv
+            t2 = b[1::2] * inv
+            tmin = np.nanmax(np.minimum(t1, t2), axis=1)
+            tmax = np.nanmin(np.maximum(t1, t2), axis=1)
+            hit = (tmax >= tmin) & (tmin > 0)
+            out = np.where(hit, np.minimum(out, tmin), out)
+    return out
+
+
+def beam_directions(azimuth_steps: int, az0: float = 0.0, calib: SensorCalibration | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Unit directions (A, 32, 3) in the lidar frame (z down) and column azimuths (A,) rad.
+    ``calib``: the sensor's true angles (default: the nominal ones)."""
     az = az0 + 2.0 * np.pi * np.arange(azimuth_steps) / azimuth_steps
     el = np.deg2rad(HDL32E_ELEVATION_DEG)
+    az2 = np.broadcast_to(az[:, None], (azimuth_steps, 32))
+    if calib is not None:
+        el = el + np.deg2rad(calib.elevation_offset_deg)
+        az2 = az2 + np.deg2rad(calib.azimuth_offset_deg)[None, :]
     ce, se = np.cos(el), np.sin(el)
     d = np.empty((azimuth_steps, 32, 3))
-    d[..., 0] = np.cos(az)[:, None] * ce
-    d[..., 1] = np.sin(az)[:, None] * ce
+    d[..., 0] = np.cos(az2) * ce
+    d[..., 1] = np.sin(az2) * ce
     d[..., 2] = -se  # z down: an upward beam has negative z
     return d, az
 
 
+_BEAMS: dict = {}
+
+
+def _beams(A: int, az0: float, calib: SensorCalibration | None):
+    """Nominal and true beam directions (A, 32, 3) and the self-hit ranges (A * 32,), cached
+    per sensor (they are the same every sweep)."""
+    key = (A, float(az0), None if calib is None else calib.fingerprint())
+    if key not in _BEAMS:
+        if len(_BEAMS) > 8:
+            _BEAMS.clear()
+        d_nom, _ = beam_directions(A, az0)
+        d_true = beam_directions(A, az0, calib)[0] if calib is not None else d_nom
+        r_self = _self_hits(d_true.reshape(-1, 3) * [1.0, -1.0, -1.0])  # z down -> z up
+        _BEAMS[key] = (d_nom, d_true, r_self)
+    return _BEAMS[key]
+
+
+def _mixed_pixels(r: np.ndarray, model: LidarModel, rng: np.random.Generator) -> np.ndarray:
+    """Ranges (A, 32): where a laser's next column jumps by more than ``mixed_pixel_gap_m``
+    the footprint straddles the edge and, with ``mixed_pixel_prob``, the return lies between
+    the two surfaces."""
+    nxt = np.roll(r, -1, axis=0)
+    with np.errstate(invalid="ignore"):
+        gap = nxt - r
+    edge = np.isfinite(gap) & (np.abs(gap) > model.mixed_pixel_gap_m)
+    mix = edge & (rng.random(r.shape) < model.mixed_pixel_prob)
+    frac = rng.uniform(0.1, 0.9, r.shape)
+    return np.where(mix, r + frac * np.where(np.isfinite(gap), gap, 0.0), r)
+
+
 def simulate_scan(scene, T_world_lidar_cols: np.ndarray, col_offsets: np.ndarray,
                   model: LidarModel, rng: np.random.Generator, t_mid: float | None,
-                  az0: float = 0.0) -> ScanResult:
+                  az0: float = 0.0, calib: SensorCalibration | None = None) -> ScanResult:
     """Cast one sweep.
 
-    scene: ``SessionScene``. T_world_lidar_cols: (A, 4, 4) lidar pose at each column's firing
-    time (world, z up). col_offsets: (A,) s from sweep start. t_mid: session time at which
-    moving actors are placed (None: no actors). rng: the frame's generator (noise, dropouts).
+    scene: ``SessionScene``. T_world_lidar_cols: (A, 4, 4) true lidar pose at each column's
+    firing time (world, z up). col_offsets: (A,) s from sweep start. t_mid: session time at which
+    moving actors are placed (None: no actors). rng: the frame's generator. calib: the sensor's
+    deviations (None: nominal). Points are reported from the nominal beam angles.
     """
     A = len(col_offsets)
-    d_lidar, _ = beam_directions(A, az0)
+    d_nom, d_true, r_self = _beams(A, az0, calib)
     R = T_world_lidar_cols[:, :3, :3]
-    dirs = np.matmul(d_lidar, R.transpose(0, 2, 1)).reshape(-1, 3)
+    dirs = np.matmul(d_true, R.transpose(0, 2, 1)).reshape(-1, 3)
     origins = np.repeat(T_world_lidar_cols[:, :3, 3], 32, axis=0)
-    rng_true, normals, albedo, cat = scene.cast(origins, dirs, t_mid, model.max_range_m)
+    h = scene.cast_full(origins, dirs, t_mid, model.max_range_m, rng)
+    rng_true, normals, reflect, cat = h["range"], h["normal"], h["reflect"], h["cat"]
     n = len(rng_true)
+    if model.self_hits:
+        mine = r_self < rng_true
+        rng_true = np.where(mine, r_self, rng_true)
+        cat = np.where(mine, scene.categories.index("self"), cat)
+        reflect = np.where(mine, 0.15, reflect)
     cosi = np.abs((normals * dirs).sum(axis=1))
+    if model.mixed_pixel_prob > 0:
+        rng_true = _mixed_pixels(rng_true.reshape(A, 32), model, rng).reshape(-1)
     noise = rng.normal(0.0, model.range_noise_m, n)
+    if model.range_tail_prob > 0:
+        tail = rng.random(n) < model.range_tail_prob
+        noise = np.where(tail, rng.laplace(0.0, model.range_tail_scale_m, n), noise)
+    laser = np.tile(np.arange(32), A)
+    if calib is not None:
+        noise = noise + calib.range_offset_m[laser]
     u_drop = rng.random(n)
     u_graze = rng.random(n)
-    i_noise = rng.normal(0.0, 2.0, n)
+    u_weak = rng.random(n)
+    speckle = rng.lognormal(0.0, model.intensity_speckle, n) if model.intensity_speckle > 0 else np.ones(n)
     r = rng_true + noise
     ok = np.isfinite(rng_true) & (rng_true <= model.max_range_m) & (r >= model.min_range_m)
     ok &= u_drop >= model.dropout_prob
     ok &= ~((cosi < model.grazing_dropout_cos) & (u_graze < 0.5))
+    gain = calib.gain[laser] if calib is not None else np.ones(n)
+    # received power ~ reflectance * cos(incidence) / range^2 (range-compensated to 10 m by the
+    # unit up to a point); weak returns are lost (dark, far, grazing)
+    power = reflect * (0.2 + 0.8 * cosi)
+    rr = np.maximum(np.where(np.isfinite(rng_true), rng_true, 1e3), 1.0)
+    inten = 230.0 * gain * power * np.minimum(1.0, (12.0 / rr) ** 0.8) * speckle
+    if model.weak_return_dropout:
+        snr = power * gain * (10.0 / rr) ** 2
+        ok &= u_weak >= np.exp(-snr / 0.004)
+    retro = h["retro"]
+    inten = np.where(retro, rng.uniform(180.0, 255.0, n), inten)
     idx = np.flatnonzero(ok)
-    pts = d_lidar.reshape(-1, 3)[idx] * r[idx, None]
-    inten = 255.0 * albedo[idx] * (0.25 + 0.75 * cosi[idx]) * np.exp(-r[idx] / 150.0) + i_noise[idx]
-    ring = np.tile(np.arange(32, dtype=np.uint16), A)[idx]
+    pts = d_nom.reshape(-1, 3)[idx] * r[idx, None]
+    ring = laser[idx].astype(np.uint16)
     toff = np.repeat(col_offsets.astype(np.float32), 32)[idx]
-    return ScanResult(pts, np.clip(inten, 1.0, 255.0).astype(np.float32), ring, toff, cat[idx])
+    i_out = np.floor(np.clip(inten[idx], 0.0, 255.0)).astype(np.float32)
+    return ScanResult(pts, i_out, ring, toff, cat[idx])

@@ -1,7 +1,10 @@
-"""A session's ray-casting scene: the static world plus that day's movable objects (one open3d
-``RaycastingScene``), and the moving pedestrians and vehicles, cast as a small per-scan scene.
+"""A session's ray-casting scene: the static world plus that day's movable objects (open3d
+``RaycastingScene``), vegetation volumes, surface detail (kerbs, grass, facades), and the moving
+pedestrians and vehicles, cast as a small per-scan scene.
 
-Frame: world, z up, metres (see ``blockloc.sim.world``).
+Frame: world, z up, metres (see ``blockloc.sim.world``). Large worlds (``preset.scene_window_m``)
+are cast in a window around the robot, rebuilt when it moves on: the whole city never sits in one
+scene.
 """
 
 from __future__ import annotations
@@ -11,17 +14,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from blockloc.sim.world import ALBEDO, MeshBuilder, Movables, World, movable_mesh, stable_hash
+from blockloc.sim.world import (_ICO_F, _ICO_V, ALBEDO, MeshBuilder, Movables, World, movable_mesh,
+                                stable_hash)
 
 log = logging.getLogger(__name__)
+
+KERB_M = 0.12  # sidewalks stand this far above the road
 
 
 @dataclass
 class Actors:
-    """Moving pedestrians and vehicles, each going back and forth along one straight road.
+    """Moving pedestrians and vehicles, each going back and forth along one straight line.
 
     kind: (K,) 'pedestrian' | 'vehicle'; a, b: (K, 2) ends of its line (world, m);
-    offset: (K,) metres to the right of its travel direction; speed: (K,) m/s; phase: (K,) m.
+    offset: (K,) metres to the right of its travel direction; speed: (K,) m/s; phase: (K,) m;
+    stride: (K,) m per gait cycle (pedestrians; 0: rigid).
     """
 
     kind: np.ndarray
@@ -30,9 +37,12 @@ class Actors:
     offset: np.ndarray
     speed: np.ndarray
     phase: np.ndarray
+    stride: np.ndarray | None = None
 
     def poses(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(K, 2) positions and (K,) headings at session time t (s)."""
+        if not len(self.kind):
+            return np.zeros((0, 2)), np.zeros(0)
         d = self.b - self.a
         L = np.linalg.norm(d, axis=1)
         u = d / L[:, None]
@@ -44,60 +54,142 @@ class Actors:
         xy = self.a + u * along[:, None] + right * self.offset[:, None]
         return xy, np.arctan2(dirn[:, 1], dirn[:, 0])
 
+    def gait(self, t: float) -> np.ndarray:
+        """(K,) stride phase (rad) at time t; NaN for rigid actors."""
+        if self.stride is None:
+            return np.full(len(self.kind), np.nan)
+        dist = self.phase + self.speed * t
+        return np.where(self.stride > 0, 2 * np.pi * dist / np.maximum(self.stride, 1e-9), np.nan)
+
 
 def make_actors(world: World, session: str) -> Actors:
-    """The session's moving people and vehicles (deterministic from seed and session)."""
+    """The session's moving people and vehicles (deterministic from seed and session). Mapping
+    drives have none (the map is built on a quiet day); localization drives meet walkers, in
+    groups when ``detail.crowds``, on sidewalks and footpaths, and cars on the roads."""
+    p = world.preset
+    empty = Actors(np.zeros(0, dtype="<U10"), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0),
+                   np.zeros(0), np.zeros(0), np.zeros(0))
+    if p.is_mapping(session):
+        return empty
     rng = np.random.default_rng(np.random.SeedSequence([world.seed, stable_hash(session), 3]))
-    roads, p = world.roads, world.preset
+    roads = world.roads
     x0, x1, y0, y1 = world.extent
     hw = roads.width_m / 2
-    kinds, A, B, off, spd = [], [], [], [], []
-    for k in range(p.n_pedestrians + p.n_vehicles):
-        ped = k < p.n_pedestrians
-        if rng.random() < 0.5:
-            x = roads.xs[rng.integers(len(roads.xs))]
-            a, b = (x, y0), (x, y1)
+    crowds = p.detail.crowds
+    kinds, A, B, off, spd, stride, ph = [], [], [], [], [], [], []
+    blocked_y = {roads.ys[e[0][1]] for e in roads.no_traffic}
+    paths = list(roads.paths.values())
+    n_ped = 0
+    while n_ped < p.n_pedestrians:
+        if paths and rng.random() < 0.35:  # a group crossing a quad on its footpath
+            P = paths[rng.integers(len(paths))]
+            a, b = P[0].astype(float), P[-1].astype(float)
+            base_off = rng.uniform(-1.0, 1.0)
         else:
-            y = roads.ys[rng.integers(len(roads.ys))]
-            a, b = (x0, y), (x1, y)
-        if ped:  # a stretch of sidewalk
+            if rng.random() < 0.5:
+                x = roads.xs[rng.integers(len(roads.xs))]
+                a, b = (x, y0), (x, y1)
+            else:
+                y = roads.ys[rng.integers(len(roads.ys))]
+                a, b = (x0, y), (x1, y)
             a, b = np.array(a, float), np.array(b, float)
             L = np.linalg.norm(b - a)
             s0 = rng.uniform(0, L - 40)
             u = (b - a) / L
             a, b = a + u * s0, a + u * (s0 + rng.uniform(20, 40))
+            base_off = rng.choice([-1, 1]) * (hw + rng.uniform(1.0, 2.0))
+        n = int(rng.integers(2, 9)) if crowds else 1
+        n = min(n, p.n_pedestrians - n_ped)
+        v = rng.uniform(0.8, 1.5)
+        phase0 = rng.uniform(0, 2 * np.linalg.norm(b - a))
+        for _ in range(n):
             kinds.append("pedestrian")
-            off.append(rng.choice([-1, 1]) * (hw + rng.uniform(1.0, 2.0)))
-            spd.append(rng.uniform(0.8, 1.5))
-        else:
-            kinds.append("vehicle")
-            off.append(hw - 0.7)  # keeps ~0.7 m clear of the robot (LANE_OFFSET_M)
-            spd.append(rng.uniform(3.0, 7.0))
-        A.append(a)
-        B.append(b)
+            A.append(a)
+            B.append(b)
+            off.append(base_off + (rng.uniform(-0.9, 0.9) if n > 1 else 0.0))
+            spd.append(v * rng.uniform(0.95, 1.05))
+            ph.append(phase0 + rng.uniform(-2.0, 2.0))
+            stride.append(rng.uniform(1.2, 1.6) if crowds else 0.0)
+        n_ped += n
+    for _ in range(p.n_vehicles):
+        for _try in range(20):
+            if rng.random() < 0.5:
+                x = roads.xs[rng.integers(len(roads.xs))]
+                a, b = (x, y0), (x, y1)
+                break
+            y = roads.ys[rng.integers(len(roads.ys))]
+            if y not in blocked_y:
+                a, b = (x0, y), (x1, y)
+                break
+        kinds.append("vehicle")
+        A.append(np.array(a, float))
+        B.append(np.array(b, float))
+        off.append(hw - 0.7)  # keeps ~0.7 m clear of the robot (LANE_OFFSET_M)
+        spd.append(rng.uniform(3.0, 7.0))
+        ph.append(None)
+        stride.append(0.0)
+    if not kinds:
+        return empty
     A, B = np.array(A, float).reshape(-1, 2), np.array(B, float).reshape(-1, 2)
     L = np.linalg.norm(B - A, axis=1)
-    return Actors(np.array(kinds), A, B, np.array(off), np.array(spd), rng.uniform(0, 2 * L))
+    phase = np.array([rng.uniform(0, 2 * l) if q is None else q for q, l in zip(ph, L)])
+    return Actors(np.array(kinds), A, B, np.array(off), np.array(spd), phase, np.array(stride))
+
+
+# --- surface detail ---------------------------------------------------------------------------
+
+def value_noise(x: np.ndarray, y: np.ndarray, cell_m: float, seed: int) -> np.ndarray:
+    """Smooth deterministic noise in [-1, 1] at (x, y): bilinear over a hashed lattice."""
+    gx, gy = np.asarray(x) / cell_m, np.asarray(y) / cell_m
+    ix, iy = np.floor(gx).astype(np.int64), np.floor(gy).astype(np.int64)
+    fx, fy = gx - ix, gy - iy
+
+    def h(i, j):
+        v = (i * 73856093) ^ (j * 19349663) ^ (seed * 83492791)
+        v = (v ^ (v >> 13)) * 1274126177
+        return ((v ^ (v >> 16)) & 0xFFFF) / 32767.5 - 1.0
+
+    sx, sy = fx * fx * (3 - 2 * fx), fy * fy * (3 - 2 * fy)
+    top = h(ix, iy) * (1 - sx) + h(ix + 1, iy) * sx
+    bot = h(ix, iy + 1) * (1 - sx) + h(ix + 1, iy + 1) * sx
+    return top * (1 - sy) + bot * sy
+
+
+def _random_unit(rng: np.random.Generator, n: int) -> np.ndarray:
+    v = rng.normal(size=(n, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def ellipsoid_interval(o: np.ndarray, d: np.ndarray, c: np.ndarray, r: np.ndarray):
+    """Ray parameters (t_in, t_out) where rays o + t d (N, 3) cross axis-aligned ellipsoids
+    (centres c, semi-axes r, (N, 3) each); NaN where they miss."""
+    oo, dd = (o - c) / r, d / r
+    a = (dd * dd).sum(axis=1)
+    b = (oo * dd).sum(axis=1)
+    cc = (oo * oo).sum(axis=1) - 1.0
+    disc = b * b - a * cc
+    sq = np.sqrt(np.where(disc >= 0, disc, np.nan))
+    return (-b - sq) / a, (-b + sq) / a
 
 
 class SessionScene:
-    """Static world + one day's movables in a RaycastingScene; actors added per scan.
+    """Static world + one day's movables + vegetation volumes; actors added per scan.
 
     ``cast(origins, dirs, t)`` returns range (N,) (inf where nothing is hit), unit normals
-    (N, 3), albedo (N,) and a category code (N,) int (index into ``categories``).
+    (N, 3), reflectance (N,) and a category code (N,) int (index into ``categories``);
+    ``cast_full`` also says which returns are glass or retroreflective.
     """
 
-    def __init__(self, world: World, movables: Movables, actors: Actors):
+    def __init__(self, world: World, movables: Movables, actors: Actors, session: str = "map"):
         from blockloc._open3d import open3d
 
         o3d = open3d()
+        self._o3d = o3d
         self.world = world
         self.movables = movables
         self.actors = actors
-        self.scene = o3d.t.geometry.RaycastingScene()
+        self.detail = world.preset.detail
         self.categories: list[str] = []
-        self._albedo_by_gid: dict[int, float] = {}
-        self._cat_by_gid: dict[int, int] = {}
         meshes = dict(world.meshes)
         mb = {k: MeshBuilder() for k in ("car", "bin")}
         for kind, (x, y), yaw in zip(movables.kind, movables.xy, movables.yaw):
@@ -107,63 +199,260 @@ class SessionScene:
             V, F = b.build()
             if len(F):
                 meshes[k] = (V, F)
-        for name, (V, F) in meshes.items():
-            gid = self.scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)),
-                                           o3d.core.Tensor(F.astype(np.uint32)))
-            self._register(gid, name)
-        self.terrain_gid = [g for g, c in self._cat_by_gid.items() if self.categories[c] == "terrain"][0]
-        for name in ("pedestrian", "vehicle"):
+        for name in list(meshes) + ["pedestrian", "vehicle", "foliage", "self", "glass"]:
             if name not in self.categories:
                 self.categories.append(name)
-        self._o3d = o3d
-        n = max(self._cat_by_gid) + 2  # the last slot stands for "no hit"
-        self._alb_lut = np.zeros(n)
-        self._cat_lut = np.full(n, -1, dtype=np.int64)
-        for g in self._cat_by_gid:
-            self._alb_lut[g] = self._albedo_by_gid[g]
-            self._cat_lut[g] = self._cat_by_gid[g]
+        self._cat_index = {c: i for i, c in enumerate(self.categories)}
+        self._reflect_by_cat = np.array([ALBEDO.get(c, 0.3) for c in self.categories] + [0.0])
+        # all static triangles, with their category and owner (building -> facade row)
+        Vs, Fs, cats, owners, n = [], [], [], [], 0
+        for name, (V, F) in meshes.items():
+            Vs.append(V)
+            Fs.append(F + n)
+            n += len(V)
+            cats.append(np.full(len(F), self._cat_index[name], dtype=np.int64))
+            owners.append(world.owners.get(name, np.full(len(F), -1, dtype=np.int64)))
+        self._V = np.concatenate(Vs).astype(np.float32)
+        self._F = np.concatenate(Fs)
+        self._tri_cat = np.concatenate(cats)
+        self._tri_owner = np.concatenate(owners)
+        self._tri_xy = None
+        self.terrain_cat = self._cat_index["terrain"]
+        # categories with facade rows (buildings, corridor walls and ceiling)
+        self._facade_cats = np.array([self._cat_index[c] for c in world.owners if c in self._cat_index])
+        # the day's foliage: denser or sparser crowns than on the mapping day (seasons)
+        vol = world.volumes
+        self._vol_mfp = None
+        if vol is not None and len(vol):
+            ch = self.detail.foliage_change if not world.preset.is_mapping(session) else 0.0
+            rng = np.random.default_rng(np.random.SeedSequence([world.seed, stable_hash(session), 11]))
+            self._vol_mfp = vol.mfp * np.exp(rng.uniform(-1.0, 1.0, len(vol)) * 1.2 * ch)
+            self._vol_radii = vol.radii * (1.0 + rng.normal(0, 0.06, (len(vol), 1)) * ch)
+        self._window = None  # (center, half size) of the built scenes
+        self._seed = world.seed
+        if world.preset.scene_window_m <= 0:
+            self._build(None)
 
-    def _register(self, gid: int, name: str) -> None:
-        if name not in self.categories:
-            self.categories.append(name)
-        self._cat_by_gid[int(gid)] = self.categories.index(name)
-        self._albedo_by_gid[int(gid)] = ALBEDO[name]
+    # --- scenes ---------------------------------------------------------------------------------
+    def _build(self, center) -> None:
+        """(Re)build the static and vegetation scenes: everything, or a window around center."""
+        o3d = self._o3d
+        half = self.world.preset.scene_window_m
+        if center is None or half <= 0:
+            sel = np.arange(len(self._F))
+            vsel = np.arange(len(self._vol_mfp)) if self._vol_mfp is not None else np.zeros(0, int)
+        else:
+            if self._tri_xy is None:
+                self._tri_xy = self._V[self._F].mean(axis=1)[:, :2]
+            lo, hi = np.asarray(center) - half, np.asarray(center) + half
+            sel = np.flatnonzero(((self._tri_xy >= lo) & (self._tri_xy <= hi)).all(axis=1)
+                                 | (self._tri_cat == self.terrain_cat))
+            vsel = np.zeros(0, int)
+            if self._vol_mfp is not None:
+                c = self.world.volumes.center[:, :2]
+                vsel = np.flatnonzero(((c >= lo) & (c <= hi)).all(axis=1))
+            self._window = (np.asarray(center, float), half)
+        self.scene = o3d.t.geometry.RaycastingScene()
+        F = self._F[sel]
+        used, inv = np.unique(F, return_inverse=True)
+        self.scene.add_triangles(o3d.core.Tensor(self._V[used]),
+                                 o3d.core.Tensor(inv.reshape(-1, 3).astype(np.uint32)))
+        self._sel = sel
+        self._vol_scene = None
+        self._vsel = vsel
+        if len(vsel):
+            vol = self.world.volumes
+            k = len(_ICO_V)
+            # hulls circumscribing the ellipsoids (the 80-face sphere is inscribed in the unit one)
+            V = (_ICO_V[None] * 1.1 * self._vol_radii[vsel, None, :] + vol.center[vsel, None, :]).reshape(-1, 3)
+            F = (_ICO_F[None] + k * np.arange(len(vsel))[:, None, None]).reshape(-1, 3)
+            self._vol_scene = o3d.t.geometry.RaycastingScene()
+            self._vol_scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)),
+                                          o3d.core.Tensor(F.astype(np.uint32)))
+
+    def _ensure_window(self, center: np.ndarray) -> None:
+        half = self.world.preset.scene_window_m
+        if half <= 0:
+            return
+        if self._window is None or np.abs(center[:2] - self._window[0]).max() > 0.35 * half:
+            self._build(center[:2])
+
+    # --- casting --------------------------------------------------------------------------------
+    def cast(self, origins: np.ndarray, dirs: np.ndarray, t: float | None = None,
+             max_range: float = np.inf, rng: np.random.Generator | None = None):
+        h = self.cast_full(origins, dirs, t, max_range, rng)
+        return h["range"], h["normal"], h["reflect"], h["cat"]
+
+    def cast_full(self, origins: np.ndarray, dirs: np.ndarray, t: float | None = None,
+                  max_range: float = np.inf, rng: np.random.Generator | None = None) -> dict:
+        """Cast rays (world origins, unit dirs, (N, 3) each) at session time t (None: no moving
+        actors). rng draws the stochastic parts (foliage stops, grass, glass); default seeded 0.
+        Returns dict range, normal, reflect, cat, glass (bool), retro (bool)."""
+        o3d = self._o3d
+        rng = rng if rng is not None else np.random.default_rng(0)
+        self._ensure_window(origins[len(origins) // 2])
+        rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
+        ans = self.scene.cast_rays(o3d.core.Tensor(rays))
+        rng_ = ans["t_hit"].numpy().astype(np.float64)
+        prim = ans["primitive_ids"].numpy().astype(np.int64)
+        normals = ans["primitive_normals"].numpy().astype(np.float64)
+        hit = np.isfinite(rng_)
+        tri = np.where(hit, self._sel[np.where(hit, prim, 0)], -1)
+        cat = np.where(hit, self._tri_cat[tri], -1)
+        reflect = self._reflect_by_cat[cat]
+        glass = np.zeros(len(rng_), dtype=bool)
+        on_ground = cat == self.terrain_cat
+        if on_ground.any():
+            p = origins[on_ground] + dirs[on_ground] * rng_[on_ground, None]
+            reflect[on_ground] = self.world.ground_albedo(p[:, 0], p[:, 1])
+            if self.detail.ground_relief:
+                self._ground_relief(np.flatnonzero(on_ground), origins, dirs, rng_, normals, reflect, rng)
+        on_bldg = np.isin(cat, self._facade_cats)
+        if on_bldg.any():
+            owner = self._tri_owner[tri[on_bldg]]
+            reflect[on_bldg] = self.world.facades[owner, 6] if len(self.world.facades) else reflect[on_bldg]
+            if self.detail.facade_detail:
+                self._facades(np.flatnonzero(on_bldg), owner, origins, dirs, rng_, normals,
+                              reflect, glass, rng)
+        if self._vol_scene is not None:
+            self._vegetation(origins, dirs, rng_, normals, reflect, cat, rng)
+        if t is not None and len(self.actors.kind):
+            self._cast_actors(origins, dirs, rays, t, max_range, rng_, normals, reflect, cat)
+        retro = np.zeros(len(rng_), dtype=bool)
+        if self.detail.retroreflectors and "sign" in self._cat_index:
+            retro = cat == self._cat_index["sign"]
+        glass_cat = self._cat_index["glass"]
+        cat = np.where(glass & np.isfinite(rng_), glass_cat, cat)
+        return {"range": rng_, "normal": normals, "reflect": reflect, "cat": cat, "glass": glass,
+                "retro": retro}
+
+    def _ground_relief(self, idx, origins, dirs, rng_, normals, reflect, rng) -> None:
+        """Kerbs (sidewalks KERB_M above the road), grass (a layer 4-12 cm high that rays
+        enter and stop in) and a few cm of micro relief, applied along each ground ray."""
+        world = self.world
+        o, d, r = origins[idx], dirs[idx], rng_[idx]
+        down = np.maximum(-d[:, 2], 0.02)
+        p = o + d * r[:, None]
+        mat = world.ground_material(p[:, 0], p[:, 1])
+        seed = self._seed
+        micro = value_noise(p[:, 0], p[:, 1], 0.7, seed) * np.where(mat == 2, 0.02, 0.004)
+        r_new = r - micro / down
+        # kerb: the sidewalk surface is raised; a ray whose raised hit falls back over the road
+        # meets the kerb's face instead
+        side = mat == 1
+        if side.any():
+            r_side = r[side] - KERB_M / down[side]
+            p1 = o[side] + d[side] * r_side[:, None]
+            face = world.ground_material(p1[:, 0], p1[:, 1]) == 0
+            lo, hi = r_side.copy(), r[side].copy()
+            for _ in range(5):  # bisect on the road edge along the ray
+                mid = 0.5 * (lo + hi)
+                pm = o[side] + d[side] * mid[:, None]
+                on_road = world.ground_material(pm[:, 0], pm[:, 1]) == 0
+                lo = np.where(on_road, mid, lo)
+                hi = np.where(on_road, hi, mid)
+            r_s = np.where(face, hi, r_side)
+            r_new[side] = r_s + (r_new[side] - r[side])
+            n_face = np.c_[-d[side][:, :2], np.zeros(side.sum())]
+            n_face /= np.maximum(np.linalg.norm(n_face, axis=1, keepdims=True), 1e-9)
+            nn = normals[idx[side]]
+            nn[face] = n_face[face]
+            normals[idx[side]] = nn
+        grass = mat == 2
+        if grass.any():
+            g_h = 0.08 + 0.04 * value_noise(p[grass, 0], p[grass, 1], 1.5, seed + 1)
+            depth = g_h / down[grass]  # path length through the layer
+            stop = np.minimum(rng.exponential(0.25, grass.sum()), depth)
+            r_new[grass] = r_new[grass] - depth + stop
+            normals[idx[grass]] = _random_unit(rng, int(grass.sum())) * 0.5 + normals[idx[grass]]
+            normals[idx[grass]] /= np.linalg.norm(normals[idx[grass]], axis=1, keepdims=True)
+            reflect[idx[grass]] *= rng.uniform(0.6, 1.4, grass.sum())
+        rng_[idx] = np.maximum(r_new, 0.05)
+
+    def _facades(self, idx, owner, origins, dirs, rng_, normals, reflect, glass, rng) -> None:
+        """Windows (glass recessed 18 cm: mostly lost, or a return from the room behind, or a
+        dim one off the pane), pilasters standing 15 cm out and floor ledges 20 cm out."""
+        f = self.world.facades[owner]
+        n = normals[idx]
+        d = dirs[idx]
+        vertical = np.abs(n[:, 2]) < 0.5
+        p = origins[idx] + d * rng_[idx, None]
+        u = np.where(np.abs(n[:, 0]) > np.abs(n[:, 1]), p[:, 1], p[:, 0])
+        hz = p[:, 2] - (f[:, 4] + 0.5)
+        level = np.floor(hz / f[:, 7])
+        v = hz - level * f[:, 7]
+        uu = np.mod(u + f[:, 9], f[:, 8]) / f[:, 8]
+        cos_i = np.maximum(np.abs((n * d).sum(axis=1)), 0.25)
+        ledge = vertical & (level >= 1) & (v < 0.4)
+        window = vertical & ~ledge & (uu > 0.25) & (uu < 0.85) & (v > 0.9) & (v < f[:, 7] - 0.5) & (hz > 0.3)
+        pilaster = vertical & ~ledge & ~window & (uu < 0.12)
+        out = np.where(ledge, 0.2, np.where(pilaster, 0.15, np.where(window, -0.18, 0.0)))
+        r = rng_[idx] - out / cos_i
+        u_g = rng.random(len(idx))
+        lost = window & (u_g < 0.55)
+        inside = window & (u_g >= 0.55) & (u_g < 0.85)
+        r = np.where(inside, r + rng.uniform(1.0, 6.0, len(idx)), r)
+        r = np.where(lost, np.inf, r)
+        refl = reflect[idx] * (1.0 + 0.25 * value_noise(u, p[:, 2], 0.8, self._seed + 2))
+        refl = np.where(window & ~inside, ALBEDO["glass"], refl)
+        rng_[idx] = r
+        reflect[idx] = refl
+        glass[idx] = window & ~inside
+
+    def _vegetation(self, origins, dirs, rng_, normals, reflect, cat, rng) -> None:
+        """Rays through crowns, bushes and hedges: inside a volume a ray stops after an
+        exponential free path (mean ``mfp``), or leaves it and goes on (to the trunk, another
+        crown, the ground). Up to four volumes a ray."""
+        o3d = self._o3d
+        vol = self.world.volumes
+        active = np.arange(len(rng_))
+        t_cur = np.zeros(len(rng_))
+        fol = self._cat_index["foliage"]
+        for _ in range(4):
+            if not len(active):
+                break
+            o = origins[active] + dirs[active] * t_cur[active, None]
+            rays = np.concatenate([o, dirs[active]], axis=1).astype(np.float32)
+            a = self._vol_scene.cast_rays(o3d.core.Tensor(rays))
+            th = a["t_hit"].numpy().astype(np.float64) + t_cur[active]
+            hit = np.isfinite(th) & (th < rng_[active])
+            active, th = active[hit], th[hit]
+            if not len(active):
+                break
+            v = self._vsel[a["primitive_ids"].numpy()[hit].astype(np.int64) // len(_ICO_F)]
+            t_in, t_out = ellipsoid_interval(origins[active], dirs[active], vol.center[v],
+                                             self._vol_radii[v])
+            miss = ~np.isfinite(t_in)
+            t_in = np.where(miss, th, np.maximum(t_in, t_cur[active]))
+            t_out = np.where(miss, th, t_out)
+            t_stop = t_in + rng.exponential(self._vol_mfp[v])
+            stop = ~miss & (t_stop < t_out) & (t_stop < rng_[active])
+            j = active[stop]
+            rng_[j] = t_stop[stop]
+            normals[j] = _random_unit(rng, len(j))
+            reflect[j] = ALBEDO["foliage"] * rng.uniform(0.4, 1.4, len(j))
+            cat[j] = fol
+            go = ~stop
+            active = active[go]
+            t_cur[active] = np.maximum(t_out[go], th[go]) + 1e-3
 
     def actor_mesh(self, t: float, center: np.ndarray, radius: float):
         """Actors within ``radius`` of ``center`` (2,) at time t: (V, F, category per triangle)."""
         xy, yaw = self.actors.poses(t)
+        gait = self.actors.gait(t)
         near = np.linalg.norm(xy - center[:2], axis=1) < radius
         b = MeshBuilder()
         cats = []
         for k in np.flatnonzero(near):
             kind = str(self.actors.kind[k])
-            for V, F in movable_mesh(kind, xy[k, 0], xy[k, 1], yaw[k], self.world.terrain):
+            g = None if not np.isfinite(gait[k]) else float(gait[k])
+            for V, F in movable_mesh(kind, xy[k, 0], xy[k, 1], yaw[k], self.world.terrain, gait=g):
                 b.add(V, F)
-                cats.append(np.full(len(F), self.categories.index(kind)))
+                cats.append(np.full(len(F), self._cat_index[kind]))
         V, F = b.build()
         return V, F, (np.concatenate(cats) if cats else np.zeros(0, dtype=int))
 
-    def cast(self, origins: np.ndarray, dirs: np.ndarray, t: float | None = None,
-             max_range: float = np.inf):
-        o3d = self._o3d
-        rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
-        ans = self.scene.cast_rays(o3d.core.Tensor(rays))
-        rng_ = ans["t_hit"].numpy().astype(np.float64)
-        gid = ans["geometry_ids"].numpy().astype(np.int64)
-        normals = ans["primitive_normals"].numpy().astype(np.float64)
-        hit = np.isfinite(rng_)
-        gid_safe = np.where(hit, gid, len(self._alb_lut) - 1)
-        albedo = self._alb_lut[gid_safe]
-        cat = self._cat_lut[gid_safe]
-        if t is not None and len(self.actors.kind):
-            self._cast_actors(origins, dirs, rays, t, max_range, rng_, normals, albedo, cat)
-        on_ground = cat == self._cat_by_gid[self.terrain_gid]
-        if on_ground.any():
-            p = origins[on_ground] + dirs[on_ground] * rng_[on_ground, None]
-            albedo[on_ground] = self.world.ground_albedo(p[:, 0], p[:, 1])
-        return rng_, normals, albedo, cat
-
-    def _cast_actors(self, origins, dirs, rays, t, max_range, rng_, normals, albedo, cat) -> None:
+    def _cast_actors(self, origins, dirs, rays, t, max_range, rng_, normals, reflect, cat) -> None:
         """Overwrite (in place) the returns of rays that hit a moving actor first. Only rays
         pointing at an actor's bounding circle are cast against the per-scan actor scene."""
         o3d = self._o3d
@@ -185,7 +474,8 @@ class SessionScene:
             dist = np.hypot(rel[:, 0], rel[:, 1])
             along = (rel[:, 0] * dv[:, 0] + rel[:, 1] * dv[:, 1]) / hx
             perp2 = np.maximum(dist * dist - along * along, 0.0)
-            sel_c |= (perp2 < 3.5 * 3.5) & ((along > 0) | (dist < 3.5))
+            # a column's beams fan out in xy when the sensor tilts: the margin grows with range
+            sel_c |= (perp2 < (3.5 + 0.1 * dist) ** 2) & ((along > 0) | (dist < 3.5))
         sel = np.repeat(sel_c, step)
         idx = np.flatnonzero(sel)
         if not len(idx):
@@ -201,9 +491,10 @@ class SessionScene:
             normals[j] = a2["primitive_normals"].numpy()[closer]
             c2 = tri_cat[a2["primitive_ids"].numpy()[closer].astype(np.int64)]
             cat[j] = c2
-            albedo[j] = np.array([ALBEDO[c] for c in self.categories])[c2]
+            reflect[j] = self._reflect_by_cat[c2]
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         """Unsigned distance (N,) from world points (N, 3) to the static scene's surfaces."""
         o3d = self._o3d
+        self._ensure_window(np.asarray(points, float).mean(axis=0))
         return self.scene.compute_distance(o3d.core.Tensor(np.asarray(points, np.float32))).numpy()

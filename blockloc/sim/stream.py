@@ -21,8 +21,8 @@ from blockloc.datasets.base import ImuData, LidarFrame, SequenceInfo
 from blockloc.errors import SimError
 from blockloc.geometry import Trajectory, make_T, so3_exp
 from blockloc.sim.presets import Preset, get_preset
-from blockloc.sim.trajectory import (D4, SimTrajectory, cover_route, lane_waypoints, plan_motion,
-                                     relocalization_route)
+from blockloc.sim.trajectory import (D4, SimTrajectory, cover_route, crossing_route, lane_waypoints,
+                                     plan_motion, relocalization_route)
 from blockloc.sim.world import World, build_world, session_movables, stable_hash
 
 log = logging.getLogger(__name__)
@@ -38,32 +38,87 @@ def cached_world(preset: Preset, seed: int) -> World:
     return build_world(preset, seed)
 
 
-@functools.lru_cache(maxsize=8)
+def session_day(session: str) -> tuple[str, int]:
+    """(date used in NCLT file names, start epoch s) of a session; unknown names get a day of
+    their own derived from the name."""
+    if session in SESSION_DAYS:
+        return SESSION_DAYS[session]
+    k = stable_hash(session) % 300
+    epoch = 1593604800 + 86400 * k
+    import datetime
+
+    return datetime.datetime.fromtimestamp(epoch, datetime.timezone.utc).strftime("%Y-%m-%d"), epoch
+
+
+def _region_routes(preset: Preset, roads, seed: int) -> list[list]:
+    """Mapping routes of a preset whose mapping drives each cover a strip of the graph
+    (``map_regions`` strips along x, overlapping by one road line): each first drives the
+    middle east-west street across its strip (so the strips join), then covers the strip."""
+    nx, ny = len(roads.xs), len(roads.ys)
+    n = preset.map_regions
+    bounds = np.linspace(0, nx - 1, n + 1)
+    j_mid = ny // 2
+    routes = []
+    for k in range(n):
+        i0, i1 = int(np.floor(bounds[k])), min(nx - 1, int(np.ceil(bounds[k + 1])) + (k < n - 1))
+        rng = np.random.default_rng(np.random.SeedSequence([seed, stable_hash(preset.name), 4, k]))
+        prefix = [(i, j_mid) for i in range(i0, i1 + 1)]
+        ok = lambda nd, a=i0, b=i1: a <= nd[0] <= b  # noqa: E731
+        routes.append(cover_route(roads, rng, preset.route_length_m[k], prefix[-1], ok, prefix))
+    return routes
+
+
+@functools.lru_cache(maxsize=16)
 def session_trajectory(preset: Preset, seed: int, session: str) -> SimTrajectory:
-    """The session's trajectory: the mapping drive covers the road graph; localization drives
-    wander over the edges it drove, preferring the opposite direction, from another start."""
+    """The session's trajectory: the mapping drive covers the road graph (with ``map_regions``
+    > 1, each ``map<k>`` drive covers its strip); localization drives wander over the edges it
+    drove, preferring the opposite direction and the hard places, from another start (or, over
+    several mapping drives, cross all of them)."""
     world = cached_world(preset, seed)
     roads = world.roads
     if session not in preset.sessions:
         raise SimError(f"sim session {session!r}: preset {preset.name} has {', '.join(preset.sessions)}")
-    rng = np.random.default_rng(np.random.SeedSequence([seed, stable_hash(preset.name), 4]))
-    map_route = cover_route(roads, rng, preset.route_length_m[0], (0, 0))
     k = preset.sessions.index(session)
-    if k == 0:
-        route = map_route
+    mapping = [s for s in preset.sessions if preset.is_mapping(s)]
+    if preset.map_regions > 1:
+        routes = _region_routes(preset, roads, seed)
+        if session in mapping:
+            route = routes[mapping.index(session)]
+        else:
+            rng = np.random.default_rng(np.random.SeedSequence([seed, stable_hash(session), 4]))
+            mapped = {(min(a, b), max(a, b)) for r in routes for a, b in zip(r[:-2], r[1:-1])}
+            route = crossing_route(roads, rng, preset.route_length_m[k], mapped)
     else:
-        rng = np.random.default_rng(np.random.SeedSequence([seed, stable_hash(session), 4]))
-        # the mapping drive stops part-way along its last edge: only full edges count as mapped
-        driven = map_route[:-1]
-        start = driven[(len(driven) * k) // (len(preset.sessions) + 1)]
-        route = relocalization_route(roads, rng, preset.route_length_m[k], start, driven)
-    wp = lane_waypoints(roads, route, preset.route_length_m[k])
+        rng = np.random.default_rng(np.random.SeedSequence([seed, stable_hash(preset.name), 4]))
+        map_route = cover_route(roads, rng, preset.route_length_m[0], (0, 0))
+        if k == 0:
+            route = map_route
+        else:
+            rng = np.random.default_rng(np.random.SeedSequence([seed, stable_hash(session), 4]))
+            # the mapping drive stops part-way along its last edge: only full edges count as mapped
+            driven = map_route[:-1]
+            start = driven[(len(driven) * k) // (len(preset.sessions) + 1)]
+            route = relocalization_route(roads, rng, preset.route_length_m[k], start, driven)
+    wp, smooth = lane_waypoints(roads, route, preset.route_length_m[k])
     rng = np.random.default_rng(np.random.SeedSequence([seed, stable_hash(session), 8]))
-    samples = plan_motion(wp, preset, rng)
+    samples = plan_motion(wp, preset, rng, smooth)
     from blockloc.datasets.nclt import NCLT_T_BODY_LIDAR
 
     body_height = preset.lidar_height_m + float(NCLT_T_BODY_LIDAR[2, 3])  # lidar 0.957 m above
-    return SimTrajectory(samples, world, body_height)
+    return SimTrajectory(samples, world, body_height, preset.platform,
+                         int(np.random.SeedSequence([seed, stable_hash(session), 10]).generate_state(1)[0]))
+
+
+def true_T_body_lidar(preset: Preset, seed: int) -> np.ndarray:
+    """The robot's true LiDAR mounting: NCLT's nominal extrinsic moved by the preset's
+    ``extrinsic_error_m`` / ``_deg`` (one draw per robot, i.e. per seed). The written and
+    streamed sessions report the nominal one, as users are given."""
+    from blockloc.datasets.nclt import NCLT_T_BODY_LIDAR
+
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0xCA11B]))
+    e = rng.normal(0.0, 1.0, 6)
+    dT = make_T(so3_exp(np.deg2rad(preset.extrinsic_error_deg) * e[:3]), preset.extrinsic_error_m * e[3:])
+    return np.asarray(NCLT_T_BODY_LIDAR, dtype=float) @ dT
 
 
 def smooth_noise(rng: np.random.Generator, t: np.ndarray, dims: int, knot_s: float = 2.0) -> np.ndarray:
@@ -88,11 +143,16 @@ class SimSequence:
         self.seed = int(seed)
         self.world = cached_world(preset, self.seed)
         self.trajectory = session_trajectory(preset, self.seed, session)
-        self.date, epoch = SESSION_DAYS.get(session, ("2020-07-01", 1593604800))
+        self.date, epoch = session_day(session)
         self.epoch_us = int(epoch) * 1_000_000
         self.period_s = 1.0 / preset.lidar.rate_hz
         self._n = max(0, int((self.trajectory.duration - self.period_s) / self.period_s))
-        self.T_flu_lidar = D4 @ NCLT_T_BODY_LIDAR
+        # the renderer uses the true mounting; ``info`` carries the nominal one
+        self.T_body_lidar_true = true_T_body_lidar(preset, self.seed)
+        self.T_flu_lidar = D4 @ self.T_body_lidar_true
+        from blockloc.sim.lidar import SensorCalibration
+
+        self.calibration = SensorCalibration.draw(preset.lidar, self.seed)
         self._az0 = float(np.random.default_rng([self.seed, stable_hash(session), 9]).uniform(0, 2 * np.pi))
         self._scene = None
         self._imu = None
@@ -109,9 +169,9 @@ class SimSequence:
         if self._scene is None:
             from blockloc.sim.scene import SessionScene, make_actors
 
-            base = self.session == self.preset.sessions[0]
+            base = self.preset.is_mapping(self.session)
             self._scene = SessionScene(self.world, session_movables(self.world, self.session, base),
-                                       make_actors(self.world, self.session))
+                                       make_actors(self.world, self.session), self.session)
         return self._scene
 
     # --- protocol -----------------------------------------------------------------------------
@@ -141,7 +201,7 @@ class SimSequence:
         T_wl = self.trajectory.T_world_flu(t0 + col_off) @ self.T_flu_lidar
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, stable_hash(self.session), 5, index]))
         res = simulate_scan(self.scene, T_wl, col_off, self.preset.lidar, rng, t0 + 0.5 * self.period_s,
-                            self._az0)
+                            self._az0, self.calibration)
         frame = LidarFrame(index, self._utime(index) * 1e-6, res.points, res.intensity,
                            res.time_offsets, res.ring)
         return frame, res.category
@@ -155,22 +215,42 @@ class SimSequence:
         return np.arange(int(np.floor(self.trajectory.duration * rate_hz)) + 1) / rate_hz
 
     def imu(self) -> ImuData:
-        """100 Hz samples in the body frame: ideal values + white noise + bias (random walk from a
-        non-zero initial bias), the 3DM-GX3 class values of ``preset.imu``."""
+        """100 Hz samples in the body frame: ideal values through the unit's scale-factor and
+        axis-misalignment errors, + white noise + bias (initial + random walk + Gauss-Markov
+        instability), sampled ``time_offset_s`` before their stamps, with lost samples
+        (``preset.imu``; 3DM-GX3 class)."""
         if self._imu is None:
             noise = self.preset.imu
             f = self.preset.imu_rate_hz
             t = self._rel_times(f)
-            acc, gyro = self.trajectory.imu_ideal(t)
+            acc, gyro = self.trajectory.imu_ideal(t - noise.time_offset_s)
+            unit = np.random.default_rng(np.random.SeedSequence([self.seed, 0x1AB]))
+            for k, v in enumerate((acc, gyro)):
+                M = np.eye(3) + unit.normal(0, noise.misalignment_sigma_rad, (3, 3)) * (1 - np.eye(3))
+                S = np.diag(1.0 + unit.normal(0, noise.scale_factor_sigma, 3))
+                v[:] = v @ (S @ M).T
             rng = np.random.default_rng(np.random.SeedSequence([self.seed, stable_hash(self.session), 6]))
+            n = len(t)
             ba = rng.normal(0, noise.acc_bias_init_sigma, 3) + np.cumsum(
-                rng.normal(0, noise.acc_bias_random_walk / np.sqrt(f), (len(t), 3)), axis=0)
+                rng.normal(0, noise.acc_bias_random_walk / np.sqrt(f), (n, 3)), axis=0)
             bg = rng.normal(0, noise.gyro_bias_init_sigma, 3) + np.cumsum(
-                rng.normal(0, noise.gyro_bias_random_walk / np.sqrt(f), (len(t), 3)), axis=0)
-            acc = acc + ba + rng.normal(0, noise.acc_noise_density * np.sqrt(f), (len(t), 3))
-            gyro = gyro + bg + rng.normal(0, noise.gyro_noise_density * np.sqrt(f), (len(t), 3))
-            self.imu_bias = (ba, bg)
-            self._imu = ImuData(self.epoch_us * 1e-6 + t, acc, gyro)
+                rng.normal(0, noise.gyro_bias_random_walk / np.sqrt(f), (n, 3)), axis=0)
+            acc = acc + ba + rng.normal(0, noise.acc_noise_density * np.sqrt(f), (n, 3))
+            gyro = gyro + bg + rng.normal(0, noise.gyro_noise_density * np.sqrt(f), (n, 3))
+            gm_rng = np.random.default_rng(np.random.SeedSequence([self.seed, stable_hash(self.session), 12]))
+            for arr, sig, b in ((acc, noise.acc_bias_instability, ba), (gyro, noise.gyro_bias_instability, bg)):
+                if sig > 0:
+                    gm = _gauss_markov(gm_rng, n, 1.0 / f, noise.bias_instability_tau_s, sig)
+                    arr += gm
+                    b += gm
+            keep = np.ones(n, dtype=bool)
+            if noise.drop_prob > 0 or noise.drop_burst_per_min > 0:
+                keep = rng.random(n) >= noise.drop_prob
+                n_burst = rng.poisson(noise.drop_burst_per_min * t[-1] / 60.0)
+                for s0 in rng.integers(int(5 * f), max(int(5 * f) + 1, n - 20), n_burst):
+                    keep[s0:s0 + rng.integers(3, 13)] = False
+            self.imu_bias = (ba[keep], bg[keep])
+            self._imu = ImuData(self.epoch_us * 1e-6 + t[keep], acc[keep], gyro[keep])
         return self._imu
 
     def ground_truth(self) -> Trajectory:
@@ -182,7 +262,7 @@ class SimSequence:
         """Mapping session: "offline SLAM" poses = ground truth with a smooth error of about
         ``slam_error_m`` (position) and ``slam_error_rad`` (attitude); other sessions: ground truth."""
         gt = self.ground_truth()
-        if self.session != self.preset.sessions[0]:
+        if not self.preset.is_mapping(self.session):
             return gt
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, stable_hash(self.session), 7]))
         rel = gt.stamps - gt.stamps[0]
@@ -197,8 +277,19 @@ class SimSequence:
         return self.trajectory.T_world_flu(t_rel) @ self.T_flu_lidar
 
 
+def _gauss_markov(rng: np.random.Generator, n: int, dt: float, tau: float, sigma: float) -> np.ndarray:
+    """(n, 3) first-order Gauss-Markov process (stationary std ``sigma``, correlation time tau)."""
+    from scipy.signal import lfilter
+
+    phi = np.exp(-dt / tau)
+    w = rng.normal(0.0, sigma * np.sqrt(1 - phi * phi), (n, 3))
+    w[0] = rng.normal(0.0, sigma, 3)
+    return lfilter([1.0], [1.0, -phi], w, axis=0)
+
+
 def open_sim_sequence(preset: str, session: str, seed: int, **overrides) -> SimSequence:
-    """A simulated session streamed on the fly: ``preset`` small | campus | tiny, ``session``
-    map | loc | loc2 (campus), ``seed`` any int. ``overrides``: preset fields, e.g.
-    ``azimuth_steps=2000`` for full HDL-32E density on ``small``."""
+    """A simulated session streamed on the fly: ``preset`` small | campus | city | tiny,
+    ``session`` map | loc | loc2 (campus) | map1..map5, loc (city), ``seed`` any int.
+    ``overrides``: preset fields, e.g. ``azimuth_steps=200`` for a sparse, fast sensor, or
+    ``ideal=True`` for every error source off."""
     return SimSequence(get_preset(preset, **overrides), session, int(seed))

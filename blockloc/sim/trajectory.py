@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from blockloc.geometry import so3_log
-from blockloc.sim.presets import Preset
+from blockloc.sim.presets import PlatformModel, Preset
 from blockloc.sim.world import Roads, World, smootherstep, smootherstep_d
 
 log = logging.getLogger(__name__)
@@ -38,28 +38,31 @@ def _edge(a: Node, b: Node) -> tuple[Node, Node]:
     return (a, b) if a <= b else (b, a)
 
 
-def cover_route(roads: Roads, rng: np.random.Generator, length_m: float, start: Node) -> list[Node]:
+def cover_route(roads: Roads, rng: np.random.Generator, length_m: float, start: Node,
+                allowed=None, prefix: list[Node] | None = None) -> list[Node]:
     """A node walk that first covers unvisited road edges (greedy, BFS to the nearest unvisited
-    one), then wanders without immediate U-turns, until ``length_m`` is driven."""
-    route = [start]
-    visited: set = set()
-    total = 0.0
-    all_edges = {_edge(a, b) for a in _all_nodes(roads) for b in roads.neighbours(a)}
+    one), then wanders without immediate U-turns, until ``length_m`` is driven. ``allowed``:
+    node -> bool, the part of the graph to cover (default all); ``prefix``: nodes driven first."""
+    ok = allowed or (lambda n: True)
+    route = list(prefix) if prefix else [start]
+    visited: set = {_edge(a, b) for a, b in zip(route[:-1], route[1:])}
+    total = sum(roads.edge_length(a, b) for a, b in zip(route[:-1], route[1:]))
+    all_edges = {_edge(a, b) for a in _all_nodes(roads) if ok(a) for b in roads.neighbours(a) if ok(b)}
     while total < length_m:
         cur = route[-1]
-        nbrs = roads.neighbours(cur)
+        nbrs = [n for n in roads.neighbours(cur) if ok(n)] or roads.neighbours(cur)
         fresh = [n for n in nbrs if _edge(cur, n) not in visited]
         if fresh:
             nxt = fresh[rng.integers(len(fresh))]
-        elif len(visited) < len(all_edges):
-            path = _bfs_to_unvisited(roads, cur, visited)
+        elif len(visited & all_edges) < len(all_edges):
+            path = _bfs_to_unvisited(roads, cur, visited, ok)
             nxt = path[1]
         else:
             back = route[-2] if len(route) > 1 else None
             opts = [n for n in nbrs if n != back] or nbrs
             nxt = opts[rng.integers(len(opts))]
         visited.add(_edge(cur, nxt))
-        total += float(np.linalg.norm(roads.node_xy(nxt) - roads.node_xy(cur)))
+        total += roads.edge_length(cur, nxt)
         route.append(nxt)
     return route
 
@@ -68,7 +71,7 @@ def _all_nodes(roads: Roads) -> list[Node]:
     return [(i, j) for i in range(len(roads.xs)) for j in range(len(roads.ys))]
 
 
-def _bfs_to_unvisited(roads: Roads, start: Node, visited: set) -> list[Node]:
+def _bfs_to_unvisited(roads: Roads, start: Node, visited: set, ok=lambda n: True) -> list[Node]:
     from collections import deque
 
     prev = {start: None}
@@ -76,6 +79,8 @@ def _bfs_to_unvisited(roads: Roads, start: Node, visited: set) -> list[Node]:
     while q:
         cur = q.popleft()
         for n in roads.neighbours(cur):
+            if not ok(n):
+                continue
             if _edge(cur, n) not in visited:
                 path = [n, cur]
                 while prev[path[-1]] is not None:
@@ -104,20 +109,71 @@ def relocalization_route(roads: Roads, rng: np.random.Generator, length_m: float
             raise RuntimeError(f"node {cur} is not on the mapping route")
         if len(opts) > 1 and back in opts:
             opts.remove(back)
+        # hard places (footpaths over open quads, passages, the corridor) are sought out
         score = [uses.get(_edge(cur, n), 0) * 2.0 + (1.0 if (cur, n) in mapped_dir else 0.0)
+                 - (1.5 if _edge(cur, n) in roads.special and not uses.get(_edge(cur, n)) else 0.0)
                  + rng.uniform(0, 0.9) for n in opts]
         nxt = opts[int(np.argmin(score))]
         uses[_edge(cur, nxt)] = uses.get(_edge(cur, nxt), 0) + 1
-        total += float(np.linalg.norm(roads.node_xy(nxt) - roads.node_xy(cur)))
+        total += roads.edge_length(cur, nxt)
         route.append(nxt)
     return route
 
 
-def lane_waypoints(roads: Roads, route: list[Node], length_m: float) -> np.ndarray:
+def crossing_route(roads: Roads, rng: np.random.Generator, length_m: float, mapped: set,
+                   n_via: int = 6) -> list[Node]:
+    """A drive across the mapped part of the graph (edges ``mapped``): from its western end to
+    its eastern end through ``n_via`` random mapped nodes in between (shortest paths on the
+    mapped edges), as far as ``length_m``."""
+    from collections import deque
+
+    nodes = sorted({n for e in mapped for n in e})
+    adj: dict = {}
+    for a, b in mapped:
+        adj.setdefault(a, []).append(b)
+        adj.setdefault(b, []).append(a)
+    xs = np.array([roads.node_xy(n)[0] for n in nodes])
+    order = np.argsort(xs)
+    start = nodes[order[len(order) // 20]]
+    goal = nodes[order[-1 - len(order) // 20]]
+    via = [nodes[i] for i in np.sort(rng.choice(order[len(order) // 10:-len(order) // 10], n_via,
+                                                 replace=False), kind="stable")]
+    via = sorted(via, key=lambda n: roads.node_xy(n)[0])
+    route = [start]
+    for target in via + [goal]:
+        prev = {route[-1]: None}
+        q = deque([route[-1]])
+        while q and target not in prev:
+            cur = q.popleft()
+            for n in adj.get(cur, []):
+                if n not in prev:
+                    prev[n] = cur
+                    q.append(n)
+        if target not in prev:
+            continue
+        leg = [target]
+        while prev[leg[-1]] is not None:
+            leg.append(prev[leg[-1]])
+        route += leg[::-1][1:]
+    total = 0.0
+    for k in range(1, len(route)):
+        total += roads.edge_length(route[k - 1], route[k])
+        if total >= length_m:
+            return route[:k + 1]
+    return route
+
+
+def lane_waypoints(roads: Roads, route: list[Node], length_m: float) -> tuple[np.ndarray, np.ndarray]:
     """(K, 2) corner points of the route, offset LANE_OFFSET_M to the right of the centre
-    line, truncated to ``length_m``. U-turns get two points (turn across to the other lane)."""
-    P = np.array([roads.node_xy(n) for n in route])
-    pts = []
+    line, truncated to ``length_m``, and (K,) bool: the point lies inside a curving footpath
+    (to be driven through in a curve, never stopped at). U-turns get two points."""
+    P, smooth = [roads.node_xy(route[0])], [False]
+    for a, b in zip(route[:-1], route[1:]):
+        E = roads.edge_points(a, b)
+        P.extend(E[1:])
+        smooth.extend([True] * (len(E) - 2) + [False])
+    P = np.array(P)
+    pts, sm = [], []
     for k in range(len(P)):
         d_in = _unit(P[k] - P[k - 1]) if k > 0 else _unit(P[1] - P[0])
         d_out = _unit(P[k + 1] - P[k]) if k + 1 < len(P) else d_in
@@ -125,13 +181,16 @@ def lane_waypoints(roads: Roads, route: list[Node], length_m: float) -> np.ndarr
         r_out = np.array([d_out[1], -d_out[0]]) * LANE_OFFSET_M
         if np.dot(d_in, d_out) < -0.5:  # U-turn: end of the inbound lane, start of the outbound
             pts += [P[k] + r_in, P[k] + r_out]
-        elif abs(d_in[0] * d_out[1] - d_in[1] * d_out[0]) < 1e-6:
+            sm += [False, False]
+            continue
+        if abs(d_in[0] * d_out[1] - d_in[1] * d_out[0]) < 1e-6:
             pts.append(P[k] + r_in)
         else:  # intersection of the two offset lines
             A = np.c_[d_in, -d_out]
             s = np.linalg.solve(A, (P[k] + r_out) - (P[k] + r_in))
             pts.append(P[k] + r_in + s[0] * d_in)
-    pts = np.array(pts)
+        sm.append(smooth[k])
+    pts, sm = np.array(pts), np.array(sm, dtype=bool)
     # truncate to length
     seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
     cum = np.concatenate([[0], np.cumsum(seg)])
@@ -139,7 +198,8 @@ def lane_waypoints(roads: Roads, route: list[Node], length_m: float) -> np.ndarr
         k = int(np.searchsorted(cum, length_m))
         end = pts[k - 1] + (pts[k] - pts[k - 1]) * (length_m - cum[k - 1]) / max(seg[k - 1], 1e-9)
         pts = np.vstack([pts[:k], end])
-    return pts
+        sm = np.r_[sm[:k], False]
+    return pts, sm
 
 
 def _unit(v):
@@ -213,10 +273,12 @@ def _curve_lead(dpsi: float, v: float, rate=0.3) -> float:
     return float(ex - ey / np.tan(dpsi))
 
 
-def plan_motion(waypoints: np.ndarray, preset: Preset, rng: np.random.Generator) -> np.ndarray:
+def plan_motion(waypoints: np.ndarray, preset: Preset, rng: np.random.Generator,
+                smooth: np.ndarray | None = None) -> np.ndarray:
     """Drive through ``waypoints`` (K, 2); returns (N, 4) rows t (s from 0), x, y, psi (rad,
     unwrapped) at 100 Hz. Sharp corners (> 100 deg) and a share of the others are taken by
-    stopping and turning in place; the rest by curves; random stops on legs."""
+    stopping and turning in place; the rest by curves; random stops on legs. ``smooth`` (K,)
+    bool: points inside a curving path, always driven through in a curve."""
     v_c = preset.cruise_speed_mps
     decel_dist = 1.875 * v_c * v_c  # distance covered by ramp_speed(0.0) from v_c (accel 0.5)
     P = np.asarray(waypoints, dtype=float)
@@ -232,6 +294,8 @@ def plan_motion(waypoints: np.ndarray, preset: Preset, rng: np.random.Generator)
         in_place[k] = ang > np.deg2rad(100) or ang < np.deg2rad(5) or rng.random() < preset.turn_in_place_prob
         if np.linalg.norm(d1) < 8 or np.linalg.norm(d2) < 8:
             in_place[k] = True
+        if smooth is not None and smooth[k] and ang < np.deg2rad(60):
+            in_place[k] = False
     for k in range(1, n):
         target = P[k]
         to = target - np.array([it.x, it.y])
@@ -248,7 +312,8 @@ def plan_motion(waypoints: np.ndarray, preset: Preset, rng: np.random.Generator)
         else:
             d2 = P[k + 1] - P[k]
             next_dpsi = _wrap(np.arctan2(d2[1], d2[0]) - heading)
-            end_lead, stop = _curve_lead(next_dpsi, v_c), False
+            end_lead = _curve_lead(next_dpsi, v_c) if abs(next_dpsi) > 0.01 else 0.0
+            stop = False
         avail = dist - end_lead
         stops = []
         if stop and rng.random() < preset.stop_prob and avail > 4 * decel_dist:
@@ -274,7 +339,7 @@ def plan_motion(waypoints: np.ndarray, preset: Preset, rng: np.random.Generator)
                 it.ramp_speed(0.0)
                 if not last:
                     it.wait(rng.uniform(2.0, 5.0))
-        if not stop:
+        if not stop and abs(next_dpsi) > 0.01:
             it.curve(next_dpsi, v_c)
     it.ramp_speed(0.0)
     it.wait(2.0)
@@ -294,6 +359,8 @@ class SimTrajectory:
     samples: np.ndarray  # (N, 4) t, x, y, psi at 100 Hz
     world: World
     body_height_m: float
+    platform: PlatformModel | None = None  # the Segway's own attitude (None: follows the terrain)
+    seed: int = 0
 
     def __post_init__(self) -> None:
         from scipy.interpolate import CubicSpline
@@ -303,6 +370,46 @@ class SimTrajectory:
         self._sy = CubicSpline(t, self.samples[:, 2])
         self._sp = CubicSpline(t, self.samples[:, 3])
         self.duration = float(t[-1])
+        self._tilt = None
+        pm = self.platform
+        if pm is not None and (pm.balance_pitch or pm.wobble_deg > 0 or pm.vibration_deg > 0
+                               or pm.vibration_z_m > 0):
+            self._tilt = self._balance(t, pm)
+
+    def _balance(self, t: np.ndarray, pm: PlatformModel):
+        """Pitch / roll splines of the balancing platform (rad) and the vibration phases."""
+        from scipy.interpolate import CubicSpline
+
+        rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0xBA1A]))
+        psi = self.samples[:, 3]
+        pitch = np.zeros(len(t))
+        if pm.balance_pitch:
+            # lean atan(a / g) into each acceleration, through an underdamped balance loop
+            a_long = self._sx(t, 2) * np.cos(psi) + self._sy(t, 2) * np.sin(psi)
+            target = np.arctan(a_long / 9.81)
+            w = 2 * np.pi * pm.pitch_natural_hz
+            th, dth = 0.0, 0.0
+            for k in range(len(t)):
+                dt = t[k] - t[k - 1] if k else 0.0
+                dth += (w * w * (target[k] - th) - 2 * pm.pitch_damping * w * dth) * dt
+                th += dth * dt
+                pitch[k] = th
+        roll = np.zeros(len(t))
+        if pm.wobble_deg > 0:
+            knots = np.arange(t[0] - 1.0, t[-1] + 2.0, 0.8)
+            wob = CubicSpline(knots, rng.normal(0, 1, (len(knots), 2)))(t)
+            pitch += np.deg2rad(pm.wobble_deg) * wob[:, 0]
+            roll += 0.5 * np.deg2rad(pm.wobble_deg) * wob[:, 1]
+        phases = rng.uniform(0, 2 * np.pi, 3)
+        return CubicSpline(t, pitch), CubicSpline(t, roll), phases
+
+    def _vibration(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Speed-proportional shake: (pitch rad, z m) at times t (analytic, not sampled)."""
+        pm, (_, _, ph) = self.platform, self._tilt
+        v = np.hypot(self._sx(t, 1), self._sy(t, 1)) / 1.3
+        s1 = np.sin(2 * np.pi * 11.0 * t + ph[0]) + 0.6 * np.sin(2 * np.pi * 17.3 * t + ph[1])
+        return (np.deg2rad(pm.vibration_deg) * v * s1,
+                pm.vibration_z_m * v * np.sin(2 * np.pi * 13.1 * t + ph[2]))
 
     def planar(self, t: np.ndarray, order: int = 0):
         t = np.asarray(t, dtype=np.float64)
@@ -310,7 +417,10 @@ class SimTrajectory:
 
     def position(self, t: np.ndarray) -> np.ndarray:
         x, y, _ = self.planar(t)
-        return np.stack([x, y, self.world.terrain.height(x, y) + self.body_height_m], axis=-1)
+        z = self.world.terrain.height(x, y) + self.body_height_m
+        if self._tilt is not None and self.platform.vibration_z_m > 0:
+            z = z + self._vibration(np.asarray(t, dtype=np.float64))[1]
+        return np.stack([x, y, z], axis=-1)
 
     def rotation(self, t: np.ndarray) -> np.ndarray:
         """(N, 3, 3) R_world_flu."""
@@ -322,7 +432,19 @@ class SimTrajectory:
         xa = f - np.sum(f * n, axis=-1, keepdims=True) * n
         xa /= np.linalg.norm(xa, axis=-1, keepdims=True)
         ya = np.cross(n, xa)
-        return np.stack([xa, ya, n], axis=-1)
+        R = np.stack([xa, ya, n], axis=-1)
+        if self._tilt is None:
+            return R
+        tt = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        sp, sr, _ = self._tilt
+        pitch = sp(tt) + self._vibration(tt)[0]  # positive: nose down (leaning forward)
+        roll = sr(tt)
+        cp, spn, cr, srn = np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+        Ry = np.zeros((len(tt), 3, 3))
+        Ry[:, 0, 0], Ry[:, 0, 2], Ry[:, 1, 1], Ry[:, 2, 0], Ry[:, 2, 2] = cp, spn, 1.0, -spn, cp
+        Rx = np.zeros((len(tt), 3, 3))
+        Rx[:, 0, 0], Rx[:, 1, 1], Rx[:, 1, 2], Rx[:, 2, 1], Rx[:, 2, 2] = 1.0, cr, -srn, srn, cr
+        return R @ Ry @ Rx
 
     def T_world_flu(self, t: np.ndarray) -> np.ndarray:
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))

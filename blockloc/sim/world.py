@@ -10,6 +10,7 @@ Everything is generated from ``(preset, seed)`` alone, as plain numpy arrays (no
 
 from __future__ import annotations
 
+import functools
 import logging
 import zlib
 from dataclasses import dataclass, field
@@ -20,10 +21,12 @@ from blockloc.sim.presets import Preset
 
 log = logging.getLogger(__name__)
 
-#: Lambertian albedo per surface category, used for intensity (0..1).
-ALBEDO = {"terrain": 0.45, "road": 0.22, "building": 0.6, "wall": 0.5, "fence": 0.8,
-          "pole": 0.85, "trunk": 0.3, "crown": 0.35, "car": 0.7, "bin": 0.5,
-          "pedestrian": 0.4, "vehicle": 0.75}
+#: Lambertian reflectance at 905 nm per surface category (0..1), used for intensity. Asphalt
+#: is dark, vegetation bright in the near infrared; buildings get their own (``Facade``).
+ALBEDO = {"terrain": 0.3, "road": 0.09, "building": 0.3, "wall": 0.25, "fence": 0.35,
+          "pole": 0.3, "trunk": 0.12, "crown": 0.35, "car": 0.25, "bin": 0.2,
+          "pedestrian": 0.15, "vehicle": 0.25, "sign": 0.5, "ceiling": 0.3, "self": 0.15,
+          "foliage": 0.4, "sidewalk": 0.22, "grass": 0.35, "glass": 0.05}
 
 MOVABLE_KINDS = ("car", "bin")
 
@@ -62,21 +65,22 @@ class Terrain:
         """Height h and gradient (dh/dx, dh/dy) at (x, y), any broadcastable shapes, metres."""
         x = np.asarray(x, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
-        h = np.zeros(np.broadcast(x, y).shape)
-        hx = np.zeros_like(h)
-        hy = np.zeros_like(h)
-        for a, kx, ky, ph in self.waves:
-            arg = kx * x + ky * y + ph
-            h += a * np.sin(arg)
-            c = a * np.cos(arg)
-            hx += c * kx
-            hy += c * ky
-        for ux, uy, off, width, rise in self.ramps:
+        shape = np.broadcast(x, y).shape
+        x = np.broadcast_to(x, shape)[..., None]
+        y = np.broadcast_to(y, shape)[..., None]
+        a, kx, ky, ph = self.waves.T
+        arg = kx * x + ky * y + ph
+        h = (a * np.sin(arg)).sum(axis=-1)
+        c = a * np.cos(arg)
+        hx = (c * kx).sum(axis=-1)
+        hy = (c * ky).sum(axis=-1)
+        if len(self.ramps):
+            ux, uy, off, width, rise = self.ramps.T
             u = (ux * x + uy * y - off) / width
-            h += rise * smootherstep(u)
+            h = h + (rise * smootherstep(u)).sum(axis=-1)
             d = rise * smootherstep_d(u) / width
-            hx += d * ux
-            hy += d * uy
+            hx = hx + (d * ux).sum(axis=-1)
+            hy = hy + (d * uy).sum(axis=-1)
         return h, hx, hy
 
     def height(self, x, y) -> np.ndarray:
@@ -131,17 +135,27 @@ def box_mesh(cx, cy, z0, z1, lx, ly, yaw) -> tuple[np.ndarray, np.ndarray]:
     c, s = np.cos(yaw), np.sin(yaw)
     corners = np.array([[-lx, -ly], [lx, -ly], [lx, ly], [-lx, ly]]) * 0.5
     xy = corners @ np.array([[c, s], [-s, c]]) + [cx, cy]
-    V = np.concatenate([np.c_[xy, np.full(4, z0)], np.c_[xy, np.full(4, z1)]])
+    V = np.empty((8, 3))
+    V[:4, :2] = V[4:, :2] = xy
+    V[:4, 2], V[4:, 2] = z0, z1
     return V, _BOX_F
 
 
-def cylinder_mesh(cx, cy, z0, z1, r, n=8) -> tuple[np.ndarray, np.ndarray]:
+@functools.lru_cache(maxsize=8)
+def _cylinder_template(n: int) -> tuple[np.ndarray, np.ndarray]:
     a = np.arange(n) * 2 * np.pi / n
-    ring = np.c_[cx + r * np.cos(a), cy + r * np.sin(a)]
-    V = np.concatenate([np.c_[ring, np.full(n, z0)], np.c_[ring, np.full(n, z1)], [[cx, cy, z1]]])
     i = np.arange(n)
     j = (i + 1) % n
     F = np.concatenate([np.c_[i, j, n + j], np.c_[i, n + j, n + i], np.c_[n + i, n + j, np.full(n, 2 * n)]])
+    return np.c_[np.cos(a), np.sin(a)], F
+
+
+def cylinder_mesh(cx, cy, z0, z1, r, n=8) -> tuple[np.ndarray, np.ndarray]:
+    cs, F = _cylinder_template(n)
+    V = np.empty((2 * n + 1, 3))
+    V[:n, :2] = V[n:2 * n, :2] = cs * r + [cx, cy]
+    V[:n, 2], V[n:, 2] = z0, z1
+    V[2 * n, :2] = cx, cy
     return V, F
 
 
@@ -204,6 +218,12 @@ class Roads:
     xs: np.ndarray
     ys: np.ndarray
     width_m: float
+    #: footpaths: (node a, node b) with a < b -> (K, 2) polyline from a to b (world, m)
+    paths: dict = field(default_factory=dict)
+    #: edges (a < b) that are hard places: footpaths, passages under buildings, the corridor
+    special: set = field(default_factory=set)
+    #: grid edges the moving vehicles must not use (the indoor corridor)
+    no_traffic: set = field(default_factory=set)
 
     def node_xy(self, node: tuple[int, int]) -> np.ndarray:
         return np.array([self.xs[node[0]], self.ys[node[1]]])
@@ -214,7 +234,30 @@ class Roads:
         for di, dj in ((1, 0), (-1, 0), (0, 1), (0, -1)):
             if 0 <= i + di < len(self.xs) and 0 <= j + dj < len(self.ys):
                 out.append((i + di, j + dj))
+        for di, dj in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+            nb = (i + di, j + dj)
+            if (min(node, nb), max(node, nb)) in self.paths:
+                out.append(nb)
         return out
+
+    def edge_points(self, a: tuple[int, int], b: tuple[int, int]) -> np.ndarray:
+        """(K, 2) points from node a to node b along the edge (2 for a straight road)."""
+        key = (min(a, b), max(a, b))
+        if key in self.paths:
+            P = self.paths[key]
+            return P if key[0] == a else P[::-1]
+        return np.array([self.node_xy(a), self.node_xy(b)])
+
+    def edge_length(self, a, b) -> float:
+        return float(np.linalg.norm(np.diff(self.edge_points(a, b), axis=0), axis=1).sum())
+
+    def path_distance(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Distance (m) from (x, y) to the nearest footpath (inf without footpaths)."""
+        x, y = np.asarray(x, float), np.asarray(y, float)
+        d = np.full(np.broadcast(x, y).shape, np.inf)
+        for P in self.paths.values():
+            d = np.minimum(d, polyline_distance(P, x, y))
+        return d
 
     def distance(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Distance (m) from (x, y) to the nearest road centre line."""
@@ -251,8 +294,26 @@ class Movables:
 
 
 @dataclass
+class Volumes:
+    """Vegetation as scattering volumes (tree crowns, bushes, hedge pieces): axis-aligned
+    ellipsoids. center: (V, 3) world m; radii: (V, 3) semi-axes m; mfp: (V,) mean free path m
+    of a ray inside (dense hedge ~0.3 m, open crown ~1 m); kind: (V,) 0 crown, 1 bush, 2 hedge."""
+
+    center: np.ndarray
+    radii: np.ndarray
+    mfp: np.ndarray
+    kind: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.mfp)
+
+
+@dataclass
 class World:
-    """A generated world (z up). ``meshes``: category -> (V, F) of the static scene."""
+    """A generated world (z up). ``meshes``: category -> (V, F) of the static scene;
+    ``owners``: category -> (F,) index of the object each triangle belongs to (buildings: the
+    row of ``facades``). ``facades``: (B, 10) building boxes x0 x1 y0 y1 z0 z1, reflectance,
+    floor height, window period, phase (m)."""
 
     preset: Preset
     seed: int
@@ -262,15 +323,67 @@ class World:
     movables: Movables
     cells: list[dict] = field(default_factory=list)
     corridors: list[dict] = field(default_factory=list)
+    volumes: Volumes | None = None
+    facades: np.ndarray = field(default_factory=lambda: np.zeros((0, 10)))
+    owners: dict = field(default_factory=dict)
+    passages: list[dict] = field(default_factory=list)
+    _material: dict = field(default_factory=dict, repr=False)
 
     @property
     def extent(self) -> tuple[float, float, float, float]:
         sx, sy = self.preset.size_m
         return (-sx / 2, sx / 2, -sy / 2, sy / 2)
 
+    def ground_material(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """(N,) ground surface code at (x, y): 0 road (asphalt), 1 sidewalk (paved, a kerb
+        above the road), 2 grass, 3 footpath (paved, flush with the grass). Looked up in 0.25 m
+        raster tiles of 128 m, each built on first use (a city is never rastered whole)."""
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        res, tile = 0.25, 128.0
+        n = int(tile / res)
+        ti = np.floor(x / tile).astype(np.int64)
+        tj = np.floor(y / tile).astype(np.int64)
+        key = ti * 1_000_003 + tj
+        out = np.empty(x.shape, dtype=np.uint8)
+        uniq, inv = np.unique(key, return_inverse=True)
+        inv = inv.reshape(x.shape)
+        for k, kk in enumerate(uniq):
+            a, b = int(kk // 1_000_003), int(kk % 1_000_003)
+            if b > 500_000:  # negative tj wrapped by the modulo
+                a, b = a + 1, b - 1_000_003
+            R = self._material.get((a, b))
+            if R is None:
+                gx = a * tile + (np.arange(n) + 0.5) * res
+                gy = b * tile + (np.arange(n) + 0.5) * res
+                X, Y = np.meshgrid(gx, gy)
+                R = self._ground_material_exact(X.ravel(), Y.ravel(),
+                                                (a * tile, (a + 1) * tile, b * tile, (b + 1) * tile))
+                R = R.reshape(n, n).astype(np.uint8)
+                self._material[(a, b)] = R
+            m = inv == k
+            i = np.clip(((y[m] - b * tile) / res).astype(np.int64), 0, n - 1)
+            j = np.clip(((x[m] - a * tile) / res).astype(np.int64), 0, n - 1)
+            out[m] = R[i, j]
+        return out
+
+    def _ground_material_exact(self, x: np.ndarray, y: np.ndarray, box=None) -> np.ndarray:
+        d = self.roads.distance(x, y)
+        hw = self.roads.width_m / 2
+        code = np.where(d < hw, 0, np.where(d < hw + 2.5, 1, 2))
+        for P in self.roads.paths.values():
+            lo, hi = P.min(axis=0) - 2.0, P.max(axis=0) + 2.0
+            if box is not None and (hi[0] < box[0] or lo[0] > box[1] or hi[1] < box[2] or lo[1] > box[3]):
+                continue
+            code = np.where((code == 2) & (polyline_distance(P, x, y) < 1.25), 3, code)
+        return code
+
     def ground_albedo(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        on_road = self.roads.distance(x, y) < self.roads.width_m / 2
-        return np.where(on_road, ALBEDO["road"], ALBEDO["terrain"])
+        if not self.preset.detail.ground_relief:
+            on_road = self.roads.distance(x, y) < self.roads.width_m / 2
+            return np.where(on_road, ALBEDO["road"], ALBEDO["terrain"])
+        lut = np.array([ALBEDO["road"], ALBEDO["sidewalk"], ALBEDO["grass"], ALBEDO["sidewalk"]])
+        return lut[self.ground_material(x, y)]
 
     def num_triangles(self) -> int:
         return int(sum(len(F) for _, F in self.meshes.values()))
@@ -284,7 +397,11 @@ def build_world(preset: Preset, seed: int) -> World:
     roads = Roads(_road_lines(rng, sx, preset.road_spacing_m[0]),
                   _road_lines(rng, sy, preset.road_spacing_m[1]), preset.road_width_m)
     hw = roads.width_m / 2
-    b = {k: MeshBuilder() for k in ("building", "wall", "fence", "pole", "trunk", "crown")}
+    b = {k: MeshBuilder() for k in ("building", "wall", "fence", "pole", "trunk", "crown", "sign",
+                                    "ceiling")}
+    detail = preset.detail
+    veg = _Vegetation(detail.volumetric_vegetation, b)
+    facades = _Facades()
     mov_kind, mov_xy, mov_yaw = [], [], []
     H = terrain.height
 
@@ -298,7 +415,18 @@ def build_world(preset: Preset, seed: int) -> World:
         y = roads.ys[j]
         if x1 - x0 < 20:
             continue
-        corridors.append({"x0": x0, "x1": x1, "y": y})
+        indoor = detail.layout and not corridors
+        corridors.append({"x0": x0, "x1": x1, "y": y, "edge": ((i, j), (i + 1, j)), "indoor": indoor})
+        if indoor:  # an indoor corridor: a ceiling 3.4 m up, lights (retroreflective) every 8 m
+            roads.special.add(((i, j), (i + 1, j)))
+            roads.no_traffic.add(((i, j), (i + 1, j)))
+            n_seg = int(np.ceil((x1 - x0) / 10.0))
+            for k in range(n_seg):
+                a0 = x0 + (x1 - x0) * k / n_seg
+                a1 = x0 + (x1 - x0) * (k + 1) / n_seg
+                hs = H(np.array([a0, a1]), np.array([y, y]))
+                _add_building(b, facades, rng, *box_mesh((a0 + a1) / 2, y, hs.max() + 3.4, hs.max() + 3.7,
+                                                         a1 - a0 + 0.02, 2 * hw + 1.6, 0.0), "ceiling")
         for side in (-1, 1):
             yw = y + side * (hw + 0.6)
             n_seg = int(np.ceil((x1 - x0) / 10.0))
@@ -306,8 +434,8 @@ def build_world(preset: Preset, seed: int) -> World:
                 a0 = x0 + (x1 - x0) * k / n_seg
                 a1 = x0 + (x1 - x0) * (k + 1) / n_seg
                 hs = H(np.array([a0, a1]), np.array([yw, yw]))
-                b["wall"].add(*box_mesh((a0 + a1) / 2, yw, hs.min() - 0.5, hs.max() + 3.5,
-                                        a1 - a0 + 0.02, 0.3, 0.0))
+                _add_building(b, facades, rng, *box_mesh((a0 + a1) / 2, yw, hs.min() - 0.5, hs.max() + 3.5,
+                                                         a1 - a0 + 0.02, 0.3, 0.0), "wall")
 
     def in_corridor_strip(x, y):
         return any(c["x0"] - 2 <= x <= c["x1"] + 2 and abs(y - c["y"]) < hw + 9.0 for c in corridors)
@@ -321,7 +449,12 @@ def build_world(preset: Preset, seed: int) -> World:
     ncell = (len(xl) - 1) * (len(yl) - 1)
     types = list(rng.choice(kinds, size=ncell, p=probs))
     # every world has at least one open field, one parking and two building cells
-    perm = rng.permutation(ncell)
+    perm = list(rng.permutation(ncell))
+    ny_c = len(yl) - 1
+    interior = [k for k in perm if 1 <= k // ny_c < len(xl) - 2 and 1 <= k % ny_c < len(yl) - 2]
+    if preset.detail.layout and interior:  # an open quad with a footpath, where a route can cross it
+        perm.remove(interior[0])
+        perm.insert(0, interior[0])
     for k, forced in zip(perm[:4], ["field", "parking", "buildings", "buildings"]):
         types[k] = forced
     setback = 6.0
@@ -339,7 +472,7 @@ def build_world(preset: Preset, seed: int) -> World:
                 for (ax, ay, bx, by) in ((cx0, cy0 + 1.5, cx1, cy0 + 1.5), (cx0, cy1 - 1.5, cx1, cy1 - 1.5),
                                          (cx0 + 1.5, cy0, cx0 + 1.5, cy1), (cx1 - 1.5, cy0, cx1 - 1.5, cy1)):
                     L = np.hypot(bx - ax, by - ay)
-                    step = rng.uniform(22, 35)
+                    step = rng.uniform(12, 20)
                     for s in np.arange(rng.uniform(3, step), L - 3, step):
                         px, py = ax + (bx - ax) * s / L, ay + (by - ay) * s / L
                         if in_corridor_strip(px, py):
@@ -347,31 +480,72 @@ def build_world(preset: Preset, seed: int) -> World:
                         z = H(px, py)
                         if rng.random() < 0.5:
                             b["pole"].add(*cylinder_mesh(px, py, z - 0.3, z + rng.uniform(5, 8), 0.12))
-                        elif ctype in ("park", "buildings"):
-                            _tree(b, rng, px + rng.uniform(-1, 1), py + rng.uniform(-1, 1), H)
+                            if rng.random() < 0.35:  # a traffic sign (retroreflective sheeting)
+                                b["sign"].add(*box_mesh(px, py, z + 2.0, z + 2.6, 0.6, 0.03,
+                                                        rng.uniform(0, np.pi)))
+                        else:
+                            _tree(b, veg, rng, px + rng.uniform(-1, 1), py + rng.uniform(-1, 1), H)
+                        if rng.random() < 0.6:
+                            _bush(veg, rng, px + rng.uniform(-2, 2), py + rng.uniform(-2, 2), H)
+            path = None
+            if (detail.layout and ctype in ("field", "park", "parking") and 1 <= ix < len(roads.xs)
+                    and 1 <= iy < len(roads.ys) and rng.random() < 0.75):
+                path = _footpath(roads, rng, ix, iy)
+            clear = (lambda x, y: True) if path is None else (
+                lambda x, y, P=path: float(polyline_distance(P, x, y)) > 2.5)
+            if ctype == "field":
+                # an open quad: a line of trees along its edges, a few solitary ones on the lawn
+                for (ax, ay, bx, by) in ((ix0, iy0, ix1, iy0), (ix1, iy0, ix1, iy1),
+                                         (ix1, iy1, ix0, iy1), (ix0, iy1, ix0, iy0)):
+                    if rng.random() < 0.5:
+                        continue
+                    L = np.hypot(bx - ax, by - ay)
+                    for s_ in np.arange(rng.uniform(2, 10), L - 2, rng.uniform(9, 16)):
+                        x, y = ax + (bx - ax) * s_ / L, ay + (by - ay) * s_ / L
+                        if clear(x, y):
+                            _tree(b, veg, rng, x, y, H)
+                for _ in range(int((ix1 - ix0) * (iy1 - iy0) / 1500)):
+                    x, y = rng.uniform(ix0, ix1), rng.uniform(iy0, iy1)
+                    if clear(x, y):
+                        _tree(b, veg, rng, x, y, H)
             if ctype == "buildings":
-                _buildings(b, rng, (ix0, ix1, iy0, iy1), H, preset)
+                _buildings(b, rng, (ix0, ix1, iy0, iy1), H, preset, facades)
+                # hedges along the plot, shrubs at the walls
+                _hedge(veg, rng, (ix0 - 3, ix1 + 3, iy0 - 3, iy1 + 3), H)
+                _hedge(veg, rng, (ix0 - 0.5, ix1 + 0.5, iy0 - 0.5, iy1 + 0.5), H)
             elif ctype == "park":
                 area = (ix1 - ix0) * (iy1 - iy0)
-                for _ in range(int(area / rng.uniform(120, 250))):
-                    _tree(b, rng, rng.uniform(ix0, ix1), rng.uniform(iy0, iy1), H)
+                for _ in range(int(area / rng.uniform(70, 140))):
+                    x, y = rng.uniform(ix0, ix1), rng.uniform(iy0, iy1)
+                    if clear(x, y):
+                        _tree(b, veg, rng, x, y, H)
+                for _ in range(int(area / 150)):
+                    x, y = rng.uniform(ix0, ix1), rng.uniform(iy0, iy1)
+                    if clear(x, y):
+                        _bush(veg, rng, x, y, H)
                 for _ in range(int(area / 400) + 1):
-                    mov_kind.append("bin")
-                    mov_xy.append((rng.uniform(ix0, ix1), rng.uniform(iy0, iy1)))
-                    mov_yaw.append(rng.uniform(0, np.pi))
+                    x, y = rng.uniform(ix0, ix1), rng.uniform(iy0, iy1)
+                    if clear(x, y):
+                        mov_kind.append("bin")
+                        mov_xy.append((x, y))
+                        mov_yaw.append(rng.uniform(0, np.pi))
             elif ctype == "parking":
                 # rows of parking places along x; ~70% occupied
                 yaw = 0.0 if rng.random() < 0.5 else np.pi / 2
                 for py in np.arange(iy0 + 3, iy1 - 3, 12.0):
                     for px in np.arange(ix0 + 2, ix1 - 2, 2.8):
                         for dy in (-2.6, 2.6):
-                            if rng.random() < 0.7:
+                            if rng.random() < 0.7 and clear(px, py + dy):
                                 mov_kind.append("car")
                                 mov_xy.append((px, py + dy))
                                 mov_yaw.append(np.pi / 2 + rng.normal(0, 0.05))
                 del yaw
                 if rng.random() < 0.7:
-                    _fence(b, rng, (ix0 - 2, ix1 + 2, iy0 - 2, iy1 + 2), H, in_corridor_strip)
+                    _fence(b, rng, (ix0 - 2, ix1 + 2, iy0 - 2, iy1 + 2), H,
+                           lambda x, y: in_corridor_strip(x, y) or not clear(x, y))
+                else:
+                    _hedge(veg, rng, (ix0 - 2, ix1 + 2, iy0 - 2, iy1 + 2), H,
+                           skip=lambda x, y: not clear(x, y))
             # cars parked along the kerb (movable) beside non-field cells
             if ctype != "field":
                 for y_k, sgn in ((cy0, 1), (cy1, -1)):
@@ -381,6 +555,7 @@ def build_world(preset: Preset, seed: int) -> World:
                             mov_xy.append((px, y_k + sgn * 1.2))
                             mov_yaw.append(rng.normal(0, 0.03))
 
+    passages = _passages(b, rng, roads, cells, corridors, H, preset, facades) if detail.layout else []
     ext = preset.terrain_margin_m
     meshes = {"terrain": terrain_mesh(terrain, -sx / 2 - ext, sx / 2 + ext, -sy / 2 - ext,
                                       sy / 2 + ext, preset.terrain_res_m)}
@@ -388,20 +563,168 @@ def build_world(preset: Preset, seed: int) -> World:
         V, F = mb.build()
         if len(F):
             meshes[k] = (V, F)
+    owners = {k: np.asarray(v, dtype=np.int64) for k, v in facades.owner.items() if k in meshes}
     movables = Movables(np.array(mov_kind, dtype="<U8"), np.array(mov_xy, dtype=float).reshape(-1, 2),
                         np.array(mov_yaw, dtype=float), np.arange(len(mov_kind)))
-    world = World(preset, int(seed), terrain, roads, meshes, movables, cells, corridors)
+    world = World(preset, int(seed), terrain, roads, meshes, movables, cells, corridors,
+                  veg.build(), np.array(facades, dtype=float).reshape(-1, 10), owners, passages)
     log.debug("world %s/%d: %d triangles, %d movables", preset.name, seed, world.num_triangles(),
               len(movables))
     return world
 
 
-def _tree(b, rng, x, y, H) -> None:
+class _Vegetation:
+    """Collects vegetation: scattering volumes (volumetric) or solid ellipsoid meshes."""
+
+    def __init__(self, volumetric: bool, b: dict):
+        self.volumetric = volumetric
+        self.b = b
+        self.rows: list[tuple] = []
+
+    def add(self, b, cx, cy, cz, rxy, rz, mfp, kind) -> None:
+        """One crown / bush / hedge piece (the same draws either way: switching the volumes
+        off changes how rays meet vegetation, not where it grows)."""
+        if self.volumetric:
+            self.rows.append((cx, cy, cz, rxy, rxy, rz, mfp, kind))
+        else:
+            self.b["crown"].add(*ellipsoid_mesh(cx, cy, cz, rxy, rz))
+
+    def build(self) -> Volumes | None:
+        if not self.rows:
+            return None
+        a = np.array(self.rows, dtype=float)
+        return Volumes(a[:, :3], a[:, 3:6], a[:, 6], a[:, 7].astype(np.int8))
+
+
+def _tree(b, veg, rng, x, y, H) -> None:
     z = H(x, y)
     h_trunk = rng.uniform(1.8, 3.2)
     r = rng.uniform(1.3, 3.0)
     b["trunk"].add(*cylinder_mesh(x, y, z - 0.3, z + h_trunk + 0.5 * r, rng.uniform(0.12, 0.3), n=6))
-    b["crown"].add(*ellipsoid_mesh(x, y, z + h_trunk + r, r, r * rng.uniform(0.9, 1.5)))
+    rz = r * rng.uniform(0.9, 1.5)
+    veg.add(b, x, y, z + h_trunk + r, r, rz, rng.uniform(0.5, 1.4), 0)
+    mfp_inner = rng.uniform(0.4, 0.9)
+    if veg.volumetric:  # a lower, denser shell of leaves and branches (inside the solid crown)
+        veg.add(b, x, y, z + h_trunk + 0.6 * r, 0.7 * r, 0.5 * rz, mfp_inner, 0)
+
+
+def _bush(veg, rng, x, y, H) -> None:
+    """A clump of 1-3 overlapping shrubs."""
+    for _ in range(rng.integers(1, 4)):
+        px, py = x + rng.uniform(-1, 1), y + rng.uniform(-1, 1)
+        r = rng.uniform(0.4, 1.1)
+        veg.add(None, px, py, H(px, py) + r * 0.7, r, r * rng.uniform(0.6, 1.0),
+                rng.uniform(0.15, 0.4), 1)
+
+
+def _hedge(veg, rng, rect, H, skip=None) -> None:
+    """Hedges along one or two sides of a rectangle: chains of dense overlapping shrubs."""
+    x0, x1, y0, y1 = rect
+    sides = [(x0, y0, x1, y0), (x1, y0, x1, y1), (x1, y1, x0, y1), (x0, y1, x0, y0)]
+    for k in rng.choice(4, size=rng.integers(1, 3), replace=False):
+        ax, ay, bx, by = sides[k]
+        L = np.hypot(bx - ax, by - ay)
+        s0 = rng.uniform(0, 0.3) * L
+        s1 = s0 + rng.uniform(0.3, 0.7) * L
+        r, h = rng.uniform(0.45, 0.7), rng.uniform(0.8, 1.6)
+        ss = np.arange(s0, min(s1, L), 0.8)
+        px, py = ax + (bx - ax) * ss / L, ay + (by - ay) * ss / L
+        pz = H(px, py)
+        mfp = rng.uniform(0.15, 0.35, len(ss))
+        for k in range(len(ss)):
+            if skip is None or not skip(px[k], py[k]):
+                veg.add(None, px[k], py[k], pz[k] + h / 2, r, h / 2 + 0.1, mfp[k], 2)
+
+
+def polyline_distance(P: np.ndarray, x, y) -> np.ndarray:
+    """Distance (m) from points (x, y) (broadcastable) to the polyline P (K, 2)."""
+    x, y = np.asarray(x, float)[..., None], np.asarray(y, float)[..., None]
+    a, u = P[:-1], np.diff(P, axis=0)
+    L2 = (u * u).sum(axis=1)
+    s = np.clip(((x - a[:, 0]) * u[:, 0] + (y - a[:, 1]) * u[:, 1]) / L2, 0.0, 1.0)
+    return np.hypot(x - a[:, 0] - s * u[:, 0], y - a[:, 1] - s * u[:, 1]).min(axis=-1)
+
+
+def _footpath(roads: Roads, rng, ix: int, iy: int) -> np.ndarray:
+    """A curving footpath across the cell ix, iy (between grid lines ix-1..ix, iy-1..iy), from
+    one corner intersection to the opposite one; registered in ``roads.paths``."""
+    if rng.random() < 0.5:
+        a, b_ = (ix - 1, iy - 1), (ix, iy)
+    else:
+        a, b_ = (ix - 1, iy), (ix, iy - 1)
+    A, B = roads.node_xy(a), roads.node_xy(b_)
+    d = B - A
+    n = np.array([-d[1], d[0]]) / np.linalg.norm(d)
+    bend = rng.choice([-1, 1]) * rng.uniform(0.12, 0.25) * np.linalg.norm(d)
+    C = (A + B) / 2 + n * bend
+    u = np.linspace(0.0, 1.0, 7)[:, None]
+    P = (1 - u) ** 2 * A + 2 * u * (1 - u) * C + u * u * B  # quadratic Bezier
+    key = (min(a, b_), max(a, b_))
+    roads.paths[key] = P if key[0] == a else P[::-1]
+    roads.special.add(key)
+    return P
+
+
+def _passages(b, rng, roads: Roads, cells, corridors, H, preset, facades) -> list[dict]:
+    """Buildings bridging a road (the robot drives under them): over one grid edge beside a
+    building cell per ~6 such edges (at least one)."""
+    hw = roads.width_m / 2
+    cand = []
+    nx, ny = len(roads.xs), len(roads.ys)
+    corr = {c["edge"] for c in corridors}
+    for i in range(nx):
+        for j in range(ny):
+            for e in (((i, j), (i + 1, j)), ((i, j), (i, j + 1))):
+                if e[1][0] < nx and e[1][1] < ny and e not in corr:
+                    cand.append(e)
+    rng.shuffle(cand)
+    out = []
+    n_want = max(1, len(cand) // 12)
+    for a, b_ in cand:
+        if len(out) >= n_want:
+            break
+        A, B = roads.node_xy(a), roads.node_xy(b_)
+        L = np.linalg.norm(B - A)
+        if L < 40:
+            continue
+        u = (B - A) / L
+        mid = A + u * L * rng.uniform(0.35, 0.65)
+        length = rng.uniform(14.0, 26.0)
+        yaw = float(np.arctan2(u[1], u[0]))
+        across = 2 * hw + 8.0
+        z = H(np.array([mid[0]]), np.array([mid[1]]))[0]
+        z0 = z + rng.uniform(4.2, 5.5)
+        z1 = z0 + rng.uniform(5.0, 14.0)
+        V, F = box_mesh(mid[0], mid[1], z0, z1, length, across, yaw)
+        _add_building(b, facades, rng, V, F)
+        nvec = np.array([-u[1], u[0]])
+        for s_al in (-0.45, 0.45):
+            for s_ac in (-1, 1):
+                p = mid + u * s_al * length + nvec * s_ac * (hw + 2.2)
+                _add_building(b, facades, rng, *box_mesh(p[0], p[1], z - 0.5, z0, 0.7, 0.7, yaw))
+        key = (min(a, b_), max(a, b_))
+        roads.special.add(key)
+        out.append({"edge": key, "center": mid.tolist(), "length": length})
+    return out
+
+
+def _add_building(b, facades, rng, V, F, cat: str = "building") -> None:
+    """One building (or wall, ceiling) box (12 triangles) and its facade row (see ``World``);
+    ``facades.owner[cat]`` collects the row of each of the category's triangles."""
+    b[cat].add(V, F)
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    facades.owner.setdefault(cat, []).extend([len(facades)] * len(F))
+    facades.append((lo[0], hi[0], lo[1], hi[1], lo[2], hi[2],
+                    rng.uniform(0.12, 0.5) if cat == "building" else ALBEDO[cat],
+                    rng.uniform(3.2, 4.2), rng.uniform(2.4, 4.0), rng.uniform(0, 4.0)))
+
+
+class _Facades(list):
+    """Facade rows (see ``World``) and, per category, the row of each triangle."""
+
+    def __init__(self):
+        super().__init__()
+        self.owner: dict[str, list[int]] = {}
 
 
 def _fence(b, rng, rect, H, skip) -> None:
@@ -421,7 +744,7 @@ def _fence(b, rng, rect, H, skip) -> None:
             b["fence"].add(*box_mesh(px, py, z - 0.3, z + 1.3, L / n, 0.06, np.arctan2(by - ay, bx - ax)))
 
 
-def _buildings(b, rng, rect, H, preset) -> None:
+def _buildings(b, rng, rect, H, preset, facades) -> None:
     """Fill a rectangle with 1-4 buildings of varied footprint (rectangles and L shapes)."""
     x0, x1, y0, y1 = rect
     parts = [(x0, x1, y0, y1)]
@@ -434,7 +757,7 @@ def _buildings(b, rng, rect, H, preset) -> None:
         else:
             m = rng.uniform(0.35, 0.65) * (p[3] - p[2]) + p[2]
             parts += [(p[0], p[1], p[2], m - 3), (p[0], p[1], m + 3, p[3])]
-    hmax = 25.0 if preset.name == "campus" else 18.0
+    hmax = preset.max_building_height_m
     for (a0, a1, c0, c1) in parts:
         if a1 - a0 < 5 or c1 - c0 < 5:
             continue
@@ -450,16 +773,51 @@ def _buildings(b, rng, rect, H, preset) -> None:
         if rng.random() < 0.35 and (fa1 - fa0) > 12 and (fc1 - fc0) > 12:
             # L shape: a full-width wing plus a half-depth wing
             mid_c = (fc0 + fc1) / 2
-            b["building"].add(*box_mesh((fa0 + fa1) / 2, (fc0 + mid_c) / 2, z0, z1, fa1 - fa0, mid_c - fc0, 0.0))
+            _add_building(b, facades, rng, *box_mesh((fa0 + fa1) / 2, (fc0 + mid_c) / 2, z0, z1,
+                                                     fa1 - fa0, mid_c - fc0, 0.0))
             ma = fa0 + (fa1 - fa0) * rng.uniform(0.3, 0.6)
-            b["building"].add(*box_mesh((fa0 + ma) / 2, (mid_c + fc1) / 2, z0, z0 + 0.5 + height * rng.uniform(0.5, 1.0),
-                                        ma - fa0, fc1 - mid_c, 0.0))
+            _add_building(b, facades, rng, *box_mesh((fa0 + ma) / 2, (mid_c + fc1) / 2, z0,
+                                                     z0 + 0.5 + height * rng.uniform(0.5, 1.0),
+                                                     ma - fa0, fc1 - mid_c, 0.0))
         else:
-            b["building"].add(*box_mesh((fa0 + fa1) / 2, (fc0 + fc1) / 2, z0, z1, fa1 - fa0, fc1 - fc0, 0.0))
+            _add_building(b, facades, rng, *box_mesh((fa0 + fa1) / 2, (fc0 + fc1) / 2, z0, z1,
+                                                     fa1 - fa0, fc1 - fc0, 0.0))
 
 
-def movable_mesh(kind: str, x: float, y: float, yaw: float, terrain: Terrain) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Mesh parts of one movable or dynamic object standing on the terrain at (x, y)."""
+def _limb(base: np.ndarray, yaw: float, swing: float, length: float, thick: float):
+    """A limb hanging from ``base`` (3,) swung by ``swing`` rad forward (about the body's
+    lateral axis): a box from the joint down to the hand or foot."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    tip = base + length * np.array([np.sin(swing) * c, np.sin(swing) * s, -np.cos(swing)])
+    mid = (base + tip) / 2
+    L = abs(np.sin(swing)) * length + thick
+    return box_mesh(mid[0], mid[1], min(base[2], tip[2]), max(base[2], tip[2]), max(L, thick), thick, yaw)
+
+
+def pedestrian_mesh(x: float, y: float, z: float, yaw: float, gait: float | None,
+                    height: float = 1.75) -> list[tuple[np.ndarray, np.ndarray]]:
+    """An articulated walker: torso, head, two legs and two arms swinging with ``gait`` (rad,
+    the stride phase); ``gait`` None: the old rigid box."""
+    if gait is None:
+        return [box_mesh(x, y, z - 0.05, z + height, 0.35, 0.5, yaw)]
+    k = height / 1.75
+    hip = z + 0.9 * k
+    lat = np.array([-np.sin(yaw), np.cos(yaw), 0.0])
+    parts = [box_mesh(x, y, hip, z + 1.5 * k, 0.24, 0.42, yaw),  # torso
+             box_mesh(x, y, z + 1.52 * k, z + height, 0.2, 0.18, yaw)]  # head
+    swing = 0.45 * np.sin(gait)
+    for side, sgn in ((-1, 1), (1, -1)):
+        hp = np.array([x, y, hip]) + lat * side * 0.1
+        parts.append(_limb(hp, yaw, sgn * swing, 0.9 * k, 0.14))
+        sh = np.array([x, y, z + 1.45 * k]) + lat * side * 0.25
+        parts.append(_limb(sh, yaw, -sgn * 0.8 * swing, 0.65 * k, 0.09))
+    return parts
+
+
+def movable_mesh(kind: str, x: float, y: float, yaw: float, terrain: Terrain,
+                 gait: float | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Mesh parts of one movable or dynamic object standing on the terrain at (x, y);
+    ``gait``: stride phase of an articulated pedestrian (None: a rigid box)."""
     z = float(terrain.height(x, y))
     if kind in ("car", "vehicle"):
         return [box_mesh(x, y, z + 0.25, z + 1.0, 4.4, 1.8, yaw),
@@ -467,7 +825,7 @@ def movable_mesh(kind: str, x: float, y: float, yaw: float, terrain: Terrain) ->
     if kind == "bin":
         return [box_mesh(x, y, z - 0.1, z + 1.0, 0.6, 0.6, yaw)]
     if kind == "pedestrian":
-        return [box_mesh(x, y, z - 0.05, z + 1.75, 0.35, 0.5, yaw)]
+        return pedestrian_mesh(x, y, z, yaw, gait)
     raise ValueError(kind)
 
 

@@ -8,8 +8,11 @@ Layout of ``out`` (NCLT, the default)::
     out/loc/            a localization drive on another day (campus: also out/loc2/)
 
 ``--format rosbag1`` writes ``out/<session>.bag``, ``rosbag2`` a bag directory ``out/<session>/``
-(sqlite3), each with ``out/<session>_groundtruth.csv`` (NCLT csv, T_map_body). Bags hold the
-points in the velodyne frame; readers need the NCLT extrinsic recorded in ``sim.json``.
+(sqlite3), each with ``out/<session>_groundtruth.csv`` (NCLT csv, T_map_body; mapping drives
+also ``out/<session>_slam_poses.csv``) and a sidecar ``out/<session>[.bag].blockloc.json``
+holding the nominal extrinsics, gravity and those file names, which
+``blockloc.datasets.rosbag.RosbagSequence`` reads: ``map build``, ``init`` and ``track`` work on
+the bags as on the NCLT layout.
 
 The whole dataset is written into a temp directory beside ``out`` and renamed at the end.
 """
@@ -84,7 +87,7 @@ def generate_dataset(preset: str, seed: int, out: Path, fmt: str = "nclt", *,
                 keep = gt.stamps <= t_end
                 gt = type(gt)(gt.stamps[keep], gt.poses[keep])
             slam = None
-            if s == p.sessions[0]:
+            if p.is_mapping(s):
                 slam = seq.mapping_poses()
                 slam = type(slam)(slam.stamps[: len(gt)], slam.poses[: len(gt)])
             if fmt == "nclt":
@@ -92,7 +95,7 @@ def generate_dataset(preset: str, seed: int, out: Path, fmt: str = "nclt", *,
                               slam_poses=slam, write_hits=True)
             else:
                 from blockloc.datasets.nclt import write_groundtruth_csv
-                from blockloc.datasets.rosbag import write_rosbag
+                from blockloc.datasets.rosbag import write_rosbag, write_sidecar
 
                 target = tmp / (f"{s}.bag" if fmt == "rosbag1" else s)
                 write_rosbag(target, frames, imu, version="ros1" if fmt == "rosbag1" else "ros2-sqlite3",
@@ -100,6 +103,9 @@ def generate_dataset(preset: str, seed: int, out: Path, fmt: str = "nclt", *,
                 write_groundtruth_csv(tmp / f"{s}_groundtruth.csv", gt)
                 if slam is not None:
                     write_groundtruth_csv(tmp / f"{s}_slam_poses.csv", slam)
+                write_sidecar(target, T_body_lidar=NCLT_T_BODY_LIDAR, T_body_imu=NCLT_T_BODY_IMU,
+                              gravity_map=NCLT_GRAVITY_MAP, ground_truth=f"{s}_groundtruth.csv",
+                              mapping_poses=f"{s}_slam_poses.csv" if slam is not None else None)
             meta["sessions"][s] = {"date": seq.date, "frames": n,
                                    "duration_s": round(float(seq.trajectory.duration), 3),
                                    "path_length_m": round(seq.trajectory.path_length(), 2)}

@@ -1,5 +1,7 @@
 """Factors the tracker puts in the window: NDT scan-to-map, LiDAR odometry, priors.
 
+(The LiDAR-only constant-velocity factor lives in ``blockloc.tracking.motion``.)
+
 Tangent order everywhere is GTSAM's Pose3: (rotation rad, translation m), right perturbation.
 
 The NDT factor is a robust Gaussian prior on the keyframe pose ``T_map_body`` at the pose NDT
@@ -99,6 +101,14 @@ def odometry_factor(key_a, key_b, T_a_b: np.ndarray, sigma_rot_rad: float, sigma
     return gtsam.BetweenFactorPose3(key_a, key_b, gtsam.Pose3(T_a_b), robust(noise, huber_k))
 
 
+def pose_prior(key, T_map_body: np.ndarray, sigma_rot_rad: float, sigma_trans_m: float):
+    """PriorFactorPose3 with per-axis sigmas (rad, m)."""
+    import gtsam
+
+    noise = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, sigma_rot_rad), np.full(3, sigma_trans_m)])
+    return gtsam.PriorFactorPose3(key, gtsam.Pose3(np.asarray(T_map_body, dtype=np.float64)), noise)
+
+
 def state_priors(keys, T_map_body: np.ndarray, velocity_map: np.ndarray, bias,
                  sigma_rot_rad: float, sigma_trans_m: float, sigma_vel_m_s: float,
                  sigma_acc_bias: float, sigma_gyro_bias: float) -> list:
@@ -106,13 +116,11 @@ def state_priors(keys, T_map_body: np.ndarray, velocity_map: np.ndarray, bias,
     import gtsam
 
     kx, kv, kb = keys
-    pose_noise = gtsam.noiseModel.Diagonal.Sigmas(
-        np.r_[np.full(3, sigma_rot_rad), np.full(3, sigma_trans_m)])
     vel_noise = gtsam.noiseModel.Isotropic.Sigma(3, sigma_vel_m_s)
     bias_noise = gtsam.noiseModel.Diagonal.Sigmas(
         np.r_[np.full(3, sigma_acc_bias), np.full(3, sigma_gyro_bias)])
     return [
-        gtsam.PriorFactorPose3(kx, gtsam.Pose3(T_map_body), pose_noise),
+        pose_prior(kx, T_map_body, sigma_rot_rad, sigma_trans_m),
         gtsam.PriorFactorVector(kv, np.asarray(velocity_map, dtype=np.float64), vel_noise),
         gtsam.PriorFactorConstantBias(kb, bias, bias_noise),
     ]

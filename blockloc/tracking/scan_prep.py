@@ -8,7 +8,9 @@ the gyro, bias neglected: ~0.002 rad/s x 0.1 s) is removed; at a turn in place i
 by metres, while the unknown translation is at most speed x sweep time (~0.15 m). The result is
 stamped at the middle of the sweep: the pose a rigid registration finds for a scan taken while
 moving is the pose at mid-sweep (NCLT and simulated stamps are the sweep start: ~0.065 m apart at
-1.3 m/s). Gravity comes from the accelerometer within +-0.25 s of that time.
+1.3 m/s). Gravity comes from the accelerometer within +-0.25 s of that time; a sequence without an
+IMU levels the scan by its own floor plane (:func:`blockloc.global_init.level.gravity_from_scan`,
+assuming the body is within 45 degrees of upright in the map's sense of up).
 """
 
 from __future__ import annotations
@@ -83,9 +85,20 @@ def deskew_rotation(frame: LidarFrame, imu: ImuData, info: SequenceInfo) -> tupl
     return transform_points(T_bl, lidar), t_ref
 
 
+def gravity_from_scan_points(points_body: np.ndarray, gravity_map: np.ndarray) -> np.ndarray:
+    """Gravity (3,) in the body frame, m/s^2, from the scan's floor plane (no IMU)."""
+    from blockloc.global_init.level import gravity_from_scan, up_hint_from_gravity_map
+
+    est = gravity_from_scan(points_body, up_hint=up_hint_from_gravity_map(gravity_map))
+    return est.direction * float(np.linalg.norm(gravity_map))
+
+
 def prepare_for_init(frame: LidarFrame, imu: ImuData, info: SequenceInfo) -> InitScan:
-    """The scan of ``frame`` deskewed into the body frame at mid-sweep, with gravity there."""
+    """The scan of ``frame`` deskewed into the body frame at mid-sweep, with gravity there (from
+    the accelerometer, or from the scan's floor when the sequence has no IMU)."""
     points_body, stamp = deskew_rotation(frame, imu, info)
+    if imu is None or len(imu) == 0:
+        return InitScan(points_body, stamp, gravity_from_scan_points(points_body, info.gravity_map))
     return InitScan(points_body, stamp, gravity_from_imu(imu, stamp, info.T_body_imu))
 
 

@@ -1,4 +1,4 @@
-"""The streaming pose tracker: IMU preintegration + NDT factors in a 20 -> 5 sliding window.
+"""The streaming pose tracker: IMU preintegration (or a motion prior) + NDT factors in a 20 -> 5 window.
 
 Per frame (``insert_frame``):
  1. predict the body pose over the sweep from the IMU (from the newest keyframe's estimate),
@@ -10,6 +10,25 @@ Per frame (``insert_frame``):
     optionally a LiDAR odometry factor; optimize the window,
  7. marginalize: down to N_r keyframes on a map switch, else down to N_a,
  8. after ``max_bad_frames`` rejected frames in a row, relocalize around the last good pose.
+
+LiDAR-only mode (``use_imu=False``, or ``None`` and no IMU sample before the first frame): keyframes hold a
+pose and a body twist (``blockloc.tracking.motion``) instead of pose, velocity and biases; step 1
+predicts with the last twist (constant velocity on SE(3)), step 2 deskews with the same constant
+twist over the sweep, step 6 links keyframes by the constant-velocity factor (noise from
+``motion_sigma_*``, scaled by the real gap between stamps). Without a gyro the prediction can be
+tens of degrees off (the real walk turns up to 48 deg in 0.5 s), so:
+ - the innovation gates become ``max(max_innovation_*, lidar_only_gate_sigmas x sigma)`` with
+   sigma the prediction's standard deviation under the motion prior over the gap (at 2 Hz and
+   1 rad/s^2/sqrt(s): 58 deg; at 10 Hz the fixed 10 deg gate applies): the prior, not a number
+   tuned for an IMU, says how far off a prediction can honestly be;
+ - when registration from the prediction fails its health check, rotated predictions (yaw about
+   the map's vertical, then roll/pitch, ``rotation_retry_*_deg``; first of all the last estimate
+   itself, for a turn that stopped) are registered in turn and the
+   first healthy one that also fits at least ``rotation_retry_fitness_ratio`` of the recent scans'
+   fitness is accepted (counters ``rotation_retries`` / ``rotation_recoveries``, diagnostics
+   ``rotation_retries`` / ``rotation_retry``); only then does the frame count as rejected, and
+   relocalization follows as with an IMU (after ``max_bad_frames``).
+Gravity for relocalization comes from the map's vertical and the last estimate.
 
 Collaborators are duck-typed so tests can hand in small fakes:
 - ``map_provider.update(position_map (3,), velocity_map (3,) | None, stamp) -> LocalMap`` with
@@ -34,8 +53,17 @@ from blockloc.datasets.base import LidarFrame
 from blockloc.errors import TrackingError
 from blockloc.geometry import inv_T, rotation_angle
 from blockloc.tracking import deskew as dsk
-from blockloc.tracking.factors import NdtFactorParams, ndt_factor, ndt_information, odometry_factor, state_priors
+from blockloc.tracking import motion
+from blockloc.tracking.factors import (
+    NdtFactorParams,
+    ndt_factor,
+    ndt_information,
+    odometry_factor,
+    pose_prior,
+    state_priors,
+)
 from blockloc.tracking.imu import ImuBuffer, ImuNoise, integrate, make_preintegration_params, predict_states
+from blockloc.tracking.motion import MotionNoise
 from blockloc.tracking.window import SlidingWindow, keys_of
 
 log = logging.getLogger(__name__)
@@ -74,13 +102,27 @@ class TrackerParams:
     recover_sigma_vel_m_s: float = 1.5  # velocity prior after a relocalization (starts at zero)
     init_sigma_acc_bias: float = 0.2
     init_sigma_gyro_bias: float = 0.01
+    # LiDAR-only tracking (see the module doc). use_imu False: LiDAR-only, IMU samples ignored;
+    # True: IMU preintegration (as before LiDAR-only existed); None: decided at the first frame,
+    # the IMU when some sample has arrived by then, else LiDAR-only.
+    use_imu: bool | None = None
+    motion: MotionNoise = field(default_factory=MotionNoise)
+    init_sigma_rate_rad_s: float = 1.0  # angular-rate prior of a first keyframe (starts at zero)
+    lidar_only_gate_sigmas: float = 5.0
+    rotation_retry_yaw_deg: tuple = (15.0, -15.0, 30.0, -30.0, 45.0, -45.0)
+    rotation_retry_tilt_deg: tuple = (15.0, -15.0)  # roll and pitch each
+    # A rotated prediction is accepted only with at least this fraction of the recent fitness
+    # (median of the last accepted scans; min_fitness alone before there are any).
+    rotation_retry_fitness_ratio: float = 0.8
 
 
 @dataclass
 class Diagnostics:
     """Per-frame health and cost; every field is plain data for JSON."""
 
-    status: str = "ok"  # ok | rejected | imu_only | lost | recovered | uninitialized
+    # ok | rejected | imu_only | lost | recovered | uninitialized; imu_only: no scan factor (no map
+    # or too few points), the IMU (LiDAR-only: the motion prior) carried the pose
+    status: str = "ok"
     fitness: float = float("nan")
     innovation_m: float = float("nan")
     innovation_deg: float = float("nan")
@@ -96,6 +138,8 @@ class Diagnostics:
     smoother_ms: float = 0.0
     update_ms: float = 0.0
     map_ms: float = 0.0
+    rotation_retries: int = 0  # rotated predictions registered after the prediction failed (LiDAR-only)
+    rotation_retry: str = ""  # the one accepted, e.g. 'yaw+30' ('' none)
 
 
 @dataclass
@@ -104,7 +148,10 @@ class Estimate:
 
     T_map_body: (4, 4) or None before the first successful initialization.
     covariance: (6, 6) Pose3 tangent (rotation rad, translation m) of T_map_body, or None.
-    velocity_map: (3,) m/s; acc_bias (3,) m/s^2 and gyro_bias (3,) rad/s in the imu frame.
+    (LiDAR-only with per-point times the keyframe sits at the scan's mean point time; pose and
+    covariance are carried to ``stamp`` with its twist.)
+    velocity_map: (3,) m/s; acc_bias (3,) m/s^2 and gyro_bias (3,) rad/s in the imu frame (zeros
+    in LiDAR-only mode, which estimates no biases).
     """
 
     index: int
@@ -138,19 +185,30 @@ class Tracker:
                                                      params.imu_noise_inflation)
         self.imu = ImuBuffer()
         self.window = SlidingWindow(params.window_size, params.lm_iterations)
+        # True: LiDAR-only; None: not decided yet (IMU unless no sample arrives before the first frame)
+        self.lidar_only: bool | None = {False: True, True: False}.get(params.use_imu)
+        self._imu_seen = False
+        self._init_args: tuple | None = None  # the last initialize() call, to redo it LiDAR-only
         self._next_index = 0
         self._last_ndt: tuple[int, np.ndarray] | None = None  # (keyframe, T_map_body) of the last accepted NDT
         self._last_good: np.ndarray | None = None
+        self._recent_fitness: list[float] = []  # of the last accepted scans
         self._bad_streak = 0
         self._lost_frames = 0
         self.last_scan_lidar: np.ndarray | None = None  # the last deskewed registration input (N, 3)
         self.counters = {"frames": 0, "failures": 0, "recoveries": 0, "switches": 0, "rejected": 0,
-                         "imu_only": 0}
+                         "imu_only": 0, "rotation_retries": 0, "rotation_recoveries": 0}
 
     # ----------------------------------------------------------------- factories
     @classmethod
-    def from_config(cls, cfg, info, *, map_provider, registration, relocalize=None) -> "Tracker":
-        """From a ``blockloc.config.Config`` and a ``SequenceInfo``."""
+    def from_config(cls, cfg, info, *, map_provider, registration, relocalize=None,
+                    use_imu: bool | None = None) -> "Tracker":
+        """From a ``blockloc.config.Config`` and a ``SequenceInfo``.
+
+        use_imu: True / False when the caller knows whether the sequence has an IMU (e.g.
+        ``len(seq.imu()) > 0 and cfg.tracking.use_imu``). None: ``cfg.tracking.use_imu`` false
+        means LiDAR-only, true means decided at the first frame (no IMU sample by then: LiDAR-only).
+        """
         tc, lc, dc = cfg.tracking, cfg.lidar, cfg.dataset
         ndt = NdtFactorParams(information_scale=tc.ndt_information_scale,
                               degeneracy_ratio=tc.degeneracy_eigenvalue_ratio,
@@ -163,7 +221,14 @@ class Tracker:
                                min_fitness=tc.min_fitness, max_innovation_m=tc.max_innovation_m,
                                max_innovation_deg=tc.max_innovation_deg, max_bad_frames=tc.max_bad_frames,
                                use_odometry_factor=tc.use_odometry_factor, lm_iterations=tc.lm_iterations,
-                               imu_noise_inflation=tc.imu_noise_inflation, ndt=ndt)
+                               imu_noise_inflation=tc.imu_noise_inflation, ndt=ndt,
+                               use_imu=(None if tc.use_imu else False) if use_imu is None else bool(use_imu),
+                               motion=MotionNoise(tc.motion_sigma_acc_rad_s2, tc.motion_sigma_acc_m_s2),
+                               init_sigma_rate_rad_s=tc.init_sigma_rate_rad_s,
+                               lidar_only_gate_sigmas=tc.lidar_only_gate_sigmas,
+                               rotation_retry_yaw_deg=tuple(tc.rotation_retry_yaw_deg),
+                               rotation_retry_tilt_deg=tuple(tc.rotation_retry_tilt_deg),
+                               rotation_retry_fitness_ratio=tc.rotation_retry_fitness_ratio)
         return cls(map_provider=map_provider, registration=registration, T_body_lidar=info.T_body_lidar,
                    T_body_imu=info.T_body_imu, gravity_map=info.gravity_map,
                    imu_noise=ImuNoise.from_config(cfg.imu), params=params, relocalize=relocalize)
@@ -178,46 +243,80 @@ class Tracker:
         """Start (or restart) the window with one keyframe at ``stamp`` held by priors.
 
         velocity_map: (3,) m/s if known (e.g. from ground truth), else zero with a loose prior.
+        In LiDAR-only mode the keyframe's twist starts at that velocity and zero angular rate
+        (``init_sigma_rate_rad_s``); ``bias`` is not used.
         """
         import gtsam
 
         p = self.params
         T = np.asarray(T_map_body, dtype=np.float64)
+        self._init_args = (T.copy(), float(stamp), None if velocity_map is None else np.array(velocity_map),
+                           bias, sigma_vel_m_s)
         vel = np.zeros(3) if velocity_map is None else np.asarray(velocity_map, dtype=np.float64)
         if sigma_vel_m_s is None:
             sigma_vel_m_s = 0.1 if velocity_map is not None else p.init_sigma_vel_m_s
-        bias = bias if bias is not None else gtsam.imuBias.ConstantBias()
         self.window.clear()
         i = self._next_index
         self._next_index += 1
         kx, kv, kb = keys_of(i)
         values = gtsam.Values()
         values.insert(kx, gtsam.Pose3(T))
-        values.insert(kv, vel)
-        values.insert(kb, bias)
-        self.window.add_keyframe(i, float(stamp), values)
-        for f in state_priors(keys_of(i), T, vel, bias, p.init_sigma_rot_rad, p.init_sigma_trans_m,
-                              sigma_vel_m_s, p.init_sigma_acc_bias, p.init_sigma_gyro_bias):
-            self.window.add_factor(f)
+        if self.lidar_only:
+            twist = motion.body_twist_from_map_velocity(T, vel)
+            values.insert(kv, twist)
+            self.window.add_keyframe(i, float(stamp), values)
+            self.window.add_factor(pose_prior(kx, T, p.init_sigma_rot_rad, p.init_sigma_trans_m))
+            self.window.add_factor(motion.twist_prior(kv, twist, p.init_sigma_rate_rad_s, sigma_vel_m_s))
+        else:
+            bias = bias if bias is not None else gtsam.imuBias.ConstantBias()
+            values.insert(kv, vel)
+            values.insert(kb, bias)
+            self.window.add_keyframe(i, float(stamp), values)
+            for f in state_priors(keys_of(i), T, vel, bias, p.init_sigma_rot_rad, p.init_sigma_trans_m,
+                                  sigma_vel_m_s, p.init_sigma_acc_bias, p.init_sigma_gyro_bias):
+                self.window.add_factor(f)
         self._last_ndt = None
         self._last_good = T.copy()
+        self._recent_fitness = []
         self._bad_streak = 0
         self._lost_frames = 0
 
     def insert_imu(self, t: float, acc: np.ndarray, gyro: np.ndarray) -> None:
-        """One IMU sample: t seconds, acc (3,) m/s^2 specific force and gyro (3,) rad/s, imu frame."""
-        self.imu.insert(t, acc, gyro)
+        """One IMU sample: t seconds, acc (3,) m/s^2 specific force and gyro (3,) rad/s, imu frame.
+
+        Ignored in LiDAR-only mode."""
+        if self.lidar_only:
+            return
+        if self.imu.insert(t, acc, gyro):
+            self._imu_seen = True
+
+    def _decide_mode(self, index: int) -> None:
+        """use_imu None, at the first frame: LiDAR-only when no IMU sample has arrived."""
+        if self.lidar_only is not None:
+            return
+        self.lidar_only = not self._imu_seen
+        if self.lidar_only:
+            log.info("frame %d: no IMU sample before the first frame: LiDAR-only tracking", index)
+            if self.initialized and self._init_args is not None:
+                self.initialize(*self._init_args)  # the same start, as a pose + twist keyframe
 
     def _state(self, i: int):
+        """(NavState, bias) of keyframe i; LiDAR-only: velocity R v of the twist, zero bias."""
         import gtsam
 
         kx, kv, kb = keys_of(i)
         v = self.window.values
-        return gtsam.NavState(v.atPose3(kx), v.atVector(kv)), v.atConstantBias(kb)
+        pose = v.atPose3(kx)
+        if self.lidar_only:
+            vel = motion.map_velocity(pose.matrix(), v.atVector(kv))
+            return gtsam.NavState(pose, vel), gtsam.imuBias.ConstantBias()
+        return gtsam.NavState(pose, v.atVector(kv)), v.atConstantBias(kb)
 
     def _gravity_body(self, T_map_body: np.ndarray | None) -> np.ndarray:
         if T_map_body is not None:
             return T_map_body[:3, :3].T @ self.gravity_map
+        if self.lidar_only:  # no accelerometer: the body is taken as level in the map
+            return self.gravity_map.copy()
         if len(self.imu):
             acc = np.asarray(self.imu._acc[-50:]).mean(axis=0)  # at rest the IMU reads -g
             return -(self.T_body_imu[:3, :3] @ acc)
@@ -231,6 +330,7 @@ class Tracker:
         stamp = float(frame.stamp)
         diag = Diagnostics()
         self.counters["frames"] += 1
+        self._decide_mode(frame.index)
 
         points, offsets = self._preprocess(frame)
         diag.num_points = len(points)
@@ -243,11 +343,18 @@ class Tracker:
         last = self.window.latest
         t_prev = self.window.stamps[last]
         state_prev, bias_prev = self._state(last)
+        t_key = self._keyframe_time(stamp, offsets)
+        if self.lidar_only and t_key < t_prev + 1e-4:  # the first scan after initialize(): its time
+            t_key = max(t_prev, stamp)
 
-        # 1-2. IMU prediction over the sweep, deskew to the scan time.
+        # 1-2. prediction over the sweep (IMU, or the last twist), deskew to the scan time.
         t0 = time.perf_counter()
-        T_pred, v_pred, scan_pts = self._predict_and_deskew(points, offsets, stamp, t_prev, state_prev,
-                                                            bias_prev)
+        if self.lidar_only:
+            T_pred, v_pred, scan_pts = self._predict_and_deskew_cv(points, offsets - (t_key - stamp), t_key,
+                                                                   t_prev, last)
+        else:
+            T_pred, v_pred, scan_pts = self._predict_and_deskew(points, offsets, stamp, t_prev, state_prev,
+                                                                bias_prev)
         diag.deskew_ms = (time.perf_counter() - t0) * 1e3
         self.last_scan_lidar = scan_pts
 
@@ -262,12 +369,12 @@ class Tracker:
 
         # 4-5. registration and its health.
         t0 = time.perf_counter()
-        T_ndt, info, accepted = self._register(local, scan_pts, T_pred, diag)
+        T_ndt, info, accepted = self._register(local, scan_pts, T_pred, diag, t_key - t_prev)
         diag.registration_ms = (time.perf_counter() - t0) * 1e3
 
         # 6-7. the window.
         t0 = time.perf_counter()
-        k = self._add_keyframe(stamp, t_prev, last, state_prev, bias_prev, T_pred, v_pred, T_ndt, info,
+        k = self._add_keyframe(t_key, t_prev, last, state_prev, bias_prev, T_pred, v_pred, T_ndt, info,
                                accepted, diag)
         self.window.optimize()
         diag.marginalized = self.window.enforce_size(diag.switched, p.window_size_on_switch)
@@ -280,6 +387,7 @@ class Tracker:
             self._bad_streak = 0
             self._lost_frames = 0
             self._last_good = est_T.copy()
+            self._recent_fitness = (self._recent_fitness + [diag.fitness])[-5:]
         elif diag.status == "rejected":  # a dropout (imu_only) is not a sign of divergence
             self._bad_streak += 1
             if self._bad_streak >= p.max_bad_frames:
@@ -288,7 +396,7 @@ class Tracker:
                     log.warning("frame %d: %d rejected scans in a row, relocalizing", frame.index,
                                 self._bad_streak)
                 diag.status = "lost"
-                recovered = self._try_recover(scan_pts, stamp, k, diag)
+                recovered = self._try_recover(scan_pts, t_key, k, diag)
                 if recovered is not None:
                     est_T = recovered
                     k = self.window.latest
@@ -332,33 +440,132 @@ class Tracker:
         T_ref_table = dsk.lidar_motion_table(poses, self.T_body_lidar, ref)
         return T_pred, v_pred, dsk.deskew_points(points, stamp + offsets, table_t, T_ref_table)
 
-    def _register(self, local, scan_pts, T_pred, diag):
+    def _keyframe_time(self, stamp: float, offsets: np.ndarray) -> float:
+        """The time a keyframe's state refers to: the frame stamp; LiDAR-only, the mean time of
+        the scan's points when they have their own times.
+
+        Why: without a gyro the twist used to deskew is estimated from the registered poses
+        themselves. Deskewed to the sweep start, a twist error e turns the whole scan by about
+        e x (mean point time - start), registration turns the pose back by as much, and the next
+        twist estimate inherits it: measured on the small simulated world standing still, the
+        rotation error doubled every two frames until the track was lost. Deskewed to the mean
+        point time, a twist error only bends the scan symmetrically (no first-order change of the
+        registered pose), so the loop is broken. Estimates are still reported at the stamp.
+        """
+        if self.lidar_only and len(offsets) and (offsets.max() - offsets.min()) > 1e-6:
+            return stamp + float(offsets.mean())
+        return stamp
+
+    def _predict_and_deskew_cv(self, points, offsets, stamp, t_prev, last):
+        """LiDAR-only: T_map_body predicted at ``stamp`` with keyframe ``last``'s twist, its map
+        velocity, and the points (times ``stamp + offsets``) deskewed to ``stamp`` with the same
+        constant twist over the sweep (when per-point times exist)."""
+        v = self.window.values
+        kx, kv, _ = keys_of(last)
+        T_last, twist = v.atPose3(kx).matrix(), v.atVector(kv)
+        T_pred = motion.predict(T_last, twist, stamp - t_prev)
+        v_pred = motion.map_velocity(T_pred, twist)
+        if not (self.params.deskew and len(offsets) and (offsets.max() - offsets.min()) > 1e-6):
+            return T_pred, v_pred, points
+        # A constant twist is a smooth curve: 9 knots over the sweep interpolate it to well
+        # under a millimetre at walking and driving rates.
+        rel_t = np.unique(np.r_[np.linspace(offsets.min(), offsets.max(), 9), 0.0])
+        poses = motion.predict(T_pred, twist, rel_t)
+        ref = int(np.searchsorted(rel_t, 0.0))
+        T_ref_table = dsk.lidar_motion_table(poses, self.T_body_lidar, ref)
+        return T_pred, v_pred, dsk.deskew_points(points, stamp + offsets, stamp + rel_t, T_ref_table)
+
+    def _gates(self, dt: float) -> tuple[float, float]:
+        """Innovation gates (m, deg); LiDAR-only: widened to the motion prior's uncertainty."""
+        p = self.params
+        if not self.lidar_only:
+            return p.max_innovation_m, p.max_innovation_deg
+        s_rot, s_trans = p.motion.prediction_sigma(dt)
+        k = p.lidar_only_gate_sigmas
+        return max(p.max_innovation_m, k * s_trans), max(p.max_innovation_deg, np.rad2deg(k * s_rot))
+
+    def _align(self, target, scan_pts, T_guess, T_pred, gates):
+        """One registration from ``T_guess``: (T_ndt, result, fitness, innovation m, deg, healthy)."""
+        p = self.params
+        res = self.registration.align(target, scan_pts, T_guess @ self.T_body_lidar)
+        T_ndt = np.asarray(res.T_target_source) @ self.T_lidar_body
+        fitness = float(res.fitness)
+        inn_m = float(np.linalg.norm(T_ndt[:3, 3] - T_pred[:3, 3]))
+        inn_deg = float(np.rad2deg(rotation_angle(T_pred[:3, :3].T @ T_ndt[:3, :3])))
+        ok = (bool(getattr(res, "converged", True)) and fitness >= p.min_fitness
+              and inn_m <= gates[0] and inn_deg <= gates[1] and np.all(np.isfinite(T_ndt)))
+        return T_ndt, res, fitness, inn_m, inn_deg, ok
+
+    def _register(self, local, scan_pts, T_pred, diag, dt: float = 0.0):
         p = self.params
         target = getattr(local, "target", None)
         if target is None or len(scan_pts) < p.min_points:
             diag.status = "imu_only"
             self.counters["imu_only"] += 1
             return None, None, False
+        gates = self._gates(dt)
         try:
-            res = self.registration.align(target, scan_pts, T_pred @ self.T_body_lidar)
+            T_ndt, res, diag.fitness, diag.innovation_m, diag.innovation_deg, ok = self._align(
+                target, scan_pts, T_pred, T_pred, gates)
         except Exception as exc:  # a registration failure is a rejected scan, not a crash
             log.warning("registration failed: %s", exc)
             diag.status = "rejected"
             self.counters["rejected"] += 1
             return None, None, False
-        T_ndt = np.asarray(res.T_target_source) @ self.T_lidar_body
-        diag.fitness = float(res.fitness)
-        diag.innovation_m = float(np.linalg.norm(T_ndt[:3, 3] - T_pred[:3, 3]))
-        diag.innovation_deg = float(np.rad2deg(rotation_angle(T_pred[:3, :3].T @ T_ndt[:3, :3])))
-        ok = (bool(getattr(res, "converged", True)) and diag.fitness >= p.min_fitness
-              and diag.innovation_m <= p.max_innovation_m and diag.innovation_deg <= p.max_innovation_deg
-              and np.all(np.isfinite(T_ndt)))
+        if not ok and self.lidar_only:
+            log.debug("registration from the prediction failed: converged %s, fitness %.2f, innovation "
+                      "%.2f m %.1f deg (gates %.2f m %.1f deg)", bool(getattr(res, "converged", True)),
+                      diag.fitness, diag.innovation_m, diag.innovation_deg, *gates)
+            retry = self._retry_rotated(target, scan_pts, T_pred, gates, diag)
+            if retry is not None:
+                T_ndt, res = retry
+                ok = True
         if not ok:
             diag.status = "rejected"
             self.counters["rejected"] += 1
             return T_ndt, None, False
         info, diag.weak_dims = ndt_information(np.asarray(res.H), self.T_body_lidar, p.ndt)
         return T_ndt, info, True
+
+    def _retry_rotated(self, target, scan_pts, T_pred, gates, diag):
+        """Register from rotated predictions in turn; the first healthy (T_ndt, result), or None.
+
+        Innovation is still measured against the real prediction, so a retry is held to the
+        same gate as the prediction itself (the last estimate, a stop, against itself). A retry explores poses the motion model finds
+        unlikely, and each try is one more chance of a wrong local minimum that happens to pass
+        ``min_fitness`` (the floor or walls near any guess), so it must also fit about as well as
+        the recent scans did (``rotation_retry_fitness_ratio``)."""
+        p = self.params
+        min_fit = p.min_fitness
+        if self._recent_fitness:
+            min_fit = max(min_fit, p.rotation_retry_fitness_ratio * float(np.median(self._recent_fitness)))
+        candidates = motion.rotated_predictions(T_pred, self.gravity_map, p.rotation_retry_yaw_deg,
+                                                p.rotation_retry_tilt_deg)
+        if not candidates:
+            return None
+        # First the last estimate itself: a turn that stopped (the walk turned 43 deg, then 9 deg:
+        # constant velocity predicted the second 52 deg wrong, every rotation of that was off too).
+        T_last = self.window.values.atPose3(keys_of(self.window.latest)[0]).matrix()
+        if np.linalg.norm(T_last[:3, 3] - T_pred[:3, 3]) > 0.05 or rotation_angle(T_last[:3, :3].T @ T_pred[:3, :3]) > np.deg2rad(2.0):
+            candidates.insert(0, ("stop", T_last))
+        self.counters["rotation_retries"] += 1
+        for label, T_guess in candidates:
+            diag.rotation_retries += 1
+            # a stop is a motion hypothesis of its own: gated against itself, not the prediction
+            T_ref = T_guess if label == "stop" else T_pred
+            try:
+                T_ndt, res, fit, inn_m, inn_deg, ok = self._align(target, scan_pts, T_guess, T_ref, gates)
+            except Exception as exc:
+                log.debug("rotated prediction %s: registration failed: %s", label, exc)
+                continue
+            if ok and fit >= min_fit:
+                self.counters["rotation_recoveries"] += 1
+                diag.rotation_retry = label
+                diag.fitness, diag.innovation_m, diag.innovation_deg = fit, inn_m, inn_deg
+                log.info("registration from the prediction failed; rotated prediction %s fits (%.2f)",
+                         label, fit)
+                return T_ndt, res
+        return None
 
     def _add_keyframe(self, stamp, t_prev, last, state_prev, bias_prev, T_pred, v_pred, T_ndt, info,
                       accepted, diag) -> int:
@@ -375,14 +582,22 @@ class Tracker:
             self._next_index += 1
             kx, kv, kb = keys_of(k)
             px, pv, pb = keys_of(last)
-            pim = gtsam.PreintegratedCombinedMeasurements(self.imu_params, bias_prev)
-            diag.imu_gap_s = integrate(pim, self.imu, t_prev, stamp)
             values = gtsam.Values()
             values.insert(kx, gtsam.Pose3(T_ndt if accepted else T_pred))
-            values.insert(kv, v_pred)
-            values.insert(kb, bias_prev)
-            self.window.add_keyframe(k, stamp, values)
-            self.window.add_factor(gtsam.CombinedImuFactor(px, pv, kx, kv, pb, kb, pim))
+            if self.lidar_only:
+                # Initial twist: the motion that brings the last keyframe to the registered pose.
+                T_last = self.window.values.atPose3(px).matrix()
+                values.insert(kv, motion.twist_between(T_last, T_ndt, dt) if accepted
+                              else self.window.values.atVector(pv))
+                self.window.add_keyframe(k, stamp, values)
+                self.window.add_factor(motion.constant_velocity_factor(px, pv, kx, kv, dt, p.motion))
+            else:
+                pim = gtsam.PreintegratedCombinedMeasurements(self.imu_params, bias_prev)
+                diag.imu_gap_s = integrate(pim, self.imu, t_prev, stamp)
+                values.insert(kv, v_pred)
+                values.insert(kb, bias_prev)
+                self.window.add_keyframe(k, stamp, values)
+                self.window.add_factor(gtsam.CombinedImuFactor(px, pv, kx, kv, pb, kb, pim))
         if accepted:
             kx = keys_of(k)[0]
             self.window.add_factor(ndt_factor(kx, T_ndt, info, p.ndt.huber_k))
@@ -438,10 +653,23 @@ class Tracker:
 
     def _estimate(self, index, stamp, k, diag, t_start) -> Estimate:
         state, bias = self._state(k)
+        kx, kv, _ = keys_of(k)
+        tau = stamp - self.window.stamps[k]
+        moved = self.lidar_only and abs(tau) > 1e-9  # keyframe at the scan's mean point time
+        if moved:
+            import gtsam
+
+            twist = self.window.values.atVector(kv)
+            T = motion.predict(state.pose().matrix(), twist, tau)
+            state = gtsam.NavState(gtsam.Pose3(T), motion.map_velocity(T, twist))
         cov = None
         if self.params.compute_covariance:
             try:
-                cov = self.window.covariance(keys_of(k)[0])
+                if moved:  # first-order propagation of (pose, twist) to the stamp
+                    J = np.hstack(motion.extrapolation_jacobians(twist, tau))
+                    cov = J @ self.window.joint_covariance([kx, kv]) @ J.T
+                else:
+                    cov = self.window.covariance(kx)
             except RuntimeError as exc:  # an indeterminant system: report, do not crash
                 log.debug("no covariance: %s", exc)
         diag.update_ms = (time.perf_counter() - t_start) * 1e3

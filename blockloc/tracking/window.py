@@ -3,6 +3,8 @@
 Each keyframe i owns three variables (``gtsam.symbol_shorthand``):
     X(i): Pose3 T_map_body, V(i): velocity of the body in the map frame (m/s),
     B(i): imuBias.ConstantBias (imu frame).
+In LiDAR-only tracking V(i) is the body twist (6,) (rad/s, m/s; ``blockloc.tracking.motion``) and
+there is no B(i): marginalization only touches the keys that exist.
 The window holds at most ``max_size`` keyframes. Dropping the oldest ones is a Schur complement,
 done here by hand: every factor touching the dropped variables is linearized at the current
 estimate, the dropped variables are eliminated (``eliminatePartialSequential``), and the
@@ -128,6 +130,13 @@ class SlidingWindow:
 
         marginals = gtsam.Marginals(self.graph(), self.values)
         return np.asarray(marginals.marginalCovariance(key))
+
+    def joint_covariance(self, keys) -> np.ndarray:
+        """Joint marginal covariance of several variables, blocks in the order of ``keys``."""
+        import gtsam
+
+        joint = gtsam.Marginals(self.graph(), self.values).jointMarginalCovariance(gtsam.KeyVector(list(keys)))
+        return np.block([[np.asarray(joint.at(a, b)) for b in keys] for a in keys])
 
     def marginalize_to(self, n_keep: int) -> int:
         """Keep the newest ``n_keep`` keyframes, turn the rest into a prior; returns how many went."""

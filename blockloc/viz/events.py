@@ -1,51 +1,73 @@
-"""The events a tracking session emits, and the observer protocol that receives them.
+"""What a tracking run tells its observers: one :class:`RunInfo`, a :class:`FrameEvent` per frame, metrics.
 
-A :class:`~blockloc.session.Session` calls ``start(RunInfo)`` once, ``frame(FrameEvent)`` after
-every scan, and ``finish(metrics)`` at the end (also after an error or an interruption, so
-observers close their files with what they have).
+The session engine calls ``observer.start(info)`` once, ``observer.frame(event)`` for every frame
+(localized or not) and ``observer.finish(metrics)`` at the end, also after an exception mid-run.
+Observers (:class:`blockloc.viz.mcap_recorder.McapRecorder`, :class:`blockloc.viz.live.LiveServer`)
+only read the events; the arrays they hold must not be modified by the observer.
+
+Frames: ``map`` (the prior map's frame), ``body`` (the frame ground truth and ``poses.tum``
+describe; ``base_link`` in the ROS messages), ``lidar``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import logging
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, Sequence, runtime_checkable
 
 import numpy as np
+
+from blockloc.errors import BlocklocError
+
+if TYPE_CHECKING:
+    from blockloc.geometry import Trajectory
+
+log = logging.getLogger(__name__)
+
+class VizError(BlocklocError):
+    """A recording, live view, layout or report cannot be written (bad path, port in use, bad input)."""
+
+
+STATUSES = ("ok", "rejected", "imu_only", "lost", "recovered", "uninitialized", "skipped")
 
 
 @dataclass
 class RunInfo:
-    """Static facts about a run.
+    """The run's fixed facts, given once before the first frame.
 
-    sequence: its name (e.g. ``sim:small/loc``). T_body_lidar: (4, 4). map_kind: block | grid.
-    map_entries: per block/tile ``{"id", "bounds_min" (3,), "bounds_max" (3,), "centroid" (3,),
-    "footprint" (K, 2) or None}``, map frame, metres. tile_size_m: grid maps, else None.
-    ground_truth: T_map_body Trajectory or None. config: the config used (plain dict).
-    out_dir: the results directory or None.
+    sequence: a readable name, e.g. ``"sim:small/loc"``. T_body_lidar: (4, 4) lidar -> body.
+    map_kind: ``"block"`` or ``"grid"``. map_entries: one dict per block/tile with ``id`` (str),
+    ``bounds_min``/``bounds_max``/``centroid`` ((3,) map frame, metres) and ``footprint``
+    ((K, 2) closed-or-open polygon in map x/y, metres, or None: then the bounds' rectangle is drawn).
+    tile_size_m: the tile edge of a grid map, else None. ground_truth: ``T_map_body`` over time or
+    None. config: the config actually used, as a plain dict. out_dir: the results folder or None.
     """
 
     sequence: str
     T_body_lidar: np.ndarray
     map_kind: str
     map_entries: list[dict]
-    tile_size_m: float | None
-    ground_truth: object | None
-    config: dict
-    out_dir: Path | None
+    tile_size_m: float | None = None
+    ground_truth: "Trajectory | None" = None
+    config: dict = field(default_factory=dict)
+    out_dir: Path | None = None
 
 
 @dataclass
 class FrameEvent:
-    """One processed scan.
+    """One frame's outcome.
 
-    stamp: sensor time, s. T_map_body: (4, 4), None while not localized (uninitialized, lost).
-    covariance: (6, 6) of T_map_body in the Pose3 tangent (rotation rad, translation m; right
-    perturbation, body frame), or None. velocity_map: (3,) m/s. status: ok | rejected | imu_only
-    | lost | recovered | uninitialized | skipped. diagnostics: the tracker's per-frame fields.
-    scan_lidar: (N, 3) float32 deskewed registration input, lidar frame, or None.
-    local_map_points: (M, 3) float32 map frame, only on frames where the served local map
-    changed (else None). local_map_id: region name. active_entries: ids of the served entries.
+    index: frame index in the sequence. stamp: sensor time of the scan, seconds.
+    T_map_body: (4, 4) or None when not localized (``uninitialized`` / ``lost``).
+    covariance: (6, 6) marginal covariance of T_map_body in GTSAM's Pose3 tangent order
+    (rotation rad, translation m), body frame, right perturbation ``T = T_hat * Exp(xi)``; or None.
+    velocity_map: (3,) m/s, map frame. status: one of :data:`STATUSES`.
+    diagnostics: flat dict of plain values (fitness, window_size, switched, block_id, update_ms,
+    registration_ms, smoother_ms, map_ms, deskew_ms, num_points, ...).
+    scan_lidar: (N, 3) float32, the deskewed registration input in the lidar frame, or None.
+    local_map_points: (M, 3) float32 map frame, only on frames where the served local map changed.
+    local_map_id: the served region's name. active_entries: ids of the served blocks/tiles.
     """
 
     index: int
@@ -63,10 +85,48 @@ class FrameEvent:
 
 @runtime_checkable
 class RunObserver(Protocol):
-    """Receives a run's events (recorders, live views, the results writer)."""
+    """Receives a run as it happens. ``finish`` also closes files/servers and must be safe to call
+    after an exception mid-run (and more than once)."""
 
     def start(self, info: RunInfo) -> None: ...
 
     def frame(self, event: FrameEvent) -> None: ...
 
     def finish(self, metrics: dict) -> None: ...
+
+
+class ObserverGroup:
+    """Several observers as one: each call goes to every member in order.
+
+    A member that raises in ``frame`` is logged and dropped for the rest of the run (a broken
+    viewer must not stop tracking); ``finish`` reaches every member, even one dropped earlier, so
+    its files are closed.
+    """
+
+    def __init__(self, observers: Sequence[RunObserver]) -> None:
+        self.observers = list(observers)
+        self._active = list(self.observers)
+
+    def start(self, info: RunInfo) -> None:
+        for obs in self.observers:
+            obs.start(info)
+
+    def frame(self, event: FrameEvent) -> None:
+        for obs in list(self._active):
+            try:
+                obs.frame(event)
+            except Exception:
+                log.exception("observer %s failed on frame %d; it gets no more frames",
+                              type(obs).__name__, event.index)
+                self._active.remove(obs)
+
+    def finish(self, metrics: dict) -> None:
+        errors = []
+        for obs in self.observers:
+            try:
+                obs.finish(metrics)
+            except Exception as exc:  # finish every member before reporting
+                log.exception("observer %s failed to finish", type(obs).__name__)
+                errors.append(exc)
+        if errors:
+            raise errors[0]

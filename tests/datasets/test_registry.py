@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from types import SimpleNamespace
 import types
 
 import numpy as np
@@ -95,10 +96,13 @@ def test_m2dgr_name(tmp_path, session_data):
 def test_sim_names_dispatch(monkeypatch):
     calls = []
     mod = types.ModuleType("blockloc.sim.stream")
-    mod.open_sim_sequence = lambda preset, session, seed: calls.append((preset, session, seed)) or "SEQ"
+    mod.open_sim_sequence = lambda preset, session, seed: calls.append((preset, session, seed)) or SimpleNamespace(
+        info="INFO")
     monkeypatch.setitem(sys.modules, "blockloc.sim.stream", mod)
-    assert open_sequence("sim:campus/loc@7") == "SEQ"
-    assert open_sequence("sim:small/map") == "SEQ"
+    seq = open_sequence("sim:campus/loc@7", dataset_cfg=SimpleNamespace(min_range_m=2.0, max_range_m=80.0))
+    # streamed: the dataset's range limits apply as the loaders apply them
+    assert seq.info == "INFO" and (seq.min_range_m, seq.max_range_m) == (2.0, 80.0)
+    assert open_sequence("sim:small/map").info == "INFO"
     assert calls == [("campus", "loc", 7), ("small", "map", 1)]
     with pytest.raises(DatasetError, match=r"expected sim:<preset>/<session>\[@<seed>\]"):
         open_sequence("sim:campus")

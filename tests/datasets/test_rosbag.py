@@ -170,3 +170,42 @@ def test_tum_ground_truth_file(tmp_path):
     p.write_text("1.0 1 2 3 0 0 0\n")
     with pytest.raises(DatasetError, match=r"street_01.txt:1: 7 columns, expected 8"):
         read_trajectory_file(p)
+
+
+@pytest.mark.parametrize("fmt", ["rosbag1", "rosbag2"])
+def test_simulator_bag_carries_ground_truth_and_extrinsics(tmp_path, fmt):
+    """Issue 16 finding 5: a bag written by ``blockloc sim`` opens (by path, as the CLI opens it)
+    with the ground truth, mapping poses, extrinsics and gravity of the NCLT-layout output."""
+    from blockloc.datasets.registry import open_sequence
+    from blockloc.datasets.rosbag import sidecar_path
+    from blockloc.sim import generate_dataset
+
+    kw = dict(max_frames=4, azimuth_steps=60)
+    nclt = generate_dataset("tiny", 5, tmp_path / "nclt", "nclt", **kw)
+    bags = generate_dataset("tiny", 5, tmp_path / fmt, fmt, **kw)
+    for session in ("map", "loc"):
+        bag = bags / (f"{session}.bag" if fmt == "rosbag1" else session)
+        assert sidecar_path(bag).is_file()
+        b, n = open_sequence(str(bag)), open_sequence(str(nclt / session))
+        assert np.allclose(b.info.T_body_lidar, n.info.T_body_lidar)
+        assert not np.allclose(b.info.T_body_lidar, np.eye(4))
+        assert np.allclose(b.info.T_body_imu, n.info.T_body_imu)
+        assert np.allclose(b.info.gravity_map, n.info.gravity_map)
+        gb, gn = b.ground_truth(), n.ground_truth()
+        assert len(gb) == len(gn) > 20
+        assert np.allclose(gb.stamps, gn.stamps) and np.allclose(gb.poses, gn.poses, atol=1e-6)
+        mb, mn = b.mapping_poses(), n.mapping_poses()
+        assert np.allclose(mb.poses, mn.poses, atol=1e-6)
+        if session == "map":  # offline-SLAM poses, not the ground truth
+            assert not np.allclose(mb.poses, gb.poses, atol=1e-4)
+        assert np.allclose(b.frame_stamps(), n.frame_stamps())
+
+
+def test_bad_sidecar_is_one_line_error(tmp_path, session_data):
+    from blockloc.datasets.rosbag import RosbagSequence, sidecar_path, write_rosbag
+
+    frames, imu = session_data["frames"], session_data["imu"]
+    bag = write_rosbag(tmp_path / "s.bag", frames[:2], imu)
+    sidecar_path(bag).write_text('{"T_body_lidar": [[1, 0], [0, 1]]}')
+    with pytest.raises(DatasetError, match="not a valid bag sidecar"):
+        RosbagSequence(bag, lidar_topic="/velodyne_points", imu_topic="/imu")

@@ -7,6 +7,7 @@ import pytest
 
 from blockloc.errors import GlobalInitError
 from blockloc.geometry import rpy_to_R
+from blockloc.registration.engines import make_engine
 from blockloc.global_init.level import (gravity_from_scan, refine_gravity_by_ndt,
                                         up_hint_from_gravity_map)
 
@@ -141,7 +142,7 @@ def test_real_walk_ndt_refines_roll_and_pitch(walk):
     T_cand[:3, :3] = T_ref[:3, :3] @ rpy_to_R(np.radians(3.0), np.radians(-2.0), 0.0)
     T_cand[:3, 3] += [0.15, -0.1, 0.05]
     g_map = np.array([0.0, 0.0, -9.81])
-    T_out, est = refine_gravity_by_ndt(Refiner(map_pts, resolution_m=1.0), walk.frame(i).points,
+    T_out, est = refine_gravity_by_ndt(Refiner(make_engine("ndt", resolution_m=1.0), map_pts), walk.frame(i).points,
                                        T_cand, g_map)
     g_true = T_ref[:3, :3].T @ [0.0, 0.0, -1.0]
     assert _angle_deg(T_cand[:3, :3].T @ [0, 0, -1.0], g_true) > 3.0

@@ -3,14 +3,12 @@
 import numpy as np
 import pytest
 
-pytest.importorskip("blockloc.sim.stream")
-
-from blockloc.datasets import open_sequence  # noqa: E402
-from blockloc.geometry import transform_points  # noqa: E402
-from blockloc.tracking.scan_prep import deskew_rotation, gravity_from_imu  # noqa: E402
-from blockloc.voxels import voxel_downsample  # noqa: E402
-from blockloc.global_init.relocalize import localize, pose_error  # noqa: E402
-from blockloc.maps.store import MapWriter, open_map  # noqa: E402
+from blockloc.datasets import open_sequence
+from blockloc.geometry import transform_points
+from blockloc.global_init.relocalize import localize, pose_error
+from blockloc.maps.store import MapWriter, open_map
+from blockloc.tracking.scan_prep import deskew_rotation, gravity_from_imu
+from blockloc.voxels import voxel_downsample
 
 LOC_FRAME = 700  # frame 500 lies in a corridor whose NDT optimum is 0.6 m off the truth
 
@@ -49,4 +47,5 @@ def test_simulated_scan_is_localized_from_a_hint_12_m_off_with_unknown_yaw(sim_c
                    map_store=store, hint_xy=hint, window_m=40.0, cache_dir=cache)
     assert res.verified
     dt, dr = pose_error(res.T_map_body, T_true)
-    assert dt <= 0.3 and dr <= 2.0, (dt, dr)
+    # the tolerance of the other init tests (measured on 700dd19: 0.002 m, 0.03 deg)
+    assert dt <= 0.1 and dr <= 0.5, (dt, dr)

@@ -8,8 +8,9 @@ from scipy.spatial import cKDTree
 
 from blockloc.errors import MapError
 from blockloc.geometry import xyzrpy_to_T
-from blockloc.maps.block_maps import BlockMapBuilder, build_block_map, build_block_map_from_sequence
-from blockloc.maps.grid_tiles import build_grid_map_from_sequence, tile_bounds
+from blockloc.maps.block_maps import BlockMapBuilder, build_block_map
+from blockloc.maps.build_plan import build_block_map_from_sequence, build_grid_map_from_sequence
+from blockloc.maps.grid_tiles import tile_bounds
 from blockloc.maps.mapping import scan_to_map, select_keyframes
 from blockloc.maps.store import open_map
 
@@ -44,7 +45,9 @@ def test_second_block_checked_against_first():
         b.add(i, [x, 0, 0], _kf(x, seed=i)[1])
     b.finish()
     assert len(b.blocks) == 1
-    assert [e.action for e in b.events][0] == "new" and b.events[1].action in ("skip", "merge")
+    # the return's centroid is 3.7 m (< 0.1 S = 5 m) from block 0's: a skip
+    assert [e.action for e in b.events] == ["new", "skip"]
+    assert b.events[1].block == 0 and b.events[1].distance_m < 0.1 * 50.0
 
 
 def test_distance_is_3d():
@@ -201,3 +204,29 @@ def test_build_interrupted_half_way_leaves_no_map(tmp_path, kind):
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(MapError):
         open_map(tmp_path / "m")
+
+
+@pytest.mark.parametrize("fraction, action", [
+    (0.0, "skip"), (0.09, "skip"), (0.11, "merge"), (0.25, "merge"), (0.49, "merge"), (0.51, "new"),
+    (0.9, "new"),
+])
+def test_centroid_distance_boundaries(fraction, action):
+    """Block 0's centroid is the origin; the closed candidate block's centroid lies exactly
+    ``fraction`` x S from it: d <= 0.1 S skip, 0.1 S < d < 0.5 S merge, d >= 0.5 S new."""
+    S = 10.0
+    b = BlockMapBuilder(block_size_m=S, voxel_size_m=0.0)
+    cube = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
+    none = np.zeros((0, 3))
+    b.add(0, [0, 0, 0], cube)  # block 0: these points only, centroid (0, 0, 0)
+    b.add(1, [S + 1, 0, 0], none)  # closes block 0 (no points of its own) and opens block 1
+    b.add(2, [S + 1, 0, 0], cube * 0.5 + [fraction * S, 0, 0])  # block 1's only points
+    b.add(3, [2 * S + 2, 0, 0], none)  # closes block 1
+    assert [e.action for e in b.events[:1]] == ["new"]
+    ev = b.events[1]
+    assert ev.keyframes == [1, 2, 3]
+    assert ev.distance_m == pytest.approx(fraction * S, abs=1e-5)
+    assert ev.action == action and ev.block == (1 if action == "new" else 0)
+    if action == "merge":  # the merged block's centroid is renewed from all its points
+        np.testing.assert_allclose(b.blocks[0].centroid, [fraction * S / 2, 0, 0], atol=1e-5)
+    if action == "skip":
+        assert len(b.blocks) == 1 and len(b.blocks[0].points) == 8

@@ -55,20 +55,17 @@ def test_bad_input_is_one_line(tmp_path, global_pcd):
 
 def test_build_from_a_session_directory(tmp_path):
     """`map build` on a sequence opened through the registry (a directory in NCLT layout)."""
-    write_session = pytest.importorskip("blockloc.datasets.nclt").write_session
+    from blockloc.datasets.base import ImuData
+    from blockloc.datasets.nclt import write_session
+
     from .synthetic import MemorySequence, route, world_points
 
     world = world_points(extent=(-30, 90), seed=3, density=0.2)
     traj = route([[0, 0], [60, 0]], speed=5.0)
     seq = MemorySequence(world, traj, radius=20.0)
-    try:
-        from blockloc.datasets.base import ImuData
-
-        imu = ImuData(traj.stamps, np.zeros((len(traj), 3)), np.zeros((len(traj), 3)))
-        write_session(tmp_path / "sess", date="2012-01-15", frames=seq.frames(), imu=imu,
-                      ground_truth=traj)
-    except TypeError as exc:  # the writer's signature is the datasets stage's to choose
-        pytest.skip(f"write_session signature differs: {exc}")
+    imu = ImuData(traj.stamps, np.zeros((len(traj), 3)), np.zeros((len(traj), 3)))
+    write_session(tmp_path / "sess", date="2012-01-15", frames=seq.frames(), imu=imu,
+                  ground_truth=traj)
     res = runner.invoke(app, ["map", "build", "--seq", str(tmp_path / "sess"), "--kind", "block",
                               "--block-size", "20", "--out", str(tmp_path / "bm")])
     assert res.exit_code == 0, res.output

@@ -11,7 +11,7 @@ from blockloc.errors import MapError
 from blockloc.evaluation.trajectory_io import write_kitti, write_tum
 from blockloc.geometry import Trajectory, xyzrpy_to_T
 from blockloc.maps.from_pcd import build_map_from_global_pcd, keyframes_from_global_map
-from blockloc.maps.mapping import voxel_downsample
+from blockloc.voxels import voxel_downsample
 from blockloc.maps.store import open_map
 
 VOXEL = 0.25
@@ -86,7 +86,7 @@ def test_block_map_from_global_pcd(tmp_path, fmt):
     vox = lambda p: {tuple(v) for v in np.floor(np.asarray(p, float) / VOXEL).astype(np.int64)}  # noqa: E731
     # the blocks together hold exactly the map within 12 m of the keyframes, and nothing else
     kf_pos = np.concatenate([e.keyframes for e in store.entries])
-    g, _ = voxel_downsample(pts, None, VOXEL)
+    g, _ = voxel_downsample(pts, VOXEL)
     d, _ = cKDTree(kf_pos).query(g.astype(float))
     union = set().union(*(vox(store.load(e.id)[0]) for e in store.entries))
     assert union == vox(g[d <= 12.0])
@@ -109,7 +109,7 @@ def test_grid_map_from_global_pcd(tmp_path):
     reopened = open_map(tmp_path / "grid")
     assert reopened.frame == "odom"
     got = np.concatenate([reopened.load(e.id)[0] for e in reopened.entries])
-    g, _ = voxel_downsample(pts, None, VOXEL)
+    g, _ = voxel_downsample(pts, VOXEL)
     d, _ = cKDTree(traj.positions).query(g.astype(float))
     assert len(got) == int((d <= 8.0).sum())
     assert got[:, 0].max() < 25.0 + 8.0 + VOXEL
@@ -137,7 +137,7 @@ def test_block_build_equals_algorithm_1_on_full_crops(tmp_path):
     kw = dict(sensor_range_m=9.0, keyframe_distance_m=1.5, keyframe_angle_deg=15.0)
     store = build_map_from_global_pcd(gpath, traj, "block", tmp_path / "fast", block_size_m=8.0,
                                       voxel_size_m=VOXEL, **kw)
-    g, gi = voxel_downsample(pts, inten, VOXEL)
+    g, gi = voxel_downsample(pts, VOXEL, inten)
     ref = build_block_map(keyframes_from_global_map(g.astype(float), gi, traj, **kw),
                           block_size_m=8.0, voxel_size_m=VOXEL)
     assert len(store.entries) == len(ref.blocks) >= 4

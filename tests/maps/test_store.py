@@ -162,3 +162,24 @@ def test_killed_build_does_not_load(tmp_path):
     (leftovers[0] / ".incomplete").unlink()
     with pytest.raises(MapError, match="not a map store"):
         open_map(leftovers[0])
+
+
+def test_point_count_mismatch_names_the_file(tmp_path):
+    """A valid file whose point count disagrees with the manifest (checksum matching, or absent)."""
+    _write_store(tmp_path / "m")
+    man = tmp_path / "m" / "manifest.json"
+    doc = json.loads(man.read_text())
+    good = json.loads(man.read_text())
+    doc["entries"][1]["num_points"] = 201  # the file (checksum intact) holds 200
+    man.write_text(json.dumps(doc))
+    store = open_map(tmp_path / "m")
+    with pytest.raises(MapError, match=r"001\.pcd: holds 200 points, manifest says 201"):
+        store.load("001")
+    assert len(store.load("000")[0]) == 200
+    # a replaced file without a checksum in the manifest: the count still catches it
+    pts, inten = read_pcd(tmp_path / "m" / "002.pcd")
+    write_pcd(tmp_path / "m" / "002.pcd", pts[:150], inten[:150])
+    good["entries"][2]["sha256"] = None
+    man.write_text(json.dumps(good))
+    with pytest.raises(MapError, match=r"002\.pcd: holds 150 points, manifest says 200"):
+        open_map(tmp_path / "m").load("002")

@@ -63,7 +63,7 @@ def _track(small_world, map_path):
     from blockloc.datasets import open_sequence
 
     paths, cfg = small_world
-    seq = open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset)
+    seq = open_sequence(paths.loc, dataset_cfg=cfg.dataset)
     return _session(cfg, seq, map_path).run(0, N_FRAMES, init="gt").trajectory
 
 
@@ -124,7 +124,7 @@ def killed_run(small_world, tmp_path_factory):
     srv = MapServer(paths.block_map)
     srv.start()
 
-    seq = open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset)
+    seq = open_sequence(paths.loc, dataset_cfg=cfg.dataset)
     try:
         session = _session(cfg, seq, srv.url)
         session.initialize("gt", 0)
@@ -152,4 +152,4 @@ def test_tracking_recovers_when_the_server_returns(killed_run):
     assert files.stats.fetched_files >= 3  # block 001 fetched after the server came back
     gt = seq.ground_truth().interpolate(res.trajectory.stamps[-50:])
     err = np.linalg.norm(res.trajectory.poses[-50:, :3, 3] - gt[:, :3, 3], axis=1)
-    assert np.median(err) < 0.5
+    assert np.median(err) < 0.07  # measured on 700dd19: 0.035 m (max 0.038 m)

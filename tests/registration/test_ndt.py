@@ -63,6 +63,82 @@ def test_real_pair_one_shot_direct1_at_2m(hdl_pair):
     assert res.converged and et < 0.1 and er < 0.5, (et, er)
 
 
+def _tracking_starts(T_ref, n, seed):
+    """T_ref and n - 1 starts within +-0.2 m and +-1 deg per axis of it (an IMU prediction)."""
+    rng = np.random.default_rng(seed)
+    return [T_ref] + [T_ref @ xyzrpy_to_T(*rng.uniform(-0.2, 0.2, 3),
+                                          *np.radians(rng.uniform(-1.0, 1.0, 3)))
+                      for _ in range(n - 1)]
+
+
+def test_direct1_search_and_direct7_polish_reach_the_direct7_optimum(hdl_pair):
+    """The default fine level (DIRECT1 search, DIRECT7 polish) ends where DIRECT7 alone does."""
+    target_pts, source, T_ref = hdl_pair
+    target = NdtTarget.build(target_pts, resolution=1.0)
+    # both converged tightly: the optima themselves are compared, not the stopping residuals
+    fast = NdtRegistration(step_epsilon=1e-4)
+    plain = NdtRegistration(search_neighbors=None, step_epsilon=1e-4)
+    assert (fast.neighbors, fast.search_neighbors) == ("DIRECT7", "DIRECT1")
+    for T0 in _tracking_starts(T_ref, 8, seed=5):
+        a, b = fast.align(target, source, T0), plain.align(target, source, T0)
+        assert a.converged and b.converged
+        et, er = pose_error(a.T_target_source, b.T_target_source)
+        assert et < 1e-3 and er < 0.01, (et, er)
+        assert a.score == pytest.approx(b.score, rel=1e-4)
+
+
+def test_default_stop_lies_within_step_epsilon_of_the_optimum(hdl_pair):
+    """Default settings stop before a Newton step shorter than step_epsilon (1e-3, rad and m
+    together): a tight DIRECT7 run from the result moves it by about that at most."""
+    target_pts, source, T_ref = hdl_pair
+    target = NdtTarget.build(target_pts, resolution=1.0)
+    reg = NdtRegistration()
+    tight = NdtRegistration(search_neighbors=None, step_epsilon=1e-7, coarse_to_fine=False)
+    for T0 in _tracking_starts(T_ref, 8, seed=6):
+        res = reg.align(target, source, T0)
+        assert res.converged
+        again = tight.align(target, source, res.T_target_source)
+        et, er = pose_error(res.T_target_source, again.T_target_source)
+        assert et < 1.5e-3 and np.radians(er) < 1.5e-3, (et, er)
+
+
+def test_align_reports_exact_direct7_derivatives_at_its_pose(hdl_pair):
+    """score, b, H_exact of the fused level kernel are those evaluate() gives at the result."""
+    target_pts, source, T_ref = hdl_pair
+    target = NdtTarget.build(target_pts, resolution=1.0)
+    reg = NdtRegistration()
+    T0 = T_ref @ xyzrpy_to_T(0.15, -0.1, 0.05, 0.01, -0.005, 0.015)
+    res = reg.align(target, source, T0)
+    ev = reg.evaluate(target, source, res.T_target_source)
+    assert res.score == pytest.approx(ev.score, rel=1e-9)
+    assert res.num_inliers == ev.num_inliers
+    np.testing.assert_allclose(res.b, ev.b, atol=1e-6 * np.abs(ev.H).max())
+    np.testing.assert_allclose(res.H_exact, ev.H, rtol=1e-6, atol=1e-9 * np.abs(ev.H).max())
+    assert res.eigenvalues[0] > 0
+
+
+def test_align_makes_one_kernel_call_per_level_and_stage(hdl_pair, monkeypatch):
+    """Default: one ndt_level call for the coarse level, one for the DIRECT1 search, one for
+    the DIRECT7 polish, and no other alignment kernel call from Python."""
+    from blockloc.registration import _ndt_kernels as k
+
+    target_pts, source, T_ref = hdl_pair
+    target = NdtTarget.build(target_pts, resolution=1.0)
+    calls = []
+    for name in ("ndt_level", "ndt_evaluate"):
+        real = getattr(k, name)
+        monkeypatch.setattr(k, name, lambda *a, _real=real, _name=name: (
+            calls.append((_name, a[3][4], a[4])) or _real(*a)))
+    res = NdtRegistration().align(target, source, T_ref)
+    assert [(c[0], c[2]) for c in calls] == [("ndt_level", 1), ("ndt_level", 1),
+                                             ("ndt_level", 7)]
+    assert [c[1] for c in calls] == [0.5, 1.0, 1.0]  # 1 / resolution: coarse level first
+    assert res.passes >= 3
+    calls.clear()
+    NdtRegistration(search_neighbors=None).align(target, source, T_ref)
+    assert [(c[0], c[2]) for c in calls] == [("ndt_level", 1), ("ndt_level", 7)]
+
+
 # ------------------------------------------------------------------------------------------
 # synthetic scene
 
@@ -201,38 +277,140 @@ def test_result_H_is_psd_projection_of_exact_hessian(scene, make_scene):
     assert good.eigenvalues[0] > 0
 
 
+NEIGHBOR_OFFSETS = {
+    "DIRECT1": [(0, 0, 0)],
+    "DIRECT7": [(0, 0, 0), (-1, 0, 0), (1, 0, 0), (0, -1, 0), (0, 1, 0), (0, 0, -1), (0, 0, 1)],
+    "DIRECT27": [(i, j, k) for k in (-1, 0, 1) for j in (-1, 0, 1) for i in (-1, 0, 1)],
+}
+
+
+def _numpy_pairs(target, x, neighbors):
+    """For each point of x (N, 3) (target frame), the (mean, inverse covariance) of its
+    neighbour Gaussians, found with a plain dict (1 m voxels; a Gaussian's voxel is that of its
+    mean, which lies inside it)."""
+    means, covs = target.gaussians()
+    icovs = np.linalg.inv(covs)
+    index = {tuple(k): i for i, k in enumerate(np.floor(means).astype(int))}
+    out = []
+    for p in x:
+        v = np.floor(p).astype(int)
+        rows = [index.get(tuple(v + o)) for o in NEIGHBOR_OFFSETS[neighbors]]
+        out.append([(means[i], icovs[i]) for i in rows if i is not None])
+    return out
+
+
+def _noisy_scene_points(scene, n=300, seed=3):
+    rng = np.random.default_rng(seed)
+    return scene[rng.choice(len(scene), n, replace=False)] + rng.normal(0, 0.05, (n, 3))
+
+
 @pytest.mark.parametrize("neighbors", ["DIRECT1", "DIRECT7", "DIRECT27"])
 def test_score_and_inliers_match_numpy_reference(scene, neighbors):
     """Kernel score (hash look-ups, DIRECT7 neighbour lists) against a plain numpy version."""
     target = NdtTarget.build(scene, resolution=1.0)
-    means, covs = target.gaussians()
-    icovs = np.linalg.inv(covs)
-    index = {tuple(k): i for i, k in enumerate(np.floor(means).astype(int))}
-    # voxel of each Gaussian = voxel of its mean (the mean lies inside its voxel)
     T = xyzrpy_to_T(0.2, -0.1, 0.05, 0.01, 0.0, 0.02)
-    rng = np.random.default_rng(3)
-    source = scene[rng.choice(len(scene), 300, replace=False)] + rng.normal(0, 0.05, (300, 3))
+    source = _noisy_scene_points(scene)
     x = transform_points(T, source)
-    offsets = {"DIRECT1": [(0, 0, 0)],
-               "DIRECT7": [(0, 0, 0), (-1, 0, 0), (1, 0, 0), (0, -1, 0), (0, 1, 0), (0, 0, -1),
-                           (0, 0, 1)],
-               "DIRECT27": [(i, j, k) for k in (-1, 0, 1) for j in (-1, 0, 1) for i in (-1, 0, 1)]}
     d1, d2 = ndt_constants(1.0, 0.55)
     score, inliers = 0.0, 0
-    for p in x:
-        v = np.floor(p).astype(int)
-        qs = []
-        for o in offsets[neighbors]:
-            i = index.get(tuple(v + o))
-            if i is not None:
-                dlt = p - means[i]
-                qs.append(dlt @ icovs[i] @ dlt)
+    for p, pairs in zip(x, _numpy_pairs(target, x, neighbors)):
+        qs = [(p - mu) @ C @ (p - mu) for mu, C in pairs]
         score += sum(-d1 * np.exp(-d2 * q / 2) for q in qs)
         inliers += bool(qs) and min(qs) <= 11.345
     ev = NdtRegistration(neighbors=neighbors).evaluate(target, source, T, derivatives=False)
     assert ev.score == pytest.approx(score, rel=1e-9)
     assert ev.num_inliers == inliers
     assert 0 < inliers < len(source)
+
+
+def _numpy_derivatives(target, source, T, neighbors):
+    """score, b (6,), exact H (6, 6) and Gauss-Newton H_gn (6, 6) of error = -score under the
+    right perturbation T * Exp(xi), by the chain rule pair by pair (independent of the kernels).
+
+    x(xi) = R Exp(xi) p + t with Exp(xi) p = p + w x p + v + (w x (w x p) + w x v) / 2 + O(3):
+    dx/dxi = R [-skew(p), I], d2x/dxi_i dxi_j = R Q_ij(p) (Q the quadratic part's Hessian).
+    """
+    d1, d2 = ndt_constants(1.0, 0.55)
+    R, t = T[:3, :3], T[:3, 3]
+    x = transform_points(T, source)
+    eye6 = np.eye(6)
+
+    def quad(p, xi):
+        w, v = xi[:3], xi[3:]
+        return 0.5 * np.cross(w, np.cross(w, p)) + 0.5 * np.cross(w, v)
+
+    score, b, H, H_gn = 0.0, np.zeros(6), np.zeros((6, 6)), np.zeros((6, 6))
+    for p, xp, pairs in zip(source, x, _numpy_pairs(target, x, neighbors)):
+        skew = np.array([[0, -p[2], p[1]], [p[2], 0, -p[0]], [-p[1], p[0], 0]])
+        J = R @ np.hstack([-skew, np.eye(3)])
+        # Q[i, j] (3,): second derivative of Exp(xi) p (a quadratic form: polarization is exact)
+        Q = np.array([[quad(p, eye6[i] + eye6[j]) - quad(p, eye6[i]) - quad(p, eye6[j])
+                       for j in range(6)] for i in range(6)])
+        for mu, C in pairs:
+            y = C @ (xp - mu)
+            q = (xp - mu) @ y
+            if d2 * q / 2 > 30.0:  # the kernels' cut-off (weight < 1e-13)
+                continue
+            e = np.exp(-d2 * q / 2)
+            a = -d1 * d2 * e
+            score += -d1 * e
+            g = a * y  # gradient of the pair's cost d1 e with respect to x
+            b += J.T @ g
+            H += J.T @ (a * (C - d2 * np.outer(y, y))) @ J + Q @ (R.T @ g)
+            H_gn += a * J.T @ C @ J
+    return score, b, H, H_gn
+
+
+@pytest.mark.parametrize("neighbors", ["DIRECT1", "DIRECT7", "DIRECT27"])
+def test_fused_derivatives_match_numpy_chain_rule(scene, neighbors):
+    """Every evaluation mode (exact, Gauss-Newton, both from one pass) against the chain rule."""
+    from blockloc.registration import _ndt_kernels as k
+
+    target = NdtTarget.build(scene, resolution=1.0)
+    level = target.snapshot(0).kernel_level()
+    d1, d2 = ndt_constants(1.0, 0.55)
+    rng = np.random.default_rng(21)
+    source = _noisy_scene_points(scene, 200, seed=4)
+    nb = {"DIRECT1": 1, "DIRECT7": 7, "DIRECT27": 27}[neighbors]
+    for _ in range(3):
+        T = random_offset(rng, trans=0.3, yaw_deg=3.0, rp_deg=1.0)
+        score, b, H, H_gn = _numpy_derivatives(target, source, T, neighbors)
+        scale_b, scale_H = np.abs(b).max(), np.abs(H).max()
+        got = {}
+        for mode in (k.MODE_EXACT, k.MODE_GN, k.MODE_BOTH):
+            memo = (np.full(len(source), -1, np.int64), np.empty(len(source), np.int64))
+            acc = k.ndt_evaluate(source, 1, T, level, nb, d1, d2, 11.345, mode, *memo)
+            out = np.empty(6), np.empty((6, 6)), np.empty((6, 6))
+            k.right_derivatives(acc, T, *out)
+            assert acc[0] == pytest.approx(score, rel=1e-9)
+            np.testing.assert_allclose(out[0], b, atol=1e-9 * scale_b)
+            got[mode] = out
+        np.testing.assert_allclose(got[k.MODE_EXACT][1], H, atol=1e-9 * scale_H)
+        np.testing.assert_allclose(got[k.MODE_GN][2], H_gn, atol=1e-9 * scale_H)
+        np.testing.assert_allclose(got[k.MODE_BOTH][1], H, atol=1e-9 * scale_H)
+        np.testing.assert_allclose(got[k.MODE_BOTH][2], H_gn, atol=1e-9 * scale_H)
+        # the public evaluate() is the exact mode
+        ev = NdtRegistration(neighbors=neighbors).evaluate(target, source, T)
+        np.testing.assert_allclose(ev.H, H, atol=1e-9 * scale_H)
+
+
+def test_strided_evaluation_equals_subset_copy(scene):
+    """The coarse levels read every k-th source point in place; same sums as a copied subset."""
+    from blockloc.registration import _ndt_kernels as k
+
+    target = NdtTarget.build(scene, resolution=1.0)
+    level = target.snapshot(0).kernel_level()
+    d1, d2 = ndt_constants(1.0, 0.55)
+    source = _noisy_scene_points(scene, 6000, seed=5)  # > SERIAL_MAX_POINTS: parallel path
+    T = xyzrpy_to_T(0.1, 0.05, 0.0, 0.0, 0.01, -0.02)
+    for stride in (1, 2, 7):
+        sub = np.ascontiguousarray(source[::stride])
+        memo_a = (np.full(len(source), -1, np.int64), np.empty(len(source), np.int64))
+        memo_b = (np.full(len(sub), -1, np.int64), np.empty(len(sub), np.int64))
+        a = k.ndt_evaluate(source, stride, T, level, 7, d1, d2, 11.345, k.MODE_BOTH, *memo_a)
+        c = k.ndt_evaluate(sub, 1, T, level, 7, d1, d2, 11.345, k.MODE_BOTH, *memo_b)
+        np.testing.assert_allclose(a, c, rtol=1e-12, atol=1e-9 * np.abs(c).max())
+        assert a[1] > 0.5 * len(sub)  # inliers: the scene matches itself
 
 
 def test_se3_exp_is_gtsam_pose3_expmap():
@@ -266,16 +444,37 @@ def test_gradient_direction_matches_gtsam_local_coordinates(scene):
         assert fd == pytest.approx(ev.b[i], rel=1e-4, abs=1e-3)
 
 
-def test_ndt_constants_match_magnusson():
-    d1, d2 = ndt_constants(1.0, 0.55)
-    # values printed by ndt_omp / PCL for resolution 1, outlier ratio 0.55
-    assert d1 < 0 and d2 > 0
-    c1, c2 = 10 * 0.45, 0.55
-    d3 = -np.log(c2)
-    assert d1 == pytest.approx(-np.log(c1 + c2) - d3)
-    # the fitted Gaussian-plus-uniform passes through the mixture at x = 0 and x = 1 sigma
-    assert -np.log(c1 + c2) - d3 == pytest.approx(d1)
-    assert -np.log(c1 * np.exp(-0.5) + c2) - d3 == pytest.approx(d1 * np.exp(-d2 / 2))
+# PCL's NormalDistributionsTransform::computeTransformation (and ndt_omp, which copies it) set
+# (Magnusson 2009, eq. 6.8):
+#   c1 = 10 (1 - outlier_ratio), c2 = outlier_ratio / resolution^3, d3 = -log(c2),
+#   d1 = -log(c1 + c2) - d3, d2 = -2 log((-log(c1 exp(-0.5) + c2) - d3) / d1).
+# The numbers below were evaluated once from that formula by hand (Python's math module in a
+# scratch shell, not this package), for outlier ratio 0.55:
+PCL_NDT_CONSTANTS = {
+    1.0: (-2.217225244042889, 0.43312300470355464),
+    2.0: (-4.196518186951408, 0.24847851012449546),
+}
+
+
+@pytest.mark.parametrize("resolution", sorted(PCL_NDT_CONSTANTS))
+def test_ndt_constants_match_magnusson(resolution):
+    """d1, d2 equal the literal values of PCL / ndt_omp's formula at 1 m and 2 m (ratio 0.55):
+    at 2 m every power of the resolution matters (c2 = 0.55 / 8)."""
+    d1, d2 = ndt_constants(resolution, 0.55)
+    want_d1, want_d2 = PCL_NDT_CONSTANTS[resolution]
+    assert d1 == pytest.approx(want_d1, rel=1e-12)
+    assert d2 == pytest.approx(want_d2, rel=1e-12)
+
+
+def test_ndt_constants_fit_the_gaussian_plus_uniform_mixture():
+    """The fitted -d1 exp(-d2 x^2 / 2) + d3 equals -log(c1 exp(-x^2 / 2) + c2) at x = 0 and x = 1."""
+    for res in (0.5, 1.0, 2.0, 3.0):
+        d1, d2 = ndt_constants(res, 0.55)
+        c1, c2 = 10 * 0.45, 0.55 / res**3
+        d3 = -np.log(c2)
+        assert d1 < 0 and d2 > 0
+        for x in (0.0, 1.0):
+            assert d1 * np.exp(-d2 * x * x / 2) + d3 == pytest.approx(-np.log(c1 * np.exp(-x * x / 2) + c2))
 
 
 # ------------------------------------------------------------------------------------------
@@ -394,6 +593,67 @@ def test_tile_updates_while_aligning(scene, make_scene):
         stop.set()
         th.join()
     assert not errors
+
+
+def test_align_during_tile_swaps_sees_one_whole_map(scene, make_scene):
+    """While a background thread swaps a tile in view between two versions, every alignment
+    returns exactly the result against one version: never a mix of the two."""
+    tiles = _tiles(scene, 10.0)
+    key = max(tiles, key=lambda k: len(tiles[k]))
+    version_a = tiles[key]
+    version_b = version_a + np.array([0.05, 0.0, 0.0])  # moves the optimum measurably
+    target = NdtTarget.from_tiles(tiles)
+    scan = make_scene(seed=9, n_per_m2=3.0)
+    T_true = xyzrpy_to_T(0.3, -0.2, 0.0, 0.0, 0.0, 0.02)
+    source = transform_points(inv_T(T_true), scan)
+    reg = NdtRegistration()
+    results = {}
+    for name, pts in (("b", version_b), ("a", version_a)):
+        target.add_tile(key, pts)
+        results[name] = reg.align(target, source).T_target_source
+    assert not np.array_equal(results["a"], results["b"])
+    stop = threading.Event()
+    swaps = []
+    errors = []
+
+    def churn():
+        try:
+            while not stop.is_set():
+                for pts in (version_b, version_a):
+                    target.add_tile(key, pts)
+                    swaps.append(1)
+        except Exception as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    th = threading.Thread(target=churn)
+    th.start()
+    try:
+        seen = []
+        for _ in range(20):
+            T = reg.align(target, source).T_target_source
+            seen.append([name for name, ref in results.items() if np.array_equal(T, ref)])
+    finally:
+        stop.set()
+        th.join()
+    assert not errors
+    assert len(swaps) > 2
+    assert all(len(s) == 1 for s in seen), seen
+
+
+def test_gauss_newton_steps_reach_the_same_optimum(scene, make_scene):
+    target = NdtTarget.build(scene, resolution=1.0)
+    scan = make_scene(seed=7, n_per_m2=4.0)
+    T_true = xyzrpy_to_T(0.4, -0.25, 0.05, 0.01, -0.02, 0.05)
+    source = transform_points(inv_T(T_true), scan)
+    newton = NdtRegistration(step_epsilon=1e-5).align(target, source)
+    gn_reg = NdtRegistration(step="gauss_newton", step_epsilon=1e-5)
+    gn = gn_reg.align(target, source)
+    assert newton.converged and gn.converged
+    et, er = pose_error(gn.T_target_source, newton.T_target_source)
+    assert et < 1e-4 and er < 1e-3, (et, er)
+    # the result's H is the exact Hessian at its pose, not the Gauss-Newton matrix
+    ev = gn_reg.evaluate(target, source, gn.T_target_source)
+    np.testing.assert_allclose(gn.H_exact, ev.H, rtol=1e-9, atol=1e-9 * np.abs(ev.H).max())
 
 
 # ------------------------------------------------------------------------------------------

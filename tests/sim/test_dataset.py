@@ -56,12 +56,14 @@ def test_written_sessions_read_back_with_the_nclt_loader(written):
         assert np.allclose(disk.frame_stamps(), sim.frame_stamps()[:12])
         for i in (0, 7):
             fd, fs = disk.frame(i), sim.frame(i)
-            assert len(fd) == len(fs)
+            # the loader drops returns nearer than 1 m (the robot's own mast among them)
+            r = np.linalg.norm(fs.points, axis=1)  # (the 5 mm quantisation may move a point over 1 m)
+            assert (r >= 1.01).sum() <= len(fd) <= (r >= 0.99).sum() and (r < 1.0).sum() < 0.05 * len(fs)
             from scipy.spatial import cKDTree
 
-            dist, _ = cKDTree(fs.points).query(fd.points)
+            dist, j = cKDTree(fs.points).query(fd.points)
             assert dist.max() < 0.005  # 5 mm quantisation
-            assert np.allclose(np.sort(fd.time_offsets), np.sort(fs.time_offsets), atol=3e-4)
+            assert np.allclose(fd.time_offsets, fs.time_offsets[j], atol=3e-4)
         gt_d, gt_s = disk.ground_truth(), sim.ground_truth()
         n = len(gt_d)
         assert n > 100 and np.allclose(gt_d.poses, gt_s.poses[:n], atol=1e-6)
@@ -111,6 +113,7 @@ def test_days_differ_in_movable_objects_and_moving_actors():
     actors = make_actors(world, "loc")
     kinds = set(actors.kind.tolist())
     assert kinds == {"pedestrian", "vehicle"}
+    assert len(make_actors(world, "map").kind) == 0  # the mapping day is quiet
     p0, _ = actors.poses(0.0)
     p1, _ = actors.poses(2.0)
     step = np.linalg.norm(p1 - p0, axis=1)

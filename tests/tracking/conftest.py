@@ -8,7 +8,7 @@ import pytest
 
 @pytest.fixture(scope="session")
 def small_world():
-    """(DemoPaths, Config): <dataset>/map and <dataset>/loc in NCLT layout, and their block map."""
+    """(SmallWorld, Config): the sim:small sessions (simulated on the fly) and their block map."""
     from blockloc.commands.demo import prepare_small_world
 
     paths, cfg = prepare_small_world()

@@ -18,7 +18,7 @@ def full_run(small_world, tmp_path_factory):
     from blockloc.evaluation.results import RunWriter
 
     paths, cfg = small_world
-    seq = open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset)
+    seq = open_sequence(paths.loc, dataset_cfg=cfg.dataset)
     out = tmp_path_factory.mktemp("track") / "run"
     session = Session.from_config(cfg, seq, open_map(paths.block_map), backend="block", observers=[RunWriter(out)],
                                   out_dir=out, keep_estimates=True)
@@ -29,8 +29,10 @@ def test_end_to_end_accuracy_and_outputs(full_run):
     res, seq = full_run
     m = res.metrics
     assert m["frames"] == len(seq) and m["estimated"] == len(seq)
-    assert m["init"]["verified"] and m["init"]["error_m"] < 0.3  # branch-and-bound from a 4 m hint
-    assert m["ate_trans_rmse_m"] <= 0.2
+    # limits about twice the values measured on 700dd19 (init error 0.020 m, ATE 0.043 m, median
+    # position error 0.033 m)
+    assert m["init"]["verified"] and m["init"]["error_m"] < 0.05  # branch-and-bound from a 4 m hint
+    assert m["ate_trans_rmse_m"] <= 0.09
     assert m["failures"] == 0
     out = res.out_dir
     for name in ("poses.tum", "poses_kitti.txt", "metrics.json", "config.yaml", "diagnostics.csv",
@@ -46,7 +48,7 @@ def test_end_to_end_accuracy_and_outputs(full_run):
 
     est = read_tum(out / "poses.tum")
     gt = seq.ground_truth().interpolate(est.stamps)
-    assert np.median(np.linalg.norm(est.positions - gt[:, :3, 3], axis=1)) < 0.1
+    assert np.median(np.linalg.norm(est.positions - gt[:, :3, 3], axis=1)) < 0.07
 
 
 def test_window_shrinks_at_switches_and_grows_back_without_jumps(full_run):
@@ -74,7 +76,7 @@ def test_one_second_lidar_dropout_is_bridged(small_world):
     from blockloc.datasets import open_sequence
 
     paths, cfg = small_world
-    seq = open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset)
+    seq = open_sequence(paths.loc, dataset_cfg=cfg.dataset)
     session = Session.from_config(cfg, seq, open_map(paths.block_map), keep_estimates=True)
     session.initialize("gt", 0)
     dropped = []
@@ -86,8 +88,9 @@ def test_one_second_lidar_dropout_is_bridged(small_world):
     res = session.finish()
     assert len(dropped) == 10 and res.metrics["lidar_gaps"] == 1
     after = next(e for e in res.estimates if e.index == 110)
-    assert after.diagnostics.status == "ok" and after.diagnostics.innovation_m < 0.5
-    assert res.metrics["failures"] == 0 and res.metrics["ate_trans_rmse_m"] < 0.2
+    assert after.diagnostics.status == "ok" and after.diagnostics.innovation_m < 0.04
+    # measured on 700dd19: innovation 0.016 m, ATE 0.011 m
+    assert res.metrics["failures"] == 0 and res.metrics["ate_trans_rmse_m"] < 0.025
 
 
 def test_kidnapped_start_is_recovered_by_global_init(small_world):
@@ -96,7 +99,7 @@ def test_kidnapped_start_is_recovered_by_global_init(small_world):
     from blockloc.geometry import rpy_to_R
 
     paths, cfg = small_world
-    seq = open_sequence(paths.dataset / "loc", dataset_cfg=cfg.dataset)
+    seq = open_sequence(paths.loc, dataset_cfg=cfg.dataset)
     session = Session.from_config(cfg, seq, open_map(paths.block_map), keep_estimates=True)
     stamp = float(seq.frame_stamps()[0])
     T = seq.ground_truth().interpolate(np.array([stamp]))[0].copy()
@@ -111,4 +114,4 @@ def test_kidnapped_start_is_recovered_by_global_init(small_world):
     assert any(r["hint"] and r["verified"] for r in m["relocalizations"])
     gt = seq.ground_truth().interpolate(res.trajectory.stamps[-20:])
     err = np.linalg.norm(res.trajectory.positions[-20:] - gt[:, :3, 3], axis=1)
-    assert err.max() < 0.2
+    assert err.max() < 0.03  # measured on 700dd19: 0.012 m

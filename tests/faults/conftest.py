@@ -1,0 +1,168 @@
+"""Fixtures of the fault-injection suite: tiny inputs (built once per test session) and a runner
+that calls the ``blockloc`` entry point the way a shell does."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from . import tiny
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@dataclass
+class Outcome:
+    """What one ``blockloc`` invocation did: exit code, stdout, stderr."""
+
+    code: int
+    out: str
+    err: str
+
+    @property
+    def err_lines(self) -> list[str]:
+        """stderr without progress lines (a bar's redraws, ``label: done/total``)."""
+        import re
+
+        # a progress bar redraws with \r and leaves its line open: a message may follow on it
+        return [ln for ln in re.split(r"[\r\n]+|(?=error: )", self.err) if ln.strip() and not _is_progress(ln)]
+
+
+def _is_progress(line: str) -> bool:
+    import re
+
+    return bool(re.match(r"^[\w .-]+: +(\d+%\|.*|\d+/(\d+|\?)( \(\d+%\))?(, working for \d+ s)?"
+                         r"|session \w+, \d+ frames)$", line.strip()))
+
+
+def cli_in_process(*args: str) -> Outcome:
+    """Run ``blockloc ARGS`` in this process through ``blockloc.cli.main`` (argument and
+    validation errors: no process start-up per case). An exception escaping ``main`` is a
+    traceback the user would have seen: it fails the test."""
+    import signal
+
+    from blockloc import cli
+
+    out, err = io.StringIO(), io.StringIO()
+    argv = sys.argv
+    sys.argv = ["blockloc", *map(str, args)]
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}  # main() installs its own
+    code = 0
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            cli.main()
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    finally:
+        sys.argv = argv
+        cli._state["debug"] = False
+        for s, h in handlers.items():
+            signal.signal(s, h)
+    return Outcome(code, out.getvalue(), err.getvalue())
+
+
+_CACHE: list[Path] = []
+
+
+def blockloc_env() -> dict:
+    """The environment of a ``blockloc`` subprocess: this checkout first on the path, and a
+    cache of its own (global-init pyramids of a store are cached by checksum: a case that
+    removes a block must find it missing, not cached)."""
+    import tempfile
+
+    if not _CACHE:
+        _CACHE.append(Path(tempfile.mkdtemp(prefix="blockloc-faults-cache-")))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]),
+               COLUMNS="120", BLOCKLOC_CACHE=str(_CACHE[0]))
+    env.pop("FORCE_COLOR", None)
+    return env
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _remove_cache():
+    yield
+    import shutil
+
+    for d in _CACHE:
+        shutil.rmtree(d, ignore_errors=True)
+
+
+def cli_process(*args: str, cwd: Path | None = None, timeout: float = 600) -> Outcome:
+    """Run ``python -m blockloc.cli ARGS`` in a subprocess (stdout/stderr piped)."""
+    r = subprocess.run([sys.executable, "-m", "blockloc.cli", *map(str, args)], capture_output=True, text=True,
+                       cwd=cwd, env=blockloc_env(), timeout=timeout)
+    return Outcome(r.returncode, r.stdout, r.stderr)
+
+
+def cli_start(*args: str, cwd: Path | None = None) -> subprocess.Popen:
+    """Start ``python -m blockloc.cli ARGS`` (for signals); stdout/stderr piped."""
+    return subprocess.Popen([sys.executable, "-m", "blockloc.cli", *map(str, args)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=cwd, env=blockloc_env())
+
+
+class Running:
+    """A ``blockloc`` subprocess whose stderr is read as it comes (progress bars end no line),
+    to send it a signal at a chosen moment of its work."""
+
+    def __init__(self, *args: str, cwd: Path | None = None) -> None:
+        import threading
+
+        self.proc = subprocess.Popen([sys.executable, "-m", "blockloc.cli", *map(str, args)],
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=cwd, env=blockloc_env())
+        self._err = bytearray()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        while chunk := os.read(self.proc.stderr.fileno(), 4096):
+            self._err += chunk
+
+    @property
+    def err(self) -> str:
+        return self._err.decode(errors="replace")
+
+    def wait_for(self, ready, timeout: float = 300.0) -> None:
+        """Poll ``ready()`` until true; fails the test if the process ends or time runs out first."""
+        import time
+
+        t0 = time.monotonic()
+        while not ready():
+            if self.proc.poll() is not None:
+                pytest.fail(f"ended (exit {self.proc.returncode}) before the moment to signal it: {self.err[-500:]}")
+            if time.monotonic() - t0 > timeout:
+                self.proc.kill()
+                pytest.fail(f"not ready after {timeout} s: {self.err[-500:]}")
+            time.sleep(0.05)
+
+    def signal(self, signum: int, timeout: float = 300.0) -> Outcome:
+        """Send ``signum``, wait for the end; the outcome (stdout read at the end)."""
+        self.proc.send_signal(signum)
+        out = self.proc.stdout.read().decode(errors="replace")
+        self.proc.wait(timeout)
+        self._reader.join(10)
+        self.proc.stdout.close()
+        self.proc.stderr.close()
+        return Outcome(self.proc.returncode, out, self.err)
+
+
+@pytest.fixture(scope="session")
+def tiny_world(tmp_path_factory):
+    """A tiny NCLT-layout session (40 scans, 20 m), a longer one (120 scans, 60 m) and the block
+    map of the longer one (7 blocks of 8 m), the config file the runs use, and the short session
+    as a scan folder. Read-only for the tests: copy what a case corrupts."""
+    root = tmp_path_factory.mktemp("tiny")
+    session = tiny.write_tiny_session(root / "sess")
+    long = tiny.write_tiny_session(root / "long", n_frames=120)
+    return {
+        "root": root, "session": session, "long": long,
+        "map": tiny.build_tiny_map(long, root / "map"),
+        "config": tiny.write_config(root / "cfg.yaml"),
+        "folder": tiny.write_tiny_scan_folder(root / "folder", session),
+    }

@@ -1,0 +1,92 @@
+"""The layering docs/DEVELOPING.md promises: core packages never reach up to the config tree, the
+commands or the CLI libraries, and no two modules import each other in a circle."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+PKG = Path(__file__).resolve().parent.parent / "blockloc"
+CORE = ("maps", "registration", "tracking", "global_init", "evaluation", "datasets", "sim")
+FORBIDDEN = ("blockloc.config", "blockloc.commands", "blockloc.cli", "rich", "typer")
+
+
+def _module_name(path: Path) -> str:
+    rel = path.relative_to(PKG.parent).with_suffix("")
+    parts = list(rel.parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _imports(path: Path) -> set[str]:
+    """Every module a file imports, at the top or inside functions."""
+    tree = ast.parse(path.read_text())
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out.add(node.module)
+            out.update(f"{node.module}.{a.name}" for a in node.names)
+    return out
+
+
+def _modules() -> dict[str, Path]:
+    return {_module_name(p): p for p in PKG.rglob("*.py")}
+
+
+def test_core_packages_do_not_import_config_commands_or_cli_libraries():
+    bad = []
+    for name, path in _modules().items():
+        if name.split(".")[1:2] and name.split(".")[1] in CORE:
+            for imp in _imports(path):
+                if any(imp == f or imp.startswith(f + ".") for f in FORBIDDEN):
+                    bad.append(f"{name} imports {imp}")
+    assert not bad, "\n".join(sorted(bad))
+
+
+def test_no_import_cycles_between_modules():
+    mods = _modules()
+    graph = {}
+    for name, path in mods.items():
+        deps = set()
+        for imp in _imports(path):
+            # the module itself, or the module a "from pkg import name" names
+            for cand in (imp, imp.rsplit(".", 1)[0]):
+                if cand in mods and cand != name and not name.startswith(cand + ".") and cand != "blockloc":
+                    deps.add(cand)
+                    break
+        graph[name] = deps
+    # a package's __init__ re-exporting its modules is not a cycle of code
+    for name in list(graph):
+        if mods[name].name == "__init__.py":
+            graph[name] = {d for d in graph[name] if not d.startswith(name + ".")}
+    cycles, state = [], {}
+
+    def visit(n, stack):
+        state[n] = 1
+        for d in sorted(graph[n]):
+            if state.get(d) == 1:
+                cycles.append(stack[stack.index(d):] + [d] if d in stack else [n, d])
+            elif d not in state:
+                visit(d, stack + [d])
+        state[n] = 2
+
+    for n in sorted(graph):
+        if n not in state:
+            visit(n, [n])
+    assert not cycles, "\n".join(" -> ".join(c) for c in cycles)
+
+
+def test_the_layout_in_developing_md_names_every_module():
+    text = (PKG.parent / "docs" / "DEVELOPING.md").read_text()
+    block = text.split("## Layout", 1)[1].split("```", 2)[1]
+    missing = []
+    for name, path in _modules().items():
+        stem = path.stem
+        if stem.startswith("_") or stem == "__init__":
+            continue
+        if not any(tok.startswith(stem) for tok in block.replace("/", " ").replace("(", " ").replace(",", " ").split()):
+            missing.append(str(path.relative_to(PKG.parent)))
+    assert not missing, f"docs/DEVELOPING.md's layout does not name: {missing}"

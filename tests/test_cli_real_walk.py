@@ -1,0 +1,41 @@
+"""The README's "your own data" path on the real walk: a scan folder and its trajectory file go
+through `map build --poses` and `init --poses` (which reports the error against the reference)."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+
+def _blockloc(*args):
+    return subprocess.run([sys.executable, "-m", "blockloc.cli", *args], capture_output=True, text=True,
+                          timeout=600)
+
+
+@pytest.fixture(scope="module")
+def walk_map(shared_data, tmp_path_factory):
+    walk = shared_data / "balm_hilti_walk"
+    poses = walk / "poses_T_world_lidar.tum"
+    out = tmp_path_factory.mktemp("walk") / "map"
+    r = _blockloc("map", "build", "--seq", str(walk), "--poses", str(poses), "--max-frames", "89",
+                  "--block-size", "8", "--voxel", "0.1", "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    return walk, poses, out
+
+
+def test_map_from_a_scan_folder_and_its_trajectory(walk_map):
+    _, _, out = walk_map
+    info = json.loads(_blockloc("map", "info", str(out), "--json", "--quick").stdout)
+    assert info["kind"] == "block" and info["entries"] >= 2  # the walk crosses several 8 m blocks
+    assert info["parameters"]["num_keyframes"] > 20
+
+
+def test_init_on_a_held_out_scan_reports_its_error_against_the_reference(walk_map):
+    walk, poses, out = walk_map
+    r = _blockloc("init", "--seq", str(walk), "--poses", str(poses), "--frame", "120", "--map", str(out),
+                  "--pose-hint", "2,3", "--json")
+    assert r.returncode == 0, r.stderr
+    d = json.loads(r.stdout)
+    assert d["verified"] and d["error_m"] < 0.1 and d["error_deg"] < 0.5, d  # the hint was 8 m off
+    assert set(d["gt"]) == {"x", "y", "yaw"} and d["time_s"] > 0
