@@ -356,14 +356,17 @@ class ResourceSampler:
 
 # --------------------------------------------------------------------------- child process
 def run_child(seq_name: str, map_path: str | None, backend: str, out_json: Path, *, cfg_preset: str = "sim",
-              block_size_m: float | None = None, max_frames: int | None = None) -> dict:
-    """Run one backend over ``seq_name`` in this process; write metrics (+ arrays as .npz)."""
+              block_size_m: float | None = None, max_frames: int | None = None, method: str | None = None) -> dict:
+    """Run one backend over ``seq_name`` in this process; write metrics (+ arrays as .npz).
+    method: registration engine (``registration.method``; None: the preset's)."""
     from blockloc.config import load_config
     from blockloc.datasets import open_sequence
 
     overrides: dict = {"evaluation": {"plots": False}}
     if block_size_m:
         overrides["map"] = {"block_size_m": block_size_m}
+    if method:
+        overrides["registration"] = {"method": method}
     cfg = load_config(cfg_preset, overrides=overrides)
     seq = open_sequence(seq_name, dataset_cfg=cfg.dataset)
     stop = len(seq) if max_frames is None else min(len(seq), max_frames)
@@ -417,12 +420,13 @@ def main(argv=None) -> int:
     ap.add_argument("--cfg-preset", default="sim")
     ap.add_argument("--block-size-m", type=float, default=None)
     ap.add_argument("--max-frames", type=int, default=None)
+    ap.add_argument("--method", default=None, help="registration engine (default: the preset's)")
     a = ap.parse_args(argv)
     import logging
 
     logging.basicConfig(level=logging.WARNING)
     run_child(a.seq, a.map, a.backend, Path(a.json), cfg_preset=a.cfg_preset, block_size_m=a.block_size_m,
-              max_frames=a.max_frames)
+              max_frames=a.max_frames, method=a.method)
     return 0
 
 

@@ -37,6 +37,7 @@ from blockloc.fileio import atomic_write_text
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "bench" / "tracking.md"
 MAP_BACKENDS = ("block", "grid", "srt", "global")
+VGICP_BLOCK = "block@vgicp"  # the block backend with small_gicp VGICP instead of NDT
 
 
 def grid_map(paths, cfg) -> Path:
@@ -59,8 +60,9 @@ def grid_map(paths, cfg) -> Path:
 
 
 def map_for(backend: str, block: Path, grid: Path) -> Path | None:
-    """block and global read the block store (global = all blocks); grid and srt the grid tiles."""
-    return {"block": block, "global": block, "grid": grid, "srt": grid}.get(backend)
+    """block and global read the block store (global = all blocks); grid and srt the grid tiles.
+    ``backend@engine`` (e.g. ``block@vgicp``) is that backend with another registration engine."""
+    return {"block": block, "global": block, "grid": grid, "srt": grid}.get(backend.partition("@")[0])
 
 
 def storage(block: Path, grid: Path) -> dict:
@@ -93,7 +95,8 @@ def main(argv=None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--repeats", type=int, default=3, help="runs per backend (figures: median over runs)")
-    ap.add_argument("--backends", default=",".join(MAP_BACKENDS + (ODOM, KISS)))
+    ap.add_argument("--backends", default=",".join(MAP_BACKENDS + (VGICP_BLOCK, ODOM, KISS)),
+                    help="backends; backend@engine runs it with registration.method=engine")
     ap.add_argument("--out", default=str(OUT))
     ap.add_argument("--cluster", default=None, metavar="local:N|tcp://HOST:PORT",
                     help="run the backends x repeats as Dask tasks (each still in its own child process)")
@@ -161,7 +164,7 @@ def main(argv=None) -> int:
         "recoveries | rejected | switches |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    desc = {"block": "block store, the block at the robot", "grid": "grid tiles, (2n+1)^2 window + k",
+    desc = {"block": "block store, the block at the robot", VGICP_BLOCK: "block store, small_gicp VGICP", "grid": "grid tiles, (2n+1)^2 window + k",
             "srt": f"grid tiles within R' = {cfg.map.srt_radius_m:g} m", "global": "all blocks",
             ODOM: "none: rolling map of its own scans (same IMU + NDT)", KISS: "none: KISS-ICP, LiDAR only"}
     for b in backends:
@@ -268,16 +271,19 @@ def fan_out(jobs, cluster, seq_path, map_of, tmp: Path, max_frames) -> dict:
     reachable by the workers (this machine, or a shared file system)."""
     from bench._track import run_in_child
 
-    def job_args(rep, b):
-        return (seq_path, map_of(b), b, tmp / f"{b}_{rep}.json")
+    def job_args(rep, b):  # backend@engine: that backend with registration.method=engine
+        return (seq_path, map_of(b), b.partition("@")[0], tmp / f"{b}_{rep}.json")
+
+    def job_kw(b):
+        return {"max_frames": max_frames, "method": b.partition("@")[2] or None}
 
     if not cluster:
-        return {(rep, b): run_in_child(*job_args(rep, b), max_frames=max_frames) for rep, b in jobs}
+        return {(rep, b): run_in_child(*job_args(rep, b), **job_kw(b)) for rep, b in jobs}
     from blockloc.maps.distributed import open_executor
 
     with open_executor(cluster) as ex:
         print(f"tracking runs on {ex.description}", file=sys.stderr, flush=True)
-        futures = {(rep, b): ex.client.submit(run_in_child, *job_args(rep, b), max_frames=max_frames,
+        futures = {(rep, b): ex.client.submit(run_in_child, *job_args(rep, b), **job_kw(b),
                                               key=f"track-{b}-{rep}", pure=False)
                    for rep, b in jobs}
         return {job: f.result() for job, f in futures.items()}

@@ -76,6 +76,10 @@ class ImuConfig:
     acc_bias_random_walk: float = bounded(0.0002, POSITIVE)  # m/s^3/sqrt(Hz)
     gyro_bias_random_walk: float = bounded(0.00002, POSITIVE)  # rad/s^2/sqrt(Hz)
     integration_sigma: float = bounded(1e-4, POSITIVE)
+    # Per-axis densities (x, y, z, imu frame) replacing the scalars above when given: a vibrating
+    # platform is noisier along some axes (configs/sim.yaml says what was measured).
+    acc_noise_density_axes: tuple[float, ...] = ()  # m/s^2/sqrt(Hz); [] = acc_noise_density on every axis
+    gyro_noise_density_axes: tuple[float, ...] = ()  # rad/s/sqrt(Hz); [] = gyro_noise_density on every axis
     gravity_m_s2: float = bounded(9.81, POSITIVE)
 
 

@@ -22,7 +22,8 @@ def test_track_command_writes_results(small_world, tmp_path):  # noqa: F811
     assert r.returncode == 0, r.stderr
     assert "ATE translation RMSE" in r.stdout
     m = json.loads((out / "metrics.json").read_text())
-    assert m["frames"] == 40 and m["ate_trans_rmse_m"] < 0.03  # measured on 700dd19: 0.013 m
+    # measured 0.061 m on the realistic sim (5256b0b + per-axis IMU noise); 0.013 m on the old sim
+    assert m["frames"] == 40 and m["ate_trans_rmse_m"] < 0.09
     rows = [ln for ln in (out / "poses.tum").read_text().splitlines() if ln and not ln.startswith("#")]
     assert len(rows) == 40 and len(rows[0].split()) == 8
     assert (tmp_path / "latest").is_symlink()

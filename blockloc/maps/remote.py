@@ -143,10 +143,16 @@ class TileCache:
             _unlink(path)
             return None
         with self._lock:
-            if sha256 not in self._index:  # written by another process
+            if sha256 not in self._index:
+                # Written by another process, or evicted by another thread since the read: only a
+                # file still on disk counts (else the account would exceed what the disk holds).
+                if not path.exists():
+                    return data
                 self._index[sha256] = len(data)
                 self._bytes += len(data)
-            self._index.move_to_end(sha256)
+                self._evict()
+            if sha256 in self._index:
+                self._index.move_to_end(sha256)
         try:
             os.utime(path)  # recency for the next process that scans
         except OSError:
@@ -159,10 +165,10 @@ class TileCache:
             return False
         path = self._path(sha256)
         try:
-            # the rename and the index change together (eviction unlinks)
-            with self._lock, atomic_path(path) as tmp:
-                tmp.write_bytes(data)
+            # the rename and the index change under one lock (eviction unlinks)
             with self._lock:
+                with atomic_path(path) as tmp:
+                    tmp.write_bytes(data)
                 self._forget(sha256)
                 self._index[sha256] = len(data)
                 self._bytes += len(data)

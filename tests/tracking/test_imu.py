@@ -66,3 +66,16 @@ def test_integrate_through_a_gap_stays_close_for_smooth_motion():
     state = gtsam.NavState(gtsam.Pose3(traj.pose(1.0)[0]), traj.velocity(1.0)[0])
     pred = pim.predict(state, gtsam.imuBias.ConstantBias()).pose().matrix()
     assert np.linalg.norm(pred[:3, 3] - traj.pose(2.0)[0][:3, 3]) < 0.05
+
+
+def test_per_axis_noise_densities_reach_the_preintegration_covariances():
+    from blockloc.errors import TrackingError
+
+    axes = ImuNoise(acc_noise_axes=(0.03, 0.03, 0.35), gyro_noise_axes=(0.001, 0.002, 0.003))
+    p = make_preintegration_params(np.array([0.0, 0.0, -9.81]), np.eye(4), axes, noise_inflation=2.0)
+    np.testing.assert_allclose(np.diag(p.getAccelerometerCovariance()), (2 * np.array([0.03, 0.03, 0.35])) ** 2)
+    np.testing.assert_allclose(np.diag(p.getGyroscopeCovariance()), (2 * np.array([0.001, 0.002, 0.003])) ** 2)
+    scalar = make_preintegration_params(np.array([0.0, 0.0, -9.81]), np.eye(4), ImuNoise(acc_noise_density=0.01))
+    np.testing.assert_allclose(scalar.getAccelerometerCovariance(), np.eye(3) * 1e-4)
+    with pytest.raises(TrackingError, match="acc_noise_axes"):
+        ImuNoise(acc_noise_axes=(0.1, 0.2))

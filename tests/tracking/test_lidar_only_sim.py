@@ -1,6 +1,7 @@
 """LiDAR-only end to end on the `small` simulated world with its IMU withheld: the pipeline's frame
 loop, block map, NDT, the constant-velocity prior and twist deskewing (the simulated scans have
-per-point times), from the first ground-truth pose. One full run is shared by the assertions."""
+per-point times), from a ground-truth pose. One run over frames 150..500 (two block switches, at
+191 and 490) is shared by the assertions."""
 
 import csv
 
@@ -11,6 +12,8 @@ from blockloc.evaluation.results import RunWriter
 from blockloc.maps.store import open_map
 from blockloc.session import Session
 from tests.tracking.noimu import WithoutImu
+
+START, STOP = 150, 500
 
 
 @pytest.fixture(scope="module")
@@ -23,17 +26,19 @@ def no_imu_run(small_world, tmp_path_factory):
     out = tmp_path_factory.mktemp("track_noimu") / "run"
     session = Session.from_config(cfg, seq, open_map(paths.block_map), backend="block", observers=[RunWriter(out)],
                                   out_dir=out, keep_estimates=True)
-    return session.run(init="gt"), session, seq
+    return session.run(START, STOP, init="gt"), session, seq
 
 
 def test_small_world_without_imu_is_tracked(no_imu_run):
     res, pipe, seq = no_imu_run
     m = res.metrics
     assert pipe.tracker.lidar_only
-    assert m["frames"] == len(seq) and m["estimated"] == len(seq)
+    assert m["frames"] == STOP - START and m["estimated"] == STOP - START
     assert m["failures"] == 0 and m["recoveries"] == 0 and m["rejected"] == 0
-    assert m["ate_trans_rmse_m"] <= 0.04  # measured 0.019 m (target of issue 14: 0.10 m)
-    assert m["ate_rot_rmse_deg"] <= 0.15  # measured 0.065 deg
+    # measured on frames 0..500 of the realistic sim: 0.055 m, 0.45 deg (its 0.3 deg extrinsic
+    # error sets that floor); issue 14's target is 0.10 m. On the old sim: 0.019 m, 0.065 deg.
+    assert m["ate_trans_rmse_m"] <= 0.10
+    assert m["ate_rot_rmse_deg"] <= 0.8
     assert {e.diagnostics.status for e in res.estimates} == {"ok"}
     # no IMU: no biases estimated, the velocity comes from the twist
     assert all(np.all(e.acc_bias == 0) and np.all(e.gyro_bias == 0) for e in res.estimates)
@@ -57,4 +62,4 @@ def test_switches_and_outputs_are_as_with_an_imu(no_imu_run):
         assert (res.out_dir / name).is_file(), name
     with open(res.out_dir / "diagnostics.csv") as f:
         rows = list(csv.DictReader(f))
-    assert len(rows) == len(seq) and "rotation_retries" in rows[0]
+    assert len(rows) == STOP - START and "rotation_retries" in rows[0]

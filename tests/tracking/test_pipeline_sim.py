@@ -88,9 +88,10 @@ def test_one_second_lidar_dropout_is_bridged(small_world):
     res = session.finish()
     assert len(dropped) == 10 and res.metrics["lidar_gaps"] == 1
     after = next(e for e in res.estimates if e.index == 110)
-    assert after.diagnostics.status == "ok" and after.diagnostics.innovation_m < 0.04
-    # measured on 700dd19: innovation 0.016 m, ATE 0.011 m
-    assert res.metrics["failures"] == 0 and res.metrics["ate_trans_rmse_m"] < 0.025
+    # measured on the realistic sim (vibrating Segway, per-axis IMU noise): innovation 0.069 m
+    # after the 1 s gap; on the old sim (700dd19) 0.016 m, ATE 0.011 m
+    assert after.diagnostics.status == "ok" and after.diagnostics.innovation_m < 0.15
+    assert res.metrics["failures"] == 0 and res.metrics["ate_trans_rmse_m"] < 0.09
 
 
 def test_kidnapped_start_is_recovered_by_global_init(small_world):
@@ -114,4 +115,6 @@ def test_kidnapped_start_is_recovered_by_global_init(small_world):
     assert any(r["hint"] and r["verified"] for r in m["relocalizations"])
     gt = seq.ground_truth().interpolate(res.trajectory.stamps[-20:])
     err = np.linalg.norm(res.trajectory.positions[-20:] - gt[:, :3, 3], axis=1)
-    assert err.max() < 0.03  # measured on 700dd19: 0.012 m
+    # measured 0.070 m on the realistic sim (the extrinsic error it simulates leaves ~0.05 m);
+    # 0.012 m on the old sim (700dd19)
+    assert err.max() < 0.14

@@ -1,8 +1,9 @@
-"""Measure what recording / serving costs a real tracking run (not a test: timings never are).
+"""What recording (MCAP) and serving (Foxglove WebSocket) cost a real tracking run (issue 18).
 
-    PYTHONPATH=. python -m tests.viz.measure_overhead [--frames N] [--repeats R] [--modes none,mcap,live,live+client]
-    PYTHONPATH=. python -m tests.viz.measure_overhead --modes mcap --repeats 1 --report runs/viz  # + report.html
-    PYTHONPATH=. python -m tests.viz.measure_overhead --synthetic --repeats 2  # 20k scans, 200k map / 30 s
+    python -m bench.recording                       # none, mcap, live+client; 3 repeats; docs/bench/recording.md
+    python -m bench.recording --frames 300 --repeats 3 --modes none,mcap,live+client
+    python -m bench.recording --modes mcap --repeats 1 --report runs/viz   # + report.html, no fragment
+    python -m bench.recording --synthetic --repeats 2  # 20k scans, 200k map / 30 s, JSON lines only
 
 Tracks the cached `small` world (block map, init at ground truth) and feeds every frame to the
 observer from inside the tracking loop, as the session engine will: the scan is the frame's points
@@ -216,11 +217,46 @@ def synthetic_once(kind: str, background: bool, pace_s: float = 0.006) -> dict:
     return out
 
 
+def write_fragment(path: Path, cmd: str, rows: dict[str, list[dict]], load: tuple[float, float]) -> None:
+    """docs/bench/recording.md: per mode medians over the repeats, overhead against the first mode."""
+    from bench.__main__ import machine
+    from blockloc.fileio import atomic_write_text
+
+    modes = list(rows)
+    med = lambda m, k: statistics.median(x[k] for x in rows[m] if x.get(k) is not None)  # noqa: E731
+    per = {m: statistics.median(x["track_s"] / x["frames"] for x in rows[m]) for m in modes}
+    lines = [
+        "## Recording and live view (issue 18)", "",
+        f"Command: `{cmd}` ({time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}). Machine: {machine()}. "
+        f"Load average (1 min) {load[0]:.1f} before and {load[1]:.1f} after.", "",
+        f"The `small` world's `loc` session tracked from ground truth, block backend, {rows[modes[0]][0]['frames']} "
+        f"frames, {len(rows[modes[0]])} runs per mode, modes alternating within each repeat. `mcap`: run.mcap "
+        "written by the recorder's worker process; `live+client`: the Foxglove WebSocket server with a viewer "
+        "process subscribed to every topic. In-loop = wall time the tracking thread spends handing a frame "
+        "to the observer; overhead = tracking wall time per frame against `none` in the same run.", "",
+        "| mode | median wall per frame [ms] | overhead vs none | in-loop per frame [ms] | in-loop share of "
+        "tracking | file [MB per minute of sensor time] | viewer messages |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for m in modes:
+        size = med(m, "mb_per_min") if any("mb_per_min" in x for x in rows[m]) else None
+        msgs = med(m, "client_messages") if any("client_messages" in x for x in rows[m]) else None
+        lines.append(f"| {m} | {1e3 * per[m]:.1f} | {100 * (per[m] / per[modes[0]] - 1):+.1f}% | "
+                     f"{med(m, 'observer_ms_per_frame'):.2f} | {med(m, 'observer_share_of_track_pct'):.1f}% | "
+                     f"{'-' if size is None else f'{size:.1f}'} | {'-' if msgs is None else f'{msgs:.0f}'} |")
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
 def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--frames", type=int, default=None)
+    import os
+    import shlex
+    import sys
+
+    ap = argparse.ArgumentParser(prog="python -m bench.recording")
+    ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--modes", default="none,mcap")
+    ap.add_argument("--modes", default="none,mcap,live+client")
+    ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent.parent / "docs" / "bench" / "recording.md")
     ap.add_argument("--synthetic", action="store_true",
                     help="the brief's realistic sizes without tracking (mcap/live+client, worker and in-process)")
     ap.add_argument("--report", type=Path, default=None,
@@ -232,6 +268,8 @@ def main() -> None:
                 for bg in (True, False):
                     print(json.dumps(synthetic_once(kind, bg)), flush=True)
         return
+    cmd = "python -m bench.recording " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    load0 = os.getloadavg()[0]
     modes = args.modes.split(",")
     rows: dict[str, list[dict]] = {m: [] for m in modes}
     for r in range(args.repeats):
@@ -243,6 +281,9 @@ def main() -> None:
     for m in modes:
         per = statistics.median(x["track_s"] / x["frames"] for x in rows[m])
         print(f"{m:12s} median {per * 1e3:.2f} ms/frame  overhead {100 * (per / base - 1):+.1f}% vs {modes[0]}")
+    if args.report is None:
+        write_fragment(args.out, cmd, rows, (load0, os.getloadavg()[0]))
+        print(args.out)
 
 
 if __name__ == "__main__":
