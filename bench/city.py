@@ -4,6 +4,7 @@ through the built map served over HTTP.
     python -m bench city                                   # sim:city: every mapping session, every run
     python -m bench.city --preset campus --max-frames 8000 --track-frames 1500   # development figures
     python -m bench.city --runs serial,local:2 --kinds block,grid
+    python -m bench.city --sessions map1,map2 --max-frames 500 --track-frames 200   # ~10 min
 
 Runs (``--runs``), each map build in its own client process so that its peak RSS is the client's:
 
@@ -356,6 +357,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--kinds", default="block")
     ap.add_argument("--runs", default=",".join(RUNS))
+    ap.add_argument("--sessions", default=None, metavar="map1,map2",
+                    help="mapping sessions to merge (default: every mapping session of the preset)")
     ap.add_argument("--max-frames", type=int, default=None, help="first N frames of each mapping session")
     ap.add_argument("--track-frames", type=int, default=None, help="first N scans of the localization session")
     ap.add_argument("--no-track", action="store_true")
@@ -367,10 +370,16 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     cmd = "python -m bench.city " + " ".join(shlex.quote(a) for a in argv)
     try:
-        args.sessions, loc = preset_sessions(args.preset)
+        maps, loc = preset_sessions(args.preset)
     except SystemExit as exc:
         print(exc, file=sys.stderr)
         return 2
+    chosen = [s for s in (args.sessions or "").split(",") if s]
+    if [s for s in chosen if s not in maps]:
+        print(f"bench.city: --sessions {args.sessions}: the {args.preset} preset's mapping sessions are "
+              f"{', '.join(maps)}", file=sys.stderr)
+        return 2
+    args.sessions = chosen or maps
     args.loc_seq = f"sim:{args.preset}/{loc}@{args.seed}" if loc else None
     from blockloc.cache import cache_root
     from blockloc.config import load_config

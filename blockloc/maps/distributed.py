@@ -162,12 +162,15 @@ def open_executor(cluster: str | None, *, startup_timeout_s: float = 60.0) -> It
         n = int(m.group(1))
         if n < 1:
             raise MapError(f"--cluster {spec!r}: expected at least one worker")
-        with _quiet_distributed(), dask.config.set({_SPAWN_ENV: _spawn_environ(), **WORKER_CONFIG}):
-            lc = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                              dashboard_address=":0",  # a free port: the machine may be shared
-                              silence_logs=logging.CRITICAL)  # task errors reach the client
-        with lc, Client(lc) as client:
-            yield DaskExecutor(client, f"local cluster of {n} worker process(es)")
+        # quiet for the cluster's whole life: its scheduler and nannies run in this process and
+        # log every client, worker and close at INFO
+        with _quiet_distributed():
+            with dask.config.set({_SPAWN_ENV: _spawn_environ(), **WORKER_CONFIG}):
+                lc = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                  dashboard_address=":0",  # a free port: the machine may be shared
+                                  silence_logs=logging.CRITICAL)  # task errors reach the client
+            with lc, Client(lc) as client:
+                yield DaskExecutor(client, f"local cluster of {n} worker process(es)")
         return
     try:
         client = Client(spec, timeout=f"{startup_timeout_s}s")

@@ -5,6 +5,7 @@ a failed task leaves nothing behind."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import threading
 import time
@@ -169,6 +170,40 @@ def test_ctrl_c_during_a_dask_build_keeps_the_previous_map(tmp_path, world, dask
         assert 3 <= max(n for n, _ in seen) < full[-1][1]  # stopped part way
         running = [k for ks in ex.client.processing().values() for k in ks]
         assert not [k for k in running if str(k).split("-")[0] in ("candidate", "merge", "write")]
+    assert store_files(out) == before
+    assert leftovers(tmp_path) == []
+
+
+def test_ctrl_c_stops_a_cli_build_on_the_cluster(tmp_path, dask_cluster):
+    """`blockloc map build --cluster ADDR --overwrite` sent SIGINT by its PID mid-build: exit 130
+    with one line after the progress lines, the map it was replacing intact, no temporary
+    directory left."""
+    import subprocess
+    import sys
+
+    from tests.faults import tiny
+
+    sess = tiny.write_tiny_session(tmp_path / "sess", n_frames=400, max_points=2000)
+    cfg = tiny.write_config(tmp_path / "cfg.yaml")
+    out = tmp_path / "map"
+    common = ["map", "build", "--seq", str(sess), "--config", str(cfg), "--out", str(out)]
+    res = runner.invoke(app, [*common, "--voxel", "0.5"])  # another map than the build's: a replacement shows
+    assert res.exit_code == 0, res.output
+    before = store_files(out)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS.parent), os.environ.get("PYTHONPATH", "")]))
+    proc = subprocess.Popen([sys.executable, "-m", "blockloc.cli", *common, "--overwrite",
+                             "--cluster", dask_cluster.address], stderr=subprocess.PIPE, text=True, env=env)
+    lines = []
+    for line in proc.stderr:  # piped: one progress line per 10% of the tasks
+        lines.append(line.rstrip("\n"))
+        m = re.match(r"block map build tasks: (\d+)/(\d+) ", line)
+        if m and int(m[1]) >= 1 and int(m[2]) >= 10:
+            proc.send_signal(signal.SIGINT)
+            break
+    rest = proc.communicate(timeout=120)[1]
+    lines += rest.splitlines()
+    assert proc.returncode == 130, lines
+    assert lines[-1] == "interrupted (SIGINT)" and "Traceback" not in rest, lines
     assert store_files(out) == before
     assert leftovers(tmp_path) == []
 
