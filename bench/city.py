@@ -261,8 +261,10 @@ def report(args, cmd: str, results: dict, projections: dict, tracking: dict | No
     cores = os.cpu_count() or 1
     lines = [f"## City-scale map builds on Dask ({args.preset})", "",
              f"Command: `{cmd}` ({started}). Machine: {machine()}. Development figures when the preset is "
-             "not `city`; the machine is shared (load averages below), so times are upper bounds and "
-             "speed-ups are what the load allowed.", ""]
+             "not `city` or only part of its drives is built (`--sessions`, `--max-frames`: few tasks, and "
+             "every worker still builds the simulated world and its scene windows itself); the machine is "
+             "shared (load averages below), so times are upper bounds and speed-ups are what the load "
+             "allowed.", ""]
     for kind, runs in results.items():
         serial = runs.get("serial")
         if serial is None or "error" in serial:
@@ -327,7 +329,12 @@ def report(args, cmd: str, results: dict, projections: dict, tracking: dict | No
                       + ". Model: T(W) = task time / W + tasks x scheduling (one scheduler) + merges (counts scale with "
                       "the driven length, blocks and tiles with the area, a tile's cost with the drives per area)."]
         lines.append("")
-    if tracking:
+    if not tracking:
+        why = ("--no-track" if args.no_track else "no serial block map, or the preset has no localization session")
+        lines += ["### Tracking through the served map", "",
+                  f"Not run ({why}). A map of the first frames of some drives does not cover the "
+                  "localization session: track through the map of every mapping session.", ""]
+    else:
         t = tracking
         lines += ["### Tracking through the served map", "",
                   f"`blockloc map serve` on the serial block map, `{args.loc_seq}` tracked through {t['url']} "
