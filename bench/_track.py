@@ -372,8 +372,10 @@ def run_child(seq_name: str, map_path: str | None, backend: str, out_json: Path,
     stop = len(seq) if max_frames is None else min(len(seq), max_frames)
     rss0 = peak_rss_mb()
     t0 = time.perf_counter()
-    run = (KissRun(seq, cfg, 0, stop) if backend == KISS
-           else BackendRun(seq, cfg, Path(map_path) if map_path else None, backend, 0, stop))
+    from blockloc.maps.remote import is_url
+
+    where = None if not map_path else (map_path if is_url(map_path) else Path(map_path))  # a URL stays one
+    run = (KissRun(seq, cfg, 0, stop) if backend == KISS else BackendRun(seq, cfg, where, backend, 0, stop))
     setup_s = time.perf_counter() - t0
     with ResourceSampler() as sampler:
         t0 = time.perf_counter()

@@ -44,7 +44,7 @@ def grid_map(paths, cfg) -> Path:
     """The small world's grid store (tiles of ``cfg.map.tile_size_m``), built beside the block map."""
     from blockloc.datasets import open_sequence
     from blockloc.errors import MapError
-    from blockloc.maps.grid_tiles import build_grid_map_from_sequence
+    from blockloc.maps.build_plan import build_grid_map_from_sequence
     from blockloc.maps.store import open_map
 
     out = paths.block_map.parent / paths.block_map.name.replace("block", "grid")
@@ -89,7 +89,7 @@ def median_over(runs: list[dict], key: str):
 
 
 def main(argv=None) -> int:
-    from bench._track import KISS, ODOM, kiss_available, run_in_child, summarize, trajectory_rmse, write_json
+    from bench._track import KISS, ODOM, kiss_available, summarize, trajectory_rmse, write_json
 
     ap = argparse.ArgumentParser(prog="python -m bench.tracking", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -98,6 +98,8 @@ def main(argv=None) -> int:
     ap.add_argument("--backends", default=",".join(MAP_BACKENDS + (VGICP_BLOCK, ODOM, KISS)),
                     help="backends; backend@engine runs it with registration.method=engine")
     ap.add_argument("--out", default=str(OUT))
+    ap.add_argument("--cluster", default=None, metavar="local:N|tcp://HOST:PORT",
+                    help="run the backends x repeats as Dask tasks (each still in its own child process)")
     args = ap.parse_args(argv)
     cmd = "python -m bench.tracking " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
 
@@ -118,17 +120,17 @@ def main(argv=None) -> int:
     t_start = time.perf_counter()
     rows: dict[str, list[dict]] = {}
     with tempfile.TemporaryDirectory(prefix="bench-tracking-") as tmp:
-        for rep in range(args.repeats):
-            for b in backends:
-                backend, _, method = b.partition("@")
-                res = run_in_child(seq_path, map_for(b, block, grid), backend, Path(tmp) / f"{b}_{rep}.json",
-                                   max_frames=args.max_frames, method=method or None)
-                m = summarize(res.pop("arrays"), gt)
-                m.update({k: res[k] for k in ("peak_rss_mb", "setup_s", "track_s", "load_avg")})
-                m.update({f"res_{k}": v for k, v in res["resources"].items()})
-                rows.setdefault(b, []).append(m)
-                print(f"{b} #{rep + 1}: ATE {m.get('ate_trans_rmse_m') or float('nan'):.3f} m, core median "
-                      f"{m['core_ms_median']:.1f} ms, peak RSS {m['peak_rss_mb']:.0f} MB", file=sys.stderr, flush=True)
+        jobs = [(rep, b) for rep in range(args.repeats) for b in backends]
+        runs = fan_out(jobs, args.cluster, seq_path, lambda b: map_for(b, block, grid), Path(tmp),
+                       args.max_frames)
+        for rep, b in jobs:  # one row per (repeat, backend), in that order
+            res = runs[(rep, b)]
+            m = summarize(res.pop("arrays"), gt)
+            m.update({k: res[k] for k in ("peak_rss_mb", "setup_s", "track_s", "load_avg")})
+            m.update({f"res_{k}": v for k, v in res["resources"].items()})
+            rows.setdefault(b, []).append(m)
+            print(f"{b} #{rep + 1}: ATE {m.get('ate_trans_rmse_m') or float('nan'):.3f} m, core median "
+                  f"{m['core_ms_median']:.1f} ms, peak RSS {m['peak_rss_mb']:.0f} MB", file=sys.stderr, flush=True)
     load1 = os.getloadavg()[0]
     wall = time.perf_counter() - t_start
     st = storage(block, grid)
@@ -138,6 +140,9 @@ def main(argv=None) -> int:
     first = {b: rs[0] for b, rs in rows.items()}
     f = lambda v, s="{:.1f}": "-" if v is None else s.format(v)  # noqa: E731
     rep_note = "one run per backend" if args.repeats == 1 else f"median over {args.repeats} runs per backend"
+    if args.cluster:
+        rep_note += (f"; runs fanned out as Dask tasks on `{args.cluster}`, several at once, so per-scan "
+                     "times include their contention")
     lines = [
         "## Tracking: the papers' tables on the small world",
         "",
@@ -257,6 +262,31 @@ def main(argv=None) -> int:
     atomic_write_text(out, "\n".join(lines))
     print(out)
     return 0
+
+
+def fan_out(jobs, cluster, seq_path, map_of, tmp: Path, max_frames) -> dict:
+    """Each (repeat, backend) job's ``run_in_child`` result: one after another here, or with
+    ``cluster`` (local:N, tcp://HOST:PORT) as Dask tasks, each still running its backend in a
+    fresh child process of the worker (so peak RSS stays that run's alone). ``tmp`` must be
+    reachable by the workers (this machine, or a shared file system)."""
+    from bench._track import run_in_child
+
+    def job_args(rep, b):  # backend@engine: that backend with registration.method=engine
+        return (seq_path, map_of(b), b.partition("@")[0], tmp / f"{b}_{rep}.json")
+
+    def job_kw(b):
+        return {"max_frames": max_frames, "method": b.partition("@")[2] or None}
+
+    if not cluster:
+        return {(rep, b): run_in_child(*job_args(rep, b), **job_kw(b)) for rep, b in jobs}
+    from blockloc.maps.distributed import open_executor
+
+    with open_executor(cluster) as ex:
+        print(f"tracking runs on {ex.description}", file=sys.stderr, flush=True)
+        futures = {(rep, b): ex.client.submit(run_in_child, *job_args(rep, b), **job_kw(b),
+                                              key=f"track-{b}-{rep}", pure=False)
+                   for rep, b in jobs}
+        return {job: f.result() for job, f in futures.items()}
 
 
 def _est_path(m: dict) -> float:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import sys
 from pathlib import Path
-from typing import Optional
+from typing import List, Optional
 
 from blockloc.threads import limit_blas_threads
 
@@ -106,16 +106,21 @@ def sim_cmd(
 # ----------------------------------------------------------------------------- map
 @map_app.command("build")
 def map_build_cmd(
-    seq: Optional[str] = typer.Option(None, "--seq", metavar=SEQ,
-                                      help="Mapping sequence: name (nclt_2, sim:small/map) or path."),
-    poses: Optional[Path] = typer.Option(None, "--poses", metavar=FILE,
-                                         help="Mapping trajectory (TUM, KITTI): T_map_body at the scans' stamps."),
+    seq: Optional[List[str]] = typer.Option(
+        None, "--seq", metavar=SEQ,
+        help="Mapping sequence: name (nclt_2, sim:small/map) or path; NAME[START:STOP] maps frames "
+             "START..STOP-1. Repeat to merge drives sharing one map frame (any order: they are "
+             "taken by first keyframe stamp, then name)."),
+    poses: Optional[List[str]] = typer.Option(
+        None, "--poses", metavar=FILE,
+        help="Mapping trajectory (TUM, KITTI): T_map_body at the scans' stamps. With several --seq: "
+             "once per --seq, same order ('-': that sequence's own poses)."),
     from_pcd: Optional[Path] = typer.Option(None, "--from-pcd", metavar=FILE,
                                             help="Build from a global map PCD and --poses instead of --seq."),
     sensor_range: float = typer.Option(60.0, "--sensor-range", metavar="M", min=0.0,
                                        help="With --from-pcd: what a keyframe sees, m."),
     kind: str = typer.Option("block", "--kind", metavar="KIND", help="block | grid"),
-    out: Path = typer.Option(..., "--out", metavar=DIR, help="Output map directory (written atomically)."),
+    out: str = typer.Option(..., "--out", metavar=DIR, help="Output map directory or s3:// URL (written atomically)."),
     config: Optional[str] = typer.Option(None, "--config", metavar=FILE, help="Config file or preset name."),
     data_root: Optional[str] = typer.Option(None, "--data-root", metavar=DIR, help="Root of the datasets."),
     block_size: Optional[float] = typer.Option(None, "--block-size", metavar="M", min=0.0, help="Block size S, m."),
@@ -123,14 +128,18 @@ def map_build_cmd(
     voxel: Optional[float] = typer.Option(None, "--voxel", metavar="M", min=0.0,
                                           help="Voxel filter size, m (0: no filter)."),
     max_frames: Optional[int] = typer.Option(None, "--max-frames", metavar="N", min=1,
-                                             help="Use only the first N frames."),
+                                             help="Use only the first N frames of each drive."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing map store at --out (only a map store)."),
+    cluster: Optional[str] = typer.Option(None, "--cluster", metavar="local:N|tcp://HOST:PORT",
+                                          help="Build on Dask: local:N starts N worker processes here; "
+                                               "tcp://HOST:PORT uses a running scheduler. Default: serial, same bytes."),
 ) -> None:
-    """Build a block map or grid tiles from a mapping sequence and its poses (or a global PCD)."""
+    """Build a block map or grid tiles from mapping sequences and their poses (or a global PCD),
+    serial or on a Dask cluster."""
     from blockloc.commands.map import build_command
 
     build_command(seq, kind, out, config, data_root, block_size, tile_size, voxel, max_frames, overwrite,
-                  poses=poses, from_pcd=from_pcd, sensor_range_m=sensor_range)
+                  poses=poses, from_pcd=from_pcd, sensor_range_m=sensor_range, cluster=cluster)
 
 
 @map_app.command("tile")

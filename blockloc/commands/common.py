@@ -184,7 +184,7 @@ def progress(label: str, total: int | None = None, *, err_console=None,
             yield update
         return
     t0 = time.monotonic()
-    state = {"last_t": t0, "last_pct": -10.0, "done": 0, "total": total}
+    state = {"last_t": t0, "last_pct": -10.0, "done": 0, "total": total, "last_line": None}
     lock = threading.Lock()
 
     def line(done: int, tot: int | None) -> str:
@@ -197,12 +197,16 @@ def progress(label: str, total: int | None = None, *, err_console=None,
         now = time.monotonic()
         pct = 100.0 * done / tot if tot else 0.0
         with lock:
-            if done < state["done"]:  # counting again (the next session of a simulation)
+            # counting again (the next session of a simulation), or a total that grew (a map
+            # build plans its next tasks as results come in): 10% steps of the new count
+            if done < state["done"] or pct < state["last_pct"]:
                 state["last_pct"] = -10.0
             state["done"], state["total"] = done, tot
-            if (tot and (pct - state["last_pct"] >= 10.0 or done == tot)) or now - state["last_t"] >= heartbeat_s:
-                state["last_t"], state["last_pct"] = now, pct
-                print(line(done, tot), file=sys.stderr, flush=True)
+            text = line(done, tot)
+            if text != state["last_line"] and (
+                    (tot and (pct - state["last_pct"] >= 10.0 or done == tot)) or now - state["last_t"] >= heartbeat_s):
+                state["last_t"], state["last_pct"], state["last_line"] = now, pct, text
+                print(text, file=sys.stderr, flush=True)
 
     stop = threading.Event()
 

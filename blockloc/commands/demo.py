@@ -54,7 +54,7 @@ def ensure_block_map(world: SmallWorld, cfg, say: Callable[[str], None] = log.in
     """The block map of the mapping session (built once, reused)."""
     from blockloc.datasets import open_sequence
     from blockloc.errors import MapError
-    from blockloc.maps.block_maps import build_block_map_from_sequence
+    from blockloc.maps.build_plan import build_block_map_from_sequence
     from blockloc.maps.store import open_map
 
     try:

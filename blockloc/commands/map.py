@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import logging
+import re
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -11,48 +13,117 @@ log = logging.getLogger("blockloc")
 
 
 def build_map(seq, kind: str, out: str | Path, map_cfg, *, overwrite: bool = False,
-              progress: bool = True, max_frames: int | None = None):
-    """Build a block or grid store from a mapping sequence with the ``MapConfig`` settings."""
-    from blockloc.errors import MapError
+              progress=True, max_frames: int | None = None, executor=None):
+    """Build a block or grid store from a mapping sequence with the ``MapConfig`` settings.
 
-    if kind == "block":
-        from blockloc.maps.block_maps import build_block_map_from_sequence
+    progress: True (a bar), False, or a ``(done, total)`` callback. executor: None (serial) or
+    a Dask executor (:func:`blockloc.maps.distributed.open_executor`)."""
+    from blockloc.maps.build_plan import Drive
 
-        return build_block_map_from_sequence(
-            seq, block_size_m=map_cfg.block_size_m, keyframe_distance_m=map_cfg.keyframe_distance_m,
-            keyframe_angle_deg=map_cfg.keyframe_angle_deg, voxel_size_m=map_cfg.voxel_size_m, out=out,
-            progress=progress, overwrite=overwrite, max_frames=max_frames)
-    if kind == "grid":
-        from blockloc.maps.grid_tiles import build_grid_map_from_sequence
-
-        return build_grid_map_from_sequence(
-            seq, tile_size_m=map_cfg.tile_size_m, keyframe_distance_m=map_cfg.keyframe_distance_m,
-            keyframe_angle_deg=map_cfg.keyframe_angle_deg, voxel_size_m=map_cfg.voxel_size_m, out=out,
-            progress=progress, overwrite=overwrite, max_frames=max_frames)
-    raise MapError(f"--kind {kind!r}: expected block or grid")
+    return build_map_from_specs([Drive.of(seq, stop=max_frames)], kind, out, map_cfg,
+                                overwrite=overwrite, progress=progress, executor=executor)
 
 
-def build_command(seq: str | None, kind: str, out: Path, config: str | None, data_root: str | None,
-                  block_size: float | None, tile_size: float | None, voxel: float | None,
-                  max_frames: int | None, overwrite: bool, *, poses: Path | None = None,
-                  from_pcd: Path | None = None, sensor_range_m: float = 60.0) -> None:
+def build_map_from_specs(drives, kind: str, out: str | Path, map_cfg, *, overwrite: bool = False,
+                         progress=True, executor=None):
+    """:func:`blockloc.maps.build_plan.build_map_from_drives` with the ``MapConfig`` settings."""
+    from blockloc.maps.build_plan import build_map_from_drives
+
+    return build_map_from_drives(
+        drives, kind, out, block_size_m=map_cfg.block_size_m, tile_size_m=map_cfg.tile_size_m,
+        voxel_size_m=map_cfg.voxel_size_m, keyframe_distance_m=map_cfg.keyframe_distance_m,
+        keyframe_angle_deg=map_cfg.keyframe_angle_deg, executor=executor, progress=progress,
+        overwrite=overwrite)
+
+
+@dataclass(frozen=True)
+class SequenceSpec:
+    """A ``--seq`` value (and its ``--poses``) as a picklable opener: what each Dask worker calls
+    to open the drive itself (only this small object travels with the tasks).
+
+    text: sequence name or absolute path; poses: absolute trajectory path or None (the
+    sequence's own mapping poses); data_root, dataset_cfg: as for ``SequenceRef.open``.
+    """
+
+    text: str
+    data_root: str | None = None
+    dataset_cfg: Any = None
+    poses: str | None = None
+
+    def __call__(self):
+        from blockloc.datasets.refs import SequenceRef
+
+        return SequenceRef.parse(self.text).open(data_root=self.data_root,
+                                                 dataset_cfg=self.dataset_cfg, poses=self.poses)
+
+
+#: ``--seq NAME[START:STOP]``: frames START..STOP-1 of a sequence as one drive.
+_SLICE = re.compile(r"^(?P<seq>.+)\[(?P<start>\d*):(?P<stop>\d*)\]$")
+
+
+def parse_drive(text: str, poses: str | None = None, *, data_root: str | None = None,
+                dataset_cfg: Any = None, max_frames: int | None = None):
+    """A ``--seq`` value -> :class:`~blockloc.maps.build_plan.Drive`. ``NAME[START:STOP]`` maps
+    frames START..STOP-1 only; paths become absolute (workers may run elsewhere); ``max_frames``
+    caps the drive to its first N frames. DatasetError (one line) when the name names nothing."""
+    from blockloc.datasets.refs import SequenceRef
+    from blockloc.errors import DatasetError
+    from blockloc.maps.build_plan import Drive
+
+    m = _SLICE.match(text)
+    name = m["seq"] if m else text
+    start = int(m["start"] or 0) if m else 0
+    stop = int(m["stop"]) if m and m["stop"] else None
+    if stop is not None and stop <= start:
+        raise DatasetError(f"--seq {text!r}: empty frame range (expected NAME[START:STOP], "
+                           "START < STOP)")
+    if max_frames is not None:
+        stop = start + max_frames if stop is None else min(stop, start + max_frames)
+    ref = SequenceRef.parse(name)
+    if ref.path is not None:
+        name = str(Path(name).expanduser().resolve())
+    if poses:
+        if not Path(poses).expanduser().exists():
+            raise DatasetError(f"--poses {poses}: no such trajectory file")
+        poses = str(Path(poses).expanduser().resolve())
+    spec = SequenceSpec(name, None if data_root is None else str(data_root), dataset_cfg, poses)
+    key = f"{name}|{poses}|{data_root}"
+    return Drive(text, spec, key, start, stop)
+
+
+def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: str | None,
+                  data_root: str | None, block_size: float | None, tile_size: float | None,
+                  voxel: float | None, max_frames: int | None, overwrite: bool, *,
+                  poses: list[str] | None = None, from_pcd: Path | None = None,
+                  sensor_range_m: float = 60.0, cluster: str | None = None) -> None:
     import dataclasses
+    import sys
 
-    from blockloc.commands.common import config_for, console
-    from blockloc.datasets import open_sequence
+    from blockloc.commands.common import config_for, console, progress
     from blockloc.errors import MapError
+    from blockloc.maps.remote import is_url
     from blockloc.maps.summary import map_summary
 
-    if (seq is None) == (from_pcd is None):
+    seqs = list(seqs or [])
+    poses = list(poses or [])
+    if bool(seqs) == (from_pcd is not None):
         raise MapError("map build: give --seq SEQ (a mapping sequence) or --from-pcd GLOBAL.pcd --poses TRAJ")
     if kind not in ("block", "grid"):
         raise MapError(f"--kind {kind!r}: expected block or grid")
     check_positive(("--block-size", "block size", block_size), ("--tile-size", "tile size", tile_size),
                    ("--sensor-range", "sensor range", sensor_range_m))
-    if from_pcd is not None and poses is None:
-        raise MapError("--from-pcd needs --poses TRAJ (the mapping trajectory)")
-    check_out(out, overwrite)
-    cfg = config_for(seq, config)
+    if from_pcd is not None:
+        if len(poses) != 1 or poses[0] in ("", "-"):
+            raise MapError("--from-pcd needs one --poses TRAJ (the mapping trajectory)")
+        if cluster:
+            raise MapError("--cluster builds from --seq drives; --from-pcd runs in this process")
+    elif poses and len(poses) != len(seqs):
+        raise MapError(f"--poses given {len(poses)} time(s) for {len(seqs)} --seq: give one "
+                       "--poses per --seq, in the same order ('-': the sequence's own poses)")
+    if not is_url(str(out)):  # an object store is checked by its writer (no local path to look at)
+        out = Path(out)
+        check_out(out, overwrite)
+    cfg = config_for(_SLICE.sub(r"\g<seq>", seqs[0]) if seqs else None, config)
     overrides = {k: v for k, v in (("block_size_m", block_size), ("tile_size_m", tile_size),
                                    ("voxel_size_m", voxel)) if v is not None}
     map_cfg = dataclasses.replace(cfg.map, **overrides)
@@ -60,14 +131,28 @@ def build_command(seq: str | None, kind: str, out: Path, config: str | None, dat
         from blockloc.maps.from_pcd import build_map_from_global_pcd
 
         store = build_map_from_global_pcd(
-            from_pcd, poses, kind, out, sensor_range_m=sensor_range_m,
+            from_pcd, Path(poses[0]), kind, out, sensor_range_m=sensor_range_m,
             keyframe_distance_m=map_cfg.keyframe_distance_m, keyframe_angle_deg=map_cfg.keyframe_angle_deg,
             block_size_m=map_cfg.block_size_m, tile_size_m=map_cfg.tile_size_m, voxel_size_m=map_cfg.voxel_size_m,
             overwrite=overwrite, progress=True)
-    else:
-        sequence = open_sequence(seq, data_root=data_root, dataset_cfg=cfg.dataset, poses=poses)
-        store = build_map(sequence, kind, out, map_cfg, overwrite=overwrite, max_frames=max_frames)
-        store = add_place_index(out, sequence.info.gravity_map, cfg)
+        print_summary(map_summary(store), console())
+        return
+    from blockloc.maps.distributed import open_executor
+
+    drives = [parse_drive(s, poses[i] if poses and poses[i] not in ("", "-") else None,
+                          data_root=data_root, dataset_cfg=cfg.dataset, max_frames=max_frames)
+              for i, s in enumerate(seqs)]
+    with open_executor(cluster) as ex:
+        if cluster:
+            link = ex.dashboard_link
+            print(f"dask: {ex.description}; dashboard "
+                  + (link if link else "not available (it needs the bokeh package)"),
+                  file=sys.stderr, flush=True)
+        with progress(f"{kind} map build tasks") as report:
+            store = build_map_from_specs(drives, kind, out, map_cfg, overwrite=overwrite,
+                                         progress=report, executor=ex)
+    if not is_url(str(out)):  # the place index (no-hint relocalization) goes with a local map
+        store = add_place_index(out, drives[0].spec().info.gravity_map, cfg)
     print_summary(map_summary(store), console())
 
 

@@ -28,7 +28,7 @@ from typing import Iterable
 import numpy as np
 
 from blockloc.errors import MapError
-from blockloc.maps.mapping import Keyframe, mapping_keyframes
+from blockloc.maps.mapping import Keyframe
 from blockloc.voxels import voxel_downsample
 
 log = logging.getLogger(__name__)
@@ -63,29 +63,268 @@ class BlockEvent:
     keyframes: list[int]
 
 
-class BlockMapBuilder:
-    """Streaming Algorithm 1: ``add(keyframe)`` for each keyframe in time order, then ``finish()``.
+# --------------------------------------------------------------------------- the parts of Algorithm 1
+# Algorithm 1 splits into three parts that the in-memory builder below and the distributed build
+# plan (blockloc.maps.build_plan) share, so both give the same blocks:
+# - CandidateSegmenter: which keyframes form each candidate block (positions only);
+# - VoxelAccumulator / merge_block_points: a candidate's points and a merge (points only);
+# - BlockLedger: new / merge / skip / tail from centroids only.
 
-    block_size_m: S, metres. voxel_size_m: block voxel filter (<= 0: none).
+
+class VoxelAccumulator:
+    """The points of one candidate block as its keyframes arrive (map frame, metres).
+
+    Raw points are voxel-filtered (``voxel_size_m``; <= 0: none) whenever more than
+    ``compact_points`` have accumulated and once more by :meth:`result`, so memory follows the
+    block's area, not its number of scans. The result depends only on the keyframes and their
+    order.
     """
 
-    def __init__(self, block_size_m: float = 100.0, voxel_size_m: float = 0.2):
+    def __init__(self, voxel_size_m: float, compact_points: int = _COMPACT_POINTS):
+        self.voxel_size_m = float(voxel_size_m)
+        self.compact_points = int(compact_points)
+        self._parts: list[tuple[np.ndarray, np.ndarray | None]] = []
+        self._raw = 0
+
+    def add(self, points: np.ndarray, intensity: np.ndarray | None = None) -> None:
+        """One keyframe's points (N, 3) map frame and intensity (N,) or None."""
+        pts = np.asarray(points, np.float32)
+        inten = None if intensity is None else np.asarray(intensity, np.float32)
+        self._parts.append((pts, inten))
+        self._raw += len(pts)
+        if self._raw > self.compact_points and self.voxel_size_m > 0:
+            p, i = self._gather()
+            p, i = voxel_downsample(p, self.voxel_size_m, i)
+            self._parts = [(p.astype(np.float32), i)]
+            self._raw = len(p)
+
+    def result(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """Voxel-filtered points (M, 3) float32 and intensity (M,) float32 (None when a keyframe
+        had none)."""
+        pts, inten = self._gather()
+        pts, inten = voxel_downsample(pts, self.voxel_size_m, inten)
+        return pts.astype(np.float32), inten
+
+    def _gather(self) -> tuple[np.ndarray, np.ndarray | None]:
+        if not self._parts:
+            return np.zeros((0, 3), np.float32), None
+        pts = np.concatenate([p for p, _ in self._parts])
+        if any(i is None for _, i in self._parts):
+            return pts, None
+        return pts, np.concatenate([i for _, i in self._parts])
+
+
+def merge_block_points(points: np.ndarray, intensity: np.ndarray | None, more: np.ndarray,
+                       more_intensity: np.ndarray | None, voxel_size_m: float
+                       ) -> tuple[np.ndarray, np.ndarray | None]:
+    """A block merged with a candidate: the voxel filter of both clouds together (float32 points
+    (N, 3), map frame; intensity None unless both have it)."""
+    inten = None if (intensity is None or more_intensity is None) else np.concatenate(
+        [intensity, more_intensity])
+    merged, inten = voxel_downsample(np.concatenate([points, more]), voxel_size_m, inten)
+    return merged.astype(np.float32), inten
+
+
+def block_centroid(points: np.ndarray) -> np.ndarray:
+    """(3,) float64 mean of a block's float32 points (what the KD-tree and the manifest hold)."""
+    return np.asarray(points).astype(np.float64).mean(axis=0)
+
+
+@dataclass
+class Candidate:
+    """A closed candidate block: its keyframes' keys in order; ``short``: the drive's last,
+    partial block, whose keyframes all lie within 0.5 S of its first (a tail candidate)."""
+
+    keys: list[int]
+    short: bool = False
+
+
+class CandidateSegmenter:
+    """Cut one drive's keyframes into candidate blocks from their positions alone.
+
+    A candidate closes at the first keyframe farther than S (3D) from its first keyframe; that
+    keyframe is also the first of the next candidate. :meth:`finish` returns the last, partial
+    candidate unless it holds only that carried keyframe.
+    """
+
+    def __init__(self, block_size_m: float):
+        self.block_size_m = float(block_size_m)
+        self._reset()
+
+    def _reset(self) -> None:
+        self._first: np.ndarray | None = None
+        self._keys: list[int] = []
+        self._positions: list[np.ndarray] = []
+        self._carried: int | None = None
+
+    def add(self, key: int, position: np.ndarray) -> Candidate | None:
+        """One keyframe (``key``, sensor ``position`` (3,), map frame): the candidate it closes,
+        or None."""
+        position = np.asarray(position, np.float64).reshape(3)
+        if self._first is None:
+            self._first = position
+        self._keys.append(key)
+        self._positions.append(position)
+        if np.linalg.norm(position - self._first) <= self.block_size_m:
+            return None
+        closed = Candidate(self._keys)
+        self._first, self._keys, self._positions, self._carried = position, [key], [position], key
+        return closed
+
+    def finish(self) -> Candidate | None:
+        """The drive's last candidate (None if it holds only the carried keyframe); resets."""
+        keys, first, positions = self._keys, self._first, self._positions
+        carried_only = len(keys) == 1 and self._carried == keys[0]
+        self._reset()
+        if not keys or carried_only:
+            return None
+        span = max(np.linalg.norm(p - first) for p in positions)
+        return Candidate(keys, short=bool(span < 0.5 * self.block_size_m))
+
+
+class BlockLedger:
+    """Algorithm 1's decisions on closed candidates, from centroids alone (module docstring).
+
+    Holds each block's centroid (3,) float64 and keyframe keys, the keys each block already
+    covered (skips) and the events. A block whose merge is still being computed elsewhere is
+    *held*: its centroid is unknown but lies in a box (the union of the bounds of the block and
+    the candidate merged into it: a voxel centroid lies in the hull of its points); a decision
+    waits for a held block (``resolve``) only when that box is as close as the nearest known
+    centroid, so the decision is the same as if every centroid were known.
+    """
+
+    def __init__(self, block_size_m: float):
         if not block_size_m > 0:
             raise MapError(f"block size {block_size_m!r} m: expected a positive number")
         self.block_size_m = float(block_size_m)
-        self.voxel_size_m = float(voxel_size_m)
-        self.blocks: list[Block] = []
+        self.centroids: list[np.ndarray] = []
+        self.keys: list[list[int]] = []
+        self.skipped_into: dict[int, list[int]] = {}
         self.events: list[BlockEvent] = []
+        self.held: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._last_target: int | None = None  # block the previous candidate went to
+
+    def start_drive(self) -> None:
+        """A new drive starts: its first short candidate continues no block of an earlier one."""
+        self._last_target = None
+
+    def decide(self, keys: list[int], centroid: np.ndarray, short: bool = False,
+               resolve=None) -> BlockEvent:
+        """The event of a candidate with ``keys`` and voxel-filtered centroid (3,); records it.
+
+        For 'merge' and 'tail' the caller computes the merged block and calls :meth:`renew`
+        (or :meth:`hold` until it is known). ``resolve(blocks)``: called with held blocks whose
+        centroids this decision needs; it must :meth:`renew` them.
+        """
+        centroid = np.asarray(centroid, np.float64).reshape(3)
+        keys = list(keys)
+        S = self.block_size_m
+        if not self.centroids:
+            return self._new(keys, centroid, np.inf)
+        if short and self._last_target is not None:
+            j = self._last_target
+            self._wait([j], resolve)
+            return self._merge(j, keys, float(np.linalg.norm(centroid - self.centroids[j])), "tail")
+        d, j = self._nearest(centroid, resolve)
+        if d >= 0.5 * S:
+            return self._new(keys, centroid, d)
+        if d > 0.1 * S:
+            return self._merge(j, keys, d, "merge")
+        self._last_target = j
+        self.skipped_into.setdefault(j, []).extend(keys)
+        ev = BlockEvent("skip", j, d, keys)
+        self.events.append(ev)
+        log.info("keyframes %s..%s skipped: block %03d already covers them (%.1f m)",
+                 keys[0], keys[-1], j, d)
+        return ev
+
+    def renew(self, block: int, centroid: np.ndarray) -> None:
+        """The centroid (3,) of ``block`` after a merge."""
+        self.centroids[block] = np.asarray(centroid, np.float64).reshape(3)
+        self.held.pop(block, None)
+
+    def hold(self, block: int, lo: np.ndarray, hi: np.ndarray) -> None:
+        """``block``'s merge is being computed; its centroid lies in the box [lo, hi] (3,)."""
+        self.held[block] = (np.asarray(lo, np.float64), np.asarray(hi, np.float64))
+
+    def _wait(self, blocks, resolve) -> None:
+        blocks = [j for j in blocks if j in self.held]
+        if blocks:
+            if resolve is None:
+                raise MapError(f"blocks {blocks}: merged centroids unknown and no way to wait")
+            resolve(blocks)
+            if any(j in self.held for j in blocks):
+                raise MapError(f"blocks {blocks}: still held after resolving")
+
+    def _nearest(self, centroid: np.ndarray, resolve) -> tuple[float, int]:
+        from scipy.spatial import cKDTree
+
+        while True:
+            known = [k for k in range(len(self.centroids)) if k not in self.held]
+            d, j = np.inf, -1
+            if known:
+                d, i = cKDTree(np.array([self.centroids[k] for k in known])).query(centroid)
+                d, j = float(d), known[int(i)]
+            near = [k for k, (lo, hi) in self.held.items()
+                    if np.linalg.norm(centroid - np.clip(centroid, lo, hi)) <= d]
+            if not near:
+                return d, j
+            self._wait(near, resolve)
+
+    def _new(self, keys, centroid, d) -> BlockEvent:
+        self.centroids.append(centroid)
+        self.keys.append(list(keys))
+        j = len(self.centroids) - 1
+        self._last_target = j
+        ev = BlockEvent("new", j, d, keys)
+        self.events.append(ev)
+        return ev
+
+    def _merge(self, j, keys, d, action) -> BlockEvent:
+        have = set(self.keys[j])
+        self.keys[j].extend(k for k in keys if k not in have)
+        self._last_target = j
+        ev = BlockEvent(action, j, d, keys)
+        self.events.append(ev)
+        log.info("keyframes %s..%s %s into block %03d (centroid %.1f m away)", keys[0], keys[-1],
+                 "merged" if action == "merge" else "appended", j, d)
+        return ev
+
+    def covered_keys(self, block: int) -> list[int]:
+        """Keys of the keyframes ``block`` was built from, then those it covered (skips)."""
+        return list(self.keys[block]) + self.skipped_into.get(block, [])
+
+    def event_counts(self) -> dict[str, int]:
+        return {a: sum(e.action == a for e in self.events) for a in ("new", "merge", "skip", "tail")}
+
+
+class BlockMapBuilder:
+    """Streaming Algorithm 1 in memory: ``add(keyframe)`` for each keyframe in time order, then
+    ``finish()`` (:meth:`end_drive` between drives of a multi-session map).
+
+    block_size_m: S, metres. voxel_size_m: block voxel filter (<= 0: none). The distributed
+    build (:mod:`blockloc.maps.build_plan`) runs the same parts as tasks.
+    """
+
+    def __init__(self, block_size_m: float = 100.0, voxel_size_m: float = 0.2):
+        self._ledger = BlockLedger(block_size_m)
+        self.block_size_m = self._ledger.block_size_m
+        self.voxel_size_m = float(voxel_size_m)
+        self._segmenter = CandidateSegmenter(self.block_size_m)
+        self._open = VoxelAccumulator(self.voxel_size_m)
+        self.blocks: list[Block] = []
         self.keyframe_positions: list[np.ndarray] = []
-        self._first_pos: np.ndarray | None = None
-        self._parts: list[tuple[np.ndarray, np.ndarray | None]] = []
-        self._raw_count = 0
-        self._kf_ids: list[int] = []
-        self._carried: int | None = None  # index of a closing keyframe that starts this block
-        self._last_target: int | None = None  # block the previous closed keyframes went to
-        self._finished = False
         self._position_of: dict[int, np.ndarray] = {}  # keyframe index -> sensor position
-        self.skipped_into: dict[int, list[int]] = {}  # block -> keyframes it already covered
+        self._finished = False
+
+    @property
+    def events(self) -> list[BlockEvent]:
+        return self._ledger.events
+
+    @property
+    def skipped_into(self) -> dict[int, list[int]]:
+        """block -> keyframes it already covered (skipped candidates)."""
+        return self._ledger.skipped_into
 
     def add(self, index: int, position: np.ndarray, points_map: np.ndarray,
             intensity: np.ndarray | None = None) -> None:
@@ -95,105 +334,51 @@ class BlockMapBuilder:
         position = np.asarray(position, np.float64).reshape(3)
         self.keyframe_positions.append(position)
         self._position_of[index] = position
-        if self._first_pos is None:
-            self._first_pos = position
-        self._append(index, points_map, intensity)
-        if np.linalg.norm(position - self._first_pos) > self.block_size_m:
-            self._close()
-            # the closing keyframe also opens the next block
-            self._first_pos = position
-            self._append(index, points_map, intensity)
-            self._carried = index
+        self._open.add(points_map, intensity)
+        closed = self._segmenter.add(int(index), position)
+        if closed is not None:
+            self._close(closed)
+            self._open.add(points_map, intensity)  # the closing keyframe also opens the next block
+
+    def end_drive(self) -> None:
+        """Close the current drive's last candidate; the next keyframes start a new drive."""
+        tail = self._segmenter.finish()
+        if tail is not None:
+            self._close(tail)
+        self._open = VoxelAccumulator(self.voxel_size_m)
+        self._ledger.start_drive()
 
     def finish(self) -> list[Block]:
         """Close the last block (if it holds more than the carried-over keyframe); return blocks."""
         if not self._finished:
-            if self._kf_ids and not (len(self._kf_ids) == 1 and self._carried == self._kf_ids[0]):
-                span = max(np.linalg.norm(p - self._first_pos)
-                           for p in self.keyframe_positions[-len(self._kf_ids):])
-                if self.blocks and self._last_target is not None and span < 0.5 * self.block_size_m:
-                    self._close(tail_into=self._last_target)
-                else:
-                    self._close()
+            self.end_drive()
             self._finished = True
         return self.blocks
-
-    def _append(self, index: int, points: np.ndarray, intensity: np.ndarray | None) -> None:
-        pts = np.asarray(points, np.float32)
-        inten = None if intensity is None else np.asarray(intensity, np.float32)
-        self._parts.append((pts, inten))
-        self._kf_ids.append(int(index))
-        self._raw_count += len(pts)
-        if self._raw_count > _COMPACT_POINTS and self.voxel_size_m > 0:
-            p, i = self._gather()
-            p, i = voxel_downsample(p, self.voxel_size_m, i)
-            self._parts = [(p.astype(np.float32), i)]
-            self._raw_count = len(p)
-
-    def _gather(self) -> tuple[np.ndarray, np.ndarray | None]:
-        pts = np.concatenate([p for p, _ in self._parts]) if self._parts else np.zeros((0, 3), np.float32)
-        if any(i is None for _, i in self._parts):
-            return pts, None
-        return pts, np.concatenate([i for _, i in self._parts]) if self._parts else None
-
-    def _close(self, tail_into: int | None = None) -> None:
-        pts, inten = self._gather()
-        pts, inten = voxel_downsample(pts, self.voxel_size_m, inten)
-        pts = pts.astype(np.float32)
-        kf_ids = list(self._kf_ids)
-        self._parts, self._raw_count, self._kf_ids, self._carried = [], 0, [], None
-        if len(pts) == 0:
-            log.debug("keyframes %s: no points, no block", kf_ids)
-            return
-        centroid = pts.astype(np.float64).mean(axis=0)
-        S = self.block_size_m
-        if not self.blocks:
-            self._new_block(pts, inten, centroid, kf_ids, np.inf)
-            return
-        from scipy.spatial import cKDTree
-
-        tree = cKDTree(np.array([b.centroid for b in self.blocks]))
-        d, j = tree.query(centroid)
-        j = int(j)
-        if tail_into is not None:
-            d = float(np.linalg.norm(centroid - self.blocks[tail_into].centroid))
-            self._merge(tail_into, pts, inten, kf_ids, d, "tail")
-        elif d >= 0.5 * S:
-            self._new_block(pts, inten, centroid, kf_ids, float(d))
-        elif d > 0.1 * S:
-            self._merge(j, pts, inten, kf_ids, float(d), "merge")
-        else:
-            self._last_target = j
-            self.skipped_into.setdefault(j, []).extend(kf_ids)
-            self.events.append(BlockEvent("skip", j, float(d), kf_ids))
-            log.info("keyframes %d..%d skipped: block %03d already covers them (%.1f m)",
-                     kf_ids[0], kf_ids[-1], j, d)
 
     def keyframe_positions_of(self, block: int) -> np.ndarray:
         """(K, 3) sensor positions of the keyframes block ``block`` was built from or already
         covered (skipped ones): where the block's map is good. Map frame, metres."""
-        ids = list(self.blocks[block].keyframes) + self.skipped_into.get(block, [])
-        return np.array([self._position_of[k] for k in ids if k in self._position_of],
-                        np.float64).reshape(-1, 3)
+        return np.array([self._position_of[k] for k in self._ledger.covered_keys(block)
+                         if k in self._position_of], np.float64).reshape(-1, 3)
 
-    def _merge(self, j, pts, inten, kf_ids, d, action) -> None:
-        b = self.blocks[j]
-        merged_i = None if (b.intensity is None or inten is None) else np.concatenate([b.intensity, inten])
-        merged, b.intensity = voxel_downsample(np.concatenate([b.points, pts]), self.voxel_size_m,
-                                               merged_i)
-        b.points = merged.astype(np.float32)
-        b.centroid = b.points.astype(np.float64).mean(axis=0)
-        b.keyframes.extend(k for k in kf_ids if k not in set(b.keyframes))
-        self._last_target = j
-        self.events.append(BlockEvent(action, j, d, kf_ids))
-        log.info("keyframes %d..%d %s into block %03d (centroid %.1f m away)",
-                 kf_ids[0], kf_ids[-1], "merged" if action == "merge" else "appended", j, d)
-
-    def _new_block(self, pts, inten, centroid, kf_ids, d) -> None:
-        self.blocks.append(Block(pts, inten, centroid, list(kf_ids)))
-        self._last_target = len(self.blocks) - 1
-        self.events.append(BlockEvent("new", len(self.blocks) - 1, d, kf_ids))
-        log.info("block %03d: %d keyframes, %d points", len(self.blocks) - 1, len(kf_ids), len(pts))
+    def _close(self, candidate: Candidate) -> None:
+        pts, inten = self._open.result()
+        self._open = VoxelAccumulator(self.voxel_size_m)
+        keys = candidate.keys
+        if len(pts) == 0:
+            log.debug("keyframes %s: no points, no block", keys)
+            return
+        ev = self._ledger.decide(keys, block_centroid(pts), candidate.short)
+        if ev.action == "new":
+            self.blocks.append(Block(pts, inten, self._ledger.centroids[ev.block],
+                                     self._ledger.keys[ev.block]))
+            log.info("block %03d: %d keyframes, %d points", ev.block, len(keys), len(pts))
+        elif ev.action in ("merge", "tail"):
+            b = self.blocks[ev.block]
+            b.points, b.intensity = merge_block_points(b.points, b.intensity, pts, inten,
+                                                       self.voxel_size_m)
+            b.centroid = block_centroid(b.points)
+            self._ledger.renew(ev.block, b.centroid)
 
 
 def build_block_map(keyframes: Iterable[Keyframe | tuple], *, block_size_m: float = 100.0,
@@ -238,22 +423,3 @@ def write_block_map(builder: BlockMapBuilder, out: str | Path, *, params: dict |
             w.add(f"{i:03d}", b.points, b.intensity, file=f"{i:03d}.pcd", centroid=b.centroid,
                   keyframes=builder.keyframe_positions_of(i))
         return w.commit()
-
-
-def build_block_map_from_sequence(seq, *, block_size_m: float = 100.0,
-                                  keyframe_distance_m: float = 1.0, keyframe_angle_deg: float = 15.0,
-                                  voxel_size_m: float = 0.2, out: str | Path,
-                                  deskew: bool = True, progress: bool = False,
-                                  overwrite: bool = False, max_frames: int | None = None):
-    """Block map from a mapping sequence and its ``mapping_poses()``; written atomically to ``out``.
-
-    Returns the opened :class:`~blockloc.maps.store.MapStore`.
-    """
-    kfs = mapping_keyframes(seq, keyframe_distance_m=keyframe_distance_m,
-                            keyframe_angle_deg=keyframe_angle_deg, deskew=deskew, progress=progress,
-                            max_frames=max_frames)
-    params = {"sequence": seq.info.name, "keyframe_distance_m": keyframe_distance_m,
-              "keyframe_angle_deg": keyframe_angle_deg, "deskew": deskew}
-    return build_block_map(kfs, block_size_m=block_size_m, voxel_size_m=voxel_size_m, out=out,
-                           params=params, overwrite=overwrite,
-                           frame=getattr(seq.info, "map_frame", "map"))

@@ -151,11 +151,97 @@ def tile_pcd_file(path: str | Path, tile_size_m: float, out: str | Path, *,
                            overwrite=overwrite, progress=progress)
 
 
-class GridMapBuilder:
-    """Streaming grid map: ``add`` keyframe points (map frame) as they come, ``finish(out)``.
+# --------------------------------------------------------------------------- voxel sums per tile
+#: One voxel of one tile, summed: the voxel's key floor(p / voxel) (int32, x y z), the sums of
+#: x, y, z and intensity (float64) and the number of points. Sums of the same voxel from any
+#: number of scans add up exactly (unlike centroids of centroids), so a tile's voxel filter can be
+#: computed in parts and merged: the tiles hold the voxel filter of the union of all their points.
+VOXEL_SUM = np.dtype([("key", "<i4", (3,)), ("sum", "<f8", (4,)), ("count", "<i4")])
+_KEY_LIMIT = 2**31 - 1
 
-    Points are binned into tiles on arrival and a tile is voxel-filtered whenever it grows past
-    ``compact_points``, so memory follows the mapped area, not the number of scans.
+
+def voxel_sums(points: np.ndarray, intensity: np.ndarray, voxel_size_m: float) -> np.ndarray:
+    """Records (M,) of :data:`VOXEL_SUM` of points (N, 3) float64 (map frame, metres) with
+    intensity (N,): one per occupied voxel, ascending key order. ``voxel_size_m <= 0``: one
+    record per point, input order (no filter)."""
+    pts = np.asarray(points, np.float64)
+    inten = np.asarray(intensity, np.float64)
+    if not voxel_size_m > 0 or len(pts) == 0:
+        rec = np.zeros(len(pts), VOXEL_SUM)
+        rec["sum"][:, :3], rec["sum"][:, 3], rec["count"] = pts, inten, 1
+        return rec
+    from blockloc.voxels import voxel_groups
+
+    keys = np.floor(pts / voxel_size_m)
+    if np.abs(keys).max() > _KEY_LIMIT:
+        raise MapError(f"voxel size {voxel_size_m} m: the map spans more than 2^31 voxels per axis")
+    inverse, first, counts = voxel_groups(pts, voxel_size_m)
+    return _summed(keys[first], inverse, counts, np.c_[pts, inten])
+
+
+def merge_voxel_sums(parts: list[np.ndarray], voxel_size_m: float) -> np.ndarray:
+    """Records of the same tile (from several scans or chunks, in a fixed order) merged: one per
+    voxel, ascending key order, sums added in the parts' order (the same bytes every time)."""
+    rec = np.concatenate(parts) if len(parts) != 1 else parts[0]
+    if not voxel_size_m > 0 or len(rec) == 0:
+        return rec
+    from blockloc.voxels import voxel_groups
+
+    # integer keys are grouped as voxels of side 1 around their centres (exact in float64)
+    inverse, first, counts = voxel_groups(rec["key"] + 0.5, 1.0)
+    sums = np.bincount(inverse, weights=rec["count"], minlength=len(first))
+    return _summed(rec["key"][first], inverse, sums.astype(np.int64), rec["sum"])
+
+
+def _summed(keys, inverse, counts, values) -> np.ndarray:
+    m = len(counts)
+    rec = np.empty(m, VOXEL_SUM)
+    rec["key"] = keys
+    for k in range(4):
+        rec["sum"][:, k] = np.bincount(inverse, weights=values[:, k], minlength=m)
+    rec["count"] = counts
+    return rec
+
+
+def tile_voxel_sums(points: np.ndarray, intensity: np.ndarray | None, tile_size_m: float,
+                    voxel_size_m: float) -> list[tuple[tuple[int, int], np.ndarray]]:
+    """Points (N, 3) map frame split into tiles, each summed by voxel: [(cell, records)] in
+    sorted cell order (intensity None counts as 0)."""
+    pts = np.asarray(points, np.float64)
+    inten = np.zeros(len(pts)) if intensity is None else np.asarray(intensity, np.float64)
+    return [(cell, voxel_sums(pts[idx], inten[idx], voxel_size_m))
+            for cell, idx in split_into_tiles(pts, tile_size_m).items()]
+
+
+def voxel_sum_points(records: np.ndarray, cell: tuple[int, int], tile_size_m: float
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """A tile's points: voxel centroids (M, 3) float32 and mean intensity (M,) float32.
+
+    A centroid lies in its cell (the mean of points that do); one that float32 rounding moves
+    onto or past the cell's border is moved back by a unit in the last place, so every point
+    stays in its tile."""
+    n = np.maximum(records["count"], 1).astype(np.float64)
+    pts = (records["sum"][:, :3] / n[:, None]).astype(np.float32)
+    inten = (records["sum"][:, 3] / n).astype(np.float32)
+    s = check_tile_size(tile_size_m)
+    for axis, i in enumerate(cell):
+        lo, hi = np.float32(i * s), np.float32((i + 1) * s)
+        while float(lo) < i * s:
+            lo = np.nextafter(lo, np.float32(np.inf))
+        while float(hi) >= (i + 1) * s:
+            hi = np.nextafter(hi, np.float32(-np.inf))
+        np.clip(pts[:, axis], lo, hi, out=pts[:, axis])
+    return pts, inten
+
+
+class GridMapBuilder:
+    """Streaming grid map in memory: ``add`` keyframe points (map frame) as they come,
+    ``finish(out)``.
+
+    Points are binned into tiles and summed by voxel on arrival; a tile's sums are merged
+    whenever it holds more than ``compact_points`` records, so memory follows the mapped area,
+    not the number of scans. Each tile holds the voxel filter of the union of its points (the
+    distributed build, :mod:`blockloc.maps.build_plan`, computes the same in parts).
     """
 
     def __init__(self, tile_size_m: float = 20.0, voxel_size_m: float = 0.2,
@@ -164,29 +250,26 @@ class GridMapBuilder:
         self.voxel_size_m = float(voxel_size_m)
         self.compact_points = int(compact_points)
         self.num_keyframes = 0
-        self._acc: dict[tuple[int, int], list] = {}
-        self._raw: dict[tuple[int, int], int] = {}
+        self._acc: dict[tuple[int, int], list[np.ndarray]] = {}
+        self._count: dict[tuple[int, int], int] = {}
 
     def add(self, points_map: np.ndarray, intensity: np.ndarray | None = None) -> None:
         """One keyframe's points (N, 3) map frame, metres, and intensity (N,) or None."""
         self.num_keyframes += 1
-        pts = np.asarray(points_map)
-        inten = np.zeros(len(pts), np.float32) if intensity is None else np.asarray(intensity, np.float32)
-        for cell, idx in split_into_tiles(pts, self.tile_size_m).items():
-            self._acc.setdefault(cell, []).append((pts[idx].astype(np.float32), inten[idx]))
-            self._raw[cell] = self._raw.get(cell, 0) + len(idx)
-            if self._raw[cell] > self.compact_points and self.voxel_size_m > 0:
-                p, i = _filtered(self._acc[cell], self.voxel_size_m)
-                self._acc[cell], self._raw[cell] = [(p, i)], len(p)
+        for cell, rec in tile_voxel_sums(points_map, intensity, self.tile_size_m, self.voxel_size_m):
+            self._acc.setdefault(cell, []).append(rec)
+            self._count[cell] = self._count.get(cell, 0) + len(rec)
+            if self._count[cell] > self.compact_points and self.voxel_size_m > 0:
+                merged = merge_voxel_sums(self._acc[cell], self.voxel_size_m)
+                self._acc[cell], self._count[cell] = [merged], len(merged)
 
     def points(self) -> tuple[np.ndarray, np.ndarray]:
         """The voxel-filtered map so far: points (N, 3) float32, intensity (N,) float32."""
         parts_p, parts_i = [], []
         for cell in sorted(self._acc):
-            # a voxel straddling a cell border (s not a multiple of the voxel) may put its mean
-            # in the neighbour cell: tile_global_map re-bins every point, so none is lost
-            p, i = _filtered(self._acc[cell], self.voxel_size_m)
-            self._acc[cell], self._raw[cell] = [(p, i)], len(p)
+            rec = merge_voxel_sums(self._acc[cell], self.voxel_size_m)
+            self._acc[cell], self._count[cell] = [rec], len(rec)
+            p, i = voxel_sum_points(rec, cell, self.tile_size_m)
             parts_p.append(p)
             parts_i.append(i)
         if not parts_p:
@@ -201,35 +284,6 @@ class GridMapBuilder:
         pts, inten = self.points()
         p = {"voxel_size_m": self.voxel_size_m, "num_keyframes": self.num_keyframes, **(params or {})}
         return tile_global_map(pts, inten, self.tile_size_m, out, frame=frame, params=p, overwrite=overwrite)
-
-
-def build_grid_map_from_sequence(seq, *, tile_size_m: float = 20.0, keyframe_distance_m: float = 1.0,
-                                 keyframe_angle_deg: float = 15.0, voxel_size_m: float = 0.2,
-                                 out: str | Path, deskew: bool = True, progress: bool = False,
-                                 overwrite: bool = False, max_frames: int | None = None):
-    """Grid store from a mapping sequence: keyframes into the map frame (deskewed), voxel filter
-    per tile, tiles written atomically to ``out``. Returns the opened store."""
-    from blockloc.maps.mapping import mapping_keyframes
-
-    builder = GridMapBuilder(tile_size_m, voxel_size_m)
-    for kf in mapping_keyframes(seq, keyframe_distance_m=keyframe_distance_m,
-                                keyframe_angle_deg=keyframe_angle_deg, deskew=deskew,
-                                progress=progress, max_frames=max_frames):
-        builder.add(kf.points_map, kf.intensity)
-    params = {"sequence": seq.info.name, "keyframe_distance_m": keyframe_distance_m,
-              "keyframe_angle_deg": keyframe_angle_deg, "deskew": deskew}
-    if builder.num_keyframes == 0:
-        raise MapError(f"{seq.info.name}: no keyframes to build a grid map from")
-    return builder.finish(out, params=params, overwrite=overwrite, frame=getattr(seq.info, "map_frame", "map"))
-
-
-def _filtered(parts, voxel_size_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """One tile's accumulated (points, intensity) parts, concatenated and voxel-filtered (float32)."""
-    from blockloc.voxels import voxel_downsample
-
-    p, i = voxel_downsample(np.concatenate([p for p, _ in parts]), voxel_size_m,
-                            np.concatenate([i for _, i in parts]))
-    return p.astype(np.float32), i
 
 
 # --------------------------------------------------------------------------- Algorithm 2 window

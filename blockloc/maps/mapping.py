@@ -107,40 +107,82 @@ def mapping_poses_or_fail(seq) -> Trajectory:
     return traj
 
 
+@dataclass
+class KeyframePlan:
+    """Which frames of a mapping sequence are keyframes, and their poses: what map building needs
+    before any scan is read.
+
+    frames: (K,) int64 frame indices, time order. T_map_lidar: (K, 4, 4) at the frame stamps.
+    stamps: (K,) float64 seconds. num_frames: frames considered (the slice's length).
+    """
+
+    frames: np.ndarray
+    T_map_lidar: np.ndarray
+    stamps: np.ndarray
+    num_frames: int
+
+    @property
+    def positions(self) -> np.ndarray:
+        """(K, 3) sensor positions, map frame, metres."""
+        return self.T_map_lidar[:, :3, 3]
+
+
+def plan_keyframes(seq, *, keyframe_distance_m: float, keyframe_angle_deg: float,
+                   start: int = 0, stop: int | None = None) -> KeyframePlan:
+    """Keyframes among frames ``start..stop-1`` of a mapping sequence (no scan is read).
+
+    Poses come from ``seq.mapping_poses()`` interpolated at the frame stamps; frames outside the
+    poses' time range, and frames the sequence lists in ``uncovered_frames()`` (a trajectory with
+    gaps, :mod:`blockloc.datasets.with_poses`), are skipped: poses are never extrapolated.
+    """
+    traj = mapping_poses_or_fail(seq)
+    all_stamps = np.asarray(seq.frame_stamps(), np.float64)
+    stop = len(all_stamps) if stop is None else min(int(stop), len(all_stamps))
+    start = max(int(start), 0)
+    stamps = all_stamps[start:stop]
+    ok = ((stamps >= traj.stamps[0] - POSE_TIME_TOLERANCE_S)
+          & (stamps <= traj.stamps[-1] + POSE_TIME_TOLERANCE_S))
+    uncovered = getattr(seq, "uncovered_frames", None)
+    if uncovered is not None:
+        skip = np.asarray(uncovered(), np.int64) - start
+        ok[skip[(skip >= 0) & (skip < len(ok))]] = False
+    inside = np.flatnonzero(ok)
+    name = seq.info.name
+    if len(inside) == 0:
+        raise MapError(f"{name}: no LiDAR frame {start}..{stop - 1} lies within the mapping poses' "
+                       f"time range [{traj.stamps[0]:.3f}, {traj.stamps[-1]:.3f}] s")
+    T_body_lidar = np.asarray(seq.info.T_body_lidar, np.float64)
+    poses = traj.interpolate(stamps[inside]) @ T_body_lidar
+    chosen = select_keyframes(poses, keyframe_distance_m, keyframe_angle_deg)
+    log.info("%s: %d keyframes from %d frames", name, len(chosen), len(stamps))
+    return KeyframePlan((inside[chosen] + start).astype(np.int64), poses[chosen],
+                        stamps[inside[chosen]], len(stamps))
+
+
+def keyframe_points(seq, index: int, trajectory: Trajectory, T_body_lidar: np.ndarray,
+                    deskew: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """Frame ``index`` read and moved into the map frame: points (N, 3) float64 (deskewed with
+    per-point times when ``deskew``), intensity (N,) or None."""
+    frame = seq.frame(int(index))
+    pts_map = scan_to_map(frame.points, frame.time_offsets, frame.stamp, trajectory, T_body_lidar,
+                          deskew=deskew)
+    return pts_map, frame.intensity
+
+
 def mapping_keyframes(seq, *, keyframe_distance_m: float, keyframe_angle_deg: float,
                       deskew: bool = True, progress: bool = False,
                       max_frames: int | None = None) -> Iterator[Keyframe]:
-    """Keyframes of a mapping sequence with their (deskewed) points in the map frame.
-
-    Poses come from ``seq.mapping_poses()`` interpolated at the frame stamps; frames outside the
-    poses' time range, or that the sequence names in ``uncovered_frames()`` (a gap in its
-    trajectory), are skipped. Only the keyframes' scans are read.
-    """
+    """Keyframes of a mapping sequence with their (deskewed) points in the map frame
+    (:func:`plan_keyframes`, then :func:`keyframe_points`). Only the keyframes' scans are read."""
+    plan = plan_keyframes(seq, keyframe_distance_m=keyframe_distance_m,
+                          keyframe_angle_deg=keyframe_angle_deg, stop=max_frames)
     traj = mapping_poses_or_fail(seq)
-    stamps = np.asarray(seq.frame_stamps(), np.float64)
-    if max_frames is not None:
-        stamps = stamps[:max_frames]
-    inside = np.flatnonzero((stamps >= traj.stamps[0] - POSE_TIME_TOLERANCE_S)
-                            & (stamps <= traj.stamps[-1] + POSE_TIME_TOLERANCE_S))
-    uncovered = getattr(seq, "uncovered_frames", None)
-    if uncovered is not None:  # inside a gap of the trajectory: never interpolated across it
-        inside = np.setdiff1d(inside, uncovered())
-    name = seq.info.name
-    if len(inside) == 0:
-        raise MapError(f"{name}: no LiDAR frame lies within the mapping poses' time range "
-                       f"[{traj.stamps[0]:.3f}, {traj.stamps[-1]:.3f}] s")
     T_body_lidar = np.asarray(seq.info.T_body_lidar, np.float64)
-    poses = traj.interpolate(stamps[inside]) @ T_body_lidar
-    chosen = inside[select_keyframes(poses, keyframe_distance_m, keyframe_angle_deg)]
-    pose_of = dict(zip(inside.tolist(), poses))
-    log.info("%s: %d keyframes from %d frames", name, len(chosen), len(stamps))
-    iterator = chosen
+    items = zip(plan.frames.tolist(), plan.T_map_lidar)
     if progress:
         from tqdm import tqdm
 
-        iterator = tqdm(chosen, desc="keyframes", unit="kf")
-    for i in iterator:
-        frame = seq.frame(int(i))
-        pts_map = scan_to_map(frame.points, frame.time_offsets, frame.stamp, traj, T_body_lidar,
-                              deskew=deskew)
-        yield Keyframe(int(i), pose_of[int(i)], pts_map, frame.intensity)
+        items = tqdm(items, total=len(plan.frames), desc="keyframes", unit="kf")
+    for i, T_map_lidar in items:
+        pts_map, intensity = keyframe_points(seq, i, traj, T_body_lidar, deskew)
+        yield Keyframe(int(i), T_map_lidar, pts_map, intensity)

@@ -418,6 +418,17 @@ class MapWriter:
         self.entries.append(entry)
         return entry
 
+    def add_entry(self, entry: MapEntry) -> MapEntry:
+        """Record an entry whose file someone else (a build task) already wrote into
+        :attr:`tmp` (or the store's URL), with its size and sha256."""
+        if self._committed:
+            raise MapError(f"{self.out}: writer already committed")
+        if entry.id in self._ids:
+            raise MapError(f"{self.out}: duplicate entry id {entry.id!r}")
+        self._ids.add(entry.id)
+        self.entries.append(entry)
+        return entry
+
     def write_extra(self, name: str, data: bytes) -> None:
         """An extra file in the store directory (not an entry)."""
         (self.tmp / name).write_bytes(data)
@@ -444,7 +455,7 @@ class MapWriter:
             self.write_extra(AUTOWARE_METADATA, autoware_metadata(self.entries, self.params).encode())
         doc = {
             "version": MANIFEST_VERSION, "kind": self.kind, "frame": self.frame,
-            "parameters": self.params, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "parameters": self.params, "created": _created(),
             "entries": [e.to_dict() for e in self.entries],
         }
         if self.extras:
@@ -497,6 +508,15 @@ def add_extra(path: str | Path, name: str, data: bytes) -> MapStore:
         (root / old.file).unlink(missing_ok=True)
     log.info("%s: extra %s written (%d bytes)", root, file, len(data))
     return open_map(root)
+
+
+def _created() -> str:
+    """The manifest's creation time: now, or $SOURCE_DATE_EPOCH (seconds, UTC) when set, so that
+    two builds of the same inputs can be byte-identical (reproducible-builds.org)."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH", "").strip()
+    if epoch.isdigit():
+        return time.strftime("%Y-%m-%dT%H:%M:%S+0000", time.gmtime(int(epoch)))
+    return time.strftime("%Y-%m-%dT%H:%M:%S%z")
 
 
 def remove_stale_builds(parent: Path) -> list[Path]:

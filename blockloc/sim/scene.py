@@ -20,6 +20,15 @@ from blockloc.sim.world import (_ICO_F, _ICO_V, ALBEDO, MeshBuilder, Movables, W
 log = logging.getLogger(__name__)
 
 KERB_M = 0.12  # sidewalks stand this far above the road
+#: A windowed scene (``scene_window_m`` = h > 0) is built around the centre of the grid cell of
+#: side ``WINDOW_STEP * h`` the sensor is in, so a scan depends only on where it is taken, not on
+#: which scans the process cast before (a map build on several workers renders each keyframe in
+#: whichever process runs its task). The sensor is within 0.35 h of that centre per axis: rays
+#: see 0.65 h of the world around it (as the window re-centred at 0.35 h did).
+WINDOW_STEP = 0.7
+#: Built windows kept per scene: a drive along a cell border, or through a corner, switches
+#: between up to four without building them again.
+WINDOW_CACHE = 4
 
 
 @dataclass
@@ -228,7 +237,8 @@ class SessionScene:
             rng = np.random.default_rng(np.random.SeedSequence([world.seed, stable_hash(session), 11]))
             self._vol_mfp = vol.mfp * np.exp(rng.uniform(-1.0, 1.0, len(vol)) * 1.2 * ch)
             self._vol_radii = vol.radii * (1.0 + rng.normal(0, 0.06, (len(vol), 1)) * ch)
-        self._window = None  # (center, half size) of the built scenes
+        self._window = None  # (center, half size, grid cell) of the window in use
+        self._windows: dict = {}  # grid cell -> built (scene, sel, vol_scene, vsel), oldest first
         self._seed = world.seed
         if world.preset.scene_window_m <= 0:
             self._build(None)
@@ -251,7 +261,6 @@ class SessionScene:
             if self._vol_mfp is not None:
                 c = self.world.volumes.center[:, :2]
                 vsel = np.flatnonzero(((c >= lo) & (c <= hi)).all(axis=1))
-            self._window = (np.asarray(center, float), half)
         self.scene = o3d.t.geometry.RaycastingScene()
         F = self._F[sel]
         used, inv = np.unique(F, return_inverse=True)
@@ -274,8 +283,19 @@ class SessionScene:
         half = self.world.preset.scene_window_m
         if half <= 0:
             return
-        if self._window is None or np.abs(center[:2] - self._window[0]).max() > 0.35 * half:
-            self._build(center[:2])
+        step = WINDOW_STEP * half
+        cell = tuple(int(c) for c in np.floor(np.asarray(center[:2], float) / step))
+        if self._window is not None and self._window[2] == cell:
+            return
+        built = self._windows.pop(cell, None)
+        if built is None:
+            self._build((np.asarray(cell, float) + 0.5) * step)
+            built = (self.scene, self._sel, self._vol_scene, self._vsel)
+        self.scene, self._sel, self._vol_scene, self._vsel = built
+        self._windows[cell] = built  # the newest last
+        while len(self._windows) > WINDOW_CACHE:
+            self._windows.pop(next(iter(self._windows)))
+        self._window = ((np.asarray(cell, float) + 0.5) * step, half, cell)
 
     # --- casting --------------------------------------------------------------------------------
     def cast(self, origins: np.ndarray, dirs: np.ndarray, t: float | None = None,

@@ -76,7 +76,8 @@ def test_signal_stops_and_cleans_up(c: Case, tiny_world, big_pcd, tmp_path):
         run.wait_for(lambda: leftovers(tmp_path, "out") and re.search(r"tiles: +\d+%\|.*\| [1-9]\d*/", run.err))
     elif c.id.startswith("map-build"):
         run = Running("map", "build", "--seq", tiny_world["long"], "--config", tiny_world["config"], "--out", out)
-        run.wait_for(lambda: re.search(r"keyframes: +\d+%\|.*\| [1-9]\d*/", run.err))
+        # the build's tasks, once the drive is planned and its first keyframes are read
+        run.wait_for(lambda: re.search(r"map build tasks: [1-9]\d*/\d{2,} ", run.err))
     else:
         run = Running("sim", "--preset", "tiny", "--azimuth-steps", "64", "--out", out)
         run.wait_for(lambda: leftovers(tmp_path, "out") and re.search(r"sim tiny: [1-9]\d*/", run.err))

@@ -71,7 +71,7 @@ def write_config(path: Path, **sections) -> Path:
 def build_tiny_map(session: Path, out: Path) -> Path:
     """The block map of ``session`` from its ground truth (blocks of BLOCK_SIZE_M)."""
     from blockloc.datasets.nclt import NcltSequence
-    from blockloc.maps.block_maps import build_block_map_from_sequence
+    from blockloc.maps.build_plan import build_block_map_from_sequence
 
     build_block_map_from_sequence(NcltSequence(session), block_size_m=BLOCK_SIZE_M, voxel_size_m=0.2,
                                   keyframe_distance_m=1.0, out=out)

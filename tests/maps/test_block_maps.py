@@ -8,8 +8,9 @@ from scipy.spatial import cKDTree
 
 from blockloc.errors import MapError
 from blockloc.geometry import xyzrpy_to_T
-from blockloc.maps.block_maps import BlockMapBuilder, build_block_map, build_block_map_from_sequence
-from blockloc.maps.grid_tiles import build_grid_map_from_sequence, tile_bounds
+from blockloc.maps.block_maps import BlockMapBuilder, build_block_map
+from blockloc.maps.build_plan import build_block_map_from_sequence, build_grid_map_from_sequence
+from blockloc.maps.grid_tiles import tile_bounds
 from blockloc.maps.mapping import scan_to_map, select_keyframes
 from blockloc.maps.store import open_map
 

@@ -55,7 +55,7 @@ def walk_config(coarse_levels: int = 2):
 
 def build_walk_map(seq, out: str | Path, cfg, scans: tuple[int, int] = MAP_SCANS):
     """Block map of scans 0..scans[1]-1, every scan a keyframe, placed with the reference poses."""
-    from blockloc.maps.block_maps import build_block_map_from_sequence
+    from blockloc.maps.build_plan import build_block_map_from_sequence
 
     assert scans[0] == 0, "maps are built from the first scans"
     return build_block_map_from_sequence(seq, block_size_m=cfg.map.block_size_m, keyframe_distance_m=0.0,

@@ -1,0 +1,484 @@
+"""The map build plan: one list of pure tasks, run in this process or on a Dask cluster.
+
+A build reads one or more mapping **drives** (sequences whose poses share one map frame) and
+writes one block or grid store. The work is cut into tasks (:mod:`blockloc.maps.build_tasks`)
+that are pure functions of their arguments; each writes its result into the build's directory
+and returns only small numbers, so the same plan gives the same bytes whoever runs it: :class:`InlineExecutor` (this process, one
+task after another: the serial build) or a Dask executor (:mod:`blockloc.maps.distributed`).
+
+Steps (tasks in *italics*):
+
+1. *plan_drive*: each drive's keyframes and their poses (no scan read). Drives are then put in a
+   stable order: first keyframe stamp, then name, then first frame; the map does not depend on
+   the order they were given in.
+2. Block maps (Algorithm 1, :mod:`blockloc.maps.block_maps`): the client cuts each drive's
+   keyframes into candidate blocks from their positions (:class:`CandidateSegmenter`);
+   *block_candidate* reads and deskews a candidate's keyframes, voxel-filters them (the same
+   :class:`VoxelAccumulator` as the in-memory builder), writes the points to the scratch area and
+   returns their centroid and bounds. The client decides new / merge / skip / tail in order from
+   centroids alone (:class:`BlockLedger`); a merge is a *block_merge* task (a new version of the
+   block's points); when a merge's centroid is not back yet the ledger waits for it only if that
+   block could be the nearest. *block_write* encodes each block's last version as its entry.
+3. Grid maps: *grid_chunk* reads and deskews a run of ``chunk_keyframes`` keyframes, bins the
+   points into tiles and sums them by voxel (:data:`~blockloc.maps.grid_tiles.VOXEL_SUM`);
+   *grid_tile* merges a tile's sums from every chunk in plan order and writes the tile.
+4. The client commits the manifest (atomically, :class:`~blockloc.maps.store.MapWriter`) when
+   every entry's checksum is in. Any failure cancels the tasks and removes the build directory:
+   no manifest, nothing half-written.
+
+Scratch files live in ``<build dir>/.work/`` and are removed before the commit.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from blockloc.errors import MapError
+from blockloc.maps.build_tasks import (_OPENED_MAX, SCRATCH, BuildTarget, Drive, DrivePlan,
+                                       block_candidate_task, block_merge_task, block_write_task,
+                                       forget_drives, grid_chunk_task, grid_tile_task,
+                                       open_drive_task, plan_drive_task)
+
+log = logging.getLogger(__name__)
+
+#: Keyframes per grid chunk task: a fixed plan parameter (never derived from the number of
+#: workers), so the sums, and the bytes, are the same on any cluster.
+CHUNK_KEYFRAMES = 32
+#: Tiles per grid tile task: one tile is milliseconds of work, about what Dask spends scheduling
+#: a task; a fixed plan parameter (each tile is computed alone: it does not change the bytes).
+TILES_PER_TASK = 16
+#: Margin (m) added to the box a held block's centroid lies in (float32 rounding of the points).
+_BOX_PAD_M = 0.01
+
+
+# ----------------------------------------------------------------------------- executors
+
+
+class _Done:
+    """The result of a task run inline (the interface of a Dask future that the plan uses)."""
+
+    def __init__(self, value: Any = None, error: BaseException | None = None) -> None:
+        self._value, self._error = value, error
+
+    def result(self) -> Any:
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+    def done(self) -> bool:
+        return True
+
+    def add_done_callback(self, fn) -> None:
+        fn(self)
+
+
+class InlineExecutor:
+    """Runs each task as it is submitted, in this process: the serial build."""
+
+    description = "serial (this process)"
+    dashboard_link = None
+
+    def submit(self, fn, *args, key: str | None = None, priority: int = 0) -> _Done:
+        try:
+            values = [a.result() if isinstance(a, _Done) else a for a in args]
+            return _Done(fn(*values))
+        except Exception as exc:  # kept for .result(), like a future
+            return _Done(error=exc)
+
+    def cancel(self, futures) -> None:
+        pass
+
+
+class _Tasks:
+    """Submits a build's tasks to an executor, counts them on one progress bar, and cancels all
+    of them on failure."""
+
+    def __init__(self, executor, progress: bool, desc: str) -> None:
+        self.executor = executor
+        self.build_id = uuid.uuid4().hex[:10]
+        self.futures: list = []
+        self.names: list[str] = []
+        self.side: list = []  # tasks outside the plan (opening drives ahead): cancelled with it
+        self._expected = 0
+        self._lock = threading.Lock()
+        self._done = 0
+        self._bar = self._report = None
+        if callable(progress):
+            self._report = progress
+        elif progress:
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=0, desc=desc, unit="task", dynamic_ncols=True)
+
+    def expect(self, n: int) -> None:
+        """``n`` more tasks are about to be submitted (the total grows as the plan does)."""
+        with self._lock:
+            self._expected += n
+            self._show()
+
+    def submit(self, fn, *args, name: str, priority: int = 0):
+        if len(self.futures) >= self._expected:
+            self.expect(1)
+        fut = self.executor.submit(fn, *args, key=f"{name}-{self.build_id}", priority=priority)
+        self.futures.append(fut)
+        self.names.append(name)
+        fut.add_done_callback(self._tick)
+        return fut
+
+    def _tick(self, _fut) -> None:  # Dask calls it from its own thread
+        with self._lock:
+            self._done += 1
+            try:
+                self._show()
+            except BaseException:
+                # the callback stops a build by raising (a signal came): in the main thread that
+                # ends the build; in Dask's thread the main thread's own signal handler does
+                if threading.current_thread() is threading.main_thread():
+                    raise
+
+    def _show(self) -> None:
+        total = max(self._expected, len(self.futures))
+        if self._bar is not None:
+            self._bar.total = total
+            self._bar.n = self._done
+            self._bar.refresh()
+        elif self._report is not None:
+            self._report(self._done, total)
+
+    def finished(self) -> None:
+        """All done: the total is what ran (skips had no second task)."""
+        with self._lock:
+            self._expected = len(self.futures)
+            self._show()
+
+    def cancel(self) -> None:
+        self.executor.cancel(self.futures + self.side)
+
+    def stats(self) -> dict:
+        """Per task kind (candidate, merge, write, chunk, tile, plan): count, seconds (the tasks'
+        own wall time, summed), cpu_s (their CPU time, summed, and ``cpu_each`` in submission
+        order), bytes written, raw points read."""
+        out: dict[str, dict] = {}
+        for name, fut in zip(self.names, self.futures):
+            r = fut.result()
+            if isinstance(r, DrivePlan):
+                r = {"seconds": r.seconds, "cpu_s": r.cpu_s}
+            row = out.setdefault(name.split("-")[0], {"count": 0, "seconds": 0.0, "cpu_s": 0.0,
+                                                      "bytes": 0, "raw_points": 0, "cpu_each": []})
+            row["count"] += 1
+            row["cpu_each"].append(r.get("cpu_s", 0.0))
+            for k in ("seconds", "cpu_s", "bytes", "raw_points"):
+                row[k] += r.get(k, 0)
+        return out
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+
+
+# ----------------------------------------------------------------------------- the build
+
+
+def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
+                          block_size_m: float = 100.0, tile_size_m: float = 20.0,
+                          voxel_size_m: float = 0.2, keyframe_distance_m: float = 1.0,
+                          keyframe_angle_deg: float = 15.0, deskew: bool = True,
+                          executor=None, progress=False, overwrite: bool = False,
+                          chunk_keyframes: int = CHUNK_KEYFRAMES, params: dict | None = None,
+                          stats: dict | None = None):
+    """Build a block or grid store at ``out`` from mapping drives sharing one map frame.
+
+    drives: :class:`Drive` list (any order: the plan sorts them). kind: 'block' (S =
+    ``block_size_m``) or 'grid' (tiles of ``tile_size_m``). voxel_size_m: voxel filter of blocks
+    and tiles (<= 0: none). executor: None = :class:`InlineExecutor`, or a Dask executor
+    (:func:`blockloc.maps.distributed.open_executor`): the same plan, the same bytes.
+    progress: False, True (a tqdm bar over tasks) or a callback ``(done, total)``. stats: a dict
+    to fill with per-task-kind counts, seconds, bytes and raw points (:meth:`_Tasks.stats`).
+    Returns the opened :class:`~blockloc.maps.store.MapStore`.
+    """
+
+    if kind not in ("block", "grid"):
+        raise MapError(f"map kind {kind!r}: expected block or grid")
+    if not drives:
+        raise MapError("no mapping drive to build a map from")
+    if kind == "block" and not block_size_m > 0:
+        raise MapError(f"block size {block_size_m!r} m: expected a positive number")
+    if kind == "grid":
+        from blockloc.maps.grid_tiles import check_tile_size
+
+        tile_size_m = check_tile_size(tile_size_m)
+    if int(chunk_keyframes) < 1:
+        raise MapError(f"chunk_keyframes {chunk_keyframes!r}: expected an integer >= 1")
+    executor = executor or InlineExecutor()
+    writer = _open_writer(out, kind, overwrite)
+    target = BuildTarget(writer.tmp if isinstance(writer.tmp, str) else str(Path(writer.tmp).resolve()))
+    tasks = _Tasks(executor, progress, f"{kind} map")
+    warm = getattr(executor, "on_each_worker", None)
+    try:
+        if warm is not None:  # not counted as tasks of the plan: they only fill a cache
+            tasks.side = [f for n, d in enumerate(drives[:_OPENED_MAX])
+                          for f in warm(open_drive_task, d, key=f"open-{n}-{tasks.build_id}")]
+        tasks.expect(len(drives))
+        plans = [f.result() for f in [tasks.submit(plan_drive_task, d, keyframe_distance_m,
+                                                   keyframe_angle_deg, name=f"plan-{n}")
+                                      for n, d in enumerate(drives)]]
+        plans.sort(key=DrivePlan.order_key)
+        frames = sorted({p.map_frame for p in plans})
+        if len(frames) > 1:
+            raise MapError(f"drives {', '.join(p.drive.name for p in plans)}: poses in different "
+                           f"map frames ({', '.join(frames)}); expected one shared frame")
+        common = {"sequence": " + ".join(p.drive.name for p in plans),
+                  "keyframe_distance_m": keyframe_distance_m,
+                  "keyframe_angle_deg": keyframe_angle_deg, "deskew": deskew}
+        if len(plans) > 1:
+            common["drives"] = [{"sequence": p.drive.name, "first_stamp": float(p.stamps[0]),
+                                 "keyframes": len(p.frames)} for p in plans]
+        common.update(params or {})
+        if kind == "block":
+            entries, p = _blocks(tasks, target, plans, block_size_m, voxel_size_m, deskew)
+        else:
+            entries, p = _tiles(tasks, target, plans, tile_size_m, voxel_size_m, deskew,
+                                int(chunk_keyframes))
+            common["chunk_keyframes"] = int(chunk_keyframes)
+        target.remove_scratch()
+        for e in entries:
+            writer.add_entry(e)
+        writer.params = {**p, **common}
+        writer.frame = frames[0]
+        store = writer.commit()
+    except BaseException:
+        tasks.cancel()
+        writer.abort()
+        raise
+    finally:
+        tasks.finished()
+        tasks.close()
+        tasks.side = []  # releases them (a worker that died never ran its own)
+        if isinstance(executor, InlineExecutor):
+            forget_drives(drives)
+    if stats is not None:
+        stats.update(tasks=tasks.stats(), drives=len(plans),
+                     keyframes=int(sum(len(p.frames) for p in plans)),
+                     path_m=float(sum(np.linalg.norm(np.diff(p.positions, axis=0), axis=1).sum()
+                                      for p in plans)))
+    log.info("%s map %s: %d entries from %d drive(s), %d tasks (%s)", kind, out, len(store),
+             len(plans), len(tasks.futures), getattr(executor, "description", executor))
+    return store
+
+
+def build_block_map_from_sequence(seq, *, out: str | Path, max_frames: int | None = None,
+                                  **settings):
+    """Block map from one mapping sequence and its ``mapping_poses()`` (its first ``max_frames``
+    frames), written atomically to ``out``: :func:`build_map_from_drives` with one drive;
+    ``settings``: its keyword arguments (block_size_m, keyframe_distance_m, keyframe_angle_deg,
+    voxel_size_m, deskew, executor, progress, overwrite). Returns the opened store."""
+    return build_map_from_drives([Drive.of(seq, stop=max_frames)], "block", out, **settings)
+
+
+def build_grid_map_from_sequence(seq, *, out: str | Path, max_frames: int | None = None,
+                                 **settings):
+    """Grid store from one mapping sequence (tile_size_m and the rest of ``settings`` as for
+    :func:`build_block_map_from_sequence`): each tile holds the voxel filter of its points."""
+    return build_map_from_drives([Drive.of(seq, stop=max_frames)], "grid", out, **settings)
+
+
+def _open_writer(out, kind: str, overwrite: bool):
+    from blockloc.maps.remote import is_url
+    from blockloc.maps.store import MapWriter
+
+    if is_url(out):
+        return UrlMapWriter(str(out), kind, overwrite=overwrite)
+    w = MapWriter(out, kind, overwrite=overwrite)
+    (w.tmp / SCRATCH).mkdir()
+    return w
+
+
+class UrlMapWriter:
+    """A store written straight to a URL prefix (``s3://bucket/maps/city``, any writable fsspec
+    URL), with the interface of :class:`~blockloc.maps.store.MapWriter` the plan uses.
+
+    An object store has no rename, so the order of the writes is the commit: an ``.incomplete``
+    marker first (:func:`~blockloc.maps.store.open_map` refuses a store holding one), then the
+    entries (written by the tasks), then the kind's extra files and last the manifest, then the
+    marker goes. ``overwrite`` deletes the old manifest first, so no reader mixes old and new
+    files. :meth:`abort` deletes everything under the prefix (it held nothing or a replaced
+    store).
+    """
+
+    def __init__(self, url: str, kind: str, *, frame: str = "map", overwrite: bool = False):
+        from fsspec.core import url_to_fs
+
+        from blockloc.maps.store import INCOMPLETE_MARKER, MANIFEST_NAME
+
+        self.tmp = str(url).rstrip("/")
+        self.kind, self.frame, self.params = kind, frame, {}
+        self.entries: list = []
+        self._fs, self._root = url_to_fs(self.tmp)
+        names = [Path(n).name for n in self._fs.ls(self._root, detail=False)] \
+            if self._fs.isdir(self._root) else []
+        if names and MANIFEST_NAME not in names:
+            raise MapError(f"{self.tmp}: holds files but no map store; not writing a map there")
+        if MANIFEST_NAME in names:
+            if not overwrite:
+                raise MapError(f"{self.tmp}: already holds a map store (choose another --out, or "
+                               "--overwrite to replace it)")
+            self._fs.rm(f"{self._root}/{MANIFEST_NAME}")
+        self._fs.pipe_file(f"{self._root}/{INCOMPLETE_MARKER}",
+                           f"build started by pid {os.getpid()}\n".encode())
+
+    def add_entry(self, entry):
+        self.entries.append(entry)
+        return entry
+
+    def commit(self):
+        """Extra files, then the manifest, then the marker goes; returns the opened store."""
+        import tempfile
+
+        from blockloc.maps.store import INCOMPLETE_MARKER, MANIFEST_NAME, MapWriter, open_map
+
+        with tempfile.TemporaryDirectory(prefix="blockloc-manifest-") as tmp:
+            staging = MapWriter(Path(tmp) / "m", self.kind, frame=self.frame, params=self.params)
+            for e in self.entries:
+                staging.add_entry(e)
+            staging.commit()  # writes the extras and the manifest (the entries are remote)
+            made = sorted(p.name for p in (Path(tmp) / "m").iterdir())
+            for name in [n for n in made if n != MANIFEST_NAME] + [MANIFEST_NAME]:
+                self._fs.pipe_file(f"{self._root}/{name}", (Path(tmp) / "m" / name).read_bytes())
+        self._fs.rm(f"{self._root}/{INCOMPLETE_MARKER}")
+        log.info("wrote %s map %s: %d entries", self.kind, self.tmp, len(self.entries))
+        return open_map(self.tmp, cache_dir=False)
+
+    def abort(self) -> None:
+        try:
+            if self._fs.exists(self._root):
+                self._fs.rm(self._root, recursive=True)
+        except OSError as exc:
+            log.warning("%s: could not remove the failed build (%s)", self.tmp, exc)
+
+
+def _entry(r: dict, entry_id: str, keyframes: np.ndarray | None = None):
+    from blockloc.maps.store import MapEntry
+
+    return MapEntry(entry_id, r["file"], np.asarray(r["bounds_min"], float),
+                    np.asarray(r["bounds_max"], float), np.asarray(r["centroid"], float),
+                    int(r["num_points"]), int(r["bytes"]), r["sha256"], keyframes)
+
+
+def _blocks(tasks: _Tasks, target: BuildTarget, plans: list[DrivePlan], block_size_m: float,
+            voxel_size_m: float, deskew: bool):
+    """Algorithm 1 over the drives' keyframes: candidate tasks, decisions here, merge and write
+    tasks. Returns (entries, parameters)."""
+    from blockloc.maps.block_maps import BlockLedger, CandidateSegmenter
+
+    positions = np.concatenate([p.positions for p in plans])
+    frames = np.concatenate([p.frames for p in plans])
+    candidates = []  # (drive number, Candidate); keys index the concatenated keyframes
+    base = 0
+    for d, plan in enumerate(plans):
+        seg = CandidateSegmenter(block_size_m)
+        for k in range(len(plan.frames)):
+            closed = seg.add(base + k, positions[base + k])
+            if closed is not None:
+                candidates.append((d, closed))
+        tail = seg.finish()
+        if tail is not None:
+            candidates.append((d, tail))
+        base += len(plan.frames)
+    # every candidate: its own task, then a merge or a write (or nothing: a skip)
+    tasks.expect(2 * len(candidates))
+    futures = [tasks.submit(block_candidate_task, plans[d].drive, frames[c.keys].tolist(),
+                            voxel_size_m, deskew, target, f"{SCRATCH}/candidate-{n}.npy",
+                            name=f"candidate-{n}")
+               for n, (d, c) in enumerate(candidates)]
+    ledger = BlockLedger(block_size_m)
+    versions: list[str] = []  # scratch name of each block's latest points
+    writers: list = []  # the task that wrote it (a dependency of the next merge or the write)
+    boxes: list[tuple[np.ndarray, np.ndarray]] = []  # bounds of each block's points
+    merging: dict[int, Any] = {}  # block -> its latest merge task, centroid not known yet
+
+    def resolve(blocks) -> None:
+        for j in blocks:
+            ledger.renew(j, merging.pop(j).result()["centroid"])
+
+    drive = None
+    for n, (d, cand) in enumerate(candidates):
+        if d != drive:
+            ledger.start_drive()
+            drive = d
+        r = futures[n].result()
+        if r["name"] is None:
+            log.debug("candidate %d (%s): no points, no block", n, plans[d].drive.name)
+            continue
+        ev = ledger.decide(cand.keys, r["centroid"], cand.short, resolve)
+        j = ev.block
+        if ev.action == "new":
+            versions.append(r["name"])
+            writers.append(futures[n])
+            boxes.append((r["lo"], r["hi"]))
+            log.info("block %03d: %d keyframes, %d points", j, len(cand.keys), r["num_points"])
+        elif ev.action in ("merge", "tail"):
+            lo, hi = np.minimum(boxes[j][0], r["lo"]), np.maximum(boxes[j][1], r["hi"])
+            boxes[j] = (lo, hi)
+            name = f"{SCRATCH}/block-{j}-{n}.npy"
+            merging[j] = writers[j] = tasks.submit(
+                block_merge_task, target, versions[j], r["name"], name, voxel_size_m, writers[j],
+                futures[n], name=f"merge-{j}-{n}", priority=10)
+            versions[j] = name
+            ledger.hold(j, lo - _BOX_PAD_M, hi + _BOX_PAD_M)
+    if not versions:
+        raise MapError(f"{' + '.join(p.drive.name for p in plans)}: no points in any keyframe, "
+                       "no block to write")
+    resolve(list(merging))
+    writes = [tasks.submit(block_write_task, target, versions[j], f"{j:03d}.pcd", writers[j],
+                           name=f"write-{j:03d}", priority=5) for j in range(len(versions))]
+    entries = []
+    for j, f in enumerate(writes):
+        keys = ledger.covered_keys(j)
+        entries.append(_entry(f.result(), f"{j:03d}", positions[keys].reshape(-1, 3)))
+    p = {"block_size_m": float(block_size_m), "voxel_size_m": float(voxel_size_m),
+         "num_keyframes": int(len(positions)), "events": ledger.event_counts()}
+    return entries, p
+
+
+def _tiles(tasks: _Tasks, target: BuildTarget, plans: list[DrivePlan], tile_size_m: float,
+           voxel_size_m: float, deskew: bool, chunk: int):
+    """Grid tiles: chunk tasks (read, deskew, bin, sum by voxel), then one task per tile.
+    Returns (entries, parameters)."""
+    from blockloc.maps.grid_tiles import name_decimals, tile_name
+
+    chunks = [(d, plan.frames[i:i + chunk].tolist()) for d, plan in enumerate(plans)
+              for i in range(0, len(plan.frames), chunk)]
+    tasks.expect(len(chunks))
+    futures = [tasks.submit(grid_chunk_task, plans[d].drive, fr, tile_size_m, voxel_size_m, deskew,
+                            target, f"{SCRATCH}/chunk-{n}.bin", name=f"chunk-{n}")
+               for n, (d, fr) in enumerate(chunks)]
+    parts: dict[tuple[int, int], list[tuple[str, int, int]]] = {}
+    for f in futures:  # in plan order: a tile's parts are merged in the same order every time
+        r = f.result()
+        for ix, iy, r0, r1 in r["tiles"]:
+            parts.setdefault((int(ix), int(iy)), []).append((r["name"], int(r0), int(r1)))
+    if not parts:
+        raise MapError(f"{' + '.join(p.drive.name for p in plans)}: no points in any keyframe, "
+                       "no tile to write")
+    dec = name_decimals(tile_size_m)
+    cells = sorted(parts)
+    names = [tile_name(ix, iy, tile_size_m, dec) for ix, iy in cells]
+    batches = [list(zip(cells[i:i + TILES_PER_TASK], names[i:i + TILES_PER_TASK]))
+               for i in range(0, len(cells), TILES_PER_TASK)]
+    tasks.expect(len(batches))
+    writes = [tasks.submit(grid_tile_task, target, [(c, parts[c], f"{nm}.pcd") for c, nm in batch],
+                           tile_size_m, voxel_size_m, name=f"tiles-{n}") for n, batch in enumerate(batches)]
+    entries = [_entry(r, nm) for f, batch in zip(writes, batches)
+               for r, (_, nm) in zip(f.result()["entries"], batch)]
+    log.info("tiled %d points into %d tiles of %.3g m", sum(e.num_points for e in entries),
+             len(entries), tile_size_m)
+    p = {"tile_size_m": tile_size_m, "origin": [0.0, 0.0], "name_decimals": dec,
+         "voxel_size_m": float(voxel_size_m), "num_keyframes": int(sum(len(p.frames) for p in plans))}
+    return entries, p

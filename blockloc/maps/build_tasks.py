@@ -1,0 +1,332 @@
+"""The tasks of the map build plan (:mod:`blockloc.maps.build_plan`): pure functions of their
+arguments that read scans, write into the build directory and return small numbers.
+
+Every task opens the drives it reads itself (once per process, :func:`_opened`), writes
+atomically (:class:`BuildTarget`: a temporary name, then a rename; an object store's put), and
+returns a dict with what the client needs (centroids, bounds, counts, checksums) plus its own
+wall time, bytes written and raw points read. A task run twice (Dask reruns a killed worker's
+tasks) writes the same bytes again. No task holds more than one candidate block (or one block
+and one candidate, for a merge) or one chunk of keyframes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+import shutil
+import threading
+import time
+import uuid
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+SCRATCH = ".work"
+_OPENED_MAX = 4  # opened drives a process keeps (a simulated world, a bag's index)
+
+
+# ----------------------------------------------------------------------------- drives
+
+
+@dataclass(frozen=True)
+class Drive:
+    """One mapping drive: how a worker opens its sequence, and which frames to map.
+
+    name: for messages and the manifest. open: a picklable callable returning the Sequence (with
+    ``mapping_poses()``); key: names what ``open`` returns (tasks of a worker share one opened
+    sequence per key). Frames ``start .. stop-1`` (stop None: to the end).
+    """
+
+    name: str
+    open: Callable[[], Any]
+    key: str
+    start: int = 0
+    stop: int | None = None
+
+    @classmethod
+    def of(cls, seq, start: int = 0, stop: int | None = None, name: str | None = None) -> "Drive":
+        """A drive of an opened sequence (pickled with the tasks when run on a cluster); name
+        defaults to the sequence's."""
+        return cls(name or seq.info.name, _Given(seq), f"given-{uuid.uuid4().hex}", int(start),
+                   None if stop is None else int(stop))
+
+
+class _Given:
+    """An already opened sequence as a drive's opener."""
+
+    def __init__(self, seq) -> None:
+        self.seq = seq
+
+    def __call__(self):
+        return self.seq
+
+
+@dataclass(frozen=True)
+class DrivePlan:
+    """A drive's keyframes (:class:`~blockloc.maps.mapping.KeyframePlan` fields) and map frame."""
+
+    drive: Drive
+    frames: np.ndarray  # (K,) int64
+    T_map_lidar: np.ndarray  # (K, 4, 4)
+    stamps: np.ndarray  # (K,) float64 s
+    num_frames: int
+    map_frame: str
+    seconds: float = 0.0  # the planning task's wall time (opening the drive included)
+    cpu_s: float = 0.0  # and its thread's CPU time
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self.T_map_lidar[:, :3, 3]
+
+    def order_key(self) -> tuple:
+        return (float(self.stamps[0]), self.drive.name, self.drive.start)
+
+
+_OPENED: "OrderedDict[str, tuple]" = OrderedDict()
+_OPENED_LOCK = threading.Lock()
+
+
+def _opened(drive: Drive) -> tuple:
+    """(sequence, mapping trajectory, T_body_lidar) of a drive, opened once per process."""
+    from blockloc.maps.mapping import mapping_poses_or_fail
+
+    with _OPENED_LOCK:
+        if drive.key in _OPENED:
+            _OPENED.move_to_end(drive.key)
+            return _OPENED[drive.key]
+        seq = drive.open()
+        item = (seq, mapping_poses_or_fail(seq), np.asarray(seq.info.T_body_lidar, np.float64))
+        _OPENED[drive.key] = item
+        while len(_OPENED) > _OPENED_MAX:
+            _OPENED.popitem(last=False)
+        return item
+
+
+def forget_drives(drives) -> None:
+    """Drop the opened sequences of ``drives`` from this process's cache."""
+    with _OPENED_LOCK:
+        for d in drives:
+            _OPENED.pop(d.key, None)
+
+
+# ----------------------------------------------------------------------------- where tasks write
+
+
+@dataclass(frozen=True)
+class BuildTarget:
+    """The build directory tasks write into: an absolute local path or a URL (fsspec).
+
+    Names are relative (``000.pcd``, ``.work/candidate-3.npy``). Writes are atomic: a local file
+    is written under :data:`SCRATCH` and renamed into place; an object store's put is atomic.
+    """
+
+    root: str
+
+    @property
+    def is_url(self) -> bool:
+        from blockloc.maps.remote import is_url
+
+        return is_url(self.root)
+
+    def _fs(self):
+        from fsspec.core import url_to_fs
+
+        return url_to_fs(self.root)
+
+    def write(self, name: str, data: bytes) -> None:
+        if self.is_url:
+            fs, root = self._fs()
+            fs.pipe_file(f"{root}/{name}", data)
+            return
+        tmp = Path(self.root) / SCRATCH / f".{Path(name).name}.{uuid.uuid4().hex}.tmp"
+        try:
+            with open(tmp, "wb") as fh:  # never mkdir: a removed build directory stays removed
+                fh.write(data)
+            os.replace(tmp, Path(self.root) / name)
+        finally:
+            tmp.unlink(missing_ok=True)
+
+    def read(self, name: str, start: int | None = None, end: int | None = None) -> bytes:
+        if self.is_url:
+            fs, root = self._fs()
+            return fs.cat_file(f"{root}/{name}", start=start, end=end)
+        with open(Path(self.root) / name, "rb") as fh:
+            if start is None:
+                return fh.read()
+            fh.seek(start)
+            return fh.read(end - start)
+
+    def remove_scratch(self) -> None:
+        if self.is_url:
+            fs, root = self._fs()
+            if fs.exists(f"{root}/{SCRATCH}"):
+                fs.rm(f"{root}/{SCRATCH}", recursive=True)
+        else:
+            shutil.rmtree(Path(self.root) / SCRATCH, ignore_errors=True)
+
+
+def _save_cloud(target: BuildTarget, name: str, points: np.ndarray, intensity) -> int:
+    """Scratch cloud: (N, 3) float32, or (N, 4) with intensity as the last column; returns the
+    bytes written."""
+    arr = points if intensity is None else np.c_[points, intensity]
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(arr, np.float32), allow_pickle=False)
+    target.write(name, buf.getvalue())
+    return buf.getbuffer().nbytes
+
+
+def _load_cloud(target: BuildTarget, name: str) -> tuple[np.ndarray, np.ndarray | None]:
+    arr = np.load(io.BytesIO(target.read(name)), allow_pickle=False)
+    if arr.shape[1] == 4:
+        return np.ascontiguousarray(arr[:, :3]), np.ascontiguousarray(arr[:, 3])
+    return arr, None
+
+
+def _write_entry(target: BuildTarget, file: str, points: np.ndarray, intensity) -> dict:
+    """Encode one block/tile as PCD, write it, return its manifest numbers."""
+    from blockloc.maps.pcd import encode_pcd
+    from blockloc.maps.store import entry_stats
+
+    data = encode_pcd(points, intensity)
+    target.write(file, data)
+    lo, hi, mean = entry_stats(points)
+    return {"file": file, "bounds_min": lo, "bounds_max": hi, "centroid": mean,
+            "num_points": int(len(points)), "bytes": len(data),
+            "sha256": hashlib.sha256(data).hexdigest()}
+
+
+# ----------------------------------------------------------------------------- the tasks
+
+
+def _timed(fn):
+    """A task that also reports its own wall time and its thread's CPU time (``seconds``,
+    ``cpu_s`` in its result): the per-task costs of the benchmark's projection. CPU time is what
+    a task costs on a core of its own, also on a shared machine where wall time is not."""
+    import functools
+
+    @functools.wraps(fn)
+    def task(*args):
+        t0, c0 = time.perf_counter(), time.thread_time()
+        out = fn(*args)
+        if isinstance(out, dict):
+            out["seconds"], out["cpu_s"] = time.perf_counter() - t0, time.thread_time() - c0
+        return out
+
+    return task
+
+
+def open_drive_task(drive: Drive) -> None:
+    """Task: open a drive in this process ahead of its first scan task (a simulated world or a
+    bag index takes seconds to build; every worker does it at once, while the drives are
+    planned)."""
+    _opened(drive)
+
+
+def plan_drive_task(drive: Drive, keyframe_distance_m: float, keyframe_angle_deg: float) -> DrivePlan:
+    """Task: the drive's keyframes and poses (reads stamps and poses, no scan)."""
+    from blockloc.maps.mapping import plan_keyframes
+
+    t0, c0 = time.perf_counter(), time.thread_time()
+    seq, _, _ = _opened(drive)
+    plan = plan_keyframes(seq, keyframe_distance_m=keyframe_distance_m,
+                          keyframe_angle_deg=keyframe_angle_deg, start=drive.start, stop=drive.stop)
+    return DrivePlan(drive, plan.frames, plan.T_map_lidar, plan.stamps, plan.num_frames,
+                     str(getattr(seq.info, "map_frame", "map")), time.perf_counter() - t0,
+                     time.thread_time() - c0)
+
+
+def _keyframe_clouds(drive: Drive, frames: list[int], deskew: bool):
+    from blockloc.maps.mapping import keyframe_points
+
+    seq, traj, T_body_lidar = _opened(drive)
+    for i in frames:
+        yield keyframe_points(seq, i, traj, T_body_lidar, deskew)
+
+
+@_timed
+def block_candidate_task(drive: Drive, frames: list[int], voxel_size_m: float, deskew: bool,
+                         target: BuildTarget, name: str) -> dict | None:
+    """Task: a candidate block's points (its keyframes read, deskewed, voxel-filtered in order)
+    saved as ``name``; returns centroid (3,), bounds lo/hi (3,) and the point counts (``name``
+    None when the keyframes hold no point)."""
+    from blockloc.maps.block_maps import VoxelAccumulator, block_centroid
+
+    acc = VoxelAccumulator(voxel_size_m)
+    raw = 0
+    for pts, inten in _keyframe_clouds(drive, frames, deskew):
+        acc.add(pts, inten)
+        raw += len(pts)
+    pts, inten = acc.result()
+    if len(pts) == 0:
+        return {"name": None, "raw_points": raw, "bytes": 0}
+    return {"name": name, "centroid": block_centroid(pts), "lo": pts.min(axis=0).astype(np.float64),
+            "hi": pts.max(axis=0).astype(np.float64), "num_points": len(pts), "raw_points": raw,
+            "bytes": _save_cloud(target, name, pts, inten)}
+
+
+@_timed
+def block_merge_task(target: BuildTarget, block_name: str, candidate_name: str, out_name: str,
+                     voxel_size_m: float, *after) -> dict:
+    """Task: block version ``block_name`` merged with a candidate, saved as ``out_name``;
+    returns the new centroid (3,) and point count. ``after``: the tasks that wrote the inputs."""
+    from blockloc.maps.block_maps import block_centroid, merge_block_points
+
+    pts, inten = _load_cloud(target, block_name)
+    more, more_inten = _load_cloud(target, candidate_name)
+    pts, inten = merge_block_points(pts, inten, more, more_inten, voxel_size_m)
+    return {"name": out_name, "centroid": block_centroid(pts), "num_points": len(pts),
+            "bytes": _save_cloud(target, out_name, pts, inten)}
+
+
+@_timed
+def block_write_task(target: BuildTarget, version_name: str, file: str, *after) -> dict:
+    """Task: a block's last version written as its entry ``file``; returns its manifest numbers."""
+    pts, inten = _load_cloud(target, version_name)
+    return _write_entry(target, file, pts, inten)
+
+
+@_timed
+def grid_chunk_task(drive: Drive, frames: list[int], tile_size_m: float, voxel_size_m: float,
+                    deskew: bool, target: BuildTarget, name: str) -> dict:
+    """Task: a run of keyframes read, deskewed, binned into tiles and summed by voxel; the
+    records of every tile saved one after another as ``name``. Returns ``tiles``: [(ix, iy,
+    first record, end record)] and the raw point count."""
+    from blockloc.maps.grid_tiles import tile_voxel_sums
+
+    pts, inten = [], []
+    for p, i in _keyframe_clouds(drive, frames, deskew):
+        pts.append(p)
+        inten.append(np.zeros(len(p), np.float32) if i is None else np.asarray(i, np.float32))
+    pts = np.concatenate(pts) if pts else np.zeros((0, 3))
+    inten = np.concatenate(inten) if inten else np.zeros(0, np.float32)
+    finite = np.isfinite(pts).all(axis=1)
+    tiles, parts, row = [], [], 0
+    for (ix, iy), rec in tile_voxel_sums(pts[finite], inten[finite], tile_size_m, voxel_size_m):
+        tiles.append((ix, iy, row, row + len(rec)))
+        parts.append(rec)
+        row += len(rec)
+    data = b"".join(r.tobytes() for r in parts)
+    target.write(name, data)
+    return {"name": name, "tiles": tiles, "raw_points": int(len(pts)), "bytes": len(data)}
+
+
+@_timed
+def grid_tile_task(target: BuildTarget, tiles: list[tuple[tuple[int, int], list, str]],
+                   tile_size_m: float, voxel_size_m: float) -> dict:
+    """Task: tiles, one after another: each tile's voxel sums from every chunk (``(cell, parts,
+    file)``, parts: (chunk file, first record, end record) in plan order) merged and written as
+    entry ``file``. Returns ``entries``: their manifest numbers, in the given order."""
+    from blockloc.maps.grid_tiles import VOXEL_SUM, merge_voxel_sums, voxel_sum_points
+
+    size = VOXEL_SUM.itemsize
+    entries = []
+    for cell, parts, file in tiles:
+        recs = [np.frombuffer(target.read(name, r0 * size, r1 * size), VOXEL_SUM)
+                for name, r0, r1 in parts]
+        pts, inten = voxel_sum_points(merge_voxel_sums(recs, voxel_size_m), cell, tile_size_m)
+        entries.append(_write_entry(target, file, pts, inten))
+    return {"entries": entries, "bytes": sum(e["bytes"] for e in entries)}

@@ -1,0 +1,37 @@
+"""bench.city's pieces that need no cluster: the preset check and the projection model."""
+
+from __future__ import annotations
+
+import pytest
+
+from bench.city import TARGET, cpu_model, preset_sessions, projection
+
+
+def test_missing_preset_is_one_line():
+    with pytest.raises(SystemExit, match="no 'nowhere' simulated preset in blockloc.sim.presets"):
+        preset_sessions("nowhere")
+    assert preset_sessions("campus") == (["map"], "loc")
+
+
+def test_projection_scales_counts_and_divides_work():
+    serial = {"stats": {"path_m": 10_000.0, "tasks": {
+        "plan": {"count": 1, "seconds": 10.0}, "candidate": {"count": 100, "seconds": 500.0},
+        "merge": {"count": 10, "seconds": 5.0}, "write": {"count": 80, "seconds": 8.0}}},
+        "bounds": [[0.0, 0.0, 0.0], [1000.0, 1000.0, 10.0]]}  # 10 km over 1 km^2
+    pj = projection(serial, {"task_overhead_s": 0.001}, "block")
+    rows = pj["rows"]
+    assert rows["candidate"]["count"] == pytest.approx(100 * TARGET["path_km"] / 10.0)
+    assert rows["write"]["count"] == pytest.approx(80 * TARGET["area_km2"] / 1.0)
+    assert rows["candidate"]["cost_s"] == pytest.approx(5.0)
+    w8, w32, w128 = (pj["times_s"][w] for w in TARGET["workers"])
+    assert w8 > w32 > w128 >= pj["merge_chain_s"] + pj["tasks"] * 0.001
+    assert w8 == pytest.approx(pj["work_s"] / 8 + pj["tasks"] * 0.001 + pj["merge_chain_s"])
+
+
+def test_cpu_model_schedules_reading_tasks_on_the_first_free_worker():
+    st = {"tasks": {"plan": {"cpu_each": [2.0], "cpu_s": 2.0},
+                    "candidate": {"cpu_each": [4.0, 3.0, 3.0, 2.0], "cpu_s": 12.0},
+                    "write": {"cpu_each": [0.5] * 4, "cpu_s": 2.0}}}
+    assert cpu_model(st, 1) == pytest.approx(16.0)  # everything in sequence
+    # two workers: 2 + (4 | 3 + 3 -> 2 on the first free) = 2 + max(4 + 2, 6) = 8, then writes / 2
+    assert cpu_model(st, 2) == pytest.approx(2.0 + 6.0 + 1.0)

@@ -1,0 +1,111 @@
+"""The build plan (serial) against the in-memory Algorithm 1, and the ledger's waiting rule."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from blockloc.errors import MapError
+from blockloc.maps.block_maps import BlockLedger, BlockMapBuilder, write_block_map
+from blockloc.maps.build_plan import Drive, build_map_from_drives
+from blockloc.maps.grid_tiles import GridMapBuilder, tile_bounds
+from blockloc.maps.mapping import mapping_keyframes
+from blockloc.maps.store import open_map
+
+from .synthetic import MemorySequence, route, world_points
+
+
+@pytest.fixture(scope="module")
+def world():
+    return world_points(extent=(-40, 170), seed=8, density=0.25)
+
+
+@pytest.fixture(scope="module")
+def loop_seq(world):
+    """Out, and back on a road 8 m away: new blocks and merges."""
+    traj = route([[0, 0], [120, 0], [120, 8], [0, 8]], speed=4.0)
+    return MemorySequence(world, traj, radius=22.0, name="loop")
+
+
+def test_plan_blocks_equal_the_in_memory_builder(tmp_path, world, loop_seq, monkeypatch):
+    """Two drives (the loop, then the loop again an hour later: its blocks are skipped) through
+    the plan and through BlockMapBuilder: the same entries and manifest, byte for byte."""
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
+    again = MemorySequence(world, route([[0, 0], [120, 0], [120, 8], [0, 8]], speed=4.0, t0=3700.0),
+                           radius=22.0, name="again")
+    kw = dict(keyframe_distance_m=2.0, keyframe_angle_deg=15.0)
+    plan = build_map_from_drives([Drive.of(again), Drive.of(loop_seq)], "block", tmp_path / "plan",
+                                 block_size_m=30.0, voxel_size_m=0.3, **kw)
+    ev = plan.params["events"]
+    assert ev["merge"] >= 1 and ev["skip"] >= 1  # the route exercises every decision
+    builder = BlockMapBuilder(30.0, 0.3)
+    key = 0
+    for seq in (loop_seq, again):  # the plan's order: first stamp first
+        for kf in mapping_keyframes(seq, **kw):
+            builder.add(key, kf.position, kf.points_map, kf.intensity)
+            key += 1
+        builder.end_drive()
+    builder.finish()
+    params = {k: plan.params[k] for k in ("sequence", "keyframe_distance_m", "keyframe_angle_deg",
+                                          "deskew", "drives")}
+    ref = write_block_map(builder, tmp_path / "memory", params=params)
+    assert [(e.id, e.sha256) for e in plan.entries] == [(e.id, e.sha256) for e in ref.entries]
+    assert (tmp_path / "plan" / "manifest.json").read_bytes() == (tmp_path / "memory" / "manifest.json").read_bytes()
+
+
+def test_plan_grid_holds_the_voxel_filter_of_the_union(tmp_path, loop_seq):
+    kw = dict(keyframe_distance_m=2.0, keyframe_angle_deg=15.0)
+    plan = build_map_from_drives([Drive.of(loop_seq)], "grid", tmp_path / "plan", tile_size_m=10.0,
+                                 voxel_size_m=0.3, chunk_keyframes=7, **kw)
+    # the in-memory builder sums the same voxels scan by scan: same voxels, same centroids
+    gb = GridMapBuilder(10.0, 0.3)
+    for k in mapping_keyframes(loop_seq, **kw):
+        gb.add(k.points_map, k.intensity)
+    ref = gb.finish(tmp_path / "memory")
+    assert plan.ids == ref.ids
+    for eid in plan.ids:
+        p, i = plan.load(eid)
+        q, j = ref.load(eid)
+        np.testing.assert_allclose(p, q, atol=1e-4)
+        np.testing.assert_allclose(i, j, atol=1e-4)
+        lo, hi = tile_bounds(eid, 10.0)
+        assert np.all(p[:, :2] >= lo) and np.all(p[:, :2] < hi)
+    # and a chunk size is a plan parameter: recorded, and the voxels do not depend on it
+    other = build_map_from_drives([Drive.of(loop_seq)], "grid", tmp_path / "c32", tile_size_m=10.0,
+                                  voxel_size_m=0.3, **kw)
+    assert plan.params["chunk_keyframes"] == 7 and other.params["chunk_keyframes"] == 32
+    assert other.total_points == plan.total_points
+
+
+def test_ledger_waits_only_for_a_held_block_that_could_be_nearest():
+    led = BlockLedger(100.0)
+    led.decide([0], [0.0, 0.0, 0.0])
+    led.decide([1], [300.0, 0.0, 0.0])
+    led.decide([2], [320.0, 0.0, 0.0])  # 20 m from block 1: a merge
+    assert led.events[-1].action == "merge" and led.events[-1].block == 1
+    led.hold(1, np.array([290.0, -5, -5]), np.array([330.0, 5, 5]))
+    waited = []
+
+    def resolve(blocks):
+        waited.extend(blocks)
+        for j in blocks:
+            led.renew(j, [310.0, 0.0, 0.0])
+
+    ev = led.decide([3], [5.0, 0.0, 0.0], resolve=resolve)  # near block 0: block 1 cannot be nearest
+    assert waited == [] and ev.action == "skip" and ev.block == 0
+    ev = led.decide([4], [340.0, 0.0, 0.0], resolve=resolve)  # near the held box: must wait
+    assert waited == [1] and ev.block == 1 and ev.distance_m == pytest.approx(30.0)
+    with pytest.raises(MapError, match="block size"):
+        BlockLedger(0)
+
+
+def test_plan_rejects_bad_input_before_writing(tmp_path, loop_seq):
+    with pytest.raises(MapError, match="no mapping drive"):
+        build_map_from_drives([], "block", tmp_path / "m")
+    with pytest.raises(MapError, match="kind"):
+        build_map_from_drives([Drive.of(loop_seq)], "tiles", tmp_path / "m")
+    with pytest.raises(MapError, match="frame range|no LiDAR frame"):
+        build_map_from_drives([Drive.of(loop_seq, start=10_000)], "block", tmp_path / "m")
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(MapError):
+        open_map(tmp_path / "m")
