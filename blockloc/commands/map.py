@@ -152,7 +152,7 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
             store = build_map_from_specs(drives, kind, out, map_cfg, overwrite=overwrite,
                                          progress=report, executor=ex)
     if not is_url(str(out)):  # the place index (no-hint relocalization) goes with a local map
-        store = add_place_index(out, drives[0].spec().info.gravity_map, cfg)
+        store = add_place_index(out, drives[0].open().info.gravity_map, cfg)
     print_summary(map_summary(store), console())
 
 
