@@ -364,12 +364,12 @@ def main(argv: list[str] | None = None) -> int:
                 last_ck = now
                 print(f"[{(now - t0) / 60:.1f} min] {n} scans, " + ", ".join(
                     f"{r.backend}: core median {np.median(r.rows['core_ms']):.1f} ms, failures "
-                    f"{r.pipe.tracker.counters['failures']}" for r in runs), flush=True)
+                    f"{r.session.tracker.counters['failures']}" for r in runs), flush=True)
             if now - t0 >= args.minutes * 60:
                 break
     finally:
         for r in runs:
-            r.pipe.provider.close()
+            r.session.provider.close()
         checkpoint(args.start + n >= stop)
     print(write_fragment(state, Path(args.out)))
     return 0

@@ -98,6 +98,8 @@ def main(argv=None) -> int:
     ap.add_argument("--backends", default=",".join(MAP_BACKENDS + (VGICP_BLOCK, ODOM, KISS)),
                     help="backends; backend@engine runs it with registration.method=engine")
     ap.add_argument("--out", default=str(OUT))
+    ap.add_argument("--title", default="Tracking: the papers' tables on the small world",
+                    help="the fragment's heading (another --out needs another title)")
     ap.add_argument("--cluster", default=None, metavar="local:N|tcp://HOST:PORT",
                     help="run the backends x repeats as Dask tasks (each still in its own child process)")
     args = ap.parse_args(argv)
@@ -144,7 +146,7 @@ def main(argv=None) -> int:
         rep_note += (f"; runs fanned out as Dask tasks on `{args.cluster}`, several at once, so per-scan "
                      "times include their contention")
     lines = [
-        "## Tracking: the papers' tables on the small world",
+        f"## {args.title}",
         "",
         f"Command: `{cmd}` ({time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {wall:.0f} s).",
         f"Machine: {machine()}. Load average (1 min) {load0:.1f} before and {load1:.1f} after (other processes "

@@ -180,11 +180,11 @@ def test_global_init_notes_follow_the_figures():
     from bench.global_init import notes
 
     small = {"methods": {"bbs+s0": _gi_method(0.9, [(463, 4.3)]), "bbs": _gi_method(0.2)}, "reloc": None}
-    text = notes(small, {"map_points": 10, "methods": {}, "reloc": {"frames": 10, "success": 0.9, "time_s": 50.0,
-                                                                     "rank": 4, "regions": 4, "last_rank_share": 0.5}})
+    text = notes(small, {"map_points": 10, "methods": {}, "reloc": {"place index": {
+        "frames": 10, "success": 0.9, "time_s": 1.25, "wrong_verified": 1}}})
     assert "**missed**" in text  # 90% success is below the 98% target
     assert "failure reproduces" in text  # plain BBS at 20%
     assert "463 (4.30 m off)" in text
-    assert "region 4 of 4" in text and "ranked poorly" in text
+    assert "no hint (place index): 90% of 10 frames, 1.2 s median, 1 wrong verified" in text
     good = notes({"methods": {"bbs+s0": _gi_method(1.0), "bbs": _gi_method(1.0)}, "reloc": None}, None)
     assert "met)" in good and "does not reproduce" in good and "Failed frames" not in good

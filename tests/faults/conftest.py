@@ -71,7 +71,7 @@ def cli_in_process(*args: str) -> Outcome:
 _CACHE: list[Path] = []
 
 
-def blockloc_env() -> dict:
+def blockloc_env(cache: Path | None = None) -> dict:
     """The environment of a ``blockloc`` subprocess: this checkout first on the path, and a
     cache of its own (global-init pyramids of a store are cached by checksum: a case that
     removes a block must find it missing, not cached)."""
@@ -80,7 +80,7 @@ def blockloc_env() -> dict:
     if not _CACHE:
         _CACHE.append(Path(tempfile.mkdtemp(prefix="blockloc-faults-cache-")))
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]),
-               COLUMNS="120", BLOCKLOC_CACHE=str(_CACHE[0]))
+               COLUMNS="120", BLOCKLOC_CACHE=str(cache or _CACHE[0]))
     env.pop("FORCE_COLOR", None)
     return env
 
@@ -94,10 +94,11 @@ def _remove_cache():
         shutil.rmtree(d, ignore_errors=True)
 
 
-def cli_process(*args: str, cwd: Path | None = None, timeout: float = 600) -> Outcome:
-    """Run ``python -m blockloc.cli ARGS`` in a subprocess (stdout/stderr piped)."""
+def cli_process(*args: str, cwd: Path | None = None, timeout: float = 600, cache: Path | None = None) -> Outcome:
+    """Run ``python -m blockloc.cli ARGS`` in a subprocess (stdout/stderr piped); ``cache``: a
+    cache directory of its own (default: the session's)."""
     r = subprocess.run([sys.executable, "-m", "blockloc.cli", *map(str, args)], capture_output=True, text=True,
-                       cwd=cwd, env=blockloc_env(), timeout=timeout)
+                       cwd=cwd, env=blockloc_env(cache), timeout=timeout)
     return Outcome(r.returncode, r.stdout, r.stderr)
 
 

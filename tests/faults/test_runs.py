@@ -110,8 +110,10 @@ def test_missing_block_at_relocalization(tiny_world, tmp_path):
     store = copy(tiny_world["map"], tmp_path / "map")
     (store / "006.pcd").unlink()  # 20 m ahead: inside the relocalization window, not yet tracked in
     cfg = tiny.write_config(tmp_path / "strict.yaml", tracking={"min_fitness": 0.8})
+    # A cache of its own: the search structures of the complete store (same checksums) cached by
+    # another case would let relocalization succeed without reading 006.pcd.
     r = cli_process("track", "--seq", sess, "--map", store, "--init", "gt", "--config", cfg, "--out",
-                    tmp_path / "res", "--max-frames", "75")
+                    tmp_path / "res", "--max-frames", "75", cache=tmp_path / "cache")
     assert_clean_success(r)
     m = metrics(tmp_path / "res")
     failed = [x for x in m["relocalizations"] if "006.pcd" in (x.get("error") or "")]

@@ -29,9 +29,9 @@ def test_end_to_end_accuracy_and_outputs(full_run):
     res, seq = full_run
     m = res.metrics
     assert m["frames"] == len(seq) and m["estimated"] == len(seq)
-    # limits about twice the values measured on 700dd19 (init error 0.020 m, ATE 0.043 m, median
-    # position error 0.033 m)
-    assert m["init"]["verified"] and m["init"]["error_m"] < 0.05  # branch-and-bound from a 4 m hint
+    # On the realistic sim the init lands 0.12 m off (old sim, 700dd19: 0.020 m; ATE 0.043 m, median
+    # position error 0.033 m); 0.25 m stays inside global init's success radius of 0.3 m.
+    assert m["init"]["verified"] and m["init"]["error_m"] < 0.25  # branch-and-bound from a 4 m hint
     assert m["ate_trans_rmse_m"] <= 0.09
     assert m["failures"] == 0
     out = res.out_dir
