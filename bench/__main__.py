@@ -46,6 +46,20 @@ def machine() -> str:
     return f"{cpu}, {os.cpu_count()} cores, {mem}, Python {platform.python_version()}"
 
 
+#: The day the realistic simulator (issue 15) replaced the earlier one: a fragment dated before it
+#: measured the easier world, and the assembled file says so above it.
+REALISTIC_SIM_SINCE = "2026-12-01"
+
+
+def stale_note(text: str) -> str | None:
+    """A warning line for a fragment whose first date is before :data:`REALISTIC_SIM_SINCE`."""
+    m = re.search(r"\b(\d{4}-\d{2}-\d{2})\b", text)
+    if m and m.group(1) < REALISTIC_SIM_SINCE:
+        return (f"> Measured {m.group(1)}, on the earlier simulator (before the realistic world of "
+                f"{REALISTIC_SIM_SINCE}); not re-run since: figures on simulated data are optimistic.")
+    return None
+
+
 def assemble() -> Path:
     parts = [
         "# Benchmarks",
@@ -62,6 +76,10 @@ def assemble() -> Path:
         text = (FRAGMENTS / f"{name}.md").read_text().rstrip() + "\n"
         # fragments link their plots beside themselves (docs/bench/x.png); this file is one level up
         text = re.sub(r"(!\[[^\]]*\]\()([^/():]+\.png\))", r"\1bench/\2", text)
+        note = stale_note(text)
+        if note:  # after the section's heading
+            head, _, rest = text.partition("\n")
+            text = f"{head}\n\n{note}\n{rest}"
         parts.append(text)
     out = ROOT / "docs" / "benchmarks.md"
     atomic_write_text(out, "\n".join(parts))

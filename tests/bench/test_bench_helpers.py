@@ -188,3 +188,17 @@ def test_global_init_notes_follow_the_figures():
     assert "no hint (place index): 90% of 10 frames, 1.2 s median, 1 wrong verified" in text
     good = notes({"methods": {"bbs+s0": _gi_method(1.0), "bbs": _gi_method(1.0)}, "reloc": None}, None)
     assert "met)" in good and "does not reproduce" in good and "Failed frames" not in good
+
+
+def test_fragments_from_before_the_realistic_sim_are_flagged(tmp_path, monkeypatch):
+    import bench.__main__ as entry
+
+    monkeypatch.setattr(entry, "FRAGMENTS", tmp_path)
+    monkeypatch.setattr(entry, "ROOT", tmp_path)
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "sim.md").write_text("## Simulator\n\nCommand: `python -m bench.sim`, run 2026-11-22 11:46 UTC.\n")
+    (tmp_path / "ndt.md").write_text("## NDT registration\n\nCommand: `python -m bench.ndt` (2026-12-02 01:42 UTC).\n")
+    text = entry.assemble().read_text()
+    sim, ndt = text.split("## Simulator")[1].split("## NDT registration")
+    assert "Measured 2026-11-22, on the earlier simulator" in sim
+    assert "earlier simulator" not in ndt
