@@ -8,6 +8,17 @@ from pathlib import Path
 import pytest
 from hypothesis import settings
 
+
+def pytest_configure(config):
+    # A suite started as a background job of a non-interactive shell (`cmd &`, as CI runners and
+    # nohup do) inherits SIGINT ignored, and so would every blockloc it starts: the Ctrl-C tests
+    # would then see an ignored signal (which blockloc rightly leaves ignored). Ctrl-C as a user
+    # at a terminal has it: Python's default handler, which children inherit as SIG_DFL.
+    import signal
+
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
 # Machines here are shared and noisy: hypothesis checks properties, not speed.
 settings.register_profile("blockloc", deadline=None, derandomize=True)
 settings.load_profile("blockloc")
