@@ -70,6 +70,23 @@ def rotated_cells(xy: np.ndarray, angles: np.ndarray, resolution: float) -> tupl
     return cx, cy
 
 
+def _s0_pruning(pyramid: Pyramid, dx, dy, ra, rtx, rty, top: int, tx_end: int, ty_end: int, n_dives: int,
+                full: int, threshold: int, s0_ratio: float) -> tuple[float, int]:
+    """Greedy initial score S0 (block-map paper): the best leaf of greedy dives from the
+    ``n_dives`` best roots (the root arrays sorted by score, ascending). Returns (S0 as a
+    fraction of ``full``, the pruning threshold raised to just below ``s0_ratio`` x S0)."""
+    from blockloc.global_init import _kernels as K
+
+    best = -1
+    for i in range(1, min(n_dives, len(ra)) + 1):
+        s, _, _ = K.greedy_dive(pyramid.levels, dx, dy, ra[-i], rtx[-i], rty[-i], top, tx_end, ty_end)
+        best = max(best, int(s))
+    # Prune below a fraction of S0 (not S0 itself) so near-best candidates survive for the
+    # ambiguity check and the NDT verification; the S0 leaf is found again by the search.
+    threshold = max(threshold, int(s0_ratio * best) - 1)
+    return best / full, threshold
+
+
 def search(pyramid: Pyramid, scan_xy: np.ndarray, center_xy: np.ndarray, window_m: float,
            theta_center: float = 0.0, yaw_window_rad: float = 2.0 * math.pi, top_k: int = 5,
            use_s0: bool = True, s0_ratio: float = 0.9, min_score: float = 0.05,
@@ -112,14 +129,8 @@ def search(pyramid: Pyramid, scan_xy: np.ndarray, center_xy: np.ndarray, window_
     threshold = int(min_score * full)
     s0 = 0.0
     if use_s0 and len(rb):
-        best = -1
-        for i in range(1, min(n_dives, len(rb)) + 1):
-            s, _, _ = K.greedy_dive(pyramid.levels, dx, dy, ra[-i], rtx[-i], rty[-i], top, tx_end, ty_end)
-            best = max(best, int(s))
-        s0 = best / full
-        # Prune below a fraction of S0 (not S0 itself) so near-best candidates survive for the
-        # ambiguity check and the NDT verification; the S0 leaf is found again by the search.
-        threshold = max(threshold, int(s0_ratio * best) - 1)
+        s0, threshold = _s0_pruning(pyramid, dx, dy, ra, rtx, rty, top, tx_end, ty_end, n_dives, full,
+                                    threshold, s0_ratio)
     nms_cells = int(math.ceil(nms_m / r))
     nms_angles = int(math.ceil(math.radians(nms_deg) / step))
     cs, ca, ctx, cty, visited = K.branch_and_bound(
@@ -215,12 +226,8 @@ def search_windows(pyramid: Pyramid, scan_xy: np.ndarray, windows: list[Window],
     big = np.iinfo(np.int64).max // 4
     s0 = 0.0
     if use_s0 and len(rb):
-        best = -1
-        for i in range(1, min(n_dives, len(rb)) + 1):
-            s, _, _ = K.greedy_dive(pyramid.levels, dx, dy, ra[-i], rtx[-i], rty[-i], top, big, big)
-            best = max(best, int(s))
-        s0 = best / full
-        threshold = max(threshold, int(s0_ratio * best) - 1)
+        s0, threshold = _s0_pruning(pyramid, dx, dy, ra, rtx, rty, top, big, big, n_dives, full,
+                                    threshold, s0_ratio)
     nms_cells = int(math.ceil(nms_m / r))
     nms_angles = int(math.ceil(math.radians(nms_deg) / step))
     cs, ca, ctx, cty, visited = K.branch_and_bound(
