@@ -112,6 +112,7 @@ def demo_session(cfg=None, *, out: Path | None = None, observers=(), say: Callab
 
 def demo_command(out: Path | None, max_frames: int | None, record: bool = True) -> None:
     from blockloc.commands.common import check_results_dir, console, results_dir
+    from blockloc.commands.init import compile_note
     from blockloc.commands.track import (print_track_summary, print_where, run_observers, run_tracking,
                                          write_run_report)
 
@@ -131,6 +132,7 @@ def demo_command(out: Path | None, max_frames: int | None, record: bool = True) 
             write_run_report(session, session.result, out_dir)
     init = res.metrics.get("init") or {}
     if init.get("time_s") is not None:
-        say(f"global init: {init.get('error_m', float('nan')):.2f} m from the truth in {init['time_s']:.2f} s")
+        say(f"global init: {init.get('error_m', float('nan')):.2f} m from the truth in {init['time_s']:.2f} s"
+            f"{compile_note(init)}")
     print_track_summary(con, res.metrics, res.out_dir)
     print_where(con, out_dir)

@@ -127,7 +127,7 @@ def test_map_index_then_init_without_a_hint_uses_the_place_index(setup, tmp_path
     p = _run(env, "--seq", str(root / "session"), "--frame", "0", "--map", str(tmp_path / "map"), "--json")
     assert p.returncode == 0, p.stderr
     out = json.loads(p.stdout)
-    assert set(out) >= {"pose", "verified", "ambiguous", "time_s", "candidates"}
+    assert set(out) >= {"pose", "verified", "ambiguous", "time_s", "compile_s", "candidates"}
     assert out["verified"] and not out["ambiguous"] and out["time_s"] > 0 and out["candidates"]
     T_est = xyzrpy_to_T(*(out["pose"][k] for k in ("x", "y", "z", "roll", "pitch", "yaw")))
     dt, dr = pose_error(T_est, T)
