@@ -26,9 +26,16 @@ def build_map(seq, kind: str, out: str | Path, map_cfg, *, overwrite: bool = Fal
 
 def build_map_from_specs(drives, kind: str, out: str | Path, map_cfg, *, overwrite: bool = False,
                          progress=True, executor=None):
-    """:func:`blockloc.maps.build_plan.build_map_from_drives` with the ``MapConfig`` settings."""
+    """:func:`blockloc.maps.build_plan.build_map_from_drives` with the ``MapConfig`` settings.
+    progress: True (a bar over the build's tasks), False, or a ``(done, total)`` callback."""
     from blockloc.maps.build_plan import build_map_from_drives
 
+    if progress is True:  # the bar is the command's; the builder takes only a callback
+        from blockloc.commands.common import progress as progress_bar
+
+        with progress_bar(f"{kind} map build tasks") as report:
+            return build_map_from_specs(drives, kind, out, map_cfg, overwrite=overwrite,
+                                        progress=report, executor=executor)
     return build_map_from_drives(
         drives, kind, out, block_size_m=map_cfg.block_size_m, tile_size_m=map_cfg.tile_size_m,
         voxel_size_m=map_cfg.voxel_size_m, keyframe_distance_m=map_cfg.keyframe_distance_m,
@@ -130,11 +137,13 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
     if from_pcd is not None:
         from blockloc.maps.from_pcd import build_map_from_global_pcd
 
-        store = build_map_from_global_pcd(
-            from_pcd, Path(poses[0]), kind, out, sensor_range_m=sensor_range_m,
-            keyframe_distance_m=map_cfg.keyframe_distance_m, keyframe_angle_deg=map_cfg.keyframe_angle_deg,
-            block_size_m=map_cfg.block_size_m, tile_size_m=map_cfg.tile_size_m, voxel_size_m=map_cfg.voxel_size_m,
-            overwrite=overwrite, progress=True)
+        with progress(f"{kind} map keyframes") as report:
+            store = build_map_from_global_pcd(
+                from_pcd, Path(poses[0]), kind, out, sensor_range_m=sensor_range_m,
+                keyframe_distance_m=map_cfg.keyframe_distance_m,
+                keyframe_angle_deg=map_cfg.keyframe_angle_deg, block_size_m=map_cfg.block_size_m,
+                tile_size_m=map_cfg.tile_size_m, voxel_size_m=map_cfg.voxel_size_m,
+                overwrite=overwrite, progress=report)
         print_summary(map_summary(store), console())
         return
     from blockloc.maps.distributed import open_executor
@@ -183,13 +192,14 @@ def check_positive(*options: tuple[str, str, float | None]) -> None:
 
 
 def tile_command(global_pcd: Path, tile_size: float, out: Path, overwrite: bool) -> None:
-    from blockloc.commands.common import console
+    from blockloc.commands.common import console, progress
     from blockloc.maps.grid_tiles import tile_pcd_file
     from blockloc.maps.summary import map_summary
 
     check_positive(("--tile-size", "tile size", tile_size))
     check_out(out, overwrite)
-    store = tile_pcd_file(global_pcd, tile_size, out, overwrite=overwrite, progress=True)
+    with progress("tiles") as report:
+        store = tile_pcd_file(global_pcd, tile_size, out, overwrite=overwrite, progress=report)
     print_summary(map_summary(store), console())
 
 

@@ -27,6 +27,7 @@ def test_tile_info_plot(tmp_path, global_pcd):
     res = runner.invoke(app, ["map", "tile", str(global_pcd), "--tile-size", "2", "--out",
                               str(tmp_path / "tiles")])
     assert res.exit_code == 0, res.output
+    assert "tiles: 100/100 (100%)" in res.stderr  # the command's progress (piped: lines)
     store = open_map(tmp_path / "tiles")
     assert store.kind == "grid" and store.total_points == 5000 and len(store.entries) == 100
     assert (tmp_path / "tiles" / "-9.0_-9.0.pcd").exists()
