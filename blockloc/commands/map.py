@@ -102,7 +102,11 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
                   data_root: str | None, block_size: float | None, tile_size: float | None,
                   voxel: float | None, max_frames: int | None, overwrite: bool, *,
                   poses: list[str] | None = None, from_pcd: Path | None = None,
-                  sensor_range_m: float = 60.0, cluster: str | None = None) -> None:
+                  sensor_range_m: float = 60.0, cluster: str | None = None,
+                  gravity: str | None = None) -> None:
+    """``blockloc map build``: the store, then its place index (a local store). gravity: with
+    ``from_pcd``, the global map's gravity (``down|up|X,Y,Z``, default up: z up); a ``--seq``
+    build takes its first sequence's."""
     import dataclasses
     import sys
 
@@ -124,6 +128,9 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
             raise MapError("--from-pcd needs one --poses TRAJ (the mapping trajectory)")
         if cluster:
             raise MapError("--cluster builds from --seq drives; --from-pcd runs in this process")
+        gravity_map = parse_gravity("up" if gravity is None else gravity)
+    elif gravity is not None:
+        raise MapError("--gravity goes with --from-pcd (a --seq build takes its sequence's gravity)")
     elif poses and len(poses) != len(seqs):
         raise MapError(f"--poses given {len(poses)} time(s) for {len(seqs)} --seq: give one "
                        "--poses per --seq, in the same order ('-': the sequence's own poses)")
@@ -144,6 +151,8 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
                 keyframe_angle_deg=map_cfg.keyframe_angle_deg, block_size_m=map_cfg.block_size_m,
                 tile_size_m=map_cfg.tile_size_m, voxel_size_m=map_cfg.voxel_size_m,
                 overwrite=overwrite, progress=report)
+        if not is_url(str(out)):  # the place index goes with every local map (as below)
+            store = add_place_index(out, gravity_map, cfg)
         print_summary(map_summary(store), console())
         return
     from blockloc.maps.distributed import open_executor
