@@ -119,6 +119,9 @@ def map_build_cmd(
                                             help="Build from a global map PCD and --poses instead of --seq."),
     sensor_range: float = typer.Option(60.0, "--sensor-range", metavar="M", min=0.0,
                                        help="With --from-pcd: what a keyframe sees, m."),
+    gravity: Optional[str] = typer.Option(None, "--gravity", metavar="down|up|X,Y,Z",
+                                          help="With --from-pcd: gravity in the map frame, for the place "
+                                               "index (default up: the map's z axis points up)."),
     kind: str = typer.Option("block", "--kind", metavar="KIND", help="block | grid"),
     out: str = typer.Option(..., "--out", metavar=DIR, help="Output map directory or s3:// URL (written atomically)."),
     config: Optional[str] = typer.Option(None, "--config", metavar=FILE, help="Config file or preset name."),
@@ -139,7 +142,8 @@ def map_build_cmd(
     from blockloc.commands.map import build_command
 
     build_command(seq, kind, out, config, data_root, block_size, tile_size, voxel, max_frames, overwrite,
-                  poses=poses, from_pcd=from_pcd, sensor_range_m=sensor_range, cluster=cluster)
+                  poses=poses, from_pcd=from_pcd, sensor_range_m=sensor_range, cluster=cluster,
+                  gravity=gravity)
 
 
 @map_app.command("tile")

@@ -1,5 +1,6 @@
 """The layering docs/DEVELOPING.md promises: core packages never reach up to the config tree, the
-commands or the CLI libraries, and no two modules import each other in a circle."""
+commands or the CLI libraries (nor draw progress bars: they take a ``(done, total)`` callback and
+the commands draw the bar), and no two modules import each other in a circle."""
 
 from __future__ import annotations
 
@@ -8,7 +9,10 @@ from pathlib import Path
 
 PKG = Path(__file__).resolve().parent.parent / "blockloc"
 CORE = ("maps", "registration", "tracking", "global_init", "evaluation", "datasets", "sim")
-FORBIDDEN = ("blockloc.config", "blockloc.commands", "blockloc.cli", "rich", "typer")
+FORBIDDEN = ("blockloc.config", "blockloc.commands", "blockloc.cli", "rich", "typer", "tqdm")
+#: (module, forbidden package) pairs still allowed. build_plan's ``progress=True`` draws a tqdm bar; every
+#: command passes a callback instead, so the branch has no caller left in blockloc.
+ALLOWED = {("blockloc.maps.build_plan", "tqdm")}
 
 
 def _module_name(path: Path) -> str:
@@ -37,13 +41,18 @@ def _modules() -> dict[str, Path]:
 
 
 def test_core_packages_do_not_import_config_commands_or_cli_libraries():
-    bad = []
+    bad, allowed_seen = [], set()
     for name, path in _modules().items():
         if name.split(".")[1:2] and name.split(".")[1] in CORE:
             for imp in _imports(path):
-                if any(imp == f or imp.startswith(f + ".") for f in FORBIDDEN):
-                    bad.append(f"{name} imports {imp}")
+                for f in FORBIDDEN:
+                    if imp == f or imp.startswith(f + "."):
+                        if (name, f) in ALLOWED:
+                            allowed_seen.add((name, f))
+                        else:
+                            bad.append(f"{name} imports {imp}")
     assert not bad, "\n".join(sorted(bad))
+    assert allowed_seen == ALLOWED, f"no longer imported, drop from ALLOWED: {sorted(ALLOWED - allowed_seen)}"
 
 
 def test_no_import_cycles_between_modules():

@@ -52,6 +52,7 @@ class SmallWorld:
 
 def ensure_block_map(world: SmallWorld, cfg, say: Callable[[str], None] = log.info) -> Path:
     """The block map of the mapping session (built once, reused)."""
+    from blockloc.commands.common import progress
     from blockloc.datasets import open_sequence
     from blockloc.errors import MapError
     from blockloc.maps.build_plan import build_block_map_from_sequence
@@ -67,11 +68,12 @@ def ensure_block_map(world: SmallWorld, cfg, say: Callable[[str], None] = log.in
         f"{cfg.map.block_size_m:g} m ...")
     t0 = time.perf_counter()
     seq = open_sequence(world.mapping, dataset_cfg=cfg.dataset)
-    store = build_block_map_from_sequence(seq, block_size_m=cfg.map.block_size_m,
-                                          keyframe_distance_m=cfg.map.keyframe_distance_m,
-                                          keyframe_angle_deg=cfg.map.keyframe_angle_deg,
-                                          voxel_size_m=cfg.map.voxel_size_m, out=world.block_map,
-                                          overwrite=True, progress=True)
+    with progress("block map build tasks") as report:
+        store = build_block_map_from_sequence(seq, block_size_m=cfg.map.block_size_m,
+                                              keyframe_distance_m=cfg.map.keyframe_distance_m,
+                                              keyframe_angle_deg=cfg.map.keyframe_angle_deg,
+                                              voxel_size_m=cfg.map.voxel_size_m, out=world.block_map,
+                                              overwrite=True, progress=report)
     say(f"block map: {len(store)} blocks in {time.perf_counter() - t0:.0f} s")
     return world.block_map
 

@@ -26,9 +26,16 @@ def build_map(seq, kind: str, out: str | Path, map_cfg, *, overwrite: bool = Fal
 
 def build_map_from_specs(drives, kind: str, out: str | Path, map_cfg, *, overwrite: bool = False,
                          progress=True, executor=None):
-    """:func:`blockloc.maps.build_plan.build_map_from_drives` with the ``MapConfig`` settings."""
+    """:func:`blockloc.maps.build_plan.build_map_from_drives` with the ``MapConfig`` settings.
+    progress: True (a bar over the build's tasks), False, or a ``(done, total)`` callback."""
     from blockloc.maps.build_plan import build_map_from_drives
 
+    if progress is True:  # the bar is the command's; the builder takes only a callback
+        from blockloc.commands.common import progress as progress_bar
+
+        with progress_bar(f"{kind} map build tasks") as report:
+            return build_map_from_specs(drives, kind, out, map_cfg, overwrite=overwrite,
+                                        progress=report, executor=executor)
     return build_map_from_drives(
         drives, kind, out, block_size_m=map_cfg.block_size_m, tile_size_m=map_cfg.tile_size_m,
         voxel_size_m=map_cfg.voxel_size_m, keyframe_distance_m=map_cfg.keyframe_distance_m,
@@ -95,7 +102,11 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
                   data_root: str | None, block_size: float | None, tile_size: float | None,
                   voxel: float | None, max_frames: int | None, overwrite: bool, *,
                   poses: list[str] | None = None, from_pcd: Path | None = None,
-                  sensor_range_m: float = 60.0, cluster: str | None = None) -> None:
+                  sensor_range_m: float = 60.0, cluster: str | None = None,
+                  gravity: str | None = None) -> None:
+    """``blockloc map build``: the store, then its place index (a local store). gravity: with
+    ``from_pcd``, the global map's gravity (``down|up|X,Y,Z``, default up: z up); a ``--seq``
+    build takes its first sequence's."""
     import dataclasses
     import sys
 
@@ -117,6 +128,9 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
             raise MapError("--from-pcd needs one --poses TRAJ (the mapping trajectory)")
         if cluster:
             raise MapError("--cluster builds from --seq drives; --from-pcd runs in this process")
+        gravity_map = parse_gravity("up" if gravity is None else gravity)
+    elif gravity is not None:
+        raise MapError("--gravity goes with --from-pcd (a --seq build takes its sequence's gravity)")
     elif poses and len(poses) != len(seqs):
         raise MapError(f"--poses given {len(poses)} time(s) for {len(seqs)} --seq: give one "
                        "--poses per --seq, in the same order ('-': the sequence's own poses)")
@@ -130,11 +144,15 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
     if from_pcd is not None:
         from blockloc.maps.from_pcd import build_map_from_global_pcd
 
-        store = build_map_from_global_pcd(
-            from_pcd, Path(poses[0]), kind, out, sensor_range_m=sensor_range_m,
-            keyframe_distance_m=map_cfg.keyframe_distance_m, keyframe_angle_deg=map_cfg.keyframe_angle_deg,
-            block_size_m=map_cfg.block_size_m, tile_size_m=map_cfg.tile_size_m, voxel_size_m=map_cfg.voxel_size_m,
-            overwrite=overwrite, progress=True)
+        with progress(f"{kind} map keyframes") as report:
+            store = build_map_from_global_pcd(
+                from_pcd, Path(poses[0]), kind, out, sensor_range_m=sensor_range_m,
+                keyframe_distance_m=map_cfg.keyframe_distance_m,
+                keyframe_angle_deg=map_cfg.keyframe_angle_deg, block_size_m=map_cfg.block_size_m,
+                tile_size_m=map_cfg.tile_size_m, voxel_size_m=map_cfg.voxel_size_m,
+                overwrite=overwrite, progress=report)
+        if not is_url(str(out)):  # the place index goes with every local map (as below)
+            store = add_place_index(out, gravity_map, cfg)
         print_summary(map_summary(store), console())
         return
     from blockloc.maps.distributed import open_executor
@@ -183,13 +201,14 @@ def check_positive(*options: tuple[str, str, float | None]) -> None:
 
 
 def tile_command(global_pcd: Path, tile_size: float, out: Path, overwrite: bool) -> None:
-    from blockloc.commands.common import console
+    from blockloc.commands.common import console, progress
     from blockloc.maps.grid_tiles import tile_pcd_file
     from blockloc.maps.summary import map_summary
 
     check_positive(("--tile-size", "tile size", tile_size))
     check_out(out, overwrite)
-    store = tile_pcd_file(global_pcd, tile_size, out, overwrite=overwrite, progress=True)
+    with progress("tiles") as report:
+        store = tile_pcd_file(global_pcd, tile_size, out, overwrite=overwrite, progress=report)
     print_summary(map_summary(store), console())
 
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -61,8 +61,11 @@ class _GridIndex:
 
 def _keyframe_crops(points: np.ndarray, trajectory: Trajectory, sensor_range_m: float,
                     keyframe_distance_m: float, keyframe_angle_deg: float,
-                    T_body_lidar: np.ndarray | None) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
-    """(pose row, T_map_lidar (4, 4), indices of the points within range) per keyframe."""
+                    T_body_lidar: np.ndarray | None, progress: Callable[[int, int], None] | None = None
+                    ) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """(pose row, T_map_lidar (4, 4), indices of the points within range) per keyframe.
+    progress: called ``(keyframes done, keyframes)`` as each next crop is asked for (a keyframe
+    counts once the caller has handled its crop)."""
     if not sensor_range_m > 0:
         raise MapError(f"sensor range {sensor_range_m!r} m: expected a positive number")
     if points.ndim != 2 or points.shape[1] != 3:
@@ -75,12 +78,14 @@ def _keyframe_crops(points: np.ndarray, trajectory: Trajectory, sensor_range_m: 
     index = _GridIndex(points, cell_m=sensor_range_m / 2.0)
     log.info("%d keyframes from %d poses; crops of %.1f m from a %d-point map", len(chosen),
              len(poses), sensor_range_m, len(points))
-    for i in chosen:
+    for k, i in enumerate(chosen):
         idx = index.within(poses[i, :3, 3], sensor_range_m)
         if len(idx) == 0:
             log.warning("keyframe %d at %s: no map point within %.1f m", int(i),
                         np.round(poses[i, :3, 3], 2).tolist(), sensor_range_m)
         yield int(i), poses[i], idx
+        if progress is not None:
+            progress(k + 1, len(chosen))
 
 
 def keyframes_from_global_map(points: np.ndarray, intensity: np.ndarray | None,
@@ -109,7 +114,8 @@ def build_map_from_global_pcd(pcd_path: str | Path, traj_path, kind: str, out: s
                               keyframe_angle_deg: float = 15.0, block_size_m: float = 100.0,
                               tile_size_m: float = 20.0, voxel_size_m: float = 0.2,
                               frame_name: str | None = None, T_body_lidar: np.ndarray | None = None,
-                              overwrite: bool = False, progress: bool = False):
+                              overwrite: bool = False,
+                              progress: Callable[[int, int], None] | None = None):
     """``blockloc map build --from-pcd``: a block or grid store from a global map and a trajectory.
 
     pcd_path: the global map (PCD, PLY or KITTI .bin; read by ``datasets.pointclouds``), map frame.
@@ -120,7 +126,7 @@ def build_map_from_global_pcd(pcd_path: str | Path, traj_path, kind: str, out: s
     is given each of its points once (see the loop), with the same result as feeding
     :func:`keyframes_from_global_map` to ``build_block_map``. frame_name: the trajectory's
     frame, recorded in the store (grid: manifest ``frame``; block: ``parameters.trajectory_frame``). Written atomically to
-    ``out``; returns the opened MapStore.
+    ``out``; returns the opened MapStore. progress: called ``(keyframes done, keyframes)``.
     """
     from blockloc.datasets.pointclouds import read_point_cloud
     from blockloc.datasets.with_poses import load_trajectory
@@ -140,11 +146,7 @@ def build_map_from_global_pcd(pcd_path: str | Path, traj_path, kind: str, out: s
               "sensor_range_m": sensor_range_m, "keyframe_distance_m": keyframe_distance_m,
               "keyframe_angle_deg": keyframe_angle_deg}
     crops = _keyframe_crops(pts, traj, sensor_range_m, keyframe_distance_m, keyframe_angle_deg,
-                            T_body_lidar)
-    if progress:
-        from tqdm import tqdm
-
-        crops = tqdm(crops, desc="keyframes", unit="kf")
+                            T_body_lidar, progress)
     seen = np.zeros(len(pts), bool)
     count = 0
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 import math
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -102,10 +103,11 @@ def split_into_tiles(points: np.ndarray, tile_size_m: float) -> dict[tuple[int, 
 
 def tile_global_map(points: np.ndarray, intensity: np.ndarray | None, tile_size_m: float,
                     out: str | Path, *, frame: str = "map", params: dict | None = None,
-                    overwrite: bool = False, progress: bool = False):
+                    overwrite: bool = False, progress: Callable[[int, int], None] | None = None):
     """Algorithm 1: cut a global map (N, 3) into tiles written atomically as a grid store at ``out``.
 
     No point is dropped or duplicated: the tiles' payloads concatenate to the input.
+    progress: called ``(tiles written, tiles)`` after each tile.
     Returns the opened :class:`~blockloc.maps.store.MapStore`.
     """
     from blockloc.maps.store import MapWriter
@@ -121,22 +123,20 @@ def tile_global_map(points: np.ndarray, intensity: np.ndarray | None, tile_size_
     groups = split_into_tiles(pts, s)
     d = name_decimals(s)
     p = {"tile_size_m": s, "origin": [0.0, 0.0], "name_decimals": d, **(params or {})}
-    items = groups.items()
-    if progress:
-        from tqdm import tqdm
-
-        items = tqdm(items, total=len(groups), desc="tiles", unit="tile")
     with MapWriter(out, "grid", frame=frame, params=p, overwrite=overwrite) as w:
-        for (ix, iy), idx in items:
+        for k, ((ix, iy), idx) in enumerate(groups.items()):
             w.add(tile_name(ix, iy, s, d), pts[idx], None if intensity is None else intensity[idx])
+            if progress is not None:
+                progress(k + 1, len(groups))
         store = w.commit()
     log.info("tiled %d points into %d tiles of %.3g m", len(pts), len(groups), s)
     return store
 
 
 def tile_pcd_file(path: str | Path, tile_size_m: float, out: str | Path, *,
-                  overwrite: bool = False, progress: bool = False):
-    """``blockloc map tile``: read a global PCD and write its grid store."""
+                  overwrite: bool = False, progress: Callable[[int, int], None] | None = None):
+    """``blockloc map tile``: read a global PCD and write its grid store (progress: as for
+    :func:`tile_global_map`)."""
     from blockloc.maps.pcd import read_pcd
 
     check_tile_size(tile_size_m)

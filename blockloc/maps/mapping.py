@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -170,19 +170,19 @@ def keyframe_points(seq, index: int, trajectory: Trajectory, T_body_lidar: np.nd
 
 
 def mapping_keyframes(seq, *, keyframe_distance_m: float, keyframe_angle_deg: float,
-                      deskew: bool = True, progress: bool = False,
+                      deskew: bool = True, progress: Callable[[int, int], None] | None = None,
                       max_frames: int | None = None) -> Iterator[Keyframe]:
     """Keyframes of a mapping sequence with their (deskewed) points in the map frame
-    (:func:`plan_keyframes`, then :func:`keyframe_points`). Only the keyframes' scans are read."""
+    (:func:`plan_keyframes`, then :func:`keyframe_points`). Only the keyframes' scans are read.
+    progress: called ``(keyframes done, keyframes planned)`` as each next keyframe is asked for,
+    so a keyframe counts once the caller has handled it."""
     plan = plan_keyframes(seq, keyframe_distance_m=keyframe_distance_m,
                           keyframe_angle_deg=keyframe_angle_deg, stop=max_frames)
     traj = mapping_poses_or_fail(seq)
     T_body_lidar = np.asarray(seq.info.T_body_lidar, np.float64)
-    items = zip(plan.frames.tolist(), plan.T_map_lidar)
-    if progress:
-        from tqdm import tqdm
-
-        items = tqdm(items, total=len(plan.frames), desc="keyframes", unit="kf")
-    for i, T_map_lidar in items:
+    total = len(plan.frames)
+    for k, (i, T_map_lidar) in enumerate(zip(plan.frames.tolist(), plan.T_map_lidar)):
         pts_map, intensity = keyframe_points(seq, i, traj, T_body_lidar, deskew)
         yield Keyframe(int(i), T_map_lidar, pts_map, intensity)
+        if progress is not None:
+            progress(k + 1, total)

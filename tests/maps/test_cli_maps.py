@@ -27,6 +27,7 @@ def test_tile_info_plot(tmp_path, global_pcd):
     res = runner.invoke(app, ["map", "tile", str(global_pcd), "--tile-size", "2", "--out",
                               str(tmp_path / "tiles")])
     assert res.exit_code == 0, res.output
+    assert "tiles: 100/100 (100%)" in res.stderr  # the command's progress (piped: lines)
     store = open_map(tmp_path / "tiles")
     assert store.kind == "grid" and store.total_points == 5000 and len(store.entries) == 100
     assert (tmp_path / "tiles" / "-9.0_-9.0.pcd").exists()
@@ -71,3 +72,44 @@ def test_build_from_a_session_directory(tmp_path):
     assert res.exit_code == 0, res.output
     store = open_map(tmp_path / "bm")
     assert store.kind == "block" and len(store.entries) >= 2
+
+
+def test_build_from_pcd_writes_the_place_index(tmp_path, monkeypatch):
+    """`map build --from-pcd` stores a place index, as every map build does, for the gravity
+    `--gravity` gives (default up: z up); it loads back byte for byte."""
+    from blockloc.evaluation.trajectory_io import write_tum
+    from blockloc.global_init.place_index import PLACE_INDEX_NAME, load_place_index
+
+    from .synthetic import route, world_points
+
+    monkeypatch.setenv("BLOCKLOC_CACHE", str(tmp_path / "cache"))  # global init's rasters: not the shared cache
+    world = world_points(extent=(-15, 55), seed=3, density=0.2)
+    write_pcd(tmp_path / "global.pcd", world.astype(np.float32))
+    write_tum(tmp_path / "poses.tum", route([[0, 0], [40, 0]], speed=5.0))
+    res = runner.invoke(app, ["map", "build", "--from-pcd", str(tmp_path / "global.pcd"), "--poses",
+                              str(tmp_path / "poses.tum"), "--kind", "block", "--block-size", "20",
+                              "--sensor-range", "20", "--out", str(tmp_path / "bm")])
+    assert res.exit_code == 0, res.output
+    assert "block map keyframes: " in res.stderr  # the command's progress (piped: lines)
+    store = open_map(tmp_path / "bm")
+    assert store.kind == "block" and len(store.entries) >= 2 and store.has_extra(PLACE_INDEX_NAME)
+    index = load_place_index(store, np.array([0.0, 0.0, -9.81]), build_missing=False)
+    assert len(index) > 0
+    assert index.to_bytes() == (tmp_path / "bm" / store.extras[PLACE_INDEX_NAME].file).read_bytes()
+    # built for gravity up: a sequence with the map's z axis down is refused, naming the index
+    from blockloc.errors import MapError
+
+    with pytest.raises(MapError, match="built for gravity"):
+        load_place_index(store, np.array([0.0, 0.0, 9.81]), build_missing=False)
+
+
+def test_gravity_goes_with_from_pcd_only(tmp_path):
+    from blockloc.errors import MapError
+
+    res = runner.invoke(app, ["map", "build", "--seq", "sim:small/map", "--gravity", "down",
+                              "--out", str(tmp_path / "m")])
+    assert isinstance(res.exception, MapError) and "--gravity goes with --from-pcd" in str(res.exception)
+    res = runner.invoke(app, ["map", "build", "--from-pcd", str(tmp_path / "g.pcd"), "--poses",
+                              str(tmp_path / "p.tum"), "--gravity", "sideways", "--out", str(tmp_path / "m")])
+    assert isinstance(res.exception, MapError) and "--gravity 'sideways'" in str(res.exception)
+    assert not (tmp_path / "m").exists()
