@@ -35,7 +35,8 @@ class NdtFactorParams:
     """How a registration Hessian becomes a factor's information.
 
     information_scale: multiplies the Hessian (NDT's score is not a log-likelihood).
-    degeneracy_ratio: eigenvalues below ratio * max are weak directions.
+    degeneracy_ratio: eigenvalues below ratio * max are weak directions (rotation scaled to metres
+        by the residuals' lever arm, see :func:`ndt_information`).
     weak_factor: weak eigenvalues are multiplied by this (down-weighted, not dropped).
     min_sigma_rot_rad, min_sigma_trans_m: floor of the factor's standard deviations.
     huber_k: Huber threshold in whitened units (0: no robust loss).
@@ -60,16 +61,27 @@ def ndt_information(H_lidar: np.ndarray, T_body_lidar: np.ndarray,
     A = adjoint(inv_T(T_body_lidar))
     H = A.T @ np.asarray(H_lidar, dtype=np.float64) @ A
     H = 0.5 * (H + H.T) * params.information_scale
-    w, U = np.linalg.eigh(H)
+    # Weak directions are found in a tangent whose six coordinates share one unit: rotation
+    # scaled by the lever arm L of the residuals (xi' = (L rot, trans), H' = D H D). Compared
+    # raw, rad^-2 against m^-2, the rotation eigenvalues are L^2 (hundreds of m^2) times the
+    # translation ones, so every translation direction counted as weak: on the small simulated
+    # world 3 weak dimensions in 296 of 300 scans (NDT and VGICP alike), translation then held
+    # at 0.14 m (NDT) / 0.34 m (VGICP) instead of the floor. L^2 = tr(H_rot) / tr(H_trans): a
+    # rotation by 1 rad moves the residuals as much as a translation by L metres, on average.
+    h_rot, h_trans = float(np.trace(H[:3, :3])), float(np.trace(H[3:, 3:]))
+    lever_m = np.sqrt(h_rot / h_trans) if h_rot > 0 and h_trans > 0 else 1.0
+    d = np.r_[np.full(3, 1.0 / lever_m), np.ones(3)]  # xi = D xi'
+    w, U = np.linalg.eigh(H * np.outer(d, d))
     w = np.maximum(w, 0.0)
     wmax = float(w.max()) if len(w) else 0.0
     weak = w < params.degeneracy_ratio * wmax
     w = np.where(weak, w * params.weak_factor, w)
-    # Floor the standard deviations: cov = inv(info) + diag(floor^2), done in the eigenbasis
-    # of the information so weak directions stay weak.
+    # Floor the standard deviations: cov = inv(info) + diag(floor^2), the inverse taken in the
+    # eigenbasis of the (scaled) information so weak directions stay weak.
     floor = np.r_[np.full(3, params.min_sigma_rot_rad**2), np.full(3, params.min_sigma_trans_m**2)]
     eps = 1e-12 * max(wmax, 1.0)
-    cov = (U / np.maximum(w, eps)) @ U.T + np.diag(floor)
+    Ud = U * d[:, None]  # cov = D inv(H') D
+    cov = (Ud / np.maximum(w, eps)) @ Ud.T + np.diag(floor)
     cov = 0.5 * (cov + cov.T)
     info = np.linalg.inv(cov)
     return 0.5 * (info + info.T), int(weak.sum())

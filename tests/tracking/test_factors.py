@@ -104,6 +104,52 @@ def test_information_scale_weak_directions_and_floor():
     assert np.linalg.eigvalsh(info).min() > 0
 
 
+def _plane_hessian(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Gauss-Newton Hessian (6, 6, rotation first, right perturbation at identity) of the
+    point-to-plane residuals n . (R p + t - q): J = [(p x n)^T, n^T] per point."""
+    J = np.hstack([np.cross(points, normals), normals])
+    return J.T @ J
+
+
+def _walls(rng, x_half: float, y_half: float, n: int = 4000, with_x_walls: bool = True):
+    """Points (N, 3) and normals of a ground plane at z = -1.8 m and walls at y = +-y_half (and
+    x = +-x_half), metres, as a LiDAR 1.8 m above ground sees a street or a yard."""
+    pts, nrm = [], []
+    planes = [(2, -1.8), (1, y_half), (1, -y_half)] + ([(0, x_half), (0, -x_half)] if with_x_walls else [])
+    for axis, at in planes:
+        p = np.c_[rng.uniform(-x_half, x_half, n), rng.uniform(-y_half, y_half, n), rng.uniform(-1.8, 4.0, n)]
+        p[:, axis] = at
+        pts.append(p)
+        nrm.append(np.tile(np.eye(3)[axis], (n, 1)))
+    return np.concatenate(pts), np.concatenate(nrm)
+
+
+def test_weak_directions_compare_rotation_and_translation_in_one_unit():
+    """A yard seen from its middle (walls 25 m away all round) constrains every direction, yet
+    its rotation eigenvalues are ~L^2 = hundreds of times its translation ones (rad^-2 against
+    m^-2): compared raw, all three translations counted as weak and the factor held translation
+    at decimetres (as NDT and VGICP scans of the simulated world did). A street (no wall across
+    it) has exactly one weak direction, translation along it. The count does not depend on the
+    unit of length."""
+    rng = np.random.default_rng(0)
+    p = NdtFactorParams(information_scale=1.0, degeneracy_ratio=0.01, weak_factor=1e-3,
+                        min_sigma_rot_rad=np.deg2rad(0.1), min_sigma_trans_m=0.02)
+    yard = _plane_hessian(*_walls(rng, 25.0, 25.0))
+    w_raw = np.linalg.eigvalsh(yard)
+    assert (w_raw < 0.01 * w_raw.max()).sum() >= 3  # the raw comparison's mistake is there to make
+    info, weak = ndt_information(yard, np.eye(4), p)
+    assert weak == 0
+    sigma = np.sqrt(np.diag(np.linalg.inv(info)))
+    assert sigma[3:].max() < 0.05  # translation near its 2 cm floor, not decimetres
+    # the same yard in centimetres (H_rot x 1e4): same directions, same count
+    pts, nrm = _walls(rng, 25.0, 25.0)
+    assert ndt_information(_plane_hessian(100.0 * pts, nrm), np.eye(4), p)[1] == 0
+    info, weak = ndt_information(_plane_hessian(*_walls(rng, 40.0, 6.0, with_x_walls=False)), np.eye(4), p)
+    assert weak == 1
+    sigma = np.sqrt(np.diag(np.linalg.inv(info)))
+    assert sigma[3] > 10 * sigma[4:].max()  # along the street (x) weak, across and up held
+
+
 def test_ndt_factor_error_is_the_information_quadratic_in_gtsam_tangent_order():
     import gtsam
 
