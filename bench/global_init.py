@@ -151,7 +151,12 @@ def run(argv: list[str]) -> dict:
     seq_name = f"sim:{args.preset}/{args.session}@{args.seed}"
     cache = Path(os.environ.get("BLOCKLOC_CACHE", Path.home() / ".cache" / "blockloc")) / "bench"
     kind = "grid" if args.map_source == "gt" else args.map_kind
-    map_dir = Path(args.map or cache / f"map_{args.preset}_{args.seed}_{kind}_{args.map_source}")
+    # Keyed by the code that renders and builds it (as the tests' maps are): a simulator change
+    # must not leave the benchmark on a map of the world before it.
+    from blockloc.cache import fingerprint
+
+    key = fingerprint("blockloc.sim", "blockloc.maps", "blockloc.datasets", params=(args.preset, args.seed, kind))
+    map_dir = Path(args.map or cache / f"map_{args.preset}_{args.seed}_{kind}_{args.map_source}-{key}")
     t0 = time.perf_counter()
     ensure_map(f"sim:{args.preset}/map@{args.seed}", map_dir, args.map_kind, args.map_source)
     t_map = time.perf_counter() - t0

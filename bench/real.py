@@ -28,7 +28,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "bench" / "real.md"
 NDT_FRAGMENT = ROOT / "docs" / "bench" / "ndt.md"
-PARTS = ("walk", "init", "blas", "thresholds", "fixture", "sim")
+PARTS = ("walk", "init", "nohint", "blas", "thresholds", "fixture", "sim")
 THRESHOLD_SEED = 100  # hints of the threshold study: another draw than the init runs' (--seed)
 TOL_M, TOL_DEG = 0.3, 2.0  # global init success (the issue's, and bench.global_init's)
 RPE_DELTAS_M = (1.0, 5.0, 10.0)  # the held-out half is ~37 m long
@@ -225,12 +225,18 @@ def localizer(seq, store, cfg, **params):
     return GlobalLocalizer.for_store(store, seq.info.gravity_map, init_params, engine=engine)
 
 
-def decide(cands: list[tuple], min_fitness: float, min_structure: float) -> str | None:
+def decide(cands: list[tuple], min_fitness: float, min_structure: float, min_coverage: float = 0.0,
+           max_see_through: float = 1.0) -> str | None:
     """What verification with these thresholds answers for one search whose every candidate was
-    refined: cands = [(correct, fitness, structure fitness, converged, ndt score)]; the best
-    candidate by NDT score among those passing (as ``GlobalLocalizer`` ranks verified ones) decides:
-    'ok' or 'wrong'; None when none passes (unverified)."""
-    passing = [c for c in cands if c[3] and c[1] >= min_fitness and c[2] >= min_structure]
+    refined: cands = [(correct, fitness, structure fitness, converged, ndt score[, static-band
+    coverage, see-through])] (NaN coverage / see-through: not judged, passes); the best candidate by
+    NDT score among those passing (as ``GlobalLocalizer`` ranks verified ones) decides: 'ok' or
+    'wrong'; None when none passes (unverified)."""
+    def consistent(c):
+        cov, see = (c[5], c[6]) if len(c) > 6 else (math.nan, math.nan)
+        return not (cov < min_coverage) and not (see > max_see_through)
+
+    passing = [c for c in cands if c[3] and c[1] >= min_fitness and c[2] >= min_structure and consistent(c)]
     if not passing:
         return None
     return "ok" if max(passing, key=lambda c: c[4])[0] else "wrong"
@@ -253,25 +259,39 @@ def threshold_study(seq, store, cfg, frames: list[int], hints: np.ndarray, windo
                            window_m, 360.0)
         Tg = gt.interpolate(np.array([scan.stamp]))[0]
         searches.append([(init_outcome(True, *pose_error(c.T_map_body, Tg)) == "ok", c.fitness, c.structure_fitness,
-                          c.converged, c.ndt_score) for c in res.candidates])
+                          c.converged, c.ndt_score, c.coverage, c.see_through) for c in res.candidates])
     good = np.array([c[1:3] for s in searches for c in s if c[0]]).reshape(-1, 2)
     bad = np.array([c[1:3] for s in searches for c in s if not c[0]]).reshape(-1, 2)
     d, gi = GlobalInitConfig(), cfg.global_init
     answers = {}
-    for name, fmin, smin in (("default", d.min_fitness, d.min_structure_fitness),
-                             ("configured", gi.min_fitness, gi.min_structure_fitness)):
-        a = [decide(s, fmin, smin) for s in searches]
-        answers[name] = {"thresholds": (fmin, smin), "ok": a.count("ok"), "wrong": a.count("wrong"),
+    for name, fmin, smin, cmin, smax in (
+            ("default", d.min_fitness, d.min_structure_fitness, d.min_coverage, d.max_see_through),
+            ("configured", gi.min_fitness, gi.min_structure_fitness, gi.min_coverage, gi.max_see_through)):
+        a = [decide(s, fmin, smin, cmin, smax) for s in searches]
+        answers[name] = {"thresholds": (fmin, smin, cmin, smax), "ok": a.count("ok"), "wrong": a.count("wrong"),
                          "unverified": a.count(None)}
+    cov_good = np.array([c[5] for s in searches for c in s if c[0]], float)
+    cov_bad = np.array([c[5] for s in searches for c in s if not c[0]], float)
+    see_good = np.array([c[6] for s in searches for c in s if c[0]], float)
+    see_bad = np.array([c[6] for s in searches for c in s if not c[0]], float)
+
+    def fin(a):
+        return a[np.isfinite(a)]
     return {"searches": len(searches), "with_correct": sum(any(c[0] for c in s) for s in searches),
             "good_min": good.min(axis=0).tolist() if len(good) else None,
             "bad_max": bad.max(axis=0).tolist() if len(bad) else None,
-            "good_n": len(good), "bad_n": len(bad), "answers": answers}
+            "good_n": len(good), "bad_n": len(bad), "answers": answers,
+            "coverage": {"good_min": float(fin(cov_good).min()) if len(fin(cov_good)) else None,
+                         "good_n": len(fin(cov_good)), "bad_max": float(fin(cov_bad).max()) if len(fin(cov_bad)) else None,
+                         "bad_n": len(fin(cov_bad)),
+                         "good_see_max": float(fin(see_good).max()) if len(fin(see_good)) else None,
+                         "bad_see_min": float(fin(see_bad).min()) if len(fin(see_bad)) else None}}
 
 
-def global_init_walk(seq, store, cfg, frames: list[int], hints: np.ndarray, window_m: float) -> dict:
+def global_init_walk(seq, store, cfg, frames: list[int], hints: np.ndarray | None, window_m: float) -> dict:
     """Global init of each frame around its hint ((N, 2), yaw unknown) as ``blockloc init`` runs
-    it (same config, engine and scan preparation); per frame: outcome, errors, the time of the
+    it (same config, engine and scan preparation), or with ``hints`` None without one (the place
+    index, then the regions: ``blockloc init`` without ``--pose-hint``); per frame: outcome, errors, the time of the
     scan's preparation (leveling by its floor) and of the search, the search's own split, and
     within the refinement: cropping the map around the candidates, building the NDT target,
     aligning and verifying."""
@@ -288,33 +308,42 @@ def global_init_walk(seq, store, cfg, frames: list[int], hints: np.ndarray, wind
     imu = seq.imu()
     # warm-up (compiled kernels loaded, the first NDT target built): not counted
     scan = prepare_for_init(seq.frame(frames[0]), imu, seq.info)
-    loc.localize(scan.points_body, scan.gravity_body, tuple(hints[0]), None, window_m, 360.0)
+    index_s = 0.0
+    if hints is None:  # the place index: built (this map has none) or loaded once, not timed
+        t0 = time.perf_counter()
+        _ = loc.place_index
+        index_s = time.perf_counter() - t0
+    loc.localize(scan.points_body, scan.gravity_body, None if hints is None else tuple(hints[0]), None,
+                 window_m, 360.0)
     prof: dict = {}
     loc.map.points_in_box = _Timed(loc.map.points_in_box, prof, "crop_s")
     engine.build_target = _Timed(engine.build_target, prof, "target_s")
     engine.align = _Timed(engine.align, prof, "align_s")
     rows = []
     load0 = _load()
-    for i, hint in zip(frames, hints):
+    for i, hint in zip(frames, hints if hints is not None else [None] * len(frames)):
         frame = seq.frame(i)
         prof.clear()
         t0 = time.perf_counter()
         scan = prepare_for_init(frame, imu, seq.info)
         t1 = time.perf_counter()
-        res = loc.localize(scan.points_body, scan.gravity_body, (float(hint[0]), float(hint[1])), None,
-                           window_m, 360.0)
+        res = loc.localize(scan.points_body, scan.gravity_body,
+                           None if hint is None else (float(hint[0]), float(hint[1])), None, window_m, 360.0)
         t2 = time.perf_counter()
         Tg = gt.interpolate(np.array([scan.stamp]))[0]
         e_m, e_deg = pose_error(np.asarray(res.T_map_body), Tg) if res.T_map_body is not None else (math.inf, math.inf)
         st = res.stats
-        rows.append({"frame": int(i), "hint_off_m": float(np.linalg.norm(hint - Tg[:2, 3])),
+        rows.append({"frame": int(i), "hint_off_m": math.nan if hint is None else float(np.linalg.norm(hint - Tg[:2, 3])),
+                     "place_stage": st.get("place_stage", 0), "fallback": hint is None and "regions" in st,
                      "verified": bool(res.verified), "ambiguous": bool(res.ambiguous), "err_m": e_m,
                      "err_deg": e_deg, "outcome": init_outcome(res.verified, e_m, e_deg),
                      "prep_s": t1 - t0, "search_s": t2 - t1, "total_s": t2 - t0,
                      "pyramid_s": st.get("pyramid_time_s", 0.0), "bnb_s": st.get("bnb_time_s", 0.0),
                      "refine_s": st.get("refine_time_s", 0.0), "nodes": st.get("nodes_visited", 0),
                      "angles": st.get("num_angles", 0), "fitness": float(res.fitness),
-                     "candidates": len(res.candidates), **{k: prof.get(k, 0.0) for k in ("crop_s", "target_s", "align_s")}})
+                     "candidates": len(res.candidates),
+                     "coverage": res.candidates[0].coverage if res.candidates else math.nan,
+                     "see_through": res.candidates[0].see_through if res.candidates else math.nan, **{k: prof.get(k, 0.0) for k in ("crop_s", "target_s", "align_s")}})
         print(f"  init scan {i}: {rows[-1]['outcome']} {e_m:.3f} m {e_deg:.2f} deg "
               f"{rows[-1]['total_s']:.2f} s", flush=True)
     ok = [r["outcome"] == "ok" for r in rows]
@@ -322,7 +351,7 @@ def global_init_walk(seq, store, cfg, frames: list[int], hints: np.ndarray, wind
            "wrong": sum(r["outcome"] == "wrong" for r in rows),
            "unverified": sum(r["outcome"] == "unverified" for r in rows),
            "ambiguous": sum(r["ambiguous"] for r in rows),
-           "precompute_s": precompute_s, "load": (load0, _load()), "threads": rc.num_threads,
+           "precompute_s": precompute_s, "index_s": index_s, "load": (load0, _load()), "threads": rc.num_threads,
            "min_fitness": gi.min_fitness, "min_structure_fitness": gi.min_structure_fitness,
            "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS", "default")}
     for k in ("total_s", "search_s", "prep_s", "bnb_s", "refine_s", "pyramid_s", "crop_s", "target_s", "align_s"):
@@ -412,6 +441,11 @@ def run_walk(args, parts) -> dict:
             for n in args.threads:
                 print(f"== global init on {len(frames)} scans, registration.num_threads={n}", flush=True)
                 out[f"init_{n}"] = global_init_walk(seq, store, _variant(cfg, n), frames, hints, window)
+        if "nohint" in parts:
+            nohint = init_frames(HELD_OUT[0], HELD_OUT[1], args.nohint_every)
+            print(f"== global init without a hint on {len(nohint)} scans (place index, then regions)", flush=True)
+            out["nohint_frames"] = nohint
+            out["nohint"] = global_init_walk(seq, store, _variant(cfg, main_threads), nohint, None, window)
         if "thresholds" in parts:
             study = init_frames(HELD_OUT[0], HELD_OUT[1], 1)
             print(f"== verification thresholds: every candidate of {len(study)} searches", flush=True)
@@ -624,7 +658,7 @@ def fragment(args, argv, walk: dict | None, fixture: list | None, sim: dict | No
          "sensitive to that load.", ""]
     if walk is not None:
         L += _walk_section(args, walk, png)
-    if walk is not None and (_init_runs(args, walk) or walk.get("thresholds")):
+    if walk is not None and (_init_runs(args, walk) or walk.get("thresholds") or walk.get("nohint")):
         L += _init_section(args, walk)
     L += _ndt_section()
     if fixture is not None:
@@ -760,7 +794,13 @@ def _init_section(args, walk: dict) -> list[str]:
                  f"{r['unverified']} | {r['total_s']['median']:.2f} / {r['total_s']['p95']:.2f} | "
                  + " / ".join(f"{r[k]['median']:.2f}" for k in ("prep_s", "bnb_s", "crop_s", "target_s", "align_s"))
                  + f" | {r['load'][0]:.1f}, {r['load'][1]:.1f} |")
-    L.append("| no hint | - | no hint: see global_init | - | - | - | - | - |")
+    nh = walk.get("nohint")
+    if nh:
+        L.append(f"| no hint (place index, then regions), {_threads(args.threads[0])} | {len(nh['rows'])} | "
+                 f"{100 * nh['share_ok']:.0f}% ({nh['ok']}) | {nh['wrong']} | {nh['unverified']} | "
+                 f"{nh['total_s']['median']:.2f} / {nh['total_s']['p95']:.2f} | "
+                 + " / ".join(f"{nh[k]['median']:.2f}" for k in ("prep_s", "bnb_s", "crop_s", "target_s", "align_s"))
+                 + f" | {nh['load'][0]:.1f}, {nh['load'][1]:.1f} |")
     runs = _init_runs(args, walk)
     if runs:
         main = runs[0][1]
@@ -770,12 +810,25 @@ def _init_section(args, walk: dict) -> list[str]:
               f"{np.median([x['angles'] for x in main['rows']]):.0f} angles and "
               f"{np.median([x['nodes'] for x in main['rows']]):,.0f} search nodes; {main['ambiguous']} results "
               "flagged ambiguous."]
+    if nh:
+        good = [x["err_m"] for x in nh["rows"] if x["outcome"] == "ok"]
+        stages = [x["place_stage"] for x in nh["rows"]]
+        L += ["", f"No hint: every {args.nohint_every}th held-out scan ({len(nh['rows'])}), yaw unknown, the map's "
+              f"place index (built for this map in {nh['index_s']:.2f} s, not timed), then the regions when no place "
+              f"is verified (as `blockloc init` without `--pose-hint`). Median error {_f(np.median(good) if good else None)} m; "
+              f"found at place stage 1: {sum(s == 1 for s in stages)}, later stages: {sum(s > 1 for s in stages)}, "
+              f"the regions searched after the index: {sum(x['fallback'] for x in nh['rows'])} "
+              f"(found there: {sum(x['fallback'] and x['outcome'] == 'ok' for x in nh['rows'])})."]
+        runs = runs + [("no hint", nh)]
     for name, r in runs:
         bad = [x for x in r["rows"] if x["outcome"] != "ok"]
         if bad:
             L.append(f"Not within tolerance ({name}): " + ", ".join(
                 f"scan {x['frame']} ({x['outcome']}, {_f(x['err_m'], '{:.2f}')} m / {_f(x['err_deg'], '{:.1f}')} deg, "
-                f"fitness {x['fitness']:.2f}, hint {x['hint_off_m']:.1f} m off)" for x in bad) + ".")
+                f"fitness {x['fitness']:.2f}"
+                + (f", coverage {x['coverage']:.2f}" if math.isfinite(x.get("coverage", math.nan)) else "")
+                + (f", hint {x['hint_off_m']:.1f} m off" if math.isfinite(x['hint_off_m']) else "") + ")"
+                for x in bad) + ".")
     th = walk.get("thresholds")
     if th:
         a, b = th["answers"]["default"], th["answers"]["configured"]
@@ -786,8 +839,12 @@ def _init_section(args, walk: dict) -> list[str]:
               f"{th['good_min'][1]:.2f}, wrong ones ({th['bad_n']}) at most {th['bad_max'][0]:.2f} and "
               f"{th['bad_max'][1]:.2f}. The best passing candidate by NDT score would be right / wrong / none in "
               f"{a['ok']} / {a['wrong']} / {a['unverified']} searches with the defaults {a['thresholds'][0]:g} / "
-              f"{a['thresholds'][1]:g}, {b['ok']} / {b['wrong']} / {b['unverified']} with {b['thresholds'][0]:g} / "
-              f"{b['thresholds'][1]:g}. The thresholds were chosen on this walk, so the rows above are not an "
+              f"{a['thresholds'][1]:g} (static-band coverage >= {a['thresholds'][2]:g}, see-through <= {a['thresholds'][3]:g}), "
+              f"{b['ok']} / {b['wrong']} / {b['unverified']} with {b['thresholds'][0]:g} / "
+              f"{b['thresholds'][1]:g} (>= {b['thresholds'][2]:g}, <= {b['thresholds'][3]:g}). Static-band coverage, where "
+              f"judged: correct candidates ({th['coverage']['good_n']}) >= {_f(th['coverage']['good_min'], '{:.2f}')}, "
+              f"wrong ones ({th['coverage']['bad_n']}) <= {_f(th['coverage']['bad_max'], '{:.2f}')}; see-through: correct "
+              f"<= {_f(th['coverage']['good_see_max'], '{:.2f}')}, wrong >= {_f(th['coverage']['bad_see_min'], '{:.2f}')}. The thresholds were chosen on this walk, so the rows above are not an "
               "independent test of them. Correct poses fit only part of a scan where the map (scans 0-88) covers "
               "only part of what the scan sees, as on the scans the defaults left unverified."]
     return L + [""]
@@ -886,6 +943,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--parts", default=",".join(PARTS), help=f"comma separated: {', '.join(PARTS)}")
     ap.add_argument("--threads", default="2,1", help="registration.num_threads values to run (first: the main runs)")
     ap.add_argument("--init-every", type=int, default=4)
+    ap.add_argument("--nohint-every", type=int, default=1, help="no-hint global init on every Nth held-out scan")
     ap.add_argument("--hint-error", type=float, default=8.0, help="hint = reference + uniform +-E m on x and y")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--window", type=float, default=None, help="global init window, m (default: the config's)")
@@ -908,7 +966,7 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"--parts: unknown {', '.join(sorted(unknown))} (expected {', '.join(PARTS)})")
     logging.basicConfig(level=logging.WARNING)
     started, load0 = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), _load()
-    walk = run_walk(args, parts) if parts & {"walk", "init", "thresholds"} else None
+    walk = run_walk(args, parts) if parts & {"walk", "init", "nohint", "thresholds"} else None
     if args.json is not None:
         import json
 

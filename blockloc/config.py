@@ -177,6 +177,10 @@ class GlobalInitConfig:
     min_coverage: float = bounded(0.9, FRACTION)  # scan structure the map covers (true poses: >= 0.91 on campus)
     max_see_through: float = bounded(0.35, FRACTION)  # share of the map's visible structure the scan saw through (true: <= 0.25)
     ambiguity_z: float = bounded(2.5, NON_NEGATIVE)  # a rival is no ambiguity when the best fits this significantly better
+    # The structure test on the static band (>= place_band_m[0] above ground: above people and cars)
+    # when the scan has enough of it; false: on the projection band (height_band_m) always (indoors,
+    # configs/handheld.yaml says why).
+    structure_from_static: bool = True
 
 
 @dataclass

@@ -19,7 +19,8 @@ Tracking uses the same entry points to start and to recover.
 Verification (``_refine``) asks more than a good NDT fit, because a wrong place with similar
 structure can fit well: NDT converged, its inlier ratio >= ``min_fitness``, the above-ground
 points' inlier ratio >= ``min_structure_fitness`` (the points at or above the static band's
-bottom when the scan has ``min_static_points`` of them, else those of the projection band), and, in the place index's static band, the
+bottom when the scan has ``min_static_points`` of them and ``structure_from_static``, else those of
+the projection band), and, in the place index's static band, the
 scan's structure covered by the map (>= ``min_coverage``) and the map's structure not where the
 scan saw through (<= ``max_see_through`` of the bins seen through). Another verified candidate
 more than ``ambiguity_distance_m`` away that fits nearly as well makes the result ambiguous, and an
@@ -101,6 +102,7 @@ class InitParams:
     consistency_tolerance_m: float = 0.75
     min_consistency_bits: int = 20
     min_static_points: int = 300  # fewer static-band points: the structure test uses the low band
+    structure_from_static: bool = True  # False: the structure test always uses the projection band
 
     @property
     def projection_params(self) -> ProjectionParams:
@@ -193,6 +195,7 @@ class GlobalLocalizer:
         self._place_source = None
         self._coverage_source = None
         self._index_load_s = 0.0
+        self._structure_body = None  # the scan's points the structure test uses (set by _refine)
 
     @property
     def place_index(self):
@@ -247,6 +250,7 @@ class GlobalLocalizer:
         t0 = time.perf_counter()
         p = self.params
         _check_args(window_m, yaw_window_deg)
+        self._structure_body = None
         scan = project_scan(points_body, gravity_body, p.resolution_m, p.band_m, p.projection, p.max_range_m,
                             p.max_scan_cells, p.min_scan_cells)
         scan_ndt = points_body[voxel_select(points_body, p.scan_voxel_m)]
@@ -389,7 +393,9 @@ class GlobalLocalizer:
             # has enough of it: people, cars and bushes near the sensor fill the low band with
             # points no map holds (seen: 0.16 of the low points within 10 m fit at the true pose).
             static = cells.static_body if cells is not None and cells.static_body is not None else None
-            structure = static if static is not None and len(static) >= p.min_static_points else scan.structure_body
+            structure = (static if p.structure_from_static and static is not None
+                         and len(static) >= p.min_static_points else scan.structure_body)
+            self._structure_body = structure  # a rival of the best must pass the same test (_nearby_rival)
             sfit = refiner.inlier_ratio(structure, r.T_map_body) if finite else 0.0
             ok = bool(r.converged and finite and r.fitness >= p.min_fitness
                       and sfit >= p.min_structure_fitness)
@@ -581,9 +587,13 @@ class GlobalLocalizer:
         local optimum where the scan constrains a direction weakly (a corridor: walls fit along
         their length). One more than ``ambiguity_distance_m`` away, within the fitness margin and
         not significantly worse (:func:`better_fit` < ``ambiguity_z``) means the scan cannot tell
-        where along that direction the body is: the result must not be verified.
+        where along that direction the body is: the result must not be verified. A rival is
+        plausible only as a candidate is (as in ``_decide``): its above-ground structure fits too
+        (seen on the real walk: optima 4.7 m off with fitness 0.55 whose structure did not fit, 0.50,
+        kept two correct poses unverified).
         """
         p = self.params
+        structure = getattr(self, "_structure_body", None)
         for d in p.probe_m:
             for dx, dy in ((d, 0.0), (-d, 0.0), (0.0, d), (0.0, -d)):
                 T0 = best.T_map_body.copy()
@@ -594,7 +604,12 @@ class GlobalLocalizer:
                 dist = float(np.linalg.norm(r.T_map_body[:3, 3] - best.T_map_body[:3, 3]))
                 if dist <= p.ambiguity_distance_m or r.fitness < best.fitness - p.ambiguity_fitness_margin:
                     continue
-                rival = InitCandidate(r.T_map_body, 0.0, r.fitness, r.converged, False, T0, r.ndt_score,
+                sfit = best.refiner.inlier_ratio(structure, r.T_map_body) if structure is not None else 1.0
+                if sfit < p.min_structure_fitness:
+                    log.debug("an NDT optimum %.2f m from the best (fitness %.2f) whose structure does not fit "
+                              "(%.2f): no rival", dist, r.fitness, sfit)
+                    continue
+                rival = InitCandidate(r.T_map_body, 0.0, r.fitness, r.converged, False, T0, r.ndt_score, sfit,
                                       refiner=best.refiner)
                 if better_fit(scan_ndt, best, rival) < p.ambiguity_z:
                     log.info("a rival NDT optimum %.2f m from the best fits about as well", dist)

@@ -142,6 +142,10 @@ class BlockPolicy:
         self.current = self._choose(position, self.current)
         return self._region(self.current, position)
 
+    def reset(self) -> None:
+        """Forget the current block (the robot jumped: no hysteresis toward where it was)."""
+        self.current = None
+
     def peek(self, position, velocity) -> Region:
         return self._region(self._choose(position, self.current), position)
 

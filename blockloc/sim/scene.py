@@ -181,6 +181,21 @@ def ellipsoid_interval(o: np.ndarray, d: np.ndarray, c: np.ndarray, r: np.ndarra
     return (-b - sq) / a, (-b + sq) / a
 
 
+#: A box this deep along a ray behind a window holds a room (shallower: a wall, a pillar).
+ROOM_MIN_M = 1.5
+BACK_WALL_M = 0.3  # a room's return stops this short of the box's far side
+
+
+def _box_exit(origins: np.ndarray, dirs: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """(N,) distance along each ray (origins, dirs (N, 3)) at which it leaves its axis-aligned
+    box (N, 6) x0 x1 y0 y1 z0 z1 (the facade rows' layout), metres."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_lo = (box[:, 0::2] - origins) / dirs
+        t_hi = (box[:, 1::2] - origins) / dirs
+    far = np.where(np.isfinite(t_lo) & np.isfinite(t_hi), np.maximum(t_lo, t_hi), np.inf)
+    return far.min(axis=1)
+
+
 class SessionScene:
     """Static world + one day's movables + vegetation volumes; actors added per scan.
 
@@ -328,16 +343,23 @@ class SessionScene:
             if self.detail.ground_relief:
                 self._ground_relief(np.flatnonzero(on_ground), origins, dirs, rng_, normals, reflect, rng)
         on_bldg = np.isin(cat, self._facade_cats)
+        lost_at = np.full(len(rng_), np.inf)  # range of the pane a ray is lost at
         if on_bldg.any():
             owner = self._tri_owner[tri[on_bldg]]
             reflect[on_bldg] = self.world.facades[owner, 6] if len(self.world.facades) else reflect[on_bldg]
             if self.detail.facade_detail:
                 self._facades(np.flatnonzero(on_bldg), owner, origins, dirs, rng_, normals,
-                              reflect, glass, rng)
+                              reflect, glass, rng, cat, lost_at)
         if self._vol_scene is not None:
             self._vegetation(origins, dirs, rng_, normals, reflect, cat, rng)
         if t is not None and len(self.actors.kind):
             self._cast_actors(origins, dirs, rays, t, max_range, rng_, normals, reflect, cat)
+        # A ray lost at a pane stays lost: vegetation or actors stop it only in front of the pane
+        # (before, foliage behind a lost window returned, labelled glass).
+        at_pane = np.isfinite(lost_at)
+        if at_pane.any():
+            rng_[at_pane & (rng_ >= lost_at)] = np.inf
+            glass &= ~(at_pane & np.isfinite(rng_))
         retro = np.zeros(len(rng_), dtype=bool)
         if self.detail.retroreflectors and "sign" in self._cat_index:
             retro = cat == self._cat_index["sign"]
@@ -389,9 +411,16 @@ class SessionScene:
             reflect[idx[grass]] *= rng.uniform(0.6, 1.4, grass.sum())
         rng_[idx] = np.maximum(r_new, 0.05)
 
-    def _facades(self, idx, owner, origins, dirs, rng_, normals, reflect, glass, rng) -> None:
+    def _facades(self, idx, owner, origins, dirs, rng_, normals, reflect, glass, rng, cat, lost_at) -> None:
         """Windows (glass recessed 18 cm: mostly lost, or a return from the room behind, or a
-        dim one off the pane), pilasters standing 15 cm out and floor ledges 20 cm out."""
+        dim one off the pane), pilasters standing 15 cm out and floor ledges 20 cm out.
+
+        The room behind a window lies inside the box the window is in: its return is no deeper
+        than the box along the ray (less the back wall). A box too thin to hold a room along the
+        ray (ROOM_MIN_M: a corridor wall, a passage's pillar) has none: the ray passes the pane
+        and returns from what lies behind (cast on from the far side; seen before: "room" returns
+        1-6 m beyond a 0.3 m corridor wall, out in the street, where a map built from inside the
+        corridor then held structure that no other session saw)."""
         f = self.world.facades[owner]
         n = normals[idx]
         d = dirs[idx]
@@ -411,13 +440,47 @@ class SessionScene:
         u_g = rng.random(len(idx))
         lost = window & (u_g < 0.55)
         inside = window & (u_g >= 0.55) & (u_g < 0.85)
-        r = np.where(inside, r + rng.uniform(1.0, 6.0, len(idx)), r)
+        depth = _box_exit(origins[idx], d, f[:, 0:6]) - rng_[idx]  # the box behind the face, along the ray
+        room = inside & (depth >= ROOM_MIN_M)
+        r = np.where(room, r + np.minimum(rng.uniform(1.0, 6.0, len(idx)), depth - BACK_WALL_M), r)
         r = np.where(lost, np.inf, r)
+        through = np.flatnonzero(inside & ~room)
+        if len(through):
+            self._through_pane(idx[through], origins, dirs, rng_[idx[through]] + depth[through], r, through,
+                               normals, reflect, cat)
+            inside[through] = False  # what lies behind is no glass return
         refl = reflect[idx] * (1.0 + 0.25 * value_noise(u, p[:, 2], 0.8, self._seed + 2))
-        refl = np.where(window & ~inside, ALBEDO["glass"], refl)
+        passed = np.zeros(len(idx), bool)
+        passed[through] = True
+        refl = np.where(window & ~inside & ~passed, ALBEDO["glass"], refl)
+        refl = np.where(passed, reflect[idx], refl)
+        lost_at[idx] = np.where(lost, rng_[idx], np.inf)
         rng_[idx] = r
         reflect[idx] = refl
-        glass[idx] = window & ~inside
+        glass[idx] = window & ~inside & ~passed
+
+    def _through_pane(self, rays, origins, dirs, t_exit, r, at, normals, reflect, cat) -> None:
+        """Rays ``rays`` (indices) leave a thin box at ``t_exit`` (m along the ray): cast them on
+        through the static scene; their range goes to ``r[at]``, their hit's normal, reflectance
+        and category to the arrays (vegetation and actors are applied afterwards to every ray)."""
+        o3d = self._o3d
+        start = t_exit + 0.02
+        o = origins[rays] + dirs[rays] * start[:, None]
+        ans = self.scene.cast_rays(o3d.core.Tensor(np.concatenate([o, dirs[rays]], axis=1).astype(np.float32)))
+        t2 = ans["t_hit"].numpy().astype(np.float64)
+        hit = np.isfinite(t2)
+        prim = ans["primitive_ids"].numpy().astype(np.int64)
+        tri = np.where(hit, self._sel[np.where(hit, prim, 0)], -1)
+        c2 = np.where(hit, self._tri_cat[tri], -1)
+        r[at] = np.where(hit, start + t2, np.inf)
+        normals[rays] = np.where(hit[:, None], ans["primitive_normals"].numpy().astype(np.float64), normals[rays])
+        cat[rays] = c2
+        refl = self._reflect_by_cat[c2]
+        ground = c2 == self.terrain_cat
+        if ground.any():
+            p = o[ground] + dirs[rays][ground] * t2[ground, None]
+            refl[ground] = self.world.ground_albedo(p[:, 0], p[:, 1])
+        reflect[rays] = refl
 
     def _vegetation(self, origins, dirs, rng_, normals, reflect, cat, rng) -> None:
         """Rays through crowns, bushes and hedges: inside a volume a ray stops after an

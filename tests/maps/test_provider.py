@@ -395,3 +395,26 @@ def test_srt_ahead_predicts_cell_entry_and_period_expiry():
     fast = np.array([4.0, 0, 0])
     assert pol.ahead(np.array([51.0, 55.0, 0]), fast, 40.0) == pol.peek(np.array([60.05, 55.0, 0]), fast)
     assert pol.ahead(np.array([51.0, 55.0, 0]), v, 2.0) is None  # neither within the horizon
+
+
+def test_relocate_serves_the_map_where_the_robot_jumped_to_and_waits_for_it(tmp_path):
+    # A jump (a relocalization): update() would serve the old block while the new one loads;
+    # relocate() waits for it, and ignores the hysteresis toward the block the robot left.
+    store = _block_store(tmp_path / "m", [[0, 0, 0], [60, 0, 0]])
+    gate = threading.Event()
+    built = []
+
+    def slow_builder(points):
+        gate.wait(10)
+        built.append(len(points))
+        return len(points)
+
+    with MapProvider(store, "block", target_builder=slow_builder, prefetch=False, hysteresis_m=100.0) as prov:
+        gate.set()
+        assert prov.update(np.array([0.0, 0, 0]), None, 0.0).block_id == "000"
+        gate.clear()
+        threading.Timer(0.3, gate.set).start()  # the next build finishes later
+        m = prov.relocate(np.array([60.0, 0, 0]), None, 1.0)
+        assert m.block_id == "001" and len(built) == 2
+        assert prov.update(np.array([60.5, 0, 0]), None, 1.1).block_id == "001"
+        assert prov.stats()["late_frames"] == 0
