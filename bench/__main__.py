@@ -22,7 +22,7 @@ from blockloc.fileio import atomic_write_text
 
 ROOT = Path(__file__).resolve().parent.parent
 FRAGMENTS = ROOT / "docs" / "bench"
-ORDER = ["run", "datasets", "evaluation", "sim", "realism", "ndt", "maps", "global_init", "real", "tracking",
+ORDER = ["run", "datasets", "evaluation", "sim", "realism", "ndt", "maps", "global_init", "reloc", "real", "tracking",
          "tracking_engines", "recording",
          "scaling", "campus", "campus_backends", "campus_engines", "city",
          "server", "summary"]  # summary last: it compares the fragments before it with the papers
