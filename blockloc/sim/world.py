@@ -829,6 +829,48 @@ def movable_mesh(kind: str, x: float, y: float, yaw: float, terrain: Terrain,
     raise ValueError(kind)
 
 
+def _boxes(cx, cy, z0, z1, lx: float, ly: float, yaw) -> np.ndarray:
+    """:func:`box_mesh` of M boxes at once (the same arithmetic, so the same bits): vertices
+    (M, 8, 3); cx, cy, z0, z1, yaw (M,)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    corners = np.array([[-lx, -ly], [lx, -ly], [lx, ly], [-lx, ly]]) * 0.5
+    R = np.empty((len(yaw), 2, 2))
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1] = c, s, -s, c
+    xy = corners @ R + np.stack([cx, cy], axis=-1)[:, None, :]
+    V = np.empty((len(yaw), 8, 3))
+    V[:, :4, :2] = V[:, 4:, :2] = xy
+    V[:, :4, 2], V[:, 4:, 2] = z0[:, None], z1[:, None]
+    return V
+
+
+def movable_meshes(movables: Movables, terrain: Terrain) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """kind -> (V, F) of every movable of that kind ('car', 'bin'), in the movables' order: what
+    :func:`movable_mesh` per object gathered in a :class:`MeshBuilder` gives, bit for bit, in
+    one pass (a city has ~55k movables: 11 s one by one, 0.2 s here). Kinds without an object
+    are left out."""
+    kind = np.asarray(movables.kind).astype(str)
+    unknown = sorted(set(kind.tolist()) - set(MOVABLE_KINDS))
+    if unknown:
+        raise ValueError(f"movable kinds {unknown}: expected {MOVABLE_KINDS}")
+    out = {}
+    for k in MOVABLE_KINDS:
+        m = kind == k
+        if not m.any():
+            continue
+        x, y = (np.asarray(movables.xy, np.float64)[m, i] for i in (0, 1))
+        yaw = np.asarray(movables.yaw, np.float64)[m]
+        z = terrain.height(x, y)
+        if k == "car":
+            parts = [_boxes(x, y, z + 0.25, z + 1.0, 4.4, 1.8, yaw),
+                     _boxes(x - 0.2 * np.cos(yaw), y - 0.2 * np.sin(yaw), z + 1.0, z + 1.5, 2.4, 1.6, yaw)]
+        else:
+            parts = [_boxes(x, y, z - 0.1, z + 1.0, 0.6, 0.6, yaw)]
+        n = len(x) * len(parts)
+        out[k] = (np.stack(parts, axis=1).reshape(-1, 3),
+                  (_BOX_F[None] + 8 * np.arange(n)[:, None, None]).reshape(-1, 3).astype(np.int64))
+    return out
+
+
 def session_movables(world: World, session: str, base: bool) -> Movables:
     """The movable objects present on a session's day.
 

@@ -120,6 +120,28 @@ def test_days_differ_in_movable_objects_and_moving_actors():
     assert np.all(step > 1.0) and np.all(step < 15.0)  # walking and driving speeds
 
 
+@pytest.mark.parametrize("preset", ["small", "campus"])
+def test_movable_meshes_in_one_pass_equal_the_per_object_meshes(preset):
+    """The scene builds every car and bin in one vectorised pass: bit for bit the meshes that
+    movable_mesh per object gives (the scans, and every cached sim result, stay the same)."""
+    from blockloc.sim.stream import cached_world
+    from blockloc.sim.world import MeshBuilder, movable_mesh, movable_meshes
+
+    world = cached_world(get_preset(preset), 1)
+    for session, base in (("map", True), ("loc", False)):
+        mv = session_movables(world, session, base)
+        ref = {k: MeshBuilder() for k in ("car", "bin")}
+        for kind, (x, y), yaw in zip(mv.kind, mv.xy, mv.yaw):
+            for V, F in movable_mesh(str(kind), x, y, yaw, world.terrain):
+                ref[str(kind)].add(V, F)
+        ref = {k: b.build() for k, b in ref.items() if b.verts}
+        got = movable_meshes(mv, world.terrain)
+        assert list(got) == list(ref) and len(ref["car"][1]) > 1000
+        for k in ref:
+            assert got[k][0].tobytes() == ref[k][0].tobytes()
+            assert got[k][1].dtype == ref[k][1].dtype and np.array_equal(got[k][1], ref[k][1])
+
+
 def test_small_routes_cover_blocks_and_stay_in_the_map():
     mp = open_sim_sequence("small", "map", 1).ground_truth().positions
     lc = open_sim_sequence("small", "loc", 1).ground_truth().positions
