@@ -175,7 +175,8 @@ def projection(serial: dict, local2: dict | None, kind: str) -> dict:
     length_ratio = TARGET["path_km"] / max(km, 1e-9)
     area_ratio = TARGET["area_km2"] / area
     revisit_ratio = (TARGET["path_km"] / TARGET["area_km2"]) / (km / area)
-    scale = {"plan": 1.0, "candidate": length_ratio, "merge": length_ratio, "chunk": length_ratio,
+    scale = {"plan": 1.0, "run": length_ratio, "candidate": length_ratio, "merge": length_ratio,
+             "chunk": length_ratio,
              "write": area_ratio, "tile": area_ratio, "tiles": area_ratio}
     cost_scale = {"tile": revisit_ratio, "tiles": revisit_ratio}
     rows, work, n_tasks = {}, 0.0, 0.0
@@ -198,17 +199,17 @@ def cpu_model(stats: dict, workers: int, plan_cpu_s: float | None = None) -> flo
     """Wall time the build would take on an idle machine with ``workers`` single-threaded
     workers, from the measured CPU time of each task: the drives are planned first (each worker
     opens them meanwhile: ``plan_cpu_s``, default the planning tasks' CPU time), then the tasks
-    that read scans (candidates, chunks) are run in submission order, each on the worker that is
+    that read scans (block runs, grid chunks) are run in submission order, each on the worker that is
     free first, then the small tasks (merges, writes, tiles) share the workers evenly."""
     import heapq
 
     tasks = stats["tasks"]
     plan = sum(tasks.get("plan", {}).get("cpu_each", [])) if plan_cpu_s is None else plan_cpu_s
     free = [plan] * workers
-    for k in ("candidate", "chunk"):
+    for k in ("run", "chunk"):  # the tasks that read scans (a candidate only adds its runs up)
         for c in tasks.get(k, {}).get("cpu_each", []):
             heapq.heappush(free, heapq.heappop(free) + c)
-    rest = sum(r.get("cpu_s", 0.0) for k, r in tasks.items() if k not in ("plan", "candidate", "chunk"))
+    rest = sum(r.get("cpu_s", 0.0) for k, r in tasks.items() if k not in ("plan", "run", "chunk"))
     return max(free) + rest / workers
 
 
