@@ -220,10 +220,13 @@ def _timed(fn):
 
 
 def open_drive_task(drive: Drive) -> None:
-    """Task: open a drive in this process ahead of its first scan task (a simulated world or a
-    bag index takes seconds to build; every worker does it at once, while the drives are
-    planned)."""
-    _opened(drive)
+    """Task: open a drive in this process ahead of its first scan task (a simulated world and
+    its scene or a bag index take seconds to build; every worker does it at once, while the
+    drives are planned). A sequence with a ``prepare()`` method builds what its frames need."""
+    seq, _, _ = _opened(drive)
+    prepare = getattr(seq, "prepare", None)
+    if callable(prepare):
+        prepare()
 
 
 def plan_drive_task(drive: Drive, keyframe_distance_m: float, keyframe_angle_deg: float) -> DrivePlan:

@@ -175,6 +175,11 @@ class SimSequence:
                                        make_actors(self.world, self.session), self.session)
         return self._scene
 
+    def prepare(self) -> None:
+        """Build now what reading frames needs (the scene), e.g. on a build worker ahead of its
+        first scan task, while the drives are planned."""
+        self.scene  # noqa: B018 (built on first access)
+
     # --- protocol -----------------------------------------------------------------------------
     def __len__(self) -> int:
         return self._n

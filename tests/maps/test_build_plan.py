@@ -141,3 +141,19 @@ def test_plan_rejects_bad_input_before_writing(tmp_path, loop_seq):
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(MapError):
         open_map(tmp_path / "m")
+
+
+def test_open_drive_task_prepares_a_simulated_drive():
+    """A worker opening a drive ahead of its scan tasks builds the simulated scene then, not in
+    its first scan task."""
+    from blockloc.maps.build_tasks import forget_drives, open_drive_task
+    from blockloc.sim.stream import open_sim_sequence
+
+    seq = open_sim_sequence("small", "map", 1)
+    drive = Drive.of(seq, stop=20)
+    assert seq._scene is None
+    try:
+        open_drive_task(drive)
+        assert seq._scene is not None
+    finally:
+        forget_drives([drive])
