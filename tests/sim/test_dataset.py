@@ -142,6 +142,25 @@ def test_movable_meshes_in_one_pass_equal_the_per_object_meshes(preset):
             assert got[k][1].dtype == ref[k][1].dtype and np.array_equal(got[k][1], ref[k][1])
 
 
+def test_ground_material_near_paths_only_equals_every_point_against_every_path():
+    """Footpath codes are computed only for grass near each path's box: the same codes as every
+    point measured against every path."""
+    from blockloc.sim.stream import cached_world
+    from blockloc.sim.world import polyline_distance
+
+    world = cached_world(get_preset("campus"), 1)
+    rng = np.random.default_rng(0)
+    x0, x1, y0, y1 = world.extent
+    x, y = rng.uniform(x0, x1, 60_000), rng.uniform(y0, y1, 60_000)
+    d = world.roads.distance(x, y)
+    hw = world.roads.width_m / 2
+    ref = np.where(d < hw, 0, np.where(d < hw + 2.5, 1, 2))
+    for P in world.roads.paths.values():
+        ref = np.where((ref == 2) & (polyline_distance(P, x, y) < 1.25), 3, ref)
+    got = world._ground_material_exact(x, y)
+    assert (ref == 3).sum() > 100 and np.array_equal(got, ref)
+
+
 def test_small_routes_cover_blocks_and_stay_in_the_map():
     mp = open_sim_sequence("small", "map", 1).ground_truth().positions
     lc = open_sim_sequence("small", "loc", 1).ground_truth().positions
