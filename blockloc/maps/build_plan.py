@@ -87,8 +87,7 @@ class InlineExecutor:
     description = "serial (this process)"
     dashboard_link = None
 
-    def submit(self, fn, *args, key: str | None = None, priority: int = 0,
-               hint: int | None = None) -> _Done:
+    def submit(self, fn, *args, key: str | None = None, priority: int = 0) -> _Done:
         try:
             values = [a.result() if isinstance(a, _Done) else a for a in args]
             return _Done(fn(*values))
@@ -126,13 +125,10 @@ class _Tasks:
             self._expected += n
             self._show()
 
-    def submit(self, fn, *args, name: str, priority: int = 0, hint: int | None = None):
-        """``hint``: a worker slot (0 .. slots-1) the task had best run on (data it shares with
-        the slot's other tasks); only where it runs, never what it computes."""
+    def submit(self, fn, *args, name: str, priority: int = 0):
         if len(self.futures) >= self._expected:
             self.expect(1)
-        kw = {} if hint is None else {"hint": hint}
-        fut = self.executor.submit(fn, *args, key=f"{name}-{self.build_id}", priority=priority, **kw)
+        fut = self.executor.submit(fn, *args, key=f"{name}-{self.build_id}", priority=priority)
         self.futures.append(fut)
         self.names.append(name)
         fut.add_done_callback(self._tick)
@@ -401,15 +397,9 @@ def _blocks(tasks: _Tasks, target: BuildTarget, plans: list[DrivePlan], block_si
     # the runs' sums up, then a merge or a write (or nothing: a skip)
     runs = [[c.keys[i:i + KEYFRAMES_PER_RUN] for i in range(0, len(c.keys), KEYFRAMES_PER_RUN)]
             for _, c in candidates]
-    total = sum(len(r) for r in runs)
-    tasks.expect(total + 2 * len(candidates))
-    # each worker is asked to take a contiguous stretch of the runs: a simulated drive builds
-    # its scene windows and ground rasters per area, once per process that renders there
-    slots = int(getattr(tasks.executor, "slots", 0) or 0)
-    order = iter(range(total))
+    tasks.expect(sum(len(r) for r in runs) + 2 * len(candidates))
     run_futures = [[tasks.submit(block_run_task, plans[d].drive, frames[keys].tolist(), voxel_size_m,
-                                 deskew, target, f"{SCRATCH}/run-{n}-{i}.bin", name=f"run-{n}-{i}",
-                                 hint=next(order) * slots // total if slots > 1 else None)
+                                 deskew, target, f"{SCRATCH}/run-{n}-{i}.bin", name=f"run-{n}-{i}")
                     for i, keys in enumerate(runs[n])]
                    for n, (d, _) in enumerate(candidates)]
     futures = [tasks.submit(block_candidate_task, target, voxel_size_m,

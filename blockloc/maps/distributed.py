@@ -34,7 +34,6 @@ class DaskExecutor:
     def __init__(self, client, description: str) -> None:
         self.client = client
         self.description = description
-        self._workers: list[str] | None = None
 
     @property
     def dashboard_link(self) -> str | None:
@@ -46,24 +45,8 @@ class DaskExecutor:
         except Exception:  # the scheduler runs without a dashboard
             return None
 
-    @property
-    def slots(self) -> int:
-        """Workers connected when first asked (the slots of :meth:`submit`'s hints)."""
-        return len(self._slot_workers())
-
-    def _slot_workers(self) -> list[str]:
-        if self._workers is None:
-            self._workers = sorted(self.client.scheduler_info().get("workers", {}))
-        return self._workers
-
-    def submit(self, fn, *args, key: str | None = None, priority: int = 0, hint: int | None = None):
-        """``hint``: a worker slot the task had best run on (a loose restriction: any worker
-        runs it when that one is busy, gone or never was)."""
+    def submit(self, fn, *args, key: str | None = None, priority: int = 0):
         # pure=False: every build gets fresh tasks (keys carry the build's id)
-        workers = self._slot_workers() if hint is not None else []
-        if workers:
-            return self.client.submit(fn, *args, key=key, priority=priority, pure=False,
-                                      workers=[workers[hint % len(workers)]], allow_other_workers=True)
         return self.client.submit(fn, *args, key=key, priority=priority, pure=False)
 
     def on_each_worker(self, fn, *args, key: str) -> list:
