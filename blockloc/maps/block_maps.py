@@ -33,9 +33,12 @@ from blockloc.voxels import voxel_downsample
 
 log = logging.getLogger(__name__)
 
-# Accumulated raw points of an open block are voxel-filtered whenever they exceed this many, so
-# memory stays bounded by the block's area, not the number of scans.
-_COMPACT_POINTS = 2_000_000
+#: A candidate block's keyframes are summed by voxel in runs of this many (counted from the
+#: candidate's first keyframe) and the runs' sums added in order: the in-memory builder and the
+#: build plan (one task per run, :mod:`blockloc.maps.build_plan`) cut the same runs, so they add
+#: the same numbers in the same order and write the same bytes. A fixed number, never derived
+#: from the number of workers; memory follows one run's raw points and the block's area.
+KEYFRAMES_PER_RUN = 8
 
 
 @dataclass
@@ -74,44 +77,74 @@ class BlockEvent:
 class VoxelAccumulator:
     """The points of one candidate block as its keyframes arrive (map frame, metres).
 
-    Raw points are voxel-filtered (``voxel_size_m``; <= 0: none) whenever more than
-    ``compact_points`` have accumulated and once more by :meth:`result`, so memory follows the
-    block's area, not its number of scans. The result depends only on the keyframes and their
-    order.
+    Keyframes are summed by voxel (``voxel_size_m``; <= 0: none) in runs of
+    ``keyframes_per_run`` (:func:`keyframe_run_sums`), and each run's sums are added to the
+    block's (:meth:`add_run`, the same records a build-plan task computes elsewhere).
+    :meth:`result` gives the voxel centroids: the mean of every point of the voxel, whatever the
+    runs. The bytes depend only on the keyframes, their order and the run length.
     """
 
-    def __init__(self, voxel_size_m: float, compact_points: int = _COMPACT_POINTS):
+    def __init__(self, voxel_size_m: float, keyframes_per_run: int = KEYFRAMES_PER_RUN):
         self.voxel_size_m = float(voxel_size_m)
-        self.compact_points = int(compact_points)
-        self._parts: list[tuple[np.ndarray, np.ndarray | None]] = []
-        self._raw = 0
+        self.keyframes_per_run = int(keyframes_per_run)
+        if self.keyframes_per_run < 1:
+            raise MapError(f"keyframes_per_run {keyframes_per_run!r}: expected an integer >= 1")
+        self._run: list[tuple[np.ndarray, np.ndarray | None]] = []
+        self._sums: np.ndarray | None = None
+        self._intensity = True  # every keyframe so far had intensity
 
     def add(self, points: np.ndarray, intensity: np.ndarray | None = None) -> None:
         """One keyframe's points (N, 3) map frame and intensity (N,) or None."""
-        pts = np.asarray(points, np.float32)
-        inten = None if intensity is None else np.asarray(intensity, np.float32)
-        self._parts.append((pts, inten))
-        self._raw += len(pts)
-        if self._raw > self.compact_points and self.voxel_size_m > 0:
-            p, i = self._gather()
-            p, i = voxel_downsample(p, self.voxel_size_m, i)
-            self._parts = [(p.astype(np.float32), i)]
-            self._raw = len(p)
+        self._run.append((points, intensity))
+        if len(self._run) >= self.keyframes_per_run:
+            self._close_run()
+
+    def add_run(self, records: np.ndarray, has_intensity: bool) -> None:
+        """A run's voxel sums (:data:`~blockloc.maps.grid_tiles.VOXEL_SUM` records of
+        :func:`keyframe_run_sums`), added after the runs before it."""
+        from blockloc.maps.grid_tiles import merge_voxel_sums
+
+        self._intensity = self._intensity and bool(has_intensity)
+        self._sums = records if self._sums is None else merge_voxel_sums(
+            [self._sums, records], self.voxel_size_m)
 
     def result(self) -> tuple[np.ndarray, np.ndarray | None]:
-        """Voxel-filtered points (M, 3) float32 and intensity (M,) float32 (None when a keyframe
-        had none)."""
-        pts, inten = self._gather()
-        pts, inten = voxel_downsample(pts, self.voxel_size_m, inten)
-        return pts.astype(np.float32), inten
-
-    def _gather(self) -> tuple[np.ndarray, np.ndarray | None]:
-        if not self._parts:
+        """Voxel centroids (M, 3) float32, ascending voxel-key order, and mean intensity (M,)
+        float32 (None when a keyframe had none)."""
+        self._close_run()
+        rec = self._sums
+        if rec is None or len(rec) == 0:
             return np.zeros((0, 3), np.float32), None
-        pts = np.concatenate([p for p, _ in self._parts])
-        if any(i is None for _, i in self._parts):
-            return pts, None
-        return pts, np.concatenate([i for _, i in self._parts])
+        n = rec["count"].astype(np.float64)
+        pts = (rec["sum"][:, :3] / n[:, None]).astype(np.float32)
+        inten = (rec["sum"][:, 3] / n).astype(np.float32) if self._intensity else None
+        return pts, inten
+
+    def _close_run(self) -> None:
+        if self._run:
+            rec, has_intensity = keyframe_run_sums(self._run, self.voxel_size_m)
+            self._run = []
+            self.add_run(rec, has_intensity)
+
+
+def keyframe_run_sums(clouds, voxel_size_m: float) -> tuple[np.ndarray, bool]:
+    """A run of keyframes summed by voxel: ``clouds`` [(points (N, 3) map frame, metres,
+    intensity (N,) or None)] in order. Points are rounded to float32 (what a block stores) before
+    they are binned and summed in float64; non-finite points are dropped. Returns (records
+    (M,) :data:`~blockloc.maps.grid_tiles.VOXEL_SUM`, ascending key order (input order when
+    ``voxel_size_m <= 0``), whether every keyframe had intensity)."""
+    from blockloc.maps.grid_tiles import voxel_sums
+
+    has_intensity = all(i is not None for _, i in clouds)
+    pts = [np.asarray(p, np.float32).reshape(-1, 3) for p, _ in clouds]
+    inten = [np.zeros(len(p), np.float32) if i is None else np.asarray(i, np.float32).reshape(-1)
+             for p, (_, i) in zip(pts, clouds)]
+    pts = np.concatenate(pts).astype(np.float64) if pts else np.zeros((0, 3))
+    inten = np.concatenate(inten).astype(np.float64) if inten else np.zeros(0)
+    finite = np.isfinite(pts).all(axis=1)
+    if not finite.all():
+        pts, inten = pts[finite], inten[finite]
+    return voxel_sums(pts, inten, voxel_size_m), has_intensity
 
 
 def merge_block_points(points: np.ndarray, intensity: np.ndarray | None, more: np.ndarray,

@@ -13,9 +13,11 @@ Steps (tasks in *italics*):
    the order they were given in.
 2. Block maps (Algorithm 1, :mod:`blockloc.maps.block_maps`): the client cuts each drive's
    keyframes into candidate blocks from their positions (:class:`CandidateSegmenter`);
-   *block_candidate* reads and deskews a candidate's keyframes, voxel-filters them (the same
-   :class:`VoxelAccumulator` as the in-memory builder), writes the points to the scratch area and
-   returns their centroid and bounds. The client decides new / merge / skip / tail in order from
+   *block_run* reads and deskews a run of ``KEYFRAMES_PER_RUN`` keyframes of a candidate and
+   sums their points by voxel; *block_candidate* adds its runs' sums up in order (the same
+   :class:`VoxelAccumulator` as the in-memory builder), writes the voxel centroids to the scratch
+   area and returns their centroid and bounds. Runs are a fixed size, so a build has many small
+   scan-reading tasks however many workers run them, and the same bytes. The client decides new / merge / skip / tail in order from
    centroids alone (:class:`BlockLedger`); a merge is a *block_merge* task (a new version of the
    block's points); when a merge's centroid is not back yet the ledger waits for it only if that
    block could be the nearest. *block_write* encodes each block's last version as its entry.
@@ -42,9 +44,9 @@ import numpy as np
 
 from blockloc.errors import MapError
 from blockloc.maps.build_tasks import (_OPENED_MAX, SCRATCH, BuildTarget, Drive, DrivePlan,
-                                       block_candidate_task, block_merge_task, block_write_task,
-                                       forget_drives, grid_chunk_task, grid_tile_task,
-                                       open_drive_task, plan_drive_task)
+                                       block_candidate_task, block_merge_task, block_run_task,
+                                       block_write_task, forget_drives, grid_chunk_task,
+                                       grid_tile_task, open_drive_task, plan_drive_task)
 
 log = logging.getLogger(__name__)
 
@@ -375,7 +377,7 @@ def _blocks(tasks: _Tasks, target: BuildTarget, plans: list[DrivePlan], block_si
             voxel_size_m: float, deskew: bool):
     """Algorithm 1 over the drives' keyframes: candidate tasks, decisions here, merge and write
     tasks. Returns (entries, parameters)."""
-    from blockloc.maps.block_maps import BlockLedger, CandidateSegmenter
+    from blockloc.maps.block_maps import KEYFRAMES_PER_RUN, BlockLedger, CandidateSegmenter
 
     positions = np.concatenate([p.positions for p in plans])
     frames = np.concatenate([p.frames for p in plans])
@@ -391,12 +393,19 @@ def _blocks(tasks: _Tasks, target: BuildTarget, plans: list[DrivePlan], block_si
         if tail is not None:
             candidates.append((d, tail))
         base += len(plan.frames)
-    # every candidate: its own task, then a merge or a write (or nothing: a skip)
-    tasks.expect(2 * len(candidates))
-    futures = [tasks.submit(block_candidate_task, plans[d].drive, frames[c.keys].tolist(),
-                            voxel_size_m, deskew, target, f"{SCRATCH}/candidate-{n}.npy",
-                            name=f"candidate-{n}")
-               for n, (d, c) in enumerate(candidates)]
+    # every candidate: a task per run of its keyframes (read, deskew, voxel sums), one that adds
+    # the runs' sums up, then a merge or a write (or nothing: a skip)
+    runs = [[c.keys[i:i + KEYFRAMES_PER_RUN] for i in range(0, len(c.keys), KEYFRAMES_PER_RUN)]
+            for _, c in candidates]
+    tasks.expect(sum(len(r) for r in runs) + 2 * len(candidates))
+    run_futures = [[tasks.submit(block_run_task, plans[d].drive, frames[keys].tolist(), voxel_size_m,
+                                 deskew, target, f"{SCRATCH}/run-{n}-{i}.bin", name=f"run-{n}-{i}")
+                    for i, keys in enumerate(runs[n])]
+                   for n, (d, _) in enumerate(candidates)]
+    futures = [tasks.submit(block_candidate_task, target, voxel_size_m,
+                            f"{SCRATCH}/candidate-{n}.npy", *run_futures[n], name=f"candidate-{n}",
+                            priority=5)
+               for n in range(len(candidates))]
     ledger = BlockLedger(block_size_m)
     versions: list[str] = []  # scratch name of each block's latest points
     writers: list = []  # the task that wrote it (a dependency of the next merge or the write)

@@ -6,7 +6,7 @@ atomically (:class:`BuildTarget`: a temporary name, then a rename; an object sto
 returns a dict with what the client needs (centroids, bounds, counts, checksums) plus its own
 wall time, bytes written and raw points read. A task run twice (Dask reruns a killed worker's
 tasks) writes the same bytes again. No task holds more than one candidate block (or one block
-and one candidate, for a merge) or one chunk of keyframes.
+and one candidate, for a merge) or one run or chunk of keyframes.
 """
 
 from __future__ import annotations
@@ -220,10 +220,13 @@ def _timed(fn):
 
 
 def open_drive_task(drive: Drive) -> None:
-    """Task: open a drive in this process ahead of its first scan task (a simulated world or a
-    bag index takes seconds to build; every worker does it at once, while the drives are
-    planned)."""
-    _opened(drive)
+    """Task: open a drive in this process ahead of its first scan task (a simulated world and
+    its scene or a bag index take seconds to build; every worker does it at once, while the
+    drives are planned). A sequence with a ``prepare()`` method builds what its frames need."""
+    seq, _, _ = _opened(drive)
+    prepare = getattr(seq, "prepare", None)
+    if callable(prepare):
+        prepare()
 
 
 def plan_drive_task(drive: Drive, keyframe_distance_m: float, keyframe_angle_deg: float) -> DrivePlan:
@@ -248,23 +251,39 @@ def _keyframe_clouds(drive: Drive, frames: list[int], deskew: bool):
 
 
 @_timed
-def block_candidate_task(drive: Drive, frames: list[int], voxel_size_m: float, deskew: bool,
-                         target: BuildTarget, name: str) -> dict | None:
-    """Task: a candidate block's points (its keyframes read, deskewed, voxel-filtered in order)
-    saved as ``name``; returns centroid (3,), bounds lo/hi (3,) and the point counts (``name``
-    None when the keyframes hold no point)."""
+def block_run_task(drive: Drive, frames: list[int], voxel_size_m: float, deskew: bool,
+                   target: BuildTarget, name: str) -> dict:
+    """Task: a run of a candidate block's keyframes read, deskewed and summed by voxel
+    (:func:`~blockloc.maps.block_maps.keyframe_run_sums`), the records saved as ``name``.
+    Returns the record count, whether every keyframe had intensity, the raw point count."""
+    from blockloc.maps.block_maps import keyframe_run_sums
+
+    clouds = list(_keyframe_clouds(drive, frames, deskew))
+    rec, has_intensity = keyframe_run_sums(clouds, voxel_size_m)
+    data = rec.tobytes()
+    target.write(name, data)
+    return {"name": name, "records": int(len(rec)), "has_intensity": has_intensity,
+            "raw_points": int(sum(len(p) for p, _ in clouds)), "bytes": len(data)}
+
+
+@_timed
+def block_candidate_task(target: BuildTarget, voxel_size_m: float, name: str, *runs: dict) -> dict:
+    """Task: a candidate block's points from its runs' voxel sums (``runs``: the results of its
+    :func:`block_run_task` tasks, in keyframe order, added in that order as the in-memory
+    :class:`~blockloc.maps.block_maps.VoxelAccumulator` does), saved as ``name``; returns
+    centroid (3,), bounds lo/hi (3,) and the point count (``name`` None when the keyframes hold
+    no point)."""
     from blockloc.maps.block_maps import VoxelAccumulator, block_centroid
+    from blockloc.maps.grid_tiles import VOXEL_SUM
 
     acc = VoxelAccumulator(voxel_size_m)
-    raw = 0
-    for pts, inten in _keyframe_clouds(drive, frames, deskew):
-        acc.add(pts, inten)
-        raw += len(pts)
+    for r in runs:
+        acc.add_run(np.frombuffer(target.read(r["name"]), VOXEL_SUM), r["has_intensity"])
     pts, inten = acc.result()
     if len(pts) == 0:
-        return {"name": None, "raw_points": raw, "bytes": 0}
+        return {"name": None, "bytes": 0}
     return {"name": name, "centroid": block_centroid(pts), "lo": pts.min(axis=0).astype(np.float64),
-            "hi": pts.max(axis=0).astype(np.float64), "num_points": len(pts), "raw_points": raw,
+            "hi": pts.max(axis=0).astype(np.float64), "num_points": len(pts),
             "bytes": _save_cloud(target, name, pts, inten)}
 
 

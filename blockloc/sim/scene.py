@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from blockloc.sim.world import (_ICO_F, _ICO_V, ALBEDO, MeshBuilder, Movables, World, movable_mesh,
-                                stable_hash)
+                                movable_meshes, stable_hash)
 
 log = logging.getLogger(__name__)
 
@@ -215,14 +215,7 @@ class SessionScene:
         self.detail = world.preset.detail
         self.categories: list[str] = []
         meshes = dict(world.meshes)
-        mb = {k: MeshBuilder() for k in ("car", "bin")}
-        for kind, (x, y), yaw in zip(movables.kind, movables.xy, movables.yaw):
-            for V, F in movable_mesh(str(kind), x, y, yaw, world.terrain):
-                mb[str(kind)].add(V, F)
-        for k, b in mb.items():
-            V, F = b.build()
-            if len(F):
-                meshes[k] = (V, F)
+        meshes.update(movable_meshes(movables, world.terrain))
         for name in list(meshes) + ["pedestrian", "vehicle", "foliage", "self", "glass"]:
             if name not in self.categories:
                 self.categories.append(name)

@@ -156,6 +156,7 @@ class SimSequence:
         self._az0 = float(np.random.default_rng([self.seed, stable_hash(session), 9]).uniform(0, 2 * np.pi))
         self._scene = None
         self._imu = None
+        self._mapping_poses = None
         self.info = SequenceInfo(name=f"sim:{preset.name}/{session}@{self.seed}",
                                  T_body_lidar=np.array(NCLT_T_BODY_LIDAR, dtype=float),
                                  T_body_imu=np.array(NCLT_T_BODY_IMU, dtype=float),
@@ -173,6 +174,11 @@ class SimSequence:
             self._scene = SessionScene(self.world, session_movables(self.world, self.session, base),
                                        make_actors(self.world, self.session), self.session)
         return self._scene
+
+    def prepare(self) -> None:
+        """Build now what reading frames needs (the scene), e.g. on a build worker ahead of its
+        first scan task, while the drives are planned."""
+        self.scene  # noqa: B018 (built on first access)
 
     # --- protocol -----------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -260,16 +266,25 @@ class SimSequence:
 
     def mapping_poses(self) -> Trajectory:
         """Mapping session: "offline SLAM" poses = ground truth with a smooth error of about
-        ``slam_error_m`` (position) and ``slam_error_rad`` (attitude); other sessions: ground truth."""
-        gt = self.ground_truth()
-        if not self.preset.is_mapping(self.session):
-            return gt
-        rng = np.random.default_rng(np.random.SeedSequence([self.seed, stable_hash(self.session), 7]))
-        rel = gt.stamps - gt.stamps[0]
-        e = smooth_noise(rng, rel, 6)
-        dT = np.array([make_T(R, p) for R, p in zip(so3_exp(e[:, :3] * self.preset.slam_error_rad),
-                                                    e[:, 3:] * self.preset.slam_error_m)])
-        return Trajectory(gt.stamps, gt.poses @ dT)
+        ``slam_error_m`` (position) and ``slam_error_rad`` (attitude); other sessions: ground truth.
+
+        Computed once per sequence (a city drive has ~400k poses at 100 Hz: seconds of work that
+        a map build would otherwise repeat for every use); the arrays are read-only."""
+        if self._mapping_poses is None:
+            gt = self.ground_truth()
+            if self.preset.is_mapping(self.session):
+                rng = np.random.default_rng(np.random.SeedSequence([self.seed, stable_hash(self.session), 7]))
+                rel = gt.stamps - gt.stamps[0]
+                e = smooth_noise(rng, rel, 6)
+                dT = np.zeros((len(e), 4, 4))  # make_T per pose, stacked
+                dT[:, :3, :3] = so3_exp(e[:, :3] * self.preset.slam_error_rad)
+                dT[:, :3, 3] = e[:, 3:] * self.preset.slam_error_m
+                dT[:, 3, 3] = 1.0
+                gt = Trajectory(gt.stamps, gt.poses @ dT)
+            for a in (gt.stamps, gt.poses):
+                a.flags.writeable = False
+            self._mapping_poses = gt
+        return self._mapping_poses
 
     # --- helpers for tests and tools ------------------------------------------------------------
     def T_world_lidar(self, t_rel: np.ndarray) -> np.ndarray:

@@ -371,11 +371,18 @@ class World:
         d = self.roads.distance(x, y)
         hw = self.roads.width_m / 2
         code = np.where(d < hw, 0, np.where(d < hw + 2.5, 1, 2))
+        x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+        code = np.array(np.broadcast_to(code, x.shape))
+        flat, xf, yf = code.reshape(-1), x.reshape(-1), y.reshape(-1)
         for P in self.roads.paths.values():
             lo, hi = P.min(axis=0) - 2.0, P.max(axis=0) + 2.0
             if box is not None and (hi[0] < box[0] or lo[0] > box[1] or hi[1] < box[2] or lo[1] > box[3]):
                 continue
-            code = np.where((code == 2) & (polyline_distance(P, x, y) < 1.25), 3, code)
+            # only grass within 2 m of the path's box can lie within 1.25 m of the path (the same
+            # distances, computed for those points alone: a 128 m tile has 262k raster points)
+            near = np.flatnonzero((flat == 2) & (xf >= lo[0]) & (xf <= hi[0]) & (yf >= lo[1]) & (yf <= hi[1]))
+            if len(near):
+                flat[near[polyline_distance(P, xf[near], yf[near]) < 1.25]] = 3
         return code
 
     def ground_albedo(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -827,6 +834,48 @@ def movable_mesh(kind: str, x: float, y: float, yaw: float, terrain: Terrain,
     if kind == "pedestrian":
         return pedestrian_mesh(x, y, z, yaw, gait)
     raise ValueError(kind)
+
+
+def _boxes(cx, cy, z0, z1, lx: float, ly: float, yaw) -> np.ndarray:
+    """:func:`box_mesh` of M boxes at once (the same arithmetic, so the same bits): vertices
+    (M, 8, 3); cx, cy, z0, z1, yaw (M,)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    corners = np.array([[-lx, -ly], [lx, -ly], [lx, ly], [-lx, ly]]) * 0.5
+    R = np.empty((len(yaw), 2, 2))
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1] = c, s, -s, c
+    xy = corners @ R + np.stack([cx, cy], axis=-1)[:, None, :]
+    V = np.empty((len(yaw), 8, 3))
+    V[:, :4, :2] = V[:, 4:, :2] = xy
+    V[:, :4, 2], V[:, 4:, 2] = z0[:, None], z1[:, None]
+    return V
+
+
+def movable_meshes(movables: Movables, terrain: Terrain) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """kind -> (V, F) of every movable of that kind ('car', 'bin'), in the movables' order: what
+    :func:`movable_mesh` per object gathered in a :class:`MeshBuilder` gives, bit for bit, in
+    one pass (a city has ~55k movables: 11 s one by one, 0.2 s here). Kinds without an object
+    are left out."""
+    kind = np.asarray(movables.kind).astype(str)
+    unknown = sorted(set(kind.tolist()) - set(MOVABLE_KINDS))
+    if unknown:
+        raise ValueError(f"movable kinds {unknown}: expected {MOVABLE_KINDS}")
+    out = {}
+    for k in MOVABLE_KINDS:
+        m = kind == k
+        if not m.any():
+            continue
+        x, y = (np.asarray(movables.xy, np.float64)[m, i] for i in (0, 1))
+        yaw = np.asarray(movables.yaw, np.float64)[m]
+        z = terrain.height(x, y)
+        if k == "car":
+            parts = [_boxes(x, y, z + 0.25, z + 1.0, 4.4, 1.8, yaw),
+                     _boxes(x - 0.2 * np.cos(yaw), y - 0.2 * np.sin(yaw), z + 1.0, z + 1.5, 2.4, 1.6, yaw)]
+        else:
+            parts = [_boxes(x, y, z - 0.1, z + 1.0, 0.6, 0.6, yaw)]
+        n = len(x) * len(parts)
+        out[k] = (np.stack(parts, axis=1).reshape(-1, 3),
+                  (_BOX_F[None] + 8 * np.arange(n)[:, None, None]).reshape(-1, 3).astype(np.int64))
+    return out
 
 
 def session_movables(world: World, session: str, base: bool) -> Movables:

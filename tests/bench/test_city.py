@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from bench.city import TARGET, cpu_model, preset_sessions, projection
+from bench.city import TARGET, cpu_model, preset_sessions, process_cpu_bound, projection, worker_setup_s
 
 
 def test_missing_preset_is_one_line():
@@ -30,8 +30,17 @@ def test_projection_scales_counts_and_divides_work():
 
 def test_cpu_model_schedules_reading_tasks_on_the_first_free_worker():
     st = {"tasks": {"plan": {"cpu_each": [2.0], "cpu_s": 2.0},
-                    "candidate": {"cpu_each": [4.0, 3.0, 3.0, 2.0], "cpu_s": 12.0},
+                    "run": {"cpu_each": [4.0, 3.0, 3.0, 2.0], "cpu_s": 12.0},
                     "write": {"cpu_each": [0.5] * 4, "cpu_s": 2.0}}}
     assert cpu_model(st, 1) == pytest.approx(16.0)  # everything in sequence
     # two workers: 2 + (4 | 3 + 3 -> 2 on the first free) = 2 + max(4 + 2, 6) = 8, then writes / 2
     assert cpu_model(st, 2) == pytest.approx(2.0 + 6.0 + 1.0)
+
+
+def test_worker_setup_is_process_cpu_beyond_the_tasks():
+    run = {"stats": {"tasks": {"run": {"cpu_s": 30.0}, "write": {"cpu_s": 2.0}}},
+           "workers": [{"cpu_s": 40.0}, {"cpu_s": 32.0}], "client_cpu_s": 6.0}
+    assert worker_setup_s(run) == pytest.approx((72.0 - 32.0) / 2)
+    # the busiest worker (40 s) or all CPU over 2 cores ((72 + 6) / 2 = 39 s)
+    assert process_cpu_bound(run, 2) == pytest.approx(40.0)
+    assert process_cpu_bound(run, 1) == pytest.approx(78.0)

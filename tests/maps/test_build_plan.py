@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 
 from blockloc.errors import MapError
-from blockloc.maps.block_maps import BlockLedger, BlockMapBuilder, write_block_map
+from blockloc.maps.block_maps import BlockLedger, BlockMapBuilder, VoxelAccumulator, write_block_map
 from blockloc.maps.build_plan import Drive, build_map_from_drives
 from blockloc.maps.grid_tiles import GridMapBuilder, tile_bounds
 from blockloc.maps.mapping import mapping_keyframes
 from blockloc.maps.store import open_map
+from blockloc.voxels import voxel_downsample
 
 from .synthetic import MemorySequence, route, world_points
 
@@ -34,10 +35,13 @@ def test_plan_blocks_equal_the_in_memory_builder(tmp_path, world, loop_seq, monk
     again = MemorySequence(world, route([[0, 0], [120, 0], [120, 8], [0, 8]], speed=4.0, t0=3700.0),
                            radius=22.0, name="again")
     kw = dict(keyframe_distance_m=2.0, keyframe_angle_deg=15.0)
+    stats: dict = {}
     plan = build_map_from_drives([Drive.of(again), Drive.of(loop_seq)], "block", tmp_path / "plan",
-                                 block_size_m=30.0, voxel_size_m=0.3, **kw)
+                                 block_size_m=30.0, voxel_size_m=0.3, stats=stats, **kw)
     ev = plan.params["events"]
     assert ev["merge"] >= 1 and ev["skip"] >= 1  # the route exercises every decision
+    tasks = stats["tasks"]  # candidates read in several runs of keyframes each
+    assert tasks["run"]["count"] > tasks["candidate"]["count"] >= 4
     builder = BlockMapBuilder(30.0, 0.3)
     key = 0
     for seq in (loop_seq, again):  # the plan's order: first stamp first
@@ -51,6 +55,34 @@ def test_plan_blocks_equal_the_in_memory_builder(tmp_path, world, loop_seq, monk
     ref = write_block_map(builder, tmp_path / "memory", params=params)
     assert [(e.id, e.sha256) for e in plan.entries] == [(e.id, e.sha256) for e in ref.entries]
     assert (tmp_path / "plan" / "manifest.json").read_bytes() == (tmp_path / "memory" / "manifest.json").read_bytes()
+
+
+@pytest.mark.parametrize("with_intensity", [True, False])
+def test_accumulator_runs_give_the_voxel_means_of_all_points(with_intensity):
+    """Summing keyframes in runs of 3 or all at once: the same voxels, in the same order, each
+    the mean of all its points (voxel_downsample of the float32 points); intensity only when
+    every keyframe has it."""
+    rng = np.random.default_rng(3)
+    clouds = [(rng.uniform(-5, 5, (400, 3)), rng.uniform(0, 1, 400)) for _ in range(10)]
+    if not with_intensity:
+        clouds[4] = (clouds[4][0], None)
+    clouds[2][0][7] = np.nan  # dropped
+    results = []
+    for run in (3, 100):
+        acc = VoxelAccumulator(0.5, keyframes_per_run=run)
+        for pts, inten in clouds:
+            acc.add(pts, inten)
+        results.append(acc.result())
+    pts = np.concatenate([p for p, _ in clouds]).astype(np.float32)
+    inten = np.concatenate([np.zeros(len(p)) if i is None else i for p, i in clouds])
+    ref, ref_i = voxel_downsample(pts, 0.5, inten)
+    for p, i in results:
+        assert p.dtype == np.float32 and len(p) == len(ref)
+        np.testing.assert_allclose(p, ref, atol=1e-5)
+        if with_intensity:
+            np.testing.assert_allclose(i, ref_i, atol=1e-5)
+        else:
+            assert i is None
 
 
 def test_plan_grid_holds_the_voxel_filter_of_the_union(tmp_path, loop_seq):
@@ -109,3 +141,19 @@ def test_plan_rejects_bad_input_before_writing(tmp_path, loop_seq):
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(MapError):
         open_map(tmp_path / "m")
+
+
+def test_open_drive_task_prepares_a_simulated_drive():
+    """A worker opening a drive ahead of its scan tasks builds the simulated scene then, not in
+    its first scan task."""
+    from blockloc.maps.build_tasks import forget_drives, open_drive_task
+    from blockloc.sim.stream import open_sim_sequence
+
+    seq = open_sim_sequence("small", "map", 1)
+    drive = Drive.of(seq, stop=20)
+    assert seq._scene is None
+    try:
+        open_drive_task(drive)
+        assert seq._scene is not None
+    finally:
+        forget_drives([drive])

@@ -120,6 +120,47 @@ def test_days_differ_in_movable_objects_and_moving_actors():
     assert np.all(step > 1.0) and np.all(step < 15.0)  # walking and driving speeds
 
 
+@pytest.mark.parametrize("preset", ["small", "campus"])
+def test_movable_meshes_in_one_pass_equal_the_per_object_meshes(preset):
+    """The scene builds every car and bin in one vectorised pass: bit for bit the meshes that
+    movable_mesh per object gives (the scans, and every cached sim result, stay the same)."""
+    from blockloc.sim.stream import cached_world
+    from blockloc.sim.world import MeshBuilder, movable_mesh, movable_meshes
+
+    world = cached_world(get_preset(preset), 1)
+    for session, base in (("map", True), ("loc", False)):
+        mv = session_movables(world, session, base)
+        ref = {k: MeshBuilder() for k in ("car", "bin")}
+        for kind, (x, y), yaw in zip(mv.kind, mv.xy, mv.yaw):
+            for V, F in movable_mesh(str(kind), x, y, yaw, world.terrain):
+                ref[str(kind)].add(V, F)
+        ref = {k: b.build() for k, b in ref.items() if b.verts}
+        got = movable_meshes(mv, world.terrain)
+        assert list(got) == list(ref) and len(ref["car"][1]) > 1000
+        for k in ref:
+            assert got[k][0].tobytes() == ref[k][0].tobytes()
+            assert got[k][1].dtype == ref[k][1].dtype and np.array_equal(got[k][1], ref[k][1])
+
+
+def test_ground_material_near_paths_only_equals_every_point_against_every_path():
+    """Footpath codes are computed only for grass near each path's box: the same codes as every
+    point measured against every path."""
+    from blockloc.sim.stream import cached_world
+    from blockloc.sim.world import polyline_distance
+
+    world = cached_world(get_preset("campus"), 1)
+    rng = np.random.default_rng(0)
+    x0, x1, y0, y1 = world.extent
+    x, y = rng.uniform(x0, x1, 60_000), rng.uniform(y0, y1, 60_000)
+    d = world.roads.distance(x, y)
+    hw = world.roads.width_m / 2
+    ref = np.where(d < hw, 0, np.where(d < hw + 2.5, 1, 2))
+    for P in world.roads.paths.values():
+        ref = np.where((ref == 2) & (polyline_distance(P, x, y) < 1.25), 3, ref)
+    got = world._ground_material_exact(x, y)
+    assert (ref == 3).sum() > 100 and np.array_equal(got, ref)
+
+
 def test_small_routes_cover_blocks_and_stay_in_the_map():
     mp = open_sim_sequence("small", "map", 1).ground_truth().positions
     lc = open_sim_sequence("small", "loc", 1).ground_truth().positions
