@@ -335,7 +335,7 @@ def _usage_error(exc) -> str:
 
 
 def _end_progress_bars() -> None:
-    """Close the tqdm bars an error left open (a bar redraws with \\r and ends no line), so the
+    """Close the tqdm bars an error left open (blockloc draws none; a library may) (a bar redraws with \\r and ends no line), so the
     message starts a line of its own and no bar is redrawn after it."""
     tqdm = sys.modules.get("tqdm")
     for bar in list(getattr(getattr(tqdm, "tqdm", None), "_instances", ()) or ()):

@@ -10,9 +10,8 @@ from pathlib import Path
 PKG = Path(__file__).resolve().parent.parent / "blockloc"
 CORE = ("maps", "registration", "tracking", "global_init", "evaluation", "datasets", "sim")
 FORBIDDEN = ("blockloc.config", "blockloc.commands", "blockloc.cli", "rich", "typer", "tqdm")
-#: (module, forbidden package) pairs still allowed. build_plan's ``progress=True`` draws a tqdm bar; every
-#: command passes a callback instead, so the branch has no caller left in blockloc.
-ALLOWED = {("blockloc.maps.build_plan", "tqdm")}
+#: (module, forbidden package) pairs still allowed (none: core reports progress through callbacks).
+ALLOWED: set = set()
 
 
 def _module_name(path: Path) -> str:

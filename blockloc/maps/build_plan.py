@@ -102,7 +102,7 @@ class _Tasks:
     """Submits a build's tasks to an executor, counts them on one progress bar, and cancels all
     of them on failure."""
 
-    def __init__(self, executor, progress: bool, desc: str) -> None:
+    def __init__(self, executor, progress) -> None:
         self.executor = executor
         self.build_id = uuid.uuid4().hex[:10]
         self.futures: list = []
@@ -111,13 +111,8 @@ class _Tasks:
         self._expected = 0
         self._lock = threading.Lock()
         self._done = 0
-        self._bar = self._report = None
-        if callable(progress):
-            self._report = progress
-        elif progress:
-            from tqdm import tqdm
-
-            self._bar = tqdm(total=0, desc=desc, unit="task", dynamic_ncols=True)
+        # (done, total) callback; the bar drawing it is the command's (blockloc.commands.common)
+        self._report = progress if callable(progress) else None
 
     def expect(self, n: int) -> None:
         """``n`` more tasks are about to be submitted (the total grows as the plan does)."""
@@ -147,11 +142,7 @@ class _Tasks:
 
     def _show(self) -> None:
         total = max(self._expected, len(self.futures))
-        if self._bar is not None:
-            self._bar.total = total
-            self._bar.n = self._done
-            self._bar.refresh()
-        elif self._report is not None:
+        if self._report is not None:
             self._report(self._done, total)
 
     def finished(self) -> None:
@@ -181,8 +172,7 @@ class _Tasks:
         return out
 
     def close(self) -> None:
-        if self._bar is not None:
-            self._bar.close()
+        """Nothing to release (the command closes its bar)."""
 
 
 # ----------------------------------------------------------------------------- the build
@@ -201,7 +191,7 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
     ``block_size_m``) or 'grid' (tiles of ``tile_size_m``). voxel_size_m: voxel filter of blocks
     and tiles (<= 0: none). executor: None = :class:`InlineExecutor`, or a Dask executor
     (:func:`blockloc.maps.distributed.open_executor`): the same plan, the same bytes.
-    progress: False, True (a tqdm bar over tasks) or a callback ``(done, total)``. stats: a dict
+    progress: None/False or a callback ``(done, total)`` over tasks (commands draw the bar). stats: a dict
     to fill with per-task-kind counts, seconds, bytes and raw points (:meth:`_Tasks.stats`).
     Returns the opened :class:`~blockloc.maps.store.MapStore`.
     """
@@ -221,7 +211,7 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
     executor = executor or InlineExecutor()
     writer = _open_writer(out, kind, overwrite)
     target = BuildTarget(writer.tmp if isinstance(writer.tmp, str) else str(Path(writer.tmp).resolve()))
-    tasks = _Tasks(executor, progress, f"{kind} map")
+    tasks = _Tasks(executor, progress)
     warm = getattr(executor, "on_each_worker", None)
     try:
         if warm is not None:  # not counted as tasks of the plan: they only fill a cache
