@@ -142,6 +142,19 @@ def test_summary_reads_the_global_init_row_and_says_not_measured(tmp_path, monke
     assert "0.15 s" in text and "**beat**" in text
     assert "not measured" in text  # no tracking.json here
     assert summary.verdict(20.0, 14.28) == "**trail**" and summary.verdict(None, 1.0) == "not measured"
+    # sections are appended: a later table with the method is the newer measurement, and wins
+    (tmp_path / "global_init.md").write_text(
+        "Measured 2026-11-22.\n\n"
+        "| method | frames | success | median trans. error (m) | median time (s) |\n|---|---|---|---|---|\n"
+        "| bbs+s0 | 10 | 99% | 0.027 | 0.15 |\n\n"
+        "| method | frames | success | median trans. error (m) | median time (s) |\n|---|---|---|---|---|\n"
+        "| bbs+s0 | 100 | 100% | 0.081 | 3.23 |\n")
+    assert summary.global_init_row() == {"error_m": 0.081, "time_s": 3.23, "success": "100%"}
+    # a fragment first dated before the realistic simulator says so in the summary's rows
+    assert summary.measured_on("global_init") == " (earlier simulator, 2026-11-22)"
+    assert "global_init (earlier simulator, 2026-11-22)" in summary.build()
+    (tmp_path / "global_init.md").write_text("Measured 2026-12-02.\n")
+    assert summary.measured_on("global_init") == "" and summary.measured_on("missing") == ""
 
 
 def test_assemble_points_plot_links_at_the_fragments_folder(tmp_path, monkeypatch):
