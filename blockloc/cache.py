@@ -38,3 +38,38 @@ def fingerprint(*modules: str, params: object = None) -> str:
             h.update(path.read_bytes())
     h.update(repr(params).encode())
     return h.hexdigest()[:10]
+
+
+def disk_memo(name: str, key: str, build, *, min_build_s: float = 1.0):
+    """``build()``, kept on disk under ``<cache root>/memo/<name>-<key>.pkl`` when it took at
+    least ``min_build_s`` seconds of CPU, and loaded from there by later processes.
+
+    For generated objects that are pure functions of code and parameters (``key`` should be a
+    :func:`fingerprint` of both), such as a simulated city world: 19 s of CPU to build, 0.1 s
+    to load, paid otherwise by every process (each Dask worker) that opens one of its drives.
+    A file that cannot be read is rebuilt and replaced; one that cannot be written is skipped
+    (the result is the same either way). Written through a temp file and a rename, so concurrent
+    processes never read half a file.
+    """
+    import logging
+    import pickle
+    import time
+
+    from blockloc.fileio import atomic_write_bytes
+
+    path = cache_root() / "memo" / f"{name}-{key}.pkl"
+    if path.is_file():
+        try:
+            with open(path, "rb") as f:
+                return pickle.load(f)
+        except Exception as exc:  # noqa: BLE001 - a damaged cache entry is rebuilt
+            logging.getLogger(__name__).warning("%s: unreadable (%s); rebuilding it", path, exc)
+    t0 = time.process_time()
+    value = build()
+    if time.process_time() - t0 >= min_build_s:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write_bytes(path, pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL))
+        except OSError as exc:
+            logging.getLogger(__name__).warning("%s: not cached (%s)", path, exc)
+    return value

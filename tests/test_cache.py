@@ -17,3 +17,65 @@ def test_fingerprint_follows_code_and_params(tmp_path, monkeypatch):
 def test_cache_root_from_environment(tmp_path, monkeypatch):
     monkeypatch.setenv("BLOCKLOC_CACHE", str(tmp_path))
     assert cache_root() == tmp_path
+
+
+def test_disk_memo_builds_once_then_loads_and_rebuilds_a_damaged_entry(tmp_path, monkeypatch):
+    import pickle
+
+    from blockloc.cache import disk_memo
+
+    monkeypatch.setenv("BLOCKLOC_CACHE", str(tmp_path))
+    calls = []
+
+    def build():
+        calls.append(1)
+        return {"a": list(range(5))}
+
+    assert disk_memo("thing", "k1", build, min_build_s=0.0) == {"a": [0, 1, 2, 3, 4]}
+    path = tmp_path / "memo" / "thing-k1.pkl"
+    assert path.is_file() and pickle.loads(path.read_bytes()) == {"a": [0, 1, 2, 3, 4]}
+    assert disk_memo("thing", "k1", build, min_build_s=0.0) == {"a": [0, 1, 2, 3, 4]} and len(calls) == 1
+    assert disk_memo("thing", "k2", build, min_build_s=0.0) and len(calls) == 2  # another key
+    path.write_bytes(b"not a pickle")
+    assert disk_memo("thing", "k1", build, min_build_s=0.0) == {"a": [0, 1, 2, 3, 4]} and len(calls) == 3
+    assert pickle.loads(path.read_bytes()) == {"a": [0, 1, 2, 3, 4]}  # replaced by the rebuilt one
+    # quick builds are not written
+    disk_memo("quick", "k", lambda: 1, min_build_s=60.0)
+    assert not (tmp_path / "memo" / "quick-k.pkl").exists()
+
+
+def test_a_world_from_the_disk_cache_is_the_world_built_from_its_seed(tmp_path, monkeypatch):
+    import pickle
+
+    from blockloc.cache import disk_memo
+    from blockloc.sim.presets import get_preset
+    from blockloc.sim.world import build_world
+
+    monkeypatch.setenv("BLOCKLOC_CACHE", str(tmp_path))
+    p = get_preset("small")
+    disk_memo("world", "t", lambda: build_world(p, 3), min_build_s=0.0)
+    loaded = disk_memo("world", "t", lambda: (_ for _ in ()).throw(AssertionError("rebuilt")), min_build_s=0.0)
+    fresh = build_world(p, 3)
+    assert _same(loaded, fresh)
+    fresh.terrain.waves = fresh.terrain.waves + 1e-9  # the comparison sees a change
+    assert not _same(loaded, fresh)
+
+
+def _same(a, b) -> bool:
+    """Structural equality: arrays by value (NaN equal), objects by their attributes."""
+    import numpy as np
+
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return (isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and a.dtype == b.dtype
+                and a.shape == b.shape and np.array_equal(a, b, equal_nan=a.dtype.kind == "f"))
+    if type(a) is not type(b):
+        return False
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if hasattr(a, "__dict__") and not callable(a):
+        return _same(vars(a), vars(b))
+    if hasattr(a, "__slots__"):
+        return all(_same(getattr(a, k), getattr(b, k)) for k in a.__slots__)
+    return a == b

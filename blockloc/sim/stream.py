@@ -34,8 +34,12 @@ SESSION_DAYS = {"map": ("2020-06-01", 1591012800), "loc": ("2020-06-08", 1591617
 
 @functools.lru_cache(maxsize=4)
 def cached_world(preset: Preset, seed: int) -> World:
-    """``build_world`` memoised per (preset, seed)."""
-    return build_world(preset, seed)
+    """``build_world`` memoised per (preset, seed) in this process and, when building it is slow
+    (the city: 19 s CPU), on disk for other processes, keyed by the simulator's code."""
+    from blockloc.cache import disk_memo, fingerprint
+
+    key = fingerprint("blockloc.sim", params=(repr(preset), seed))
+    return disk_memo(f"world-{preset.name}-{seed}", key, lambda: build_world(preset, seed))
 
 
 def session_day(session: str) -> tuple[str, int]:
