@@ -277,7 +277,7 @@ def report(args, cmd: str, results: dict, projections: dict, tracking: dict | No
     lines = [f"## City-scale map builds on Dask ({args.preset})", "",
              f"Command: `{cmd}` ({started}). Machine: {machine()}. Development figures when the preset is "
              "not `city` or only part of its drives is built (`--sessions`, `--max-frames`: few tasks, and "
-             "every worker still builds the simulated world and its scene windows itself); the machine is "
+             "every worker still opens the simulated drives and builds their scene windows itself); the machine is "
              "shared (load averages below), so times are upper bounds and speed-ups are what the load "
              "allowed.", ""]
     for kind, runs in results.items():
