@@ -150,13 +150,7 @@ class MapProvider:
             self._stats["updates"] += 1
             self._wanted = wanted
             if self._active is None:
-                t0 = time.perf_counter()
-                self._submit(wanted, demand=True)
-                while wanted not in self._ready and not self._errors:
-                    self._lock.wait(0.05)
-                wait_ms = (time.perf_counter() - t0) * 1e3
-                self._stats["waits_ms"] += wait_ms
-                self._stats["max_wait_ms"] = max(self._stats["max_wait_ms"], wait_ms)
+                self._wait_for(wanted)
             if self._errors:
                 pass
             elif self._active is None or wanted != self._active.region:
@@ -178,6 +172,17 @@ class MapProvider:
         self._raise_worker_error()
         return self._local(switched)
 
+    def _wait_for(self, wanted) -> None:
+        """Load ``wanted`` on demand and block until it is ready or a load failed (the lock is
+        held); the wait counts in the stats."""
+        t0 = time.perf_counter()
+        self._submit(wanted, demand=True)
+        while wanted not in self._ready and not self._errors:
+            self._lock.wait(0.05)
+        wait_ms = (time.perf_counter() - t0) * 1e3
+        self._stats["waits_ms"] += wait_ms
+        self._stats["max_wait_ms"] = max(self._stats["max_wait_ms"], wait_ms)
+
     def relocate(self, position_map: np.ndarray, velocity_map: np.ndarray | None, stamp: float) -> LocalMap:
         """The robot is elsewhere now (a relocalization, a kidnap): the map at ``position_map`` (3,)
         metres, chosen afresh (no switch hysteresis) and waited for, as on the first call.
@@ -198,13 +203,7 @@ class MapProvider:
         with self._lock:
             self._wanted = wanted
             if self._active is None or wanted != self._active.region:
-                t0 = time.perf_counter()
-                self._submit(wanted, demand=True)
-                while wanted not in self._ready and not self._errors:
-                    self._lock.wait(0.05)
-                wait_ms = (time.perf_counter() - t0) * 1e3
-                self._stats["waits_ms"] += wait_ms
-                self._stats["max_wait_ms"] = max(self._stats["max_wait_ms"], wait_ms)
+                self._wait_for(wanted)
                 if not self._errors:
                     self._swap(wanted)
         self._raise_worker_error()
