@@ -327,15 +327,23 @@ def main(argv: list[str] | None = None) -> int:
     stop = len(seq) if args.max_frames is None else min(len(seq), args.start + args.max_frames)
     backends = [b for b in args.backends.split(",") if b]
     grid_path = None
-    if any(b in ("grid", "srt") for b in backends):
+    if any(b.partition("@")[0] in ("grid", "srt") for b in backends):
         grid_path = Path(args.grid_map) if args.grid_map else default_map_dir(args.preset, args.seed, cfg.map, "grid")
         t_grid = ensure_map(args.preset, args.seed, grid_path, cfg.map, "grid")
         gstore = open_map(grid_path)
         map_desc += (f"; grid store `{grid_path}` for grid/srt ({len(gstore.entries)} tiles of "
                      f"{cfg.map.tile_size_m:g} m, {gstore.total_points:,} points"
                      + (f", built in {t_grid:.0f} s)" if t_grid else ", cached)"))
-    runs = [BackendRun(seq, cfg, grid_path if b in ("grid", "srt") else map_path, b, args.start, stop)
-            for b in backends]
+    def run_for(b: str) -> BackendRun:
+        # backend@engine (e.g. block@vgicp): that map policy with registration.method = engine
+        policy, _, engine = b.partition("@")
+        cfg_b = cfg if not engine else load_config("sim", overrides={
+            **overrides, "registration": {**overrides.get("registration", {}), "method": engine}})
+        r = BackendRun(seq, cfg_b, grid_path if policy in ("grid", "srt") else map_path, policy, args.start, stop)
+        r.backend = b  # names its checkpoint and its row
+        return r
+
+    runs = [run_for(b) for b in backends]
     prog = {"command": cmd, "sequence": seq_name, "backends": backends, "map": str(map_path),
             "map_desc": map_desc, "block_size_m": args.block_size, "start": args.start, "minutes": args.minutes,
             "started": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "load_start": os.getloadavg()[0],
