@@ -120,6 +120,18 @@ def kiss_matcher(scan_body: np.ndarray, map_pts: np.ndarray, voxel: float) -> tu
     return T, bool(sol.valid)
 
 
+def refine_ndt(map_pts: np.ndarray, scan_body: np.ndarray, T0: np.ndarray, params) -> np.ndarray:
+    """T_map_body after the relocalizer's NDT (``params``: its InitParams) of a scan (N, 3), body frame,
+    against map points (M, 3), map frame, from the coarse T0 (4, 4): the same refinement for every anchor."""
+    from blockloc.global_init.refine import Refiner
+    from blockloc.registration.engines import make_engine
+    from blockloc.voxels import voxel_select
+
+    engine = make_engine("ndt", resolution_m=params.ndt_resolution_m, num_threads=params.num_threads)
+    src = scan_body[voxel_select(scan_body, params.scan_voxel_m)][: params.max_ndt_points]
+    return Refiner(engine, map_pts).align(src, T0).T_map_body
+
+
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--preset", default="small")
@@ -153,15 +165,19 @@ def parser() -> argparse.ArgumentParser:
 def run(argv: list[str]) -> dict:
     """One section of the fragment (one world, one map): writes or appends it to --out and returns
     its figures (per method: success rate, median errors and times, the frames that failed)."""
-    args = parser().parse_args(argv)
+    ap = parser()
+    args = ap.parse_args(argv)
+    if args.kiss_matcher_frames > 0:
+        import importlib.util
+
+        if importlib.util.find_spec("kiss_matcher") is None:
+            ap.error("--kiss-matcher-frames: needs the package kiss-matcher (pip install -e '.[bench]')")
 
     import logging
 
     logging.basicConfig(level=logging.WARNING)
     from blockloc.datasets import open_sequence
     from blockloc.tracking.scan_prep import prepare_for_init
-    from blockloc.global_init.refine import Refiner
-    from blockloc.registration.engines import make_engine
     from blockloc.voxels import voxel_select
     from blockloc.global_init.relocalize import GlobalLocalizer, InitParams, pose_error
     from blockloc.maps.store import open_map
@@ -226,10 +242,7 @@ def run(argv: list[str]) -> dict:
                 d = 0.5 * args.window + params.max_range_m
                 mp = loc.map.points_in_box(c - d, c + d)
                 scan = pts[voxel_select(pts, 0.5)]
-                T0 = fpfh_ransac(mp, scan)
-                r = Refiner(make_engine("ndt", resolution_m=params.ndt_resolution_m, num_threads=params.num_threads), mp).align(
-                    pts[voxel_select(pts, params.scan_voxel_m)][: params.max_ndt_points], T0)
-                T = r.T_map_body
+                T = refine_ndt(mp, pts, fpfh_ransac(mp, scan), params)
                 dt = time.perf_counter() - t
                 extra = 0
             else:
@@ -276,11 +289,7 @@ def run(argv: list[str]) -> dict:
             T0, valid = kiss_matcher(scan.points_body, target, args.kiss_voxel)
             c = (loc.map.R_L_map @ T0[:3, 3])[:2]
             near = loc.map.points_in_box(c - params.refine_range_m, c + params.refine_range_m)
-            T = T0
-            if len(near) >= 100:
-                pts = scan.points_body
-                T = Refiner(make_engine("ndt", resolution_m=params.ndt_resolution_m, num_threads=params.num_threads),
-                            near).align(pts[voxel_select(pts, params.scan_voxel_m)][: params.max_ndt_points], T0).T_map_body
+            T = refine_ndt(near, scan.points_body, T0, params) if len(near) >= 100 else T0
             dt = time.perf_counter() - t
             e_t, e_r = pose_error(T, T_gt)
             kiss[name].append((int(i), e_t, e_r, dt, 0, 0, valid, False, 0))
