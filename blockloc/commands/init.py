@@ -107,6 +107,9 @@ def print_result(summ: dict, console) -> None:
                   f"ambiguous {summ['ambiguous']}  time {summ['time_s']:.2f} s{compile_note(summ)}")
     if "error_m" in summ:
         console.print(f"against ground truth: {summ['error_m']:.3f} m, {summ['error_deg']:.2f} deg")
+    if summ.get("stats", {}).get("timed_out") and not summ["verified"]:
+        console.print("[yellow]not found: the search stopped at its budget (global_init.max_search_s; "
+                      "--set global_init.max_search_s=0 searches the whole map however long it takes)[/yellow]")
     if summ["ambiguous"]:
         console.print("[yellow]warning: ambiguous: another verified candidate far from this one fits almost "
                       "as well (repeated structure); check the candidates or give a tighter hint[/yellow]")

@@ -31,6 +31,7 @@ class Candidate2D:
     y: float
     theta: float
     score: float
+    window: int = -1  # index of its window in :func:`search_windows` with ``per_window_k`` (else -1)
 
 
 @dataclass
@@ -145,6 +146,72 @@ def search(pyramid: Pyramid, scan_xy: np.ndarray, center_xy: np.ndarray, window_
     return cands, stats
 
 
+def _window_roots(w: "Window", angles: np.ndarray, step: float, r: float, width: int):
+    """Root (angle index, cell x, cell y) arrays of one window at a level of ``width`` cells."""
+    A = len(angles)
+    if w.yaw_window >= 2 * math.pi - 1e-9:
+        a_idx = np.arange(A)
+    else:
+        d = (angles - w.theta + math.pi) % (2 * math.pi) - math.pi
+        a_idx = np.flatnonzero(np.abs(d) <= 0.5 * w.yaw_window + 0.5 * step)
+    half = int(math.ceil(0.5 * w.size_m / r))
+    c0 = np.floor(np.asarray(w.center, float) / r).astype(np.int64)
+    gx = np.arange(c0[0] - half, c0[0] + half + 1, width)
+    gy = np.arange(c0[1] - half, c0[1] + half + 1, width)
+    n = len(gx) * len(gy)
+    return (np.repeat(a_idx, n).astype(np.int64), np.tile(np.repeat(gx, len(gy)), len(a_idx)).astype(np.int64),
+            np.tile(np.tile(gy, len(gx)), len(a_idx)).astype(np.int64))
+
+
+def _search_each_window(pyramid: Pyramid, scan_xy: np.ndarray, windows: list["Window"], angles: np.ndarray,
+                        step: float, top: int, k: int, use_s0: bool, s0_ratio: float, min_score: float,
+                        nms_m: float, nms_deg: float, n_dives: int, keep_ratio: float, min_leaf_score: float,
+                        t0: float) -> tuple[list[Candidate2D], SearchStats]:
+    """:func:`search_windows` with ``per_window_k``: the rotated scan cells computed once for all."""
+    from blockloc.global_init import _kernels as K
+
+    r = pyramid.resolution
+    A = len(angles)
+    full = 255 * len(scan_xy)
+    cx, cy = rotated_cells(scan_xy, angles, r)
+    dx = (cx - pyramid.origin[0]).astype(np.int32)
+    dy = (cy - pyramid.origin[1]).astype(np.int32)
+    big = np.iinfo(np.int64).max // 4
+    nms_cells = int(math.ceil(nms_m / r))
+    nms_angles = int(math.ceil(math.radians(nms_deg) / step))
+    cands: list[Candidate2D] = []
+    best = min_leaf_score
+    n_roots = visited_total = 0
+    s0_best = 0.0
+    for wi, w in enumerate(windows):
+        ra, rtx, rty = _window_roots(w, angles, step, r, 1 << top)
+        if len(ra) == 0:
+            continue
+        rb = K.root_scores(pyramid.levels, top, dx, dy, ra, rtx, rty)
+        order = np.argsort(rb, kind="stable")
+        ra, rtx, rty, rb = ra[order], rtx[order], rty[order], rb[order]
+        threshold = int(max(min_score, keep_ratio * best) * full)
+        if use_s0:
+            s0, threshold = _s0_pruning(pyramid, dx, dy, ra, rtx, rty, top, big, big, n_dives, full, threshold,
+                                        s0_ratio)
+            s0_best = max(s0_best, s0)
+        cs, ca, ctx, cty, visited = K.branch_and_bound(
+            pyramid.levels, dx, dy, ra, rtx, rty, rb, top, big, big, threshold, k, nms_cells, nms_angles, A, True,
+            float(keep_ratio))
+        n_roots += len(ra)
+        visited_total += int(visited)
+        for i in np.argsort(-cs, kind="stable"):
+            cands.append(Candidate2D(float(ctx[i] * r), float(cty[i] * r), float(angles[ca[i]]),
+                                     float(cs[i] / full), wi))
+        if len(cs):
+            best = max(best, float(cs.max()) / full)
+    cands = [c for c in cands if c.score >= keep_ratio * best]
+    stats = SearchStats(A, step, n_roots, visited_total, s0_best, time.perf_counter() - t0)
+    log.debug("bnb over %d windows one by one: %d roots, %d nodes, best %.3f, %.3f s", len(windows), n_roots,
+              visited_total, best, stats.time_s)
+    return cands, stats
+
+
 def required_cells(scan_xy: np.ndarray, center_xy: np.ndarray, window_m: float,
                    resolution: float) -> tuple[np.ndarray, np.ndarray]:
     """Global cell range [lo, hi) the pyramid must cover for :func:`search` (any rotation)."""
@@ -170,9 +237,16 @@ def search_windows(pyramid: Pyramid, scan_xy: np.ndarray, windows: list[Window],
                    use_s0: bool = True, s0_ratio: float = 0.9, min_score: float = 0.05,
                    nms_m: float = 1.0, nms_deg: float = 5.0, n_dives: int = 8,
                    max_range: float | None = None, keep_ratio: float = 0.0,
-                   min_leaf_score: float = 0.0, top_level: int | None = None) -> tuple[list[Candidate2D], SearchStats]:
+                   min_leaf_score: float = 0.0, top_level: int | None = None,
+                   per_window_k: int = 0) -> tuple[list[Candidate2D], SearchStats]:
     """Top-K poses over the union of several windows in one branch and bound (one threshold for all,
     so a window whose bound cannot beat the best leaf found elsewhere is never expanded).
+
+    per_window_k > 0: instead, the ``per_window_k`` best leaves of each window (``Candidate2D.window``
+    says which), each window searched on its own (its own S0) and pruned below ``keep_ratio`` x the
+    best leaf of the windows before it. A region where the map is occupied everywhere (woods, a
+    parking lot in the height band) scores about 1 at any pose; with one top K for all windows its
+    leaves would crowd out every other window's, the right one's too.
 
     keep_ratio: leaves below this fraction of the best leaf are pruned (they matter neither as the
     answer nor as its runner-up); min_leaf_score: prune below this score from the start (the best
@@ -194,6 +268,9 @@ def search_windows(pyramid: Pyramid, scan_xy: np.ndarray, windows: list[Window],
     angles, _ = make_angles(0.0, 2 * math.pi, step)
     A = len(angles)
     width = 1 << top
+    if per_window_k > 0:
+        return _search_each_window(pyramid, scan_xy, windows, angles, step, top, per_window_k, use_s0, s0_ratio,
+                                   min_score, nms_m, nms_deg, n_dives, keep_ratio, min_leaf_score, t0)
     ra, rtx, rty = [], [], []
     for w in windows:
         if w.yaw_window >= 2 * math.pi - 1e-9:

@@ -315,10 +315,27 @@ class _BucketedPoints:
         if len(self.points) == 0 or np.any(b < a):
             return np.zeros((0, 3), np.float32)
         ny = int(self._span[1])
-        pts = np.concatenate([self.points[self._starts[ix * ny + int(a[1])]:self._starts[ix * ny + int(b[1]) + 1]]
-                              for ix in range(int(a[0]), int(b[0]) + 1)])
+        st = self._starts
+        # Buckets wholly inside the box need no test: only the box's rim is filtered point by point
+        # (a 100 m refinement box over 25 m buckets: ~2/3 fewer points transformed and compared).
+        lo_L, hi_L = np.asarray(lo_L, float), np.asarray(hi_L, float)
+        inner = [(np.arange(a[k], b[k] + 1) + self._lo[k]) * BUCKET_M for k in (0, 1)]
+        full = [(inner[k] >= lo_L[k]) & (inner[k] + BUCKET_M <= hi_L[k]) for k in (0, 1)]
+        fy = np.flatnonzero(full[1])
+        fy0, fy1 = (int(fy[0]) + int(a[1]), int(fy[-1]) + int(a[1])) if len(fy) else (0, -1)
+        keep, test = [], []
+        for j, ix in enumerate(range(int(a[0]), int(b[0]) + 1)):
+            row = ix * ny
+            if full[0][j] and fy1 >= fy0:
+                test.append(self.points[st[row + int(a[1])]:st[row + fy0]])
+                keep.append(self.points[st[row + fy0]:st[row + fy1 + 1]])
+                test.append(self.points[st[row + fy1 + 1]:st[row + int(b[1]) + 1]])
+            else:
+                test.append(self.points[st[row + int(a[1])]:st[row + int(b[1]) + 1]])
+        pts = np.concatenate(test)
         xy = pts.astype(np.float64) @ self._R_xy
-        return pts[np.all((xy >= lo_L) & (xy <= hi_L), axis=1)]
+        keep.append(pts[np.all((xy >= lo_L) & (xy <= hi_L), axis=1)])
+        return np.concatenate(keep)
 
 
 def box_L_from_map(bmin: np.ndarray, bmax: np.ndarray, R_L_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -13,14 +13,15 @@ around the best ``place_candidates[0]`` of them (yaw within ``place_yaw_window_d
 then, while nothing is verified, around more of them (optionally around the first ones at every
 yaw: ``place_all_yaw_candidates``); only then
 (``whole_map_fallback``) are square regions tiling the map searched in the order of a cheap score
-(the best coarse bound of a subsampled scan over coarse angles) until one gives a verified match.
+(the best coarse bound of a subsampled scan over coarse angles) until one gives a verified match
+or ``max_search_s`` has passed (then the result is unverified: "not found", ``stats['timed_out']``).
 Tracking uses the same entry points to start and to recover.
 
 Verification (``_refine``) asks more than a good NDT fit, because a wrong place with similar
 structure can fit well: NDT converged, its inlier ratio >= ``min_fitness``, the above-ground
-points' inlier ratio >= ``min_structure_fitness`` (the points at or above the static band's
-bottom when the scan has ``min_static_points`` of them and ``structure_from_static``, else those of
-the projection band), and, in the place index's static band, the
+points' inlier ratio >= ``min_structure_fitness`` (those of the projection band or, when the scan
+has ``min_static_points`` of them and ``structure_from_static``, the points at or above the static
+band's bottom: either set may pass), and, in the place index's static band, the
 scan's structure covered by the map (>= ``min_coverage``) and the map's structure not where the
 scan saw through (<= ``max_see_through`` of the bins seen through). Another verified candidate
 more than ``ambiguity_distance_m`` away that fits nearly as well makes the result ambiguous, and an
@@ -88,7 +89,9 @@ class InitParams:
     place_all_yaw_candidates: int = 0  # then this many of them at every yaw (0: none)
     place_window_m: float = 12.0  # window around each place (>= 2 x the index's tolerance + spacing)
     place_yaw_window_deg: float = 16.0  # around each place's yaw guess (its error: p95 ~5 deg)
-    place_top_k: int = 6  # leaves kept by the branch and bound over all windows
+    place_top_k: int = 6  # leaves refined per stage
+    # the best leaves of each window (0: one top place_top_k over all windows, by 2D score)
+    place_leaves_per_window: int = 2
     place_top_level: int = 3  # its roots' level (2^3 cells = 4 m at 0.5 m: tight bounds in small windows)
     place_band_m: tuple[float, float] = (2.0, 4.0)
     place_max_range_m: float = 63.0
@@ -96,6 +99,10 @@ class InitParams:
     place_tolerance_m: float = 1.5
     place_max_offset_m: float = 20.0
     whole_map_fallback: bool = True
+    # No-hint search budget (s, 0: none): checked between place stages and between the fallback's
+    # regions, so a scan that the place stages miss ends as "not found" instead of searching a large
+    # map region by region for minutes (seen: 349 s on campus). It bounds the search, not one stage.
+    max_search_s: float = 10.0
     # static-band consistency at the refined pose (verification)
     min_coverage: float = 0.9
     max_see_through: float = 0.35
@@ -276,13 +283,14 @@ class GlobalLocalizer:
             t0 += time.perf_counter() - t_idx  # loading the index is opening the map, not searching
             stats["index_load_s"] = self._index_load_s
         cells = self._scan_cells(points_body, gravity_body)
+        deadline = t0 + p.max_search_s if p.max_search_s > 0 else math.inf
         if p.use_place_index:
-            cands, stats = self._relocalize_places(scan, scan_ndt, cells, index, theta_c, yaw_win, stats)
+            cands, stats = self._relocalize_places(scan, scan_ndt, cells, index, theta_c, yaw_win, stats, deadline)
             res = self._decide(cands, stats, time.perf_counter() - t0, scan_ndt, final=False)
             # An ambiguous result stays ambiguous however much more is searched.
-            if res.verified or res.ambiguous or not p.whole_map_fallback:
+            if res.verified or res.ambiguous or not p.whole_map_fallback or stats.get("timed_out"):
                 return self._decide(cands, stats, time.perf_counter() - t0, scan_ndt)
-        more, st = self._relocalize(scan, scan_ndt, theta_c, yaw_win, cells)
+        more, st = self._relocalize(scan, scan_ndt, theta_c, yaw_win, cells, deadline)
         stats.update({k: v + stats.get(k, 0) if k in ("bnb_time_s", "refine_time_s", "nodes_visited") else v
                       for k, v in st.items()})
         return self._decide(cands + more, stats, time.perf_counter() - t0, scan_ndt)
@@ -346,10 +354,11 @@ class GlobalLocalizer:
         return cands, stats
 
     def _refine(self, c2d: list[Candidate2D], scan: ScanProjection, scan_ndt: np.ndarray, cells=None,
-                skip: list[Candidate2D] | None = None) -> list[InitCandidate]:
+                skip: list[Candidate2D] | None = None, ordered: bool = False) -> list[InitCandidate]:
         """Refine 2D candidates best first with NDT and verify them (module docstring); once one is
         verified, only those scoring within ``ambiguity_score_ratio`` of the best are refined.
-        ``skip``: candidates refined before (a later stage finds them again)."""
+        ``skip``: candidates refined before (a later stage finds them again). ``ordered``: in the
+        given order (best place first) rather than by 2D score."""
         if not c2d:
             return []
         p = self.params
@@ -369,10 +378,12 @@ class GlobalLocalizer:
 
         out = []
         best_score = max(c.score for c in c2d)
-        for c in sorted(c2d, key=lambda c: -c.score):
+        for c in (c2d if ordered else sorted(c2d, key=lambda c: -c.score)):
             # Once a candidate is verified, only those scoring close to the best can make the
             # result ambiguous; the others need no NDT run.
             if any(o.verified for o in out) and c.score < p.ambiguity_score_ratio * best_score:
+                if ordered:
+                    continue
                 break
             if skip is not None and any(abs(c.x - o.x) < 0.5 and abs(c.y - o.y) < 0.5
                                         and abs((c.theta - o.theta + math.pi) % (2 * math.pi) - math.pi) < 0.02
@@ -392,11 +403,15 @@ class GlobalLocalizer:
             # Judged on the static structure (at or above the place band's bottom) when the scan
             # has enough of it: people, cars and bushes near the sensor fill the low band with
             # points no map holds (seen: 0.16 of the low points within 10 m fit at the true pose).
+            # Either band may pass: tree crowns dominate the static band where the foliage changed
+            # between sessions (seen on campus: 0.43-0.51 of it fit at true poses whose projection
+            # band fit 0.98), as crowds dominate the low band.
             static = cells.static_body if cells is not None and cells.static_body is not None else None
-            structure = (static if p.structure_from_static and static is not None
-                         and len(static) >= p.min_static_points else scan.structure_body)
-            self._structure_body = structure  # a rival of the best must pass the same test (_nearby_rival)
-            sfit = refiner.inlier_ratio(structure, r.T_map_body) if finite else 0.0
+            structures = [scan.structure_body]
+            if p.structure_from_static and static is not None and len(static) >= p.min_static_points:
+                structures = [static, scan.structure_body]
+            self._structure_body = structures  # a rival of the best must pass the same test (_nearby_rival)
+            sfit = self._structure_fit(refiner, structures, r.T_map_body) if finite else 0.0
             ok = bool(r.converged and finite and r.fitness >= p.min_fitness
                       and sfit >= p.min_structure_fitness)
             cov, see = self._consistency(r.T_map_body, scan, cells) if (ok and cells is not None) else (np.nan, np.nan)
@@ -407,6 +422,16 @@ class GlobalLocalizer:
             out.append(InitCandidate(r.T_map_body, c.score, r.fitness, r.converged, ok, T0, r.ndt_score, sfit,
                                      cov, see, refiner))
         return out
+
+    def _structure_fit(self, refiner, structures: list[np.ndarray], T_map_body: np.ndarray) -> float:
+        """The best inlier ratio of the scan's above-ground point sets (static band first, then the
+        projection band; :meth:`_refine`) at a pose; the first set passing the test ends it."""
+        best = 0.0
+        for pts in structures:
+            best = max(best, refiner.inlier_ratio(pts, T_map_body))
+            if best >= self.params.min_structure_fitness:
+                break
+        return best
 
     def _scan_cells(self, points_body: np.ndarray, gravity_body: np.ndarray):
         """The scan's cells in the place index's band (consistency checks, place queries)."""
@@ -437,8 +462,9 @@ class GlobalLocalizer:
             return np.nan, np.nan
 
     def _relocalize_places(self, scan: ScanProjection, scan_ndt: np.ndarray, cells, index, theta_c: float,
-                           yaw_win: float, stats: dict):
-        """No-hint search through the place index, widening stage by stage (module docstring)."""
+                           yaw_win: float, stats: dict, deadline: float = math.inf):
+        """No-hint search through the place index, widening stage by stage (module docstring) while
+        ``time.perf_counter()`` is before ``deadline``."""
         p = self.params
         t = time.perf_counter()
         theta_window = (theta_c, yaw_win) if yaw_win < 2 * math.pi else None
@@ -455,17 +481,26 @@ class GlobalLocalizer:
             stages.append((p.place_all_yaw_candidates, min(yaw_win, 2 * math.pi)))
         out: list[InitCandidate] = []
         done: list[Candidate2D] = []
+        k_done = 0
         for i, (k, yaw) in enumerate(stages):
             if yaw >= min(yaw_win, 2 * math.pi) and yaw_guess >= min(yaw_win, 2 * math.pi) and i > 0:
                 break  # the guesses' windows already covered every allowed yaw
+            if i > 0 and time.perf_counter() >= deadline:
+                stats["timed_out"] = True
+                break
+            # The places not searched yet (a later yaw-only stage: its places again, at every yaw).
+            first = k_done if yaw == yaw_guess else 0
             windows = [Window(c.xy_L, p.place_window_m, c.theta if yaw < 2 * math.pi else theta_c, yaw)
-                       for c in places[:k]]
+                       for c in places[first:k]]
+            k_done = max(k_done, k) if yaw == yaw_guess else k_done
+            if not windows:
+                continue
             t = time.perf_counter()
             c2d, st = self._search_windows(scan, windows)
             stats["bnb_time_s"] = stats.get("bnb_time_s", 0.0) + time.perf_counter() - t
             stats["nodes_visited"] = stats.get("nodes_visited", 0) + st.nodes_visited
             t = time.perf_counter()
-            out.extend(self._refine(c2d, scan, scan_ndt, cells, skip=done))
+            out.extend(self._refine(c2d, scan, scan_ndt, cells, skip=done, ordered=p.place_leaves_per_window > 0))
             stats["refine_time_s"] = stats.get("refine_time_s", 0.0) + time.perf_counter() - t
             stats["place_stage"] = i + 1
             stats["windows"] = len(windows)
@@ -499,6 +534,7 @@ class GlobalLocalizer:
         cands: list[Candidate2D] = []
         total = SearchStats(0, 0.0, 0, 0, 0.0, 0.0)
         best = 0.0
+        rank = {id(w): i for i, w in enumerate(windows)}
         for _, _, ws in groups:
             c = np.array([w.center for w in ws])
             half = 0.5 * max(w.size_m for w in ws) + reach
@@ -512,24 +548,39 @@ class GlobalLocalizer:
             # runner-up (_refine would not refine them): prune them, across groups too.
             c2d, st = search_windows(pyr, scan.xy, ws, p.place_top_k, p.use_s0, p.s0_ratio, p.min_score, p.nms_m,
                                      p.nms_deg, max_range=scan.max_range, keep_ratio=p.ambiguity_score_ratio,
-                                     min_leaf_score=p.ambiguity_score_ratio * best, top_level=p.place_top_level)
+                                     min_leaf_score=p.ambiguity_score_ratio * best, top_level=p.place_top_level,
+                                     per_window_k=p.place_leaves_per_window)
+            for c in c2d:
+                c.window = rank[id(ws[c.window])] if c.window >= 0 else -1
             cands.extend(c2d)
             best = max([best] + [c.score for c in c2d])
             total = SearchStats(st.num_angles, st.angle_step_rad, total.num_roots + st.num_roots,
                                 total.nodes_visited + st.nodes_visited, max(total.s0, st.s0),
                                 total.time_s + st.time_s)
-        cands.sort(key=lambda c: -c.score)
         total.regions = len(groups)
+        cands = [c for c in cands if c.score >= p.ambiguity_score_ratio * best]
+        if p.place_leaves_per_window > 0:
+            # Best places first (the index's ranking sees free space, which the 2D score does not),
+            # each window's leaves by score: a saturated window cannot take every refinement.
+            cands.sort(key=lambda c: (c.window, -c.score))
+        else:
+            cands.sort(key=lambda c: -c.score)
         return cands[: p.place_top_k], total
 
-    def _relocalize(self, scan: ScanProjection, scan_ndt: np.ndarray, theta_c: float, yaw_win: float, cells=None):
+    def _relocalize(self, scan: ScanProjection, scan_ndt: np.ndarray, theta_c: float, yaw_win: float, cells=None,
+                    deadline: float = math.inf):
+        """The regions' search (module docstring), region by region while before ``deadline``."""
         p = self.params
         w = p.reloc_window_m
         centers = self.map.region_centers(w)
         if len(centers) == 0:
             raise GlobalInitError("the map has no blocks/tiles to relocalize in")
         t = time.perf_counter()
-        cheap = np.array([self._cheap_score(scan, c, w) for c in centers])
+        cheap = np.full(len(centers), -np.inf)
+        for i, c in enumerate(centers):
+            if time.perf_counter() >= deadline:
+                break  # the regions scored so far come first
+            cheap[i] = self._cheap_score(scan, c, w)
         order = np.argsort(-cheap, kind="stable")
         if p.max_regions > 0:
             order = order[: p.max_regions]
@@ -537,6 +588,9 @@ class GlobalLocalizer:
         all_cands: list[InitCandidate] = []
         stats: dict = {"regions": len(centers), "cheap_time_s": t_cheap, "regions_searched": 0}
         for k, i in enumerate(order):
+            if time.perf_counter() >= deadline:
+                stats["timed_out"] = True
+                break
             # Regions overlap by the scan's reach, so a pose near a border is inside some window.
             cands, st = self._search_region(scan, scan_ndt, centers[i], w + 2.0 * p.resolution_m, theta_c, yaw_win,
                                             cells=cells)
@@ -599,12 +653,16 @@ class GlobalLocalizer:
                 T0 = best.T_map_body.copy()
                 T0[:2, 3] += (dx, dy)
                 r = best.refiner.align(scan_ndt, T0)
+                if not r.converged and np.all(np.isfinite(r.T_map_body)):
+                    # out of iterations on its way (back to the best, or on to another optimum): an
+                    # optimum is where it stops; one still sliding after this counts as a rival
+                    r = best.refiner.align(scan_ndt, r.T_map_body)
                 if not (np.all(np.isfinite(r.T_map_body)) and r.fitness >= p.min_fitness):
                     continue
                 dist = float(np.linalg.norm(r.T_map_body[:3, 3] - best.T_map_body[:3, 3]))
                 if dist <= p.ambiguity_distance_m or r.fitness < best.fitness - p.ambiguity_fitness_margin:
                     continue
-                sfit = best.refiner.inlier_ratio(structure, r.T_map_body) if structure is not None else 1.0
+                sfit = self._structure_fit(best.refiner, structure, r.T_map_body) if structure is not None else 1.0
                 if sfit < p.min_structure_fitness:
                     log.debug("an NDT optimum %.2f m from the best (fitness %.2f) whose structure does not fit "
                               "(%.2f): no rival", dist, r.fitness, sfit)

@@ -115,3 +115,35 @@ def test_search_finds_the_exhaustive_best_leaf(use_s0):
     assert got == sorted(got, reverse=True) and max(got) <= best + 1e-12
     if use_s0:
         assert 0.9 * best - 1e-9 <= stats.s0 <= best + 1e-12
+
+
+def test_a_saturated_window_cannot_crowd_out_the_others_with_per_window_leaves():
+    # Right of x = 30 m the map is occupied everywhere (woods in the height band): any pose there
+    # scores 1. One top K over both windows returns only leaves there; per-window leaves keep the
+    # true window's best leaf, which is its exhaustive best.
+    from blockloc.global_init.bnb import Window, search_windows
+
+    world = _world()
+    n = world.grid.shape[0]
+    grid = np.full((2 * n, n), 255, np.uint8)
+    grid[:n] = world.grid
+    raster = Raster(world.origin, grid, RES, np.zeros(2, np.int64), np.zeros((1, 1), np.float32))
+    x_true, y_true, th_true = 3.2, -1.7, 0.8
+    occ = np.argwhere(world.grid > 0)
+    centres = (occ + world.origin + 0.5) * RES
+    near = centres[np.linalg.norm(centres - [x_true, y_true], axis=1) < 9.0]
+    c, s = math.cos(th_true), math.sin(th_true)
+    rel = near - [x_true, y_true]
+    scan_xy = np.c_[c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]]
+    true_w = Window(np.array([x_true + 1.1, y_true - 0.9]), 6.0, th_true, math.radians(20))
+    sat_w = Window(np.array([60.0, 0.0]), 6.0, 0.0, math.radians(20))
+    lo, hi = required_cells(scan_xy, np.array([32.0, 0.0]), 70.0, RES)
+    pyramid = assemble([build_pyramid(raster, 4)], lo, hi)
+    shared, _ = search_windows(pyramid, scan_xy, [sat_w, true_w], top_k=2, top_level=3)
+    assert shared and all(cd.x > 50 for cd in shared)  # the failure the quota prevents
+    each, _ = search_windows(pyramid, scan_xy, [sat_w, true_w], top_k=2, top_level=3, per_window_k=2)
+    mine = [cd for cd in each if cd.window == 1]
+    assert mine and {cd.window for cd in each} == {0, 1}
+    assert abs(mine[0].x - x_true) <= RES and abs(mine[0].y - y_true) <= RES
+    alone, _ = search_windows(pyramid, scan_xy, [true_w], top_k=1, top_level=3)
+    assert mine[0].score == pytest.approx(alone[0].score, abs=1e-12)

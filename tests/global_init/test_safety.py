@@ -66,13 +66,30 @@ def test_a_wrong_place_with_a_plausible_fit_is_rejected_by_verification():
 def test_a_scan_of_a_place_not_in_the_map_is_not_verified_without_a_hint():
     # Place index, then the whole-map search: nothing verified, whatever fits best.
     m = world_up(seed=3) @ Z_DOWN.T
-    loc = GlobalLocalizer.for_points(m, GRAVITY_Z_DOWN, InitParams(reloc_window_m=60.0))
+    loc = GlobalLocalizer.for_points(m, GRAVITY_Z_DOWN, InitParams(reloc_window_m=60.0, max_search_s=0.0))
     other = world_up(seed=99) @ Z_DOWN.T
     for yaw in (0.3, 2.0):
         T = xyzrpy_to_T(5.0, -3.0, -1.8, 0.0, 0.0, yaw)
         res = loc.localize(scan_from(other, T), gravity_body(T))
         assert not res.verified
         assert res.stats["regions_searched"] >= 1  # it did widen to the whole map
+        assert not res.stats.get("timed_out")
+
+
+def test_the_no_hint_search_stops_at_its_budget_and_reports_not_found():
+    # A scan the place stages cannot place: with a budget already spent after the first stage, the
+    # search neither widens to more places nor to the regions, and says it stopped.
+    m = world_up(seed=3) @ Z_DOWN.T
+    other = world_up(seed=99) @ Z_DOWN.T
+    T = xyzrpy_to_T(5.0, -3.0, -1.8, 0.0, 0.0, 0.3)
+    scan = scan_from(other, T)
+    unbounded = GlobalLocalizer.for_points(m, GRAVITY_Z_DOWN, InitParams(reloc_window_m=60.0, max_search_s=0.0))
+    full = unbounded.localize(scan, gravity_body(T))
+    bounded = GlobalLocalizer.for_points(m, GRAVITY_Z_DOWN, InitParams(reloc_window_m=60.0, max_search_s=1e-6))
+    res = bounded.localize(scan, gravity_body(T))
+    assert not res.verified and res.stats["timed_out"]
+    assert res.stats["place_stage"] == 1 < full.stats["place_stage"]
+    assert "cheap_time_s" not in res.stats and "cheap_time_s" in full.stats  # no region search began
 
 
 def _small_world_localizer(small_world, **overrides):
@@ -136,3 +153,31 @@ def test_no_hint_in_a_repetitive_corridor_never_verifies_the_wrong_copy():
             err = pose_error(res.T_map_body, T)
             assert err[0] <= 1.0 and err[1] <= 5.0, err
         assert not (res.verified and res.ambiguous)
+
+
+def test_a_true_pose_whose_static_band_is_changed_foliage_is_verified_on_the_projection_band():
+    # Crowns 3-6.6 m up on the pillars (trees) that the mapping session did not see (foliage
+    # changes between seasons) fill the scan's static band: too few of its points fit at the true pose, while the projection
+    # band (pillars and walls from 0.3 m up) fits. Either band may pass the structure test.
+    rng = np.random.default_rng(8)
+    scene = np.concatenate([_ground(rng, -45, 45, -45, 45), _cluster(rng, 0, 0)])
+    crowns = []
+    for cx, cy in ((8, 3), (-6, 7), (-9, -5), (4, -9), (14, -2), (-2, 13), (11, 9), (-12, 4)):  # the pillars
+        d = rng.normal(size=(2500, 3))
+        d *= (1.2 * rng.uniform(0, 1, (2500, 1)) ** (1 / 3)) / np.linalg.norm(d, axis=1, keepdims=True)
+        crowns.append(d + [cx, cy, 4.8])
+    seen = np.concatenate([scene] + crowns) @ Z_DOWN.T
+    T = xyzrpy_to_T(1.0, -2.0, -1.8, 0.0, 0.0, 0.6)
+    scan = scan_from(seen, T, radius=40.0)
+    loc = GlobalLocalizer.for_points(scene @ Z_DOWN.T, GRAVITY_Z_DOWN, InitParams())
+    res = loc.localize(scan, gravity_body(T), (0.0, 0.0), None, 20.0, 360.0)
+    best = res.candidates[0]
+    assert pose_error(best.T_map_body, T)[0] < 0.2
+    static, band = loc._structure_body
+    p = loc.params
+    from blockloc.global_init.refine import Refiner
+
+    ref = Refiner(loc.engine, scene @ Z_DOWN.T)
+    assert ref.inlier_ratio(static, best.T_map_body) < p.min_structure_fitness  # the static band alone fails
+    assert ref.inlier_ratio(band, best.T_map_body) >= p.min_structure_fitness
+    assert res.verified

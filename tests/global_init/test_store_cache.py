@@ -38,3 +38,25 @@ def test_cached_pyramids_are_reused_and_match_the_whole_map(tmp_path, monkeypatc
     assert agree > 0.97, agree
     top = params.num_levels - 1
     assert np.all(got.levels[top] >= got.levels[top - 1])
+
+
+def test_box_queries_return_exactly_the_points_in_the_box():
+    # Buckets wholly inside the box skip the point test; the result must equal a brute-force mask,
+    # for boxes on and off bucket edges, in a levelled frame turned against the map frame.
+    from blockloc.global_init.maps import BUCKET_M, _BucketedPoints
+
+    rng = np.random.default_rng(5)
+    pts = rng.uniform([-130, -90, -3], [170, 110, 8], (60_000, 3)).astype(np.float32)
+    c, s = np.cos(0.4), np.sin(0.4)
+    R_L_map = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    b = _BucketedPoints(pts, R_L_map)
+    xy = pts.astype(np.float64) @ R_L_map[:2].T
+    boxes = [(np.array([-40.0, -20.0]), np.array([60.0, 80.0])), (np.array([0.0, 0.0]), np.array([2 * BUCKET_M] * 2)),
+             (np.array([-3.0, 7.0]), np.array([4.0, 9.0])), (np.array([-500.0, -500.0]), np.array([500.0, 500.0])),
+             (np.array([300.0, 300.0]), np.array([400.0, 400.0]))]
+    for lo, hi in boxes:
+        want = pts[np.all((xy >= lo) & (xy <= hi), axis=1)]
+        got = b.in_box(lo, hi)
+        assert len(got) == len(want)
+        key = lambda a: a[np.lexsort(a.T)]
+        np.testing.assert_array_equal(key(got), key(want))
