@@ -29,6 +29,11 @@ ALBEDO = {"terrain": 0.3, "road": 0.09, "building": 0.3, "wall": 0.25, "fence": 
           "foliage": 0.4, "sidewalk": 0.22, "grass": 0.35, "glass": 0.05}
 
 MOVABLE_KINDS = ("car", "bin")
+#: Ground-material raster tiles (128 m, 0.25 m cells: 256 KiB each) a world keeps, newest used
+#: last: 16 MiB, about a square kilometre around where the scans were cast lately. Unbounded,
+#: a process rendering drives across the city kept every tile it ever touched (a tile is a pure
+#: function of the world: rebuilding one gives the same raster).
+MATERIAL_TILES = 64
 
 
 def stable_hash(text: str) -> int:
@@ -327,7 +332,7 @@ class World:
     facades: np.ndarray = field(default_factory=lambda: np.zeros((0, 10)))
     owners: dict = field(default_factory=dict)
     passages: list[dict] = field(default_factory=list)
-    _material: dict = field(default_factory=dict, repr=False)
+    _material: dict = field(default_factory=dict, repr=False)  # (ti, tj) -> tile, LRU order
 
     @property
     def extent(self) -> tuple[float, float, float, float]:
@@ -337,7 +342,8 @@ class World:
     def ground_material(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """(N,) ground surface code at (x, y): 0 road (asphalt), 1 sidewalk (paved, a kerb
         above the road), 2 grass, 3 footpath (paved, flush with the grass). Looked up in 0.25 m
-        raster tiles of 128 m, each built on first use (a city is never rastered whole)."""
+        raster tiles of 128 m, each built on first use (a city is never rastered whole); the
+        ``MATERIAL_TILES`` used last are kept."""
         x = np.asarray(x, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
         res, tile = 0.25, 128.0
@@ -352,7 +358,7 @@ class World:
             a, b = int(kk // 1_000_003), int(kk % 1_000_003)
             if b > 500_000:  # negative tj wrapped by the modulo
                 a, b = a + 1, b - 1_000_003
-            R = self._material.get((a, b))
+            R = self._material.pop((a, b), None)
             if R is None:
                 gx = a * tile + (np.arange(n) + 0.5) * res
                 gy = b * tile + (np.arange(n) + 0.5) * res
@@ -360,7 +366,9 @@ class World:
                 R = self._ground_material_exact(X.ravel(), Y.ravel(),
                                                 (a * tile, (a + 1) * tile, b * tile, (b + 1) * tile))
                 R = R.reshape(n, n).astype(np.uint8)
-                self._material[(a, b)] = R
+            self._material[(a, b)] = R  # re-inserted: the newest last
+            while len(self._material) > MATERIAL_TILES:
+                del self._material[next(iter(self._material))]
             m = inv == k
             i = np.clip(((y[m] - b * tile) / res).astype(np.int64), 0, n - 1)
             j = np.clip(((x[m] - a * tile) / res).astype(np.int64), 0, n - 1)
