@@ -288,6 +288,9 @@ class SessionScene:
             rng = np.random.default_rng(np.random.SeedSequence([world.seed, stable_hash(session), 11]))
             self._vol_mfp = vol.mfp * np.exp(rng.uniform(-1.0, 1.0, len(vol)) * 1.2 * ch)
             self._vol_radii = vol.radii * (1.0 + rng.normal(0, 0.06, (len(vol), 1)) * ch)
+        # a cast selects the window it needs, then casts in it: one cast at a time (the scene of
+        # the mapping sessions is shared by their sequences, which threads may render at once)
+        self._lock = threading.RLock()
         self._window = None  # (center, half size, grid cell) of the window in use
         self._windows: dict = {}  # grid cell -> built (scene, sel, vol_scene, vsel), oldest first
         self._seed = world.seed
@@ -385,6 +388,10 @@ class SessionScene:
         """Cast rays (world origins, unit dirs, (N, 3) each) at session time t (None: no moving
         actors). rng draws the stochastic parts (foliage stops, grass, glass); default seeded 0.
         Returns dict range, normal, reflect, cat, glass (bool), retro (bool)."""
+        with self._lock:
+            return self._cast_full(origins, dirs, t, max_range, rng)
+
+    def _cast_full(self, origins, dirs, t, max_range, rng) -> dict:
         rng = rng if rng is not None else np.random.default_rng(0)
         self._ensure_window(origins[len(origins) // 2])
         rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
@@ -632,9 +639,10 @@ class SessionScene:
     def distance(self, points: np.ndarray) -> np.ndarray:
         """Unsigned distance (N,) from world points (N, 3) to the static scene's surfaces."""
         o3d = self._o3d
-        self._ensure_window(np.asarray(points, float).mean(axis=0))
         query = o3d.core.Tensor(np.asarray(points, np.float32))
-        d = self.scene.compute_distance(query).numpy()
-        if self._terrain_scene is not None:
-            d = np.minimum(d, self._terrain_scene.compute_distance(query).numpy())
+        with self._lock:
+            self._ensure_window(np.asarray(points, float).mean(axis=0))
+            d = self.scene.compute_distance(query).numpy()
+            if self._terrain_scene is not None:
+                d = np.minimum(d, self._terrain_scene.compute_distance(query).numpy())
         return d
