@@ -240,6 +240,7 @@ def test_ground_material_keeps_a_bounded_number_of_raster_tiles(monkeypatch):
     x, y = rng.uniform(-60, 60, 4000), rng.uniform(-60, 60, 4000)  # the 4 tiles around the origin
     first = world.ground_material(x, y)
     assert len(world._material) == 3
+    assert all(t.nbytes == 512 * 128 for t in world._material.values())  # 512 x 512 codes, 2 bits each
     for tx, ty in [(300.0, 300.0), (-300.0, 300.0), (300.0, -300.0), (-300.0, -300.0)]:
         world.ground_material(np.array([tx]), np.array([ty]))
         assert len(world._material) <= 3
