@@ -35,32 +35,42 @@ WINDOW_STEP = 0.7
 #: between up to four without building them again.
 WINDOW_CACHE = 4
 
-#: id(world) -> the world's terrain scene (open3d RaycastingScene of ``world.meshes["terrain"]``),
-#: built once per process and world, dropped when the world is (weakref.finalize).
+#: id(world) -> (weakref to the world, weakref to its TerrainScene): the terrain scene lives as
+#: long as a windowed scene of that world uses it, and is built again after.
 _TERRAIN_SCENES: dict = {}
 _TERRAIN_LOCK = threading.Lock()
 
 
-def terrain_scene(world: World):
-    """The ray-casting scene of ``world``'s terrain mesh alone (world frame, z up), shared by the
-    windowed scenes of every session of that world in this process. Its primitive ids index
-    ``world.meshes["terrain"][1]``."""
-    from blockloc._open3d import open3d
+class TerrainScene:
+    """The ray-casting scene of a world's terrain mesh alone (``scene``: open3d
+    RaycastingScene, world frame, z up; its primitive ids index ``world.meshes["terrain"][1]``)."""
 
-    key = id(world)
-    with _TERRAIN_LOCK:
-        got = _TERRAIN_SCENES.get(key)
-        if got is not None and got[0]() is world:
-            return got[1]
+    __slots__ = ("scene", "__weakref__")
+
+    def __init__(self, world: World) -> None:
+        from blockloc._open3d import open3d
+
         o3d = open3d()
         V, F = world.meshes["terrain"]
         used, inv = np.unique(F, return_inverse=True)
-        scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.core.Tensor(np.asarray(V, np.float32)[used]),
-                            o3d.core.Tensor(inv.reshape(-1, 3).astype(np.uint32)))
-        _TERRAIN_SCENES[key] = (weakref.ref(world), scene)
-        weakref.finalize(world, _TERRAIN_SCENES.pop, key, None)
-        return scene
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor(np.asarray(V, np.float32)[used]),
+                                 o3d.core.Tensor(inv.reshape(-1, 3).astype(np.uint32)))
+
+
+def terrain_scene(world: World) -> TerrainScene:
+    """``world``'s :class:`TerrainScene`, shared by the windowed scenes of every session of that
+    world in this process while one of them holds it (a city's: ~135 MB of BVH)."""
+    key = id(world)
+    with _TERRAIN_LOCK:
+        got = _TERRAIN_SCENES.get(key)
+        held = got[1]() if got is not None and got[0]() is world else None
+        if held is None:
+            for k in [k for k, (w, t) in _TERRAIN_SCENES.items() if w() is None or t() is None]:
+                del _TERRAIN_SCENES[k]
+            held = TerrainScene(world)
+            _TERRAIN_SCENES[key] = (weakref.ref(world), weakref.ref(held))
+        return held
 
 
 @dataclass
@@ -309,7 +319,8 @@ class SessionScene:
             if self._tri_xy is None:
                 self._boxed = np.flatnonzero(self._tri_cat != self.terrain_cat)
                 self._tri_xy = self._V[self._F[self._boxed]].mean(axis=1)[:, :2]
-                self._terrain_scene = terrain_scene(self.world)
+                self._terrain = terrain_scene(self.world)  # held: the scene lives while we do
+                self._terrain_scene = self._terrain.scene
             lo, hi = np.asarray(center) - half, np.asarray(center) + half
             sel = self._boxed[((self._tri_xy >= lo) & (self._tri_xy <= hi)).all(axis=1)]
             vsel = np.zeros(0, int)

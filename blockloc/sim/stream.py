@@ -47,12 +47,15 @@ def cached_world(preset: Preset, seed: int) -> World:
     return disk_memo(f"world-{preset.name}-{seed}", key, lambda: build_world(preset, seed))
 
 
-_MAPPING_SCENES: dict = {}  # id(world) -> (weakref to it, its mapping days' SessionScene)
+#: id(world) -> (weakref to the world, weakref to its mapping days' SessionScene): the scene
+#: lives as long as a sequence holds it (a map build's process forgets its drives after a build).
+_MAPPING_SCENES: dict = {}
 _MAPPING_LOCK = threading.Lock()
 
 
 def mapping_scene(world: World):
-    """The ``SessionScene`` of ``world``'s mapping sessions, one per world in this process.
+    """The ``SessionScene`` of ``world``'s mapping sessions, one per world in this process while
+    a sequence holds it.
 
     Every mapping day has the same scene: the world's base movables, no moving actors, the
     foliage as generated (``make_actors`` and the foliage change leave mapping sessions alone),
@@ -65,12 +68,13 @@ def mapping_scene(world: World):
     session = next(s for s in world.preset.sessions if world.preset.is_mapping(s))
     with _MAPPING_LOCK:
         got = _MAPPING_SCENES.get(id(world))
-        if got is not None and got[0]() is world:
-            return got[1]
-        scene = SessionScene(world, session_movables(world, session, True), make_actors(world, session),
-                             session)
-        _MAPPING_SCENES[id(world)] = (weakref.ref(world), scene)
-        weakref.finalize(world, _MAPPING_SCENES.pop, id(world), None)
+        scene = got[1]() if got is not None and got[0]() is world else None
+        if scene is None:
+            for k in [k for k, (w, sc) in _MAPPING_SCENES.items() if w() is None or sc() is None]:
+                del _MAPPING_SCENES[k]
+            scene = SessionScene(world, session_movables(world, session, True), make_actors(world, session),
+                                 session)
+            _MAPPING_SCENES[id(world)] = (weakref.ref(world), weakref.ref(scene))
         return scene
 
 

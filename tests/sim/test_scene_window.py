@@ -48,7 +48,7 @@ def test_windows_hold_no_terrain_and_share_the_worlds_terrain_scene():
         assert len(sel) and not np.any(scene._tri_cat[sel] == scene.terrain_cat)
     loc = SessionScene(seq.world, session_movables(seq.world, "loc", False), make_actors(seq.world, "loc"), "loc")
     loc.distance(np.zeros((1, 3)))  # builds its first window
-    assert loc._terrain_scene is scene._terrain_scene is terrain_scene(seq.world)
+    assert loc._terrain_scene is scene._terrain_scene is terrain_scene(seq.world).scene
 
 
 def test_mapping_sessions_share_one_scene_and_render_as_alone():
@@ -67,3 +67,21 @@ def test_mapping_sessions_share_one_scene_and_render_as_alone():
     alone = SimSequence(preset, "map1", 1)
     assert alone.scene is not a.scene
     np.testing.assert_array_equal(alone.frame(len(a) // 2).points, shared.points)
+
+
+def test_shared_scenes_go_with_the_last_sequence_holding_them():
+    """The shared mapping scene and terrain scene are not kept by the process once no sequence
+    holds them (a serial map build forgets its drives: their scenes must go too)."""
+    import gc
+    import weakref
+
+    from blockloc.sim.scene import terrain_scene
+
+    preset = get_preset("tiny", scene_window_m=HALF_M)
+    seq = SimSequence(preset, "map", 1)
+    seq.frame(0)
+    scene, terrain = weakref.ref(seq.scene), weakref.ref(terrain_scene(seq.world))
+    assert scene() is not None and terrain() is not None
+    del seq
+    gc.collect()
+    assert scene() is None and terrain() is None
