@@ -4,12 +4,17 @@ pedestrians and vehicles, cast as a small per-scan scene.
 
 Frame: world, z up, metres (see ``blockloc.sim.world``). Large worlds (``preset.scene_window_m``)
 are cast in a window around the robot, rebuilt when it moves on: the whole city never sits in one
-scene.
+scene. The terrain is the exception: it sits in one scene of its own per world, shared by every
+window and every session of that world in the process, and each ray is cast against both (the
+nearer hit wins). In the windows a city's terrain was 96% of each window's triangles: ~140 MB of
+BVH per window, four windows kept per drive, rebuilt in ~1.5 s each.
 """
 
 from __future__ import annotations
 
 import logging
+import threading
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,6 +34,43 @@ WINDOW_STEP = 0.7
 #: Built windows kept per scene: a drive along a cell border, or through a corner, switches
 #: between up to four without building them again.
 WINDOW_CACHE = 4
+
+#: id(world) -> (weakref to the world, weakref to its TerrainScene): the terrain scene lives as
+#: long as a windowed scene of that world uses it, and is built again after.
+_TERRAIN_SCENES: dict = {}
+_TERRAIN_LOCK = threading.Lock()
+
+
+class TerrainScene:
+    """The ray-casting scene of a world's terrain mesh alone (``scene``: open3d
+    RaycastingScene, world frame, z up; its primitive ids index ``world.meshes["terrain"][1]``)."""
+
+    __slots__ = ("scene", "__weakref__")
+
+    def __init__(self, world: World) -> None:
+        from blockloc._open3d import open3d
+
+        o3d = open3d()
+        V, F = world.meshes["terrain"]
+        used, inv = np.unique(F, return_inverse=True)
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor(np.asarray(V, np.float32)[used]),
+                                 o3d.core.Tensor(inv.reshape(-1, 3).astype(np.uint32)))
+
+
+def terrain_scene(world: World) -> TerrainScene:
+    """``world``'s :class:`TerrainScene`, shared by the windowed scenes of every session of that
+    world in this process while one of them holds it (a city's: ~135 MB of BVH)."""
+    key = id(world)
+    with _TERRAIN_LOCK:
+        got = _TERRAIN_SCENES.get(key)
+        held = got[1]() if got is not None and got[0]() is world else None
+        if held is None:
+            for k in [k for k, (w, t) in _TERRAIN_SCENES.items() if w() is None or t() is None]:
+                del _TERRAIN_SCENES[k]
+            held = TerrainScene(world)
+            _TERRAIN_SCENES[key] = (weakref.ref(world), weakref.ref(held))
+        return held
 
 
 @dataclass
@@ -229,12 +271,23 @@ class SessionScene:
             n += len(V)
             cats.append(np.full(len(F), self._cat_index[name], dtype=np.int64))
             owners.append(world.owners.get(name, np.full(len(F), -1, dtype=np.int64)))
+        # index and code arrays in the smallest type that holds them: a city has 3.4M triangles
+        # and a drive's process holds these for each drive it renders
         self._V = np.concatenate(Vs).astype(np.float32)
-        self._F = np.concatenate(Fs)
-        self._tri_cat = np.concatenate(cats)
-        self._tri_owner = np.concatenate(owners)
-        self._tri_xy = None
+        self._F = np.concatenate(Fs).astype(np.int32 if n < 2**31 else np.int64)
+        self._tri_cat = np.concatenate(cats).astype(np.int16)
+        self._tri_owner = np.concatenate(owners).astype(np.int32)
+        self._tri_xy = None  # (M, 2) centroids of the windowed (non-terrain) triangles
+        self._boxed = None  # (M,) their indices
         self.terrain_cat = self._cat_index["terrain"]
+        # the terrain's triangles: one run of them (the world's terrain mesh), cast in the world's
+        # shared terrain scene when the scene is windowed
+        terrain = np.flatnonzero(self._tri_cat == self.terrain_cat)
+        self._terrain_first = int(terrain[0]) if len(terrain) else 0
+        if len(terrain) and (terrain[-1] - terrain[0] + 1 != len(terrain)
+                             or len(terrain) != len(world.meshes["terrain"][1])):
+            raise ValueError("terrain triangles: expected the world's terrain mesh, in one run")
+        self._terrain_scene = None
         # categories with facade rows (buildings, corridor walls and ceiling)
         self._facade_cats = np.array([self._cat_index[c] for c in world.owners if c in self._cat_index])
         # the day's foliage: denser or sparser crowns than on the mapping day (seasons)
@@ -245,6 +298,9 @@ class SessionScene:
             rng = np.random.default_rng(np.random.SeedSequence([world.seed, stable_hash(session), 11]))
             self._vol_mfp = vol.mfp * np.exp(rng.uniform(-1.0, 1.0, len(vol)) * 1.2 * ch)
             self._vol_radii = vol.radii * (1.0 + rng.normal(0, 0.06, (len(vol), 1)) * ch)
+        # a cast selects the window it needs, then casts in it: one cast at a time (the scene of
+        # the mapping sessions is shared by their sequences, which threads may render at once)
+        self._lock = threading.RLock()
         self._window = None  # (center, half size, grid cell) of the window in use
         self._windows: dict = {}  # grid cell -> built (scene, sel, vol_scene, vsel), oldest first
         self._seed = world.seed
@@ -261,19 +317,22 @@ class SessionScene:
             vsel = np.arange(len(self._vol_mfp)) if self._vol_mfp is not None else np.zeros(0, int)
         else:
             if self._tri_xy is None:
-                self._tri_xy = self._V[self._F].mean(axis=1)[:, :2]
+                self._boxed = np.flatnonzero(self._tri_cat != self.terrain_cat)
+                self._tri_xy = self._V[self._F[self._boxed]].mean(axis=1)[:, :2]
+                self._terrain = terrain_scene(self.world)  # held: the scene lives while we do
+                self._terrain_scene = self._terrain.scene
             lo, hi = np.asarray(center) - half, np.asarray(center) + half
-            sel = np.flatnonzero(((self._tri_xy >= lo) & (self._tri_xy <= hi)).all(axis=1)
-                                 | (self._tri_cat == self.terrain_cat))
+            sel = self._boxed[((self._tri_xy >= lo) & (self._tri_xy <= hi)).all(axis=1)]
             vsel = np.zeros(0, int)
             if self._vol_mfp is not None:
                 c = self.world.volumes.center[:, :2]
                 vsel = np.flatnonzero(((c >= lo) & (c <= hi)).all(axis=1))
         self.scene = o3d.t.geometry.RaycastingScene()
-        F = self._F[sel]
-        used, inv = np.unique(F, return_inverse=True)
-        self.scene.add_triangles(o3d.core.Tensor(self._V[used]),
-                                 o3d.core.Tensor(inv.reshape(-1, 3).astype(np.uint32)))
+        if len(sel):  # a window may hold nothing but terrain (cast in the terrain scene)
+            F = self._F[sel]
+            used, inv = np.unique(F, return_inverse=True)
+            self.scene.add_triangles(o3d.core.Tensor(self._V[used]),
+                                     o3d.core.Tensor(inv.reshape(-1, 3).astype(np.uint32)))
         self._sel = sel
         self._vol_scene = None
         self._vsel = vsel
@@ -306,6 +365,30 @@ class SessionScene:
         self._window = ((np.asarray(cell, float) + 0.5) * step, half, cell)
 
     # --- casting --------------------------------------------------------------------------------
+    def _cast_static(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Cast (N, 6) float32 rays (origin, unit direction) at the static scene in use: range
+        (N,) float64 (inf: no hit), triangle (N,) int64 (index into ``_F``; -1: no hit), unit
+        normals (N, 3) float64. A windowed scene casts the window and the world's terrain scene
+        and keeps the nearer hit (the window's on a tie)."""
+        o3d = self._o3d
+        tensor = o3d.core.Tensor(rays)
+        ans = self.scene.cast_rays(tensor)
+        t = ans["t_hit"].numpy()
+        prim = ans["primitive_ids"].numpy().astype(np.int64)
+        normals = ans["primitive_normals"].numpy()
+        hit = np.isfinite(t)
+        tri = np.full(len(t), -1, np.int64)
+        tri[hit] = self._sel[prim[hit]]
+        if self._terrain_scene is not None:
+            g = self._terrain_scene.cast_rays(tensor)
+            t_g = g["t_hit"].numpy()
+            nearer = t_g < t
+            if nearer.any():
+                t = np.where(nearer, t_g, t)
+                tri = np.where(nearer, self._terrain_first + g["primitive_ids"].numpy().astype(np.int64), tri)
+                normals = np.where(nearer[:, None], g["primitive_normals"].numpy(), normals)
+        return t.astype(np.float64), tri, normals.astype(np.float64)
+
     def cast(self, origins: np.ndarray, dirs: np.ndarray, t: float | None = None,
              max_range: float = np.inf, rng: np.random.Generator | None = None):
         h = self.cast_full(origins, dirs, t, max_range, rng)
@@ -316,17 +399,16 @@ class SessionScene:
         """Cast rays (world origins, unit dirs, (N, 3) each) at session time t (None: no moving
         actors). rng draws the stochastic parts (foliage stops, grass, glass); default seeded 0.
         Returns dict range, normal, reflect, cat, glass (bool), retro (bool)."""
-        o3d = self._o3d
+        with self._lock:
+            return self._cast_full(origins, dirs, t, max_range, rng)
+
+    def _cast_full(self, origins, dirs, t, max_range, rng) -> dict:
         rng = rng if rng is not None else np.random.default_rng(0)
         self._ensure_window(origins[len(origins) // 2])
         rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
-        ans = self.scene.cast_rays(o3d.core.Tensor(rays))
-        rng_ = ans["t_hit"].numpy().astype(np.float64)
-        prim = ans["primitive_ids"].numpy().astype(np.int64)
-        normals = ans["primitive_normals"].numpy().astype(np.float64)
+        rng_, tri, normals = self._cast_static(rays)
         hit = np.isfinite(rng_)
-        tri = np.where(hit, self._sel[np.where(hit, prim, 0)], -1)
-        cat = np.where(hit, self._tri_cat[tri], -1)
+        cat = np.where(hit, self._tri_cat[tri].astype(np.int64), -1)
         reflect = self._reflect_by_cat[cat]
         glass = np.zeros(len(rng_), dtype=bool)
         on_ground = cat == self.terrain_cat
@@ -456,17 +538,13 @@ class SessionScene:
         """Rays ``rays`` (indices) leave a thin box at ``t_exit`` (m along the ray): cast them on
         through the static scene; their range goes to ``r[at]``, their hit's normal, reflectance
         and category to the arrays (vegetation and actors are applied afterwards to every ray)."""
-        o3d = self._o3d
         start = t_exit + 0.02
         o = origins[rays] + dirs[rays] * start[:, None]
-        ans = self.scene.cast_rays(o3d.core.Tensor(np.concatenate([o, dirs[rays]], axis=1).astype(np.float32)))
-        t2 = ans["t_hit"].numpy().astype(np.float64)
+        t2, tri, n2 = self._cast_static(np.concatenate([o, dirs[rays]], axis=1).astype(np.float32))
         hit = np.isfinite(t2)
-        prim = ans["primitive_ids"].numpy().astype(np.int64)
-        tri = np.where(hit, self._sel[np.where(hit, prim, 0)], -1)
-        c2 = np.where(hit, self._tri_cat[tri], -1)
+        c2 = np.where(hit, self._tri_cat[tri].astype(np.int64), -1)
         r[at] = np.where(hit, start + t2, np.inf)
-        normals[rays] = np.where(hit[:, None], ans["primitive_normals"].numpy().astype(np.float64), normals[rays])
+        normals[rays] = np.where(hit[:, None], n2, normals[rays])
         cat[rays] = c2
         refl = self._reflect_by_cat[c2]
         ground = c2 == self.terrain_cat
@@ -572,5 +650,10 @@ class SessionScene:
     def distance(self, points: np.ndarray) -> np.ndarray:
         """Unsigned distance (N,) from world points (N, 3) to the static scene's surfaces."""
         o3d = self._o3d
-        self._ensure_window(np.asarray(points, float).mean(axis=0))
-        return self.scene.compute_distance(o3d.core.Tensor(np.asarray(points, np.float32))).numpy()
+        query = o3d.core.Tensor(np.asarray(points, np.float32))
+        with self._lock:
+            self._ensure_window(np.asarray(points, float).mean(axis=0))
+            d = self.scene.compute_distance(query).numpy()
+            if self._terrain_scene is not None:
+                d = np.minimum(d, self._terrain_scene.compute_distance(query).numpy())
+        return d

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import functools
 import logging
+import threading
+import weakref
 from typing import Iterator
 
 import numpy as np
@@ -27,6 +29,9 @@ from blockloc.sim.world import World, build_world, session_movables, stable_hash
 
 log = logging.getLogger(__name__)
 
+#: Poses :meth:`SimSequence.mapping_poses` computes at a time (6 MB of (N, 4, 4) float64).
+POSE_CHUNK = 50_000
+
 #: Each session is another "day": (date used in NCLT file names, start epoch in s, UTC noon).
 SESSION_DAYS = {"map": ("2020-06-01", 1591012800), "loc": ("2020-06-08", 1591617600),
                 "loc2": ("2020-06-15", 1592222400), "loc3": ("2020-06-22", 1592827200)}
@@ -40,6 +45,37 @@ def cached_world(preset: Preset, seed: int) -> World:
 
     key = fingerprint("blockloc.sim", params=(repr(preset), seed))
     return disk_memo(f"world-{preset.name}-{seed}", key, lambda: build_world(preset, seed))
+
+
+#: id(world) -> (weakref to the world, weakref to its mapping days' SessionScene): the scene
+#: lives as long as a sequence holds it (a map build's process forgets its drives after a build).
+_MAPPING_SCENES: dict = {}
+_MAPPING_LOCK = threading.Lock()
+
+
+def mapping_scene(world: World):
+    """The ``SessionScene`` of ``world``'s mapping sessions, one per world in this process while
+    a sequence holds it.
+
+    Every mapping day has the same scene: the world's base movables, no moving actors, the
+    foliage as generated (``make_actors`` and the foliage change leave mapping sessions alone),
+    so a process opening several mapping drives of a city (a map build's worker) holds its
+    triangle arrays (~100 MB for the city) and its scene windows once. A scan depends only on
+    where it is cast, never on the windows built before (``blockloc.sim.scene.WINDOW_STEP``), so
+    sharing the windows does not change a scan."""
+    from blockloc.sim.scene import SessionScene, make_actors
+
+    session = next(s for s in world.preset.sessions if world.preset.is_mapping(s))
+    with _MAPPING_LOCK:
+        got = _MAPPING_SCENES.get(id(world))
+        scene = got[1]() if got is not None and got[0]() is world else None
+        if scene is None:
+            for k in [k for k, (w, sc) in _MAPPING_SCENES.items() if w() is None or sc() is None]:
+                del _MAPPING_SCENES[k]
+            scene = SessionScene(world, session_movables(world, session, True), make_actors(world, session),
+                                 session)
+            _MAPPING_SCENES[id(world)] = (weakref.ref(world), weakref.ref(scene))
+        return scene
 
 
 def session_day(session: str) -> tuple[str, int]:
@@ -127,11 +163,17 @@ def true_T_body_lidar(preset: Preset, seed: int) -> np.ndarray:
 
 def smooth_noise(rng: np.random.Generator, t: np.ndarray, dims: int, knot_s: float = 2.0) -> np.ndarray:
     """(len(t), dims) smooth zero-mean noise of ~unit std: cubic spline through N(0,1) knots."""
+    return smooth_noise_spline(rng, float(t[0]), float(t[-1]), dims, knot_s)(t)
+
+
+def smooth_noise_spline(rng: np.random.Generator, t0: float, t1: float, dims: int, knot_s: float = 2.0):
+    """The spline :func:`smooth_noise` evaluates over times ``t0 .. t1`` (s): a callable t (M,)
+    -> (M, dims), so that a long span can be evaluated a piece at a time (the same values)."""
     from scipy.interpolate import CubicSpline
 
-    knots = np.arange(t[0] - knot_s, t[-1] + 2 * knot_s, knot_s)
+    knots = np.arange(t0 - knot_s, t1 + 2 * knot_s, knot_s)
     vals = rng.normal(0.0, 1.0, (len(knots), dims)) / 0.85
-    return CubicSpline(knots, vals)(t)
+    return CubicSpline(knots, vals)
 
 
 class SimSequence:
@@ -170,13 +212,16 @@ class SimSequence:
     # --- scene --------------------------------------------------------------------------------
     @property
     def scene(self):
-        """The session's ``SessionScene`` (built on first use: static world + that day's movables)."""
+        """The session's ``SessionScene`` (built on first use: static world + that day's movables).
+        Mapping sessions share one per world in this process (:func:`mapping_scene`)."""
         if self._scene is None:
             from blockloc.sim.scene import SessionScene, make_actors
 
-            base = self.preset.is_mapping(self.session)
-            self._scene = SessionScene(self.world, session_movables(self.world, self.session, base),
-                                       make_actors(self.world, self.session), self.session)
+            if self.preset.is_mapping(self.session):
+                self._scene = mapping_scene(self.world)
+            else:
+                self._scene = SessionScene(self.world, session_movables(self.world, self.session, False),
+                                           make_actors(self.world, self.session), self.session)
         return self._scene
 
     def prepare(self) -> None:
@@ -273,18 +318,31 @@ class SimSequence:
         ``slam_error_m`` (position) and ``slam_error_rad`` (attitude); other sessions: ground truth.
 
         Computed once per sequence (a city drive has ~400k poses at 100 Hz: seconds of work that
-        a map build would otherwise repeat for every use); the arrays are read-only."""
+        a map build would otherwise repeat for every use); the arrays are read-only. Computed
+        ``POSE_CHUNK`` poses at a time (every step is per pose: the same values as all at once)
+        into the one (N, 4, 4) array kept: at once, a city drive's temporaries peaked at ~200 MB
+        above it in each process opening the drive."""
         if self._mapping_poses is None:
-            gt = self.ground_truth()
+            t = self._rel_times(self.preset.gt_rate_hz)
+            stamps = self.epoch_us * 1e-6 + t
+            poses = np.empty((len(t), 4, 4))
+            noise = None
             if self.preset.is_mapping(self.session):
                 rng = np.random.default_rng(np.random.SeedSequence([self.seed, stable_hash(self.session), 7]))
-                rel = gt.stamps - gt.stamps[0]
-                e = smooth_noise(rng, rel, 6)
-                dT = np.zeros((len(e), 4, 4))  # make_T per pose, stacked
-                dT[:, :3, :3] = so3_exp(e[:, :3] * self.preset.slam_error_rad)
-                dT[:, :3, 3] = e[:, 3:] * self.preset.slam_error_m
-                dT[:, 3, 3] = 1.0
-                gt = Trajectory(gt.stamps, gt.poses @ dT)
+                rel = stamps - stamps[0]
+                noise = smooth_noise_spline(rng, float(rel[0]), float(rel[-1]), 6)
+            for s in range(0, len(t), POSE_CHUNK):
+                part = slice(s, s + POSE_CHUNK)
+                P = self.trajectory.T_map_body(t[part])
+                if noise is not None:
+                    e = noise(rel[part])
+                    dT = np.zeros((len(e), 4, 4))  # make_T per pose, stacked
+                    dT[:, :3, :3] = so3_exp(e[:, :3] * self.preset.slam_error_rad)
+                    dT[:, :3, 3] = e[:, 3:] * self.preset.slam_error_m
+                    dT[:, 3, 3] = 1.0
+                    P = P @ dT
+                poses[part] = P
+            gt = Trajectory(stamps, poses)
             for a in (gt.stamps, gt.poses):
                 a.flags.writeable = False
             self._mapping_poses = gt

@@ -29,6 +29,13 @@ ALBEDO = {"terrain": 0.3, "road": 0.09, "building": 0.3, "wall": 0.25, "fence": 
           "foliage": 0.4, "sidewalk": 0.22, "grass": 0.35, "glass": 0.05}
 
 MOVABLE_KINDS = ("car", "bin")
+#: Ground-material raster tiles (128 m, 0.25 m cells, four 2-bit codes a byte: 64 KiB each) a
+#: world keeps, the least recently used dropped first: 64 MiB at most. Grazing rays hit the
+#: terrain far out (a 2000-frame city drive touches ~300 tiles, every one of them rebuilt when
+#: only 64 were kept: +20% CPU a scan); unbounded (and a byte a code), a process rendering
+#: drives across a world kept every tile it touched, 256 KiB each (a tile is a pure function
+#: of the world: rebuilding one gives the same codes).
+MATERIAL_TILES = 1024
 
 
 def stable_hash(text: str) -> int:
@@ -327,7 +334,7 @@ class World:
     facades: np.ndarray = field(default_factory=lambda: np.zeros((0, 10)))
     owners: dict = field(default_factory=dict)
     passages: list[dict] = field(default_factory=list)
-    _material: dict = field(default_factory=dict, repr=False)
+    _material: dict = field(default_factory=dict, repr=False)  # (ti, tj) -> tile, LRU order
 
     @property
     def extent(self) -> tuple[float, float, float, float]:
@@ -337,7 +344,8 @@ class World:
     def ground_material(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """(N,) ground surface code at (x, y): 0 road (asphalt), 1 sidewalk (paved, a kerb
         above the road), 2 grass, 3 footpath (paved, flush with the grass). Looked up in 0.25 m
-        raster tiles of 128 m, each built on first use (a city is never rastered whole)."""
+        raster tiles of 128 m, each built on first use (a city is never rastered whole); the
+        ``MATERIAL_TILES`` used last are kept."""
         x = np.asarray(x, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
         res, tile = 0.25, 128.0
@@ -352,19 +360,22 @@ class World:
             a, b = int(kk // 1_000_003), int(kk % 1_000_003)
             if b > 500_000:  # negative tj wrapped by the modulo
                 a, b = a + 1, b - 1_000_003
-            R = self._material.get((a, b))
+            R = self._material.pop((a, b), None)
             if R is None:
                 gx = a * tile + (np.arange(n) + 0.5) * res
                 gy = b * tile + (np.arange(n) + 0.5) * res
                 X, Y = np.meshgrid(gx, gy)
                 R = self._ground_material_exact(X.ravel(), Y.ravel(),
                                                 (a * tile, (a + 1) * tile, b * tile, (b + 1) * tile))
-                R = R.reshape(n, n).astype(np.uint8)
-                self._material[(a, b)] = R
+                R = R.reshape(n, n).astype(np.uint8)  # codes 0..3: four a byte, column j in bits 2 (j % 4)
+                R = R[:, 0::4] | (R[:, 1::4] << 2) | (R[:, 2::4] << 4) | (R[:, 3::4] << 6)
+            self._material[(a, b)] = R  # re-inserted: the newest last
+            while len(self._material) > MATERIAL_TILES:
+                del self._material[next(iter(self._material))]
             m = inv == k
             i = np.clip(((y[m] - b * tile) / res).astype(np.int64), 0, n - 1)
             j = np.clip(((x[m] - a * tile) / res).astype(np.int64), 0, n - 1)
-            out[m] = R[i, j]
+            out[m] = (R[i, j >> 2] >> ((j & 3) << 1).astype(np.uint8)) & 3
         return out
 
     def _ground_material_exact(self, x: np.ndarray, y: np.ndarray, box=None) -> np.ndarray:

@@ -226,3 +226,23 @@ def test_campus_routes_are_long_and_inside_the_map():
     for s in ("loc", "loc2"):
         d, _ = tree.query(session_trajectory(p, 1, s).samples[::10, 1:3])
         assert d.max() < 15.0
+
+
+def test_ground_material_keeps_a_bounded_number_of_raster_tiles(monkeypatch):
+    """A world keeps the MATERIAL_TILES raster tiles used last (it kept every tile it touched: a
+    process rendering drives across a city grew with the area they covered); a tile built again
+    after its eviction gives the same codes."""
+    from blockloc.sim import world as world_mod
+
+    monkeypatch.setattr(world_mod, "MATERIAL_TILES", 3)
+    world = world_mod.build_world(get_preset("tiny"), 1)
+    rng = np.random.default_rng(0)
+    x, y = rng.uniform(-60, 60, 4000), rng.uniform(-60, 60, 4000)  # the 4 tiles around the origin
+    first = world.ground_material(x, y)
+    assert len(world._material) == 3
+    assert all(t.nbytes == 512 * 128 for t in world._material.values())  # 512 x 512 codes, 2 bits each
+    for tx, ty in [(300.0, 300.0), (-300.0, 300.0), (300.0, -300.0), (-300.0, -300.0)]:
+        world.ground_material(np.array([tx]), np.array([ty]))
+        assert len(world._material) <= 3
+    assert np.array_equal(world.ground_material(x, y), first)
+    assert set(np.unique(first)) >= {0, 2}  # roads and grass both sampled
