@@ -91,7 +91,7 @@ class InitParams:
     place_yaw_window_deg: float = 16.0  # around each place's yaw guess (its error: p95 ~5 deg)
     place_top_k: int = 6  # leaves refined per stage
     # the best leaves of each window (0: one top place_top_k over all windows, by 2D score)
-    place_leaves_per_window: int = 2
+    place_leaves_per_window: int = 1
     place_top_level: int = 3  # its roots' level (2^3 cells = 4 m at 0.5 m: tight bounds in small windows)
     place_band_m: tuple[float, float] = (2.0, 4.0)
     place_max_range_m: float = 63.0
