@@ -126,12 +126,21 @@ class VgicpEngine:
         r = small_gicp.align(target.voxelmap, cloud, T0,
                              max_correspondence_distance=self.max_correspondence_distance_m,
                              num_threads=self.num_threads, max_iterations=self.max_iterations)
+        iterations = int(r.iterations)
+        if not r.converged and np.isfinite(np.asarray(r.T_target_source)).all():
+            # Out of iterations on its way (a large correction, or correspondences switching
+            # between voxels): go on from where it stopped once (as global init does with NDT); it stays
+            # unconverged (and the tracker rejects the scan) if it still does not settle.
+            r = small_gicp.align(target.voxelmap, cloud, np.asarray(r.T_target_source, dtype=np.float64),
+                                 max_correspondence_distance=self.max_correspondence_distance_m,
+                                 num_threads=self.num_threads, max_iterations=self.max_iterations)
+            iterations += int(r.iterations)
         T = np.asarray(r.T_target_source, dtype=np.float64)
         ev = self.evaluate(target, src, T)
         H = np.asarray(r.H, dtype=np.float64)
         lam, V = np.linalg.eigh(0.5 * (H + H.T))
         H = (V * np.maximum(lam, 0.0)) @ V.T  # PSD for GTSAM
-        return VgicpResult(T, bool(r.converged) and ev.num_inliers > 0, int(r.iterations),
+        return VgicpResult(T, bool(r.converged) and ev.num_inliers > 0, iterations,
                            ev.num_inliers / len(src), int(ev.num_inliers), len(src), float(ev.score),
                            float(r.error), H, np.asarray(r.b, dtype=np.float64).reshape(6))
 

@@ -69,3 +69,20 @@ def test_engines_are_chosen_by_name_with_the_settings_they_know():
     assert engine_from_settings({**settings, "method": "ndt"}).target_options["resolution"] == 2.0
     with pytest.raises(RegistrationError, match="registration method 'icp': expected one of ndt, vgicp"):
         make_engine("icp")
+
+
+def test_vgicp_goes_on_once_when_out_of_iterations(hdl_pair):
+    # Three iterations do not settle from identity on the real pair: the engine goes on once from
+    # where small_gicp stopped and converges, within 5 cm of the reference.
+    import small_gicp
+
+    target_pts, source, T_ref = hdl_pair
+    engine = make_engine("vgicp", resolution_m=1.0, num_threads=2, max_iterations=3)
+    target = engine.build_target(target_pts)
+    res = engine.align(target, source, np.eye(4))
+    cloud = small_gicp.PointCloud(np.ascontiguousarray(source[:, :3], dtype=np.float64))
+    small_gicp.estimate_covariances(cloud, num_neighbors=engine.num_neighbors, num_threads=2)
+    once = small_gicp.align(target.voxelmap, cloud, np.eye(4), max_correspondence_distance=1.0, num_threads=2,
+                            max_iterations=3)
+    assert not once.converged
+    assert res.converged and _err(res.T_target_source, T_ref)[0] < 0.05
