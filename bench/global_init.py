@@ -259,7 +259,8 @@ def run(argv: list[str]) -> dict:
     reloc_modes = {"place index": loc}
     if args.reloc_regions:
         reloc_modes["regions only"] = GlobalLocalizer.for_store(
-            store, seq.info.gravity_map, InitParams(projection=args.projection, use_place_index=False))
+            store, seq.info.gravity_map, InitParams(projection=args.projection, use_place_index=False,
+                                                    max_search_s=0.0))  # the whole-map search, unbounded
     reloc = {name: [] for name in reloc_modes}
     index_load_s = None
     rframes = np.sort(rng.choice(np.arange(20, len(seq)), size=min(args.reloc_frames, len(seq) - 20), replace=False))
