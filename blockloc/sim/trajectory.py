@@ -376,6 +376,21 @@ class SimTrajectory:
                                or pm.vibration_z_m > 0):
             self._tilt = self._balance(t, pm)
 
+    def state(self) -> dict:
+        """What this trajectory computed from its samples (splines, the platform's tilt) and
+        its fields, without the world: :meth:`from_state` with the same world rebuilds it
+        without recomputing (a city drive's splines and balance loop: ~1.5 s CPU)."""
+        return {k: v for k, v in self.__dict__.items() if k != "world"}
+
+    @classmethod
+    def from_state(cls, state: dict, world: World) -> "SimTrajectory":
+        """The trajectory of :meth:`state` over ``world`` (its splines as they were built, so
+        every pose is the same)."""
+        traj = cls.__new__(cls)
+        traj.__dict__.update(state)
+        traj.world = world
+        return traj
+
     def _balance(self, t: np.ndarray, pm: PlatformModel):
         """Pitch / roll splines of the balancing platform (rad) and the vibration phases."""
         from scipy.interpolate import CubicSpline
