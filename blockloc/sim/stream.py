@@ -114,14 +114,14 @@ DRIVE_MEMO_MIN_S = 0.2
 
 
 def drive_memo_key(preset: Preset, seed: int, session: str) -> str:
-    """The disk-cache key of a session's trajectory and poses: the simulator's and the geometry
-    helpers' code, numpy's and scipy's versions (the splines are pickled as scipy builds them),
-    the preset, seed and session."""
+    """The disk-cache key of a session's trajectory and poses: the code of the simulator, the
+    geometry helpers and the NCLT frames (the body height comes from its extrinsic), numpy's and
+    scipy's versions (the splines are pickled as scipy builds them), the preset, seed, session."""
     import scipy
 
     from blockloc.cache import fingerprint
 
-    return fingerprint("blockloc.sim", "blockloc.geometry",
+    return fingerprint("blockloc.sim", "blockloc.geometry", "blockloc.datasets.nclt",
                        params=(repr(preset), int(seed), session, np.__version__, scipy.__version__))
 
 
