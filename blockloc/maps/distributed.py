@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import re
 import time
 from typing import Iterator
@@ -100,7 +101,8 @@ WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
 
 
 def _spawn_environ() -> dict:
-    """The environment Dask's nanny gives its workers, without ``MALLOC_TRIM_THRESHOLD_``.
+    """The environment Dask's nanny gives its workers, without ``MALLOC_TRIM_THRESHOLD_``, and
+    with one thread per ray cast (:func:`_worker_environ`).
 
     Dask sets it to return freed memory to the system early; setting it also switches off
     glibc's adaptive mmap threshold, so every large numpy temporary of a scan is mmapped and
@@ -110,8 +112,20 @@ def _spawn_environ() -> dict:
     does), or with a Dask config whose ``distributed.nanny.pre-spawn-environ`` lacks it."""
     import dask
 
-    return {k: v for k, v in (dask.config.get(_SPAWN_ENV, None) or {}).items()
-            if k != "MALLOC_TRIM_THRESHOLD_"}
+    env = {k: v for k, v in (dask.config.get(_SPAWN_ENV, None) or {}).items()
+           if k != "MALLOC_TRIM_THRESHOLD_"}
+    return {**env, **_worker_environ(os.environ)}
+
+
+def _worker_environ(parent) -> dict:
+    """Variables for the single-threaded worker processes blockloc starts: the simulator casts
+    rays in one thread (``blockloc.threads.RAYCAST_THREADS_ENV``; open3d's default, every core,
+    ran ~9% of a worker's scan CPU in threads its task timer does not see, contending with the
+    other workers, and cost ~3% more CPU in all), unless ``parent`` (the environment they
+    inherit) sets it."""
+    from blockloc.threads import RAYCAST_THREADS_ENV
+
+    return {} if RAYCAST_THREADS_ENV in parent else {RAYCAST_THREADS_ENV: "1"}
 
 
 def _has_bokeh() -> bool:
@@ -205,6 +219,7 @@ class ProcessCluster:
 
         env = dict(os.environ if env is None else env)
         env.setdefault("DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED", "False")  # WORKER_CONFIG
+        env.update(_worker_environ(env))
         self.workdir = Path(workdir)
         self.workdir.mkdir(parents=True, exist_ok=True)
         self.scheduler_file = self.workdir / "scheduler.json"

@@ -21,6 +21,7 @@ import numpy as np
 
 from blockloc.sim.world import (_ICO_F, _ICO_V, ALBEDO, MeshBuilder, Movables, World, movable_mesh,
                                 movable_meshes, stable_hash)
+from blockloc.threads import raycast_threads
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +54,7 @@ class TerrainScene:
         o3d = open3d()
         V, F = world.meshes["terrain"]
         used, inv = np.unique(F, return_inverse=True)
-        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene = o3d.t.geometry.RaycastingScene(nthreads=raycast_threads())
         self.scene.add_triangles(o3d.core.Tensor(np.asarray(V, np.float32)[used]),
                                  o3d.core.Tensor(inv.reshape(-1, 3).astype(np.uint32)))
 
@@ -327,7 +328,7 @@ class SessionScene:
             if self._vol_mfp is not None:
                 c = self.world.volumes.center[:, :2]
                 vsel = np.flatnonzero(((c >= lo) & (c <= hi)).all(axis=1))
-        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene = o3d.t.geometry.RaycastingScene(nthreads=raycast_threads())
         if len(sel):  # a window may hold nothing but terrain (cast in the terrain scene)
             F = self._F[sel]
             used, inv = np.unique(F, return_inverse=True)
@@ -342,7 +343,7 @@ class SessionScene:
             # hulls circumscribing the ellipsoids (the 80-face sphere is inscribed in the unit one)
             V = (_ICO_V[None] * 1.1 * self._vol_radii[vsel, None, :] + vol.center[vsel, None, :]).reshape(-1, 3)
             F = (_ICO_F[None] + k * np.arange(len(vsel))[:, None, None]).reshape(-1, 3)
-            self._vol_scene = o3d.t.geometry.RaycastingScene()
+            self._vol_scene = o3d.t.geometry.RaycastingScene(nthreads=raycast_threads())
             self._vol_scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)),
                                           o3d.core.Tensor(F.astype(np.uint32)))
 
@@ -372,7 +373,7 @@ class SessionScene:
         and keeps the nearer hit (the window's on a tie)."""
         o3d = self._o3d
         tensor = o3d.core.Tensor(rays)
-        ans = self.scene.cast_rays(tensor)
+        ans = self.scene.cast_rays(tensor, nthreads=raycast_threads())
         t = ans["t_hit"].numpy()
         prim = ans["primitive_ids"].numpy().astype(np.int64)
         normals = ans["primitive_normals"].numpy()
@@ -380,7 +381,7 @@ class SessionScene:
         tri = np.full(len(t), -1, np.int64)
         tri[hit] = self._sel[prim[hit]]
         if self._terrain_scene is not None:
-            g = self._terrain_scene.cast_rays(tensor)
+            g = self._terrain_scene.cast_rays(tensor, nthreads=raycast_threads())
             t_g = g["t_hit"].numpy()
             nearer = t_g < t
             if nearer.any():
@@ -567,7 +568,7 @@ class SessionScene:
                 break
             o = origins[active] + dirs[active] * t_cur[active, None]
             rays = np.concatenate([o, dirs[active]], axis=1).astype(np.float32)
-            a = self._vol_scene.cast_rays(o3d.core.Tensor(rays))
+            a = self._vol_scene.cast_rays(o3d.core.Tensor(rays), nthreads=raycast_threads())
             th = a["t_hit"].numpy().astype(np.float64) + t_cur[active]
             hit = np.isfinite(th) & (th < rng_[active])
             active, th = active[hit], th[hit]
@@ -634,9 +635,9 @@ class SessionScene:
         idx = np.flatnonzero(sel)
         if not len(idx):
             return
-        dyn = o3d.t.geometry.RaycastingScene()
+        dyn = o3d.t.geometry.RaycastingScene(nthreads=raycast_threads())
         dyn.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(F.astype(np.uint32)))
-        a2 = dyn.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays[idx])))
+        a2 = dyn.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays[idx])), nthreads=raycast_threads())
         r2 = a2["t_hit"].numpy().astype(np.float64)
         closer = r2 < rng_[idx]
         if closer.any():

@@ -108,12 +108,44 @@ def _region_routes(preset: Preset, roads, seed: int) -> list[list]:
     return routes
 
 
+#: CPU seconds from which a drive's trajectory or mapping poses are kept on disk (a city drive:
+#: ~1.5 s and ~1.1 s, paid otherwise by every process opening it; a tiny one: milliseconds).
+DRIVE_MEMO_MIN_S = 0.2
+
+
+def drive_memo_key(preset: Preset, seed: int, session: str) -> str:
+    """The disk-cache key of a session's trajectory and poses: the code of the simulator, the
+    geometry helpers and the NCLT frames (the body height comes from its extrinsic), numpy's and
+    scipy's versions (the splines are pickled as scipy builds them), the preset, seed, session."""
+    import scipy
+
+    from blockloc.cache import fingerprint
+
+    return fingerprint("blockloc.sim", "blockloc.geometry", "blockloc.datasets.nclt",
+                       params=(repr(preset), int(seed), session, np.__version__, scipy.__version__))
+
+
 @functools.lru_cache(maxsize=16)
 def session_trajectory(preset: Preset, seed: int, session: str) -> SimTrajectory:
-    """The session's trajectory: the mapping drive covers the road graph (with ``map_regions``
-    > 1, each ``map<k>`` drive covers its strip); localization drives wander over the edges it
-    drove, preferring the opposite direction and the hard places, from another start (or, over
-    several mapping drives, cross all of them)."""
+    """The session's trajectory (:func:`build_session_trajectory`), memoised in this process and,
+    when building it is slow (a city drive), on disk for other processes (each Dask worker of a
+    map build opens every drive), keyed by :func:`drive_memo_key`."""
+    from blockloc.cache import disk_memo
+
+    world = cached_world(preset, seed)
+    if session not in preset.sessions:
+        raise SimError(f"sim session {session!r}: preset {preset.name} has {', '.join(preset.sessions)}")
+    state = disk_memo(f"trajectory-{preset.name}-{session}-{seed}", drive_memo_key(preset, seed, session),
+                      lambda: build_session_trajectory(preset, seed, session).state(),
+                      min_build_s=DRIVE_MEMO_MIN_S)
+    return SimTrajectory.from_state(state, world)
+
+
+def build_session_trajectory(preset: Preset, seed: int, session: str) -> SimTrajectory:
+    """The session's trajectory computed afresh: the mapping drive covers the road graph (with
+    ``map_regions`` > 1, each ``map<k>`` drive covers its strip); localization drives wander
+    over the edges it drove, preferring the opposite direction and the hard places, from another
+    start (or, over several mapping drives, cross all of them)."""
     world = cached_world(preset, seed)
     roads = world.roads
     if session not in preset.sessions:
@@ -321,32 +353,43 @@ class SimSequence:
         a map build would otherwise repeat for every use); the arrays are read-only. Computed
         ``POSE_CHUNK`` poses at a time (every step is per pose: the same values as all at once)
         into the one (N, 4, 4) array kept: at once, a city drive's temporaries peaked at ~200 MB
-        above it in each process opening the drive."""
+        above it in each process opening the drive. When that is slow (a city drive: ~1.1 s CPU)
+        they are kept on disk for other processes (:func:`drive_memo_key`)."""
         if self._mapping_poses is None:
-            t = self._rel_times(self.preset.gt_rate_hz)
-            stamps = self.epoch_us * 1e-6 + t
-            poses = np.empty((len(t), 4, 4))
-            noise = None
-            if self.preset.is_mapping(self.session):
-                rng = np.random.default_rng(np.random.SeedSequence([self.seed, stable_hash(self.session), 7]))
-                rel = stamps - stamps[0]
-                noise = smooth_noise_spline(rng, float(rel[0]), float(rel[-1]), 6)
-            for s in range(0, len(t), POSE_CHUNK):
-                part = slice(s, s + POSE_CHUNK)
-                P = self.trajectory.T_map_body(t[part])
-                if noise is not None:
-                    e = noise(rel[part])
-                    dT = np.zeros((len(e), 4, 4))  # make_T per pose, stacked
-                    dT[:, :3, :3] = so3_exp(e[:, :3] * self.preset.slam_error_rad)
-                    dT[:, :3, 3] = e[:, 3:] * self.preset.slam_error_m
-                    dT[:, 3, 3] = 1.0
-                    P = P @ dT
-                poses[part] = P
+            from blockloc.cache import disk_memo
+
+            stamps, poses = disk_memo(
+                f"mapping-poses-{self.preset.name}-{self.session}-{self.seed}",
+                drive_memo_key(self.preset, self.seed, self.session), self.compute_mapping_poses,
+                min_build_s=DRIVE_MEMO_MIN_S)
             gt = Trajectory(stamps, poses)
             for a in (gt.stamps, gt.poses):
                 a.flags.writeable = False
             self._mapping_poses = gt
         return self._mapping_poses
+
+    def compute_mapping_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`mapping_poses` computed afresh: stamps (N,) float64 s, poses (N, 4, 4)."""
+        t = self._rel_times(self.preset.gt_rate_hz)
+        stamps = self.epoch_us * 1e-6 + t
+        poses = np.empty((len(t), 4, 4))
+        noise = None
+        if self.preset.is_mapping(self.session):
+            rng = np.random.default_rng(np.random.SeedSequence([self.seed, stable_hash(self.session), 7]))
+            rel = stamps - stamps[0]
+            noise = smooth_noise_spline(rng, float(rel[0]), float(rel[-1]), 6)
+        for s in range(0, len(t), POSE_CHUNK):
+            part = slice(s, s + POSE_CHUNK)
+            P = self.trajectory.T_map_body(t[part])
+            if noise is not None:
+                e = noise(rel[part])
+                dT = np.zeros((len(e), 4, 4))  # make_T per pose, stacked
+                dT[:, :3, :3] = so3_exp(e[:, :3] * self.preset.slam_error_rad)
+                dT[:, :3, 3] = e[:, 3:] * self.preset.slam_error_m
+                dT[:, 3, 3] = 1.0
+                P = P @ dT
+            poses[part] = P
+        return stamps, poses
 
     # --- helpers for tests and tools ------------------------------------------------------------
     def T_world_lidar(self, t_rel: np.ndarray) -> np.ndarray:

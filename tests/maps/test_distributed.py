@@ -297,3 +297,22 @@ def test_cli_drive_slices_with_poses_files(tmp_path):
     np.testing.assert_allclose(kf_mv[kf_mv[:, 0] > 99.0] - [100.0, 0, 0], kf_own[east], atol=2e-3)
     north = kf_own[~east]
     np.testing.assert_allclose(kf_mv[kf_mv[:, 0] < 99.0], north, atol=1e-3)
+
+
+def _raycast_threads_env():
+    from blockloc.threads import RAYCAST_THREADS_ENV
+
+    return os.environ.get(RAYCAST_THREADS_ENV)
+
+
+def test_workers_cast_rays_in_one_thread_unless_told_otherwise(dask_cluster, monkeypatch):
+    from distributed import Client
+
+    from blockloc.maps.distributed import _spawn_environ, _worker_environ
+    from blockloc.threads import RAYCAST_THREADS_ENV
+
+    with Client(dask_cluster.address) as client:
+        assert set(client.run(_raycast_threads_env).values()) == {"1"}
+    monkeypatch.delenv(RAYCAST_THREADS_ENV, raising=False)
+    assert _spawn_environ()[RAYCAST_THREADS_ENV] == "1"  # a LocalCluster's nannies' workers
+    assert _worker_environ({RAYCAST_THREADS_ENV: "2"}) == {}  # the user's value wins
