@@ -87,7 +87,7 @@ class InlineExecutor:
     description = "serial (this process)"
     dashboard_link = None
 
-    def submit(self, fn, *args, key: str | None = None, priority: int = 0) -> _Done:
+    def submit(self, fn, *args, key: str | None = None, priority: int = 0, locality: float | None = None) -> _Done:
         try:
             values = [a.result() if isinstance(a, _Done) else a for a in args]
             return _Done(fn(*values))
@@ -120,10 +120,13 @@ class _Tasks:
             self._expected += n
             self._show()
 
-    def submit(self, fn, *args, name: str, priority: int = 0):
+    def submit(self, fn, *args, name: str, priority: int = 0, locality: float | None = None):
+        """locality in [0, 1): where along the build's keyframes the task's data lies (tasks near
+        each other read the same parts of a drive; an executor may keep them on one worker)."""
         if len(self.futures) >= self._expected:
             self.expect(1)
-        fut = self.executor.submit(fn, *args, key=f"{name}-{self.build_id}", priority=priority)
+        extra = {} if locality is None else {"locality": locality}
+        fut = self.executor.submit(fn, *args, key=f"{name}-{self.build_id}", priority=priority, **extra)
         self.futures.append(fut)
         self.names.append(name)
         fut.add_done_callback(self._tick)
@@ -388,8 +391,10 @@ def _blocks(tasks: _Tasks, target: BuildTarget, plans: list[DrivePlan], block_si
     runs = [[c.keys[i:i + KEYFRAMES_PER_RUN] for i in range(0, len(c.keys), KEYFRAMES_PER_RUN)]
             for _, c in candidates]
     tasks.expect(sum(len(r) for r in runs) + 2 * len(candidates))
+    n_keys = max(1, base)
     run_futures = [[tasks.submit(block_run_task, plans[d].drive, frames[keys].tolist(), voxel_size_m,
-                                 deskew, target, f"{SCRATCH}/run-{n}-{i}.bin", name=f"run-{n}-{i}")
+                                 deskew, target, f"{SCRATCH}/run-{n}-{i}.bin", name=f"run-{n}-{i}",
+                                 locality=float(keys[0]) / n_keys)
                     for i, keys in enumerate(runs[n])]
                    for n, (d, _) in enumerate(candidates)]
     futures = [tasks.submit(block_candidate_task, target, voxel_size_m,

@@ -35,6 +35,7 @@ class DaskExecutor:
     def __init__(self, client, description: str) -> None:
         self.client = client
         self.description = description
+        self._workers: list[str] | None = None  # worker addresses, read at the first located task
 
     @property
     def dashboard_link(self) -> str | None:
@@ -46,9 +47,20 @@ class DaskExecutor:
         except Exception:  # the scheduler runs without a dashboard
             return None
 
-    def submit(self, fn, *args, key: str | None = None, priority: int = 0):
+    def submit(self, fn, *args, key: str | None = None, priority: int = 0, locality: float | None = None):
+        """locality in [0, 1) (optional): a soft preference for the worker owning that share of the
+        build, so that neighbouring runs of a drive share one worker's scene windows instead of
+        every worker building every window; Dask may still run the task elsewhere."""
         # pure=False: every build gets fresh tasks (keys carry the build's id)
-        return self.client.submit(fn, *args, key=key, priority=priority, pure=False)
+        if locality is None:
+            return self.client.submit(fn, *args, key=key, priority=priority, pure=False)
+        if self._workers is None:
+            self._workers = sorted(self.client.scheduler_info().get("workers", {}))
+        if not self._workers:
+            return self.client.submit(fn, *args, key=key, priority=priority, pure=False)
+        w = self._workers[min(int(locality * len(self._workers)), len(self._workers) - 1)]
+        return self.client.submit(fn, *args, key=key, priority=priority, pure=False, workers=[w],
+                                  allow_other_workers=True)
 
     def on_each_worker(self, fn, *args, key: str) -> list:
         """Submit ``fn(*args)`` once to every worker now connected (each pinned to its worker):

@@ -316,3 +316,30 @@ def test_workers_cast_rays_in_one_thread_unless_told_otherwise(dask_cluster, mon
     monkeypatch.delenv(RAYCAST_THREADS_ENV, raising=False)
     assert _spawn_environ()[RAYCAST_THREADS_ENV] == "1"  # a LocalCluster's nannies' workers
     assert _worker_environ({RAYCAST_THREADS_ENV: "2"}) == {}  # the user's value wins
+
+
+def test_located_tasks_prefer_the_worker_owning_their_share_of_the_build():
+    # Neighbouring runs of a drive go to one worker (a soft preference: Dask may move them), so
+    # that workers do not each build every scene window of every drive.
+    from blockloc.maps.distributed import DaskExecutor
+
+    class Client:
+        def __init__(self):
+            self.calls = []
+
+        def scheduler_info(self):
+            return {"workers": {"tcp://b:2": {}, "tcp://a:1": {}}}
+
+        def submit(self, fn, *args, **kw):
+            self.calls.append(kw)
+            return kw
+
+    c = Client()
+    ex = DaskExecutor(c, "test")
+    ex.submit(len, "x", key="k0", locality=0.0)
+    ex.submit(len, "x", key="k1", locality=0.49)
+    ex.submit(len, "x", key="k2", locality=0.5)
+    ex.submit(len, "x", key="k3", locality=0.999)
+    ex.submit(len, "x", key="k4")
+    assert [kw.get("workers") for kw in c.calls] == [["tcp://a:1"], ["tcp://a:1"], ["tcp://b:2"], ["tcp://b:2"], None]
+    assert all(kw["allow_other_workers"] for kw in c.calls[:4])
