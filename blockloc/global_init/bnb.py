@@ -273,19 +273,10 @@ def search_windows(pyramid: Pyramid, scan_xy: np.ndarray, windows: list[Window],
                                    min_score, nms_m, nms_deg, n_dives, keep_ratio, min_leaf_score, t0)
     ra, rtx, rty = [], [], []
     for w in windows:
-        if w.yaw_window >= 2 * math.pi - 1e-9:
-            a_idx = np.arange(A)
-        else:
-            d = (angles - w.theta + math.pi) % (2 * math.pi) - math.pi
-            a_idx = np.flatnonzero(np.abs(d) <= 0.5 * w.yaw_window + 0.5 * step)
-        half = int(math.ceil(0.5 * w.size_m / r))
-        c0 = np.floor(np.asarray(w.center, float) / r).astype(np.int64)
-        gx = np.arange(c0[0] - half, c0[0] + half + 1, width)
-        gy = np.arange(c0[1] - half, c0[1] + half + 1, width)
-        n = len(gx) * len(gy)
-        ra.append(np.repeat(a_idx, n))
-        rtx.append(np.tile(np.repeat(gx, len(gy)), len(a_idx)))
-        rty.append(np.tile(np.tile(gy, len(gx)), len(a_idx)))
+        a, x, y = _window_roots(w, angles, step, r, width)
+        ra.append(a)
+        rtx.append(x)
+        rty.append(y)
     if not ra:
         return [], SearchStats(A, step, 0, 0, 0.0, time.perf_counter() - t0)
     roots = np.unique(np.stack([np.concatenate(ra), np.concatenate(rtx), np.concatenate(rty)], axis=1), axis=0)

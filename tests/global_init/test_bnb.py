@@ -64,6 +64,16 @@ def _world():
     return Raster(origin, grid, RES, np.zeros(2, np.int64), np.zeros((1, 1), np.float32))
 
 
+def _scan_of(raster, x, y, th):
+    """The scan (N, 2), body frame: the raster's wall cells within 9 m of the pose (x, y, th)."""
+    occ = np.argwhere(raster.grid > 0)
+    centres = (occ + raster.origin + 0.5) * RES
+    near = centres[np.linalg.norm(centres - [x, y], axis=1) < 9.0]
+    c, s = math.cos(th), math.sin(th)
+    rel = near - [x, y]
+    return np.c_[c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]]
+
+
 def _brute_force(pyramid, scan_xy, center_xy, window_m, angles):
     """Every leaf's score (mean level-0 value under the scan cells), as search() defines them."""
     base = pyramid.levels[0].astype(np.int64)
@@ -85,14 +95,8 @@ def _brute_force(pyramid, scan_xy, center_xy, window_m, angles):
 @pytest.mark.parametrize("use_s0", [True, False])
 def test_search_finds_the_exhaustive_best_leaf(use_s0):
     raster = _world()
-    # the scan: wall cells within 9 m of the true pose, in the body frame
     x_true, y_true, th_true = 3.2, -1.7, 0.8
-    occ = np.argwhere(raster.grid > 0)
-    centres = (occ + raster.origin + 0.5) * RES
-    near = centres[np.linalg.norm(centres - [x_true, y_true], axis=1) < 9.0]
-    c, s = math.cos(th_true), math.sin(th_true)
-    rel = near - [x_true, y_true]
-    scan_xy = np.c_[c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]]
+    scan_xy = _scan_of(raster, x_true, y_true, th_true)
     center, window = np.array([x_true + 1.6, y_true - 1.3]), 6.0
     lo, hi = required_cells(scan_xy, center, window, RES)
     pyramid = assemble([build_pyramid(raster, 4)], lo, hi)
@@ -129,12 +133,7 @@ def test_a_saturated_window_cannot_crowd_out_the_others_with_per_window_leaves()
     grid[:n] = world.grid
     raster = Raster(world.origin, grid, RES, np.zeros(2, np.int64), np.zeros((1, 1), np.float32))
     x_true, y_true, th_true = 3.2, -1.7, 0.8
-    occ = np.argwhere(world.grid > 0)
-    centres = (occ + world.origin + 0.5) * RES
-    near = centres[np.linalg.norm(centres - [x_true, y_true], axis=1) < 9.0]
-    c, s = math.cos(th_true), math.sin(th_true)
-    rel = near - [x_true, y_true]
-    scan_xy = np.c_[c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]]
+    scan_xy = _scan_of(world, x_true, y_true, th_true)
     true_w = Window(np.array([x_true + 1.1, y_true - 0.9]), 6.0, th_true, math.radians(20))
     sat_w = Window(np.array([60.0, 0.0]), 6.0, 0.0, math.radians(20))
     lo, hi = required_cells(scan_xy, np.array([32.0, 0.0]), 70.0, RES)
