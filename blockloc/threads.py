@@ -30,7 +30,12 @@ def raycast_threads() -> int:
     A cast's hits do not depend on it. On a single-threaded build worker the extra threads cost
     ~9% of a city scan's CPU outside the task's thread (uncounted by its timer) and ~3% more CPU
     in all than one thread (campus-like city keyframes, measured)."""
+    value = os.environ.get(RAYCAST_THREADS_ENV, "0")
     try:
-        return max(0, int(os.environ.get(RAYCAST_THREADS_ENV, "0")))
+        return max(0, int(value))
     except ValueError:
+        import logging
+
+        logging.getLogger(__name__).warning("%s=%r: expected a whole number of threads; using open3d's choice",
+                                            RAYCAST_THREADS_ENV, value)
         return 0

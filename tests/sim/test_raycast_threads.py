@@ -21,3 +21,12 @@ def test_a_scan_does_not_depend_on_the_ray_cast_threads(monkeypatch):
             assert np.array_equal(f.points, g.points) and np.array_equal(f.intensity, g.intensity)
     monkeypatch.setenv(RAYCAST_THREADS_ENV, "many")
     assert raycast_threads() == 0
+
+
+def test_a_bad_thread_count_is_named_in_a_warning_and_open3d_chooses(monkeypatch, caplog):
+    from blockloc.threads import RAYCAST_THREADS_ENV, raycast_threads
+
+    monkeypatch.setenv(RAYCAST_THREADS_ENV, "two")
+    with caplog.at_level("WARNING"):
+        assert raycast_threads() == 0
+    assert RAYCAST_THREADS_ENV in caplog.text and "'two'" in caplog.text
