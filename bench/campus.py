@@ -28,7 +28,7 @@ import numpy as np
 import yaml
 
 from bench._track import STATUS_CODES, BackendRun
-from blockloc.fileio import atomic_write_text, save_figure
+from blockloc.fileio import atomic_path, atomic_write_text, save_figure
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "bench" / "campus.md"
@@ -151,6 +151,37 @@ def plot(rows: dict, gt, state: Path, path: Path) -> None:
     save_figure(fig, path, dpi=100)
 
 
+def merge_states(parts: list[Path], state: Path) -> None:
+    """Join the checkpoints of consecutive segments of one session (each run with its own
+    ``--start`` and ``--state``, e.g. one per core) into ``state``, as if one run had covered them:
+    per-frame arrays concatenated, counters summed, the last segment's map statistics. Each segment's
+    trackers start at the ground-truth pose of its first frame, which the fragment says."""
+    progs = sorted((json.loads((p / "progress.json").read_text()) | {"_dir": str(p)} for p in parts),
+                   key=lambda g: g["start"])
+    for a, b in zip(progs, progs[1:]):
+        if a["start"] + a["frames_done"] != b["start"] or a["backends"] != b["backends"] \
+                or a["sequence"] != b["sequence"]:
+            raise SystemExit(f"--merge: {b['_dir']} does not continue {a['_dir']} (same sequence and backends, "
+                             f"start {a['start'] + a['frames_done']} expected, got {b['start']})")
+    state.mkdir(parents=True, exist_ok=True)
+    for backend in progs[0]["backends"]:
+        zs = [np.load(Path(g["_dir"]) / f"{backend}.npz") for g in progs]
+        merged = {k: np.concatenate([z[k] for z in zs]) for k in zs[0].files if k not in ("counters", "map_stats")}
+        counters = [json.loads(str(z["counters"])) for z in zs]
+        merged["counters"] = np.array(json.dumps({k: sum(c[k] for c in counters) for k in counters[0]}))
+        merged["map_stats"] = zs[-1]["map_stats"]
+        with atomic_path(state / f"{backend}.npz", suffix=".npz") as tmp:
+            np.savez(tmp, **merged)
+    prog = {k: v for k, v in progs[0].items() if k != "_dir"}
+    prog.update(frames_done=sum(g["frames_done"] for g in progs), wall_s=max(g["wall_s"] for g in progs),
+                updated=max(g["updated"] for g in progs), load_now=progs[-1]["load_now"],
+                load_mean=float(np.mean([g["load_mean"] for g in progs])),
+                finished=all(g["finished"] for g in progs),
+                scan_wall_ms=max(1e3 * g["wall_s"] / max(g["frames_done"], 1) for g in progs),
+                segments=[{"start": g["start"], "frames": g["frames_done"], "command": g["command"]} for g in progs])
+    _write_json(state / "progress.json", prog)
+
+
 def write_fragment(state: Path, out: Path) -> str:
     from bench.__main__ import machine
     from blockloc.datasets import open_sequence
@@ -163,12 +194,17 @@ def write_fragment(state: Path, out: Path) -> str:
     f = lambda v, s="{:.1f}": "-" if v is None else s.format(v)  # noqa: E731
     covered = rows[next(iter(rows))].get("path_length_m") or 0.0
     frames = prog["frames_done"]
+    segs = prog.get("segments", [])
     lines = [
         "## Campus tracking run (issue 7's targets)" if set(prog["backends"]) == {"block", "global"} else
         f"## Campus tracking, backends {', '.join(prog['backends'])} side by side",
         "",
-        f"Command: `{prog['command']}`, started {prog['started']}, last checkpoint {prog['updated']} "
-        f"({prog['wall_s'] / 60:.1f} min of wall time"
+        (f"Command: `{prog['command']}`, started {prog['started']}, last checkpoint {prog['updated']} "
+         if not segs else
+         f"Run in {len(segs)} consecutive segments side by side (one process each, started together), joined by "
+         f"`python -m bench.campus --merge ...`: " + "; ".join(f"`{g['command']}`" for g in segs)
+         + f"; started {prog['started']}, last checkpoint {prog['updated']} ")
+        + f"({prog['wall_s'] / 60:.1f} min of wall time"
         f"{'' if prog['finished'] else (', stopped at the time bound' if prog['wall_s'] >= 60 * prog['minutes'] - 1 else ', still running or stopped')}).",
         f"Machine: {machine()}. Load average (1 min) {prog['load_start']:.1f} at the start, "
         f"{prog['load_now']:.1f} at the last checkpoint, mean of samples {prog['load_mean']:.1f} "
@@ -180,9 +216,13 @@ def write_fragment(state: Path, out: Path) -> str:
         + (" — the whole session." if prog['start'] + frames >= len(seq) else
            f" — the last {len(seq) - prog['start'] - frames:,} scans were not run: the loop is bounded to "
            f"--minutes {prog['minutes']:g} (each scan is ray-cast at full density before the trackers see it; "
-           f"{1e3 * prog['wall_s'] / max(frames, 1):.0f} ms of wall time a scan for ray casting and both trackers)."),
+           f"{prog.get('scan_wall_ms', 1e3 * prog['wall_s'] / max(frames, 1)):.0f} ms of wall time a scan for ray "
+           "casting and the trackers)."),
         f"Map: block store `{prog['map']}` ({prog['map_desc']}); `block` and `global` use the block store, "
-        "`global` serves the union of all blocks. Init at the first ground-truth pose; `configs/sim.yaml` with "
+        "`global` serves the union of all blocks. Init at the first ground-truth pose"
+        + ("" if not segs else " of each segment (frames " + ", ".join(str(g["start"]) for g in segs)
+           + "): every tracker runs each segment through on its own, nothing is carried between segments")
+        + "; `configs/sim.yaml` with "
         f"block size {prog['block_size_m']:g} m. Each scan ray-cast once and fed to every tracker in lockstep.",
         "",
         "Core = deskew + registration + smoother (the issue's per-scan update); update = the whole "
@@ -290,6 +330,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="config override on top of configs/sim.yaml, e.g. map.grid_n=2 (repeatable)")
     ap.add_argument("--report-only", action="store_true")
+    ap.add_argument("--merge", default=None, metavar="DIR,DIR,...",
+                    help="join the --state dirs of consecutive segments into --state, then write the fragment")
     ap.add_argument("--out", default=str(OUT))
     args = ap.parse_args(argv)
     cmd = "python -m bench.campus " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
@@ -303,7 +345,11 @@ def main(argv: list[str] | None = None) -> int:
     from blockloc.maps.store import open_map
 
     state = Path(args.state) if args.state else cache_root() / "bench" / f"campus_run_{args.preset}_{args.seed}"
-    if args.report_only:
+    if args.merge:
+        if not args.state:
+            ap.error("--merge needs --state (where the joined checkpoint goes)")
+        merge_states([Path(p) for p in args.merge.split(",") if p], state)
+    if args.report_only or args.merge:
         print(write_fragment(state, Path(args.out)))
         return 0
     state.mkdir(parents=True, exist_ok=True)

@@ -215,3 +215,38 @@ def test_fragments_from_before_the_realistic_sim_are_flagged(tmp_path, monkeypat
     sim, ndt = text.split("## Simulator")[1].split("## NDT registration")
     assert "Measured 2026-11-22, on the earlier simulator" in sim
     assert "earlier simulator" not in ndt
+
+
+def _segment(tmp_path, name, start, n, failures):
+    from bench.campus import _write_json
+
+    d = tmp_path / name
+    d.mkdir()
+    z = {"index": np.arange(start, start + n), "core_ms": np.full(n, 5.0 + start), "stamps": start + np.arange(n) * 0.1,
+         "poses": np.tile(np.eye(4), (n, 1, 1)),
+         "counters": np.array(json.dumps({"failures": failures, "rejected": 1})),
+         "map_stats": np.array(json.dumps({"resident_mb": float(start)}))}
+    np.savez(d / "block.npz", **z)
+    _write_json(d / "progress.json", {"command": f"seg {start}", "sequence": "sim:campus/loc@1", "backends": ["block"],
+                                      "start": start, "frames_done": n, "wall_s": 10.0 * n, "updated": f"t{start}",
+                                      "load_now": 1.0, "load_mean": 1.0, "finished": True})
+    return d
+
+
+def test_merge_states_joins_consecutive_segments_and_refuses_a_gap(tmp_path):
+    from bench.campus import merge_states
+
+    a, b = _segment(tmp_path, "a", 0, 3, failures=0), _segment(tmp_path, "b", 3, 2, failures=2)
+    merge_states([b, a], tmp_path / "m")  # given out of order: sorted by start
+    z = np.load(tmp_path / "m" / "block.npz")
+    assert z["index"].tolist() == [0, 1, 2, 3, 4]
+    assert z["core_ms"].tolist() == [5.0] * 3 + [8.0] * 2
+    assert json.loads(str(z["counters"])) == {"failures": 2, "rejected": 2}
+    assert json.loads(str(z["map_stats"]))["resident_mb"] == 3.0  # the last segment's
+    prog = json.loads((tmp_path / "m" / "progress.json").read_text())
+    assert (prog["start"], prog["frames_done"], prog["wall_s"]) == (0, 5, 30.0)
+    assert prog["scan_wall_ms"] == 10_000.0
+    assert [s["start"] for s in prog["segments"]] == [0, 3]
+    gap = _segment(tmp_path, "c", 9, 2, failures=0)
+    with pytest.raises(SystemExit, match="does not continue"):
+        merge_states([a, gap], tmp_path / "m2")
