@@ -88,7 +88,8 @@ def summarize(state: Path, backend: str, gt) -> dict:
          "switch_core_ms_p99": float(np.percentile(core[sw], 99)) if sw.any() else None,
          "switch_update_ms_p99": float(np.percentile(upd[sw], 99)) if sw.any() else None,
          "window_min": int(z["window"][tracked].min()), "window_max": int(z["window"][tracked].max()),
-         "map_stats": json.loads(str(z["map_stats"]))}
+         "map_stats": json.loads(str(z["map_stats"])),
+         "reject_reasons": {k[len("rejected_"):]: v for k, v in counters.items() if k.startswith("rejected_") and v}}
     if len(est) > 1:
         ev = evaluate_trajectories(gt, est, align=False, max_time_diff_s=0.02, rpe_deltas_m=(10.0, 100.0),
                                    interpolate=True)
@@ -281,6 +282,10 @@ def write_fragment(state: Path, out: Path) -> str:
             if other in rows and ref in rows:
                 r = trajectory_rmse(rows[other], rows[ref])
                 lines.append(f"- trajectory RMSE {other} vs {ref} (same stamps): {f(r, '{:.3f}')} m{tgt}.")
+    why = [f"`{b}` {m['rejected']} ({', '.join(f'{k} {v}' for k, v in m['reject_reasons'].items())})"
+           for b, m in rows.items() if m["reject_reasons"]]
+    if why:
+        lines.append("- rejected scans by the first acceptance test they failed: " + "; ".join(why) + ".")
     for b in rows:
         z = np.load(state / f"{b}.npz")
         lost = np.nonzero(np.isin(z["status"], [STATUS_CODES["lost"], STATUS_CODES["recovered"]]))[0]

@@ -71,6 +71,26 @@ log = logging.getLogger(__name__)
 
 Relocalizer = Callable[[np.ndarray, Optional[np.ndarray], np.ndarray, float], Optional[np.ndarray]]
 
+# Why a scan's registration was not accepted: ``error`` (the engine raised), ``unconverged``,
+# ``fitness`` (inlier ratio below min_fitness), ``innovation`` (farther from the prediction than the
+# gates), ``nonfinite``.
+REJECT_REASONS = ("error", "unconverged", "fitness", "innovation", "nonfinite")
+
+
+def reject_reason(res, fitness: float, inn_m: float, inn_deg: float, gates: tuple[float, float],
+                  min_fitness: float, T: np.ndarray) -> str:
+    """The first of the acceptance tests of ``Tracker._align`` that a result fails (one of
+    ``REJECT_REASONS``); gates are (metres, degrees)."""
+    if not np.all(np.isfinite(T)):
+        return "nonfinite"
+    if not bool(getattr(res, "converged", True)):
+        return "unconverged"
+    if not fitness >= min_fitness:
+        return "fitness"
+    if inn_m > gates[0] or inn_deg > gates[1]:
+        return "innovation"
+    return "unconverged"  # not reached for a rejected scan; kept total
+
 
 @dataclass(frozen=True)
 class TrackerParams:
@@ -202,6 +222,9 @@ class Tracker:
         self.last_scan_lidar: np.ndarray | None = None  # the last deskewed registration input (N, 3)
         self.counters = {"frames": 0, "failures": 0, "recoveries": 0, "switches": 0, "rejected": 0,
                          "imu_only": 0, "rotation_retries": 0, "rotation_recoveries": 0}
+        # why each rejected scan was rejected (the first test it failed, in this order), to tell an
+        # engine that does not converge from one whose fits are poor or land off the prediction
+        self.counters.update({f"rejected_{r}": 0 for r in REJECT_REASONS})
 
     # ----------------------------------------------------------------- factories
     @classmethod
@@ -503,6 +526,10 @@ class Tracker:
               and inn_m <= gates[0] and inn_deg <= gates[1] and np.all(np.isfinite(T_ndt)))
         return T_ndt, res, fitness, inn_m, inn_deg, ok
 
+    def _count_rejection(self, reason: str) -> None:
+        self.counters["rejected"] += 1
+        self.counters[f"rejected_{reason}"] += 1
+
     def _register(self, local, scan_pts, T_pred, diag, dt: float = 0.0):
         p = self.params
         target = getattr(local, "target", None)
@@ -517,7 +544,7 @@ class Tracker:
         except Exception as exc:  # a registration failure is a rejected scan, not a crash
             log.warning("registration failed: %s", exc)
             diag.status = "rejected"
-            self.counters["rejected"] += 1
+            self._count_rejection("error")
             return None, None, False
         if not ok and self.lidar_only:
             log.debug("registration from the prediction failed: converged %s, fitness %.2f, innovation "
@@ -529,7 +556,8 @@ class Tracker:
                 ok = True
         if not ok:
             diag.status = "rejected"
-            self.counters["rejected"] += 1
+            self._count_rejection(reject_reason(res, diag.fitness, diag.innovation_m, diag.innovation_deg,
+                                                gates, p.min_fitness, T_ndt))
             return T_ndt, None, False
         info, diag.weak_dims = ndt_information(np.asarray(res.H), self.T_body_lidar, p.ndt)
         return T_ndt, info, True

@@ -78,6 +78,7 @@ def test_registration_raising_is_a_rejected_scan_then_lost():
         assert np.linalg.norm(est.T_map_body[:3, 3] - T_START[:3, 3]) < 0.01
     assert statuses == ["ok", "rejected", "rejected", "lost", "lost", "ok"]
     assert tr.counters["rejected"] == 4 and tr.counters["failures"] == 1
+    assert tr.counters["rejected_error"] == 4
     assert tr.counters["recoveries"] == 0  # no relocalizer: nothing to recover with
     assert reg.calls == 6
 
@@ -209,3 +210,34 @@ def test_scan_is_deskewed_with_the_predicted_motion():
                                atol=1e-3)
     d, _ = cKDTree(world).query(src @ T_init[:3, :3].T + T_init[:3, 3])
     assert np.median(d) < 0.002 and d.max() < 0.01  # without deskew: up to 0.2 m
+
+
+class FlawedRegistration(ScriptedRegistration):
+    """From the second call on, each result has one flaw: unconverged, a poor fit, or 3 m off."""
+
+    def __init__(self, flaw):
+        super().__init__()
+        self.flaw = flaw
+
+    def align(self, target, source_points, T_init):
+        r = super().align(target, source_points, T_init)
+        if self.calls > 1:
+            if self.flaw == "unconverged":
+                r.converged = False
+            elif self.flaw == "fitness":
+                r.fitness = 0.1
+            elif self.flaw == "innovation":
+                r.T_target_source = r.T_target_source.copy()
+                r.T_target_source[0, 3] += 3.0
+        return r
+
+
+@pytest.mark.parametrize("flaw", ["unconverged", "fitness", "innovation"])
+def test_each_rejection_is_counted_under_its_reason(flaw):
+    tr = _tracker(FlawedRegistration(flaw), max_bad_frames=10)
+    tr.initialize(T_START, 0.0, velocity_map=np.zeros(3))
+    for k in range(1, 4):
+        _feed_imu(tr, 0.1 * (k - 1), 0.1 * k + 1e-9)
+        tr.insert_frame(_frame(k, 0.1 * k))
+    reasons = {k: v for k, v in tr.counters.items() if k.startswith("rejected_") and v}
+    assert tr.counters["rejected"] == 2 and reasons == {f"rejected_{flaw}": 2}
