@@ -49,7 +49,9 @@ def disk_memo(name: str, key: str, build, *, min_build_s: float = 1.0):
     to load, paid otherwise by every process (each Dask worker) that opens one of its drives.
     A file that cannot be read is rebuilt and replaced; one that cannot be written is skipped
     (the result is the same either way). Written through a temp file and a rename, so concurrent
-    processes never read half a file.
+    processes never read half a file. Writing an entry removes the entries of the same ``name``
+    under other keys (``name`` holds the parameters, ``key`` the code: those were left by older
+    code and nothing reads them again; a city world is ~100 MB).
     """
     import logging
     import pickle
@@ -72,4 +74,24 @@ def disk_memo(name: str, key: str, build, *, min_build_s: float = 1.0):
             atomic_write_bytes(path, pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL))
         except OSError as exc:
             logging.getLogger(__name__).warning("%s: not cached (%s)", path, exc)
+        else:
+            for old in superseded_memo_entries(path.parent, name, key):
+                old.unlink(missing_ok=True)
     return value
+
+
+def superseded_memo_entries(memo_dir: Path, name: str, key: str) -> list[Path]:
+    """Entries ``<name>-<other key>.pkl`` in ``memo_dir``: the same name, a key of
+    :func:`fingerprint`'s form (10 hex digits) other than ``key``. Nothing else matches (not
+    ``<name>-2-<key>.pkl``, another name; not a file blockloc did not name this way)."""
+    import glob
+    import re
+
+    pat = re.compile(re.escape(name) + r"-([0-9a-f]{10})\.pkl")
+    out = []
+    for f in memo_dir.glob(f"{glob.escape(name)}-*.pkl"):
+        m = pat.fullmatch(f.name)
+        if m and m.group(1) != key and f.is_file():
+            out.append(f)
+    return sorted(out)
+

@@ -79,3 +79,26 @@ def _same(a, b) -> bool:
     if hasattr(a, "__slots__"):
         return all(_same(getattr(a, k), getattr(b, k)) for k in a.__slots__)
     return a == b
+
+
+def test_disk_memo_removes_only_entries_of_its_name_under_older_keys(tmp_path, monkeypatch):
+    from blockloc.cache import disk_memo
+
+    monkeypatch.setenv("BLOCKLOC_CACHE", str(tmp_path))
+    memo = tmp_path / "memo"
+    memo.mkdir()
+    stale = memo / "world-city-1-0123456789.pkl"
+    others = [memo / "world-city-12-0123456789.pkl",  # another name (seed 12)
+              memo / "world-city-1-notakey.pkl",      # not a fingerprint
+              memo / "world-city-1-0123456789.txt",   # not an entry
+              memo / "notes.pkl"]
+    for f in [stale, *others]:
+        f.write_bytes(b"x")
+    assert disk_memo("world-city-1", "abcdef0123", lambda: 42, min_build_s=0.0) == 42
+    assert (memo / "world-city-1-abcdef0123.pkl").is_file()
+    assert not stale.exists()
+    assert all(f.exists() for f in others)
+    # loading an entry removes nothing
+    stale.write_bytes(b"x")
+    assert disk_memo("world-city-1", "abcdef0123", lambda: 0, min_build_s=0.0) == 42
+    assert stale.exists()
