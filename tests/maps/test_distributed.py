@@ -343,3 +343,23 @@ def test_located_tasks_prefer_the_worker_owning_their_share_of_the_build():
     ex.submit(len, "x", key="k4")
     assert [kw.get("workers") for kw in c.calls] == [["tcp://a:1"], ["tcp://a:1"], ["tcp://b:2"], ["tcp://b:2"], None]
     assert all(kw["allow_other_workers"] for kw in c.calls[:4])
+
+
+def _task_clock_name():
+    from blockloc.maps.build_tasks import _cpu_clock
+
+    return _cpu_clock().__name__
+
+
+def test_task_cpu_counts_the_threads_a_task_starts_when_it_runs_alone(dask_cluster):
+    # One task at a time (a serial build, a one-thread worker): the process clock, so open3d's
+    # ray-cast threads are charged to the task (the thread clock missed them in serial builds);
+    # tasks side by side in one process: each its own thread's clock.
+    from distributed import Client, LocalCluster
+
+    assert _task_clock_name() == "process_time"
+    with Client(dask_cluster.address) as client:
+        assert client.submit(_task_clock_name, pure=False).result() == "process_time"
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=":0") as lc, \
+            Client(lc) as client:
+        assert client.submit(_task_clock_name, pure=False).result() == "thread_time"
