@@ -183,7 +183,24 @@ def merge_states(parts: list[Path], state: Path) -> None:
     _write_json(state / "progress.json", prog)
 
 
-def write_fragment(state: Path, out: Path) -> str:
+def before_table(rows: dict, before: dict, what: str) -> list[str]:
+    """Lines comparing this run's rows with an earlier run's campus JSON (``before``), backend by backend."""
+    f = lambda v, s="{:.3f}": "-" if v is None else s.format(v)  # noqa: E731
+    lines = ["", f"Before and after, per backend ({what}):", "",
+             "| backend | km before / now | ATE trans RMSE [m] before / now | failures before / now | "
+             "rejected before / now | core median [ms] before / now |", "|---|---|---|---|---|---|"]
+    for b, m in rows.items():
+        o = before.get("backends", {}).get(b)
+        if o is None:
+            continue
+        lines.append(f"| {b} | {before.get('covered_km', 0):.2f} / {(m.get('path_length_m') or 0) / 1000:.2f} | "
+                     f"{f(o.get('ate_trans_rmse_m'))} / {f(m.get('ate_trans_rmse_m'))} | {o['failures']} / "
+                     f"{m['failures']} | {o['rejected']} / {m['rejected']} | {o['core_ms_median']:.1f} / "
+                     f"{m['core_ms_median']:.1f} |")
+    return lines if len(lines) > 5 else []
+
+
+def write_fragment(state: Path, out: Path, before: Path | None = None) -> str:
     from bench.__main__ import machine
     from blockloc.datasets import open_sequence
 
@@ -282,6 +299,22 @@ def write_fragment(state: Path, out: Path) -> str:
             if other in rows and ref in rows:
                 r = trajectory_rmse(rows[other], rows[ref])
                 lines.append(f"- trajectory RMSE {other} vs {ref} (same stamps): {f(r, '{:.3f}')} m{tgt}.")
+    km = (covered or 0.0) / 1000.0
+    others = [b for b in ("grid", "srt", "global") if b in rows]
+    if "block" in rows and km >= 1.0:
+        bm = rows["block"]
+        ok = lambda c: "met" if c else "**missed**"  # noqa: E731
+        ate = bm.get("ate_trans_rmse_m")
+        lines += ["", f"Targets (issue 15: the realistic world, 6 km+, block backend, nominal calibration), on "
+                  f"the {km:.2f} km covered:", "",
+                  f"- 6 km+ covered: {km:.2f} km — {ok(km >= 6.0)}.",
+                  f"- block ATE translation RMSE <= 0.06 m: {f(ate, '{:.3f}')} m — {ok(ate is not None and ate <= 0.06)}; "
+                  f"no failure: {bm['failures']} — {ok(bm['failures'] == 0)}."]
+        if others:
+            lines.append("- " + ", ".join(others) + " without failure: " + ", ".join(
+                f"{b} {rows[b]['failures']}" for b in others) + " — "
+                + ok(all(rows[b]["failures"] == 0 for b in others)) + ".")
+        lines.append("")
     why = [f"`{b}` {m['rejected']} ({', '.join(f'{k} {v}' for k, v in m['reject_reasons'].items())})"
            for b, m in rows.items() if m["reject_reasons"]]
     if why:
@@ -298,6 +331,10 @@ def write_fragment(state: Path, out: Path) -> str:
                                                        "nearest switch)" if near is not None else ""))
             more = f", and {len(desc) - 8} more up to scan {int(z['index'][lost[-1]])}" if len(desc) > 8 else ""
             lines.append(f"- `{b}`: {len(desc)} scans lost or relocalized: " + ", ".join(desc[:8]) + more + ".")
+    if before is not None and before.is_file():
+        lines += before_table(rows, json.loads(before.read_text()),
+                              f"before: `{before.name}`, the earlier simulator's world and the tracker of its day; "
+                              "its command and this one give the threads each used")
     png = out.with_suffix(".png")
     plot(rows, gt, state, png)
     lines += ["", f"![route, position error and per-scan time along the route]({png.name})", ""]
@@ -335,6 +372,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="config override on top of configs/sim.yaml, e.g. map.grid_n=2 (repeatable)")
     ap.add_argument("--report-only", action="store_true")
+    ap.add_argument("--before", default=None, metavar="JSON",
+                    help="an earlier run's campus JSON (e.g. docs/bench/campus_earlier.json) to set beside this one")
     ap.add_argument("--merge", default=None, metavar="DIR,DIR,...",
                     help="join the --state dirs of consecutive segments into --state, then write the fragment")
     ap.add_argument("--out", default=str(OUT))
@@ -355,7 +394,7 @@ def main(argv: list[str] | None = None) -> int:
             ap.error("--merge needs --state (where the joined checkpoint goes)")
         merge_states([Path(p) for p in args.merge.split(",") if p], state)
     if args.report_only or args.merge:
-        print(write_fragment(state, Path(args.out)))
+        print(write_fragment(state, Path(args.out), Path(args.before) if args.before else None))
         return 0
     state.mkdir(parents=True, exist_ok=True)
     overrides = {"map": {"block_size_m": args.block_size}, "evaluation": {"plots": False}}
@@ -430,7 +469,7 @@ def main(argv: list[str] | None = None) -> int:
         for r in runs:
             r.session.provider.close()
         checkpoint(args.start + n >= stop)
-    print(write_fragment(state, Path(args.out)))
+    print(write_fragment(state, Path(args.out), Path(args.before) if args.before else None))
     return 0
 
 
