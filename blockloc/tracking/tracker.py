@@ -161,6 +161,7 @@ class Diagnostics:
     map_ms: float = 0.0
     rotation_retries: int = 0  # rotated predictions registered after the prediction failed (LiDAR-only)
     rotation_retry: str = ""  # the one accepted, e.g. 'yaw+30' ('' none)
+    reject_reason: str = ""  # a rejected scan: the first acceptance test it failed (REJECT_REASONS)
 
 
 @dataclass
@@ -526,7 +527,8 @@ class Tracker:
               and inn_m <= gates[0] and inn_deg <= gates[1] and np.all(np.isfinite(T_ndt)))
         return T_ndt, res, fitness, inn_m, inn_deg, ok
 
-    def _count_rejection(self, reason: str) -> None:
+    def _count_rejection(self, diag, reason: str) -> None:
+        diag.reject_reason = reason
         self.counters["rejected"] += 1
         self.counters[f"rejected_{reason}"] += 1
 
@@ -544,7 +546,7 @@ class Tracker:
         except Exception as exc:  # a registration failure is a rejected scan, not a crash
             log.warning("registration failed: %s", exc)
             diag.status = "rejected"
-            self._count_rejection("error")
+            self._count_rejection(diag, "error")
             return None, None, False
         if not ok and self.lidar_only:
             log.debug("registration from the prediction failed: converged %s, fitness %.2f, innovation "
@@ -556,8 +558,8 @@ class Tracker:
                 ok = True
         if not ok:
             diag.status = "rejected"
-            self._count_rejection(reject_reason(res, diag.fitness, diag.innovation_m, diag.innovation_deg,
-                                                gates, p.min_fitness, T_ndt))
+            self._count_rejection(diag, reject_reason(res, diag.fitness, diag.innovation_m,
+                                                      diag.innovation_deg, gates, p.min_fitness, T_ndt))
             return T_ndt, None, False
         info, diag.weak_dims = ndt_information(np.asarray(res.H), self.T_body_lidar, p.ndt)
         return T_ndt, info, True

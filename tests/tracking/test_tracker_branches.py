@@ -236,8 +236,10 @@ class FlawedRegistration(ScriptedRegistration):
 def test_each_rejection_is_counted_under_its_reason(flaw):
     tr = _tracker(FlawedRegistration(flaw), max_bad_frames=10)
     tr.initialize(T_START, 0.0, velocity_map=np.zeros(3))
+    said = []
     for k in range(1, 4):
         _feed_imu(tr, 0.1 * (k - 1), 0.1 * k + 1e-9)
-        tr.insert_frame(_frame(k, 0.1 * k))
+        said.append(tr.insert_frame(_frame(k, 0.1 * k)).diagnostics.reject_reason)
+    assert said == ["", flaw, flaw]  # what diagnostics.csv shows per scan
     reasons = {k: v for k, v in tr.counters.items() if k.startswith("rejected_") and v}
     assert tr.counters["rejected"] == 2 and reasons == {f"rejected_{flaw}": 2}
