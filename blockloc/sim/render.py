@@ -25,8 +25,7 @@ def render_world(preset: str, seed: int, out: str | Path, sessions: tuple[str, .
     import matplotlib.pyplot as plt
 
     from blockloc.sim.presets import get_preset
-    from blockloc.sim.stream import SimSequence, cached_world
-    from blockloc.sim.world import session_movables
+    from blockloc.sim.stream import SimSequence, cached_world, scene_movables
 
     p = get_preset(preset)
     world = cached_world(p, int(seed))
@@ -73,7 +72,7 @@ def render_world(preset: str, seed: int, out: str | Path, sessions: tuple[str, .
     if "pole" in world.meshes:
         P = world.meshes["pole"][0].reshape(-1, 17, 3).mean(axis=1)
         ax.scatter(P[:, 0], P[:, 1], s=ms * 2, c=_COLORS["pole"], lw=0, zorder=3, label="pole")
-    mv = session_movables(world, p.sessions[0], base=True)
+    mv = scene_movables(world, p.sessions[0], base=True)
     for kind in ("car", "bin"):
         sel = mv.kind == kind
         ax.scatter(mv.xy[sel, 0], mv.xy[sel, 1], s=ms * 3, c=_COLORS[kind], marker="s", lw=0,

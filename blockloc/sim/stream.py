@@ -25,7 +25,7 @@ from blockloc.geometry import Trajectory, make_T, so3_exp
 from blockloc.sim.presets import Preset, get_preset
 from blockloc.sim.trajectory import (D4, SimTrajectory, cover_route, crossing_route, lane_waypoints,
                                      plan_motion, relocalization_route)
-from blockloc.sim.world import World, build_world, session_movables, stable_hash
+from blockloc.sim.world import World, build_world, off_routes, session_movables, stable_hash
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +45,28 @@ def cached_world(preset: Preset, seed: int) -> World:
 
     key = fingerprint("blockloc.sim", params=(repr(preset), seed))
     return disk_memo(f"world-{preset.name}-{seed}", key, lambda: build_world(preset, seed))
+
+
+@functools.lru_cache(maxsize=4)
+def route_points(preset: Preset, seed: int, spacing_m: float = 0.25) -> np.ndarray:
+    """(N, 2) world xy every ``spacing_m`` along the routes of all of the preset's sessions:
+    where no parked object may stand (:func:`scene_movables`)."""
+    out = []
+    for session in preset.sessions:
+        traj = session_trajectory(preset, seed, session)
+        t = np.arange(0.0, traj.duration, 0.1)
+        x, y, _ = traj.planar(t)
+        xy = np.stack([x, y], axis=1)
+        s_ = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
+        at = np.arange(0.0, s_[-1], spacing_m)
+        out.append(np.stack([np.interp(at, s_, xy[:, 0]), np.interp(at, s_, xy[:, 1])], axis=1))
+    return np.concatenate(out) if out else np.zeros((0, 2))
+
+
+def scene_movables(world: World, session: str, base: bool):
+    """The movables a session's scene holds: ``session_movables`` without those standing on any
+    session's route (a robot does not drive through a parked car)."""
+    return off_routes(session_movables(world, session, base), route_points(world.preset, world.seed))
 
 
 #: id(world) -> (weakref to the world, weakref to its mapping days' SessionScene): the scene
@@ -72,7 +94,7 @@ def mapping_scene(world: World):
         if scene is None:
             for k in [k for k, (w, sc) in _MAPPING_SCENES.items() if w() is None or sc() is None]:
                 del _MAPPING_SCENES[k]
-            scene = SessionScene(world, session_movables(world, session, True), make_actors(world, session),
+            scene = SessionScene(world, scene_movables(world, session, True), make_actors(world, session),
                                  session)
             _MAPPING_SCENES[id(world)] = (weakref.ref(world), weakref.ref(scene))
         return scene
@@ -252,7 +274,7 @@ class SimSequence:
             if self.preset.is_mapping(self.session):
                 self._scene = mapping_scene(self.world)
             else:
-                self._scene = SessionScene(self.world, session_movables(self.world, self.session, False),
+                self._scene = SessionScene(self.world, scene_movables(self.world, self.session, False),
                                            make_actors(self.world, self.session), self.session)
         return self._scene
 
