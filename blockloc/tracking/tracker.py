@@ -79,8 +79,8 @@ REJECT_REASONS = ("error", "unconverged", "fitness", "innovation", "nonfinite")
 
 def reject_reason(res, fitness: float, inn_m: float, inn_deg: float, gates: tuple[float, float],
                   min_fitness: float, T: np.ndarray) -> str:
-    """The first of the acceptance tests of ``Tracker._align`` that a result fails (one of
-    ``REJECT_REASONS``); gates are (metres, degrees)."""
+    """The first acceptance test a registration result fails (one of ``REJECT_REASONS``), or ""
+    when it passes them all; gates are (metres, degrees)."""
     if not np.all(np.isfinite(T)):
         return "nonfinite"
     if not bool(getattr(res, "converged", True)):
@@ -89,7 +89,7 @@ def reject_reason(res, fitness: float, inn_m: float, inn_deg: float, gates: tupl
         return "fitness"
     if inn_m > gates[0] or inn_deg > gates[1]:
         return "innovation"
-    return "unconverged"  # not reached for a rejected scan; kept total
+    return ""
 
 
 @dataclass(frozen=True)
@@ -516,16 +516,16 @@ class Tracker:
         return max(p.max_innovation_m, k * s_trans), max(p.max_innovation_deg, np.rad2deg(k * s_rot))
 
     def _align(self, target, scan_pts, T_guess, T_pred, gates):
-        """One registration from ``T_guess``: (T_ndt, result, fitness, innovation m, deg, healthy)."""
+        """One registration from ``T_guess``: (T_ndt, result, fitness, innovation m, deg, reject
+        reason: "" when healthy)."""
         p = self.params
         res = self.registration.align(target, scan_pts, T_guess @ self.T_body_lidar)
         T_ndt = np.asarray(res.T_target_source) @ self.T_lidar_body
         fitness = float(res.fitness)
         inn_m = float(np.linalg.norm(T_ndt[:3, 3] - T_pred[:3, 3]))
         inn_deg = float(np.rad2deg(rotation_angle(T_pred[:3, :3].T @ T_ndt[:3, :3])))
-        ok = (bool(getattr(res, "converged", True)) and fitness >= p.min_fitness
-              and inn_m <= gates[0] and inn_deg <= gates[1] and np.all(np.isfinite(T_ndt)))
-        return T_ndt, res, fitness, inn_m, inn_deg, ok
+        reason = reject_reason(res, fitness, inn_m, inn_deg, gates, p.min_fitness, T_ndt)
+        return T_ndt, res, fitness, inn_m, inn_deg, reason
 
     def _count_rejection(self, diag, reason: str) -> None:
         diag.reject_reason = reason
@@ -541,13 +541,14 @@ class Tracker:
             return None, None, False
         gates = self._gates(dt)
         try:
-            T_ndt, res, diag.fitness, diag.innovation_m, diag.innovation_deg, ok = self._align(
+            T_ndt, res, diag.fitness, diag.innovation_m, diag.innovation_deg, reason = self._align(
                 target, scan_pts, T_pred, T_pred, gates)
         except Exception as exc:  # a registration failure is a rejected scan, not a crash
             log.warning("registration failed: %s", exc)
             diag.status = "rejected"
             self._count_rejection(diag, "error")
             return None, None, False
+        ok = not reason
         if not ok and self.lidar_only:
             log.debug("registration from the prediction failed: converged %s, fitness %.2f, innovation "
                       "%.2f m %.1f deg (gates %.2f m %.1f deg)", bool(getattr(res, "converged", True)),
@@ -558,8 +559,7 @@ class Tracker:
                 ok = True
         if not ok:
             diag.status = "rejected"
-            self._count_rejection(diag, reject_reason(res, diag.fitness, diag.innovation_m,
-                                                      diag.innovation_deg, gates, p.min_fitness, T_ndt))
+            self._count_rejection(diag, reason)
             return T_ndt, None, False
         info, diag.weak_dims = ndt_information(np.asarray(res.H), self.T_body_lidar, p.ndt)
         return T_ndt, info, True
@@ -591,7 +591,8 @@ class Tracker:
             # a stop is a motion hypothesis of its own: gated against itself, not the prediction
             T_ref = T_guess if label == "stop" else T_pred
             try:
-                T_ndt, res, fit, inn_m, inn_deg, ok = self._align(target, scan_pts, T_guess, T_ref, gates)
+                T_ndt, res, fit, inn_m, inn_deg, reason = self._align(target, scan_pts, T_guess, T_ref, gates)
+                ok = not reason
             except Exception as exc:
                 log.debug("rotated prediction %s: registration failed: %s", label, exc)
                 continue
