@@ -61,6 +61,26 @@ def ensure_map(preset: str, seed: int, out: Path, map_cfg, kind: str = "block") 
     return time.perf_counter() - t0
 
 
+#: Error sources of a localization session that ``--exact`` can switch off (sim.presets.ideal's parts
+#: that leave the world alone: the map was built from the same world and stays valid).
+EXACT_PARTS = ("extrinsic", "lidar", "imu", "platform")
+
+
+def exact_sequence(preset: str, session: str, seed: int, parts: list[str]):
+    """``sim:<preset>/<session>@<seed>`` with the error sources in ``parts`` off (see EXACT_PARTS)."""
+    from dataclasses import replace
+
+    from blockloc.sim.presets import get_preset, ideal
+    from blockloc.sim.stream import SimSequence
+
+    p = get_preset(preset)
+    off = ideal(p)
+    changes = {part: getattr(off, part) for part in parts if part != "extrinsic"}
+    if "extrinsic" in parts:
+        changes.update(extrinsic_error_m=0.0, extrinsic_error_deg=0.0)
+    return SimSequence(replace(p, **changes), session, seed)
+
+
 def _write_json(path: Path, obj) -> None:
     atomic_write_text(path, json.dumps(obj, indent=1))
 
@@ -371,6 +391,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--checkpoint-s", type=float, default=60.0)
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="config override on top of configs/sim.yaml, e.g. map.grid_n=2 (repeatable)")
+    ap.add_argument("--exact", default="", metavar="PARTS",
+                    help="switch these error sources of the localization session off (comma list of "
+                         f"{', '.join(EXACT_PARTS)}); the world and the map stay as they are: splits the error budget")
     ap.add_argument("--report-only", action="store_true")
     ap.add_argument("--before", default=None, metavar="JSON",
                     help="an earlier run's campus JSON (e.g. docs/bench/campus_earlier.json) to set beside this one")
@@ -413,7 +436,10 @@ def main(argv: list[str] | None = None) -> int:
                 + (f", built in {t_build:.0f} s" if t_build else ", cached"))
 
     seq_name = f"sim:{args.preset}/{args.session}@{args.seed}"
-    seq = open_sequence(seq_name)
+    exact = [x for x in args.exact.split(",") if x]
+    if any(x not in EXACT_PARTS for x in exact):
+        ap.error(f"--exact {args.exact!r}: expected a comma list of {', '.join(EXACT_PARTS)}")
+    seq = open_sequence(seq_name) if not exact else exact_sequence(args.preset, args.session, args.seed, exact)
     stop = len(seq) if args.max_frames is None else min(len(seq), args.start + args.max_frames)
     backends = [b for b in args.backends.split(",") if b]
     grid_path = None
@@ -434,7 +460,7 @@ def main(argv: list[str] | None = None) -> int:
         return r
 
     runs = [run_for(b) for b in backends]
-    prog = {"command": cmd, "sequence": seq_name, "backends": backends, "map": str(map_path),
+    prog = {"command": cmd, "sequence": seq_name + (f" (exact: {', '.join(exact)})" if exact else ""), "backends": backends, "map": str(map_path),
             "map_desc": map_desc, "block_size_m": args.block_size, "start": args.start, "minutes": args.minutes,
             "started": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "load_start": os.getloadavg()[0],
             "frames_done": 0, "finished": False}

@@ -250,3 +250,20 @@ def test_merge_states_joins_consecutive_segments_and_refuses_a_gap(tmp_path):
     gap = _segment(tmp_path, "c", 9, 2, failures=0)
     with pytest.raises(SystemExit, match="does not continue"):
         merge_states([a, gap], tmp_path / "m2")
+
+
+def test_exact_sequence_switches_only_the_named_error_sources_off():
+    from bench.campus import exact_sequence
+    from blockloc.datasets import open_sequence
+
+    base = open_sequence("sim:tiny/loc@3")
+    ext = exact_sequence("tiny", "loc", 3, ["extrinsic"])
+    # the world (and so the map built from it) is the same; only the mounting error is gone
+    assert np.array_equal(base.world.facades, ext.world.facades)
+    assert ext.preset.lidar == base.preset.lidar and ext.preset.imu == base.preset.imu
+    assert ext.preset.extrinsic_error_m == 0.0 and base.preset.extrinsic_error_m > 0.0
+    assert not np.allclose(base.T_body_lidar_true, ext.T_body_lidar_true)
+    sensor = exact_sequence("tiny", "loc", 3, ["lidar", "imu"])
+    assert sensor.preset.lidar.range_tail_prob == 0.0 < base.preset.lidar.range_tail_prob
+    assert sensor.preset.imu.scale_factor_sigma == 0.0 < base.preset.imu.scale_factor_sigma
+    assert sensor.preset.detail == base.preset.detail and sensor.preset.extrinsic_error_m > 0.0
