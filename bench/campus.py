@@ -34,18 +34,21 @@ ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "bench" / "campus.md"
 
 
-def default_map_dir(preset: str, seed: int, map_cfg, kind: str = "block") -> Path:
-    """Cache path of the campus map of ``kind``, keyed by the simulator's and map builder's code."""
+def default_map_dir(preset: str, seed: int, map_cfg, kind: str = "block", exact: tuple[str, ...] = ()) -> Path:
+    """Cache path of the campus map of ``kind``, keyed by the simulator's and map builder's code
+    (``exact``: the map session's error sources switched off, see EXACT_PARTS)."""
     from blockloc.cache import cache_root, fingerprint
 
     size = map_cfg.block_size_m if kind == "block" else map_cfg.tile_size_m
     key = fingerprint("blockloc.sim", "blockloc.maps", params=(preset, seed, size, map_cfg.keyframe_distance_m,
                                                                map_cfg.keyframe_angle_deg, map_cfg.voxel_size_m))
-    return cache_root() / "bench" / f"campus_{preset}_{seed}_{kind}-{key}"
+    tag = "".join(f"-exact{x}" for x in exact)
+    return cache_root() / "bench" / f"campus_{preset}_{seed}_{kind}{tag}-{key}"
 
 
-def ensure_map(preset: str, seed: int, out: Path, map_cfg, kind: str = "block") -> float:
-    """Build the ``kind`` map of ``sim:<preset>/map@<seed>`` at ``out`` unless it loads; seconds spent."""
+def ensure_map(preset: str, seed: int, out: Path, map_cfg, kind: str = "block", exact: tuple[str, ...] = ()) -> float:
+    """Build the ``kind`` map of ``sim:<preset>/map@<seed>`` (with the error sources in ``exact``
+    off) at ``out`` unless it loads; seconds spent."""
     from blockloc.datasets import open_sequence
     from blockloc.errors import MapError
     from blockloc.maps.store import open_map
@@ -57,13 +60,15 @@ def ensure_map(preset: str, seed: int, out: Path, map_cfg, kind: str = "block") 
     except MapError:
         pass
     t0 = time.perf_counter()
-    build_map(open_sequence(f"sim:{preset}/map@{seed}"), kind, out, map_cfg, overwrite=True, progress=False)
+    seq = exact_sequence(preset, "map", seed, list(exact)) if exact else open_sequence(f"sim:{preset}/map@{seed}")
+    build_map(seq, kind, out, map_cfg, overwrite=True, progress=False)
     return time.perf_counter() - t0
 
 
-#: Error sources of a localization session that ``--exact`` can switch off (sim.presets.ideal's parts
-#: that leave the world alone: the map was built from the same world and stays valid).
-EXACT_PARTS = ("extrinsic", "lidar", "imu", "platform")
+#: Error sources ``--exact`` can switch off (sim.presets.ideal's parts that leave the world alone):
+#: ``slam`` the mapping drive's offline-SLAM pose error (the map is built afresh from exact poses);
+#: the others the localization session's sensor and mounting errors (the map stays as it is).
+EXACT_PARTS = ("slam", "extrinsic", "lidar", "imu", "platform")
 
 
 def exact_sequence(preset: str, session: str, seed: int, parts: list[str]):
@@ -75,9 +80,11 @@ def exact_sequence(preset: str, session: str, seed: int, parts: list[str]):
 
     p = get_preset(preset)
     off = ideal(p)
-    changes = {part: getattr(off, part) for part in parts if part != "extrinsic"}
+    changes = {part: getattr(off, part) for part in parts if part in ("lidar", "imu", "platform")}
     if "extrinsic" in parts:
         changes.update(extrinsic_error_m=0.0, extrinsic_error_deg=0.0)
+    if "slam" in parts:
+        changes.update(slam_error_m=0.0, slam_error_rad=0.0)
     return SimSequence(replace(p, **changes), session, seed)
 
 
@@ -428,24 +435,29 @@ def main(argv: list[str] | None = None) -> int:
             ap.error(f"--set {item!r}: expected SECTION.KEY=VALUE, e.g. map.grid_n=2")
         overrides.setdefault(section, {})[name] = yaml.safe_load(value)
     cfg = load_config("sim", overrides=overrides)
-    map_path = Path(args.map) if args.map else default_map_dir(args.preset, args.seed, cfg.map)
-    t_build = ensure_map(args.preset, args.seed, map_path, cfg.map)
+    exact = [x for x in args.exact.split(",") if x]
+    if any(x not in EXACT_PARTS for x in exact):
+        ap.error(f"--exact {args.exact!r}: expected a comma list of {', '.join(EXACT_PARTS)}")
+    map_exact = tuple(x for x in exact if x == "slam")
+    if map_exact and (args.map or args.grid_map):
+        ap.error("--exact slam builds its own map: leave out --map and --grid-map")
+    map_path = Path(args.map) if args.map else default_map_dir(args.preset, args.seed, cfg.map, exact=map_exact)
+    t_build = ensure_map(args.preset, args.seed, map_path, cfg.map, exact=map_exact)
     store = open_map(map_path)
     map_desc = (f"{len(store.entries)} blocks, {store.total_points:,} points, S = "
                 f"{store.params.get('block_size_m', args.block_size):g} m"
                 + (f", built in {t_build:.0f} s" if t_build else ", cached"))
 
     seq_name = f"sim:{args.preset}/{args.session}@{args.seed}"
-    exact = [x for x in args.exact.split(",") if x]
-    if any(x not in EXACT_PARTS for x in exact):
-        ap.error(f"--exact {args.exact!r}: expected a comma list of {', '.join(EXACT_PARTS)}")
-    seq = open_sequence(seq_name) if not exact else exact_sequence(args.preset, args.session, args.seed, exact)
+    loc_exact = [x for x in exact if x != "slam"]
+    seq = open_sequence(seq_name) if not loc_exact else exact_sequence(args.preset, args.session, args.seed, loc_exact)
     stop = len(seq) if args.max_frames is None else min(len(seq), args.start + args.max_frames)
     backends = [b for b in args.backends.split(",") if b]
     grid_path = None
     if any(b.partition("@")[0] in ("grid", "srt") for b in backends):
-        grid_path = Path(args.grid_map) if args.grid_map else default_map_dir(args.preset, args.seed, cfg.map, "grid")
-        t_grid = ensure_map(args.preset, args.seed, grid_path, cfg.map, "grid")
+        grid_path = Path(args.grid_map) if args.grid_map else default_map_dir(args.preset, args.seed, cfg.map, "grid",
+                                                                                    exact=map_exact)
+        t_grid = ensure_map(args.preset, args.seed, grid_path, cfg.map, "grid", exact=map_exact)
         gstore = open_map(grid_path)
         map_desc += (f"; grid store `{grid_path}` for grid/srt ({len(gstore.entries)} tiles of "
                      f"{cfg.map.tile_size_m:g} m, {gstore.total_points:,} points"

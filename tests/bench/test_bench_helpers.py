@@ -267,3 +267,16 @@ def test_exact_sequence_switches_only_the_named_error_sources_off():
     assert sensor.preset.lidar.range_tail_prob == 0.0 < base.preset.lidar.range_tail_prob
     assert sensor.preset.imu.scale_factor_sigma == 0.0 < base.preset.imu.scale_factor_sigma
     assert sensor.preset.detail == base.preset.detail and sensor.preset.extrinsic_error_m > 0.0
+
+
+def test_exact_slam_maps_from_exact_poses_in_their_own_cache_dir():
+    from bench.campus import default_map_dir, exact_sequence
+    from blockloc.config import load_config
+    from blockloc.datasets import open_sequence
+
+    base = open_sequence("sim:tiny/map@3").mapping_poses()
+    exact = exact_sequence("tiny", "map", 3, ["slam"])
+    mp, gt = exact.mapping_poses(), exact.ground_truth()
+    assert np.allclose(mp.poses, gt.poses) and not np.allclose(base.poses, gt.poses, atol=1e-3)
+    cfg = load_config("sim").map
+    assert default_map_dir("tiny", 3, cfg, exact=("slam",)) != default_map_dir("tiny", 3, cfg)
