@@ -66,9 +66,12 @@ def ensure_map(preset: str, seed: int, out: Path, map_cfg, kind: str = "block", 
 
 
 #: Error sources ``--exact`` can switch off (sim.presets.ideal's parts that leave the world alone):
-#: ``slam`` the mapping drive's offline-SLAM pose error (the map is built afresh from exact poses);
-#: the others the localization session's sensor and mounting errors (the map stays as it is).
+#: ``slam`` the mapping drive's offline-SLAM pose error; ``extrinsic`` the LiDAR mounting error and
+#: ``lidar`` the sensor's errors (one robot drives both sessions, so both are off in the map too);
+#: ``imu`` and ``platform`` the localization drive's IMU errors and Segway motion. A part in
+#: MAP_PARTS builds its own map (its own cache directory).
 EXACT_PARTS = ("slam", "extrinsic", "lidar", "imu", "platform")
+MAP_PARTS = ("slam", "extrinsic", "lidar")
 
 
 def exact_sequence(preset: str, session: str, seed: int, parts: list[str]):
@@ -188,7 +191,8 @@ def merge_states(parts: list[Path], state: Path) -> None:
                    key=lambda g: g["start"])
     for a, b in zip(progs, progs[1:]):
         if a["start"] + a["frames_done"] != b["start"] or a["backends"] != b["backends"] \
-                or a["sequence"] != b["sequence"]:
+                or a["sequence"] != b["sequence"] \
+                or a.get("exact", []) != b.get("exact", []):
             raise SystemExit(f"--merge: {b['_dir']} does not continue {a['_dir']} (same sequence and backends, "
                              f"start {a['start'] + a['frames_done']} expected, got {b['start']})")
     state.mkdir(parents=True, exist_ok=True)
@@ -227,12 +231,20 @@ def before_table(rows: dict, before: dict, what: str) -> list[str]:
     return lines if len(lines) > 5 else []
 
 
+def _sim_name(name: str) -> tuple[str, str, int]:
+    """(preset, session, seed) of ``sim:<preset>/<session>@<seed>``."""
+    from blockloc.datasets.refs import SequenceRef
+
+    return SequenceRef.parse(name).sim
+
+
 def write_fragment(state: Path, out: Path, before: Path | None = None) -> str:
     from bench.__main__ import machine
     from blockloc.datasets import open_sequence
 
     prog = json.loads((state / "progress.json").read_text())
-    seq = open_sequence(prog["sequence"])
+    loc_exact = [x for x in prog.get("exact", []) if x != "slam"]
+    seq = open_sequence(prog["sequence"]) if not loc_exact else exact_sequence(*_sim_name(prog["sequence"]), loc_exact)
     gt = seq.ground_truth()
     rows = {b: summarize(state, b, gt) for b in prog["backends"] if (state / f"{b}.npz").exists()}
     total_km = gt.path_length() / 1000.0
@@ -255,7 +267,9 @@ def write_fragment(state: Path, out: Path, before: Path | None = None) -> str:
         f"{prog['load_now']:.1f} at the last checkpoint, mean of samples {prog['load_mean']:.1f} "
         "(other engineers' processes share the 2 cores: times are upper bounds).",
         "",
-        f"Sequence `{prog['sequence']}`: {len(seq):,} scans, {total_km:.2f} km in total. **Covered: frames "
+        f"Sequence `{prog['sequence']}`"
+        + (f" with these error sources off (`--exact`): {', '.join(prog['exact'])}" if prog.get("exact") else "")
+        + f": {len(seq):,} scans, {total_km:.2f} km in total. **Covered: frames "
         f"{prog['start']}..{prog['start'] + frames - 1} ({frames:,} scans, {covered / 1000:.2f} km of ground truth, "
         f"{100 * frames / len(seq):.1f}% of the session)**"
         + (" — the whole session." if prog['start'] + frames >= len(seq) else
@@ -438,9 +452,9 @@ def main(argv: list[str] | None = None) -> int:
     exact = [x for x in args.exact.split(",") if x]
     if any(x not in EXACT_PARTS for x in exact):
         ap.error(f"--exact {args.exact!r}: expected a comma list of {', '.join(EXACT_PARTS)}")
-    map_exact = tuple(x for x in exact if x == "slam")
+    map_exact = tuple(x for x in EXACT_PARTS if x in exact and x in MAP_PARTS)
     if map_exact and (args.map or args.grid_map):
-        ap.error("--exact slam builds its own map: leave out --map and --grid-map")
+        ap.error(f"--exact {','.join(map_exact)} builds its own map: leave out --map and --grid-map")
     map_path = Path(args.map) if args.map else default_map_dir(args.preset, args.seed, cfg.map, exact=map_exact)
     t_build = ensure_map(args.preset, args.seed, map_path, cfg.map, exact=map_exact)
     store = open_map(map_path)
@@ -472,7 +486,7 @@ def main(argv: list[str] | None = None) -> int:
         return r
 
     runs = [run_for(b) for b in backends]
-    prog = {"command": cmd, "sequence": seq_name + (f" (exact: {', '.join(exact)})" if exact else ""), "backends": backends, "map": str(map_path),
+    prog = {"command": cmd, "sequence": seq_name, "exact": exact, "backends": backends, "map": str(map_path),
             "map_desc": map_desc, "block_size_m": args.block_size, "start": args.start, "minutes": args.minutes,
             "started": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "load_start": os.getloadavg()[0],
             "frames_done": 0, "finished": False}

@@ -280,3 +280,16 @@ def test_exact_slam_maps_from_exact_poses_in_their_own_cache_dir():
     assert np.allclose(mp.poses, gt.poses) and not np.allclose(base.poses, gt.poses, atol=1e-3)
     cfg = load_config("sim").map
     assert default_map_dir("tiny", 3, cfg, exact=("slam",)) != default_map_dir("tiny", 3, cfg)
+
+
+def test_exact_parts_that_shape_the_map_get_their_own_map(capsys):
+    from bench.campus import main
+
+    # one robot drives both sessions: its mounting and sensor errors are in the map too, so
+    # switching them off must not reuse a map built with them
+    with pytest.raises(SystemExit):
+        main(["--exact", "extrinsic", "--map", "/nonexistent"])
+    assert "builds its own map" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--exact", "imu,bogus"])
+    assert "expected a comma list" in capsys.readouterr().err
