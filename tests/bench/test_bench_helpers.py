@@ -293,3 +293,18 @@ def test_exact_parts_that_shape_the_map_get_their_own_map(capsys):
     with pytest.raises(SystemExit):
         main(["--exact", "imu,bogus"])
     assert "expected a comma list" in capsys.readouterr().err
+
+
+def test_budget_lowpass_keeps_slow_error_and_removes_jitter(tmp_path, capsys):
+    from bench.campus_budget import LOWPASS_SCANS, lowpass, main
+
+    rng = np.random.default_rng(0)
+    t = np.arange(2000) / 10.0
+    slow = np.stack([0.05 * np.sin(2 * np.pi * t / 60.0)] * 3, axis=1)
+    jitter = rng.normal(0.0, 0.05, (2000, 3))
+    k = LOWPASS_SCANS
+    assert np.abs(lowpass(slow)[k:-k] - slow[k:-k]).max() < 0.002
+    assert lowpass(jitter)[k:-k].std() < 0.3 * jitter.std()
+    with pytest.raises(SystemExit):
+        main(["--run", f"none={tmp_path}", "--out", str(tmp_path / "x.md")])
+    assert "bench.campus --state directory" in capsys.readouterr().err
