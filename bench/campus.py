@@ -42,7 +42,7 @@ def default_map_dir(preset: str, seed: int, map_cfg, kind: str = "block", exact:
     size = map_cfg.block_size_m if kind == "block" else map_cfg.tile_size_m
     key = fingerprint("blockloc.sim", "blockloc.maps", params=(preset, seed, size, map_cfg.keyframe_distance_m,
                                                                map_cfg.keyframe_angle_deg, map_cfg.voxel_size_m))
-    tag = "".join(f"-exact{x}" for x in exact)
+    tag = "".join(f"-exact{x}" for x in exact) + ("-mounted" if map_cfg.calibrate_mounting else "")
     return cache_root() / "bench" / f"campus_{preset}_{seed}_{kind}{tag}-{key}"
 
 
@@ -461,6 +461,9 @@ def main(argv: list[str] | None = None) -> int:
     map_desc = (f"{len(store.entries)} blocks, {store.total_points:,} points, S = "
                 f"{store.params.get('block_size_m', args.block_size):g} m"
                 + (f", built in {t_build:.0f} s" if t_build else ", cached"))
+    for drive, m in store.params.get("mounting", {}).items():
+        map_desc += (f"; LiDAR mounting estimated from {m['used']} keyframe pairs of {drive}: "
+                     f"rotation {m['rotation_deg']} deg, translation {m['translation_m']} m (body frame)")
 
     seq_name = f"sim:{args.preset}/{args.session}@{args.seed}"
     loc_exact = [x for x in exact if x != "slam"]

@@ -136,6 +136,10 @@ def map_build_cmd(
     cluster: Optional[str] = typer.Option(None, "--cluster", metavar="local:N|tcp://HOST:PORT",
                                           help="Build on Dask: local:N starts N worker processes here; "
                                                "tcp://HOST:PORT uses a running scheduler. Default: serial, same bytes."),
+    calibrate_mounting: Optional[bool] = typer.Option(
+        None, "--calibrate-mounting/--nominal-mounting",
+        help="Estimate the LiDAR mounting (T_body_lidar) from the drives' scans first and build "
+             "with it; the estimate is logged and kept in the manifest (default: map.calibrate_mounting)."),
 ) -> None:
     """Build a block map or grid tiles from mapping sequences and their poses (or a global PCD),
     serial or on a Dask cluster."""
@@ -143,7 +147,7 @@ def map_build_cmd(
 
     build_command(seq, kind, out, config, data_root, block_size, tile_size, voxel, max_frames, overwrite,
                   poses=poses, from_pcd=from_pcd, sensor_range_m=sensor_range, cluster=cluster,
-                  gravity=gravity)
+                  gravity=gravity, calibrate_mounting=calibrate_mounting)
 
 
 @map_app.command("tile")

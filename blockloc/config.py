@@ -100,6 +100,10 @@ class MapConfig:
     block_size_m: float = bounded(100.0, POSITIVE)
     keyframe_distance_m: float = bounded(1.0, NON_NEGATIVE)
     keyframe_angle_deg: float = bounded(15.0, NON_NEGATIVE)
+    # Estimate the LiDAR mounting from the mapping drive's scans before building
+    # (blockloc.maps.mounting): poses from a dataset's ground truth or a body-frame SLAM carry the
+    # robot's mounting error into the map otherwise. Off by default: it reads ~300 more scans.
+    calibrate_mounting: bool = False
     switch_hysteresis_m: float = bounded(5.0, NON_NEGATIVE)
     # Also serve the nearest other block with a keyframe this close (0: one block, as the paper).
     # 15 m: campus, first 1.1 km, ATE 0.063 -> 0.040 m (max 0.55 -> 0.11 m), resident map 59 -> 87 MB.

@@ -185,6 +185,13 @@ MUTATIONS: list[Mutation] = [
       f"{T_EVAL}/test_eval_trajectory_io.py"),
     M("ndt_information_scale_ignored", "blockloc/tracking/factors.py",
       "H = 0.5 * (H + H.T) * params.information_scale", "H = 0.5 * (H + H.T)", T_FACTORS),
+    # --- the LiDAR mounting estimate (issue 15)
+    M("mounting_hand_eye_sides", "blockloc/maps/mounting.py",
+      "b.compose(Xi).compose(a).compose(X)", "b.compose(X).compose(a).compose(Xi)",
+      "tests/maps/test_mounting.py"),
+    M("mounting_not_applied", "blockloc/maps/build_plan.py",
+      'drives = [remounted(p.drive, m["T_body_lidar"]) for p, m in zip(plans, found)]',
+      'drives = [p.drive for p in plans]', "tests/maps/test_mounting.py"),
 ]
 
 

@@ -39,7 +39,8 @@ def build_map_from_specs(drives, kind: str, out: str | Path, map_cfg, *, overwri
     return build_map_from_drives(
         drives, kind, out, block_size_m=map_cfg.block_size_m, tile_size_m=map_cfg.tile_size_m,
         voxel_size_m=map_cfg.voxel_size_m, keyframe_distance_m=map_cfg.keyframe_distance_m,
-        keyframe_angle_deg=map_cfg.keyframe_angle_deg, executor=executor, progress=progress,
+        keyframe_angle_deg=map_cfg.keyframe_angle_deg,
+        calibrate_mounting=map_cfg.calibrate_mounting, executor=executor, progress=progress,
         overwrite=overwrite)
 
 
@@ -103,10 +104,10 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
                   voxel: float | None, max_frames: int | None, overwrite: bool, *,
                   poses: list[str] | None = None, from_pcd: Path | None = None,
                   sensor_range_m: float = 60.0, cluster: str | None = None,
-                  gravity: str | None = None) -> None:
+                  gravity: str | None = None, calibrate_mounting: bool | None = None) -> None:
     """``blockloc map build``: the store, then its place index (a local store). gravity: with
     ``from_pcd``, the global map's gravity (``down|up|X,Y,Z``, default up: z up); a ``--seq``
-    build takes its first sequence's."""
+    build takes its first sequence's. calibrate_mounting: None keeps ``map.calibrate_mounting``."""
     import dataclasses
     import sys
 
@@ -123,6 +124,8 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
         raise MapError(f"--kind {kind!r}: expected block or grid")
     check_positive(("--block-size", "block size", block_size), ("--tile-size", "tile size", tile_size),
                    ("--sensor-range", "sensor range", sensor_range_m))
+    if from_pcd is not None and calibrate_mounting:
+        raise MapError("--calibrate-mounting needs --seq drives (a global PCD has no scans to register)")
     if from_pcd is not None:
         if len(poses) != 1 or poses[0] in ("", "-"):
             raise MapError("--from-pcd needs one --poses TRAJ (the mapping trajectory)")
@@ -139,7 +142,8 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
         check_out(out, overwrite)
     cfg = config_for(_SLICE.sub(r"\g<seq>", seqs[0]) if seqs else None, config)
     overrides = {k: v for k, v in (("block_size_m", block_size), ("tile_size_m", tile_size),
-                                   ("voxel_size_m", voxel)) if v is not None}
+                                   ("voxel_size_m", voxel), ("calibrate_mounting", calibrate_mounting))
+                 if v is not None}
     map_cfg = dataclasses.replace(cfg.map, **overrides)
     if from_pcd is not None:
         from blockloc.maps.from_pcd import build_map_from_global_pcd

@@ -185,7 +185,7 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
                           block_size_m: float = 100.0, tile_size_m: float = 20.0,
                           voxel_size_m: float = 0.2, keyframe_distance_m: float = 1.0,
                           keyframe_angle_deg: float = 15.0, deskew: bool = True,
-                          executor=None, progress=False, overwrite: bool = False,
+                          calibrate_mounting: bool = False, executor=None, progress=False, overwrite: bool = False,
                           chunk_keyframes: int = CHUNK_KEYFRAMES, params: dict | None = None,
                           stats: dict | None = None):
     """Build a block or grid store at ``out`` from mapping drives sharing one map frame.
@@ -194,7 +194,9 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
     ``block_size_m``) or 'grid' (tiles of ``tile_size_m``). voxel_size_m: voxel filter of blocks
     and tiles (<= 0: none). executor: None = :class:`InlineExecutor`, or a Dask executor
     (:func:`blockloc.maps.distributed.open_executor`): the same plan, the same bytes.
-    progress: None/False or a callback ``(done, total)`` over tasks (commands draw the bar). stats: a dict
+    calibrate_mounting: estimate each drive's LiDAR mounting from its scans first
+    (:mod:`blockloc.maps.mounting`) and build with it instead of the sequence's ``T_body_lidar``;
+    the manifest keeps each estimate under ``mounting``. progress: None/False or a callback ``(done, total)`` over tasks (commands draw the bar). stats: a dict
     to fill with per-task-kind counts, seconds, bytes and raw points (:meth:`_Tasks.stats`).
     Returns the opened :class:`~blockloc.maps.store.MapStore`.
     """
@@ -224,6 +226,10 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
         plans = [f.result() for f in [tasks.submit(plan_drive_task, d, keyframe_distance_m,
                                                    keyframe_angle_deg, name=f"plan-{n}")
                                       for n, d in enumerate(drives)]]
+        mounting = {}
+        if calibrate_mounting:
+            plans, mounting = _remount(tasks, plans, deskew, keyframe_distance_m, keyframe_angle_deg)
+            drives = drives + [p.drive for p in plans]  # forgotten with the others at the end
         plans.sort(key=DrivePlan.order_key)
         frames = sorted({p.map_frame for p in plans})
         if len(frames) > 1:
@@ -235,6 +241,8 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
         if len(plans) > 1:
             common["drives"] = [{"sequence": p.drive.name, "first_stamp": float(p.stamps[0]),
                                  "keyframes": len(p.frames)} for p in plans]
+        if mounting:
+            common["mounting"] = mounting
         common.update(params or {})
         if kind == "block":
             entries, p = _blocks(tasks, target, plans, block_size_m, voxel_size_m, deskew)
@@ -266,6 +274,29 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
     log.info("%s map %s: %d entries from %d drive(s), %d tasks (%s)", kind, out, len(store),
              len(plans), len(tasks.futures), getattr(executor, "description", executor))
     return store
+
+
+def _remount(tasks: _Tasks, plans: list[DrivePlan], deskew: bool, keyframe_distance_m: float,
+             keyframe_angle_deg: float) -> tuple[list[DrivePlan], dict]:
+    """Each drive's mounting estimated (one task per drive), then the drive planned again with
+    it (keyframe poses are LiDAR poses). Returns the new plans and ``{drive name: estimate}``."""
+    from blockloc.maps.build_tasks import mounting_task, remounted
+
+    tasks.expect(2 * len(plans))
+    found = [f.result() for f in [tasks.submit(mounting_task, p, deskew, name=f"mounting-{n}")
+                                  for n, p in enumerate(plans)]]
+    for p, m in zip(plans, found):
+        e = m["estimate"]
+        log.info("%s: LiDAR mounting from %d of %d keyframe pairs: rotation %s deg, translation "
+                 "%s m (body frame; 1-sigma %s deg, %s m)", p.drive.name, e["used"], e["pairs"],
+                 e["rotation_deg"], e["translation_m"], e["sigma_deg"], e["sigma_m"])
+        for note in m["notes"]:
+            log.warning("%s: %s", p.drive.name, note)
+    drives = [remounted(p.drive, m["T_body_lidar"]) for p, m in zip(plans, found)]
+    new = [f.result() for f in [tasks.submit(plan_drive_task, d, keyframe_distance_m,
+                                             keyframe_angle_deg, name=f"plan-mounted-{n}")
+                                for n, d in enumerate(drives)]]
+    return new, {p.drive.name: m["estimate"] for p, m in zip(plans, found)}
 
 
 def build_block_map_from_sequence(seq, *, out: str | Path, max_frames: int | None = None,
