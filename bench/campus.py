@@ -186,17 +186,20 @@ def merge_states(parts: list[Path], state: Path) -> None:
     """Join the checkpoints of consecutive segments of one session (each run with its own
     ``--start`` and ``--state``, e.g. one per core) into ``state``, as if one run had covered them:
     per-frame arrays concatenated, counters summed, the last segment's map statistics. Each segment's
-    trackers start at the ground-truth pose of its first frame, which the fragment says."""
+    trackers start at the ground-truth pose of its first frame, which the fragment says. Segments
+    may have run more backends than others (e.g. a first kilometre with a second engine): the
+    backends every segment ran are merged."""
     progs = sorted((json.loads((p / "progress.json").read_text()) | {"_dir": str(p)} for p in parts),
                    key=lambda g: g["start"])
+    backends = [b for b in progs[0]["backends"] if all(b in g["backends"] for g in progs)]
     for a, b in zip(progs, progs[1:]):
-        if a["start"] + a["frames_done"] != b["start"] or a["backends"] != b["backends"] \
+        if a["start"] + a["frames_done"] != b["start"] or not backends \
                 or a["sequence"] != b["sequence"] \
                 or a.get("exact", []) != b.get("exact", []):
-            raise SystemExit(f"--merge: {b['_dir']} does not continue {a['_dir']} (same sequence and backends, "
-                             f"start {a['start'] + a['frames_done']} expected, got {b['start']})")
+            raise SystemExit(f"--merge: {b['_dir']} does not continue {a['_dir']} (same sequence, a backend "
+                             f"in common, start {a['start'] + a['frames_done']} expected, got {b['start']})")
     state.mkdir(parents=True, exist_ok=True)
-    for backend in progs[0]["backends"]:
+    for backend in backends:
         zs = [np.load(Path(g["_dir"]) / f"{backend}.npz") for g in progs]
         merged = {k: np.concatenate([z[k] for z in zs]) for k in zs[0].files if k not in ("counters", "map_stats")}
         counters = [json.loads(str(z["counters"])) for z in zs]
@@ -205,7 +208,7 @@ def merge_states(parts: list[Path], state: Path) -> None:
         with atomic_path(state / f"{backend}.npz", suffix=".npz") as tmp:
             np.savez(tmp, **merged)
     prog = {k: v for k, v in progs[0].items() if k != "_dir"}
-    prog.update(frames_done=sum(g["frames_done"] for g in progs), wall_s=max(g["wall_s"] for g in progs),
+    prog.update(backends=backends, frames_done=sum(g["frames_done"] for g in progs), wall_s=max(g["wall_s"] for g in progs),
                 updated=max(g["updated"] for g in progs), load_now=progs[-1]["load_now"],
                 load_mean=float(np.mean([g["load_mean"] for g in progs])),
                 finished=all(g["finished"] for g in progs),

@@ -104,6 +104,8 @@ class MapConfig:
     # (blockloc.maps.mounting): poses from a dataset's ground truth or a body-frame SLAM carry the
     # robot's mounting error into the map otherwise. Off by default: it reads ~300 more scans.
     calibrate_mounting: bool = False
+    # Track with the mounting the map's build estimated (the same robot recorded both drives).
+    use_map_mounting: bool = False
     switch_hysteresis_m: float = bounded(5.0, NON_NEGATIVE)
     # Also serve the nearest other block with a keyframe this close (0: one block, as the paper).
     # 15 m: campus, first 1.1 km, ATE 0.063 -> 0.040 m (max 0.55 -> 0.11 m), resident map 59 -> 87 MB.

@@ -149,6 +149,7 @@ class Session:
 
         backend = backend or cfg.map.backend
         rc, mc, gi = cfg.registration, cfg.map, cfg.global_init
+        seq = _with_map_mounting(seq, store, mc.use_map_mounting)
         engine = engine_from_settings(dataclasses.asdict(rc))
         policy = make_policy(backend, store, **dataclasses.asdict(mc))
         provider = MapProvider(store, policy, engine=engine, prefetch=mc.prefetch,
@@ -474,3 +475,25 @@ class Session:
     def close(self) -> None:
         """Stop the map provider's thread (idempotent)."""
         self.provider.close()
+
+
+def _with_map_mounting(seq, store, use: bool):
+    """``seq`` seen with the LiDAR mounting ``store`` was built with (``use``: the same robot),
+    or as it is, with a warning when the two differ (a build with ``--calibrate-mounting``)."""
+    from blockloc.maps.mounting import map_mounting, mounting_difference
+
+    X_map = map_mounting(getattr(store, "params", {}) or {})
+    if X_map is None:
+        return seq
+    deg, m = mounting_difference(X_map, np.asarray(seq.info.T_body_lidar, np.float64))
+    if use:
+        from blockloc.datasets.base import RemountedSequence
+
+        log.info("%s: tracking with the map's estimated LiDAR mounting (%.2f deg, %.3f m from the "
+                 "sequence's)", seq.info.name, deg, m)
+        return RemountedSequence(seq, X_map)
+    if deg > 0.05 or m > 0.005:
+        log.warning("the map was built with a LiDAR mounting estimated from its drive that differs "
+                    "from %s's by %.2f deg / %.3f m; if the same robot recorded both, "
+                    "--set map.use_map_mounting=true tracks with it", seq.info.name, deg, m)
+    return seq

@@ -146,3 +146,22 @@ class RangeLimited:
         if name == "inner":
             raise AttributeError(name)
         return getattr(self.inner, name)
+
+
+class RemountedSequence:
+    """A sequence seen with another ``T_body_lidar`` (4, 4): a mounting estimated when its map was
+    built (:mod:`blockloc.maps.mounting`); everything else is the wrapped sequence's."""
+
+    def __init__(self, seq, T_body_lidar: np.ndarray) -> None:
+        import dataclasses
+
+        self._seq = seq
+        self.info = dataclasses.replace(seq.info, T_body_lidar=np.asarray(T_body_lidar, np.float64))
+
+    def __len__(self) -> int:
+        return len(self._seq)
+
+    def __getattr__(self, name: str):
+        if name == "_seq" or name.startswith("__"):  # not set yet (unpickling), or a dunder
+            raise AttributeError(name)
+        return getattr(self._seq, name)

@@ -273,25 +273,9 @@ class _Remounted:
         self.T_body_lidar = np.asarray(T_body_lidar, np.float64)
 
     def __call__(self):
+        from blockloc.datasets.base import RemountedSequence
+
         return RemountedSequence(_opened(self.inner)[0], self.T_body_lidar)
-
-
-class RemountedSequence:
-    """A sequence seen with another ``T_body_lidar`` (4, 4); everything else is the wrapped one's."""
-
-    def __init__(self, seq, T_body_lidar: np.ndarray) -> None:
-        import dataclasses
-
-        self._seq = seq
-        self.info = dataclasses.replace(seq.info, T_body_lidar=np.asarray(T_body_lidar, np.float64))
-
-    def __len__(self) -> int:
-        return len(self._seq)
-
-    def __getattr__(self, name: str):
-        if name.startswith("__"):
-            raise AttributeError(name)
-        return getattr(self._seq, name)
 
 
 def remounted(drive: Drive, T_body_lidar: np.ndarray) -> Drive:

@@ -244,3 +244,23 @@ def estimate_mounting(clouds_lidar, T_map_body: np.ndarray, pairs: np.ndarray,
     return MountingEstimate(X, X0, rot, X[:3, 3] - X0[:3, 3], sol["sigma"], sol["observed"],
                             len(pairs), len(A), float(np.median(sol["cost_before"])),
                             float(np.median(sol["cost_after"])), notes)
+
+
+def map_mounting(params: dict) -> np.ndarray | None:
+    """The LiDAR mounting (4, 4) a map was built with when its build estimated one (the manifest
+    parameters' ``mounting``, one entry per drive); None when it estimated none, or when its
+    drives' estimates disagree by more than 0.05 deg or 5 mm (several robots: no one mounting)."""
+    found = [np.asarray(m["T_body_lidar"], np.float64) for m in (params.get("mounting") or {}).values()]
+    if not found:
+        return None
+    for X in found[1:]:
+        deg, m = mounting_difference(X, found[0])
+        if deg > 0.05 or m > 0.005:
+            return None
+    return found[0]
+
+
+def mounting_difference(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    """(rotation deg, translation m) between two mountings ``T_body_lidar`` (4, 4)."""
+    deg = float(np.rad2deg(np.linalg.norm(so3_log(T_a[:3, :3] @ T_b[:3, :3].T))))
+    return deg, float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]))

@@ -217,7 +217,7 @@ def test_fragments_from_before_the_realistic_sim_are_flagged(tmp_path, monkeypat
     assert "earlier simulator" not in ndt
 
 
-def _segment(tmp_path, name, start, n, failures):
+def _segment(tmp_path, name, start, n, failures, backends=("block",)):
     from bench.campus import _write_json
 
     d = tmp_path / name
@@ -226,8 +226,9 @@ def _segment(tmp_path, name, start, n, failures):
          "poses": np.tile(np.eye(4), (n, 1, 1)),
          "counters": np.array(json.dumps({"failures": failures, "rejected": 1})),
          "map_stats": np.array(json.dumps({"resident_mb": float(start)}))}
-    np.savez(d / "block.npz", **z)
-    _write_json(d / "progress.json", {"command": f"seg {start}", "sequence": "sim:campus/loc@1", "backends": ["block"],
+    for b in backends:
+        np.savez(d / f"{b}.npz", **z)
+    _write_json(d / "progress.json", {"command": f"seg {start}", "sequence": "sim:campus/loc@1", "backends": list(backends),
                                       "start": start, "frames_done": n, "wall_s": 10.0 * n, "updated": f"t{start}",
                                       "load_now": 1.0, "load_mean": 1.0, "finished": True})
     return d
@@ -250,6 +251,20 @@ def test_merge_states_joins_consecutive_segments_and_refuses_a_gap(tmp_path):
     gap = _segment(tmp_path, "c", 9, 2, failures=0)
     with pytest.raises(SystemExit, match="does not continue"):
         merge_states([a, gap], tmp_path / "m2")
+
+
+def test_merge_states_keeps_the_backends_every_segment_ran(tmp_path):
+    from bench.campus import merge_states
+
+    first = _segment(tmp_path, "a", 0, 3, failures=0, backends=("block", "block@vgicp"))
+    rest = _segment(tmp_path, "b", 3, 2, failures=1)
+    merge_states([first, rest], tmp_path / "m")
+    prog = json.loads((tmp_path / "m" / "progress.json").read_text())
+    assert prog["backends"] == ["block"] and prog["frames_done"] == 5
+    assert not (tmp_path / "m" / "block@vgicp.npz").exists()
+    other = _segment(tmp_path, "c", 3, 2, failures=0, backends=("grid",))
+    with pytest.raises(SystemExit, match="does not continue"):
+        merge_states([first, other], tmp_path / "m2")
 
 
 def test_exact_sequence_switches_only_the_named_error_sources_off():

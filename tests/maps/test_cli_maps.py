@@ -113,3 +113,32 @@ def test_gravity_goes_with_from_pcd_only(tmp_path):
                               str(tmp_path / "p.tum"), "--gravity", "sideways", "--out", str(tmp_path / "m")])
     assert isinstance(res.exception, MapError) and "--gravity 'sideways'" in str(res.exception)
     assert not (tmp_path / "m").exists()
+
+
+def test_calibrate_mounting_on_an_nclt_session_whose_lidar_sits_off_nominal(tmp_path):
+    """NCLT's ground truth is body poses and its extrinsic nominal: `map build --calibrate-mounting`
+    finds how the session's LiDAR really sits and keeps the estimate in the manifest."""
+    from blockloc.datasets.base import ImuData
+    from blockloc.datasets.nclt import NCLT_T_BODY_LIDAR, write_session
+    from blockloc.geometry import make_T, so3_exp, so3_log
+
+    from .synthetic import MemorySequence, route, world_points
+
+    X_true = np.asarray(NCLT_T_BODY_LIDAR, float) @ make_T(so3_exp(np.deg2rad([0.2, 0.3, -0.5])),
+                                                          np.array([0.03, -0.02, 0.0]))
+    world = world_points(extent=(-40, 110), seed=5, density=0.5)
+    traj = route([[0, 0], [70, 0], [70, 70], [0, 70], [0, 0]], speed=4.0)
+    seq = MemorySequence(world, traj, radius=25.0, T_body_lidar=X_true)
+    imu = ImuData(traj.stamps, np.zeros((len(traj), 3)), np.zeros((len(traj), 3)))
+    write_session(tmp_path / "sess", date="2012-01-15", frames=seq.frames(), imu=imu, ground_truth=traj)
+    res = runner.invoke(app, ["map", "build", "--seq", str(tmp_path / "sess"), "--kind", "block",
+                              "--block-size", "40", "--calibrate-mounting", "--out", str(tmp_path / "bm")])
+    assert res.exit_code == 0, res.output
+    (m,) = open_map(tmp_path / "bm").params["mounting"].values()
+    X = np.asarray(m["T_body_lidar"])
+    assert np.abs(np.rad2deg(so3_log(X[:3, :3] @ X_true[:3, :3].T))).max() < 0.1, m
+    assert np.abs(X[:2, 3] - X_true[:2, 3]).max() < 0.01, m
+    # a global PCD has no scans to register: refused before any work, naming the option
+    res = runner.invoke(app, ["map", "build", "--from-pcd", str(tmp_path / "g.pcd"), "--poses",
+                              str(tmp_path / "p.tum"), "--calibrate-mounting", "--out", str(tmp_path / "m2")])
+    assert "--calibrate-mounting needs --seq" in str(res.exception) and not (tmp_path / "m2").exists()

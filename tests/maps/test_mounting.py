@@ -7,7 +7,7 @@ import pytest
 
 from blockloc.geometry import inv_T, make_T, so3_exp, so3_log
 from blockloc.maps.build_plan import Drive, build_map_from_drives
-from blockloc.maps.build_tasks import RemountedSequence
+from blockloc.datasets.base import RemountedSequence
 from blockloc.maps.mounting import choose_pairs, solve_mounting
 
 from .synthetic import MemorySequence, route, world_points
@@ -129,3 +129,24 @@ def test_a_build_with_calibrate_mounting_finds_the_true_mounting_and_a_sharper_m
         return float(np.percentile(tree.query(pts)[0], 90))
 
     assert spread(mounted) < 0.7 * spread(nominal)
+
+
+def test_tracking_takes_the_map_mounting_only_when_asked_and_warns_otherwise(caplog, mis_mounted_drive):
+    from types import SimpleNamespace
+
+    from blockloc.maps.mounting import map_mounting
+    from blockloc.session import _with_map_mounting
+
+    _, seq, X_true = mis_mounted_drive
+    store = SimpleNamespace(params={"mounting": {"square": {"T_body_lidar": X_true.tolist()}}})
+    used = _with_map_mounting(seq, store, use=True)
+    np.testing.assert_allclose(used.info.T_body_lidar, X_true)
+    assert len(used) == len(seq) and used.frame(3).stamp == seq.frame(3).stamp
+    with caplog.at_level("WARNING"):
+        kept = _with_map_mounting(seq, store, use=False)
+    assert kept is seq and "use_map_mounting" in caplog.text and "0.71 deg" in caplog.text
+    assert _with_map_mounting(seq, SimpleNamespace(params={}), use=True) is seq
+    # two robots' drives in one map: no single mounting to take
+    other = X_true @ make_T(so3_exp(np.deg2rad([0.0, 0.0, 0.5])), np.zeros(3))
+    assert map_mounting({"mounting": {"a": {"T_body_lidar": X_true.tolist()},
+                                      "b": {"T_body_lidar": other.tolist()}}}) is None
