@@ -102,7 +102,7 @@ class MapConfig:
     keyframe_angle_deg: float = bounded(15.0, NON_NEGATIVE)
     # Estimate the LiDAR mounting from the mapping drive's scans before building
     # (blockloc.maps.mounting): poses from a dataset's ground truth or a body-frame SLAM carry the
-    # robot's mounting error into the map otherwise. Off by default: it reads ~300 more scans.
+    # robot's mounting error into the map otherwise. Off by default: it reads up to 400 more scans.
     calibrate_mounting: bool = False
     # Track with the mounting the map's build estimated (the same robot recorded both drives).
     use_map_mounting: bool = False

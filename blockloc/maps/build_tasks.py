@@ -261,7 +261,7 @@ def plan_drive_task(drive: Drive, keyframe_distance_m: float, keyframe_angle_deg
 # ----------------------------------------------------------------------------- the LiDAR mounting
 
 #: Keyframe pairs registered for a drive's mounting estimate (each pair reads up to two scans).
-MOUNTING_PAIRS = 300
+MOUNTING_PAIRS = 200
 
 
 class _Remounted:
