@@ -278,6 +278,10 @@ def print_summary(summary: dict[str, Any], console) -> None:
                              "another entry's")
     params = {k: v for k, v in summary["parameters"].items() if not isinstance(v, (dict, list))}
     t.add_row("parameters", ", ".join(f"{k}={v}" for k, v in params.items()))
+    for drive, m in (summary["parameters"].get("mounting") or {}).items():
+        t.add_row("LiDAR mounting", f"{drive}: estimated from {m['used']} of {m['pairs']} keyframe pairs, "
+                                    f"rotation {m['rotation_deg']} deg, translation {m['translation_m']} m "
+                                    "from the nominal (body frame)")
     if summary["legacy_layout"]:
         t.add_row("layout", "released block-map layout (no manifest, no checksums)")
     console.print(t)

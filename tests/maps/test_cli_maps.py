@@ -138,6 +138,8 @@ def test_calibrate_mounting_on_an_nclt_session_whose_lidar_sits_off_nominal(tmp_
     X = np.asarray(m["T_body_lidar"])
     assert np.abs(np.rad2deg(so3_log(X[:3, :3] @ X_true[:3, :3].T))).max() < 0.1, m
     assert np.abs(X[:2, 3] - X_true[:2, 3]).max() < 0.01, m
+    info = runner.invoke(app, ["map", "info", str(tmp_path / "bm")])
+    assert info.exit_code == 0 and "LiDAR mounting" in info.output and "keyframe pairs" in info.output
     # a global PCD has no scans to register: refused before any work, naming the option
     res = runner.invoke(app, ["map", "build", "--from-pcd", str(tmp_path / "g.pcd"), "--poses",
                               str(tmp_path / "p.tum"), "--calibrate-mounting", "--out", str(tmp_path / "m2")])
