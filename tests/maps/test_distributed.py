@@ -98,6 +98,17 @@ def test_running_scheduler_writes_the_serial_bytes(tmp_path, world, dask_cluster
     assert leftovers(tmp_path) == []
 
 
+def test_a_calibrated_build_on_the_cluster_writes_the_serial_bytes(tmp_path, world, dask_cluster):
+    """The mounting estimate is a task too: the same estimate, and the same store, from any worker."""
+    serial = build_map_from_drives(two_drives(world), "block", tmp_path / "serial", calibrate_mounting=True, **KW)
+    with open_executor(dask_cluster.address) as ex:
+        build_map_from_drives(two_drives(world), "block", tmp_path / "dask", executor=ex,
+                              calibrate_mounting=True, **KW)
+    assert sorted(serial.params["mounting"]) == ["back", "out"]
+    assert store_files(tmp_path / "serial") == store_files(tmp_path / "dask")
+    assert leftovers(tmp_path) == []
+
+
 @pytest.mark.parametrize("kind", ["block", "grid"])
 def test_failed_task_writes_no_manifest(tmp_path, world, dask_cluster, kind):
     drives = two_drives(world, FailingSequence, fail_after=60)
