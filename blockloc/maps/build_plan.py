@@ -10,7 +10,9 @@ Steps (tasks in *italics*):
 
 1. *plan_drive*: each drive's keyframes and their poses (no scan read). Drives are then put in a
    stable order: first keyframe stamp, then name, then first frame; the map does not depend on
-   the order they were given in.
+   the order they were given in. With ``calibrate_mounting``, *mounting* estimates each drive's
+   LiDAR mounting from registered keyframe pairs (:mod:`blockloc.maps.mounting`) and the drive
+   is planned again with it.
 2. Block maps (Algorithm 1, :mod:`blockloc.maps.block_maps`): the client cuts each drive's
    keyframes into candidate blocks from their positions (:class:`CandidateSegmenter`);
    *block_run* reads and deskews a run of ``KEYFRAMES_PER_RUN`` keyframes of a candidate and
@@ -185,7 +187,8 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
                           block_size_m: float = 100.0, tile_size_m: float = 20.0,
                           voxel_size_m: float = 0.2, keyframe_distance_m: float = 1.0,
                           keyframe_angle_deg: float = 15.0, deskew: bool = True,
-                          calibrate_mounting: bool = False, executor=None, progress=False, overwrite: bool = False,
+                          calibrate_mounting: bool = False, executor=None, progress=False,
+                          overwrite: bool = False,
                           chunk_keyframes: int = CHUNK_KEYFRAMES, params: dict | None = None,
                           stats: dict | None = None):
     """Build a block or grid store at ``out`` from mapping drives sharing one map frame.
@@ -196,7 +199,8 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
     (:func:`blockloc.maps.distributed.open_executor`): the same plan, the same bytes.
     calibrate_mounting: estimate each drive's LiDAR mounting from its scans first
     (:mod:`blockloc.maps.mounting`) and build with it instead of the sequence's ``T_body_lidar``;
-    the manifest keeps each estimate under ``mounting``. progress: None/False or a callback ``(done, total)`` over tasks (commands draw the bar). stats: a dict
+    the manifest keeps each estimate under ``mounting``.
+    progress: None/False or a callback ``(done, total)`` over tasks (commands draw the bar). stats: a dict
     to fill with per-task-kind counts, seconds, bytes and raw points (:meth:`_Tasks.stats`).
     Returns the opened :class:`~blockloc.maps.store.MapStore`.
     """
