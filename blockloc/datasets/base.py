@@ -117,19 +117,32 @@ class Sequence(Protocol):
         """T_map_body poses maps are built from: offline-SLAM poses when present, else ground truth."""
 
 
-class RangeLimited:
+class SequenceView:
+    """A sequence seen through a wrapper: ``info``, ``len`` and every attribute are the wrapped
+    sequence's (``inner``) unless a subclass changes them."""
+
+    def __init__(self, seq) -> None:
+        self.inner = seq
+        self.info = seq.info
+
+    def __len__(self) -> int:
+        return len(self.inner)
+
+    def __getattr__(self, name):
+        if name == "inner" or name.startswith("__"):  # not set yet (unpickling), or a dunder
+            raise AttributeError(name)
+        return getattr(self.inner, name)
+
+
+class RangeLimited(SequenceView):
     """A sequence whose frames keep only points with range in [min_range_m, max_range_m] (lidar
     frame), as the NCLT and bag loaders do while reading: for sources that return every point
     (a streamed simulation, whose vehicle-body hits lie within ~1.5 m). Everything else passes
     through."""
 
     def __init__(self, seq, min_range_m: float, max_range_m: float) -> None:
-        self.inner = seq
-        self.info = seq.info
+        super().__init__(seq)
         self.min_range_m, self.max_range_m = float(min_range_m), float(max_range_m)
-
-    def __len__(self) -> int:
-        return len(self.inner)
 
     def _limit(self, frame: LidarFrame) -> LidarFrame:
         r2 = np.einsum("ij,ij->i", frame.points, frame.points)
@@ -142,26 +155,13 @@ class RangeLimited:
         for frame in self.inner.frames(start, stop):
             yield self._limit(frame)
 
-    def __getattr__(self, name):
-        if name == "inner":
-            raise AttributeError(name)
-        return getattr(self.inner, name)
 
-
-class RemountedSequence:
+class RemountedSequence(SequenceView):
     """A sequence seen with another ``T_body_lidar`` (4, 4): a mounting estimated when its map was
     built (:mod:`blockloc.maps.mounting`); everything else is the wrapped sequence's."""
 
     def __init__(self, seq, T_body_lidar: np.ndarray) -> None:
         import dataclasses
 
-        self._seq = seq
+        super().__init__(seq)
         self.info = dataclasses.replace(seq.info, T_body_lidar=np.asarray(T_body_lidar, np.float64))
-
-    def __len__(self) -> int:
-        return len(self._seq)
-
-    def __getattr__(self, name: str):
-        if name == "_seq" or name.startswith("__"):  # not set yet (unpickling), or a dunder
-            raise AttributeError(name)
-        return getattr(self._seq, name)

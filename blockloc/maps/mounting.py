@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from blockloc.geometry import inv_T, so3_log
+from blockloc.geometry import inv_T, rotation_angle, so3_log
 
 log = logging.getLogger(__name__)
 
@@ -222,13 +222,13 @@ def estimate_mounting(clouds_lidar, T_map_body: np.ndarray, pairs: np.ndarray,
     T = np.asarray(T_map_body, np.float64)
     X0 = np.asarray(T_body_lidar0, np.float64)
     X0_inv = inv_T(X0)
-    targets: dict[int, object] = {}
+    target_of, target = None, None  # pairs come sorted by i: one target serves a run of them
     A, B, H = [], [], []
     for i, j in np.asarray(pairs, np.int64).tolist():
         A_ij = inv_T(T[i]) @ T[j]
-        if i not in targets:
-            targets = {i: engine.build_target(np.asarray(clouds_lidar[i], np.float64))}
-        res = engine.align(targets[i], np.asarray(clouds_lidar[j], np.float64), X0_inv @ A_ij @ X0)
+        if target_of != i:
+            target_of, target = i, engine.build_target(np.asarray(clouds_lidar[i], np.float64))
+        res = engine.align(target, np.asarray(clouds_lidar[j], np.float64), X0_inv @ A_ij @ X0)
         if not res.converged or res.fitness < min_fitness or not np.all(np.isfinite(res.H)):
             continue
         A.append(A_ij)
@@ -277,5 +277,5 @@ def map_mounting(params: dict) -> np.ndarray | None:
 
 def mounting_difference(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     """(rotation deg, translation m) between two mountings ``T_body_lidar`` (4, 4)."""
-    deg = float(np.rad2deg(np.linalg.norm(so3_log(T_a[:3, :3] @ T_b[:3, :3].T))))
+    deg = float(np.rad2deg(rotation_angle(T_a[:3, :3] @ T_b[:3, :3].T)))
     return deg, float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]))
