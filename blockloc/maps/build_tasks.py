@@ -295,22 +295,26 @@ def mounting_task(plan: DrivePlan, deskew: bool, max_pairs: int = MOUNTING_PAIRS
     6000 frames (200 pairs) it recovered the simulated mounting to 0.035 deg and 4 mm, VGICP
     scan-to-scan to 0.07 deg and 14 mm.
     """
+    from blockloc.errors import MapError
     from blockloc.geometry import inv_T, transform_points
     from blockloc.maps.mounting import choose_pairs, estimate_mounting
     from blockloc.registration.engines import make_engine
     from blockloc.voxels import voxel_downsample
 
-    seq, _, X0 = _opened(plan.drive)
+    _, _, X0 = _opened(plan.drive)
     T_map_body = plan.T_map_lidar @ inv_T(X0)
     pairs = choose_pairs(T_map_body, max_pairs=max_pairs)
+    needed = sorted(set(pairs.ravel().tolist()))
     clouds, raw = {}, 0
-    frames = plan.frames.tolist()
-    for k in sorted(set(pairs.ravel().tolist())):
-        pts_map, _ = next(_keyframe_clouds(plan.drive, [frames[k]], deskew))
+    for k, (pts_map, _) in zip(needed, _keyframe_clouds(plan.drive, plan.frames[needed].tolist(), deskew)):
         raw += len(pts_map)
         # back into the LiDAR frame at the scan stamp: deskewed points, as the pair sees them
         clouds[k] = voxel_downsample(transform_points(inv_T(plan.T_map_lidar[k]), pts_map), 0.2)[0]
-    est = estimate_mounting(clouds, T_map_body, pairs, X0, make_engine("ndt", num_threads=1))
+    try:
+        est = estimate_mounting(clouds, T_map_body, pairs, X0, make_engine("ndt", num_threads=1))
+    except MapError as exc:
+        raise MapError(f"{plan.drive.name}: {exc} (--calibrate-mounting needs keyframes 4-15 m "
+                       "apart that see the same structure)") from None
     return {"T_body_lidar": est.T_body_lidar, "estimate": est.as_dict(), "notes": est.notes,
             "raw_points": raw, "bytes": 0}
 

@@ -176,3 +176,13 @@ def test_on_the_real_walk_the_mounting_is_found_or_left_alone(shared_data, tmp_p
     assert all(m["observed"]) and m["used"] >= 50, m
     assert np.abs(rot).max() < 0.05, m
     assert np.abs(trans).max() < 0.015, m
+
+
+def test_a_drive_too_short_to_calibrate_is_one_error_naming_it_and_leaves_nothing(tmp_path):
+    from blockloc.errors import MapError
+
+    world = world_points(extent=(-20, 40), seed=2, density=0.3)
+    short = MemorySequence(world, route([[0, 0], [3, 0]], speed=1.0), radius=20.0, name="short")
+    with pytest.raises(MapError, match=r"^short: .*--calibrate-mounting needs keyframes"):
+        build_map_from_drives([Drive.of(short)], "block", tmp_path / "m", calibrate_mounting=True)
+    assert list(tmp_path.iterdir()) == []  # no map, no half-built directory
