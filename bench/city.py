@@ -266,6 +266,13 @@ def track_served(map_dir: Path, seq_name: str, work: Path, max_frames: int | Non
 # --------------------------------------------------------------------------- report
 
 
+def reference_run(runs: dict) -> dict | None:
+    """The run a kind's figures are read from: the serial build, else the first run that
+    completed (its entries equal the serial build's byte for byte); None if none completed."""
+    ok = [r for r in runs.values() if "error" not in r]
+    return runs["serial"] if "serial" in runs and "error" not in runs["serial"] else (ok[0] if ok else None)
+
+
 def _f(v, fmt="{:.1f}"):
     return "-" if v is None else fmt.format(v)
 
@@ -281,17 +288,21 @@ def report(args, cmd: str, results: dict, projections: dict, tracking: dict | No
              "shared (load averages below), so times are upper bounds and speed-ups are what the load "
              "allowed.", ""]
     for kind, runs in results.items():
-        serial = runs.get("serial")
-        if serial is None or "error" in serial:
+        ref = reference_run(runs)
+        if ref is None:
             continue
-        st = serial["stats"]
+        serial = runs.get("serial") if ref is runs.get("serial") else None
+        st = ref["stats"]
         raw = sum(r["raw_points"] for r in st["tasks"].values())
         lines += [f"### {kind} map", "",
                   f"Drives: {', '.join(args.sessions)} (seed {args.seed}"
                   + (f", first {args.max_frames} frames each" if args.max_frames else "")
                   + f"): {st['keyframes']:,} keyframes over {st['path_m'] / 1000:.2f} km, {raw:,} raw points read; "
-                  f"the map holds {serial['entries']:,} {'blocks' if kind == 'block' else 'tiles'}, "
-                  f"{serial['points']:,} points, {serial['bytes'] / 2**20:.1f} MiB.", "",
+                  f"the map holds {ref['entries']:,} {'blocks' if kind == 'block' else 'tiles'}, "
+                  f"{ref['points']:,} points, {ref['bytes'] / 2**20:.1f} MiB."
+                  + ("" if serial else " No serial build in this run: the 'vs serial' and 'identical' "
+                     "columns are empty, and the model and projection below use this run's per-task CPU times.")
+                  + "", "",
                   "| run | wall [s] | vs serial | CPU util [%] | client peak RSS [MB] | worker peak RSS [MB] | "
                   "bytes written [MiB] | tasks | identical | load before/after |",
                   "|---|---|---|---|---|---|---|---|---|---|"]
@@ -305,13 +316,16 @@ def report(args, cmd: str, results: dict, projections: dict, tracking: dict | No
             cpu = r["client_cpu_s"] + sum(w["cpu_s"] for w in r["workers"])
             util = 100.0 * cpu / (r["wall_s"] * cores)
             written = sum(t["bytes"] for t in r["stats"]["tasks"].values())
-            same = (r["checksums"] == serial["checksums"] and r["manifest_sha256"] == serial["manifest_sha256"])
+            same = serial and (r["checksums"] == serial["checksums"]
+                               and r["manifest_sha256"] == serial["manifest_sha256"])
             wrss = ", ".join(f"{w['peak_rss_mb']:.0f}" for w in r["workers"]) or "-"
             n = sum(t["count"] for t in r["stats"]["tasks"].values())
             note = f" (worker killed at {r['killed_at_s']:.0f} s)" if r.get("killed_at_s") else ""
-            lines.append(f"| {name}{note} | {r['wall_s']:.1f} | {serial['wall_s'] / r['wall_s']:.2f}x | {util:.0f} | "
+            vs = f"{serial['wall_s'] / r['wall_s']:.2f}x" if serial else "-"
+            ident = "-" if not serial else "yes" if same else "NO"
+            lines.append(f"| {name}{note} | {r['wall_s']:.1f} | {vs} | {util:.0f} | "
                          f"{r['client_peak_rss_mb']:.0f} | {wrss} | {written / 2**20:.0f} | {n} | "
-                         f"{'yes' if same else 'NO'} | {r['load'][0]:.1f} / {r['load'][1]:.1f} |")
+                         f"{ident} | {r['load'][0]:.1f} / {r['load'][1]:.1f} |")
         lines += ["", "Wall time: the build alone (a LocalCluster's start-up, "
                   + ", ".join(f"{runs[n]['startup_s']:.1f} s" for n in ("local:1", "local:2") if n in runs and "startup_s" in runs[n])
                   + ", apart). CPU utilization: client + workers CPU time over wall time x "
@@ -325,7 +339,7 @@ def report(args, cmd: str, results: dict, projections: dict, tracking: dict | No
         setup = worker_setup_s(l2) if l2ok else st["tasks"]["plan"]["cpu_s"]
         plan_each = max(l2["stats"]["tasks"]["plan"]["cpu_each"]) if l2ok else 0.0
         t2 = cpu_model(l2["stats"] if l2ok else st, 2, plan_cpu_s=setup + plan_each)
-        bound = process_cpu_bound(l2, cores) if l2ok else None
+        bound = process_cpu_bound(l2, cores) if l2ok and serial else None
         lines += [f"On an idle machine (a model, not a measurement: each task's CPU time measured in the serial "
                   "and the local:2 run, the tasks that read scans run in submission order on the first free "
                   f"worker after its set-up of {setup + plan_each:.0f} s CPU (opening the drives, outside any "
@@ -354,14 +368,14 @@ def report(args, cmd: str, results: dict, projections: dict, tracking: dict | No
                       "the driven length, blocks and tiles with the area, a tile's cost with the drives per area)."]
         lines.append("")
     if not tracking:
-        why = ("--no-track" if args.no_track else "no serial block map, or the preset has no localization session")
+        why = ("--no-track" if args.no_track else "no block map was built, or the preset has no localization session")
         lines += ["### Tracking through the served map", "",
                   f"Not run ({why}). A map of the first frames of some drives does not cover the "
                   "localization session: track through the map of every mapping session.", ""]
     else:
         t = tracking
         lines += ["### Tracking through the served map", "",
-                  f"`blockloc map serve` on the serial block map, `{args.loc_seq}` tracked through {t['url']} "
+                  f"`blockloc map serve` on the {t.get('map_run', 'serial')} block map, `{args.loc_seq}` tracked through {t['url']} "
                   f"(block backend, its own process, init at the first ground-truth pose"
                   + (f", first {args.track_frames} scans" if args.track_frames else "") + "):", "",
                   "| scans | ATE trans RMSE [m] | ATE max [m] | failures | recoveries | core median [ms] | "
@@ -427,6 +441,9 @@ def main(argv=None) -> int:
         saved = json.loads(Path(args.report_from).read_text())
         return write_report(args, saved["command"], saved["results"], saved["tracking"], saved.get("started", "?"))
     runs = [r for r in args.runs.split(",") if r]
+    # the map kept for tracking: the serial build's, or (no serial run asked for) the first run's,
+    # which equals it byte for byte (tests/maps/test_distributed.py)
+    keep = "serial" if "serial" in runs else runs[0]
     results: dict[str, dict] = {}
     for kind in [k for k in args.kinds.split(",") if k]:
         results[kind] = {}
@@ -450,13 +467,14 @@ def main(argv=None) -> int:
             if "error" not in res:
                 print(f"   {res['wall_s']:.1f} s, {res['entries']} entries, client {res['client_peak_rss_mb']:.0f} MB, "
                       f"workers {[round(w['peak_rss_mb']) for w in res['workers']]} MB", file=sys.stderr, flush=True)
-            if name != "serial":
+            if name != keep:
                 shutil.rmtree(spec["out"], ignore_errors=True)
     tracking = None
-    block_map = work / "block-serial"
+    block_map = work / f"block-{keep.replace(':', '_')}"
     if not args.no_track and args.loc_seq and (block_map / "manifest.json").exists():
         print(f"== tracking {args.loc_seq} through the served map", file=sys.stderr, flush=True)
         tracking = track_served(block_map, args.loc_seq, work, args.track_frames)
+        tracking["map_run"] = keep
     return write_report(args, cmd, results, tracking, started)
 
 
@@ -464,8 +482,8 @@ def write_report(args, cmd: str, results: dict, tracking: dict | None, started: 
     """docs/bench/city.md (``--out``) and its .json from the runs' results."""
     from blockloc.fileio import atomic_write_text
 
-    projections = {k: projection(r["serial"], r.get("local:2"), k) for k, r in results.items()
-                   if "serial" in r and "error" not in r["serial"]}
+    projections = {k: projection(ref, r.get("local:2"), k) for k, r in results.items()
+                   if (ref := reference_run(r)) is not None}
     text = report(args, cmd, results, projections, tracking, started)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
