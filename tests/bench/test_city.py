@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from bench.city import TARGET, cpu_model, preset_sessions, process_cpu_bound, projection, worker_setup_s
+from bench.city import (TARGET, cpu_model, preset_sessions, process_cpu_bound, projection, reference_run,
+                        worker_setup_s)
 
 
 def test_missing_preset_is_one_line():
@@ -44,3 +45,12 @@ def test_worker_setup_is_process_cpu_beyond_the_tasks():
     # the busiest worker (40 s) or all CPU over 2 cores ((72 + 6) / 2 = 39 s)
     assert process_cpu_bound(run, 2) == pytest.approx(40.0)
     assert process_cpu_bound(run, 1) == pytest.approx(78.0)
+
+
+def test_reference_run_is_serial_else_the_first_that_completed():
+    serial, l2, l1 = {"wall_s": 100.0}, {"wall_s": 60.0}, {"wall_s": 90.0}
+    assert reference_run({"local:1": l1, "serial": serial, "local:2": l2}) is serial
+    # no serial asked for (a full-city local:2 build): the first run's figures stand in
+    assert reference_run({"local:2": l2, "local:1": l1}) is l2
+    assert reference_run({"serial": {"error": "exit 1"}, "local:2": l2}) is l2
+    assert reference_run({"local:2": {"error": "exit 1"}}) is None
