@@ -50,10 +50,21 @@ def cached_world(preset: Preset, seed: int) -> World:
 @functools.lru_cache(maxsize=4)
 def route_points(preset: Preset, seed: int, spacing_m: float = 0.25) -> np.ndarray:
     """(N, 2) world xy every ``spacing_m`` along the routes of all of the preset's sessions:
-    where no parked object may stand (:func:`scene_movables`)."""
+    where no parked object may stand (:func:`scene_movables`). Kept on disk like a drive's
+    trajectory: a process that opens one drive's scene (a map-build worker) then needs neither
+    every session's trajectory nor their splines."""
+    from blockloc.cache import disk_memo
+
+    return disk_memo(f"routes-{preset.name}-{seed}", drive_memo_key(preset, seed, f"routes:{spacing_m!r}"),
+                     lambda: _route_points(preset, seed, spacing_m), min_build_s=DRIVE_MEMO_MIN_S)
+
+
+def _route_points(preset: Preset, seed: int, spacing_m: float) -> np.ndarray:
     out = []
     for session in preset.sessions:
-        traj = session_trajectory(preset, seed, session)
+        # not through the in-process cache: the trajectories (and their splines, ~80 MB a city
+        # drive) go when the points are taken; a drive opened in this process has its own
+        traj = session_trajectory.__wrapped__(preset, seed, session)
         t = np.arange(0.0, traj.duration, 0.1)
         x, y, _ = traj.planar(t)
         xy = np.stack([x, y], axis=1)

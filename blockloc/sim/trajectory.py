@@ -12,6 +12,8 @@ acceleration are continuous; z, roll and pitch follow the (C2) terrain under it.
 
 from __future__ import annotations
 
+import functools
+
 import logging
 from dataclasses import dataclass
 
@@ -363,21 +365,46 @@ class SimTrajectory:
     seed: int = 0
 
     def __post_init__(self, tilt_samples: tuple | None = None) -> None:
-        from scipy.interpolate import CubicSpline
-
         t = self.samples[:, 0]
-        self._sx = CubicSpline(t, self.samples[:, 1])
-        self._sy = CubicSpline(t, self.samples[:, 2])
-        self._sp = CubicSpline(t, self.samples[:, 3])
         self.duration = float(t[-1])
-        self._tilt = None
         self._tilt_samples = None
         pm = self.platform
         if pm is not None and (pm.balance_pitch or pm.wobble_deg > 0 or pm.vibration_deg > 0
                                or pm.vibration_z_m > 0):
             self._tilt_samples = tilt_samples or self._balance(t, pm)
-            pitch, roll, phases = self._tilt_samples
-            self._tilt = CubicSpline(t, pitch), CubicSpline(t, roll), phases
+
+    # The splines are built on first use, not with the trajectory: a city drive's five hold ~80 MB
+    # (coefficients (4, N-1) over 400k samples each), and a map-build worker opens every drive
+    # (and every session's route, for the parked objects) but renders scans of about half of them.
+    @functools.cached_property
+    def _planar_splines(self) -> tuple:
+        from scipy.interpolate import CubicSpline
+
+        t = self.samples[:, 0]
+        return tuple(CubicSpline(t, self.samples[:, k]) for k in (1, 2, 3))
+
+    @property
+    def _sx(self):
+        return self._planar_splines[0]
+
+    @property
+    def _sy(self):
+        return self._planar_splines[1]
+
+    @property
+    def _sp(self):
+        return self._planar_splines[2]
+
+    @functools.cached_property
+    def _tilt(self) -> tuple | None:
+        """(pitch spline, roll spline, vibration phases (3,)) of the platform, or None."""
+        from scipy.interpolate import CubicSpline
+
+        if self._tilt_samples is None:
+            return None
+        pitch, roll, phases = self._tilt_samples
+        t = self.samples[:, 0]
+        return CubicSpline(t, pitch), CubicSpline(t, roll), phases
 
     def state(self) -> dict:
         """This trajectory's fields without the world, and its platform's pitch / roll samples

@@ -73,3 +73,36 @@ def test_the_comparison_sees_a_changed_cache_entry(memo_on_disk):
     files[0].write_bytes(pickle.dumps((stamps, poses + 1e-9)))
     got = stream.SimSequence(p, "map", 1).mapping_poses().poses
     assert not _same_bytes(got, stream.SimSequence(p, "map", 1).compute_mapping_poses()[1])
+
+
+def test_a_trajectory_builds_its_splines_on_first_use_with_the_same_poses(memo_on_disk):
+    from blockloc.sim import stream
+    from blockloc.sim.presets import get_preset
+    from blockloc.sim.trajectory import SimTrajectory
+
+    p = get_preset("tiny")
+    built = stream.build_session_trajectory(p, 1, "map")
+    t = np.linspace(0.0, built.duration, 50)
+    T_built = built.T_world_flu(t)
+    loaded = SimTrajectory.from_state(built.state(), built.world)
+    # opened, not used: no spline held (a map-build worker opens every drive, renders some)
+    assert "_planar_splines" not in vars(loaded) and "_tilt" not in vars(loaded)
+    assert loaded.duration == built.duration
+    assert _same_bytes(loaded.T_world_flu(t), T_built)
+    assert "_planar_splines" in vars(loaded) and loaded._tilt is not None
+
+
+def test_route_points_keep_no_trajectory_in_the_process(memo_on_disk):
+    from blockloc.sim import stream
+    from blockloc.sim.presets import get_preset
+
+    p = get_preset("tiny")
+    stream.route_points.cache_clear()
+    pts = stream.route_points(p, 1)
+    assert stream.session_trajectory.cache_info().currsize == 0
+    assert any(f.name.startswith("routes-") for f in memo_on_disk.glob("*.pkl"))
+    # read back (a new process) they are the points computed afresh
+    stream.route_points.cache_clear()
+    assert _same_bytes(stream.route_points(p, 1), pts)
+    assert _same_bytes(stream._route_points(p, 1, 0.25), pts)
+    stream.route_points.cache_clear()
