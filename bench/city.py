@@ -340,10 +340,12 @@ def report(args, cmd: str, results: dict, projections: dict, tracking: dict | No
         plan_each = max(l2["stats"]["tasks"]["plan"]["cpu_each"]) if l2ok else 0.0
         t2 = cpu_model(l2["stats"] if l2ok else st, 2, plan_cpu_s=setup + plan_each)
         bound = process_cpu_bound(l2, cores) if l2ok and serial else None
-        lines += [f"On an idle machine (a model, not a measurement: each task's CPU time measured in the serial "
-                  "and the local:2 run, the tasks that read scans run in submission order on the first free "
+        one = "serial" if serial else "one worker"
+        lines += [f"On an idle machine (a model, not a measurement: each task's CPU time measured in the "
+                  + ("serial and the local:2 run" if serial else "local:2 run")
+                  + ", the tasks that read scans run in submission order on the first free "
                   f"worker after its set-up of {setup + plan_each:.0f} s CPU (opening the drives, outside any "
-                  f"task, plus its planning task)): serial {t1:.0f} s, local:2 {t2:.0f} s, **{t1 / t2:.2f}x**"
+                  f"task, plus its planning task)): {one} {t1:.0f} s, local:2 {t2:.0f} s, **{t1 / t2:.2f}x**"
                   + (f"; a cruder bound from whole-process CPU times (the busiest worker, or every process's "
                      f"CPU over {cores} cores, whichever is longer): local:2 >= {bound:.0f} s, serial "
                      f"{serial['client_cpu_s']:.0f} s, <= {serial['client_cpu_s'] / bound:.2f}x" if bound else "")
