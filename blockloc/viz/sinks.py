@@ -148,8 +148,9 @@ class McapSink:
             return False
 
 
-def _make_listener():
-    """A foxglove ServerListener remembering the latched topics a client just subscribed to."""
+def _make_listener(on_latched=None):
+    """A foxglove ServerListener remembering the latched topics a client just subscribed to;
+    ``on_latched()`` is called (from the server's thread) after each such subscription."""
     from foxglove.websocket import ServerListener
 
     class LatchListener(ServerListener):
@@ -161,6 +162,8 @@ def _make_listener():
             if channel.topic in LATCHED:
                 with self.lock:
                     self.resend.add(channel.topic)
+                if on_latched is not None:
+                    on_latched()
 
         def take_resend(self) -> set[str]:
             with self.lock:
@@ -170,14 +173,25 @@ def _make_listener():
     return LatchListener()
 
 
+def _timer(delay_s: float, fn, *args) -> None:
+    t = threading.Timer(delay_s, fn, args)
+    t.daemon = True  # never keeps a finished run's process alive
+    t.start()
+
+
 class FoxgloveSink:
     """Messages -> a Foxglove WebSocket server (foxglove-sdk) on ``host:port`` (port 0: any free).
 
     Only topics some client subscribed to are built. ``channel.log`` never waits: the SDK queues
     up to ``message_backlog_size`` messages per client and drops the oldest beyond. A client
-    subscribing to a latched topic (blocks, local map, paths) gets its last message again. The
-    server advertises the Time capability and broadcasts each frame's sensor time.
+    subscribing to a latched topic (blocks, local map, paths) gets its last message again, right
+    away (a paused or finished run sends no next frame). The server advertises the Time
+    capability and broadcasts each frame's sensor time.
     """
+
+    #: seconds after a subscription before the latched message is sent again: the SDK calls the
+    #: listener before the new subscriber is among the channel's sinks
+    RESEND_DELAY_S = 0.05
 
     def __init__(self, host: str = "127.0.0.1", port: int = 8765, *, name: str = "blockloc",
                  message_backlog_size: int = 256) -> None:
@@ -189,13 +203,14 @@ class FoxgloveSink:
         self._server = None
         self._channels: dict = {}
         self._live_file: Path | None = None
+        self._send_lock = threading.Lock()  # write() (the run's thread) and resends (a timer's)
 
     def open(self) -> dict:
         import foxglove
         from foxglove.websocket import Capability
 
         self._context = foxglove.Context()
-        self._listener = _make_listener()
+        self._listener = _make_listener(self._resend_soon)
         try:
             self._server = foxglove.start_server(
                 name=self.name, host=self.host, port=self.requested_port, context=self._context,
@@ -236,25 +251,49 @@ class FoxgloveSink:
     def write(self, outgoing: list[Outgoing], stamp: float | None) -> None:
         if self._server is None:
             return
+        with self._send_lock:
+            self._resend_latched()
+            for msg in outgoing:
+                if msg.topic in LATCHED:
+                    self._last[msg.topic] = msg
+                if self._channels[msg.topic].has_sinks():
+                    self._log(msg)
+            if stamp is not None:
+                self._server.broadcast_time(int(round(stamp * 1e9)))
+
+    def _resend_latched(self) -> None:
         for topic in self._listener.take_resend():
             if topic in self._last:
                 self._log(self._last[topic])
-        for msg in outgoing:
-            if msg.topic in LATCHED:
-                self._last[msg.topic] = msg
-            if self._channels[msg.topic].has_sinks():
-                self._log(msg)
-        if stamp is not None:
-            self._server.broadcast_time(int(round(stamp * 1e9)))
+
+    def _resend_soon(self, tries: int = 20) -> None:
+        """Send the latched messages just subscribed to, shortly, from a timer thread; again a
+        little later while the new subscription is not yet among the channel's sinks."""
+
+        def fire(left: int) -> None:
+            with self._send_lock:
+                if self._server is None:
+                    return
+                pending = self._listener.resend.copy()
+                if left > 0 and any(not self._channels[t].has_sinks() for t in pending if t in self._channels):
+                    again = True
+                else:
+                    self._resend_latched()
+                    again = False
+            if again:
+                _timer(self.RESEND_DELAY_S, fire, left - 1)
+
+        _timer(self.RESEND_DELAY_S, fire, tries)
 
     def _log(self, msg: Outgoing) -> None:
         self._channels[msg.topic].log(msg.data, log_time=msg.log_time_ns)
         self.counts[msg.topic] += 1
 
     def finish(self, metrics: dict | None, reason: str) -> dict:
-        if self._server is not None:
-            self._server.stop()
-            self._server = None
+        with self._send_lock:
+            server, self._server = self._server, None
+        if server is not None:
+            server.stop()
         if self._live_file is not None:
             self._live_file.unlink(missing_ok=True)
         return {"counts": self.counts, "url": self.url if hasattr(self, "port") else None}
