@@ -301,8 +301,7 @@ def report(args, cmd: str, results: dict, projections: dict, tracking: dict | No
                   f"the map holds {ref['entries']:,} {'blocks' if kind == 'block' else 'tiles'}, "
                   f"{ref['points']:,} points, {ref['bytes'] / 2**20:.1f} MiB."
                   + ("" if serial else " No serial build in this run: the 'vs serial' and 'identical' "
-                     "columns are empty, and the model and projection below use this run's per-task CPU times.")
-                  + "", "",
+                     "columns are empty, and the model and projection below use this run's per-task CPU times."), "",
                   "| run | wall [s] | vs serial | CPU util [%] | client peak RSS [MB] | worker peak RSS [MB] | "
                   "bytes written [MiB] | tasks | identical | load before/after |",
                   "|---|---|---|---|---|---|---|---|---|---|"]

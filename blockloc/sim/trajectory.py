@@ -13,7 +13,6 @@ acceleration are continuous; z, roll and pitch follow the (C2) terrain under it.
 from __future__ import annotations
 
 import functools
-
 import logging
 from dataclasses import dataclass
 
@@ -374,8 +373,8 @@ class SimTrajectory:
             self._tilt_samples = tilt_samples or self._balance(t, pm)
 
     # The splines are built on first use, not with the trajectory: a city drive's five hold ~80 MB
-    # (coefficients (4, N-1) over 400k samples each), and a map-build worker opens every drive
-    # (and every session's route, for the parked objects) but renders scans of about half of them.
+    # (coefficients (4, N-1) over 400k samples each), and a process may open a drive without
+    # evaluating it (planning from the disk-cached mapping poses, or reading a session's route).
     @functools.cached_property
     def _planar_splines(self) -> tuple:
         from scipy.interpolate import CubicSpline

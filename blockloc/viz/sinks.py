@@ -165,6 +165,10 @@ def _make_listener(on_latched=None):
                 if on_latched is not None:
                     on_latched()
 
+        def pending(self) -> set[str]:
+            with self.lock:
+                return set(self.resend)
+
         def take_resend(self) -> set[str]:
             with self.lock:
                 out, self.resend = self.resend, set()
@@ -274,12 +278,10 @@ class FoxgloveSink:
             with self._send_lock:
                 if self._server is None:
                     return
-                pending = self._listener.resend.copy()
-                if left > 0 and any(not self._channels[t].has_sinks() for t in pending if t in self._channels):
-                    again = True
-                else:
+                again = left > 0 and any(not self._channels[t].has_sinks()
+                                         for t in self._listener.pending() if t in self._channels)
+                if not again:
                     self._resend_latched()
-                    again = False
             if again:
                 _timer(self.RESEND_DELAY_S, fire, left - 1)
 
