@@ -414,6 +414,11 @@ def main(argv=None) -> int:
     ap.add_argument("--report-from", default=None, metavar="JSON",
                     help="only write the fragment again from a run's .json (give that run's options too)")
     args = ap.parse_args(argv)
+    runs = [r for r in args.runs.split(",") if r]
+    if not runs or [r for r in runs if r not in RUNS]:
+        print(f"bench.city: --runs {args.runs!r}: expected a comma-separated list of {', '.join(RUNS)}",
+              file=sys.stderr)
+        return 2
     cmd = "python -m bench.city " + " ".join(shlex.quote(a) for a in argv)
     try:
         maps, loc = preset_sessions(args.preset)
@@ -441,7 +446,6 @@ def main(argv=None) -> int:
     if args.report_from:
         saved = json.loads(Path(args.report_from).read_text())
         return write_report(args, saved["command"], saved["results"], saved["tracking"], saved.get("started", "?"))
-    runs = [r for r in args.runs.split(",") if r]
     # the map kept for tracking: the serial build's, or (no serial run asked for) the first run's,
     # which equals it byte for byte (tests/maps/test_distributed.py)
     keep = "serial" if "serial" in runs else runs[0]

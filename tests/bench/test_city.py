@@ -54,3 +54,11 @@ def test_reference_run_is_serial_else_the_first_that_completed():
     assert reference_run({"local:2": l2, "local:1": l1}) is l2
     assert reference_run({"serial": {"error": "exit 1"}, "local:2": l2}) is l2
     assert reference_run({"local:2": {"error": "exit 1"}}) is None
+
+
+def test_an_unknown_run_is_one_line_before_any_work(tmp_path, capsys):
+    from bench.city import main
+
+    assert main(["--preset", "campus", "--runs", "local:2,fast", "--work", str(tmp_path / "w")]) == 2
+    assert "--runs 'local:2,fast': expected a comma-separated list of serial" in capsys.readouterr().err
+    assert not (tmp_path / "w").exists()
