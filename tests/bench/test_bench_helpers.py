@@ -323,3 +323,25 @@ def test_budget_lowpass_keeps_slow_error_and_removes_jitter(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--run", f"none={tmp_path}", "--out", str(tmp_path / "x.md")])
     assert "bench.campus --state directory" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("debug", [False, True])
+def test_a_user_error_in_a_benchmark_is_one_line_unless_debugging(debug):
+    """An unknown --set key reaches the top of ``python -m bench.campus`` as a ConfigError: one
+    line naming the key and a non-zero exit, the traceback only with BLOCKLOC_DEBUG."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = {k: v for k, v in os.environ.items() if k != "BLOCKLOC_DEBUG"}
+    if debug:
+        env["BLOCKLOC_DEBUG"] = "1"
+    p = subprocess.run([sys.executable, "-m", "bench.campus", "--set", "registration.bogus=1", "--max-frames", "1"],
+                       cwd=Path(__file__).resolve().parents[2], env=env, capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode != 0
+    assert "unknown key 'bogus'" in p.stderr
+    assert ("Traceback" in p.stderr) == debug
+    if not debug:
+        assert len(p.stderr.strip().splitlines()) == 1, p.stderr
