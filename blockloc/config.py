@@ -145,8 +145,10 @@ class RegistrationConfig:
     # NDT target grids at 2x, 4x ... resolution (from the fine voxel sums)
     coarse_levels: int = bounded(1, NON_NEGATIVE)
     coarse_to_fine: bool = True  # align on the coarse levels first (wider basin of convergence)
-    # vgicp only: neighbours of the per-point covariances (configs/sim.yaml says why it sets 20)
+    # vgicp only: neighbours of the scan's per-point covariances, and of the map's (0: the scan's);
+    # configs/sim.yaml says why it sets 20 and 80
     num_neighbors: int = bounded(10, COUNT)
+    target_num_neighbors: int = bounded(0, NON_NEGATIVE)
 
 
 @dataclass

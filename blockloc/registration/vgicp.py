@@ -1,8 +1,7 @@
 """small_gicp's voxelized GICP (VGICP) as a registration engine (``registration.method: vgicp``).
 
-Target: the map points with per-point covariances (``num_neighbors`` nearest, 10 by default)
-inserted into a
-``small_gicp.GaussianVoxelMap`` of leaf ``resolution_m``. Source: the scan with its own per-point
+Target: the map points with per-point covariances (``target_num_neighbors`` nearest, by default
+``num_neighbors``) inserted into a ``small_gicp.GaussianVoxelMap`` of leaf ``resolution_m``. Source: the scan with its own per-point
 covariances, estimated at every ``align`` (part of its cost: about 10 ms for a 20k-point scan).
 ``small_gicp.align(..., registration_type="VGICP")`` returns ``H`` and ``b`` of its cost in the
 GTSAM Pose3 tangent (rotation first, right perturbation of ``T_target_source``), which is what
@@ -64,9 +63,13 @@ class VgicpResult:
 class VgicpEngine:
     """VGICP with ``resolution_m`` voxels; ``max_correspondence_distance_m`` defaults to it.
 
-    num_neighbors: neighbours for the per-point covariances (10: tracking hands in scans thinned to
-    0.5 m voxels, where 20 neighbours span metres; on the real HDL-32E pair at 0.5 m, 20 gave
-    0.67 deg of rotation error and 10 gave 0.28 deg); max_iterations; num_threads.
+    num_neighbors: neighbours for the scan's per-point covariances (10: tracking hands in scans
+    thinned to 0.5 m voxels, where 20 neighbours span metres; on the real HDL-32E pair at 0.5 m, 20
+    gave 0.67 deg of rotation error and 10 gave 0.28 deg). target_num_neighbors: the map's (None:
+    num_neighbors). A voxel's Gaussian is the mean of its points' covariances, so on a dense map
+    (0.2 m voxels) few neighbours describe a patch much smaller than the voxel and a scan point
+    is pulled toward the voxel's mean along the surface; configs/sim.yaml gives what more map
+    neighbours did on the campus. max_iterations; num_threads.
     outlier_ratio and min_points_per_voxel shape the NDT Gaussians used for fitness.
     """
 
@@ -74,7 +77,8 @@ class VgicpEngine:
     incremental = False
 
     def __init__(self, *, resolution_m: float = 1.0, max_correspondence_distance_m: float | None = None,
-                 num_neighbors: int = 10, max_iterations: int = 30, num_threads: int | None = 2,
+                 num_neighbors: int = 10, target_num_neighbors: int | None = None,
+                 max_iterations: int = 30, num_threads: int | None = 2,
                  outlier_ratio: float = 0.55, min_points_per_voxel: int = 6, **_unused: Any) -> None:
         from blockloc.registration.ndt import NdtRegistration
 
@@ -83,6 +87,7 @@ class VgicpEngine:
         self.resolution_m = float(resolution_m)
         self.max_correspondence_distance_m = float(max_correspondence_distance_m or resolution_m)
         self.num_neighbors = int(num_neighbors)
+        self.target_num_neighbors = int(target_num_neighbors or num_neighbors)
         self.max_iterations = int(max_iterations)
         self.num_threads = int(num_threads or 1)
         self.min_points_per_voxel = int(min_points_per_voxel)
@@ -102,7 +107,7 @@ class VgicpEngine:
             raise RegistrationError("VGICP target: no points")
         points = np.ascontiguousarray(np.concatenate(parts))
         cloud = small_gicp.PointCloud(points)
-        small_gicp.estimate_covariances(cloud, num_neighbors=self.num_neighbors, num_threads=self.num_threads)
+        small_gicp.estimate_covariances(cloud, num_neighbors=self.target_num_neighbors, num_threads=self.num_threads)
         voxelmap = small_gicp.GaussianVoxelMap(self.resolution_m)
         voxelmap.insert(cloud)
         scoring = NdtTarget.build(points, self.resolution_m, self.min_points_per_voxel, coarse_levels=0)

@@ -86,3 +86,26 @@ def test_vgicp_goes_on_once_when_out_of_iterations(hdl_pair):
                             max_iterations=3)
     assert not once.converged
     assert res.converged and _err(res.T_target_source, T_ref)[0] < 0.05
+
+
+def test_vgicp_takes_the_map_covariances_from_target_num_neighbors(hdl_pair):
+    # The map's per-point covariances use target_num_neighbors (the scan's stay on num_neighbors):
+    # the built voxel map equals one built by hand from 40-neighbour covariances, not 10's.
+    import small_gicp
+
+    target_pts, source, T_ref = hdl_pair
+
+    def voxel_covs(k):
+        cloud = small_gicp.PointCloud(np.ascontiguousarray(target_pts[:, :3], dtype=np.float64))
+        small_gicp.estimate_covariances(cloud, num_neighbors=k, num_threads=2)
+        vm = small_gicp.GaussianVoxelMap(1.0)
+        vm.insert(cloud)
+        return np.asarray(vm.voxel_covs())
+
+    engine = make_engine("vgicp", resolution_m=1.0, num_neighbors=10, target_num_neighbors=40)
+    got = np.asarray(engine.build_target(target_pts).voxelmap.voxel_covs())
+    assert np.allclose(got, voxel_covs(40)) and not np.allclose(got, voxel_covs(10))
+    assert make_engine("vgicp", num_neighbors=10).target_num_neighbors == 10  # unset: the scan's
+    assert make_engine("vgicp", num_neighbors=10, target_num_neighbors=0).target_num_neighbors == 10
+    res = engine.align(engine.build_target(target_pts), source, np.eye(4))
+    assert res.converged and _err(res.T_target_source, T_ref)[0] < 0.05
