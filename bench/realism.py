@@ -85,7 +85,10 @@ def old_sim_stats(preset: str, seed: int, n: int) -> list[dict]:
                            capture_output=True)
 
 
-def new_sim_stats(preset: str, seed: int, n: int, session: str = "loc", **overrides) -> list[dict]:
+def new_sim_stats(preset: str, seed: int, n: int, session: str = "loc", profile: list | None = None,
+                  **overrides) -> list[dict]:
+    """Statistics of ``n`` scans spread over the session; ``profile``: a list to which each
+    scan's (points, intensity) is appended (for the intensity-by-range table)."""
     from blockloc.evaluation.realism import scan_realism
     from blockloc.sim.stream import open_sim_sequence
 
@@ -94,7 +97,36 @@ def new_sim_stats(preset: str, seed: int, n: int, session: str = "loc", **overri
     for i in np.linspace(20, len(s) - 20, n).astype(int):
         f = s.frame(int(i))
         out.append(scan_realism(f.points, f.intensity, f.ring, up=(0, 0, -1)))
+        if profile is not None:
+            profile.append((f.points, f.intensity))
     return out
+
+
+def real_scans(data: Path) -> list:
+    from pypcd4 import PointCloud
+
+    out = []
+    for name in REAL:
+        a = PointCloud.from_path(data / "hdl32e_pair" / f"{name}.pcd").numpy().astype(np.float64)
+        out.append((a[:, :3], a[:, 3]))
+    return out
+
+
+def range_table(profiles: dict) -> list[str]:
+    """Markdown rows: per column, the intensity-by-range profile (dark share / median)."""
+    from blockloc.evaluation.realism import RANGE_BINS_M, intensity_by_range
+
+    got = {name: intensity_by_range(scans) for name, scans in profiles.items()}
+    lines = ["| range | " + " | ".join(f"{n}: share / dark / median" for n in got) + " |",
+             "|---|" + "---|" * len(got)]
+    for k, (lo, hi) in enumerate(RANGE_BINS_M):
+        cells = []
+        for prof in got.values():
+            b = prof[k]
+            cells.append("-" if not np.isfinite(b["dark"]) else
+                         f"{b['share']:.0%} / {b['dark']:.0%} / {b['median']:.0f}")
+        lines.append(f"| {lo:.0f}-{hi:.0f} m | " + " | ".join(cells) + " |")
+    return lines
 
 
 def kiss_drift(preset: str, seed: int, n_frames: int) -> dict:
@@ -142,8 +174,11 @@ def main(argv: list[str] | None = None) -> Path:
     cols = {"real HDL-32E (2 scans)": median_stats(real_stats(shared_data_dir()))}
     for preset in ("small", "campus"):
         cols[f"old sim {preset} ({OLD_COMMIT})"] = median_stats(old_sim_stats(preset, args.seed, n))
+    profiles = {"real HDL-32E": real_scans(shared_data_dir())}
     for preset in ("small", "campus"):
-        cols[f"new sim {preset}"] = median_stats(new_sim_stats(preset, args.seed, n))
+        profiles[f"new sim {preset}"] = []
+        cols[f"new sim {preset}"] = median_stats(new_sim_stats(preset, args.seed, n,
+                                                               profile=profiles[f"new sim {preset}"]))
     names = list(cols)
     lines = ["## Simulator realism", "",
              f"Machine: {machine()}. Command: `python -m bench.realism {' '.join(argv or sys.argv[1:])}`, run {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. "
@@ -159,6 +194,9 @@ def main(argv: list[str] | None = None) -> Path:
                                         f"<= {_fmt(key, fmt, band[1])}" if band[0] == 0 else
                                         f"{_fmt(key, fmt, band[0])} - {_fmt(key, fmt, band[1])}")
         lines.append(f"| {label} | " + " | ".join(vals) + f" | {tgt} |")
+    lines += ["", "Intensity by range, pooled over the same scans (`blockloc.evaluation.realism.intensity_by_range`): "
+              "the share of returns in each range bin, the share of those reading <= 3, and their median "
+              "intensity.", ""] + range_table(profiles)
     if args.skip_kiss:
         lines += ["", "KISS-ICP drift: not measured in this run (`--skip-kiss`)."]
     else:

@@ -176,11 +176,12 @@ def simulate_scan(scene, T_world_lidar_cols: np.ndarray, col_offsets: np.ndarray
     ok &= u_drop >= model.dropout_prob
     ok &= ~((cosi < model.grazing_dropout_cos) & (u_graze < 0.5))
     gain = calib.gain[laser] if calib is not None else np.ones(n)
-    # received power ~ reflectance * cos(incidence) / range^2 (range-compensated to 10 m by the
-    # unit up to a point); weak returns are lost (dark, far, grazing)
+    # received power ~ reflectance * cos(incidence) / range^2, which the unit reports partly
+    # range-compensated (see LidarModel.intensity_*); weak returns are lost (dark, far, grazing)
     power = reflect * (0.2 + 0.8 * cosi)
     rr = np.maximum(np.where(np.isfinite(rng_true), rng_true, 1e3), 1.0)
-    inten = 230.0 * gain * power * np.minimum(1.0, (12.0 / rr) ** 0.8) * speckle
+    inten = (model.intensity_scale * gain * power * speckle
+             * np.minimum(1.0, (model.intensity_knee_m / rr) ** model.intensity_exponent))
     if model.weak_return_dropout:
         snr = power * gain * (10.0 / rr) ** 2
         ok &= u_weak >= np.exp(-snr / 0.004)

@@ -88,6 +88,14 @@ class LidarModel:
     self_hits: bool = True
     laser_gain_sigma: float = 0.45  # log-normal sigma of the per-laser intensity gain
     intensity_speckle: float = 0.3  # log-normal sigma of the per-return intensity
+    # Intensity = scale x gain x reflectance-and-incidence power x speckle, falling as
+    # (knee / range) ** exponent beyond the knee. Fitted to the real HDL-32E pair's profile by
+    # range (bench.realism's range table: the share of returns <= 3 rises from ~12% within 5 m to
+    # ~27% at 5-20 m, the median falls from 28 to ~11); the earlier 230 / 12 m / 0.8 read brightest
+    # at 10-20 m and gave a third of the real dark share.
+    intensity_scale: float = 400.0
+    intensity_knee_m: float = 3.0
+    intensity_exponent: float = 1.0
 
 
 @dataclass(frozen=True)

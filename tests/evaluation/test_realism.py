@@ -29,6 +29,27 @@ def test_real_scans_give_the_issue_table(shared_data, name):
     assert 0.35 < s["ground_ring_cv"] < 0.6
 
 
+def test_real_intensity_falls_off_with_range(shared_data):
+    """The real pair's intensity by range (the simulator's intensity yardstick): dark returns
+    are about twice as common at 5-20 m as within 5 m, and the median drops by half."""
+    prof = R.intensity_by_range([_real(shared_data, n) for n in ("source", "target")])
+    near, mid, far = prof[0], prof[1], prof[2]
+    assert near["share"] > 0.5  # an enclosed place: most returns within 5 m
+    assert 0.08 < near["dark"] < 0.18 and mid["dark"] > 1.6 * near["dark"] and far["dark"] > 0.2
+    assert mid["median"] < 0.6 * near["median"]
+    assert abs(sum(b["share"] for b in prof) - 1.0) < 0.05  # what lies beyond 40 m
+
+
+def test_intensity_by_range_on_made_up_returns():
+    r = np.r_[np.full(10, 2.0), np.full(10, 7.0), np.full(5, 50.0)]
+    pts = np.c_[r, np.zeros(25), np.zeros(25)]
+    inten = np.r_[np.full(10, 20.0), np.full(5, 2.0), np.full(5, 30.0), np.full(5, 1.0)]
+    prof = R.intensity_by_range([(pts, inten)])
+    assert [b["share"] for b in prof] == [0.4, 0.4, 0.0, 0.0]
+    assert prof[0]["dark"] == 0.0 and prof[1]["dark"] == 0.5 and np.isnan(prof[2]["dark"])
+    assert prof[0]["median"] == 20.0 and prof[1]["median"] == 16.0
+
+
 def test_rings_from_elevation_recover_the_laser_ids(shared_data):
     pts, _ = _real(shared_data, "source")
     ring = R.rings_from_elevation(pts)

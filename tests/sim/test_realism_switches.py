@@ -62,12 +62,26 @@ def test_laser_gains_spread_ground_intensity_over_rings(full):
     assert full["ground_ring_cv"] > off["ground_ring_cv"] + 0.1
 
 
-def test_weak_returns_and_speckle_make_dark_points(full):
-    off = _stats(_seq(lidar={"intensity_speckle": 0.0, "weak_return_dropout": False}))
-    assert full["dark_share"] > off["dark_share"]
-    n_on = len(_seq().frame(FRAMES[1]))
-    n_off = len(_seq(lidar={"weak_return_dropout": False}).frame(FRAMES[1]))
-    assert n_off > n_on  # weak returns are lost
+def test_weak_returns_are_lost_and_speckle_spreads_intensity():
+    on = _seq().frame(FRAMES[1])
+    kept = _seq(lidar={"weak_return_dropout": False}).frame(FRAMES[1])
+    assert len(kept) > len(on)  # weak returns are lost ...
+    # ... and they are the dark ones: most of the returns it keeps read <= 3
+    assert (kept.intensity <= 3).sum() - (on.intensity <= 3).sum() > 0.5 * (len(kept) - len(on))
+    plain = _seq(lidar={"intensity_speckle": 0.0}).frame(FRAMES[1])
+    np.testing.assert_array_equal(plain.points, on.points)
+    ok = (on.intensity < 180) & (plain.intensity < 180)  # retroreflectors read at random anyway
+    assert np.std(np.log1p(on.intensity[ok])) > np.std(np.log1p(plain.intensity[ok])) + 0.02
+
+
+def test_intensity_range_falloff_darkens_far_returns(full):
+    flat = _seq(lidar={"intensity_exponent": 0.0})  # no fall-off: as bright at 30 m as at 3 m
+    assert full["dark_share"] > _stats(flat)["dark_share"]
+    on, off = _seq().frame(FRAMES[1]), flat.frame(FRAMES[1])
+    np.testing.assert_array_equal(on.points, off.points)  # intensity only: the same returns
+    far = np.linalg.norm(on.points, axis=1) > 10.0
+    assert far.sum() > 100
+    assert np.median(on.intensity[far]) < 0.5 * np.median(off.intensity[far])
 
 
 def test_retroreflectors_make_bright_points():
