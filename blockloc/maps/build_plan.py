@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from blockloc.errors import MapError
-from blockloc.maps.build_tasks import (_OPENED_MAX, SCRATCH, BuildTarget, Drive, DrivePlan,
+from blockloc.maps.build_tasks import (SCRATCH, BuildTarget, Drive, DrivePlan,
                                        block_candidate_task, block_merge_task, block_run_task,
                                        block_write_task, forget_drives, grid_chunk_task,
                                        grid_tile_task, open_drive_task, plan_drive_task)
@@ -224,8 +224,12 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
     warm = getattr(executor, "on_each_worker", None)
     try:
         if warm is not None:  # not counted as tasks of the plan: they only fill a cache
-            tasks.side = [f for n, d in enumerate(drives[:_OPENED_MAX])
-                          for f in warm(open_drive_task, d, key=f"open-{n}-{tasks.build_id}")]
+            # each worker opens one drive, the one its share of the keyframes most likely starts
+            # in (drives in the order given); a simulated world's scene, the slow part, is
+            # shared by all its drives. Opening every drive everywhere kept ~150 MB a drive in
+            # every worker (its poses, its trajectory's splines once read) that it never read.
+            tasks.side = warm(open_drive_task, lambda i, n: (drives[i * len(drives) // max(n, 1)],),
+                              key=f"open-{tasks.build_id}")
         tasks.expect(len(drives))
         plans = [f.result() for f in [tasks.submit(plan_drive_task, d, keyframe_distance_m,
                                                    keyframe_angle_deg, name=f"plan-{n}")

@@ -26,7 +26,11 @@ from typing import Any, Callable
 import numpy as np
 
 SCRATCH = ".work"
-_OPENED_MAX = 4  # opened drives a process keeps (a simulated world, a bag's index)
+#: Opened drives a process keeps, the least recently read dropped first: a worker reads runs of
+#: one drive, then the next (the executor keeps neighbouring runs on one worker), and each drive
+#: kept holds its poses and scene data (~150 MB a simulated city drive); a task of a dropped
+#: drive opens it again (seconds).
+_OPENED_MAX = 2
 
 
 # ----------------------------------------------------------------------------- drives

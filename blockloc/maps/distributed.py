@@ -62,12 +62,14 @@ class DaskExecutor:
         return self.client.submit(fn, *args, key=key, priority=priority, pure=False, workers=[w],
                                   allow_other_workers=True)
 
-    def on_each_worker(self, fn, *args, key: str) -> list:
-        """Submit ``fn(*args)`` once to every worker now connected (each pinned to its worker):
-        e.g. open a drive everywhere at the start instead of on each worker's first task."""
+    def on_each_worker(self, fn, args_of, *, key: str) -> list:
+        """Submit ``fn(*args_of(i, n))`` once to each of the ``n`` workers now connected (worker
+        ``i`` pinned): e.g. open on each worker the drive it will read first, instead of on its
+        first task."""
         workers = sorted(self.client.scheduler_info().get("workers", {}))
-        return [self.client.submit(fn, *args, key=f"{key}-{i}", workers=[w], allow_other_workers=False,
-                                   priority=100, pure=False) for i, w in enumerate(workers)]
+        return [self.client.submit(fn, *args_of(i, len(workers)), key=f"{key}-{i}", workers=[w],
+                                   allow_other_workers=False, priority=100, pure=False)
+                for i, w in enumerate(workers)]
 
     def cancel(self, futures, wait_s: float = 60.0) -> None:
         """Cancel the build's tasks and wait (up to ``wait_s``) until none of them still runs, so

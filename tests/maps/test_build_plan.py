@@ -157,3 +157,24 @@ def test_open_drive_task_prepares_a_simulated_drive():
         assert seq._scene is not None
     finally:
         forget_drives([drive])
+
+
+def test_each_worker_opens_the_drive_its_share_starts_in(tmp_path, world, loop_seq):
+    """The warm-up opens one drive a worker, spread over the drives in the order given (every
+    drive on every worker kept each drive's poses and scene data in every worker), and the
+    build is the serial one byte for byte."""
+    from blockloc.maps.build_plan import InlineExecutor
+
+    class TwoWorkers(InlineExecutor):
+        opened: list = []
+
+        def on_each_worker(self, fn, args_of, *, key):
+            self.opened = [args_of(i, 2)[0] for i in range(2)]
+            return [self.submit(fn, *args) for args in (args_of(i, 2) for i in range(2))]
+
+    drives = [Drive.of(loop_seq, stop=n, name=f"d{n}") for n in (40, 60, 80, 100, 120)]
+    ex = TwoWorkers()
+    warmed = build_map_from_drives(drives, "block", tmp_path / "w", block_size_m=30.0, executor=ex)
+    assert [d.name for d in ex.opened] == ["d40", "d80"]
+    serial = build_map_from_drives(drives, "block", tmp_path / "s", block_size_m=30.0)
+    assert [e.sha256 for e in warmed.entries] == [e.sha256 for e in serial.entries]
