@@ -87,19 +87,40 @@ def old_sim_stats(preset: str, seed: int, n: int) -> list[dict]:
 
 def new_sim_stats(preset: str, seed: int, n: int, session: str = "loc", profile: list | None = None,
                   **overrides) -> list[dict]:
-    """Statistics of ``n`` scans spread over the session; ``profile``: a list to which each
-    scan's (points, intensity) is appended (for the intensity-by-range table)."""
+    """Statistics of ``n`` scans spread over the session, each with ``surroundings`` (the kinds
+    of the world's blocks within 8 m of the robot: buildings, park, parking, field = an open
+    quad); ``profile``: a list to which each scan's (points, intensity) is appended (for the
+    intensity-by-range table)."""
     from blockloc.evaluation.realism import scan_realism
     from blockloc.sim.stream import open_sim_sequence
 
     s = open_sim_sequence(preset, session, seed, **overrides)
+    cells = s.scene.world.cells
     out = []
     for i in np.linspace(20, len(s) - 20, n).astype(int):
         f = s.frame(int(i))
-        out.append(scan_realism(f.points, f.intensity, f.ring, up=(0, 0, -1)))
+        row = scan_realism(f.points, f.intensity, f.ring, up=(0, 0, -1))
+        x, y = s.trajectory.T_world_flu(np.array([f.stamp - s.epoch_us * 1e-6]))[0, :2, 3]
+        row["surroundings"] = "+".join(sorted({c["type"] for c in cells
+                                               if c["rect"][0] - 8 <= x <= c["rect"][1] + 8
+                                               and c["rect"][2] - 8 <= y <= c["rect"][3] + 8})) or "road"
+        out.append(row)
         if profile is not None:
             profile.append((f.points, f.intensity))
     return out
+
+
+def scattered_by_surroundings(rows: list[dict]) -> list[str]:
+    """Markdown rows: the scattered share's median over the scans taken with and without an open
+    quad (field) beside the robot, and over all."""
+    groups = {"an open quad (field) within 8 m": [r for r in rows if "field" in r["surroundings"]],
+              "no open quad within 8 m": [r for r in rows if "field" not in r["surroundings"]],
+              "all": rows}
+    lines = ["| scans taken beside | scans | scattered share (median) |", "|---|---|---|"]
+    for name, rs in groups.items():
+        v = [r["scattered_share"] for r in rs if np.isfinite(r["scattered_share"])]
+        lines.append(f"| {name} | {len(v)} | {np.median(v):.1%} |" if v else f"| {name} | 0 | - |")
+    return lines
 
 
 def real_scans(data: Path) -> list:
@@ -175,10 +196,11 @@ def main(argv: list[str] | None = None) -> Path:
     for preset in ("small", "campus"):
         cols[f"old sim {preset} ({OLD_COMMIT})"] = median_stats(old_sim_stats(preset, args.seed, n))
     profiles = {"real HDL-32E": real_scans(shared_data_dir())}
+    rows_by_world = {}
     for preset in ("small", "campus"):
         profiles[f"new sim {preset}"] = []
-        cols[f"new sim {preset}"] = median_stats(new_sim_stats(preset, args.seed, n,
-                                                               profile=profiles[f"new sim {preset}"]))
+        rows_by_world[preset] = new_sim_stats(preset, args.seed, n, profile=profiles[f"new sim {preset}"])
+        cols[f"new sim {preset}"] = median_stats(rows_by_world[preset])
     names = list(cols)
     lines = ["## Simulator realism", "",
              f"Machine: {machine()}. Command: `python -m bench.realism {' '.join(argv or sys.argv[1:])}`, run {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. "
@@ -194,6 +216,9 @@ def main(argv: list[str] | None = None) -> Path:
                                         f"<= {_fmt(key, fmt, band[1])}" if band[0] == 0 else
                                         f"{_fmt(key, fmt, band[0])} - {_fmt(key, fmt, band[1])}")
         lines.append(f"| {label} | " + " | ".join(vals) + f" | {tgt} |")
+    lines += ["", "The scattered share of the new campus's scans by where they were taken (the localization "
+              "session crosses open quads, where tree crowns are most of what stands above the lawn):", ""]
+    lines += scattered_by_surroundings(rows_by_world["campus"])
     lines += ["", "Intensity by range, pooled over the same scans (`blockloc.evaluation.realism.intensity_by_range`): "
               "the share of returns in each range bin, the share of those reading <= 3, and their median "
               "intensity.", ""] + range_table(profiles)

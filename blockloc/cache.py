@@ -95,3 +95,58 @@ def superseded_memo_entries(memo_dir: Path, name: str, key: str) -> list[Path]:
             out.append(f)
     return sorted(out)
 
+
+
+class DiskTiles:
+    """Arrays that are pure functions of ``key`` and a tile id (the raster tiles of a simulated
+    world), one ``.npy`` file a tile under ``<cache root>/memo/<name>-<key>/``, shared by every
+    process: a tile that one Dask worker (or an earlier run) computed is read by the others
+    instead of being computed again. Written through a temp file and a rename; a tile that
+    cannot be read or written is computed (the result is the same either way). Creating the
+    directory removes the ones of the same ``name`` under other keys (older code's tiles)."""
+
+    def __init__(self, name: str, key: str) -> None:
+        self.name, self.key = name, key
+        self.dir = cache_root() / "memo" / f"{name}-{key}"
+        self._made = False
+
+    def get(self, tile_id: str):
+        """The tile's array, or None when it is not on disk (or unreadable)."""
+        import numpy as np
+
+        try:
+            return np.load(self.dir / f"{tile_id}.npy", allow_pickle=False)
+        except (OSError, ValueError):
+            return None
+
+    def put(self, tile_id: str, array) -> None:
+        import io
+        import logging
+        import shutil
+
+        import numpy as np
+
+        from blockloc.fileio import atomic_write_bytes
+
+        buf = io.BytesIO()
+        np.save(buf, np.ascontiguousarray(array), allow_pickle=False)
+        try:
+            if not self._made:
+                self.dir.mkdir(parents=True, exist_ok=True)
+                self._made = True
+                for old in superseded_memo_dirs(self.dir.parent, self.name, self.key):
+                    shutil.rmtree(old, ignore_errors=True)
+            atomic_write_bytes(self.dir / f"{tile_id}.npy", buf.getvalue())
+        except OSError as exc:
+            logging.getLogger(__name__).debug("%s: tile %s not cached (%s)", self.dir, tile_id, exc)
+
+
+def superseded_memo_dirs(memo_dir: Path, name: str, key: str) -> list[Path]:
+    """Directories ``<name>-<other key>`` in ``memo_dir`` (keys of :func:`fingerprint`'s form),
+    as :func:`superseded_memo_entries` does for files."""
+    import glob
+    import re
+
+    pat = re.compile(re.escape(name) + r"-([0-9a-f]{10})")
+    return sorted(d for d in memo_dir.glob(f"{glob.escape(name)}-*")
+                  if (m := pat.fullmatch(d.name)) and m.group(1) != key and d.is_dir())

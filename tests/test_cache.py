@@ -102,3 +102,23 @@ def test_disk_memo_removes_only_entries_of_its_name_under_older_keys(tmp_path, m
     stale.write_bytes(b"x")
     assert disk_memo("world-city-1", "abcdef0123", lambda: 0, min_build_s=0.0) == 42
     assert stale.exists()
+
+
+def test_disk_tiles_keep_arrays_and_drop_only_older_keys_of_their_name(tmp_path, monkeypatch):
+    import numpy as np
+
+    from blockloc.cache import DiskTiles
+
+    monkeypatch.setenv("BLOCKLOC_CACHE", str(tmp_path))
+    memo = tmp_path / "memo"
+    old = memo / "material-city-1-0123456789"
+    other = memo / "material-city-12-0123456789"  # another name (seed 12), not older code
+    mine = memo / "notes-0123456789"  # a directory blockloc did not name this way
+    for d in (old, other, mine):
+        d.mkdir(parents=True)
+    tiles = DiskTiles("material-city-1", "abcdefabcd")
+    assert tiles.get("0_0") is None
+    a = np.arange(12, dtype=np.uint8).reshape(3, 4)
+    tiles.put("0_0", a)
+    assert np.array_equal(DiskTiles("material-city-1", "abcdefabcd").get("0_0"), a)
+    assert not old.exists() and other.exists() and mine.exists()

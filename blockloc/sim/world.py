@@ -14,6 +14,7 @@ import functools
 import logging
 import zlib
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -339,6 +340,9 @@ class World:
     owners: dict = field(default_factory=dict)
     passages: list[dict] = field(default_factory=list)
     _material: dict = field(default_factory=dict, repr=False)  # (ti, tj) -> tile, LRU order
+    #: where built raster tiles are shared between processes (get / put by tile id; None: not
+    #: shared): set by whoever opens the world (``blockloc.sim.stream.cached_world``)
+    material_tiles: Any = field(default=None, repr=False, compare=False)
 
     @property
     def extent(self) -> tuple[float, float, float, float]:
@@ -348,8 +352,8 @@ class World:
     def ground_material(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """(N,) ground surface code at (x, y): 0 road (asphalt), 1 sidewalk (paved, a kerb
         above the road), 2 grass, 3 footpath (paved, flush with the grass). Looked up in 0.25 m
-        raster tiles of 128 m, each built on first use (a city is never rastered whole); the
-        ``MATERIAL_TILES`` used last are kept."""
+        raster tiles of 128 m, each built on first use (a city is never rastered whole) or read
+        from ``material_tiles``; the ``MATERIAL_TILES`` used last are kept."""
         x = np.asarray(x, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
         res, tile = 0.25, 128.0
@@ -365,6 +369,10 @@ class World:
             if b > 500_000:  # negative tj wrapped by the modulo
                 a, b = a + 1, b - 1_000_003
             R = self._material.pop((a, b), None)
+            if R is None and self.material_tiles is not None:
+                R = self.material_tiles.get(f"{a}_{b}")
+                if R is not None and R.shape != (n, n // 4):
+                    R = None
             if R is None:
                 gx = a * tile + (np.arange(n) + 0.5) * res
                 gy = b * tile + (np.arange(n) + 0.5) * res
@@ -373,6 +381,8 @@ class World:
                                                 (a * tile, (a + 1) * tile, b * tile, (b + 1) * tile))
                 R = R.reshape(n, n).astype(np.uint8)  # codes 0..3: four a byte, column j in bits 2 (j % 4)
                 R = R[:, 0::4] | (R[:, 1::4] << 2) | (R[:, 2::4] << 4) | (R[:, 3::4] << 6)
+                if self.material_tiles is not None:
+                    self.material_tiles.put(f"{a}_{b}", R)
             self._material[(a, b)] = R  # re-inserted: the newest last
             while len(self._material) > MATERIAL_TILES:
                 del self._material[next(iter(self._material))]

@@ -345,3 +345,16 @@ def test_a_user_error_in_a_benchmark_is_one_line_unless_debugging(debug):
     assert ("Traceback" in p.stderr) == debug
     if not debug:
         assert len(p.stderr.strip().splitlines()) == 1, p.stderr
+
+
+def test_realism_scattered_share_by_surroundings():
+    from bench.realism import scattered_by_surroundings
+
+    rows = [{"surroundings": "field", "scattered_share": 0.4},
+            {"surroundings": "buildings+field", "scattered_share": 0.5},
+            {"surroundings": "buildings", "scattered_share": 0.2},
+            {"surroundings": "park", "scattered_share": float("nan")}]
+    lines = scattered_by_surroundings(rows)
+    assert lines[2] == "| an open quad (field) within 8 m | 2 | 45.0% |"
+    assert lines[3] == "| no open quad within 8 m | 1 | 20.0% |"
+    assert lines[4] == "| all | 3 | 40.0% |"

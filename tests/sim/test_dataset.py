@@ -246,3 +246,30 @@ def test_ground_material_keeps_a_bounded_number_of_raster_tiles(monkeypatch):
         assert len(world._material) <= 3
     assert np.array_equal(world.ground_material(x, y), first)
     assert set(np.unique(first)) >= {0, 2}  # roads and grass both sampled
+
+
+def test_ground_raster_tiles_are_shared_between_processes_on_disk(tmp_path, monkeypatch):
+    """A tile one process rasterized is read by the next (a Dask worker, a later run) instead of
+    computed again, and reads the same codes; a damaged tile file is computed again."""
+    import blockloc.sim.stream as stream
+    import blockloc.sim.world as W
+
+    monkeypatch.setenv("BLOCKLOC_CACHE", str(tmp_path))
+    stream.cached_world.cache_clear()
+    try:
+        world = stream.cached_world(get_preset("tiny"), 3)
+        x, y = np.array([1.0, 40.0, -30.0]), np.array([2.0, -20.0, 10.0])
+        first = world.ground_material(x, y)
+        files = sorted(world.material_tiles.dir.glob("*.npy"))
+        assert files and all(f.stat().st_size > 512 * 128 for f in files)
+        calls = []
+        monkeypatch.setattr(W.World, "_ground_material_exact",
+                            lambda self, *a, **k: calls.append(1) or np.full(len(a[0]), 2))
+        world._material.clear()  # as in another process: nothing in memory
+        assert np.array_equal(world.ground_material(x, y), first) and not calls
+        files[0].write_bytes(b"not a tile")
+        world._material.clear()
+        world.ground_material(x, y)
+        assert len(calls) == 1  # the damaged tile only, computed again
+    finally:
+        stream.cached_world.cache_clear()
