@@ -149,6 +149,9 @@ class RegistrationConfig:
     # configs/sim.yaml says why it sets 20 and 80
     num_neighbors: int = bounded(10, COUNT)
     target_num_neighbors: int = bounded(0, NON_NEGATIVE)
+    # vgicp only: voxel grids offset by resolution / grids along each axis, aligned in turn and
+    # their results fused (1: small_gicp's single grid; see blockloc/registration/vgicp.py)
+    voxel_grids: int = bounded(2, COUNT)
 
 
 @dataclass

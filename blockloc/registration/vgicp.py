@@ -7,6 +7,18 @@ covariances, estimated at every ``align`` (part of its cost: about 10 ms for a 2
 GTSAM Pose3 tangent (rotation first, right perturbation of ``T_target_source``), which is what
 the tracker's factors take.
 
+Overlapping grids (``voxel_grids``, default 2): VGICP pairs each scan point with the one voxel it
+falls in, so where a surface crosses a voxel border the pull depends on where the grid lies, a
+bias that moves with the grid, not with the scene. As the first NDT (Biber and Strasser 2003)
+did with four overlapping grids, the target holds ``voxel_grids`` voxel maps of the same points,
+grid k offset by k * resolution / voxel_grids along every axis (the same per-point covariances,
+inserted through a translation); the scan is aligned on the first, then on each next from the
+first's result, and the results are fused: the mean of their poses weighted by their Hessians, in
+the tangent of the first. The fused ``H`` is the Hessians' mean (the grids see the same points:
+their information is not independent). On 83 campus scans registered alone from ground truth
+(0.15 m / 0.5 deg off), two grids gave 4.95 cm translation RMS against one grid's 5.83 cm and NDT's
+5.21 cm, at twice the alignment time.
+
 Fitness and score: VGICP counts as inliers the points with any voxel within
 ``max_correspondence_distance``, which depends on that distance and is looser than NDT's 99%
 ellipsoid. So that health checks and global-init verification mean the same for every engine
@@ -30,13 +42,20 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class VgicpTarget:
-    """A built target: the small_gicp voxel map, NDT Gaussians of the same points for fitness,
-    and the tiles it was built from ({id: (N, 3) map frame}, or {None: points})."""
+    """A built target: the small_gicp voxel maps (grid k holds the points moved by ``-shifts[k]``),
+    NDT Gaussians of the same points for fitness, and the tiles it was built from ({id: (N, 3)
+    map frame}, or {None: points})."""
 
-    voxelmap: Any
+    voxelmaps: list
+    shifts: np.ndarray  # (grids, 3) metres, map frame
     scoring: Any  # blockloc.registration.ndt.NdtTarget, one level, for fitness and score
     tiles: dict
     num_points: int
+
+    @property
+    def voxelmap(self):
+        """The first grid's voxel map (offset 0)."""
+        return self.voxelmaps[0]
 
     @property
     def nbytes(self) -> int:
@@ -69,7 +88,8 @@ class VgicpEngine:
     num_neighbors). A voxel's Gaussian is the mean of its points' covariances, so on a dense map
     (0.2 m voxels) few neighbours describe a patch much smaller than the voxel and a scan point
     is pulled toward the voxel's mean along the surface; configs/sim.yaml gives what more map
-    neighbours did on the campus. max_iterations; num_threads.
+    neighbours did on the campus. voxel_grids: overlapping voxel grids whose results are fused
+    (see the module docstring; 1: small_gicp's single grid). max_iterations; num_threads.
     outlier_ratio and min_points_per_voxel shape the NDT Gaussians used for fitness.
     """
 
@@ -78,7 +98,7 @@ class VgicpEngine:
 
     def __init__(self, *, resolution_m: float = 1.0, max_correspondence_distance_m: float | None = None,
                  num_neighbors: int = 10, target_num_neighbors: int | None = None,
-                 max_iterations: int = 30, num_threads: int | None = 2,
+                 voxel_grids: int = 2, max_iterations: int = 30, num_threads: int | None = 2,
                  outlier_ratio: float = 0.55, min_points_per_voxel: int = 6, **_unused: Any) -> None:
         from blockloc.registration.ndt import NdtRegistration
 
@@ -88,6 +108,9 @@ class VgicpEngine:
         self.max_correspondence_distance_m = float(max_correspondence_distance_m or resolution_m)
         self.num_neighbors = int(num_neighbors)
         self.target_num_neighbors = int(target_num_neighbors or num_neighbors)
+        if int(voxel_grids) < 1:
+            raise RegistrationError(f"voxel_grids {voxel_grids!r}: expected an integer >= 1")
+        self.voxel_grids = int(voxel_grids)
         self.max_iterations = int(max_iterations)
         self.num_threads = int(num_threads or 1)
         self.min_points_per_voxel = int(min_points_per_voxel)
@@ -108,10 +131,14 @@ class VgicpEngine:
         points = np.ascontiguousarray(np.concatenate(parts))
         cloud = small_gicp.PointCloud(points)
         small_gicp.estimate_covariances(cloud, num_neighbors=self.target_num_neighbors, num_threads=self.num_threads)
-        voxelmap = small_gicp.GaussianVoxelMap(self.resolution_m)
-        voxelmap.insert(cloud)
+        shifts = np.outer(np.arange(self.voxel_grids) / self.voxel_grids, np.full(3, self.resolution_m))
+        voxelmaps = []
+        for shift in shifts:
+            voxelmap = small_gicp.GaussianVoxelMap(self.resolution_m)
+            voxelmap.insert(cloud, _translation(-shift))  # covariances unchanged by a translation
+            voxelmaps.append(voxelmap)
         scoring = NdtTarget.build(points, self.resolution_m, self.min_points_per_voxel, coarse_levels=0)
-        return VgicpTarget(voxelmap, scoring, dict(tiles), len(points))
+        return VgicpTarget(voxelmaps, shifts, scoring, dict(tiles), len(points))
 
     def update_tiles(self, target: VgicpTarget, add, remove) -> VgicpTarget:
         tiles = {k: v for k, v in target.tiles.items() if k not in set(remove)}
@@ -128,26 +155,69 @@ class VgicpEngine:
         T0 = np.eye(4) if T_init is None else np.asarray(T_init, dtype=np.float64)
         cloud = small_gicp.PointCloud(src)
         small_gicp.estimate_covariances(cloud, num_neighbors=self.num_neighbors, num_threads=self.num_threads)
-        r = small_gicp.align(target.voxelmap, cloud, T0,
-                             max_correspondence_distance=self.max_correspondence_distance_m,
-                             num_threads=self.num_threads, max_iterations=self.max_iterations)
+        T, H, b, error, converged, iterations = self._align_grid(target, 0, cloud, T0)
+        if self.voxel_grids > 1 and converged:
+            # the other grids from the first's result; fused where they converged too
+            found = [(T, H)]
+            for k in range(1, len(target.voxelmaps)):
+                Tk, Hk, _, _, ok, it = self._align_grid(target, k, cloud, T)
+                iterations += it
+                if ok:
+                    found.append((Tk, Hk))
+            T, H = _fuse(found)
+        ev = self.evaluate(target, src, T)
+        lam, V = np.linalg.eigh(0.5 * (H + H.T))
+        H = (V * np.maximum(lam, 0.0)) @ V.T  # PSD for GTSAM
+        return VgicpResult(T, converged and ev.num_inliers > 0, iterations,
+                           ev.num_inliers / len(src), int(ev.num_inliers), len(src), float(ev.score),
+                           error, H, b)
+
+    def _align_grid(self, target: VgicpTarget, k: int, cloud, T_map_source: np.ndarray):
+        """small_gicp's VGICP on grid ``k`` from ``T_map_source``: (T_map_source (4, 4), H, b,
+        error, converged, iterations), H and b in the tangent of ``T_map_source`` (a grid's
+        offset is a translation on the left: the right-perturbation tangent is the same)."""
+        import small_gicp
+
+        to_grid, from_grid = _translation(-target.shifts[k]), _translation(target.shifts[k])
+        kw = dict(max_correspondence_distance=self.max_correspondence_distance_m,
+                  num_threads=self.num_threads, max_iterations=self.max_iterations)
+        r = small_gicp.align(target.voxelmaps[k], cloud, to_grid @ T_map_source, **kw)
         iterations = int(r.iterations)
         if not r.converged and np.isfinite(np.asarray(r.T_target_source)).all():
             # Out of iterations on its way (a large correction, or correspondences switching
             # between voxels): go on from where it stopped once (as global init does with NDT); it stays
             # unconverged (and the tracker rejects the scan) if it still does not settle.
-            r = small_gicp.align(target.voxelmap, cloud, np.asarray(r.T_target_source, dtype=np.float64),
-                                 max_correspondence_distance=self.max_correspondence_distance_m,
-                                 num_threads=self.num_threads, max_iterations=self.max_iterations)
+            r = small_gicp.align(target.voxelmaps[k], cloud, np.asarray(r.T_target_source, dtype=np.float64), **kw)
             iterations += int(r.iterations)
-        T = np.asarray(r.T_target_source, dtype=np.float64)
-        ev = self.evaluate(target, src, T)
-        H = np.asarray(r.H, dtype=np.float64)
-        lam, V = np.linalg.eigh(0.5 * (H + H.T))
-        H = (V * np.maximum(lam, 0.0)) @ V.T  # PSD for GTSAM
-        return VgicpResult(T, bool(r.converged) and ev.num_inliers > 0, iterations,
-                           ev.num_inliers / len(src), int(ev.num_inliers), len(src), float(ev.score),
-                           float(r.error), H, np.asarray(r.b, dtype=np.float64).reshape(6))
+        T = from_grid @ np.asarray(r.T_target_source, dtype=np.float64)
+        return (T, np.asarray(r.H, dtype=np.float64), np.asarray(r.b, dtype=np.float64).reshape(6),
+                float(r.error), bool(r.converged), iterations)
 
     def evaluate(self, target: VgicpTarget, source_points: np.ndarray, T_target_source: np.ndarray):
         return self._scorer.evaluate(target.scoring, source_points, T_target_source, derivatives=False)
+
+
+def _translation(t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = t
+    return T
+
+
+def _fuse(found: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """The Hessian-weighted mean of poses [(T (4, 4), H (6, 6)), ...] in the tangent of the
+    first (GTSAM's Pose3 tangent: rotation first, right perturbation), and the mean Hessian."""
+    from blockloc.geometry import so3_exp, so3_log
+
+    T0 = found[0][0]
+    H_sum = sum(H for _, H in found)
+    g = np.zeros(6)
+    for T, H in found[1:]:
+        D = np.linalg.inv(T0) @ T
+        g += H @ np.r_[so3_log(D[:3, :3]), D[:3, 3]]
+    lam, V = np.linalg.eigh(0.5 * (H_sum + H_sum.T))
+    keep = lam > 1e-9 * max(float(lam.max()), 1e-300)
+    xi = (V[:, keep] / lam[keep]) @ (V[:, keep].T @ g)  # a pseudo-inverse: flat directions stay
+    step = np.eye(4)
+    step[:3, :3] = so3_exp(xi[:3])
+    step[:3, 3] = xi[3:]
+    return T0 @ step, H_sum / len(found)
