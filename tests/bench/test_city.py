@@ -62,3 +62,18 @@ def test_an_unknown_run_is_one_line_before_any_work(tmp_path, capsys):
     assert main(["--preset", "campus", "--runs", "local:2,fast", "--work", str(tmp_path / "w")]) == 2
     assert "--runs 'local:2,fast': expected a comma-separated list of serial" in capsys.readouterr().err
     assert not (tmp_path / "w").exists()
+
+
+def test_raster_tiles_around_the_drives_are_warmed_into_the_disk_cache(tmp_path, monkeypatch):
+    import blockloc.sim.stream as stream
+    from bench.city import warm_raster_tiles
+
+    monkeypatch.setenv("BLOCKLOC_CACHE", str(tmp_path))
+    stream.cached_world.cache_clear()
+    try:
+        n, _ = warm_raster_tiles("tiny", 2, ["map"], 50, margin_m=10.0)
+        world = stream.cached_world(stream.get_preset("tiny"), 2)
+        on_disk = sorted(world.material_tiles.dir.glob("*.npy"))
+        assert n >= 1 and len(on_disk) == n
+    finally:
+        stream.cached_world.cache_clear()
