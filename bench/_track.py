@@ -354,11 +354,21 @@ class ResourceSampler:
                 "samples": len(self.cpu), "wall_s": self.wall_s}
 
 
+#: Engine names a benchmark's ``backend@engine`` may give beyond ``registration.method``'s: the
+#: registration settings each stands for.
+ENGINE_VARIANTS = {"vgicp1": {"method": "vgicp", "voxel_grids": 1}}  # small_gicp's single voxel grid
+
+
+def engine_settings(engine: str) -> dict:
+    """The ``registration`` settings of a benchmark engine name (``ndt``, ``vgicp``, ``vgicp1``)."""
+    return dict(ENGINE_VARIANTS.get(engine, {"method": engine}))
+
+
 # --------------------------------------------------------------------------- child process
 def run_child(seq_name: str, map_path: str | None, backend: str, out_json: Path, *, cfg_preset: str = "sim",
               block_size_m: float | None = None, max_frames: int | None = None, method: str | None = None) -> dict:
     """Run one backend over ``seq_name`` in this process; write metrics (+ arrays as .npz).
-    method: registration engine (``registration.method``; None: the preset's)."""
+    method: registration engine (``registration.method`` or :data:`ENGINE_VARIANTS`; None: the preset's)."""
     from blockloc.config import load_config
     from blockloc.datasets import open_sequence
 
@@ -366,7 +376,7 @@ def run_child(seq_name: str, map_path: str | None, backend: str, out_json: Path,
     if block_size_m:
         overrides["map"] = {"block_size_m": block_size_m}
     if method:
-        overrides["registration"] = {"method": method}
+        overrides["registration"] = engine_settings(method)
     cfg = load_config(cfg_preset, overrides=overrides)
     seq = open_sequence(seq_name, dataset_cfg=cfg.dataset)
     stop = len(seq) if max_frames is None else min(len(seq), max_frames)

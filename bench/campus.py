@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from bench._track import STATUS_CODES, BackendRun
+from bench._track import STATUS_CODES, BackendRun, engine_settings
 from blockloc.fileio import atomic_path, atomic_write_text, save_figure
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -486,7 +486,7 @@ def main(argv: list[str] | None = None) -> int:
         # backend@engine (e.g. block@vgicp): that map policy with registration.method = engine
         policy, _, engine = b.partition("@")
         cfg_b = cfg if not engine else load_config("sim", overrides={
-            **overrides, "registration": {**overrides.get("registration", {}), "method": engine}})
+            **overrides, "registration": {**overrides.get("registration", {}), **engine_settings(engine)}})
         r = BackendRun(seq, cfg_b, grid_path if policy in ("grid", "srt") else map_path, policy, args.start, stop)
         r.backend = b  # names its checkpoint and its row
         return r

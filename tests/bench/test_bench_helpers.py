@@ -358,3 +358,13 @@ def test_realism_scattered_share_by_surroundings():
     assert lines[2] == "| an open quad (field) within 8 m | 2 | 45.0% |"
     assert lines[3] == "| no open quad within 8 m | 1 | 20.0% |"
     assert lines[4] == "| all | 3 | 40.0% |"
+
+
+def test_benchmark_engine_names_stand_for_registration_settings():
+    from bench._track import engine_settings
+    from blockloc.config import load_config
+
+    assert engine_settings("ndt") == {"method": "ndt"}
+    one = load_config("sim", overrides={"registration": engine_settings("vgicp1")}).registration
+    assert one.method == "vgicp" and one.voxel_grids == 1
+    assert load_config("sim", overrides={"registration": engine_settings("vgicp")}).registration.voxel_grids == 2
