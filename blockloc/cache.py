@@ -116,7 +116,7 @@ class DiskTiles:
 
         try:
             return np.load(self.dir / f"{tile_id}.npy", allow_pickle=False)
-        except (OSError, ValueError):
+        except Exception:  # missing, or cut short / damaged (EOFError, ValueError, ...): compute it
             return None
 
     def put(self, tile_id: str, array) -> None:

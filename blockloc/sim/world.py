@@ -371,7 +371,7 @@ class World:
             R = self._material.pop((a, b), None)
             if R is None and self.material_tiles is not None:
                 R = self.material_tiles.get(f"{a}_{b}")
-                if R is not None and R.shape != (n, n // 4):
+                if R is not None and (R.shape != (n, n // 4) or R.dtype != np.uint8):
                     R = None
             if R is None:
                 gx = a * tile + (np.arange(n) + 0.5) * res

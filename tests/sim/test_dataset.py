@@ -261,7 +261,7 @@ def test_ground_raster_tiles_are_shared_between_processes_on_disk(tmp_path, monk
         x, y = np.array([1.0, 40.0, -30.0]), np.array([2.0, -20.0, 10.0])
         first = world.ground_material(x, y)
         files = sorted(world.material_tiles.dir.glob("*.npy"))
-        assert files and all(f.stat().st_size > 512 * 128 for f in files)
+        assert len(files) >= 2 and all(f.stat().st_size > 512 * 128 for f in files)
         calls = []
         monkeypatch.setattr(W.World, "_ground_material_exact",
                             lambda self, *a, **k: calls.append(1) or np.full(len(a[0]), 2))
@@ -271,5 +271,14 @@ def test_ground_raster_tiles_are_shared_between_processes_on_disk(tmp_path, monk
         world._material.clear()
         world.ground_material(x, y)
         assert len(calls) == 1  # the damaged tile only, computed again
+        files[1].write_bytes(b"")  # cut short by a crash: np.load raises EOFError
+        world._material.clear()
+        world.ground_material(x, y)
+        assert len(calls) == 2
+        good = np.load(files[-1])
+        np.save(files[-1], good.astype(np.int16))  # right shape, wrong type: not a tile of ours
+        world._material.clear()
+        world.ground_material(x, y)
+        assert len(calls) == 3
     finally:
         stream.cached_world.cache_clear()
