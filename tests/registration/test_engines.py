@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from blockloc.errors import RegistrationError
 from blockloc.registration.engines import ENGINES, Registration, engine_from_settings, inlier_ratio, make_engine
@@ -146,6 +147,22 @@ def test_vgicp_fuses_the_grids_by_their_hessians(hdl_pair):
     np.testing.assert_allclose(Hf, H)
     T, _ = _fuse([(A, H), (B, np.zeros((6, 6)))])
     np.testing.assert_allclose(T, A, atol=1e-12)
+    # the difference is taken in the first pose's frame (right perturbation): A turned 90 deg
+    R = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    A = make_T(R, [1.0, 0.0, 0.0])
+    B = A @ make_T(np.eye(3), [0.2, 0.0, 0.0])
+    T, _ = _fuse([(A, H), (B, H)])
+    np.testing.assert_allclose(T, A @ make_T(np.eye(3), [0.1, 0.0, 0.0]), atol=1e-12)
+    # a direction neither grid constrains (z here, a corridor's axis) keeps the first's pose, even
+    # when the two nearly flat Hessians differ a little; the constrained ones are still averaged
+    H0 = np.diag([100.0, 100, 100, 50, 50, 1e-5])
+    Q = np.eye(6)
+    Q[3:, 3:] = Rotation.from_euler("x", 3, degrees=True).as_matrix()
+    H1 = Q @ H0 @ Q.T
+    A = make_T(np.eye(3), [0.0, 0.0, 0.0])
+    B = make_T(np.eye(3), [0.0, 0.02, 0.0])
+    T, _ = _fuse([(A, H0), (B, H1)])
+    assert abs(T[2, 3]) < 1e-3 and 0.005 < T[1, 3] < 0.015, T[:3, 3]
     # on the real pair, two grids and one both land within 5 cm / 0.5 deg of the reference
     target_pts, source, T_ref = hdl_pair
     for grids in (1, 2):
@@ -153,3 +170,28 @@ def test_vgicp_fuses_the_grids_by_their_hessians(hdl_pair):
         res = engine.align(engine.build_target(target_pts), source, np.eye(4))
         dt, dr = _err(res.T_target_source, T_ref)
         assert res.converged and dt < 0.05 and dr < 0.5, (grids, dt, dr)
+
+
+def test_vgicp_align_is_the_fusion_of_its_grids_and_leaves_out_a_far_one(hdl_pair):
+    """Two grids' align returns exactly the fusion of the two single-grid alignments (the second
+    from the first's result); a grid that settles more than half a voxel away is not fused."""
+    import small_gicp
+
+    from blockloc.geometry import make_T
+    from blockloc.registration.vgicp import _fuse, _near
+
+    target_pts, source, _ = hdl_pair
+    engine = make_engine("vgicp", resolution_m=1.0, voxel_grids=2, num_threads=2)
+    target = engine.build_target(target_pts)
+    res = engine.align(target, source, np.eye(4))
+    cloud = small_gicp.PointCloud(np.ascontiguousarray(np.asarray(source, np.float64)[:, :3]))
+    small_gicp.estimate_covariances(cloud, num_neighbors=engine.num_neighbors, num_threads=2)
+    T0, H0, *_ = engine._align_grid(target, 0, cloud, np.eye(4))
+    T1, H1, *_ = engine._align_grid(target, 1, cloud, T0)
+    assert not np.allclose(T0, T1, atol=1e-6)  # the grids disagree a little: fusing does something
+    T, H = _fuse([(T0, H0), (T1, H1)])
+    np.testing.assert_allclose(res.T_target_source, T, atol=1e-9)
+    assert _near(T0, T1, 0.5, np.deg2rad(0.5))
+    assert not _near(T0, T0 @ make_T(np.eye(3), [0.6, 0, 0]), 0.5, np.deg2rad(0.5))
+    assert not _near(T0, T0 @ make_T(Rotation.from_euler("z", 1, degrees=True).as_matrix(), [0, 0, 0]),
+                     0.5, np.deg2rad(0.5))
