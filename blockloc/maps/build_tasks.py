@@ -29,7 +29,8 @@ SCRATCH = ".work"
 #: Opened drives a process keeps, the least recently read dropped first: a worker reads runs of
 #: one drive, then the next (the executor keeps neighbouring runs on one worker), and each drive
 #: kept holds its poses and scene data (~150 MB a simulated city drive); a task of a dropped
-#: drive opens it again (seconds).
+#: drive opens it again (seconds). A drive read with an estimated mounting and the drive it wraps
+#: count as one.
 _OPENED_MAX = 2
 
 
@@ -100,14 +101,29 @@ def _opened(drive: Drive) -> tuple:
 
     with _OPENED_LOCK:
         if drive.key in _OPENED:
-            _OPENED.move_to_end(drive.key)
+            _touch(drive.key)
             return _OPENED[drive.key]
         seq = drive.open()
         item = (seq, mapping_poses_or_fail(seq), np.asarray(seq.info.T_body_lidar, np.float64))
         _OPENED[drive.key] = item
-        while len(_OPENED) > _OPENED_MAX:
-            _OPENED.popitem(last=False)
+        _touch(drive.key)
+        while len({_base(k) for k in _OPENED}) > _OPENED_MAX:
+            oldest = _base(next(iter(_OPENED)))
+            for k in [k for k in _OPENED if _base(k) == oldest]:
+                del _OPENED[k]
         return item
+
+
+def _base(key: str) -> str:
+    """The drive a cache key reads: a remounted drive (``key|mounting-...``) reads its inner one's
+    sequence, so the two count as one opened drive and are kept or dropped together."""
+    return key.split("|", 1)[0]
+
+
+def _touch(key: str) -> None:
+    """Mark ``key`` and the keys reading the same drive as the most recently read."""
+    for k in [k for k in _OPENED if _base(k) == _base(key)]:
+        _OPENED.move_to_end(k)
 
 
 def forget_drives(drives) -> None:

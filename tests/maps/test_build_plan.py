@@ -159,6 +159,37 @@ def test_open_drive_task_prepares_a_simulated_drive():
         forget_drives([drive])
 
 
+def test_a_worker_keeps_a_remounted_drive_and_its_inner_one_as_one(loop_seq, monkeypatch):
+    """The opened-drive cache counts a drive read with an estimated mounting and the drive it wraps
+    as one: alternating between two remounted drives reopens neither (with a cap of two)."""
+    import blockloc.maps.build_tasks as bt
+
+    opens = []
+
+    class Opener:
+        def __init__(self, name):
+            self.name = name
+
+        def __call__(self):
+            opens.append(self.name)
+            return loop_seq
+
+    monkeypatch.setattr(bt, "_OPENED", type(bt._OPENED)())
+    monkeypatch.setattr(bt, "_OPENED_MAX", 2)
+    a, b, c = (Drive(n, Opener(n), f"key-{n}") for n in "abc")
+    ra, rb = bt.remounted(a, np.eye(4)), bt.remounted(b, np.eye(4))
+    for _ in range(3):
+        bt._opened(ra)
+        bt._opened(rb)
+    assert opens == ["a", "b"]
+    bt._opened(a)  # the inner drive: already open
+    assert opens == ["a", "b"]
+    bt._opened(c)  # a third drive drops the least recently read one, with its remounted reading
+    assert opens == ["a", "b", "c"] and set(bt._OPENED) == {"key-a", "key-a|" + ra.key.split("|")[1], "key-c"}
+    bt._opened(rb)
+    assert opens[-1] == "b"
+
+
 def test_each_worker_opens_the_drive_its_share_starts_in(tmp_path, world, loop_seq):
     """The warm-up opens one drive a worker, spread over the drives in the order given (every
     drive on every worker kept each drive's poses and scene data in every worker), and the
