@@ -241,6 +241,13 @@ def _sim_name(name: str) -> tuple[str, str, int]:
     return SequenceRef.parse(name).sim
 
 
+def _bound(prog: dict, frames: int) -> str:
+    """What stopped a run short of the session's end: its --max-frames or its --minutes."""
+    if prog.get("max_frames") is not None and frames >= prog["max_frames"]:
+        return f"the run was bounded to --max-frames {prog['max_frames']:,}"
+    return f"the loop is bounded to --minutes {prog['minutes']:g}"
+
+
 def write_fragment(state: Path, out: Path, before: Path | None = None) -> str:
     from bench.__main__ import machine
     from blockloc.datasets import open_sequence
@@ -276,8 +283,8 @@ def write_fragment(state: Path, out: Path, before: Path | None = None) -> str:
         f"{prog['start']}..{prog['start'] + frames - 1} ({frames:,} scans, {covered / 1000:.2f} km of ground truth, "
         f"{100 * frames / len(seq):.1f}% of the session)**"
         + (" — the whole session." if prog['start'] + frames >= len(seq) else
-           f" — the last {len(seq) - prog['start'] - frames:,} scans were not run: the loop is bounded to "
-           f"--minutes {prog['minutes']:g} (each scan is ray-cast at full density before the trackers see it; "
+           f" — the last {len(seq) - prog['start'] - frames:,} scans were not run: {_bound(prog, frames)} "
+           "(each scan is ray-cast at full density before the trackers see it; "
            f"{prog.get('scan_wall_ms', 1e3 * prog['wall_s'] / max(frames, 1)):.0f} ms of wall time a scan for ray "
            "casting and the trackers)."),
         f"Map: block store `{prog['map']}` ({prog['map_desc']}); `block` and `global` use the block store, "
@@ -494,7 +501,7 @@ def main(argv: list[str] | None = None) -> int:
     runs = [run_for(b) for b in backends]
     prog = {"command": cmd, "sequence": seq_name, "exact": exact, "backends": backends, "map": str(map_path),
             "map_desc": map_desc, "block_size_m": args.block_size, "start": args.start, "minutes": args.minutes,
-            "started": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "load_start": os.getloadavg()[0],
+            "max_frames": args.max_frames, "started": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "load_start": os.getloadavg()[0],
             "frames_done": 0, "finished": False}
     loads = [os.getloadavg()[0]]
     t0 = last_ck = time.perf_counter()

@@ -368,3 +368,11 @@ def test_benchmark_engine_names_stand_for_registration_settings():
     one = load_config("sim", overrides={"registration": engine_settings("vgicp1")}).registration
     assert one.method == "vgicp" and one.voxel_grids == 1
     assert load_config("sim", overrides={"registration": engine_settings("vgicp")}).registration.voxel_grids == 2
+
+
+def test_campus_report_names_what_stopped_a_run_short():
+    from bench.campus import _bound
+
+    assert _bound({"max_frames": 8300, "minutes": 120.0}, 8300) == "the run was bounded to --max-frames 8,300"
+    assert _bound({"max_frames": 8300, "minutes": 20.0}, 5000) == "the loop is bounded to --minutes 20"
+    assert _bound({"minutes": 20.0}, 5000) == "the loop is bounded to --minutes 20"  # older progress files
