@@ -80,21 +80,17 @@ def disk_memo(name: str, key: str, build, *, min_build_s: float = 1.0):
     return value
 
 
-def superseded_memo_entries(memo_dir: Path, name: str, key: str) -> list[Path]:
-    """Entries ``<name>-<other key>.pkl`` in ``memo_dir``: the same name, a key of
-    :func:`fingerprint`'s form (10 hex digits) other than ``key``. Nothing else matches (not
-    ``<name>-2-<key>.pkl``, another name; not a file blockloc did not name this way)."""
+def superseded_memo_entries(memo_dir: Path, name: str, key: str, *, suffix: str = ".pkl") -> list[Path]:
+    """Entries ``<name>-<other key><suffix>`` in ``memo_dir``: the same name, a key of
+    :func:`fingerprint`'s form (10 hex digits) other than ``key``; files, or directories when
+    ``suffix`` is empty. Nothing else matches (not ``<name>-2-<key>.pkl``, another name; not a
+    file blockloc did not name this way)."""
     import glob
     import re
 
-    pat = re.compile(re.escape(name) + r"-([0-9a-f]{10})\.pkl")
-    out = []
-    for f in memo_dir.glob(f"{glob.escape(name)}-*.pkl"):
-        m = pat.fullmatch(f.name)
-        if m and m.group(1) != key and f.is_file():
-            out.append(f)
-    return sorted(out)
-
+    pat = re.compile(re.escape(name) + r"-([0-9a-f]{10})" + re.escape(suffix))
+    return sorted(p for p in memo_dir.glob(f"{glob.escape(name)}-*{suffix}")
+                  if (m := pat.fullmatch(p.name)) and m.group(1) != key and (p.is_file() if suffix else p.is_dir()))
 
 
 class DiskTiles:
@@ -142,11 +138,5 @@ class DiskTiles:
 
 
 def superseded_memo_dirs(memo_dir: Path, name: str, key: str) -> list[Path]:
-    """Directories ``<name>-<other key>`` in ``memo_dir`` (keys of :func:`fingerprint`'s form),
-    as :func:`superseded_memo_entries` does for files."""
-    import glob
-    import re
-
-    pat = re.compile(re.escape(name) + r"-([0-9a-f]{10})")
-    return sorted(d for d in memo_dir.glob(f"{glob.escape(name)}-*")
-                  if (m := pat.fullmatch(d.name)) and m.group(1) != key and d.is_dir())
+    """Directories ``<name>-<other key>`` in ``memo_dir``, as :func:`superseded_memo_entries`."""
+    return superseded_memo_entries(memo_dir, name, key, suffix="")

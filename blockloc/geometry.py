@@ -118,6 +118,17 @@ def rotation_angle(R: np.ndarray) -> np.ndarray:
     return np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0))
 
 
+def lever_arm_scaling(H: np.ndarray) -> np.ndarray:
+    """(6,) d with xi = d * xi': the pose tangent (rotation first, rad; translation, m) rescaled so
+    its six coordinates share one unit, rotation times the residuals' lever arm L. A rotation by
+    1 rad moves the residuals as much as a translation by L metres, on average:
+    L^2 = tr(H_rot) / tr(H_trans) of the (6, 6) cost Hessian ``H`` (1 m when either is not positive).
+    Compared raw, rad^-2 against m^-2, eigenvalues of H mix units; those of H * outer(d, d) do not."""
+    h_rot, h_trans = float(np.trace(H[:3, :3])), float(np.trace(H[3:, 3:]))
+    lever_m = np.sqrt(h_rot / h_trans) if h_rot > 0 and h_trans > 0 else 1.0
+    return np.r_[np.full(3, 1.0 / lever_m), np.ones(3)]
+
+
 @dataclass
 class Trajectory:
     """Time-stamped poses.

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from blockloc.errors import RegistrationError
+from blockloc.geometry import make_T
 
 log = logging.getLogger(__name__)
 
@@ -136,7 +137,7 @@ class VgicpEngine:
         voxelmaps = []
         for shift in shifts:
             voxelmap = small_gicp.GaussianVoxelMap(self.resolution_m)
-            voxelmap.insert(cloud, _translation(-shift))  # covariances unchanged by a translation
+            voxelmap.insert(cloud, make_T(np.eye(3), -shift))  # covariances unchanged by a translation
             voxelmaps.append(voxelmap)
         scoring = NdtTarget.build(points, self.resolution_m, self.min_points_per_voxel, coarse_levels=0)
         return VgicpTarget(voxelmaps, shifts, scoring, dict(tiles), len(points))
@@ -179,7 +180,7 @@ class VgicpEngine:
         offset is a translation on the left: the right-perturbation tangent is the same)."""
         import small_gicp
 
-        to_grid, from_grid = _translation(-target.shifts[k]), _translation(target.shifts[k])
+        to_grid, from_grid = make_T(np.eye(3), -target.shifts[k]), make_T(np.eye(3), target.shifts[k])
         kw = dict(max_correspondence_distance=self.max_correspondence_distance_m,
                   num_threads=self.num_threads, max_iterations=self.max_iterations)
         r = small_gicp.align(target.voxelmaps[k], cloud, to_grid @ T_map_source, **kw)
@@ -198,12 +199,6 @@ class VgicpEngine:
         return self._scorer.evaluate(target.scoring, source_points, T_target_source, derivatives=False)
 
 
-def _translation(t: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, 3] = t
-    return T
-
-
 #: a grid's result farther than half a voxel or this rotation from the first grid's went to another
 #: minimum (the grids see the same points), not to the first's from another side: left out
 _FUSE_MAX_ROT_RAD = np.deg2rad(0.5)
@@ -215,10 +210,10 @@ _FUSE_MIN_RATIO = 1e-2
 
 def _near(T_a: np.ndarray, T_b: np.ndarray, max_trans_m: float, max_rot_rad: float) -> bool:
     """Whether the poses (4, 4) differ by at most ``max_trans_m`` and ``max_rot_rad``."""
-    from blockloc.geometry import so3_log
+    from blockloc.geometry import rotation_angle
 
     D = np.linalg.inv(T_a) @ T_b
-    return bool(np.linalg.norm(D[:3, 3]) <= max_trans_m and np.linalg.norm(so3_log(D[:3, :3])) <= max_rot_rad)
+    return bool(np.linalg.norm(D[:3, 3]) <= max_trans_m and rotation_angle(D[:3, :3]) <= max_rot_rad)
 
 
 def _fuse(found: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
@@ -230,7 +225,7 @@ def _fuse(found: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.nd
     :func:`blockloc.tracking.factors.ndt_information` does). Along the others (a corridor's axis,
     where two grids' nearly flat Hessians differ by a little) the first grid's pose stays: there
     a pseudo-inverse would divide noise by a tiny eigenvalue and move the pose by metres."""
-    from blockloc.geometry import so3_exp, so3_log
+    from blockloc.geometry import lever_arm_scaling, so3_exp, so3_log
 
     T0 = found[0][0]
     H_sum = sum(H for _, H in found)
@@ -239,9 +234,7 @@ def _fuse(found: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.nd
         D = np.linalg.inv(T0) @ T
         g += H @ np.r_[so3_log(D[:3, :3]), D[:3, 3]]
     Hs = 0.5 * (H_sum + H_sum.T)
-    h_rot, h_trans = float(np.trace(Hs[:3, :3])), float(np.trace(Hs[3:, 3:]))
-    lever_m = np.sqrt(h_rot / h_trans) if h_rot > 0 and h_trans > 0 else 1.0
-    d = np.r_[np.full(3, 1.0 / lever_m), np.ones(3)]  # xi = d * xi', H' = D H D, g' = D g
+    d = lever_arm_scaling(Hs)  # xi = d * xi', H' = D H D, g' = D g
     lam, V = np.linalg.eigh(Hs * np.outer(d, d))
     keep = lam >= _FUSE_MIN_RATIO * lam.max() if lam.max() > 0 else np.zeros(6, bool)
     xi = d * ((V[:, keep] / lam[keep]) @ (V[:, keep].T @ (d * g)))

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from blockloc.geometry import inv_T, skew
+from blockloc.geometry import inv_T, lever_arm_scaling, skew
 
 
 def adjoint(T: np.ndarray) -> np.ndarray:
@@ -68,9 +68,7 @@ def ndt_information(H_lidar: np.ndarray, T_body_lidar: np.ndarray,
     # world 3 weak dimensions in 296 of 300 scans (NDT and VGICP alike), translation then held
     # at 0.14 m (NDT) / 0.34 m (VGICP) instead of the floor. L^2 = tr(H_rot) / tr(H_trans): a
     # rotation by 1 rad moves the residuals as much as a translation by L metres, on average.
-    h_rot, h_trans = float(np.trace(H[:3, :3])), float(np.trace(H[3:, 3:]))
-    lever_m = np.sqrt(h_rot / h_trans) if h_rot > 0 and h_trans > 0 else 1.0
-    d = np.r_[np.full(3, 1.0 / lever_m), np.ones(3)]  # xi = D xi'
+    d = lever_arm_scaling(H)  # xi = D xi'
     w, U = np.linalg.eigh(H * np.outer(d, d))
     w = np.maximum(w, 0.0)
     wmax = float(w.max()) if len(w) else 0.0
