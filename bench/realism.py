@@ -186,6 +186,7 @@ def main(argv: list[str] | None = None) -> Path:
     from bench.__main__ import machine
 
     from blockloc.evaluation.realism import median_stats
+    from blockloc.sim.presets import get_preset
 
     sys.path.insert(0, str(ROOT / "tests"))
     from conftest import shared_data_dir  # the same place the tests look
@@ -201,6 +202,11 @@ def main(argv: list[str] | None = None) -> Path:
         profiles[f"new sim {preset}"] = []
         rows_by_world[preset] = new_sim_stats(preset, args.seed, n, profile=profiles[f"new sim {preset}"])
         cols[f"new sim {preset}"] = median_stats(rows_by_world[preset])
+    # the campus with every plant the generator places (before the campus preset thinned them)
+    full = get_preset("campus").vegetation < 1.0
+    if full:
+        cols["new sim campus, every plant (vegetation 1.0)"] = median_stats(
+            new_sim_stats("campus", args.seed, n, vegetation=1.0))
     names = list(cols)
     lines = ["## Simulator realism", "",
              f"Machine: {machine()}. Command: `python -m bench.realism {' '.join(argv or sys.argv[1:])}`, run {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. "

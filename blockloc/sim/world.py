@@ -432,7 +432,8 @@ def build_world(preset: Preset, seed: int) -> World:
     b = {k: MeshBuilder() for k in ("building", "wall", "fence", "pole", "trunk", "crown", "sign",
                                     "ceiling")}
     detail = preset.detail
-    veg = _Vegetation(detail.volumetric_vegetation, b)
+    veg = _Vegetation(detail.volumetric_vegetation, b, preset.vegetation,
+                      np.random.SeedSequence([int(seed), stable_hash(preset.name), 3]))
     facades = _Facades()
     mov_kind, mov_xy, mov_yaw = [], [], []
     H = terrain.height
@@ -608,10 +609,17 @@ def build_world(preset: Preset, seed: int) -> World:
 class _Vegetation:
     """Collects vegetation: scattering volumes (volumetric) or solid ellipsoid meshes."""
 
-    def __init__(self, volumetric: bool, b: dict):
+    def __init__(self, volumetric: bool, b: dict, share: float = 1.0, seed=None):
         self.volumetric = volumetric
         self.b = b
         self.rows: list[tuple] = []
+        self.share = float(share)
+        # which plants grow: a stream of its own, so that thinning them moves nothing else
+        self._thin = np.random.default_rng(seed)
+
+    def grows(self) -> bool:
+        """Whether the next tree, clump of shrubs or hedge grows (a ``share`` of them do)."""
+        return bool(self._thin.random() < self.share)
 
     def add(self, b, cx, cy, cz, rxy, rz, mfp, kind) -> None:
         """One crown / bush / hedge piece (the same draws either way: switching the volumes
@@ -629,24 +637,32 @@ class _Vegetation:
 
 
 def _tree(b, veg, rng, x, y, H) -> None:
+    """A trunk and its crown (two volumes), if it grows (the same draws either way)."""
+    grow = veg.grows()
     z = H(x, y)
     h_trunk = rng.uniform(1.8, 3.2)
     r = rng.uniform(1.3, 3.0)
-    b["trunk"].add(*cylinder_mesh(x, y, z - 0.3, z + h_trunk + 0.5 * r, rng.uniform(0.12, 0.3), n=6))
+    trunk = cylinder_mesh(x, y, z - 0.3, z + h_trunk + 0.5 * r, rng.uniform(0.12, 0.3), n=6)
     rz = r * rng.uniform(0.9, 1.5)
-    veg.add(b, x, y, z + h_trunk + r, r, rz, rng.uniform(0.5, 1.4), 0)
+    mfp = rng.uniform(0.5, 1.4)
     mfp_inner = rng.uniform(0.4, 0.9)
+    if not grow:
+        return
+    b["trunk"].add(*trunk)
+    veg.add(b, x, y, z + h_trunk + r, r, rz, mfp, 0)
     if veg.volumetric:  # a lower, denser shell of leaves and branches (inside the solid crown)
         veg.add(b, x, y, z + h_trunk + 0.6 * r, 0.7 * r, 0.5 * rz, mfp_inner, 0)
 
 
 def _bush(veg, rng, x, y, H) -> None:
-    """A clump of 1-3 overlapping shrubs."""
+    """A clump of 1-3 overlapping shrubs, if it grows (the same draws either way)."""
+    grow = veg.grows()
     for _ in range(rng.integers(1, 4)):
         px, py = x + rng.uniform(-1, 1), y + rng.uniform(-1, 1)
         r = rng.uniform(0.4, 1.1)
-        veg.add(None, px, py, H(px, py) + r * 0.7, r, r * rng.uniform(0.6, 1.0),
-                rng.uniform(0.15, 0.4), 1)
+        rz, mfp = r * rng.uniform(0.6, 1.0), rng.uniform(0.15, 0.4)
+        if grow:
+            veg.add(None, px, py, H(px, py) + r * 0.7, r, rz, mfp, 1)
 
 
 def _hedge(veg, rng, rect, H, skip=None) -> None:
@@ -663,6 +679,8 @@ def _hedge(veg, rng, rect, H, skip=None) -> None:
         px, py = ax + (bx - ax) * ss / L, ay + (by - ay) * ss / L
         pz = H(px, py)
         mfp = rng.uniform(0.15, 0.35, len(ss))
+        if not veg.grows():
+            continue
         for k in range(len(ss)):
             if skip is None or not skip(px[k], py[k]):
                 veg.add(None, px[k], py[k], pz[k] + h / 2, r, h / 2 + 0.1, mfp[k], 2)

@@ -213,3 +213,25 @@ def test_city_preset_opens_and_is_large():
     near = np.array(near)
     assert near.any(axis=0).mean() > 0.95  # the localization drive stays on mapped streets
     assert (near.sum(axis=1) > 20).sum() >= 3  # and crosses several mapping drives
+
+
+def test_thinned_vegetation_moves_nothing_else_and_scatters_less(full):
+    from blockloc.sim.world import build_world
+
+    p = get_preset("tiny")
+    every, third = build_world(p, SEED), build_world(replace(p, vegetation=1 / 3), SEED)
+    # the same roads, buildings, movables and terrain: only plants are left out
+    for k in ("building", "wall", "terrain"):
+        for a, b in zip(every.meshes[k], third.meshes[k]):
+            np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(every.movables.xy, third.movables.xy)
+    # each kept plant is one of the full world's, at the same place and size
+    rows = {tuple(r) for r in np.c_[every.volumes.center, every.volumes.radii].round(9)}
+    kept = np.c_[third.volumes.center, third.volumes.radii].round(9)
+    assert all(tuple(r) in rows for r in kept)
+    assert 0.15 * len(every.volumes) < len(third.volumes) < 0.55 * len(every.volumes)
+    assert len(third.meshes["trunk"][1]) < len(every.meshes["trunk"][1])
+    thin = _stats(_seq(vegetation=1 / 3))
+    assert thin["scattered_share"] < full["scattered_share"] - 0.02
+    # the campus grows a share of the plants (lawns with trees, as the real scans see)
+    assert 0.0 < get_preset("campus").vegetation < 1.0 and get_preset("small").vegetation == 1.0
