@@ -203,8 +203,7 @@ def main(argv: list[str] | None = None) -> Path:
         rows_by_world[preset] = new_sim_stats(preset, args.seed, n, profile=profiles[f"new sim {preset}"])
         cols[f"new sim {preset}"] = median_stats(rows_by_world[preset])
     # the campus with every plant the generator places (before the campus preset thinned them)
-    full = get_preset("campus").vegetation < 1.0
-    if full:
+    if get_preset("campus").vegetation < 1.0:
         cols["new sim campus, every plant (vegetation 1.0)"] = median_stats(
             new_sim_stats("campus", args.seed, n, vegetation=1.0))
     names = list(cols)

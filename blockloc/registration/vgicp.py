@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from blockloc.errors import RegistrationError
-from blockloc.geometry import make_T
+from blockloc.geometry import lever_arm_scaling, make_T, rotation_angle, so3_exp, so3_log
 
 log = logging.getLogger(__name__)
 
@@ -210,8 +210,6 @@ _FUSE_MIN_RATIO = 1e-2
 
 def _near(T_a: np.ndarray, T_b: np.ndarray, max_trans_m: float, max_rot_rad: float) -> bool:
     """Whether the poses (4, 4) differ by at most ``max_trans_m`` and ``max_rot_rad``."""
-    from blockloc.geometry import rotation_angle
-
     D = np.linalg.inv(T_a) @ T_b
     return bool(np.linalg.norm(D[:3, 3]) <= max_trans_m and rotation_angle(D[:3, :3]) <= max_rot_rad)
 
@@ -225,7 +223,6 @@ def _fuse(found: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.nd
     :func:`blockloc.tracking.factors.ndt_information` does). Along the others (a corridor's axis,
     where two grids' nearly flat Hessians differ by a little) the first grid's pose stays: there
     a pseudo-inverse would divide noise by a tiny eigenvalue and move the pose by metres."""
-    from blockloc.geometry import lever_arm_scaling, so3_exp, so3_log
 
     T0 = found[0][0]
     H_sum = sum(H for _, H in found)
