@@ -360,3 +360,34 @@ def test_official_session_ignores_hits_and_reports_its_scan_rate(tmp_path, sessi
     assert frame.time_offsets.min() >= 0 and frame.time_offsets.max() < 0.1
     stamps = seq.frame_stamps()
     assert seq.info.lidar_rate_hz == pytest.approx(1.0 / np.median(np.diff(stamps)), rel=1e-6)
+
+
+def _rss_file_kb() -> int:
+    for line in open("/proc/self/status"):
+        if line.startswith("RssFile:"):
+            return int(line.split()[1])
+    pytest.skip("no RssFile in /proc/self/status (not Linux)")
+
+
+def test_hits_index_does_not_keep_the_file_mapped(tmp_path):
+    """Indexing walks every packet header, reading every page of the file; those pages must not
+    stay in the process's RSS (a long NCLT session's hits file is tens of GB)."""
+    import os
+
+    from blockloc.datasets.nclt import HitsIndex, _hits_packets
+
+    rng = np.random.default_rng(3)
+    n = 8_000_000  # 64 MB of hits
+    t_us = np.sort(rng.integers(0, 60_000_000, n))
+    words = rng.integers(0, 2**63, n, dtype=np.int64).astype("<u8")
+    path = tmp_path / "velodyne_hits.bin"
+    path.write_bytes(_hits_packets(words, t_us))
+    size_kb = os.path.getsize(path) // 1024
+    before = _rss_file_kb()
+    index = HitsIndex(path)
+    assert _rss_file_kb() - before < size_kb // 8
+    got, got_t = index.window(10_000_000, 40_000_000)  # half the file, read and copied
+    keep = (t_us >= 10_000_000 - HITS_PACKET_US) & (t_us <= 40_000_000 + HITS_PACKET_US)
+    assert len(got) >= keep.sum() * 0.99 and set(got[:1000].tolist()) <= set(words.tolist())
+    assert np.all(np.diff(got_t) >= 0)
+    assert _rss_file_kb() - before < size_kb // 8
