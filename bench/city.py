@@ -15,6 +15,12 @@ Runs (``--runs``), each map build in its own client process so that its peak RSS
 - ``kill:2``: as ``cluster:2``, with one worker SIGKILLed by its PID at ``--kill-at`` of the
   ``cluster:2`` build's wall time; the build must complete with the serial checksums.
 
+The drives are the simulator's, ray-cast scan by scan as the build reads them (never on disk). With
+``--recorded DIR`` they are first written once in NCLT layout under ``DIR`` (the first
+``--max-frames`` of each session, velodyne_sync + velodyne_hits + slam poses, as ``blockloc sim``
+writes them) and every build reads those files, as a user's build reads a recording: the build
+then does no ray casting, whose threads give the serial build part of the second core.
+
 Every run builds the same map from the preset's mapping sessions (``map``, or ``map1`` ..
 ``mapN``); the manifests are compared byte for byte (``SOURCE_DATE_EPOCH`` fixes their stamp).
 Figures: wall time of the build (cluster start-up apart), CPU utilization (client + workers CPU
@@ -94,6 +100,24 @@ def warm_raster_tiles(preset: str, seed: int, sessions: list[str], max_frames: i
     return len(ia) * len(ja), time.perf_counter() - t0
 
 
+def record_drives(preset: str, seed: int, sessions: list[str], max_frames: int | None, root: Path) -> Path:
+    """The drives written in NCLT layout under ``root/<preset>-<seed>-<frames>/<session>`` (each
+    session written only if missing, by the simulator's own writer). Returns that directory."""
+    from blockloc.sim.writer import generate_dataset
+
+    where = root / f"{preset}-{seed}-{max_frames or 'all'}"
+    for s in sessions:
+        if (where / s / "velodyne_sync").is_dir():
+            continue
+        t0 = time.perf_counter()
+        tmp = where / f".{s}.recording"
+        generate_dataset(preset, seed, tmp, "nclt", sessions=(s,), max_frames=max_frames)
+        (tmp / s).rename(where / s)
+        shutil.rmtree(tmp)
+        print(f"== recorded {preset}/{s} to {where / s} in {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+    return where
+
+
 def child_build(spec: dict) -> dict:
     """Build the map described by ``spec`` in this process (the client); its measurements."""
     import functools
@@ -106,10 +130,16 @@ def child_build(spec: dict) -> dict:
     from blockloc.sim.stream import open_sim_sequence
 
     os.environ["SOURCE_DATE_EPOCH"] = EPOCH
-    drives = [Drive(f"sim:{spec['preset']}/{s}@{spec['seed']}",
-                    functools.partial(open_sim_sequence, spec["preset"], s, spec["seed"]),
-                    f"sim-{spec['preset']}-{s}-{spec['seed']}", 0, spec.get("max_frames"))
-              for s in spec["sessions"]]
+    if spec.get("recorded"):  # NCLT-layout sessions on disk, opened as `map build --seq DIR` does
+        from blockloc.commands.map import parse_drive
+
+        drives = [parse_drive(str(Path(spec["recorded"]) / s), max_frames=spec.get("max_frames"))
+                  for s in spec["sessions"]]
+    else:
+        drives = [Drive(f"sim:{spec['preset']}/{s}@{spec['seed']}",
+                        functools.partial(open_sim_sequence, spec["preset"], s, spec["seed"]),
+                        f"sim-{spec['preset']}-{s}-{spec['seed']}", 0, spec.get("max_frames"))
+                  for s in spec["sessions"]]
     me = psutil.Process()
     t_start = time.perf_counter()
     with open_executor(spec.get("cluster")) as ex:
@@ -326,6 +356,8 @@ def report(args, cmd: str, results: dict, projections: dict, tracking: dict | No
         lines += [f"### {kind} map", "",
                   f"Drives: {', '.join(args.sessions)} (seed {args.seed}"
                   + (f", first {args.max_frames} frames each" if args.max_frames else "")
+                  + (f"; read from their NCLT-layout recordings in {args.recorded}, no ray casting in the build"
+                     if args.recorded else "; ray-cast scan by scan as the build reads them")
                   + f"): {st['keyframes']:,} keyframes over {st['path_m'] / 1000:.2f} km, {raw:,} raw points read; "
                   f"the map holds {ref['entries']:,} {'blocks' if kind == 'block' else 'tiles'}, "
                   f"{ref['points']:,} points, {ref['bytes'] / 2**20:.1f} MiB."
@@ -439,6 +471,9 @@ def main(argv=None) -> int:
     ap.add_argument("--no-track", action="store_true")
     ap.add_argument("--kill-at", type=float, default=0.4, help="kill:2: fraction of cluster:2's wall time")
     ap.add_argument("--work", default=None, help="directory for the maps (default: the cache)")
+    ap.add_argument("--recorded", default=None, metavar="DIR",
+                    help="build from the drives recorded (NCLT layout, written once) under DIR instead of "
+                         "ray-casting their scans during the build")
     ap.add_argument("--out", default=str(OUT))
     ap.add_argument("--report-from", default=None, metavar="JSON",
                     help="only write the fragment again from a run's .json (give that run's options too)")
@@ -478,14 +513,19 @@ def main(argv=None) -> int:
     # the map kept for tracking: the serial build's, or (no serial run asked for) the first run's,
     # which equals it byte for byte (tests/maps/test_distributed.py)
     keep = "serial" if "serial" in runs else runs[0]
-    n_tiles, warm_s = warm_raster_tiles(args.preset, args.seed, args.sessions, args.max_frames)
-    print(f"== simulator raster tiles around the drives: {n_tiles} ready in {warm_s:.0f} s", file=sys.stderr, flush=True)
+    recorded = None
+    if args.recorded:
+        recorded = record_drives(args.preset, args.seed, args.sessions, args.max_frames, Path(args.recorded))
+    else:
+        n_tiles, warm_s = warm_raster_tiles(args.preset, args.seed, args.sessions, args.max_frames)
+        print(f"== simulator raster tiles around the drives: {n_tiles} ready in {warm_s:.0f} s", file=sys.stderr, flush=True)
     results: dict[str, dict] = {}
     for kind in [k for k in args.kinds.split(",") if k]:
         results[kind] = {}
         for name in runs:
             spec = {"name": name, "kind": kind, "preset": args.preset, "seed": args.seed, "sessions": args.sessions,
-                    "max_frames": args.max_frames, "sizes": sizes, "out": str(work / f"{kind}-{name.replace(':', '_')}")}
+                    "max_frames": args.max_frames, "sizes": sizes, "out": str(work / f"{kind}-{name.replace(':', '_')}"),
+                    "recorded": str(recorded) if recorded else None}
             print(f"== {kind} {name}", file=sys.stderr, flush=True)
             if name.startswith("local:") or name == "serial":
                 spec["cluster"] = None if name == "serial" else name

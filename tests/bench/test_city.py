@@ -77,3 +77,27 @@ def test_raster_tiles_around_the_drives_are_warmed_into_the_disk_cache(tmp_path,
         assert n >= 1 and len(on_disk) == n
     finally:
         stream.cached_world.cache_clear()
+
+
+def test_recorded_drives_are_written_once_and_the_build_reads_them(tmp_path, monkeypatch):
+    import json
+
+    from bench.city import child_build, record_drives
+
+    monkeypatch.setenv("BLOCKLOC_CACHE", str(tmp_path / "cache"))
+    where = record_drives("tiny", 2, ["map"], 30, tmp_path / "rec")
+    sync = where / "map" / "velodyne_sync"
+    scans = sorted(sync.glob("*.bin"))
+    assert where == tmp_path / "rec" / "tiny-2-30" and len(scans) == 30
+    stamp = scans[0].stat().st_mtime_ns
+    assert record_drives("tiny", 2, ["map"], 30, tmp_path / "rec") == where  # kept, not written again
+    assert scans[0].stat().st_mtime_ns == stamp and not list(where.glob(".*"))
+    sizes = {"block_size_m": 100.0, "tile_size_m": 20.0, "voxel_size_m": 0.2, "keyframe_distance_m": 1.0,
+             "keyframe_angle_deg": 15.0}
+    spec = {"name": "serial", "kind": "block", "preset": "tiny", "seed": 2, "sessions": ["map"],
+            "max_frames": 30, "sizes": sizes, "out": str(tmp_path / "map"), "recorded": str(where),
+            "cluster": None}
+    res = child_build(spec)
+    assert res["entries"] >= 1 and res["points"] > 0 and res["stats"]["drives"] == 1
+    manifest = json.loads((tmp_path / "map" / "manifest.json").read_text())
+    assert str(where / "map") in json.dumps(manifest)  # built from the files, not the simulator
