@@ -340,12 +340,16 @@ def report(args, cmd: str, results: dict, projections: dict, tracking: dict | No
     cores = os.cpu_count() or 1
     lines = [f"## City-scale map builds on Dask ({args.preset})", "",
              f"Command: `{cmd}` ({started}). Machine: {machine()}. Development figures when the preset is "
-             "not `city` or only part of its drives is built (`--sessions`, `--max-frames`: few tasks, and "
-             "every worker still opens the simulated drives and builds their scene windows itself); the machine is "
-             "shared (load averages below), so times are upper bounds and speed-ups are what the load "
-             "allowed. Before the timed builds the simulated world's ground raster tiles around the drives are "
-             "computed once into the disk cache that every build process reads (`warm_raster_tiles`), so no run "
-             "pays for them because it came first.", ""]
+             "not `city` or only part of its drives is built (`--sessions`, `--max-frames`: few tasks"
+             + (")" if args.recorded else
+                ", and every worker still opens the simulated drives and builds their scene windows itself)")
+             + "; the machine is shared (load averages below), so times are upper bounds and speed-ups are what "
+             "the load allowed. "
+             + ("The drives were recorded to disk once before the timed builds (NCLT layout, `record_drives`); "
+                "every build reads those files." if args.recorded else
+                "Before the timed builds the simulated world's ground raster tiles around the drives are "
+                "computed once into the disk cache that every build process reads (`warm_raster_tiles`), so no run "
+                "pays for them because it came first."), ""]
     for kind, runs in results.items():
         ref = reference_run(runs)
         if ref is None:
