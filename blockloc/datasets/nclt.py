@@ -219,15 +219,20 @@ def azimuth_time_offsets(points: np.ndarray, *, period_s: float = 0.1,
 
 # --- hits file --------------------------------------------------------------------------------
 
+#: Words of velodyne_hits.bin walked at a time when indexing (64 MiB): the pages a walk reads
+#: are handed back after each chunk.
+HITS_INDEX_CHUNK_WORDS = 1 << 23
+
+
 class HitsIndex:
     """Packet index of a ``velodyne_hits.bin`` and per-point time lookup.
 
     The file is memory-mapped as uint64 words (every packet is 8-byte aligned); indexing walks
-    the packet headers once (numba, ~1 s for a multi-GB campus file). The pages it touched are
-    handed back right after (and a window's after it is copied): they stay in the page cache, but
-    the process's RSS does not grow with the file. It did, to the file's size (1.8 GB for 400 s
-    of city drive, tens of GB for a long NCLT session), and a Dask worker's memory monitor
-    counts it.
+    the packet headers once (numba, ~1 s for a multi-GB campus file), 64 MiB at a time, each
+    chunk's pages handed back before the next (and a window's after it is copied): they stay in
+    the page cache, but the process's RSS does not grow with the file. It did, to the file's size
+    (1.8 GB for 400 s of city drive, tens of GB for a long NCLT session), and a Dask worker's
+    memory monitor counts it.
     """
 
     def __init__(self, path: Path):
@@ -246,8 +251,7 @@ class HitsIndex:
         self.words = np.frombuffer(self._map, dtype="<u8")
         from blockloc.datasets._nclt_kernels import index_hits_words
 
-        offs, nums, uts, status, bad = index_hits_words(self.words)
-        self._release(0, size)
+        offs, nums, uts, status, bad = self._walk(index_hits_words)
         if status == 1:
             raise DatasetError(f"{self.path}: bad packet magic at byte {bad * 8}, expected "
                                f"4 x uint16 {NCLT_HITS_MAGIC}")
@@ -258,6 +262,30 @@ class HitsIndex:
         order = np.argsort(uts, kind="stable")
         self.offsets, self.num_hits, self.utimes = offs[order], nums[order], uts[order]
         log.debug("%s: %d packets, %d hits", self.path, len(self.offsets), int(self.num_hits.sum()))
+
+    def _walk(self, kernel, chunk_words: int = HITS_INDEX_CHUNK_WORDS):
+        """The kernel's packet walk over the file a chunk at a time, each chunk's pages handed
+        back before the next (a whole-file walk peaked at the file's size in RSS). A packet cut
+        by a chunk's end starts the next chunk. Returns the kernel's (offsets, num_hits, utimes,
+        status, bad word) for the whole file."""
+        n = len(self.words)
+        parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        w0, span, status, bad = 0, chunk_words, 0, -1
+        while w0 < n:
+            w1 = min(n, w0 + span)
+            offs, nums, uts, status, bad = kernel(self.words[w0:w1])
+            parts.append((offs + w0, nums, uts))
+            self._release(w0 * 8, w1 * 8)
+            bad = bad + w0 if bad >= 0 else bad
+            if status == 2 and w1 < n:  # cut by the chunk, not by the file's end
+                span = span if bad > w0 else 2 * span  # a packet longer than a chunk: widen it
+                w0, status, bad = bad, 0, -1
+                continue
+            if status != 0:
+                break
+            w0, span = w1, chunk_words
+        cat = [np.concatenate([p[i] for p in parts]) if parts else np.zeros(0, np.int64) for i in range(3)]
+        return cat[0], cat[1], cat[2], status, bad
 
     def window(self, t0_us: int, t1_us: int) -> tuple[np.ndarray, np.ndarray]:
         """Raw 8-byte hit words (H,) uint64 and their packet utimes (H,) int64 for packets with

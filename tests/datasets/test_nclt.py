@@ -391,3 +391,52 @@ def test_hits_index_does_not_keep_the_file_mapped(tmp_path):
     assert len(got) >= keep.sum() * 0.99 and set(got[:1000].tolist()) <= set(words.tolist())
     assert np.all(np.diff(got_t) >= 0)
     assert _rss_file_kb() - before < size_kb // 8
+
+    # while walking: each chunk's pages are handed back before the next chunk is read
+    from blockloc.datasets._nclt_kernels import index_hits_words
+
+    seen = []
+
+    def kernel(words):
+        seen.append(_rss_file_kb() - before)
+        return index_hits_words(words)
+
+    index._walk(kernel, chunk_words=n // 16)
+    assert len(seen) >= 16 and max(seen) < size_kb // 8
+
+
+@pytest.mark.parametrize("cut", [None, "truncated", "magic"])
+def test_hits_index_walks_in_chunks_as_in_one_piece(tmp_path, cut):
+    from blockloc.datasets._nclt_kernels import index_hits_words
+    from blockloc.datasets.nclt import HitsIndex, _hits_packets
+
+    rng = np.random.default_rng(4)
+    n = 20_000
+    t_us = np.sort(rng.integers(0, 2_000_000, n))
+    data = bytearray(_hits_packets(rng.integers(0, 2**63, n, dtype=np.int64).astype("<u8"), t_us))
+    if cut == "truncated":
+        data = data[:-16]
+    elif cut == "magic":
+        whole = np.frombuffer(bytes(data), "<u8")
+        offs = index_hits_words(whole)[0]
+        data[int(offs[len(offs) * 2 // 3]) * 8] = 0
+    path = tmp_path / "velodyne_hits.bin"
+    path.write_bytes(bytes(data))
+    whole = index_hits_words(np.frombuffer(bytes(data), "<u8"))
+    try:
+        index = HitsIndex(path)
+    except DatasetError:
+        assert cut is not None
+        index = HitsIndex.__new__(HitsIndex)  # the walk alone, on the same map
+        import mmap as _mmap
+
+        with open(path, "rb") as fh:
+            index._map = _mmap.mmap(fh.fileno(), 0, access=_mmap.ACCESS_READ)
+        index.words = np.frombuffer(index._map, "<u8")
+    else:
+        assert cut is None
+    for chunk in (7, 300, 1001, 1 << 20):  # 7: shorter than a packet, the chunk widens
+        got = index._walk(index_hits_words, chunk)
+        for a, b in zip(got[:3], whole[:3]):
+            np.testing.assert_array_equal(a, b)
+        assert got[3:] == tuple(int(v) for v in whole[3:]), chunk
