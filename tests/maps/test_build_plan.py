@@ -85,6 +85,32 @@ def test_accumulator_runs_give_the_voxel_means_of_all_points(with_intensity):
             assert i is None
 
 
+@pytest.mark.parametrize("pending", [10**9, 1500, 1])
+def test_accumulator_adds_runs_up_to_the_same_bytes_as_one_merge_per_run(monkeypatch, pending):
+    """The accumulator merges its runs in one pass (or whenever ``PENDING_RECORDS`` are held):
+    the same bytes as merging each run into the block as it arrives, which maps built before
+    hold (each voxel's sums are added in the same order)."""
+    import blockloc.maps.block_maps as bm
+    from blockloc.maps.block_maps import keyframe_run_sums
+    from blockloc.maps.grid_tiles import merge_voxel_sums
+
+    monkeypatch.setattr(bm, "PENDING_RECORDS", pending)
+    rng = np.random.default_rng(5)
+    runs = [keyframe_run_sums([(rng.normal(k, 2.0, (700, 3)), rng.uniform(0, 1, 700))], 0.3)[0]
+            for k in range(9)]
+    one_by_one = runs[0]
+    for r in runs[1:]:
+        one_by_one = merge_voxel_sums([one_by_one, r], 0.3)
+    acc = VoxelAccumulator(0.3)
+    for r in runs:
+        acc.add_run(r, True)
+    pts, inten = acc.result()
+    n = one_by_one["count"].astype(np.float64)
+    assert pts.tobytes() == (one_by_one["sum"][:, :3] / n[:, None]).astype(np.float32).tobytes()
+    assert inten.tobytes() == (one_by_one["sum"][:, 3] / n).astype(np.float32).tobytes()
+    assert acc._sums.tobytes() == one_by_one.tobytes()
+
+
 def test_plan_grid_holds_the_voxel_filter_of_the_union(tmp_path, loop_seq):
     kw = dict(keyframe_distance_m=2.0, keyframe_angle_deg=15.0)
     plan = build_map_from_drives([Drive.of(loop_seq)], "grid", tmp_path / "plan", tile_size_m=10.0,
