@@ -284,8 +284,8 @@ class HitsIndex:
             if status != 0:
                 break
             w0, span = w1, chunk_words
-        cat = [np.concatenate([p[i] for p in parts]) if parts else np.zeros(0, np.int64) for i in range(3)]
-        return cat[0], cat[1], cat[2], status, bad
+        offs, nums, uts = (np.concatenate([p[i] for p in parts]) for i in range(3))  # n > 0: a part at least
+        return offs, nums, uts, status, bad
 
     def window(self, t0_us: int, t1_us: int) -> tuple[np.ndarray, np.ndarray]:
         """Raw 8-byte hit words (H,) uint64 and their packet utimes (H,) int64 for packets with
