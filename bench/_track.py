@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from blockloc.evaluation.results import peak_rss_mb
+from blockloc.resources import peak_rss_mb
 from blockloc.fileio import atomic_path, atomic_write_text, to_jsonable
 
 # per-frame columns every run records (saved to its .npz)
@@ -182,32 +182,28 @@ class RollingMapProvider:
 
 # --------------------------------------------------------------------------- one backend, stepped
 class BackendRun:
-    """One backend's :class:`~blockloc.session.Session`, stepped frame by frame from outside (so
+    """One backend's :class:`~blockloc.app.session.Session`, stepped frame by frame from outside (so
     that several backends can share each scan), started at the ground-truth pose of frame
     ``start``. ``backend`` is a map policy (block | grid | srt | global) or ``odom`` (no prior
     map: :class:`RollingMapProvider` over the tracker's own scans)."""
 
     def __init__(self, seq, cfg, map_path: Path | None, backend: str, start: int = 0,
                  stop: int | None = None) -> None:
-        import dataclasses
-
-        from blockloc.session import Session
+        from blockloc.app.assemble import build_session, engine_settings, make_tracker, open_store
+        from blockloc.app.session import Session
 
         self.backend = backend
         if backend == ODOM:
             from blockloc.registration.engines import engine_from_settings
-            from blockloc.tracking.tracker import Tracker
 
             rc = cfg.registration
             # 3 points per voxel: a map of a few sparse scans fills voxels more thinly than a prior map
-            engine = engine_from_settings(dataclasses.asdict(rc), min_points_per_voxel=min(3, rc.min_points_per_voxel))
+            engine = engine_from_settings(engine_settings(rc), min_points_per_voxel=min(3, rc.min_points_per_voxel))
             provider = RollingMapProvider(engine)
-            tracker = Tracker.from_config(cfg, seq.info, map_provider=provider, registration=engine)
+            tracker = make_tracker(cfg, seq.info, map_provider=provider, registration=engine)
             self.session = Session(seq, tracker, provider)  # odometry has no map to relocalize in
         else:
-            from blockloc.maps.store import open_map_from_config
-
-            self.session = Session.from_config(cfg, seq, open_map_from_config(map_path, cfg.map), backend=backend)
+            self.session = build_session(cfg, seq, open_store(map_path, cfg.map), backend=backend)
         self.session.initialize("gt", start)
         self.stamps: list[float] = []
         self.poses: list[np.ndarray] = []
@@ -370,7 +366,7 @@ def run_child(seq_name: str, map_path: str | None, backend: str, out_json: Path,
     """Run one backend over ``seq_name`` in this process; write metrics (+ arrays as .npz).
     method: registration engine (``registration.method`` or :data:`ENGINE_VARIANTS`; None: the preset's)."""
     from blockloc.config import load_config
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
 
     overrides: dict = {"evaluation": {"plots": False}}
     if block_size_m:
@@ -442,3 +438,17 @@ def main(argv=None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+def progress_lines(label: str):
+    """A ``(done, total)`` callback printing ``label: done/total`` to stderr at every tenth of
+    the total (benchmark runs are usually piped into a log)."""
+    last = [None]
+
+    def report(done: int, total: int | None = None) -> None:
+        step = int(10 * done / total) if total else None
+        if step != last[0] or (total and done == total):
+            last[0] = step
+            print(f"{label}: {done}/{total or '?'}", file=sys.stderr, flush=True)
+
+    return report

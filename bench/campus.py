@@ -49,10 +49,10 @@ def default_map_dir(preset: str, seed: int, map_cfg, kind: str = "block", exact:
 def ensure_map(preset: str, seed: int, out: Path, map_cfg, kind: str = "block", exact: tuple[str, ...] = ()) -> float:
     """Build the ``kind`` map of ``sim:<preset>/map@<seed>`` (with the error sources in ``exact``
     off) at ``out`` unless it loads; seconds spent."""
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
     from blockloc.errors import MapError
     from blockloc.maps.store import open_map
-    from blockloc.commands.map import build_map
+    from blockloc.app.runs import build_map
 
     try:
         open_map(out)
@@ -236,7 +236,7 @@ def before_table(rows: dict, before: dict, what: str) -> list[str]:
 
 def _sim_name(name: str) -> tuple[str, str, int]:
     """(preset, session, seed) of ``sim:<preset>/<session>@<seed>``."""
-    from blockloc.datasets.refs import SequenceRef
+    from blockloc.app.catalog import SequenceRef
 
     return SequenceRef.parse(name).sim
 
@@ -250,7 +250,7 @@ def _bound(prog: dict, frames: int) -> str:
 
 def write_fragment(state: Path, out: Path, before: Path | None = None) -> str:
     from bench.__main__ import machine
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
 
     prog = json.loads((state / "progress.json").read_text())
     loc_exact = [x for x in prog.get("exact", []) if x != "slam"]
@@ -291,7 +291,7 @@ def write_fragment(state: Path, out: Path, before: Path | None = None) -> str:
         "`global` serves the union of all blocks. Init at the first ground-truth pose"
         + ("" if not segs else " of each segment (frames " + ", ".join(str(g["start"]) for g in segs)
            + "): every tracker runs each segment through on its own, nothing is carried between segments")
-        + "; `configs/sim.yaml` with "
+        + "; `blockloc/presets/sim.yaml` with "
         f"block size {prog['block_size_m']:g} m. Each scan ray-cast once and fed to every tracker in lockstep.",
         "",
         "Core = deskew + registration + smoother (the issue's per-scan update); update = the whole "
@@ -421,7 +421,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--state", default=None, help="checkpoint directory (default: cache)")
     ap.add_argument("--checkpoint-s", type=float, default=60.0)
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
-                    help="config override on top of configs/sim.yaml, e.g. map.grid_n=2 (repeatable)")
+                    help="config override on top of blockloc/presets/sim.yaml, e.g. map.grid_n=2 (repeatable)")
     ap.add_argument("--exact", default="", metavar="PARTS",
                     help="switch these error sources of the localization session off (comma list of "
                          f"{', '.join(EXACT_PARTS)}); the world and the map stay as they are: splits the error budget")
@@ -439,7 +439,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(message)s")
     from blockloc.cache import cache_root
     from blockloc.config import load_config
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
     from blockloc.maps.store import open_map
 
     state = Path(args.state) if args.state else cache_root() / "bench" / f"campus_run_{args.preset}_{args.seed}"

@@ -32,7 +32,7 @@ def body_errors(state: Path) -> tuple[dict, np.ndarray, dict]:
     the tracker's counters)."""
     from bench._track import STATUS_CODES
     from bench.campus import _sim_name, exact_sequence
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
 
     prog = json.loads((state / "progress.json").read_text())
     loc = [x for x in prog.get("exact", []) if x != "slam"]

@@ -124,14 +124,14 @@ def child_build(spec: dict) -> dict:
 
     import psutil
 
-    from blockloc.evaluation.results import peak_rss_mb
+    from blockloc.resources import peak_rss_mb
     from blockloc.maps.build_plan import Drive, build_map_from_drives
     from blockloc.maps.distributed import open_executor
     from blockloc.sim.stream import open_sim_sequence
 
     os.environ["SOURCE_DATE_EPOCH"] = EPOCH
     if spec.get("recorded"):  # NCLT-layout sessions on disk, opened as `map build --seq DIR` does
-        from blockloc.commands.map import parse_drive
+        from blockloc.app.runs import parse_drive
 
         drives = [parse_drive(str(Path(spec["recorded"]) / s), max_frames=spec.get("max_frames"))
                   for s in spec["sessions"]]
@@ -291,7 +291,7 @@ def track_served(map_dir: Path, seq_name: str, work: Path, max_frames: int | Non
     """``blockloc map serve`` the map, track ``seq_name`` through its URL (block backend, one
     process), stop the server by PID. Metrics of ``bench._track.summarize``."""
     from bench._track import run_in_child, summarize
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
 
     srv = subprocess.Popen([sys.executable, "-m", "blockloc.cli", "map", "serve", str(map_dir), "--port", "0"],
                            cwd=ROOT, stderr=subprocess.PIPE, text=True)

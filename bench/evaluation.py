@@ -49,7 +49,7 @@ def _median_time(fn, repeats: int) -> tuple[float, object]:
 def main(argv: list[str] | None = None) -> int:
     from bench.__main__ import machine
     from blockloc.evaluation.report import evaluate_trajectories
-    from blockloc.evaluation.trajectory_io import read_tum, write_tum
+    from blockloc.trajectory_io import read_tum, write_tum
     from blockloc.geometry import Trajectory
 
     ap = argparse.ArgumentParser()

@@ -51,8 +51,9 @@ def ensure_map(seq_name: str, out: Path, kind: str, source: str = "builder") -> 
     mapping session placed with its ground truth (0.2 m voxels), to separate init errors from map errors.
     """
     from blockloc.config import load_config
-    from blockloc.datasets import open_sequence
-    from blockloc.commands.map import build_map
+    from blockloc.app.catalog import open_sequence
+    from bench._track import progress_lines
+    from blockloc.app.runs import build_map
 
     if (out / "manifest.json").exists():
         return out
@@ -77,8 +78,8 @@ def ensure_map(seq_name: str, out: Path, kind: str, source: str = "builder") -> 
                 w.add(f"{(k[0] + 0.5) * 100:.1f}_{(k[1] + 0.5) * 100:.1f}", pts[sel].astype(np.float32))
             w.commit()
         return out
-    cfg = load_config("sim") if (REPO / "configs" / "sim.yaml").exists() else load_config(None)
-    build_map(open_sequence(seq_name), kind, out, cfg.map, progress=True)
+    cfg = load_config(preset="sim")
+    build_map(open_sequence(seq_name), kind, out, cfg.map, progress=progress_lines(f"{kind} map build tasks"))
     return out
 
 
@@ -176,7 +177,7 @@ def run(argv: list[str]) -> dict:
     import logging
 
     logging.basicConfig(level=logging.WARNING)
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
     from blockloc.tracking.scan_prep import prepare_for_init
     from blockloc.voxels import voxel_select
     from blockloc.global_init.relocalize import GlobalLocalizer, InitParams, pose_error

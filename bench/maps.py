@@ -64,9 +64,9 @@ def _provider_run(store, backend, positions, velocities, stamps, map_cfg):
 
 def main(argv: list[str] | None = None) -> int:
     from bench.__main__ import machine
-    from blockloc.commands.common import progress
+    from bench._track import progress_lines
     from blockloc.config import MapConfig
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
     from blockloc.maps.block_maps import BlockMapBuilder, write_block_map
     from blockloc.maps.grid_tiles import GridMapBuilder, tile_global_map
     from blockloc.maps.mapping import mapping_keyframes
@@ -93,23 +93,22 @@ def main(argv: list[str] | None = None) -> int:
     t_scan = t_block = t_grid = 0.0
     n_raw = 0
     t0 = time.perf_counter()
-    with progress("keyframes") as report:
-        it = mapping_keyframes(seq, keyframe_distance_m=map_cfg.keyframe_distance_m,
-                               keyframe_angle_deg=map_cfg.keyframe_angle_deg, progress=report,
-                               max_frames=args.max_frames)
-        while True:
-            t = time.perf_counter()
-            kf = next(it, None)
-            t_scan += time.perf_counter() - t
-            if kf is None:
-                break
-            n_raw += len(kf.points_map)
-            t = time.perf_counter()
-            blocks.add(kf.index, kf.position, kf.points_map, kf.intensity)
-            t_block += time.perf_counter() - t
-            t = time.perf_counter()
-            grid.add(kf.points_map, kf.intensity)
-            t_grid += time.perf_counter() - t
+    it = mapping_keyframes(seq, keyframe_distance_m=map_cfg.keyframe_distance_m,
+                           keyframe_angle_deg=map_cfg.keyframe_angle_deg, progress=progress_lines("keyframes"),
+                           max_frames=args.max_frames)
+    while True:
+        t = time.perf_counter()
+        kf = next(it, None)
+        t_scan += time.perf_counter() - t
+        if kf is None:
+            break
+        n_raw += len(kf.points_map)
+        t = time.perf_counter()
+        blocks.add(kf.index, kf.position, kf.points_map, kf.intensity)
+        t_block += time.perf_counter() - t
+        t = time.perf_counter()
+        grid.add(kf.points_map, kf.intensity)
+        t_grid += time.perf_counter() - t
     t = time.perf_counter()
     blocks.finish()
     t_block += time.perf_counter() - t

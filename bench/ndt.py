@@ -106,19 +106,14 @@ VGICP = "small_gicp VGICP 1.0 m (source covariances precomputed)"
 
 def _count_kernel_calls(reg, target, scan, starts) -> dict:
     """{start set: {stage: (ndt_level calls per alignment, [passes per alignment])}}, counted by
-    wrapping the kernel module's ``ndt_level`` during untimed alignments from the same starts."""
-    from blockloc.registration import _ndt_kernels as k
-
-    real = k.ndt_level
+    the aligner's ``stage_observer`` during untimed alignments from the same starts."""
     log = []
 
-    def counting(points, stride, T, level, neighbors, *rest):
-        out = real(points, stride, T, level, neighbors, *rest)
+    def counting(neighbors: str, resolution_m: float, stride: int, passes) -> None:
         every = f", every {stride}th point" if stride > 1 else ""
-        log.append((f"DIRECT{neighbors} at {1.0 / level[4]:g} m{every}", out[6]))
-        return out
+        log.append((f"{neighbors} at {resolution_m:g} m{every}", passes))
 
-    k.ndt_level = counting
+    reg.stage_observer = counting
     try:
         result = {}
         for start_name, Ts in starts.items():
@@ -132,7 +127,7 @@ def _count_kernel_calls(reg, target, scan, starts) -> dict:
                                   for stage, p in stages.items()}
         return result
     finally:
-        k.ndt_level = real
+        reg.stage_observer = None
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -146,9 +146,9 @@ def track_walk(seq, store, cfg, start: int, stop: int, mode: str, hint=None) -> 
     smoother), wall time of the step, CPU time of this thread and of the process."""
     from blockloc.evaluation.report import evaluate_trajectories
     from blockloc.geometry import Trajectory, inv_T, rotation_angle
-    from blockloc.session import Session
+    from blockloc.app.assemble import build_session
 
-    session = Session.from_config(cfg, seq, store, backend="block", keep_estimates=True)
+    session = build_session(cfg, seq, store, backend="block", keep_estimates=True)
     load0 = _load()
     try:
         t0 = time.perf_counter()
@@ -216,12 +216,13 @@ class _Timed:
 
 def localizer(seq, store, cfg, **params):
     """The GlobalLocalizer ``blockloc init`` builds from ``cfg`` (``params`` override InitParams)."""
-    from blockloc.global_init.relocalize import GlobalLocalizer, InitParams
-    from blockloc.registration.engines import engine_from_settings
+    from blockloc.app.assemble import init_params as make_init_params
+    from blockloc.app.assemble import build_engine
+    from blockloc.global_init.relocalize import GlobalLocalizer
 
     gi, rc = cfg.global_init, cfg.registration
-    engine = engine_from_settings(dataclasses.asdict(rc), resolution_m=gi.ndt_resolution_m)
-    init_params = dataclasses.replace(InitParams.from_config(gi, rc), **params)
+    engine = build_engine(rc, resolution_m=gi.ndt_resolution_m)
+    init_params = dataclasses.replace(make_init_params(gi, rc), **params)
     return GlobalLocalizer.for_store(store, seq.info.gravity_map, init_params, engine=engine)
 
 
@@ -360,7 +361,7 @@ def global_init_walk(seq, store, cfg, frames: list[int], hints: np.ndarray | Non
 
 
 def walk_config_handheld():
-    """The config the walk runs with here: ``configs/handheld.yaml`` plus the walk's block size
+    """The config the walk runs with here: ``blockloc/presets/handheld.yaml`` plus the walk's block size
     (what ``blockloc ... --config handheld --block-size 8`` uses). Equal to
     ``tests.tracking.walk.walk_config()`` but for the global-init thresholds (and ``lidar.deskew``,
     a no-op on scans without per-point times): tests/bench/test_bench_real.py checks it."""
@@ -510,15 +511,15 @@ def read_fixture(repeats: int = 3) -> list[dict]:
 
 def run_small_without_imu() -> dict:
     """The `small` world's loc session tracked LiDAR-only (its IMU withheld) from ground truth."""
-    from blockloc.commands.demo import prepare_small_world
-    from blockloc.datasets import open_sequence
+    from blockloc.app.assemble import build_session
+    from blockloc.app.catalog import open_sequence
+    from blockloc.app.runs import prepare_small_world
     from blockloc.maps.store import open_map
-    from blockloc.session import Session
     from tests.tracking.noimu import WithoutImu
 
     paths, cfg = prepare_small_world()
     seq = WithoutImu(open_sequence(paths.loc, dataset_cfg=cfg.dataset))
-    session = Session.from_config(cfg, seq, open_map(paths.block_map), backend="block")
+    session = build_session(cfg, seq, open_map(paths.block_map), backend="block")
     load0 = _load()
     res = session.run(0, None, init="gt")
     statuses = {}
@@ -684,7 +685,7 @@ def _walk_section(args, walk: dict, png: Path | None) -> list[str]:
          f"Map: scans 0-88 with their reference poses, every scan a keyframe, {BLOCK_SIZE_M:g} m blocks, "
          f"{cfg.map.voxel_size_m:g} m voxels: {mp['entries']} blocks, {mp['points']:,} points, "
          f"{mp['bytes'] / 2**20:.1f} MiB, built in {walk['map_build_s']:.1f} s. "
-         f"Config: `configs/handheld.yaml` with `map.block_size_m: {BLOCK_SIZE_M:g}` (NDT "
+         f"Config: `blockloc/presets/handheld.yaml` with `map.block_size_m: {BLOCK_SIZE_M:g}` (NDT "
          f"{cfg.registration.resolution_m:g} m with {cfg.registration.coarse_levels} coarse levels, scans at "
          f"{cfg.lidar.voxel_size_m:g} m, map voxels {cfg.map.voxel_size_m:g} m, block blend {cfg.map.block_blend_m:g} m; "
          "the walk tests' `walk_config()` but for the global-init verification thresholds; the map is built, "
@@ -784,7 +785,7 @@ def _init_section(args, walk: dict) -> list[str]:
          "Success: verified and within 0.3 m and 2 deg of the reference; a wrong verified answer is one accepted "
          "farther away. Pyramids precomputed (not timed) and one warm-up search before the timed ones. "
          "Time = leveling + search (`blockloc init --json` reports the search only). Verification thresholds "
-         f"(NDT fitness / above-ground inlier ratio): `configs/handheld.yaml` {gi.min_fitness:g} / "
+         f"(NDT fitness / above-ground inlier ratio): `blockloc/presets/handheld.yaml` {gi.min_fitness:g} / "
          f"{gi.min_structure_fitness:g}; the defaults 0.75 / 0.6 in the last row.", "",
          "| run | scans | within 0.3 m / 2 deg | wrong verified | unverified | median / p95 time (s) | "
          "median leveling / BnB / map crop / NDT target / NDT align (s) | load (start, end) |",

@@ -130,10 +130,10 @@ class _Timed:
 
 
 def run_once(mode: str, frames: int | None, report_dir: Path | None = None) -> dict:
-    from blockloc.commands.demo import prepare_small_world
-    from blockloc.datasets import open_sequence
+    from blockloc.app.assemble import build_session
+    from blockloc.app.catalog import open_sequence
+    from blockloc.app.runs import prepare_small_world
     from blockloc.maps.store import open_map
-    from blockloc.session import Session
 
     world, cfg = prepare_small_world()
     tmp = report_dir if report_dir is not None else Path(tempfile.mkdtemp(prefix=f"viz-overhead-{mode}-"))
@@ -142,7 +142,7 @@ def run_once(mode: str, frames: int | None, report_dir: Path | None = None) -> d
     timed = _Timed(observer, spent) if observer is not None else None
     store = open_map(world.block_map)
     seq = open_sequence(world.loc, dataset_cfg=cfg.dataset)
-    session = Session.from_config(cfg, seq, store, backend="block", observers=[timed] if timed else [],
+    session = build_session(cfg, seq, store, backend="block", observers=[timed] if timed else [],
                                   out_dir=report_dir)
     res = session.run(0, frames, init="gt")
     finish_s = timed.finish_s if timed is not None else 0.0

@@ -118,8 +118,8 @@ def main(argv=None) -> int:
     cmd = "python -m bench.scaling " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
 
     from bench.__main__ import machine
-    from blockloc.datasets import open_sequence
-    from blockloc.commands.demo import prepare_small_world
+    from blockloc.app.catalog import open_sequence
+    from blockloc.app.runs import prepare_small_world
     from blockloc.maps.store import open_map
 
     paths, cfg = prepare_small_world()

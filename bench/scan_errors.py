@@ -7,7 +7,7 @@ an IMU prediction would be, so that what an engine converges to is seen without 
 MAP: the campus block map (``blockloc map build --seq sim:campus/map@1 --kind block --config sim
 --block-size 100 --calibrate-mounting --out MAP``); by default the one bench.campus keeps in the
 cache for ``--set map.calibrate_mounting=true`` (built there when missing). Engines: ``ndt`` and ``vgicp`` with
-``configs/sim.yaml``'s registration settings; ``vgicp1`` is VGICP with one voxel grid
+``blockloc/presets/sim.yaml``'s registration settings; ``vgicp1`` is VGICP with one voxel grid
 (``voxel_grids: 1``, small_gicp's own). Each scan is deskewed with the ground truth, thinned as
 tracking thins it (``lidar.voxel_size_m``, ``lidar.max_points``) and aligned against the block
 whose centroid is nearest (the block backend's choice) from the true LiDAR pose moved by 0.15 m

@@ -106,12 +106,12 @@ class Robot(threading.Thread):
     def _run(self) -> None:
         from blockloc.errors import MapError
         from blockloc.maps.remote import RemoteMapFiles
-        from blockloc.maps.store import _open_manifest
+        from blockloc.maps.store import open_manifest
 
         rng = np.random.default_rng(100 + self.k)
         files = RemoteMapFiles(self.url, cache_dir=self.cache_dir, cache_bytes=CACHE_MB * 2**20,
                                seed=self.k)
-        store = _open_manifest(files)
+        store = open_manifest(files)
         ids = set(store.ids)
         size = GRID * TILE_M
         pos = rng.uniform(0.1 * size, 0.9 * size, 2)

@@ -42,7 +42,7 @@ VGICP_BLOCK = "block@vgicp"  # the block backend with small_gicp VGICP instead o
 
 def grid_map(paths, cfg) -> Path:
     """The small world's grid store (tiles of ``cfg.map.tile_size_m``), built beside the block map."""
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
     from blockloc.errors import MapError
     from blockloc.maps.build_plan import build_grid_map_from_sequence
     from blockloc.maps.store import open_map
@@ -106,8 +106,8 @@ def main(argv=None) -> int:
     cmd = "python -m bench.tracking " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
 
     from bench.__main__ import machine
-    from blockloc.datasets import open_sequence
-    from blockloc.commands.demo import prepare_small_world
+    from blockloc.app.catalog import open_sequence
+    from blockloc.app.runs import prepare_small_world
 
     paths, cfg = prepare_small_world()
     block, grid = paths.block_map, grid_map(paths, cfg)
@@ -154,7 +154,7 @@ def main(argv=None) -> int:
         "",
         f"Sequence: the `small` simulated world's `loc` session read from disk (NCLT layout, "
         f"{first[backends[0]]['frames']} scans, {f(first[backends[0]].get('path_length_m'), '{:.0f}')} m), init at the "
-        "first ground-truth pose, `configs/sim.yaml`. Maps from the `map` session: block store (S = "
+        "first ground-truth pose, `blockloc/presets/sim.yaml`. Maps from the `map` session: block store (S = "
         f"{cfg.map.block_size_m:g} m, {st['blocks']} blocks) for `block` and `global` (global = all blocks), grid "
         f"tiles ({cfg.map.tile_size_m:g} m, {st['tiles']} tiles) for `grid` and `srt`. Each backend in its own "
         f"process, {rep_note}; per-scan figures are medians over the scans. Core = deskew + registration + smoother; "

@@ -1,6 +1,6 @@
 """One typed config tree, a section per stage, loaded from YAML.
 
-Every field has a default (the values of ``configs/default.yaml``); a preset file only names what
+Every field has a default (the values of ``blockloc/presets/default.yaml``); a preset file only names what
 differs. Loading checks every key, type and range and names the file, the key and what was
 expected: numbers must be finite, and a field declared ``bounded(default, BOUNDS)`` must lie in
 its bounds (``POSITIVE`` sizes and rates, ``COUNT`` integers >= 1, ``PROBABILITY`` in (0, 1), ...).
@@ -10,7 +10,9 @@ Stages take explicit arguments; ``from_config`` factories at the boundaries read
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
+import os
 import types
 import typing
 from dataclasses import dataclass, field
@@ -19,7 +21,10 @@ from typing import Any
 
 from blockloc.errors import ConfigError
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+log = logging.getLogger(__name__)
+
+#: The presets shipped inside the package (``--config NAME``): ``blockloc/presets/<NAME>.yaml``.
+PRESET_DIR = Path(__file__).resolve().parent / "presets"
 
 
 @dataclass(frozen=True)
@@ -77,7 +82,7 @@ class ImuConfig:
     gyro_bias_random_walk: float = bounded(0.00002, POSITIVE)  # rad/s^2/sqrt(Hz)
     integration_sigma: float = bounded(1e-4, POSITIVE)
     # Per-axis densities (x, y, z, imu frame) replacing the scalars above when given: a vibrating
-    # platform is noisier along some axes (configs/sim.yaml says what was measured).
+    # platform is noisier along some axes (blockloc/presets/sim.yaml says what was measured).
     acc_noise_density_axes: tuple[float, ...] = ()  # m/s^2/sqrt(Hz); [] = acc_noise_density on every axis
     gyro_noise_density_axes: tuple[float, ...] = ()  # rad/s/sqrt(Hz); [] = gyro_noise_density on every axis
     gravity_m_s2: float = bounded(9.81, POSITIVE)
@@ -146,7 +151,7 @@ class RegistrationConfig:
     coarse_levels: int = bounded(1, NON_NEGATIVE)
     coarse_to_fine: bool = True  # align on the coarse levels first (wider basin of convergence)
     # vgicp only: neighbours of the scan's per-point covariances, and of the map's (0: the scan's);
-    # configs/sim.yaml says why it sets 20 and 80
+    # blockloc/presets/sim.yaml says why it sets 20 and 80
     num_neighbors: int = bounded(10, COUNT)
     target_num_neighbors: int = bounded(0, NON_NEGATIVE)
     # vgicp only: voxel grids offset by resolution / grids along each axis, aligned in turn and
@@ -192,7 +197,7 @@ class GlobalInitConfig:
     ambiguity_z: float = bounded(2.5, NON_NEGATIVE)  # a rival is no ambiguity when the best fits this significantly better
     # The structure test on the static band (>= place_band_m[0] above ground: above people and cars)
     # when the scan has enough of it; false: on the projection band (height_band_m) always (indoors,
-    # configs/handheld.yaml says why).
+    # blockloc/presets/handheld.yaml says why).
     structure_from_static: bool = True
 
 
@@ -357,19 +362,57 @@ def merge(base: Config, data: dict[str, Any], source: str = "<dict>") -> Config:
         raise ConfigError(f"{source}: {exc}") from None
 
 
+def preset_names() -> list[str]:
+    """The names of the shipped presets (``default``, ``sim``, ``nclt``, ...), sorted."""
+    return sorted(p.stem for p in PRESET_DIR.glob("*.yaml"))
+
+
+def preset_path(name: str) -> Path:
+    """The file of the preset ``name``; ConfigError listing the presets when there is none."""
+    file = PRESET_DIR / f"{name}.yaml"
+    if not file.is_file():
+        raise ConfigError(f"{name}: no such preset (presets: {', '.join(preset_names())})")
+    return file
+
+
+def looks_like_path(text: str) -> bool:
+    """A config given as a path has a slash or an extension (``./mine``, ``my.yaml``); a bare
+    word names a preset. No guessing from what the current directory holds."""
+    return "/" in text or os.sep in text or bool(os.altsep and os.altsep in text) or Path(text).suffix != ""
+
+
+def config_file(source: str | Path) -> Path:
+    """The YAML file ``--config`` names: a path (see :func:`looks_like_path`; a ``Path`` object is
+    always one) must be a file; a bare word is a preset, and wins over a file or directory of the
+    same name in the current directory (one warning line says so)."""
+    text = str(source)
+    if isinstance(source, Path) or looks_like_path(text):
+        file = Path(text).expanduser()
+        if file.is_dir():
+            raise ConfigError(f"{text}: a directory, expected a YAML config file")
+        if not file.is_file():
+            raise ConfigError(f"{text}: no such config file (presets: {', '.join(preset_names())}, given by name)")
+        return file
+    file = PRESET_DIR / f"{text}.yaml"
+    if not file.is_file():
+        hint = f"; to read the file ./{text}, give it as ./{text}" if Path(text).exists() else ""
+        raise ConfigError(f"{text}: no such preset (presets: {', '.join(preset_names())}; a config file is "
+                          f"given as a path, with a slash or an extension){hint}")
+    if Path(text).exists():
+        log.warning("config %r: the preset %s is used, not ./%s of the current directory (give ./%s to read that)",
+                    text, file.name, text, text)
+    return file
+
+
 def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None,
-                overrides_source: str = "overrides") -> Config:
-    """Defaults, then the YAML file ``path`` (a path or a preset name such as 'nclt'), then overrides."""
+                overrides_source: str = "overrides", *, preset: str | None = None) -> Config:
+    """Defaults, then the YAML file ``path`` (a path, or a preset name such as 'nclt': see
+    :func:`config_file`) or else the preset named ``preset`` (never a file), then overrides."""
     import yaml
 
     cfg = Config()
-    if path:
-        file = Path(path)
-        if not file.exists() and (CONFIG_DIR / f"{path}.yaml").exists():
-            file = CONFIG_DIR / f"{path}.yaml"
-        if not file.exists():
-            presets = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
-            raise ConfigError(f"{path}: no such config file or preset (presets: {', '.join(presets)})")
+    file = config_file(path) if path else (preset_path(preset) if preset else None)
+    if file is not None:
         try:
             data = yaml.safe_load(file.read_text()) or {}
         except yaml.YAMLError as exc:
@@ -380,24 +423,6 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
     if overrides:
         cfg = merge(cfg, overrides, overrides_source)
     return cfg
-
-
-def preset_for_sequence(seq: str) -> str | None:
-    """The preset that fits a ``--seq`` value (``blockloc.datasets.refs.SequenceRef.preset``):
-    'sim' for simulated sessions, 'nclt' for NCLT, 'm2dgr' for M2DGR, None otherwise (also for
-    a value that names nothing: opening it will say why)."""
-    from blockloc.datasets.refs import SequenceRef
-    from blockloc.errors import DatasetError
-
-    try:
-        return SequenceRef.parse(seq).preset
-    except DatasetError:
-        return None
-
-
-def load_config_for_sequence(seq: str, config: str | Path | None = None) -> Config:
-    """``config`` (a file or preset name) when given, else the preset that fits ``seq``."""
-    return load_config(config or preset_for_sequence(seq))
 
 
 def save_config(cfg: Config, path: str | Path) -> None:

@@ -1,15 +1,23 @@
-"""The layering docs/DEVELOPING.md promises: core packages never reach up to the config tree, the
-commands or the CLI libraries (nor draw progress bars: they take a ``(done, total)`` callback and
-the commands draw the bar), and no two modules import each other in a circle."""
+"""The layering docs/DEVELOPING.md promises: every import points down the layers (the
+import-linter contracts of pyproject.toml, lazy imports included), core packages never reach up
+to the config tree, the application layer, the commands or the CLI libraries (nor draw progress
+bars: they take a ``(done, total)`` callback and the commands draw the bar), no two modules
+import each other in a circle, and ``blockloc --help`` loads none of the heavy libraries."""
 
 from __future__ import annotations
 
 import ast
+import os
+import shutil
+import subprocess
+import sys
 from pathlib import Path
+
+import pytest
 
 PKG = Path(__file__).resolve().parent.parent / "blockloc"
 CORE = ("maps", "registration", "tracking", "global_init", "evaluation", "datasets", "sim")
-FORBIDDEN = ("blockloc.config", "blockloc.commands", "blockloc.cli", "rich", "typer", "tqdm")
+FORBIDDEN = ("blockloc.config", "blockloc.app", "blockloc.commands", "blockloc.cli", "rich", "typer", "tqdm")
 #: (module, forbidden package) pairs still allowed (none: core reports progress through callbacks).
 ALLOWED: set = set()
 
@@ -98,3 +106,44 @@ def test_the_layout_in_developing_md_names_every_module():
         if not any(tok.startswith(stem) for tok in block.replace("/", " ").replace("(", " ").replace(",", " ").split()):
             missing.append(str(path.relative_to(PKG.parent)))
     assert not missing, f"docs/DEVELOPING.md's layout does not name: {missing}"
+
+
+def _env() -> dict:
+    return {**os.environ, "PYTHONPATH": str(PKG.parent) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+
+
+def test_import_linter_contracts_hold():
+    """pyproject.toml's layers and acyclic-siblings contracts (imports inside functions count)."""
+    exe = shutil.which("lint-imports")
+    if exe is None:
+        pytest.skip("import-linter is not installed (pip install -e .[test])")
+    proc = subprocess.run([exe, "--no-cache"], cwd=PKG.parent, env=_env(), capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0 and "0 broken" in proc.stdout, proc.stdout[-4000:] + proc.stderr[-2000:]
+    assert "blockloc layers point down only KEPT" in proc.stdout
+
+
+def test_the_contracts_name_every_top_level_module_and_package():
+    """A new module or package of blockloc/ must be placed in a layer (else no contract holds it)."""
+    import tomllib
+
+    layers = tomllib.loads((PKG.parent / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"][0]
+    named = {name.strip("() ") for layer in layers["layers"] for part in layer.split("|") for name in part.split(":")}
+    present = {p.stem for p in PKG.glob("*.py") if p.stem != "__init__"} | {
+        p.parent.name for p in PKG.glob("*/__init__.py")}
+    missing = sorted(present - named)
+    assert not missing, f"pyproject.toml's layers contract places no layer for: {missing}"
+
+
+HEAVY = ("numba", "gtsam", "open3d", "small_gicp", "dask", "distributed", "scipy", "matplotlib")
+
+
+def test_help_loads_no_heavy_library():
+    """``blockloc --help`` as the console script runs it: none of the heavy libraries load."""
+    code = ("import sys\nsys.argv = ['blockloc', '--help']\nfrom blockloc.cli import main\n"
+            "try:\n    main()\nexcept SystemExit:\n    pass\n"
+            f"print('LOADED', sorted(m for m in {HEAVY!r} if m in sys.modules))")
+    proc = subprocess.run([sys.executable, "-c", code], env=_env(), capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "Usage" in proc.stdout and "track" in proc.stdout  # the help was printed
+    assert proc.stdout.strip().splitlines()[-1] == "LOADED []", proc.stdout[-500:]

@@ -16,7 +16,7 @@ evo_metrics = pytest.importorskip("evo.core.metrics")
 from evo.core import sync  # noqa: E402
 from evo.tools import file_interface  # noqa: E402
 
-from blockloc.evaluation.trajectory_io import write_tum  # noqa: E402
+from blockloc.trajectory_io import write_tum  # noqa: E402
 from blockloc.geometry import Trajectory  # noqa: E402
 
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from blockloc.datasets.base import ImuData, SequenceInfo
 from blockloc.errors import GlobalInitError, MapError
-from blockloc.session import Session
+from blockloc.app.session import Session
 
 
 class _RaisingLocalizer:

@@ -106,10 +106,9 @@ def config_for(seq: str | None, config: str | None, sets: list[str] | None = Non
     """The config: ``--config`` (a file or preset name) when given, else the preset that fits
     the sequence (``SequenceRef.preset``), else the defaults; then every ``--set SECTION.KEY=VALUE``
     (VALUE read as YAML: numbers, true/false, lists)."""
-    from blockloc.config import load_config, preset_for_sequence
+    from blockloc.app.catalog import config_for_sequence
 
-    return load_config(config or (preset_for_sequence(seq) if seq else None), overrides=parse_sets(sets or []),
-                       overrides_source="--set")
+    return config_for_sequence(seq, config, overrides=parse_sets(sets or []), overrides_source="--set")
 
 
 def parse_sets(sets: list[str]) -> dict:
@@ -128,12 +127,6 @@ def parse_sets(sets: list[str]) -> dict:
             parsed = value
         out.setdefault(parts[0], {})[parts[1]] = parsed
     return out
-
-
-def map_params(map_cfg, kind: str) -> tuple:
-    """The map-building settings a cached map depends on (part of its cache key)."""
-    size = map_cfg.block_size_m if kind == "block" else map_cfg.tile_size_m
-    return (size, map_cfg.keyframe_distance_m, map_cfg.keyframe_angle_deg, map_cfg.voxel_size_m)
 
 
 def results_dir(out: Path | None, name: str) -> Path:

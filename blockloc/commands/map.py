@@ -4,99 +4,10 @@ from __future__ import annotations
 
 import json
 import logging
-import re
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 log = logging.getLogger("blockloc")
-
-
-def build_map(seq, kind: str, out: str | Path, map_cfg, *, overwrite: bool = False,
-              progress=True, max_frames: int | None = None, executor=None):
-    """Build a block or grid store from a mapping sequence with the ``MapConfig`` settings.
-
-    progress: True (a bar), False, or a ``(done, total)`` callback. executor: None (serial) or
-    a Dask executor (:func:`blockloc.maps.distributed.open_executor`)."""
-    from blockloc.maps.build_plan import Drive
-
-    return build_map_from_specs([Drive.of(seq, stop=max_frames)], kind, out, map_cfg,
-                                overwrite=overwrite, progress=progress, executor=executor)
-
-
-def build_map_from_specs(drives, kind: str, out: str | Path, map_cfg, *, overwrite: bool = False,
-                         progress=True, executor=None):
-    """:func:`blockloc.maps.build_plan.build_map_from_drives` with the ``MapConfig`` settings.
-    progress: True (a bar over the build's tasks), False, or a ``(done, total)`` callback."""
-    from blockloc.maps.build_plan import build_map_from_drives
-
-    if progress is True:  # the bar is the command's; the builder takes only a callback
-        from blockloc.commands.common import progress as progress_bar
-
-        with progress_bar(f"{kind} map build tasks") as report:
-            return build_map_from_specs(drives, kind, out, map_cfg, overwrite=overwrite,
-                                        progress=report, executor=executor)
-    return build_map_from_drives(
-        drives, kind, out, block_size_m=map_cfg.block_size_m, tile_size_m=map_cfg.tile_size_m,
-        voxel_size_m=map_cfg.voxel_size_m, keyframe_distance_m=map_cfg.keyframe_distance_m,
-        keyframe_angle_deg=map_cfg.keyframe_angle_deg,
-        calibrate_mounting=map_cfg.calibrate_mounting, executor=executor, progress=progress,
-        overwrite=overwrite)
-
-
-@dataclass(frozen=True)
-class SequenceSpec:
-    """A ``--seq`` value (and its ``--poses``) as a picklable opener: what each Dask worker calls
-    to open the drive itself (only this small object travels with the tasks).
-
-    text: sequence name or absolute path; poses: absolute trajectory path or None (the
-    sequence's own mapping poses); data_root, dataset_cfg: as for ``SequenceRef.open``.
-    """
-
-    text: str
-    data_root: str | None = None
-    dataset_cfg: Any = None
-    poses: str | None = None
-
-    def __call__(self):
-        from blockloc.datasets.refs import SequenceRef
-
-        return SequenceRef.parse(self.text).open(data_root=self.data_root,
-                                                 dataset_cfg=self.dataset_cfg, poses=self.poses)
-
-
-#: ``--seq NAME[START:STOP]``: frames START..STOP-1 of a sequence as one drive.
-_SLICE = re.compile(r"^(?P<seq>.+)\[(?P<start>\d*):(?P<stop>\d*)\]$")
-
-
-def parse_drive(text: str, poses: str | None = None, *, data_root: str | None = None,
-                dataset_cfg: Any = None, max_frames: int | None = None):
-    """A ``--seq`` value -> :class:`~blockloc.maps.build_plan.Drive`. ``NAME[START:STOP]`` maps
-    frames START..STOP-1 only; paths become absolute (workers may run elsewhere); ``max_frames``
-    caps the drive to its first N frames. DatasetError (one line) when the name names nothing."""
-    from blockloc.datasets.refs import SequenceRef
-    from blockloc.errors import DatasetError
-    from blockloc.maps.build_plan import Drive
-
-    m = _SLICE.match(text)
-    name = m["seq"] if m else text
-    start = int(m["start"] or 0) if m else 0
-    stop = int(m["stop"]) if m and m["stop"] else None
-    if stop is not None and stop <= start:
-        raise DatasetError(f"--seq {text!r}: empty frame range (expected NAME[START:STOP], "
-                           "START < STOP)")
-    if max_frames is not None:
-        stop = start + max_frames if stop is None else min(stop, start + max_frames)
-    ref = SequenceRef.parse(name)
-    if ref.path is not None:
-        name = str(Path(name).expanduser().resolve())
-    if poses:
-        if not Path(poses).expanduser().exists():
-            raise DatasetError(f"--poses {poses}: no such trajectory file")
-        poses = str(Path(poses).expanduser().resolve())
-    spec = SequenceSpec(name, None if data_root is None else str(data_root), dataset_cfg, poses)
-    key = f"{name}|{poses}|{data_root}"
-    return Drive(text, spec, key, start, stop)
 
 
 def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: str | None,
@@ -111,6 +22,7 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
     import dataclasses
     import sys
 
+    from blockloc.app.runs import add_place_index, build_map_from_specs, drive_sequence_name, parse_drive
     from blockloc.commands.common import config_for, console, progress
     from blockloc.errors import MapError
     from blockloc.maps.remote import is_url
@@ -140,7 +52,7 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
     if not is_url(str(out)):  # an object store is checked by its writer (no local path to look at)
         out = Path(out)
         check_out(out, overwrite)
-    cfg = config_for(_SLICE.sub(r"\g<seq>", seqs[0]) if seqs else None, config)
+    cfg = config_for(drive_sequence_name(seqs[0]) if seqs else None, config)
     overrides = {k: v for k, v in (("block_size_m", block_size), ("tile_size_m", tile_size),
                                    ("voxel_size_m", voxel), ("calibrate_mounting", calibrate_mounting))
                  if v is not None}
@@ -238,7 +150,7 @@ def plot_command(map_path: str, seq: str | None, out: Path | None, data_root: st
     traj = None
     if seq:
         from blockloc.commands.common import config_for
-        from blockloc.datasets import open_sequence
+        from blockloc.app.catalog import open_sequence
 
         s = open_sequence(seq, data_root=data_root, dataset_cfg=config_for(seq, None).dataset)
         traj = s.ground_truth() or s.mapping_poses()
@@ -293,21 +205,6 @@ def print_summary(summary: dict[str, Any], console) -> None:
 GRAVITY_WORDS = {"down": (0.0, 0.0, 9.81), "up": (0.0, 0.0, -9.81)}
 
 
-def add_place_index(path: str | Path, gravity_map, cfg):
-    """Build the place index (no-hint relocalization) of the local store at ``path`` with the
-    ``global_init`` settings of ``cfg`` and add it to the store; returns the reopened store."""
-    import time
-
-    from blockloc.global_init.place_index import PLACE_INDEX_NAME, write_place_index
-    from blockloc.global_init.relocalize import InitParams
-
-    t0 = time.perf_counter()
-    store, index = write_place_index(path, gravity_map, InitParams.from_config(cfg.global_init).place_index_params)
-    log.info("place index: %d places, %d bytes in %.1f s", len(index), store.extras[PLACE_INDEX_NAME].bytes,
-             time.perf_counter() - t0)
-    return store
-
-
 def parse_gravity(text: str):
     """``down`` (the map's z axis points down: NCLT, the simulator), ``up`` or ``X,Y,Z`` (m/s^2)
     -> gravity (3,) in the map frame; MapError naming --gravity otherwise."""
@@ -331,6 +228,7 @@ def index_command(map_path: str, gravity: str | None, config: str | None) -> Non
     """``blockloc map index MAP``: (re)build the place index of an existing local map store.
     Gravity: ``--gravity``, else that of the sequence the map was built from (its manifest's
     ``sequence``)."""
+    from blockloc.app.runs import add_place_index
     from blockloc.commands.common import config_for, console
     from blockloc.errors import BlocklocError, MapError
     from blockloc.maps.store import open_map
@@ -342,7 +240,7 @@ def index_command(map_path: str, gravity: str | None, config: str | None) -> Non
     if gravity is not None:
         g = parse_gravity(gravity)
     elif source:
-        from blockloc.datasets import open_sequence
+        from blockloc.app.catalog import open_sequence
 
         try:
             g = open_sequence(str(source)).info.gravity_map

@@ -1,4 +1,5 @@
-"""``blockloc track``: a sequence tracked in a prior map, results written as it goes."""
+"""``blockloc track``: a sequence tracked in a prior map, results written as it goes (the session
+and the run: :mod:`blockloc.app.runs`; here: options, progress, Ctrl-C, printing)."""
 
 from __future__ import annotations
 
@@ -6,46 +7,9 @@ import logging
 from pathlib import Path
 from typing import Optional
 
-from blockloc.errors import MapError, TrackingError
+from blockloc.errors import TrackingError
 
 log = logging.getLogger("blockloc")
-
-
-def resolve_map(ref, map_path: str | None, backend: str, cfg, data_root: str | None) -> str:
-    """``--map``, else ``map.path`` of the config, else the sequence's default map (which must
-    exist: MapError with the command that builds it)."""
-    from blockloc.commands.common import map_params
-    from blockloc.datasets.refs import map_kind_for_backend
-    from blockloc.maps.files import open_map_files
-
-    path = map_path or cfg.map.path or None
-    if path is not None:
-        return str(path)
-    kind = map_kind_for_backend(backend)
-    default = ref.default_map_path(kind, data_root=data_root, dataset_cfg=cfg.dataset,
-                                   map_params=map_params(cfg.map, kind))
-    if not open_map_files(default).exists("manifest.json"):
-        raise MapError(f"map for {ref.text} not found at {default}; build it with: {ref.build_hint(kind, default)}")
-    return str(default)
-
-
-def open_session(seq: str, *, cfg, map_path: str | None = None, backend: str | None = None,
-                 data_root: str | None = None, observers=(), out_dir: Path | None = None,
-                 keep_estimates: bool = False, lidar_topic: str | None = None,
-                 imu_topic: str | None = None, poses=None):
-    """The Session for ``--seq`` in its map (what ``track`` and the benchmarks run)."""
-    from blockloc.datasets.refs import SequenceRef
-    from blockloc.maps.store import open_map_from_config
-    from blockloc.session import Session
-
-    ref = SequenceRef.parse(seq)
-    backend = backend or cfg.map.backend
-    sequence = ref.open(data_root=data_root, dataset_cfg=cfg.dataset, lidar_topic=lidar_topic, imu_topic=imu_topic,
-                        poses=poses)
-    path = resolve_map(ref, map_path, backend, cfg, data_root)
-    store = open_map_from_config(path, cfg.map)
-    return Session.from_config(cfg, sequence, store, backend=backend, observers=observers, out_dir=out_dir,
-                               keep_estimates=keep_estimates, facts={"map": path})
 
 
 def init_mode(init: Optional[str], init_pose: Optional[str]) -> tuple[str, tuple | None]:
@@ -67,12 +31,12 @@ def run_tracking(session, *, mode: str, hint, out_dir: Path | None, label: str =
                  max_frames: int | None = None):
     """Run a session with a progress display and honest interruption; returns the RunResult.
     After a SIGINT/SIGTERM the partial results are written, then ``Interrupted`` is raised."""
+    from blockloc.app.runs import track
     from blockloc.commands.common import Interrupted, interruptible, progress
 
-    stop_at = None if max_frames is None else max_frames
-    total = len(session.stamps) if stop_at is None else min(stop_at, len(session.stamps))
+    total = len(session.stamps) if max_frames is None else min(max_frames, len(session.stamps))
     with interruptible() as stop, progress(label, total) as cb:
-        res = session.run(0, stop_at, init=mode, pose_hint=hint, progress=cb, should_stop=stop)
+        res = track(session, mode=mode, hint=hint, max_frames=max_frames, progress=cb, should_stop=stop)
     if stop():
         done = res.metrics.get("processed", 0)
         where = f"; partial results in {out_dir}" if out_dir is not None else ""
@@ -102,22 +66,6 @@ def run_observers(out_dir: Path, *, record: bool = True, record_path: Path | Non
         print(f"live view: {server.url} (Foxglove: {web})", file=sys.stderr, flush=True)
         observers.append(server)
     return observers
-
-
-def write_run_report(session, res, out_dir: Path) -> Path:
-    """``report.html`` in the results folder: metrics, plots, config and an interactive top view."""
-    from blockloc.maps.summary import map_points_xy
-    from blockloc.viz.layout import REPORT_NAME
-    from blockloc.viz.report import write_report
-
-    images = {caption: out_dir / name for caption, name in (("trajectories", "trajectories.png"),
-                                                             ("errors over time", "errors.png"))
-              if (out_dir / name).is_file()}
-    return write_report(out_dir / REPORT_NAME, metrics=res.metrics, estimate=res.trajectory,
-                        ground_truth=session.ground_truth, diagnostics=res.diagnostics, config=session.config,
-                        map_xy=map_points_xy(session.store) if session.store is not None else None,
-                        map_entries=session.run_info().map_entries, images=images,
-                        title=f"{res.metrics.get('sequence')}")
 
 
 def print_track_summary(console, m: dict, out: Optional[Path]) -> None:
@@ -153,6 +101,7 @@ def track_command(seq: str, map_path: str | None, backend: str | None, init: str
                   lidar_topic: str | None = None, imu_topic: str | None = None, poses: Path | None = None,
                   sets: list[str] | None = None, record: bool = True, record_path: Path | None = None,
                   live: bool = False, host: str = "127.0.0.1", port: int = 8765) -> None:
+    from blockloc.app.runs import open_session, write_run_report
     from blockloc.commands.common import check_results_dir, config_for, console, results_dir
 
     mode, hint = init_mode(init, init_pose)

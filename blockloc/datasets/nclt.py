@@ -39,6 +39,8 @@ import numpy as np
 from blockloc.datasets.base import ImuData, LidarFrame, SequenceInfo
 from blockloc.errors import DatasetError
 from blockloc.fileio import atomic_write_text, replace_dir
+from blockloc.trajectory_io import read_groundtruth_csv  # noqa: F401 - the loader's own format, re-exported
+from blockloc.trajectory_io import text_lines as _text_lines
 from blockloc.geometry import T_to_xyzrpy, Trajectory, xyzrpy_to_T
 
 log = logging.getLogger(__name__)
@@ -93,64 +95,7 @@ NCLT_GRAVITY_MAP = (0.0, 0.0, 9.81)
 
 # --- text files -------------------------------------------------------------------------------
 
-def _text_lines(path: Path, expected: str) -> Iterator[tuple[int, str]]:
-    """(line number, text) of a CSV file; DatasetError naming the file and line at the first
-    bytes that are not UTF-8 text (a binary file given where a CSV of ``expected`` belongs)."""
-    with open(path, "rb") as fh:
-        for lineno, raw in enumerate(fh, start=1):
-            try:
-                yield lineno, raw.decode("utf-8")
-            except UnicodeDecodeError as exc:
-                raise DatasetError(f"{path}:{lineno}: binary bytes (not UTF-8 text at byte {exc.start} of "
-                                   f"the line), expected a text CSV of {expected}") from None
-
-
 # --- ground truth csv -------------------------------------------------------------------------
-
-def read_groundtruth_csv(path: str | Path) -> Trajectory:
-    """Read an NCLT ``groundtruth_<date>.csv`` (or ``slam_poses_<date>.csv``).
-
-    Rows: utime (microseconds), x, y, z (m), roll, pitch, yaw (rad), comma separated, no header
-    (a header line starting with a letter or ``#`` is skipped). Returns T_map_body poses with
-    stamps in seconds, sorted by time; rows holding NaN (NCLT's first rows often do) are dropped
-    with one warning giving their count; duplicate stamps keep the first row.
-
-    Raises DatasetError if the file is missing, or a line has fewer than 7 columns or a value
-    that is not a number (naming the file and line).
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise DatasetError(f"{path}: ground-truth file not found (expected NCLT csv: utime,x,y,z,roll,pitch,yaw)")
-    rows = []
-    for lineno, line in _text_lines(path, "utime,x,y,z,roll,pitch,yaw"):
-        s = line.strip()
-        if not s or s[0] == "#" or (lineno == 1 and s[0].isalpha()):
-            continue
-        parts = s.split(",")
-        if len(parts) < 7:
-            raise DatasetError(f"{path}:{lineno}: {len(parts)} columns, expected 7 "
-                               "(utime,x,y,z,roll,pitch,yaw)")
-        try:
-            rows.append([float(p) for p in parts[:7]])
-        except ValueError:
-            raise DatasetError(f"{path}:{lineno}: non-numeric value in {s[:80]!r}, "
-                               "expected utime,x,y,z,roll,pitch,yaw") from None
-    data = np.asarray(rows, dtype=np.float64).reshape(-1, 7)
-    bad = ~np.isfinite(data).all(axis=1)
-    if bad.any():
-        log.warning("%s: dropped %d of %d rows holding NaN/inf", path, int(bad.sum()), len(data))
-        data = data[~bad]
-    if len(data) == 0:
-        raise DatasetError(f"{path}: no valid pose rows, expected utime,x,y,z,roll,pitch,yaw")
-    order = np.argsort(data[:, 0], kind="stable")
-    data = data[order]
-    keep = np.concatenate([[True], np.diff(data[:, 0]) > 0])
-    if not keep.all():
-        log.warning("%s: dropped %d rows with duplicate utime", path, int((~keep).sum()))
-        data = data[keep]
-    poses = xyzrpy_to_T(*data[:, 1:].T)
-    return Trajectory(data[:, 0] * 1e-6, poses)
-
 
 def write_groundtruth_csv(path: str | Path, traj: Trajectory) -> None:
     """Write T_map_body poses as NCLT csv: utime (int us), x, y, z, roll, pitch, yaw (rad).

@@ -47,6 +47,7 @@ from blockloc.datasets.with_poses import (TrajectoryInfo, info_with_frame, load_
                                           match_trajectory, stamp_range, warn_uncovered)
 from blockloc.errors import DatasetError
 from blockloc.geometry import Trajectory
+from blockloc.trajectory_io import parse_rows
 
 log = logging.getLogger(__name__)
 
@@ -130,9 +131,7 @@ def stamps_from_names(files: list[Path]) -> np.ndarray | None:
 
 def read_times_file(path: Path, expected: int, scans: Path) -> np.ndarray:
     """One stamp (s) per line; DatasetError unless there are ``expected`` of them."""
-    from blockloc.evaluation.trajectory_io import _parse_rows
-
-    stamps, _ = _parse_rows(path, path.read_text(), 1, "time in seconds")
+    stamps, _ = parse_rows(path, path.read_text(), 1, "time in seconds")
     if len(stamps) != expected:
         raise DatasetError(f"{path}: {len(stamps)} stamps ({stamp_range(stamps[:, 0])}), expected "
                            f"one per scan of {scans} ({expected} scans)")

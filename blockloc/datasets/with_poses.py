@@ -33,6 +33,7 @@ import numpy as np
 from blockloc.datasets.base import ImuData, LidarFrame, SequenceInfo
 from blockloc.errors import DatasetError
 from blockloc.geometry import Trajectory
+from blockloc.trajectory_io import TrajectoryFile, read_trajectory_file
 # A frame this far outside the trajectory's time range is still covered (the end pose is held,
 # not extrapolated): map building's own tolerance.
 
@@ -69,10 +70,8 @@ def info_with_frame(info: SequenceInfo, map_frame: str, source: str | None) -> T
 
 def load_trajectory(traj, *, what: str = "trajectory"):
     """A path, :class:`~blockloc.geometry.Trajectory` or ``TrajectoryFile`` -> (Trajectory,
-    timed, label). Files are read by ``blockloc.evaluation.trajectory_io`` (TUM, KITTI, NCLT csv,
+    timed, label). Files are read by ``blockloc.trajectory_io`` (TUM, KITTI, NCLT csv,
     sniffed); ``timed`` is False for a KITTI file without times."""
-    from blockloc.evaluation.trajectory_io import TrajectoryFile, read_trajectory_file
-
     if isinstance(traj, Trajectory):
         return traj, True, f"<{what}>"
     if isinstance(traj, TrajectoryFile):

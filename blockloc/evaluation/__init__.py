@@ -1,6 +1,6 @@
 """Trajectory files and ATE/RPE evaluation.
 
-- ``trajectory_io``: ``read_trajectory`` (TUM, KITTI, NCLT csv, sniffed), ``write_tum``, ``write_kitti``.
+- trajectory files (TUM, KITTI, NCLT csv) are read and written by :mod:`blockloc.trajectory_io`.
 - ``metrics``: pure numpy: ``associate``, ``umeyama_alignment``, ``absolute_pose_errors``,
   ``relative_pose_errors``.
 - ``report``: ``evaluate_files``, ``evaluate_trajectories``.

@@ -159,7 +159,7 @@ def evaluate_files(gt: Path, est: Path, *, align: bool = False, max_time_diff_s:
     A KITTI file without a times file is paired with the other trajectory by index.
     Returns ``evaluate_trajectories``' dict plus ``gt_file`` and ``est_file``.
     """
-    from blockloc.evaluation.trajectory_io import read_trajectory_file
+    from blockloc.trajectory_io import read_trajectory_file
 
     gt_file = read_trajectory_file(gt)
     est_file = read_trajectory_file(est)

@@ -23,32 +23,13 @@ import numpy as np
 
 from blockloc.fileio import atomic_write_text, to_jsonable
 from blockloc.geometry import Trajectory
+from blockloc.resources import peak_rss_mb
 
 log = logging.getLogger(__name__)
 
 #: The files a results folder holds (the first two grow during the run).
 RESULT_FILES = ("poses.tum", "diagnostics.csv", "config.yaml", "poses_kitti.txt", "poses_kitti.times.txt",
                 "metrics.json", "trajectories.png", "errors.png")
-
-
-def peak_rss_mb() -> float:
-    """This process's peak resident memory, MB: VmHWM from /proc, which restarts at exec (Linux's
-    ``ru_maxrss`` carries a parent's peak into a child started by fork + exec: a tracking run
-    launched by a large process reported its parent's peak)."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return float(line.split()[1]) / 1024.0
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        import resource
-
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
-    except (ImportError, OSError):
-        import psutil
-
-        return psutil.Process().memory_info().rss / 2**20
 
 
 def _q(values: Sequence[float], q: float) -> float | None:
@@ -114,7 +95,7 @@ class RunWriter:
     def start(self, info) -> None:
         import yaml
 
-        from blockloc.evaluation.trajectory_io import TUM_HEADER
+        from blockloc.trajectory_io import TUM_HEADER
 
         self.out.mkdir(parents=True, exist_ok=True)
         atomic_write_text(self.out / "config.yaml", yaml.safe_dump(to_jsonable(info.config), sort_keys=False))
@@ -124,7 +105,7 @@ class RunWriter:
         self._diag = open(self.out / "diagnostics.csv", "w", newline="")
 
     def frame(self, event) -> None:
-        from blockloc.evaluation.trajectory_io import tum_lines
+        from blockloc.trajectory_io import tum_lines
 
         if event.T_map_body is not None and self._poses is not None:
             self._poses.write(tum_lines([event.stamp], event.T_map_body[None])[0] + "\n")
@@ -141,7 +122,7 @@ class RunWriter:
             self._diag.flush()
 
     def finish(self, metrics: dict) -> None:
-        from blockloc.evaluation.trajectory_io import write_kitti
+        from blockloc.trajectory_io import write_kitti
 
         for fh in (self._poses, self._diag):
             if fh is not None:

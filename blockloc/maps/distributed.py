@@ -102,7 +102,7 @@ def _worker_info() -> dict:
 
     import psutil
 
-    from blockloc.evaluation.results import peak_rss_mb
+    from blockloc.resources import peak_rss_mb
 
     t = psutil.Process().cpu_times()
     return {"pid": os.getpid(), "peak_rss_mb": peak_rss_mb(), "cpu_s": t.user + t.system}

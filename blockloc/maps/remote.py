@@ -609,17 +609,3 @@ def _make_fs(url: str, retry: RetryPolicy, storage_options: dict[str, Any]):
     if protocol in ("s3", "s3a"):
         fs.retries = 1  # s3fs's own retry loop (an attribute, not a constructor option)
     return fs, root
-
-
-def remote_options_from_config(map_cfg: Any) -> dict[str, Any]:
-    """RemoteMapFiles options from a ``MapConfig`` (fields read when present, else defaults):
-    ``remote_cache_dir`` (str, "" = default), ``remote_cache_mb``, ``remote_timeout_s``,
-    ``remote_retries``, ``remote_backoff_s``.
-    """
-    d = RetryPolicy()
-    cache_dir = getattr(map_cfg, "remote_cache_dir", "") or None
-    cache_mb = float(getattr(map_cfg, "remote_cache_mb", DEFAULT_CACHE_BYTES / 2**20))
-    retry = RetryPolicy(timeout_s=float(getattr(map_cfg, "remote_timeout_s", d.timeout_s)),
-                        retries=int(getattr(map_cfg, "remote_retries", d.retries)),
-                        backoff_s=float(getattr(map_cfg, "remote_backoff_s", d.backoff_s)))
-    return {"cache_dir": cache_dir, "cache_bytes": int(cache_mb * 2**20), "retry": retry}

@@ -259,7 +259,7 @@ def open_map(path: str | Path, **remote_options: Any) -> MapStore:
     """Open a store: a local directory or a URL (http(s)://, s3://), holding a manifest store or
     the released block-map layout. ``remote_options`` go to
     :class:`blockloc.maps.remote.RemoteMapFiles` (cache_dir, cache_bytes, retry, ...) and are
-    ignored for local paths (see ``remote_options_from_config``)."""
+    ignored for local paths (see ``blockloc.app.assemble.remote_options``)."""
     files = open_map_files(path, **remote_options)
     if not files.is_remote and not Path(files.root).exists():
         raise MapError(f"{path}: no such map directory")
@@ -276,11 +276,9 @@ def open_map(path: str | Path, **remote_options: Any) -> MapStore:
                    "released block-map layout)")
 
 
-def open_map_from_config(path: str | Path, map_cfg: Any) -> MapStore:
-    """:func:`open_map` with the remote-store options of a ``MapConfig``."""
-    from blockloc.maps.remote import remote_options_from_config
-
-    return open_map(path, **remote_options_from_config(map_cfg))
+def open_manifest(files: MapFiles) -> MapStore:
+    """The store whose ``manifest.json`` ``files`` (local or remote :class:`MapFiles`) hold."""
+    return _open_manifest(files)
 
 
 def _open_manifest(files: MapFiles) -> MapStore:

@@ -272,13 +272,6 @@ class NdtTarget:
         target._rebuild()
         return target
 
-    @staticmethod
-    def options_from_config(cfg) -> dict:
-        """Keyword arguments of ``build`` / ``from_tiles`` from a ``RegistrationConfig``:
-        ``NdtTarget.build(points, **NdtTarget.options_from_config(cfg.registration))``."""
-        return {"resolution": cfg.resolution_m, "min_points_per_voxel": cfg.min_points_per_voxel,
-                "coarse_levels": cfg.coarse_levels}
-
     def add_tile(self, key: Hashable, points: np.ndarray) -> None:
         """Add (or replace) a tile: voxelizes only its points, then swaps in a new search
         structure. Safe to call from a background thread while other threads align."""
@@ -526,7 +519,13 @@ class NdtRegistration:
     thread has a much better median latency than 2 (a parallel region waits for its slowest,
     descheduled worker): see docs/bench/ndt.md. Source points in scan order (spatially
     coherent) run faster than shuffled ones.
+
+    ``stage_observer`` (None, or a callable set after construction): told every kernel stage an
+    alignment runs, ``(neighbors, resolution_m, stride, passes)`` (passes: (iterations,) array of
+    the kernel's passes over the points); for measurement (``python -m bench ndt``).
     """
+
+    stage_observer = None
 
     def __init__(self, neighbors: str = "DIRECT7", outlier_ratio: float = 0.55,
                  max_iterations: int = 30, step_epsilon: float = 1e-3,
@@ -559,14 +558,6 @@ class NdtRegistration:
         self.max_step_m = None if max_step_m is None else float(max_step_m)
         self.max_step_rad = float(max_step_rad)
         self.num_threads = num_threads
-
-    @classmethod
-    def from_config(cls, cfg) -> NdtRegistration:
-        """From a ``blockloc.config.RegistrationConfig``."""
-        return cls(neighbors=cfg.neighbors, outlier_ratio=cfg.outlier_ratio,
-                   max_iterations=cfg.max_iterations, step_epsilon=cfg.step_epsilon,
-                   coarse_to_fine=cfg.coarse_to_fine,
-                   num_threads=cfg.num_threads)
 
     # ---------------------------------------------------------------------------------------
     def evaluate(self, target: NdtTarget, source_points: np.ndarray, T_target_source: np.ndarray,
@@ -606,11 +597,14 @@ class NdtRegistration:
         k = _kernels()
         d1, d2 = ndt_constants(snap.resolution, self.outlier_ratio)
         max_step_m = self.max_step_m if self.max_step_m is not None else snap.resolution
-        return k.ndt_level(src, stride, T, snap.kernel_level(), NEIGHBORS[neighbors], d1, d2,
-                           INLIER_MAHALANOBIS_SQ, memo[0], memo[1], max_iterations, epsilon,
-                           max_step_m, self.max_step_rad,
-                           self.step == "gauss_newton",
-                           k.MODE_BOTH if first_both else k.MODE_EXACT)
+        out = k.ndt_level(src, stride, T, snap.kernel_level(), NEIGHBORS[neighbors], d1, d2,
+                          INLIER_MAHALANOBIS_SQ, memo[0], memo[1], max_iterations, epsilon,
+                          max_step_m, self.max_step_rad,
+                          self.step == "gauss_newton",
+                          k.MODE_BOTH if first_both else k.MODE_EXACT)
+        if self.stage_observer is not None:
+            self.stage_observer(neighbors, float(snap.resolution), int(stride), out[6])
+        return out
 
     def align(self, target: NdtTarget, source_points: np.ndarray,
               T_init: np.ndarray | None = None) -> NdtResult:

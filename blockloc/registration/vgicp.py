@@ -89,7 +89,7 @@ class VgicpEngine:
     gave 0.67 deg of rotation error and 10 gave 0.28 deg). target_num_neighbors: the map's (None:
     num_neighbors). A voxel's Gaussian is the mean of its points' covariances, so on a dense map
     (0.2 m voxels) few neighbours describe a patch much smaller than the voxel and a scan point
-    is pulled toward the voxel's mean along the surface; configs/sim.yaml gives what more map
+    is pulled toward the voxel's mean along the surface; blockloc/presets/sim.yaml gives what more map
     neighbours did on the campus. voxel_grids: overlapping voxel grids whose results are fused
     (see the module docstring; 1: small_gicp's single grid). max_iterations; num_threads.
     outlier_ratio and min_points_per_voxel shape the NDT Gaussians used for fitness.

@@ -269,7 +269,7 @@ def test_merge_states_keeps_the_backends_every_segment_ran(tmp_path):
 
 def test_exact_sequence_switches_only_the_named_error_sources_off():
     from bench.campus import exact_sequence
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
 
     base = open_sequence("sim:tiny/loc@3")
     ext = exact_sequence("tiny", "loc", 3, ["extrinsic"])
@@ -287,7 +287,7 @@ def test_exact_sequence_switches_only_the_named_error_sources_off():
 def test_exact_slam_maps_from_exact_poses_in_their_own_cache_dir():
     from bench.campus import default_map_dir, exact_sequence
     from blockloc.config import load_config
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
 
     base = open_sequence("sim:tiny/map@3").mapping_poses()
     exact = exact_sequence("tiny", "map", 3, ["slam"])

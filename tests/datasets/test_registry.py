@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from blockloc.config import DatasetConfig
-from blockloc.datasets import open_sequence
+from blockloc.app.catalog import open_sequence
 from blockloc.datasets.nclt import NCLT_T_BODY_LIDAR, NcltSequence, write_session
-from blockloc.datasets.refs import M2DGR_T_BODY_LIDAR, resolve_data_root
+from blockloc.app.catalog import M2DGR_T_BODY_LIDAR, resolve_data_root
 from blockloc.datasets.rosbag import RosbagSequence, write_rosbag
 from blockloc.errors import DatasetError
 

@@ -176,7 +176,7 @@ def test_tum_ground_truth_file(tmp_path):
 def test_simulator_bag_carries_ground_truth_and_extrinsics(tmp_path, fmt):
     """Issue 16 finding 5: a bag written by ``blockloc sim`` opens (by path, as the CLI opens it)
     with the ground truth, mapping poses, extrinsics and gravity of the NCLT-layout output."""
-    from blockloc.datasets.registry import open_sequence
+    from blockloc.app.catalog import open_sequence
     from blockloc.datasets.rosbag import sidecar_path
     from blockloc.sim import generate_dataset
 

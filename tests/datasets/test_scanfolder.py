@@ -11,7 +11,7 @@ from blockloc.datasets.base import Sequence
 from blockloc.datasets.pointclouds import write_point_cloud
 from blockloc.datasets.scanfolder import ScanFolderSequence, is_scan_folder, stamps_from_names
 from blockloc.errors import DatasetError
-from blockloc.evaluation.trajectory_io import read_tum, write_kitti, write_tum
+from blockloc.trajectory_io import read_tum, write_kitti, write_tum
 from blockloc.geometry import Trajectory, xyzrpy_to_T
 
 T0 = 1_630_500_000.0

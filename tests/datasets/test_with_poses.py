@@ -13,7 +13,7 @@ from blockloc.datasets.scanfolder import ScanFolderSequence
 from blockloc.datasets.with_poses import (TrajectorySequence, covered_mask, match_trajectory,
                                           with_trajectory)
 from blockloc.errors import DatasetError
-from blockloc.evaluation.trajectory_io import read_trajectory_file, write_kitti, write_tum
+from blockloc.trajectory_io import read_trajectory_file, write_kitti, write_tum
 from blockloc.geometry import Trajectory, xyzrpy_to_T
 
 

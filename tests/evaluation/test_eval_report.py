@@ -11,7 +11,7 @@ from rich.console import Console
 from blockloc.errors import BlocklocError, EvaluationError
 from blockloc.commands.eval import print_metrics
 from blockloc.evaluation.report import evaluate_files, evaluate_trajectories
-from blockloc.evaluation.trajectory_io import write_kitti, write_tum
+from blockloc.trajectory_io import write_kitti, write_tum
 from blockloc.geometry import Trajectory
 
 from eval_trajgen import perturb, random_trajectory

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from blockloc.errors import BlocklocError, DatasetError
-from blockloc.evaluation.trajectory_io import (kitti_times_path, read_kitti, read_kitti_file, read_trajectory,
+from blockloc.trajectory_io import (kitti_times_path, read_kitti, read_kitti_file, read_trajectory,
                                                read_trajectory_file, read_tum, sniff_format, write_kitti,
                                                write_trajectory, write_tum)
 from blockloc.geometry import Trajectory, xyzrpy_to_T

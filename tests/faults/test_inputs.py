@@ -88,10 +88,10 @@ def test_config_value_out_of_range(c: Case, tmp_path):
 @case(6, "the defaults and every preset against the declared ranges", "all within them (a bound "
       "that rejects a shipped value would be wrong)")
 def test_defaults_and_presets_lie_in_their_ranges():
-    from blockloc.config import CONFIG_DIR, Config, load_config
+    from blockloc.config import PRESET_DIR, Config, load_config
 
     checked = 0
-    for cfg in [Config()] + [load_config(p) for p in sorted(CONFIG_DIR.glob("*.yaml"))]:
+    for cfg in [Config()] + [load_config(p) for p in sorted(PRESET_DIR.glob("*.yaml"))]:
         for section in dataclasses.fields(cfg):
             sub = getattr(cfg, section.name)
             for f in dataclasses.fields(sub):
@@ -176,9 +176,10 @@ def test_progress_heartbeat_when_piped(capfd):
       "the initialization reports nothing (every 30 s; 0.3 s here), then the frames in 10% steps")
 def test_demo_initialization_prints_progress_when_piped(tiny_world, monkeypatch, capfd):
     from blockloc.commands import common
-    from blockloc.commands.track import open_session, run_tracking
+    from blockloc.app.runs import open_session
+    from blockloc.commands.track import run_tracking
     from blockloc.config import load_config
-    from blockloc.session import Session
+    from blockloc.app.session import Session
 
     monkeypatch.setattr(common, "HEARTBEAT_S", 0.3)
     initialize = Session.initialize

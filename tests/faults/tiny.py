@@ -83,7 +83,7 @@ def write_tiny_scan_folder(out: Path, session: Path) -> Path:
     with a per-point ``time`` field), ``poses.tum``, ``imu.csv`` and ``extrinsics.yaml``."""
     from blockloc.datasets.nclt import NcltSequence
     from blockloc.datasets.pointclouds import write_point_cloud
-    from blockloc.evaluation.trajectory_io import write_tum
+    from blockloc.trajectory_io import write_tum
 
     seq = NcltSequence(session)
     (out / "scans").mkdir(parents=True)

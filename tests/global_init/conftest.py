@@ -9,7 +9,7 @@ import pytest
 def small_world():
     """(SmallWorld, Config): the sim:small sessions (simulated on the fly) and their block map
     (as tests/tracking uses; built once per machine)."""
-    from blockloc.commands.demo import prepare_small_world
+    from blockloc.app.runs import prepare_small_world
 
     return prepare_small_world()
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from blockloc.maps.store import open_map
-from blockloc.session import Session
+from blockloc.app.assemble import build_session
 
 from .kidnap import SplicedSequence
 
@@ -23,7 +23,7 @@ SECOND = (950, 1020)  # starts at (22.5, 1.8) m: 47 m away, beyond the 40 m loca
 
 @pytest.fixture(scope="module")
 def kidnapped_run(small_world):
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
 
     from dataclasses import replace
 
@@ -32,7 +32,7 @@ def kidnapped_run(small_world):
     # recovery must come from the index.
     cfg = replace(cfg, global_init=replace(cfg.global_init, whole_map_fallback=False))
     seq = SplicedSequence(open_sequence(paths.loc, dataset_cfg=cfg.dataset), FIRST, SECOND)
-    session = Session.from_config(cfg, seq, open_map(paths.block_map), backend="block", keep_estimates=True)
+    session = build_session(cfg, seq, open_map(paths.block_map), backend="block", keep_estimates=True)
     return session.run(init="gt"), seq
 
 

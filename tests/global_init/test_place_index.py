@@ -128,7 +128,7 @@ def test_bad_index_bytes_raise_a_map_error_naming_them():
 
 
 def test_retrieval_recall_on_the_small_world(small_world, tmp_path):
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
 
     from .conftest import prepared_scans
 

@@ -104,7 +104,7 @@ def _small_world_localizer(small_world, **overrides):
 
 def test_scans_of_another_simulated_world_are_not_verified_in_the_small_world_map(small_world):
     # The same generator with another seed: streets, buildings and trees alike, places different.
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
 
     from .conftest import prepared_scans
 
@@ -121,7 +121,7 @@ def test_no_hint_relocalization_on_the_small_world_verifies_only_right_poses(sma
     # Frames spread over the localization session (crowds, vegetation, sensor errors): every
     # verified pose is within 1 m / 5 deg of the truth, and most frames are verified (a
     # verification that rejects everything would pass the first half alone).
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
 
     from .conftest import prepared_scans
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from blockloc.datasets import open_sequence
+from blockloc.app.catalog import open_sequence
 from blockloc.geometry import transform_points
 from blockloc.global_init.relocalize import localize, pose_error
 from blockloc.maps.store import MapWriter, open_map

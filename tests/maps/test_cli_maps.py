@@ -77,7 +77,7 @@ def test_build_from_a_session_directory(tmp_path):
 def test_build_from_pcd_writes_the_place_index(tmp_path, monkeypatch):
     """`map build --from-pcd` stores a place index, as every map build does, for the gravity
     `--gravity` gives (default up: z up); it loads back byte for byte."""
-    from blockloc.evaluation.trajectory_io import write_tum
+    from blockloc.trajectory_io import write_tum
     from blockloc.global_init.place_index import PLACE_INDEX_NAME, load_place_index
 
     from .synthetic import route, world_points

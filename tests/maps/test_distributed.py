@@ -276,7 +276,7 @@ def test_cli_drive_slices_with_poses_files(tmp_path):
     own poses: the first drive's keyframes move, the second's stay."""
     write_session = pytest.importorskip("blockloc.datasets.nclt").write_session
     from blockloc.datasets.base import ImuData
-    from blockloc.evaluation.trajectory_io import write_tum
+    from blockloc.trajectory_io import write_tum
     from blockloc.geometry import Trajectory
 
     world = world_points(extent=(-30, 200), seed=9, density=0.1)

@@ -8,7 +8,7 @@ from scipy.spatial import cKDTree
 
 from blockloc.datasets.pointclouds import write_point_cloud
 from blockloc.errors import MapError
-from blockloc.evaluation.trajectory_io import write_kitti, write_tum
+from blockloc.trajectory_io import write_kitti, write_tum
 from blockloc.geometry import Trajectory, xyzrpy_to_T
 from blockloc.maps.from_pcd import build_map_from_global_pcd, keyframes_from_global_map
 from blockloc.voxels import voxel_downsample

@@ -135,7 +135,7 @@ def test_tracking_takes_the_map_mounting_only_when_asked_and_warns_otherwise(cap
     from types import SimpleNamespace
 
     from blockloc.maps.mounting import map_mounting
-    from blockloc.session import _with_map_mounting
+    from blockloc.app.assemble import with_map_mounting as _with_map_mounting
 
     _, seq, X_true = mis_mounted_drive
     store = SimpleNamespace(params={"mounting": {"square": {"T_body_lidar": X_true.tolist()}}})
@@ -158,8 +158,8 @@ def test_on_the_real_walk_the_mounting_is_found_or_left_alone(shared_data, tmp_p
     the estimate stays at the identity; given as the poses of a body the LiDAR sits 0.4/0.5/0.6 deg
     and 3/4/2 cm off, it finds that mounting. A hand-held walk turns every way: all six axes are
     observed (a ground robot's height is not)."""
-    from blockloc.datasets.refs import SequenceRef
-    from blockloc.evaluation.trajectory_io import read_tum, write_tum
+    from blockloc.app.catalog import SequenceRef
+    from blockloc.trajectory_io import read_tum, write_tum
     from blockloc.geometry import Trajectory
 
     walk = shared_data / "balm_hilti_walk"

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from blockloc.datasets.pointclouds import write_point_cloud
-from blockloc.evaluation.trajectory_io import write_tum
+from blockloc.trajectory_io import write_tum
 from blockloc.geometry import Trajectory, xyzrpy_to_T
 from blockloc.maps.from_pcd import build_map_from_global_pcd, keyframes_from_global_map
 from blockloc.maps.grid_tiles import tile_global_map

@@ -246,7 +246,8 @@ def test_options_from_config_and_policy_validation(tmp_path, monkeypatch):
     from types import SimpleNamespace
 
     from blockloc.config import Config
-    from blockloc.maps.remote import DEFAULT_CACHE_BYTES, default_cache_dir, remote_options_from_config
+    from blockloc.app.assemble import remote_options as remote_options_from_config
+    from blockloc.maps.remote import DEFAULT_CACHE_BYTES, default_cache_dir
 
     opts = remote_options_from_config(Config().map)  # fields not there yet: defaults
     assert opts["cache_dir"] is None and opts["cache_bytes"] == DEFAULT_CACHE_BYTES

@@ -22,17 +22,17 @@ N_FRAMES = 40
 
 @pytest.fixture(scope="module")
 def small_world():
-    from blockloc.commands.demo import prepare_small_world
+    from blockloc.app.runs import prepare_small_world
 
     paths, cfg = prepare_small_world()
     return paths, cfg
 
 
 def _session(cfg, seq, map_path):
-    from blockloc.maps.store import open_map_from_config
-    from blockloc.session import Session
+    from blockloc.app.assemble import open_store
+    from blockloc.app.assemble import build_session
 
-    return Session.from_config(cfg, seq, open_map_from_config(str(map_path), cfg.map), backend="block")
+    return build_session(cfg, seq, open_store(str(map_path), cfg.map), backend="block")
 
 
 class _Remote:
@@ -60,7 +60,7 @@ def remote_open_map(monkeypatch, tmp_path):
 
 
 def _track(small_world, map_path):
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
 
     paths, cfg = small_world
     seq = open_sequence(paths.loc, dataset_cfg=cfg.dataset)
@@ -109,7 +109,7 @@ STOP_AT, BACK_AT, N_LONG = 40, 100, 250  # block 001 is first needed near frame 
 @pytest.fixture(scope="module")
 def killed_run(small_world, tmp_path_factory):
     """Track 250 frames from HTTP; the server is stopped at frame 40 and back at frame 100."""
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
 
     paths, cfg = small_world
     # One block at a time, so that block 001 is first asked for while the server is down (a

@@ -685,14 +685,15 @@ def test_bad_inputs_raise_one_line_errors(scene):
 
 
 def test_from_config(hdl_pair):
+    from blockloc.app.assemble import ndt_registration, ndt_target_options
     from blockloc.config import RegistrationConfig
 
     cfg = RegistrationConfig(resolution_m=2.0, neighbors="DIRECT1", coarse_levels=0,
                              coarse_to_fine=False, max_iterations=12)
-    reg = NdtRegistration.from_config(cfg)
+    reg = ndt_registration(cfg)
     assert (reg.neighbors, reg.max_iterations, reg.coarse_to_fine) == ("DIRECT1", 12, False)
     target_pts, source, T_ref = hdl_pair
-    target = NdtTarget.build(target_pts, **NdtTarget.options_from_config(cfg))
+    target = NdtTarget.build(target_pts, **ndt_target_options(cfg))
     assert target.resolution == 2.0 and len(target.levels()) == 1
     res = reg.align(target, source, T_ref @ xyzrpy_to_T(0.2, 0.1, 0.0, 0.0, 0.0, 0.01))
     et, er = pose_error(res.T_target_source, T_ref)

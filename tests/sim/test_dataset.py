@@ -44,7 +44,7 @@ def test_same_seed_same_bytes_other_seed_other_world(written):
 
 def test_written_sessions_read_back_with_the_nclt_loader(written):
     from blockloc.datasets.nclt import NcltSequence
-    from blockloc.datasets.registry import open_sequence
+    from blockloc.app.catalog import open_sequence
 
     a = written[0]
     assert sorted(p.name for p in a.iterdir()) == ["loc", "map", "sim.json"]
@@ -170,7 +170,7 @@ def test_small_routes_cover_blocks_and_stay_in_the_map():
     assert d.max() < 15.0  # localization stays within the mapped area
     # it is another route: mostly in the other direction or another place at the same time
     assert 150 < np.linalg.norm(np.diff(mp, axis=0), axis=1).sum() < 260
-    # with 40 m blocks (configs/sim.yaml) the map route spans several blocks
+    # with 40 m blocks (blockloc/presets/sim.yaml) the map route spans several blocks
     ext = mp.max(axis=0) - mp.min(axis=0)
     assert ext[0] > 35 and ext[1] > 35
     assert np.ptp(mp[:, 2]) > 0.3  # terrain: z matters

@@ -192,7 +192,7 @@ def test_same_seed_same_scan_and_imu():
 
 def test_city_preset_opens_and_is_large():
     """Issue 19: a 3.2 km city, five mapping drives sharing one frame, a crossing localization drive."""
-    from blockloc.datasets.registry import open_sequence
+    from blockloc.app.catalog import open_sequence
     from blockloc.sim.stream import session_trajectory
 
     p = get_preset("city")

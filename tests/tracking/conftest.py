@@ -9,7 +9,7 @@ import pytest
 @pytest.fixture(scope="session")
 def small_world():
     """(SmallWorld, Config): the sim:small sessions (simulated on the fly) and their block map."""
-    from blockloc.commands.demo import prepare_small_world
+    from blockloc.app.runs import prepare_small_world
 
     paths, cfg = prepare_small_world()
     return paths, cfg

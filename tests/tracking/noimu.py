@@ -34,17 +34,17 @@ def main(argv=None) -> int:
     import argparse
     import os
 
-    from blockloc.commands.demo import prepare_small_world
-    from blockloc.datasets import open_sequence
+    from blockloc.app.runs import prepare_small_world
+    from blockloc.app.catalog import open_sequence
     from blockloc.maps.store import open_map
-    from blockloc.session import Session
+    from blockloc.app.assemble import build_session
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--max-frames", type=int, default=None)
     args = ap.parse_args(argv)
     paths, cfg = prepare_small_world()
     seq = WithoutImu(open_sequence(paths.loc, dataset_cfg=cfg.dataset))
-    session = Session.from_config(cfg, seq, open_map(paths.block_map), backend="block")
+    session = build_session(cfg, seq, open_map(paths.block_map), backend="block")
     m = session.run(0, args.max_frames, init="gt").metrics
     for k in ("frames", "estimated", "failures", "recoveries", "rejected", "switches", "ate_trans_rmse_m",
               "ate_rot_rmse_deg", "rpe_1m_trans_rmse_m", "rpe_10m_trans_rmse_m", "rpe_100m_trans_rmse_m",

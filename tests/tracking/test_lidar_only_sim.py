@@ -10,7 +10,7 @@ import pytest
 
 from blockloc.evaluation.results import RunWriter
 from blockloc.maps.store import open_map
-from blockloc.session import Session
+from blockloc.app.assemble import build_session
 from tests.tracking.noimu import WithoutImu
 
 START, STOP = 150, 500
@@ -18,13 +18,13 @@ START, STOP = 150, 500
 
 @pytest.fixture(scope="module")
 def no_imu_run(small_world, tmp_path_factory):
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
 
     paths, cfg = small_world
     seq = WithoutImu(open_sequence(paths.loc, dataset_cfg=cfg.dataset))
     assert len(seq.imu()) == 0 and seq.frame(0).time_offsets is not None
     out = tmp_path_factory.mktemp("track_noimu") / "run"
-    session = Session.from_config(cfg, seq, open_map(paths.block_map), backend="block", observers=[RunWriter(out)],
+    session = build_session(cfg, seq, open_map(paths.block_map), backend="block", observers=[RunWriter(out)],
                                   out_dir=out, keep_estimates=True)
     return session.run(START, STOP, init="gt"), session, seq
 

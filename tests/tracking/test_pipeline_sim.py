@@ -8,19 +8,19 @@ import pytest
 
 from blockloc.geometry import inv_T, so3_log
 from blockloc.maps.store import open_map
-from blockloc.session import Session
+from blockloc.app.assemble import build_session
 
 
 @pytest.fixture(scope="module")
 def full_run(small_world, tmp_path_factory):
-    from blockloc.commands.demo import noisy_hint
-    from blockloc.datasets import open_sequence
+    from blockloc.app.runs import noisy_hint
+    from blockloc.app.catalog import open_sequence
     from blockloc.evaluation.results import RunWriter
 
     paths, cfg = small_world
     seq = open_sequence(paths.loc, dataset_cfg=cfg.dataset)
     out = tmp_path_factory.mktemp("track") / "run"
-    session = Session.from_config(cfg, seq, open_map(paths.block_map), backend="block", observers=[RunWriter(out)],
+    session = build_session(cfg, seq, open_map(paths.block_map), backend="block", observers=[RunWriter(out)],
                                   out_dir=out, keep_estimates=True)
     return session.run(init="pose", pose_hint=noisy_hint(seq)), seq
 
@@ -44,7 +44,7 @@ def test_end_to_end_accuracy_and_outputs(full_run):
                 "update_ms_median", "update_ms_p99", "peak_rss_mb"):
         assert saved[key] is not None, key
     # poses.tum holds the body pose in the map frame: it matches ground truth directly
-    from blockloc.evaluation.trajectory_io import read_tum
+    from blockloc.trajectory_io import read_tum
 
     est = read_tum(out / "poses.tum")
     gt = seq.ground_truth().interpolate(est.stamps)
@@ -73,11 +73,11 @@ def test_window_shrinks_at_switches_and_grows_back_without_jumps(full_run):
 
 
 def test_one_second_lidar_dropout_is_bridged(small_world):
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
 
     paths, cfg = small_world
     seq = open_sequence(paths.loc, dataset_cfg=cfg.dataset)
-    session = Session.from_config(cfg, seq, open_map(paths.block_map), keep_estimates=True)
+    session = build_session(cfg, seq, open_map(paths.block_map), keep_estimates=True)
     session.initialize("gt", 0)
     dropped = []
     for frame in seq.frames(0, 160):
@@ -96,12 +96,12 @@ def test_one_second_lidar_dropout_is_bridged(small_world):
 
 def test_kidnapped_start_is_recovered_by_global_init(small_world):
     """Started from a pose 8 m and 40 degrees off the truth."""
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
     from blockloc.geometry import rpy_to_R
 
     paths, cfg = small_world
     seq = open_sequence(paths.loc, dataset_cfg=cfg.dataset)
-    session = Session.from_config(cfg, seq, open_map(paths.block_map), keep_estimates=True)
+    session = build_session(cfg, seq, open_map(paths.block_map), keep_estimates=True)
     stamp = float(seq.frame_stamps()[0])
     T = seq.ground_truth().interpolate(np.array([stamp]))[0].copy()
     T[:3, :3] = rpy_to_R(0.0, 0.0, np.deg2rad(40.0)) @ T[:3, :3]

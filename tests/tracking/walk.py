@@ -31,7 +31,7 @@ BLOCK_SIZE_M = 8.0
 
 def open_walk(root: str | Path, cfg):
     """The walk as a scan-folder sequence with its reference poses (T_world_lidar)."""
-    from blockloc.datasets import open_sequence
+    from blockloc.app.catalog import open_sequence
 
     root = Path(root)
     return open_sequence(root, dataset_cfg=cfg.dataset, poses=root / "poses_T_world_lidar.tum")
@@ -65,9 +65,9 @@ def build_walk_map(seq, out: str | Path, cfg, scans: tuple[int, int] = MAP_SCANS
 
 def walk_session(seq, store, cfg, start: int):
     """A session over the walk's map (block backend), started at the reference pose of ``start``."""
-    from blockloc.session import Session
+    from blockloc.app.assemble import build_session
 
-    session = Session.from_config(cfg, seq, store, backend="block", keep_estimates=True)
+    session = build_session(cfg, seq, store, backend="block", keep_estimates=True)
     session.initialize("gt", start)
     return session
 

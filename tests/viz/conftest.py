@@ -21,7 +21,7 @@ def synthetic_run():
 def recording(synthetic_run, tmp_path_factory):
     """(path, recorder) of the synthetic run recorded with the default worker process, a points
     budget small enough that some scans are dropped, and the TUM file of its poses."""
-    from blockloc.evaluation.trajectory_io import write_tum
+    from blockloc.trajectory_io import write_tum
     from blockloc.geometry import Trajectory
     from blockloc.viz.mcap_recorder import McapRecorder
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from blockloc.evaluation.trajectory_io import read_tum
+from blockloc.trajectory_io import read_tum
 from blockloc.geometry import inv_T
 from blockloc.viz.ros_codec import covariance_to_ros
 from blockloc.viz.ros_messages import TOPICS

@@ -1,7 +1,7 @@
 """A tracking session: one sequence, one map, one tracker, stepped frame by frame.
 
-``Session.from_config(cfg, seq, store)`` assembles the parts (registration engine, map policy and
-provider, global localizer, tracker); then either
+:func:`blockloc.app.assemble.build_session` assembles the parts from a config (registration
+engine, map policy and provider, global localizer, tracker); then either
 
     session.run(init="gt")                      # initialize -> every frame -> finish
 
@@ -15,14 +15,14 @@ or, driven from outside (the benchmarks step several sessions in lockstep):
 Initialization: ``gt`` (the first ground-truth pose), ``pose`` (global init around an x, y[, yaw]
 hint) or ``global`` (global init over the whole map on the first frames, until one is verified:
 the map's place index, see :mod:`blockloc.global_init.place_index`). A tracker that is lost
-relocalizes around its last good pose, then over the whole map (:meth:`Session.relocalize`);
+relocalizes around its last good pose, then over the whole map (:mod:`blockloc.app.recovery`);
 only verified poses restart it, and the frames in between are reported lost, never ok.
 Every path prepares its scan with :func:`blockloc.tracking.scan_prep.prepare_for_init`, as
 ``blockloc init`` does.
 
 A run survives bad frames: a scan that cannot be read is skipped (``skipped_frames``), a map
 entry that cannot be loaded is treated as unmapped (``map_faults``), IMU and LiDAR gaps are
-logged and counted (``imu_gaps``, ``lidar_gaps``); ``run(should_stop=...)`` stops between frames
+logged and counted (``imu_gaps``, ``lidar_gaps``: :mod:`blockloc.app.stream_checks`); ``run(should_stop=...)`` stops between frames
 (Ctrl-C), and ``finish`` always hands the observers what was computed (``interrupted`` in the
 metrics).
 """
@@ -36,15 +36,18 @@ from typing import Callable, Iterator, Optional, Sequence
 
 import numpy as np
 
-from blockloc.errors import BlocklocError, GlobalInitError, MapError, RegistrationError, TrackingError
-from blockloc.geometry import Trajectory, transform_points
+from blockloc.app.recovery import GlobalInitSettings, Recovery
+from blockloc.app.stream_checks import StreamChecks
+from blockloc.errors import BlocklocError, TrackingError
+from blockloc.evaluation.results import run_metrics
+from blockloc.geometry import Trajectory
+from blockloc.maps.summary import entry_footprint
+from blockloc.tracking.tracker import Diagnostics, Estimate
 from blockloc.viz.events import FrameEvent, ObserverGroup, RunInfo
 
 log = logging.getLogger(__name__)
 
 INIT_MODES = ("gt", "pose", "global")
-IMU_GAP_WARN_S = 0.5  # an IMU gap longer than this is logged and counted (once per gap)
-LIDAR_GAP_FACTOR = 3.0  # a gap between scans of more than this many scan periods is logged
 
 
 @dataclass
@@ -57,14 +60,6 @@ class RunResult:
     metrics: dict
     out_dir: object | None
     estimates: list = field(default_factory=list, repr=False)
-
-
-@dataclass(frozen=True)
-class GlobalInitSettings:
-    """Search windows of global init: window_m (side, m) and yaw_window_deg around a hint."""
-
-    window_m: float = 40.0
-    yaw_window_deg: float = 360.0
 
 
 def iter_frames(seq, start: int, stop: int) -> Iterator[tuple[int, object]]:
@@ -120,60 +115,17 @@ class Session:
         self._started = False
         self._finished: RunResult | None = None
         self._last_map_version = None
-        self._last_stamp: float | None = None
-        self._imu_gap_s = 0.0  # the longest gap of the IMU gap in progress, or 0
         self.init_info: dict = {}
-        self.reloc_log: list[dict] = []
         self.diagnostics: list[dict] = []
         self.estimates: list = []
         self._poses: list[np.ndarray] = []
         self._pose_stamps: list[float] = []
         self.counters = {"skipped_frames": 0, "map_faults": 0, "imu_gaps": 0, "lidar_gaps": 0}
+        self.recovery = Recovery(localizer, init_settings, self.info, self.imu, self.ground_truth, self.counters)
+        self.reloc_log = self.recovery.log  # every relocalization attempt (also in the metrics)
+        self.stream = StreamChecks(self.info, self.counters)
         self.timings: dict[str, float] = {}
         self._t_start = time.perf_counter()
-
-    # ----------------------------------------------------------------- assembly
-    @classmethod
-    def from_config(cls, cfg, seq, store, *, backend: str | None = None, observers: Sequence = (),
-                    out_dir=None, keep_estimates: bool = False, facts: dict | None = None) -> "Session":
-        """All parts from a ``blockloc.config.Config``: the engine ``registration.method``, the
-        map policy ``backend`` (default ``map.backend``) and its provider, the global localizer
-        (refining with the same engine at ``global_init.ndt_resolution_m``) and the tracker."""
-        import dataclasses
-
-        from blockloc.global_init.relocalize import GlobalLocalizer, InitParams
-        from blockloc.maps.policies import make_policy
-        from blockloc.maps.provider import MapProvider
-        from blockloc.registration.engines import engine_from_settings
-        from blockloc.tracking.tracker import Tracker
-
-        backend = backend or cfg.map.backend
-        rc, mc, gi = cfg.registration, cfg.map, cfg.global_init
-        seq = _with_map_mounting(seq, store, mc.use_map_mounting)
-        engine = engine_from_settings(dataclasses.asdict(rc))
-        policy = make_policy(backend, store, **dataclasses.asdict(mc))
-        provider = MapProvider(store, policy, engine=engine, prefetch=mc.prefetch,
-                               lookahead_s=mc.prefetch_lookahead_s, cache_mb=mc.cache_mb,
-                               retry_missing_s=mc.retry_missing_s)
-        try:
-            init_engine = engine_from_settings(dataclasses.asdict(rc), resolution_m=gi.ndt_resolution_m)
-            localizer = GlobalLocalizer.for_store(store, seq.info.gravity_map, InitParams.from_config(gi, rc),
-                                                  engine=init_engine)
-            ev = cfg.evaluation
-            session = cls(seq, None, provider, localizer=localizer, store=store,
-                          init_settings=GlobalInitSettings(gi.window_m, gi.yaw_window_deg),
-                          observers=observers, out_dir=out_dir, keep_estimates=keep_estimates,
-                          evaluation={"align": ev.align, "max_time_diff_s": ev.max_time_diff_s,
-                                      "rpe_deltas_m": ev.rpe_deltas_m}, plots=ev.plots,
-                          facts={"backend": backend, "registration": rc.method, **(facts or {})},
-                          config=cfg.to_dict())
-            session.tracker = Tracker.from_config(cfg, seq.info, map_provider=provider, registration=engine,
-                                                  relocalize=session.relocalize,
-                                                  use_imu=len(session.imu) > 0 and cfg.tracking.use_imu)
-        except BaseException:
-            provider.close()
-            raise
-        return session
 
     # ----------------------------------------------------------------- initialization
     def initialize(self, mode: str, first: int = 0, pose_hint: tuple | None = None) -> dict:
@@ -210,86 +162,13 @@ class Session:
     def _global_init(self, frame, hint_xy, hint_yaw):
         """Global init of one frame (prepared as ``blockloc init`` does); records it in init_info.
         Returns (T_map_body or None when not verified, InitResult, stamp of the pose)."""
-        from blockloc.jit import CompileClock
-        from blockloc.tracking.scan_prep import prepare_for_init
-
-        if self.localizer is None:
-            raise TrackingError("no global localizer: cannot initialize without a pose")
-        s = self.init_settings
-        scan = prepare_for_init(frame, self.imu, self.info)
-        yaw_window = s.yaw_window_deg if hint_yaw is not None else 360.0
-        t0 = time.perf_counter()
-        with CompileClock() as jit:
-            res = self.localizer.localize(scan.points_body, scan.gravity_body, hint_xy, hint_yaw, s.window_m,
-                                          yaw_window if hint_xy is not None else 360.0)
-        # a first run after install compiles the kernels inside the search: reported apart
-        self.init_info.update(time_s=time.perf_counter() - t0 - jit.seconds, compile_s=jit.seconds,
-                              verified=bool(res.verified),
-                              fitness=float(res.fitness), score=float(res.score), ambiguous=bool(res.ambiguous),
-                              frame=int(frame.index), stamp=scan.stamp)
-        ok = res.T_map_body is not None and res.verified
-        if ok and self.ground_truth is not None:
-            from blockloc.global_init.relocalize import pose_error
-
-            Tg = self.ground_truth.interpolate(np.array([scan.stamp]))[0]
-            self.init_info["error_m"], self.init_info["error_deg"] = pose_error(np.asarray(res.T_map_body), Tg)
-        return (np.asarray(res.T_map_body) if ok else None), res, scan.stamp
+        return self.recovery.global_init(frame, hint_xy, hint_yaw, self.init_info)
 
     def relocalize(self, points_lidar: np.ndarray, hint: Optional[np.ndarray], gravity_body: np.ndarray,
                    stamp: float) -> Optional[np.ndarray]:
-        """The tracker's recovery: global init of a scan (lidar frame) around ``hint``
-        (T_map_body), and, when nothing there is verified, over the whole map (the place index:
-        a kidnapped robot is outside any window around its last pose). Only a verified pose is
-        returned; a failed or impossible attempt returns None. Every attempt is in ``reloc_log``."""
-        if self.localizer is None:
-            return None
-        pts_body = transform_points(self.info.T_body_lidar, points_lidar)
-        T, searched = self._relocalize_once(pts_body, hint, gravity_body, stamp)
-        if T is None and searched and hint is not None:
-            # The hint's attitude comes from a state that has diverged: level the scan by the
-            # accelerometer when there is one.
-            T, _ = self._relocalize_once(pts_body, None, self._gravity_at(stamp, gravity_body), stamp)
-        return T
-
-    def _gravity_at(self, stamp: float, fallback: np.ndarray) -> np.ndarray:
-        """Gravity (3,) in the body frame at ``stamp`` from the accelerometer, else ``fallback``."""
-        if self.imu is None or len(self.imu) == 0:
-            return np.asarray(fallback, float)
-        from blockloc.tracking.scan_prep import gravity_from_imu
-
-        try:
-            return gravity_from_imu(self.imu, float(stamp), self.info.T_body_imu)
-        except GlobalInitError:
-            return np.asarray(fallback, float)
-
-    def _relocalize_once(self, pts_body: np.ndarray, hint: Optional[np.ndarray], gravity_body: np.ndarray,
-                         stamp: float) -> tuple[Optional[np.ndarray], bool]:
-        """(verified T_map_body or None, whether the search ran: False when global init could not
-        start, e.g. a scan too sparse to project, which another search would not change)."""
-        s = self.init_settings
-        entry = {"stamp": float(stamp), "hint": hint is not None}
-        try:
-            if hint is None:
-                res = self.localizer.localize(pts_body, gravity_body, None, None, s.window_m, 360.0)
-            else:
-                yaw = float(np.arctan2(hint[1, 0], hint[0, 0]))
-                res = self.localizer.localize(pts_body, gravity_body, (float(hint[0, 3]), float(hint[1, 3])),
-                                              yaw, s.window_m, s.yaw_window_deg)
-        except (GlobalInitError, RegistrationError, MapError) as exc:
-            # e.g. a scan too sparse to project, or a map entry that cannot be read: this attempt
-            # failed, tracking goes on
-            if isinstance(exc, MapError):
-                self.counters["map_faults"] += 1
-            log.warning("relocalization at t=%.2f failed: %s", stamp, exc)
-            self.reloc_log.append({**entry, "verified": False, "fitness": 0.0, "time_s": 0.0, "error": str(exc)})
-            return None, False
-        self.reloc_log.append({**entry, "verified": bool(res.verified), "ambiguous": bool(res.ambiguous),
-                               "fitness": float(res.fitness), "time_s": float(res.time_s)})
-        if not res.verified or res.T_map_body is None:
-            log.info("relocalization at t=%.2f%s: no verified match (best fitness %.2f)", stamp,
-                     "" if hint is not None else " over the whole map", res.fitness)
-            return None, True
-        return np.asarray(res.T_map_body), True
+        """The tracker's recovery (:meth:`Recovery.relocalize`): a verified T_map_body or None;
+        every attempt is in ``reloc_log``."""
+        return self.recovery.relocalize(points_lidar, hint, gravity_body, stamp)
 
     # ----------------------------------------------------------------- the frame step
     def start(self) -> None:
@@ -304,7 +183,7 @@ class Session:
         Returns the tracker's Estimate."""
         self.start()
         t0 = time.perf_counter()
-        self._check_lidar_gap(frame)
+        self.stream.lidar_frame(frame)
         imu = self.imu
         t_end = frame.stamp + (float(np.max(frame.time_offsets)) if frame.time_offsets is not None
                                and len(frame.time_offsets) else 0.0)
@@ -324,7 +203,7 @@ class Session:
             est = self.tracker.insert_frame(frame)
         d = est.as_dict()
         d.update(index=int(frame.index), stamp=float(frame.stamp))
-        self._check_imu_gap(frame.index, d.get("imu_gap_s", 0.0))
+        self.stream.imu_gap(frame.index, d.get("imu_gap_s", 0.0))
         self.diagnostics.append(d)
         if est.T_map_body is not None:
             self._poses.append(np.asarray(est.T_map_body))
@@ -347,31 +226,9 @@ class Session:
         self.observers.frame(FrameEvent(int(index), d["stamp"], None, None, np.zeros(3), "skipped", d))
 
     def _uninitialized(self, frame, t0):
-        from blockloc.tracking.tracker import Diagnostics, Estimate
-
         diag = Diagnostics(status="uninitialized", num_points=len(frame.points),
                            update_ms=(time.perf_counter() - t0) * 1e3)
         return Estimate(frame.index, float(frame.stamp), None, None, np.zeros(3), np.zeros(3), np.zeros(3), diag)
-
-    def _check_imu_gap(self, index: int, gap_s: float) -> None:
-        """Count a gap of the IMU stream once, logged on the first frame it spans and on the
-        frame where samples are back (the frames between see the same gap, growing)."""
-        if gap_s > IMU_GAP_WARN_S:
-            if self._imu_gap_s == 0.0:
-                self.counters["imu_gaps"] += 1
-                log.warning("frame %d: an IMU gap: no samples for the last %.2f s", index, gap_s)
-            self._imu_gap_s = max(self._imu_gap_s, gap_s)
-        elif self._imu_gap_s > 0.0:
-            log.warning("frame %d: IMU samples again, after a gap of %.2f s", index, self._imu_gap_s)
-            self._imu_gap_s = 0.0
-
-    def _check_lidar_gap(self, frame) -> None:
-        stamp = float(frame.stamp)
-        period = 1.0 / max(float(getattr(self.info, "lidar_rate_hz", 10.0) or 10.0), 1e-6)
-        if self._last_stamp is not None and stamp - self._last_stamp > LIDAR_GAP_FACTOR * period:
-            self.counters["lidar_gaps"] += 1
-            log.warning("frame %d: no LiDAR scan for %.2f s before it", frame.index, stamp - self._last_stamp)
-        self._last_stamp = stamp
 
     def _notify(self, frame, est, d: dict) -> None:
         if not self.observers.observers:
@@ -397,8 +254,6 @@ class Session:
         if self.store is not None:
             kind = self.store.kind
             tile = self.store.params.get("tile_size_m") if kind == "grid" else None
-            from blockloc.maps.summary import entry_footprint
-
             entries = [{"id": e.id, "bounds_min": e.bounds_min, "bounds_max": e.bounds_max,
                         "centroid": e.centroid, "footprint": entry_footprint(self.store, e)}
                        for e in self.store.entries]
@@ -451,8 +306,6 @@ class Session:
         counters.update(self.counters)
         counters["map_faults"] += int(stats.get("failed_loads", 0)) + int(stats.get("target_failures", 0))
         plot_dir = self.out_dir if (self.out_dir is not None and self.plots) else None
-        from blockloc.evaluation.results import run_metrics
-
         metrics = run_metrics(diagnostics=self.diagnostics, counters=counters, trajectory=traj,
                               ground_truth=self.ground_truth, evaluation=self.evaluation, plot_dir=plot_dir,
                               sequence=str(self.info.name), **self.facts, init=self.init_info,
@@ -476,24 +329,3 @@ class Session:
         """Stop the map provider's thread (idempotent)."""
         self.provider.close()
 
-
-def _with_map_mounting(seq, store, use: bool):
-    """``seq`` seen with the LiDAR mounting ``store`` was built with (``use``: the same robot),
-    or as it is, with a warning when the two differ (a build with ``--calibrate-mounting``)."""
-    from blockloc.maps.mounting import map_mounting, mounting_difference
-
-    X_map = map_mounting(getattr(store, "params", {}) or {})
-    if X_map is None:
-        return seq
-    deg, m = mounting_difference(X_map, np.asarray(seq.info.T_body_lidar, np.float64))
-    if use:
-        from blockloc.datasets.base import RemountedSequence
-
-        log.info("%s: tracking with the map's estimated LiDAR mounting (%.2f deg, %.3f m from the "
-                 "sequence's)", seq.info.name, deg, m)
-        return RemountedSequence(seq, X_map)
-    if deg > 0.05 or m > 0.005:
-        log.warning("the map was built with a LiDAR mounting estimated from its drive that differs "
-                    "from %s's by %.2f deg / %.3f m; if the same robot recorded both, "
-                    "--set map.use_map_mounting=true tracks with it", seq.info.name, deg, m)
-    return seq

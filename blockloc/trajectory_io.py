@@ -12,7 +12,7 @@ Formats
   marked *untimed*: evaluation then pairs it with the other trajectory by index (equal lengths
   required) instead of by time.
 - **NCLT ground truth** (``groundtruth_<date>.csv``: ``utime,x,y,z,roll,pitch,yaw``), read by
-  ``blockloc.datasets.nclt.read_groundtruth_csv`` (which also handles its NaN rows).
+  ``read_groundtruth_csv`` (which also handles its NaN rows).
 
 Readers sort rows by time (warning) and drop rows with a duplicated stamp (warning, the first
 kept). Malformed files raise ``DatasetError`` naming the file, the line and what was expected.
@@ -25,13 +25,14 @@ import io
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from blockloc.errors import DatasetError
 from blockloc.fileio import atomic_write_text
-from blockloc.geometry import Trajectory
+from blockloc.geometry import Trajectory, xyzrpy_to_T
 
 log = logging.getLogger(__name__)
 
@@ -89,7 +90,7 @@ class _LineNumbers:
         return self._numbers[int(k)]
 
 
-def _parse_rows(path: Path, text: str, ncols: int, what: str) -> tuple[np.ndarray, _LineNumbers]:
+def parse_rows(path: Path, text: str, ncols: int, what: str) -> tuple[np.ndarray, _LineNumbers]:
     """Rows of exactly ``ncols`` finite floats -> ((M, ncols) float64, line number of each row)."""
     linenos = _LineNumbers(text)
     if "," not in text:  # fast path (C parser); any problem falls through to the checking parser
@@ -157,7 +158,7 @@ def R_to_quat_xyzw(R: np.ndarray) -> np.ndarray:
 def read_tum(path: str | Path) -> Trajectory:
     """Read a TUM file -> Trajectory (stamps in s, poses ``T_map_body`` (N, 4, 4))."""
     path = Path(path)
-    data, linenos = _parse_rows(path, _read_text(path), 8, "t x y z qx qy qz qw")
+    data, linenos = parse_rows(path, _read_text(path), 8, "t x y z qx qy qz qw")
     qnorm = np.linalg.norm(data[:, 4:8], axis=1)
     bad = np.flatnonzero(np.abs(qnorm) < 1e-9)
     if bad.size:
@@ -212,7 +213,7 @@ def kitti_times_path(path: str | Path) -> Path | None:
 def read_kitti_file(path: str | Path) -> TrajectoryFile:
     """Read a KITTI pose file and its times file if present (see the module docstring)."""
     path = Path(path)
-    data, linenos = _parse_rows(path, _read_text(path), 12, "3x4 pose, row-major")
+    data, linenos = parse_rows(path, _read_text(path), 12, "3x4 pose, row-major")
     poses = np.zeros((len(data), 4, 4))
     poses[:, :3, :] = data.reshape(-1, 3, 4)
     poses[:, 3, 3] = 1.0
@@ -227,7 +228,7 @@ def read_kitti_file(path: str | Path) -> TrajectoryFile:
     if times_file is None:
         log.info("%s: no times file beside it, poses are paired by index", path)
         return TrajectoryFile(Trajectory(np.arange(len(poses), dtype=np.float64), poses), path, "kitti", False)
-    stamps, _ = _parse_rows(times_file, _read_text(times_file), 1, "time in seconds")
+    stamps, _ = parse_rows(times_file, _read_text(times_file), 1, "time in seconds")
     if len(stamps) != len(poses):
         raise DatasetError(f"{times_file}: {len(stamps)} stamps, expected one per pose of {path} ({len(poses)})")
     return TrajectoryFile(_sorted_unique(path, stamps[:, 0], poses), path, "kitti", True)
@@ -258,20 +259,71 @@ def write_kitti(path: str | Path, traj: Trajectory, *, write_times: bool = True)
 
 
 def read_nclt_groundtruth(path: str | Path) -> Trajectory:
-    """NCLT ``groundtruth_<date>.csv`` -> Trajectory, via the dataset module's reader."""
+    """NCLT ``groundtruth_<date>.csv`` -> Trajectory (:func:`read_groundtruth_csv`)."""
     path = Path(path)
     if not path.exists():
         raise DatasetError(f"{path}: no such trajectory file")
-    try:
-        from blockloc.datasets.nclt import read_groundtruth_csv
-    except ImportError as exc:  # the NCLT loader is another module; say what is missing
-        raise DatasetError(f"{path}: reading NCLT ground truth needs blockloc.datasets.nclt ({exc})") from None
     traj = read_groundtruth_csv(path)
-    if not isinstance(traj, Trajectory):  # tolerate a (Trajectory, ...) return
-        traj = traj[0]
     if len(traj) == 0:
         raise DatasetError(f"{path}: no valid poses, expected rows utime,x,y,z,roll,pitch,yaw")
     return traj
+
+
+def text_lines(path: Path, expected: str) -> Iterator[tuple[int, str]]:
+    """(line number, text) of a CSV file; DatasetError naming the file and line at the first
+    bytes that are not UTF-8 text (a binary file given where a CSV of ``expected`` belongs)."""
+    with open(path, "rb") as fh:
+        for lineno, raw in enumerate(fh, start=1):
+            try:
+                yield lineno, raw.decode("utf-8")
+            except UnicodeDecodeError as exc:
+                raise DatasetError(f"{path}:{lineno}: binary bytes (not UTF-8 text at byte {exc.start} of "
+                                   f"the line), expected a text CSV of {expected}") from None
+
+
+def read_groundtruth_csv(path: str | Path) -> Trajectory:
+    """Read an NCLT ``groundtruth_<date>.csv`` (or ``slam_poses_<date>.csv``).
+
+    Rows: utime (microseconds), x, y, z (m), roll, pitch, yaw (rad), comma separated, no header
+    (a header line starting with a letter or ``#`` is skipped). Returns T_map_body poses with
+    stamps in seconds, sorted by time; rows holding NaN (NCLT's first rows often do) are dropped
+    with one warning giving their count; duplicate stamps keep the first row.
+
+    Raises DatasetError if the file is missing, or a line has fewer than 7 columns or a value
+    that is not a number (naming the file and line).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: ground-truth file not found (expected NCLT csv: utime,x,y,z,roll,pitch,yaw)")
+    rows = []
+    for lineno, line in text_lines(path, "utime,x,y,z,roll,pitch,yaw"):
+        s = line.strip()
+        if not s or s[0] == "#" or (lineno == 1 and s[0].isalpha()):
+            continue
+        parts = s.split(",")
+        if len(parts) < 7:
+            raise DatasetError(f"{path}:{lineno}: {len(parts)} columns, expected 7 "
+                               "(utime,x,y,z,roll,pitch,yaw)")
+        try:
+            rows.append([float(p) for p in parts[:7]])
+        except ValueError:
+            raise DatasetError(f"{path}:{lineno}: non-numeric value in {s[:80]!r}, "
+                               "expected utime,x,y,z,roll,pitch,yaw") from None
+    data = np.asarray(rows, dtype=np.float64).reshape(-1, 7)
+    bad = ~np.isfinite(data).all(axis=1)
+    if bad.any():
+        log.warning("%s: dropped %d of %d rows holding NaN/inf", path, int(bad.sum()), len(data))
+        data = data[~bad]
+    if len(data) == 0:
+        raise DatasetError(f"{path}: no valid pose rows, expected utime,x,y,z,roll,pitch,yaw")
+    order = np.argsort(data[:, 0], kind="stable")
+    data = data[order]
+    keep = np.concatenate([[True], np.diff(data[:, 0]) > 0])
+    if not keep.all():
+        log.warning("%s: dropped %d rows with duplicate utime", path, int((~keep).sum()))
+        data = data[keep]
+    poses = xyzrpy_to_T(*data[:, 1:].T)
+    return Trajectory(data[:, 0] * 1e-6, poses)
 
 
 # ----------------------------------------------------------------------------- sniffing

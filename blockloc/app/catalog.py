@@ -1,4 +1,6 @@
-"""What a ``--seq`` value names: parsed once, here, for every command.
+"""The catalogue: what a ``--seq`` value names, the preset that fits it and its default map.
+
+Parsed once, here, for every command, the benchmarks and the node.
 
 :meth:`SequenceRef.parse` turns the text into a reference that knows its loader
 (:meth:`SequenceRef.open`), the config preset that fits it (``preset``), where the map for it is
@@ -24,6 +26,9 @@ with_trajectory`).
 
 The data root is the ``data_root`` argument, else the dataset settings' ``data_root``, else
 ``$BLOCKLOC_DATA``, else ``./data``.
+
+:func:`open_sequence` opens a value in one call; :func:`config_for_sequence` loads the config for
+it (``--config`` when given, else the preset that fits the sequence).
 """
 
 from __future__ import annotations
@@ -36,6 +41,10 @@ from typing import Any
 
 import numpy as np
 
+from blockloc.cache import cache_root, fingerprint
+from blockloc.config import Config, load_config
+from blockloc.datasets.base import RangeLimited, Sequence
+from blockloc.datasets.with_poses import with_trajectory
 from blockloc.errors import DatasetError, MapError
 
 NCLT_NAMES = {f"nclt_{i + 1}": d for i, d in enumerate(
@@ -162,15 +171,12 @@ class SequenceRef:
             seq = self._open_named(data_root, dataset_cfg, lidar_topic, imu_topic, options)
         if poses is None:
             return seq
-        from blockloc.datasets.with_poses import with_trajectory
-
         return with_trajectory(seq, poses, frame_name=poses_frame)
 
     def _open_named(self, data_root, dataset_cfg, lidar_topic, imu_topic, options):
         ranges = {k: options[k] for k in ("min_range_m", "max_range_m")}
         if self.kind == "sim":
-            from blockloc.datasets.base import RangeLimited
-            from blockloc.sim.stream import open_sim_sequence
+            from blockloc.sim.stream import open_sim_sequence  # the simulator, only for sim: names
 
             return RangeLimited(open_sim_sequence(*self.sim), ranges["min_range_m"], ranges["max_range_m"])
         if self.kind == "nclt":
@@ -232,8 +238,6 @@ class SequenceRef:
         if kind not in MAP_KINDS:
             raise MapError(f"map kind {kind!r}: expected one of {', '.join(MAP_KINDS)}")
         if self.kind == "sim":
-            from blockloc.cache import cache_root, fingerprint
-
             preset, _, seed = self.sim
             world = fingerprint("blockloc.sim", "blockloc.datasets.nclt", params=(preset, seed))
             key = fingerprint("blockloc.maps", "blockloc.datasets", params=(world, kind, tuple(map_params)))
@@ -249,3 +253,42 @@ class SequenceRef:
         """The one-line command that builds the map expected at ``out``."""
         src = self.mapping_source() or "<mapping session>"
         return f"blockloc map build --seq {src} --kind {kind} --out {out}"
+
+
+def open_sequence(name_or_path: str | Path, *, data_root: str | Path | None = None,
+                  dataset_cfg: Any = None, lidar_topic: str | None = None,
+                  imu_topic: str | None = None, poses=None, poses_frame: str | None = None) -> Sequence:
+    """Open a sequence by name or path.
+
+    dataset_cfg: the dataset settings (range limits, hits use, topics, data root); explicit
+    arguments override it. poses: a trajectory file (or Trajectory) that gives the sequence its
+    ground truth and mapping poses. Raises DatasetError with one line naming the expected path
+    when data are missing, or listing the known names for an unknown name.
+    """
+    return SequenceRef.parse(name_or_path).open(data_root=data_root, dataset_cfg=dataset_cfg,
+                                                lidar_topic=lidar_topic, imu_topic=imu_topic,
+                                                poses=poses, poses_frame=poses_frame)
+
+
+def preset_for_sequence(seq: str) -> str | None:
+    """The preset that fits a ``--seq`` value (:attr:`SequenceRef.preset`): 'sim' for simulated
+    sessions, 'nclt' for NCLT, 'm2dgr' for M2DGR, None otherwise (also for a value that names
+    nothing: opening it will say why)."""
+    try:
+        return SequenceRef.parse(seq).preset
+    except DatasetError:
+        return None
+
+
+def config_for_sequence(seq: str | None, config: str | Path | None = None,
+                        overrides: dict | None = None, overrides_source: str = "overrides") -> Config:
+    """``config`` (a file or preset name) when given, else the preset that fits ``seq``, else the
+    defaults; then ``overrides`` (nested mapping SECTION -> KEY -> value)."""
+    return load_config(config, overrides=overrides, overrides_source=overrides_source,
+                       preset=None if config or not seq else preset_for_sequence(seq))
+
+
+def map_params(map_cfg, kind: str) -> tuple:
+    """The map-building settings a cached map depends on (part of its cache key)."""
+    size = map_cfg.block_size_m if kind == "block" else map_cfg.tile_size_m
+    return (size, map_cfg.keyframe_distance_m, map_cfg.keyframe_angle_deg, map_cfg.voxel_size_m)

@@ -1,0 +1,194 @@
+"""Config -> objects: every factory that reads a config section lives here.
+
+The core classes take explicit parameters (arrays, numbers, small parameter dataclasses); this
+module is the one place that turns sections of a :class:`blockloc.config.Config` into them:
+
+    engine = build_engine(cfg.registration)                   # NDT or VGICP
+    store = open_store(path, cfg.map)                         # local or remote map store
+    provider = make_provider(store, "block", cfg.map, engine) # policy + provider
+    localizer = make_localizer(store, gravity_map, cfg)       # global init
+    session = build_session(cfg, seq, store)                  # all of it, ready to run
+
+Heavy libraries (numba kernels, gtsam, small_gicp) load when an engine, a tracker or a localizer
+is built, not when this module is imported.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import Any, Sequence
+
+import numpy as np
+
+from blockloc.app.session import GlobalInitSettings, Session
+from blockloc.config import Config, GlobalInitConfig, MapConfig, RegistrationConfig
+from blockloc.datasets.base import RemountedSequence
+from blockloc.maps.mounting import map_mounting, mounting_difference
+from blockloc.maps.policies import make_policy
+from blockloc.maps.provider import MapProvider
+from blockloc.maps.remote import DEFAULT_CACHE_BYTES, RetryPolicy
+from blockloc.maps.store import MapStore, open_map
+from blockloc.registration.engines import engine_from_settings
+
+log = logging.getLogger(__name__)
+
+
+# ----------------------------------------------------------------------------- registration
+#: The ``registration`` fields each engine takes (``method`` names the engine).
+ENGINE_FIELDS = {
+    "ndt": ("resolution_m", "min_points_per_voxel", "coarse_levels", "neighbors", "outlier_ratio",
+            "max_iterations", "step_epsilon", "coarse_to_fine", "num_threads"),
+    "vgicp": ("resolution_m", "num_neighbors", "target_num_neighbors", "voxel_grids", "max_iterations",
+              "num_threads", "outlier_ratio", "min_points_per_voxel"),
+}
+
+
+def engine_settings(rc: RegistrationConfig) -> dict[str, Any]:
+    """The ``registration`` section as the keywords of the engine ``rc.method`` (and ``method``);
+    an engine without an entry in :data:`ENGINE_FIELDS` gets every field."""
+    names = ENGINE_FIELDS.get(rc.method) or tuple(f.name for f in dataclasses.fields(rc) if f.name != "method")
+    return {"method": rc.method, **{name: getattr(rc, name) for name in names}}
+
+
+def build_engine(rc: RegistrationConfig, resolution_m: float | None = None):
+    """The registration engine ``rc.method`` with the section's settings; ``resolution_m``
+    replaces ``rc.resolution_m`` (global init refines at ``global_init.ndt_resolution_m``)."""
+    overrides = {} if resolution_m is None else {"resolution_m": resolution_m}
+    return engine_from_settings(engine_settings(rc), **overrides)
+
+
+def ndt_registration(rc: RegistrationConfig):
+    """A bare :class:`~blockloc.registration.ndt.NdtRegistration` with the section's settings."""
+    from blockloc.registration.ndt import NdtRegistration  # numba kernels: only when asked
+
+    return NdtRegistration(neighbors=rc.neighbors, outlier_ratio=rc.outlier_ratio,
+                           max_iterations=rc.max_iterations, step_epsilon=rc.step_epsilon,
+                           coarse_to_fine=rc.coarse_to_fine, num_threads=rc.num_threads)
+
+
+def ndt_target_options(rc: RegistrationConfig) -> dict[str, Any]:
+    """Keywords of ``NdtTarget.build`` / ``from_tiles``: ``NdtTarget.build(points, **ndt_target_options(rc))``."""
+    return {"resolution": rc.resolution_m, "min_points_per_voxel": rc.min_points_per_voxel,
+            "coarse_levels": rc.coarse_levels}
+
+
+# ----------------------------------------------------------------------------- maps
+def remote_options(mc: Any) -> dict[str, Any]:
+    """``RemoteMapFiles`` options from a ``MapConfig`` (fields read when present, else defaults):
+    ``remote_cache_dir`` (str, "" = default), ``remote_cache_mb``, ``remote_timeout_s``,
+    ``remote_retries``, ``remote_backoff_s``."""
+    d = RetryPolicy()
+    cache_dir = getattr(mc, "remote_cache_dir", "") or None
+    cache_mb = float(getattr(mc, "remote_cache_mb", DEFAULT_CACHE_BYTES / 2**20))
+    retry = RetryPolicy(timeout_s=float(getattr(mc, "remote_timeout_s", d.timeout_s)),
+                        retries=int(getattr(mc, "remote_retries", d.retries)),
+                        backoff_s=float(getattr(mc, "remote_backoff_s", d.backoff_s)))
+    return {"cache_dir": cache_dir, "cache_bytes": int(cache_mb * 2**20), "retry": retry}
+
+
+def open_store(path, mc: MapConfig) -> MapStore:
+    """:func:`blockloc.maps.store.open_map` with the remote-store options of ``mc``."""
+    return open_map(path, **remote_options(mc))
+
+
+def policy_settings(mc: MapConfig) -> dict[str, Any]:
+    """The keywords of the map policies (each policy takes the ones it knows)."""
+    return {"switch_hysteresis_m": mc.switch_hysteresis_m, "block_blend_m": mc.block_blend_m,
+            "grid_n": mc.grid_n, "grid_k": mc.grid_k, "srt_radius_m": mc.srt_radius_m,
+            "srt_rebuild_period_s": mc.srt_rebuild_period_s}
+
+
+def make_provider(store: MapStore, backend: str, mc: MapConfig, engine) -> MapProvider:
+    """The map policy ``backend`` (block | grid | srt | global) for ``store`` and its provider."""
+    policy = make_policy(backend, store, **policy_settings(mc))
+    return MapProvider(store, policy, engine=engine, prefetch=mc.prefetch, lookahead_s=mc.prefetch_lookahead_s,
+                       cache_mb=mc.cache_mb, retry_missing_s=mc.retry_missing_s)
+
+
+def with_map_mounting(seq, store, use: bool):
+    """``seq`` seen with the LiDAR mounting ``store`` was built with (``use``: the same robot),
+    or as it is, with a warning when the two differ (a build with ``--calibrate-mounting``)."""
+    X_map = map_mounting(getattr(store, "params", {}) or {})
+    if X_map is None:
+        return seq
+    deg, m = mounting_difference(X_map, np.asarray(seq.info.T_body_lidar, np.float64))
+    if use:
+        log.info("%s: tracking with the map's estimated LiDAR mounting (%.2f deg, %.3f m from the "
+                 "sequence's)", seq.info.name, deg, m)
+        return RemountedSequence(seq, X_map)
+    if deg > 0.05 or m > 0.005:
+        log.warning("the map was built with a LiDAR mounting estimated from its drive that differs "
+                    "from %s's by %.2f deg / %.3f m; if the same robot recorded both, "
+                    "--set map.use_map_mounting=true tracks with it", seq.info.name, deg, m)
+    return seq
+
+
+# ----------------------------------------------------------------------------- global init
+def init_params(gi: GlobalInitConfig, rc: RegistrationConfig | None = None):
+    """The global localizer's parameters (``InitParams``) from the ``global_init`` section."""
+    from blockloc.global_init.relocalize import InitParams
+
+    return InitParams.from_config(gi, rc)
+
+
+def place_index_params(gi: GlobalInitConfig):
+    """The place index's parameters from the ``global_init`` section."""
+    return init_params(gi).place_index_params
+
+
+def init_settings(gi: GlobalInitConfig) -> GlobalInitSettings:
+    """The session's search windows of global init."""
+    return GlobalInitSettings(gi.window_m, gi.yaw_window_deg)
+
+
+def make_localizer(store: MapStore, gravity_map, cfg: Config, engine=None):
+    """The global localizer of ``store`` (refining with ``engine``, default the configured engine
+    at ``global_init.ndt_resolution_m``)."""
+    from blockloc.global_init.relocalize import GlobalLocalizer
+
+    gi, rc = cfg.global_init, cfg.registration
+    if engine is None:
+        engine = build_engine(rc, resolution_m=gi.ndt_resolution_m)
+    return GlobalLocalizer.for_store(store, gravity_map, init_params(gi, rc), engine=engine)
+
+
+# ----------------------------------------------------------------------------- tracking
+def make_tracker(cfg: Config, info, *, map_provider, registration, relocalize=None, use_imu: bool = True):
+    """The tracker (sliding-window smoother) from the ``tracking`` and ``imu`` sections."""
+    from blockloc.tracking.tracker import Tracker
+
+    return Tracker.from_config(cfg, info, map_provider=map_provider, registration=registration,
+                               relocalize=relocalize, use_imu=use_imu)
+
+
+def evaluation_options(cfg: Config) -> dict[str, Any]:
+    """Keywords of the accuracy evaluation (``evaluate_trajectories``)."""
+    ev = cfg.evaluation
+    return {"align": ev.align, "max_time_diff_s": ev.max_time_diff_s, "rpe_deltas_m": ev.rpe_deltas_m}
+
+
+def build_session(cfg: Config, seq, store: MapStore, *, backend: str | None = None, observers: Sequence = (),
+                  out_dir=None, keep_estimates: bool = False, facts: dict | None = None) -> Session:
+    """All parts of a :class:`Session` from a config: the engine ``registration.method``, the map
+    policy ``backend`` (default ``map.backend``) and its provider, the global localizer (refining
+    with the same engine at ``global_init.ndt_resolution_m``) and the tracker."""
+    backend = backend or cfg.map.backend
+    rc, mc, gi = cfg.registration, cfg.map, cfg.global_init
+    seq = with_map_mounting(seq, store, mc.use_map_mounting)
+    engine = build_engine(rc)
+    provider = make_provider(store, backend, mc, engine)
+    try:
+        localizer = make_localizer(store, seq.info.gravity_map, cfg)
+        session = Session(seq, None, provider, localizer=localizer, store=store, init_settings=init_settings(gi),
+                          observers=observers, out_dir=out_dir, keep_estimates=keep_estimates,
+                          evaluation=evaluation_options(cfg), plots=cfg.evaluation.plots,
+                          facts={"backend": backend, "registration": rc.method, **(facts or {})},
+                          config=cfg.to_dict())
+        session.tracker = make_tracker(cfg, seq.info, map_provider=provider, registration=engine,
+                                       relocalize=session.relocalize,
+                                       use_imu=len(session.imu) > 0 and cfg.tracking.use_imu)
+    except BaseException:
+        provider.close()
+        raise
+    return session

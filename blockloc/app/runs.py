@@ -1,0 +1,320 @@
+"""The recipes the commands, the benchmarks (and a live node) share: open a session on a sequence
+in its map, run global initialization on one frame, build a map (and its place index), prepare
+the demo's small world, write a run's report.
+
+No printing, no progress bars, no signal handling here (the commands do those): a long recipe
+takes a ``progress(done, total)`` callback, a ``say(message)`` callback, or ``should_stop()``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from blockloc.app.assemble import build_engine, build_session, make_localizer, open_store, place_index_params
+from blockloc.app.catalog import SequenceRef, map_kind_for_backend, map_params, open_sequence
+from blockloc.app.session import RunResult, Session
+from blockloc.config import Config, MapConfig, load_config
+from blockloc.errors import DatasetError, GlobalInitError, MapError
+from blockloc.geometry import T_to_xyzrpy
+from blockloc.maps.build_plan import Drive, build_block_map_from_sequence, build_map_from_drives
+from blockloc.maps.files import open_map_files
+from blockloc.maps.store import MapStore, open_map
+
+log = logging.getLogger("blockloc")
+
+Progress = Callable[[int, int | None], None]
+
+
+# ----------------------------------------------------------------------------- tracking
+def resolve_map(ref: SequenceRef, map_path: str | None, backend: str, cfg: Config, data_root: str | None) -> str:
+    """``--map``, else ``map.path`` of the config, else the sequence's default map (which must
+    exist: MapError with the command that builds it)."""
+    path = map_path or cfg.map.path or None
+    if path is not None:
+        return str(path)
+    kind = map_kind_for_backend(backend)
+    default = ref.default_map_path(kind, data_root=data_root, dataset_cfg=cfg.dataset,
+                                   map_params=map_params(cfg.map, kind))
+    if not open_map_files(default).exists("manifest.json"):
+        raise MapError(f"map for {ref.text} not found at {default}; build it with: {ref.build_hint(kind, default)}")
+    return str(default)
+
+
+def open_session(seq: str, *, cfg: Config, map_path: str | None = None, backend: str | None = None,
+                 data_root: str | None = None, observers=(), out_dir: Path | None = None,
+                 keep_estimates: bool = False, lidar_topic: str | None = None,
+                 imu_topic: str | None = None, poses=None) -> Session:
+    """The Session for ``--seq`` in its map (what ``track`` and the benchmarks run)."""
+    ref = SequenceRef.parse(seq)
+    backend = backend or cfg.map.backend
+    sequence = ref.open(data_root=data_root, dataset_cfg=cfg.dataset, lidar_topic=lidar_topic, imu_topic=imu_topic,
+                        poses=poses)
+    path = resolve_map(ref, map_path, backend, cfg, data_root)
+    store = open_store(path, cfg.map)
+    return build_session(cfg, sequence, store, backend=backend, observers=observers, out_dir=out_dir,
+                         keep_estimates=keep_estimates, facts={"map": path})
+
+
+def track(session: Session, *, mode: str, hint=None, max_frames: int | None = None,
+          progress: Progress | None = None, should_stop: Callable[[], bool] | None = None) -> RunResult:
+    """Run a session from its first frame (``max_frames`` of them, or all): initialize (``mode``
+    gt | pose | global, ``hint`` (x, y, yaw or None) for pose), step, finish."""
+    return session.run(0, max_frames, init=mode, pose_hint=hint, progress=progress, should_stop=should_stop)
+
+
+def write_run_report(session: Session, res: RunResult, out_dir: Path) -> Path:
+    """``report.html`` in the results folder: metrics, plots, config and an interactive top view."""
+    from blockloc.maps.summary import map_points_xy  # reads the map: only when a report is written
+    from blockloc.viz.layout import REPORT_NAME
+    from blockloc.viz.report import write_report
+
+    images = {caption: out_dir / name for caption, name in (("trajectories", "trajectories.png"),
+                                                             ("errors over time", "errors.png"))
+              if (out_dir / name).is_file()}
+    return write_report(out_dir / REPORT_NAME, metrics=res.metrics, estimate=res.trajectory,
+                        ground_truth=session.ground_truth, diagnostics=res.diagnostics, config=session.config,
+                        map_xy=map_points_xy(session.store) if session.store is not None else None,
+                        map_entries=session.run_info().map_entries, images=images,
+                        title=f"{res.metrics.get('sequence')}")
+
+
+# ----------------------------------------------------------------------------- global init
+def run_init(seq_name: str, frame_index: int, map_path: str, *, cfg: Config, hint: tuple | None = None,
+             window_m: float | None = None, yaw_window_deg: float | None = None, data_root: str | None = None,
+             poses=None) -> tuple:
+    """Global initialization of frame ``frame_index`` of a sequence in a map store, the scan
+    prepared as tracking prepares it. hint: (x, y, yaw or None), map frame, m and rad, or None
+    (the whole map). Returns (InitResult, summary dict for printing/JSON); with ground truth the
+    summary holds the pose error. Raises BlocklocError on bad input."""
+    from blockloc.global_init.relocalize import pose_error
+    from blockloc.jit import CompileClock
+    from blockloc.tracking.scan_prep import prepare_for_init
+
+    gi = cfg.global_init
+    window_m = gi.window_m if window_m is None else window_m
+    yaw_window_deg = gi.yaw_window_deg if yaw_window_deg is None else yaw_window_deg
+    x, y, hint_yaw = hint if hint is not None else (None, None, None)
+    if not (window_m > 0 and math.isfinite(window_m)):
+        raise GlobalInitError(f"--window {window_m}: expected a positive size in metres")
+    if not (0 < yaw_window_deg <= 360):
+        raise GlobalInitError(f"--yaw-window {yaw_window_deg}: expected an angle in (0, 360] degrees")
+    seq = open_sequence(seq_name, data_root=data_root, dataset_cfg=cfg.dataset, poses=poses)
+    if not 0 <= frame_index < len(seq):
+        raise GlobalInitError(f"--frame {frame_index}: expected 0..{len(seq) - 1} ({seq.info.name} has "
+                              f"{len(seq)} frames)")
+    store = open_store(map_path, cfg.map)
+    engine = build_engine(cfg.registration, resolution_m=gi.ndt_resolution_m)
+    loc = make_localizer(store, seq.info.gravity_map, cfg, engine=engine)
+    scan = prepare_for_init(seq.frame(frame_index), seq.imu(), seq.info)
+    t0 = time.perf_counter()
+    with CompileClock() as jit:
+        res = loc.localize(scan.points_body, scan.gravity_body, None if x is None else (x, y), hint_yaw,
+                           window_m, yaw_window_deg if hint_yaw is not None else 360.0)
+    summ = init_summary(res, scan.stamp)
+    # search and refinement: not process start, map opening, loading the place index, nor compiling
+    # the kernels on the first run after an install (compile_s)
+    summ["time_s"] = round(min(float(res.time_s), time.perf_counter() - t0) - jit.seconds, 3)
+    summ["compile_s"] = round(jit.seconds, 3)
+    gt = seq.ground_truth()
+    if gt is not None and gt.stamps[0] <= scan.stamp <= gt.stamps[-1]:
+        Tg = gt.interpolate(np.array([scan.stamp]))[0]
+        gx, gy, _, _, _, gyaw = (float(v) for v in T_to_xyzrpy(Tg))
+        summ["gt"] = {"x": gx, "y": gy, "yaw": gyaw}
+        if res.T_map_body is not None:
+            err_m, err_deg = pose_error(np.asarray(res.T_map_body), Tg)
+            summ["error_m"], summ["error_deg"] = round(err_m, 4), round(err_deg, 4)
+    return res, summ
+
+
+def init_summary(res, stamp: float | None = None) -> dict:
+    """JSON-ready dict: x, y, z (m), roll, pitch, yaw (rad) of T_map_body, score, fitness, ..."""
+    out: dict = {"verified": bool(res.verified), "ambiguous": bool(res.ambiguous),
+                 "score": round(float(res.score), 4), "fitness": round(float(res.fitness), 4),
+                 "time_s": round(float(res.time_s), 3), "num_candidates": len(res.candidates)}
+    if stamp is not None:
+        out["stamp"] = float(stamp)
+    out["pose"] = None  # x, y, z (m), roll, pitch, yaw (rad); also flat, below
+    if res.T_map_body is not None:
+        x, y, z, roll, pitch, yaw = (float(v) for v in T_to_xyzrpy(res.T_map_body))
+        out.update(x=x, y=y, z=z, roll=roll, pitch=pitch, yaw=yaw)
+        out["pose"] = {"x": x, "y": y, "z": z, "roll": roll, "pitch": pitch, "yaw": yaw}
+    out["candidates"] = [
+        dict(zip(("x", "y", "z", "roll", "pitch", "yaw"), (round(float(v), 4) for v in T_to_xyzrpy(c.T_map_body))),
+             score=round(c.score, 4), fitness=round(c.fitness, 4), verified=c.verified)
+        for c in res.candidates]
+    out["stats"] = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in res.stats.items()}
+    return out
+
+
+# ----------------------------------------------------------------------------- maps
+def build_map(seq, kind: str, out: str | Path, map_cfg: MapConfig, *, overwrite: bool = False,
+              progress: Progress | None = None, max_frames: int | None = None, executor=None) -> MapStore:
+    """Build a block or grid store from a mapping sequence with the ``MapConfig`` settings.
+    progress: a ``(done, total)`` callback or None. executor: None (serial) or a Dask executor
+    (:func:`blockloc.maps.distributed.open_executor`)."""
+    return build_map_from_specs([Drive.of(seq, stop=max_frames)], kind, out, map_cfg,
+                                overwrite=overwrite, progress=progress, executor=executor)
+
+
+def build_map_from_specs(drives, kind: str, out: str | Path, map_cfg: MapConfig, *, overwrite: bool = False,
+                         progress: Progress | None = None, executor=None) -> MapStore:
+    """:func:`blockloc.maps.build_plan.build_map_from_drives` with the ``MapConfig`` settings."""
+    return build_map_from_drives(
+        drives, kind, out, block_size_m=map_cfg.block_size_m, tile_size_m=map_cfg.tile_size_m,
+        voxel_size_m=map_cfg.voxel_size_m, keyframe_distance_m=map_cfg.keyframe_distance_m,
+        keyframe_angle_deg=map_cfg.keyframe_angle_deg,
+        calibrate_mounting=map_cfg.calibrate_mounting, executor=executor, progress=progress,
+        overwrite=overwrite)
+
+
+@dataclass(frozen=True)
+class SequenceSpec:
+    """A ``--seq`` value (and its ``--poses``) as a picklable opener: what each Dask worker calls
+    to open the drive itself (only this small object travels with the tasks).
+
+    text: sequence name or absolute path; poses: absolute trajectory path or None (the
+    sequence's own mapping poses); data_root, dataset_cfg: as for ``SequenceRef.open``.
+    """
+
+    text: str
+    data_root: str | None = None
+    dataset_cfg: Any = None
+    poses: str | None = None
+
+    def __call__(self):
+        return SequenceRef.parse(self.text).open(data_root=self.data_root,
+                                                 dataset_cfg=self.dataset_cfg, poses=self.poses)
+
+
+#: ``--seq NAME[START:STOP]``: frames START..STOP-1 of a sequence as one drive.
+DRIVE_SLICE = re.compile(r"^(?P<seq>.+)\[(?P<start>\d*):(?P<stop>\d*)\]$")
+
+
+def drive_sequence_name(text: str) -> str:
+    """The sequence a ``NAME[START:STOP]`` drive names (``NAME``)."""
+    return DRIVE_SLICE.sub(r"\g<seq>", text)
+
+
+def parse_drive(text: str, poses: str | None = None, *, data_root: str | None = None,
+                dataset_cfg: Any = None, max_frames: int | None = None) -> Drive:
+    """A ``--seq`` value -> :class:`~blockloc.maps.build_plan.Drive`. ``NAME[START:STOP]`` maps
+    frames START..STOP-1 only; paths become absolute (workers may run elsewhere); ``max_frames``
+    caps the drive to its first N frames. DatasetError (one line) when the name names nothing."""
+    m = DRIVE_SLICE.match(text)
+    name = m["seq"] if m else text
+    start = int(m["start"] or 0) if m else 0
+    stop = int(m["stop"]) if m and m["stop"] else None
+    if stop is not None and stop <= start:
+        raise DatasetError(f"--seq {text!r}: empty frame range (expected NAME[START:STOP], "
+                           "START < STOP)")
+    if max_frames is not None:
+        stop = start + max_frames if stop is None else min(stop, start + max_frames)
+    ref = SequenceRef.parse(name)
+    if ref.path is not None:
+        name = str(Path(name).expanduser().resolve())
+    if poses:
+        if not Path(poses).expanduser().exists():
+            raise DatasetError(f"--poses {poses}: no such trajectory file")
+        poses = str(Path(poses).expanduser().resolve())
+    spec = SequenceSpec(name, None if data_root is None else str(data_root), dataset_cfg, poses)
+    key = f"{name}|{poses}|{data_root}"
+    return Drive(text, spec, key, start, stop)
+
+
+def add_place_index(path: str | Path, gravity_map, cfg: Config) -> MapStore:
+    """Build the place index (no-hint relocalization) of the local store at ``path`` with the
+    ``global_init`` settings of ``cfg`` and add it to the store; returns the reopened store."""
+    from blockloc.global_init.place_index import PLACE_INDEX_NAME, write_place_index
+
+    t0 = time.perf_counter()
+    store, index = write_place_index(path, gravity_map, place_index_params(cfg.global_init))
+    log.info("place index: %d places, %d bytes in %.1f s", len(index), store.extras[PLACE_INDEX_NAME].bytes,
+             time.perf_counter() - t0)
+    return store
+
+
+# ----------------------------------------------------------------------------- the demo's world
+DEMO_PRESET = "small"
+DEMO_SEED = 1
+HINT_NOISE_M = 4.0  # the demo's hint is this far (each axis, uniform) from the truth; yaw is not given
+
+
+@dataclass
+class SmallWorld:
+    """The demo's world: its mapping and localization sessions (``--seq`` names, simulated on the
+    fly) and the block map built from the first (a cache entry keyed by the code that made it)."""
+
+    mapping: str
+    loc: str
+    block_map: Path
+
+    @classmethod
+    def default(cls, preset: str = DEMO_PRESET, seed: int = DEMO_SEED, map_cfg: MapConfig | None = None) -> "SmallWorld":
+        """The block map is the default map of ``sim:<preset>/loc@<seed>`` for the block settings
+        of ``map_cfg`` (default: the sim preset's)."""
+        if map_cfg is None:
+            map_cfg = load_config(preset="sim").map
+        loc = f"sim:{preset}/loc@{seed}"
+        ref = SequenceRef.parse(loc)
+        return cls(ref.mapping_source(), loc, ref.default_map_path("block", map_params=map_params(map_cfg, "block")))
+
+
+def ensure_block_map(world: SmallWorld, cfg: Config, say: Callable[[str], None] = log.info,
+                     progress: Progress | None = None) -> Path:
+    """The block map of the mapping session (built once, reused)."""
+    try:
+        store = open_map(world.block_map)
+        say(f"block map: cached at {world.block_map} ({len(store)} blocks)")
+        return world.block_map
+    except MapError:
+        pass
+    say(f"block map: simulating the keyframes of {world.mapping} and stitching blocks of "
+        f"{cfg.map.block_size_m:g} m ...")
+    t0 = time.perf_counter()
+    seq = open_sequence(world.mapping, dataset_cfg=cfg.dataset)
+    store = build_block_map_from_sequence(seq, block_size_m=cfg.map.block_size_m,
+                                          keyframe_distance_m=cfg.map.keyframe_distance_m,
+                                          keyframe_angle_deg=cfg.map.keyframe_angle_deg,
+                                          voxel_size_m=cfg.map.voxel_size_m, out=world.block_map,
+                                          overwrite=True, progress=progress)
+    say(f"block map: {len(store)} blocks in {time.perf_counter() - t0:.0f} s")
+    return world.block_map
+
+
+def prepare_small_world(cfg: Config | None = None, say: Callable[[str], None] = log.info,
+                        progress: Progress | None = None) -> tuple[SmallWorld, Config]:
+    """The `small` world and its (cached) block map: (SmallWorld, Config used, default the sim preset)."""
+    cfg = cfg or load_config(preset="sim")
+    world = SmallWorld.default(map_cfg=cfg.map)
+    ensure_block_map(world, cfg, say=say, progress=progress)
+    return world, cfg
+
+
+def noisy_hint(seq, seed: int = DEMO_SEED, noise_m: float = HINT_NOISE_M) -> tuple[float, float, None]:
+    """A position hint near the first ground-truth pose (as a user clicking on a map would give)."""
+    gt = seq.ground_truth()
+    p = gt.interpolate(np.array([seq.frame_stamps()[0]]))[0][:3, 3]
+    rng = np.random.default_rng(seed)
+    dx, dy = rng.uniform(-noise_m, noise_m, 2)
+    return float(p[0] + dx), float(p[1] + dy), None
+
+
+def demo_session(cfg: Config | None = None, *, world: SmallWorld | None = None, out: Path | None = None,
+                 observers=(), say: Callable[[str], None] = log.info, keep_estimates: bool = False,
+                 progress: Progress | None = None) -> tuple[Session, tuple]:
+    """(Session on the small world's localization session in its block map, the hint). world:
+    one :func:`prepare_small_world` returned (with its ``cfg``), else prepared here."""
+    if world is None or cfg is None:
+        world, cfg = prepare_small_world(cfg, say=say, progress=progress)
+    seq = open_sequence(world.loc, dataset_cfg=cfg.dataset)
+    session = build_session(cfg, seq, open_map(world.block_map), backend="block", observers=observers,
+                            out_dir=out, keep_estimates=keep_estimates, facts={"map": str(world.block_map)})
+    return session, noisy_hint(seq)

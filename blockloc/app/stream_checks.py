@@ -1,0 +1,42 @@
+"""Gaps in a session's sensor streams: logged once per gap and counted (``imu_gaps``,
+``lidar_gaps``), never a reason to stop tracking."""
+
+from __future__ import annotations
+
+import logging
+
+log = logging.getLogger("blockloc.app.session")
+
+IMU_GAP_WARN_S = 0.5  # an IMU gap longer than this is logged and counted (once per gap)
+LIDAR_GAP_FACTOR = 3.0  # a gap between scans of more than this many scan periods is logged
+
+
+class StreamChecks:
+    """info: the sequence's SequenceInfo (``lidar_rate_hz``); counters: the session's counters."""
+
+    def __init__(self, info, counters: dict) -> None:
+        self.info = info
+        self.counters = counters
+        self._last_stamp: float | None = None
+        self._imu_gap_s = 0.0  # the longest gap of the IMU gap in progress, or 0
+
+    def imu_gap(self, index: int, gap_s: float) -> None:
+        """Count a gap of the IMU stream once, logged on the first frame it spans and on the
+        frame where samples are back (the frames between see the same gap, growing)."""
+        if gap_s > IMU_GAP_WARN_S:
+            if self._imu_gap_s == 0.0:
+                self.counters["imu_gaps"] += 1
+                log.warning("frame %d: an IMU gap: no samples for the last %.2f s", index, gap_s)
+            self._imu_gap_s = max(self._imu_gap_s, gap_s)
+        elif self._imu_gap_s > 0.0:
+            log.warning("frame %d: IMU samples again, after a gap of %.2f s", index, self._imu_gap_s)
+            self._imu_gap_s = 0.0
+
+    def lidar_frame(self, frame) -> None:
+        """Count and log a gap before ``frame`` longer than LIDAR_GAP_FACTOR scan periods."""
+        stamp = float(frame.stamp)
+        period = 1.0 / max(float(getattr(self.info, "lidar_rate_hz", 10.0) or 10.0), 1e-6)
+        if self._last_stamp is not None and stamp - self._last_stamp > LIDAR_GAP_FACTOR * period:
+            self.counters["lidar_gaps"] += 1
+            log.warning("frame %d: no LiDAR scan for %.2f s before it", frame.index, stamp - self._last_stamp)
+        self._last_stamp = stamp
