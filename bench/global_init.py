@@ -86,7 +86,7 @@ def ensure_map(seq_name: str, out: Path, kind: str, source: str = "builder") -> 
 def fpfh_ransac(map_pts: np.ndarray, scan_body: np.ndarray, voxel: float = 1.0, seed: int = 0,
                 iterations: int = 1_000_000, confidence: float = 1.0, mutual: bool = False) -> np.ndarray:
     """T_map_body from FPFH + RANSAC (open3d), coarse; map (M, 3) map frame, scan (N, 3) body frame."""
-    from blockloc._open3d import open3d
+    from blockloc.open3d_loader import open3d
 
     o3d = open3d()
     o3d.utility.random.seed(seed)

@@ -187,7 +187,7 @@ def synthetic_once(kind: str, background: bool, pace_s: float = 0.006) -> dict:
     worker0 = 0.0
     if background:
         time.sleep(1.0)
-        t = psutil.Process(obs._host.proxy.proc.pid).cpu_times()
+        t = psutil.Process(obs.worker.proc.pid).cpu_times()
         worker0 = t.user + t.system  # its start-up (imports, RunInfo) is not per-frame work
     cpu, wall = [], []
     for ev in run.events:
@@ -200,10 +200,10 @@ def synthetic_once(kind: str, background: bool, pace_s: float = 0.006) -> dict:
             pass
     worker_cpu = None
     if background:
-        while obs._host.proxy.unread_bytes():
+        while obs.worker.unread_bytes():
             time.sleep(0.05)
         time.sleep(1.0)
-        t = psutil.Process(obs._host.proxy.proc.pid).cpu_times()
+        t = psutil.Process(obs.worker.proc.pid).cpu_times()
         worker_cpu = (t.user + t.system - worker0) / len(run.events)
     obs.finish({})
     out = {"kind": kind, "background": background, "frames": len(run.events),

@@ -13,13 +13,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from blockloc.app.runs import demo_session, prepare_small_world, write_run_report
+from blockloc.commands.common import check_results_dir, console, progress, results_dir
+from blockloc.commands.init import compile_note
+from blockloc.commands.track import print_track_summary, print_where, run_observers, run_tracking
+
 
 def demo_command(out: Path | None, max_frames: int | None, record: bool = True) -> None:
-    from blockloc.app.runs import demo_session, prepare_small_world, write_run_report
-    from blockloc.commands.common import check_results_dir, console, progress, results_dir
-    from blockloc.commands.init import compile_note
-    from blockloc.commands.track import print_track_summary, print_where, run_observers, run_tracking
-
     con = console()
     out_dir = results_dir(out, "demo")
     check_results_dir(out_dir)

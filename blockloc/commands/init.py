@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 import math
 
+from blockloc.app.runs import run_init
+from blockloc.commands.common import config_for, console, parse_pose_hint
 from blockloc.errors import GlobalInitError
 
 
@@ -47,9 +49,6 @@ def print_result(summ: dict, console) -> None:
 def init_command(seq, frame, map_path, pose_hint, window, yaw_window, json_out, data_root, config,
                  poses=None, sets=None) -> None:
     """The command: run, print (JSON or tables), fail (exit 2) when nothing was verified."""
-    from blockloc.app.runs import run_init
-    from blockloc.commands.common import config_for, console, parse_pose_hint
-
     cfg = config_for(seq, config, sets)
     hint = parse_pose_hint(pose_hint) if pose_hint is not None else None
     res, summ = run_init(seq, frame, map_path, cfg=cfg, hint=hint, window_m=window, yaw_window_deg=yaw_window,

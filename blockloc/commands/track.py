@@ -7,6 +7,9 @@ import logging
 from pathlib import Path
 from typing import Optional
 
+from blockloc.app.runs import open_session, track, write_run_report
+from blockloc.commands.common import (Interrupted, check_results_dir, config_for, console, interruptible,
+                                      parse_pose_hint, progress, results_dir)
 from blockloc.errors import TrackingError
 
 log = logging.getLogger("blockloc")
@@ -14,8 +17,6 @@ log = logging.getLogger("blockloc")
 
 def init_mode(init: Optional[str], init_pose: Optional[str]) -> tuple[str, tuple | None]:
     """(--init gt | --init-pose x,y[,yaw] | neither) -> (mode, hint)."""
-    from blockloc.commands.common import parse_pose_hint
-
     if init not in (None, "gt"):
         raise TrackingError(f"--init {init!r}: expected 'gt' (or use --init-pose x,y[,yaw])")
     if init and init_pose:
@@ -31,9 +32,6 @@ def run_tracking(session, *, mode: str, hint, out_dir: Path | None, label: str =
                  max_frames: int | None = None):
     """Run a session with a progress display and honest interruption; returns the RunResult.
     After a SIGINT/SIGTERM the partial results are written, then ``Interrupted`` is raised."""
-    from blockloc.app.runs import track
-    from blockloc.commands.common import Interrupted, interruptible, progress
-
     total = len(session.stamps) if max_frames is None else min(max_frames, len(session.stamps))
     with interruptible() as stop, progress(label, total) as cb:
         res = track(session, mode=mode, hint=hint, max_frames=max_frames, progress=cb, should_stop=stop)
@@ -101,9 +99,6 @@ def track_command(seq: str, map_path: str | None, backend: str | None, init: str
                   lidar_topic: str | None = None, imu_topic: str | None = None, poses: Path | None = None,
                   sets: list[str] | None = None, record: bool = True, record_path: Path | None = None,
                   live: bool = False, host: str = "127.0.0.1", port: int = 8765) -> None:
-    from blockloc.app.runs import open_session, write_run_report
-    from blockloc.commands.common import check_results_dir, config_for, console, results_dir
-
     mode, hint = init_mode(init, init_pose)
     if max_frames is not None and max_frames < 1:
         raise TrackingError(f"--max-frames {max_frames}: expected a positive number of frames")

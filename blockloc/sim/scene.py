@@ -49,7 +49,7 @@ class TerrainScene:
     __slots__ = ("scene", "__weakref__")
 
     def __init__(self, world: World) -> None:
-        from blockloc._open3d import open3d
+        from blockloc.open3d_loader import open3d
 
         o3d = open3d()
         V, F = world.meshes["terrain"]
@@ -248,7 +248,7 @@ class SessionScene:
     """
 
     def __init__(self, world: World, movables: Movables, actors: Actors, session: str = "map"):
-        from blockloc._open3d import open3d
+        from blockloc.open3d_loader import open3d
 
         o3d = open3d()
         self._o3d = o3d

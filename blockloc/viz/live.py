@@ -50,6 +50,13 @@ class LiveServer:
         log.info("live view: %s", self.url)
 
     @property
+    def worker(self):
+        """The background worker (:class:`~blockloc.viz.worker.WorkerProxy`: its ``proc``,
+        ``unread_bytes()``) once started with ``background``, else None (for measurement)."""
+        host = getattr(self, "_host", None)
+        return None if host is None else host.proxy
+
+    @property
     def dropped(self) -> int:
         """Frames dropped because the worker was busy (always 0 with background=False)."""
         return self._host.dropped

@@ -74,6 +74,13 @@ class McapRecorder:
         if self._host is not None and self.summary is None:
             self._host.frame(self.decimator.thin(event))
 
+    @property
+    def worker(self):
+        """The background worker (:class:`~blockloc.viz.worker.WorkerProxy`: its ``proc``,
+        ``unread_bytes()``) once started with ``background``, else None (for measurement)."""
+        host = getattr(self, "_host", None)
+        return None if host is None else host.proxy
+
     def finish(self, metrics: dict, reason: str = "finished") -> None:
         """Close the recording (safe after an exception, and twice). ``reason``: recorded in the
         file's ``blockloc.end`` metadata, e.g. the exception that ended the run."""

@@ -32,7 +32,7 @@ def test_empty_cloud_roundtrip(tmp_path):
 
 
 def test_open3d_reads_ours_and_we_read_open3d_variants(tmp_path):
-    from blockloc._open3d import open3d
+    from blockloc.open3d_loader import open3d
 
     o3d = open3d()
     pts, inten = _cloud(300, seed=1)

@@ -166,7 +166,7 @@ def test_fast_turn_shows_motion_distortion(tiny_map):
 def test_moving_actors_are_cast_exactly(tiny_loc):
     """The per-scan actor scene (only rays aimed near an actor are cast) finds every actor hit a
     brute-force cast of all rays finds; and actors do appear in scans."""
-    from blockloc._open3d import open3d
+    from blockloc.open3d_loader import open3d
     from blockloc.sim.lidar import beam_directions
 
     o3d = open3d()

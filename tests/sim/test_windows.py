@@ -41,7 +41,7 @@ def test_no_window_return_floats_in_the_air_behind_a_corridor_wall():
     assert beyond.sum() > 100  # through the windows: the street, the buildings across it
     # Every such return lies on a surface (the terrain, a building, a pole, ...), none in the air.
     p = origins[beyond] + dirs[beyond] * r[beyond, None]
-    from blockloc._open3d import open3d
+    from blockloc.open3d_loader import open3d
 
     o3d = open3d()
     rs = o3d.t.geometry.RaycastingScene()

@@ -276,6 +276,8 @@ def test_in_process_and_worker_write_the_same_messages(tmp_path):
     for bg in (False, True):
         rec = McapRecorder(tmp_path / f"{bg}.mcap", background=bg, write_layout=False)
         rec.start(run.info)
+        # the worker process (what bench/recording.py measures), only when there is one
+        assert (rec.worker is not None and rec.worker.proc.pid > 0) if bg else rec.worker is None
         for ev in run.events:
             rec.frame(ev)
         rec.finish({})
