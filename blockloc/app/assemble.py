@@ -10,7 +10,8 @@ module is the one place that turns sections of a :class:`blockloc.config.Config`
     session = build_session(cfg, seq, store)                  # all of it, ready to run
 
 Heavy libraries (numba kernels, gtsam, small_gicp) load when an engine, a tracker or a localizer
-is built, not when this module is imported.
+is built (the core modules import them inside the functions that need them), not when this
+module is imported.
 """
 
 from __future__ import annotations
@@ -24,12 +25,15 @@ import numpy as np
 from blockloc.app.session import GlobalInitSettings, Session
 from blockloc.config import Config, GlobalInitConfig, MapConfig, RegistrationConfig
 from blockloc.datasets.base import RemountedSequence
+from blockloc.global_init.relocalize import GlobalLocalizer, InitParams
 from blockloc.maps.mounting import map_mounting, mounting_difference
 from blockloc.maps.policies import make_policy
 from blockloc.maps.provider import MapProvider
 from blockloc.maps.remote import DEFAULT_CACHE_BYTES, RetryPolicy
 from blockloc.maps.store import MapStore, open_map
 from blockloc.registration.engines import engine_from_settings
+from blockloc.registration.ndt import NdtRegistration
+from blockloc.tracking.tracker import Tracker
 
 log = logging.getLogger(__name__)
 
@@ -60,8 +64,6 @@ def build_engine(rc: RegistrationConfig, resolution_m: float | None = None):
 
 def ndt_registration(rc: RegistrationConfig):
     """A bare :class:`~blockloc.registration.ndt.NdtRegistration` with the section's settings."""
-    from blockloc.registration.ndt import NdtRegistration  # numba kernels: only when asked
-
     return NdtRegistration(neighbors=rc.neighbors, outlier_ratio=rc.outlier_ratio,
                            max_iterations=rc.max_iterations, step_epsilon=rc.step_epsilon,
                            coarse_to_fine=rc.coarse_to_fine, num_threads=rc.num_threads)
@@ -127,8 +129,6 @@ def with_map_mounting(seq, store, use: bool):
 # ----------------------------------------------------------------------------- global init
 def init_params(gi: GlobalInitConfig, rc: RegistrationConfig | None = None):
     """The global localizer's parameters (``InitParams``) from the ``global_init`` section."""
-    from blockloc.global_init.relocalize import InitParams
-
     return InitParams.from_config(gi, rc)
 
 
@@ -145,8 +145,6 @@ def init_settings(gi: GlobalInitConfig) -> GlobalInitSettings:
 def make_localizer(store: MapStore, gravity_map, cfg: Config, engine=None):
     """The global localizer of ``store`` (refining with ``engine``, default the configured engine
     at ``global_init.ndt_resolution_m``)."""
-    from blockloc.global_init.relocalize import GlobalLocalizer
-
     gi, rc = cfg.global_init, cfg.registration
     if engine is None:
         engine = build_engine(rc, resolution_m=gi.ndt_resolution_m)
@@ -156,8 +154,6 @@ def make_localizer(store: MapStore, gravity_map, cfg: Config, engine=None):
 # ----------------------------------------------------------------------------- tracking
 def make_tracker(cfg: Config, info, *, map_provider, registration, relocalize=None, use_imu: bool = True):
     """The tracker (sliding-window smoother) from the ``tracking`` and ``imu`` sections."""
-    from blockloc.tracking.tracker import Tracker
-
     return Tracker.from_config(cfg, info, map_provider=map_provider, registration=registration,
                                relocalize=relocalize, use_imu=use_imu)
 

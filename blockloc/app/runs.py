@@ -24,9 +24,16 @@ from blockloc.app.session import RunResult, Session
 from blockloc.config import Config, MapConfig, load_config
 from blockloc.errors import DatasetError, GlobalInitError, MapError
 from blockloc.geometry import T_to_xyzrpy
+from blockloc.global_init.place_index import PLACE_INDEX_NAME, write_place_index
+from blockloc.global_init.relocalize import pose_error
+from blockloc.jit import CompileClock
 from blockloc.maps.build_plan import Drive, build_block_map_from_sequence, build_map_from_drives
 from blockloc.maps.files import open_map_files
 from blockloc.maps.store import MapStore, open_map
+from blockloc.maps.summary import map_points_xy
+from blockloc.tracking.scan_prep import prepare_for_init
+from blockloc.viz.layout import REPORT_NAME
+from blockloc.viz.report import write_report
 
 log = logging.getLogger("blockloc")
 
@@ -72,10 +79,6 @@ def track(session: Session, *, mode: str, hint=None, max_frames: int | None = No
 
 def write_run_report(session: Session, res: RunResult, out_dir: Path) -> Path:
     """``report.html`` in the results folder: metrics, plots, config and an interactive top view."""
-    from blockloc.maps.summary import map_points_xy  # reads the map: only when a report is written
-    from blockloc.viz.layout import REPORT_NAME
-    from blockloc.viz.report import write_report
-
     images = {caption: out_dir / name for caption, name in (("trajectories", "trajectories.png"),
                                                              ("errors over time", "errors.png"))
               if (out_dir / name).is_file()}
@@ -94,10 +97,6 @@ def run_init(seq_name: str, frame_index: int, map_path: str, *, cfg: Config, hin
     prepared as tracking prepares it. hint: (x, y, yaw or None), map frame, m and rad, or None
     (the whole map). Returns (InitResult, summary dict for printing/JSON); with ground truth the
     summary holds the pose error. Raises BlocklocError on bad input."""
-    from blockloc.global_init.relocalize import pose_error
-    from blockloc.jit import CompileClock
-    from blockloc.tracking.scan_prep import prepare_for_init
-
     gi = cfg.global_init
     window_m = gi.window_m if window_m is None else window_m
     yaw_window_deg = gi.yaw_window_deg if yaw_window_deg is None else yaw_window_deg
@@ -232,8 +231,6 @@ def parse_drive(text: str, poses: str | None = None, *, data_root: str | None = 
 def add_place_index(path: str | Path, gravity_map, cfg: Config) -> MapStore:
     """Build the place index (no-hint relocalization) of the local store at ``path`` with the
     ``global_init`` settings of ``cfg`` and add it to the store; returns the reopened store."""
-    from blockloc.global_init.place_index import PLACE_INDEX_NAME, write_place_index
-
     t0 = time.perf_counter()
     store, index = write_place_index(path, gravity_map, place_index_params(cfg.global_init))
     log.info("place index: %d places, %d bytes in %.1f s", len(index), store.extras[PLACE_INDEX_NAME].bytes,
