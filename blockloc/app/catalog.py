@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from blockloc.cache import cache_root, fingerprint
-from blockloc.config import Config, load_config
+from blockloc.config import Config, DatasetConfig, load_config
 from blockloc.datasets.base import RangeLimited, Sequence
 from blockloc.datasets.with_poses import with_trajectory
 from blockloc.errors import DatasetError, MapError
@@ -157,9 +157,10 @@ class SequenceRef:
         topics, data root; read by attribute); explicit arguments override it. poses: a
         trajectory file (TUM, KITTI, NCLT csv) or Trajectory giving its ground truth and mapping
         poses (T_map_body); poses_frame: that trajectory's frame name."""
-        options = dict(min_range_m=float(getattr(dataset_cfg, "min_range_m", 1.0)),
-                       max_range_m=float(getattr(dataset_cfg, "max_range_m", 100.0)),
-                       use_hits_times=bool(getattr(dataset_cfg, "use_hits_times", True)),
+        dc = DatasetConfig()  # what a setting missing from dataset_cfg defaults to (declared once, there)
+        options = dict(min_range_m=float(getattr(dataset_cfg, "min_range_m", dc.min_range_m)),
+                       max_range_m=float(getattr(dataset_cfg, "max_range_m", dc.max_range_m)),
+                       use_hits_times=bool(getattr(dataset_cfg, "use_hits_times", dc.use_hits_times)),
                        lidar_topic=lidar_topic or getattr(dataset_cfg, "lidar_topic", None),
                        imu_topic=imu_topic or getattr(dataset_cfg, "imu_topic", None))
         if self.kind in PATH_LOADERS:

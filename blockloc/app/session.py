@@ -97,9 +97,7 @@ class Session:
         self.info = seq.info
         self.tracker = tracker
         self.provider = provider
-        self.localizer = localizer
         self.store = store
-        self.init_settings = init_settings
         self.observers = ObserverGroup(observers)  # a failing viewer is dropped, never stops tracking
         self.evaluation = evaluation or {}
         self.plots = plots
@@ -126,6 +124,16 @@ class Session:
         self.stream = StreamChecks(self.info, self.counters)
         self.timings: dict[str, float] = {}
         self._t_start = time.perf_counter()
+
+    @property
+    def localizer(self):
+        """The GlobalLocalizer (or None) global init and relocalization use."""
+        return self.recovery.localizer
+
+    @property
+    def init_settings(self) -> GlobalInitSettings:
+        """The search windows of global init."""
+        return self.recovery.settings
 
     # ----------------------------------------------------------------- initialization
     def initialize(self, mode: str, first: int = 0, pose_hint: tuple | None = None) -> dict:
