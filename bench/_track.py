@@ -202,7 +202,8 @@ class BackendRun:
             # 3 points per voxel: a map of a few sparse scans fills voxels more thinly than a prior map
             engine = engine_from_settings(dataclasses.asdict(rc), min_points_per_voxel=min(3, rc.min_points_per_voxel))
             provider = RollingMapProvider(engine)
-            tracker = Tracker.from_config(cfg, seq.info, map_provider=provider, registration=engine)
+            tracker = Tracker.from_config(cfg, seq.info, map_provider=provider, registration=engine,
+                                         use_imu=len(seq.imu()) > 0 and cfg.tracking.use_imu)
             self.session = Session(seq, tracker, provider)  # odometry has no map to relocalize in
         else:
             from blockloc.maps.store import open_map_from_config

@@ -17,44 +17,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from blockloc.bounds import (  # noqa: F401  (re-exported: presets and tests name them from here)
+    ANGLE_WINDOW,
+    COUNT,
+    FRACTION,
+    NON_NEGATIVE,
+    POSITIVE,
+    PROBABILITY,
+    Bounds,
+    bounded,
+)
 from blockloc.errors import ConfigError
+from blockloc.tracking.params import TrackingParams
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
-
-
-@dataclass(frozen=True)
-class Bounds:
-    """The range a config value must lie in: ``low`` / ``high`` (None: unbounded), each open
-    (excluded) or closed. Tuples are checked value by value."""
-
-    low: float | None = None
-    high: float | None = None
-    low_open: bool = False
-    high_open: bool = False
-
-    def contains(self, value: float) -> bool:
-        if self.low is not None and (value <= self.low if self.low_open else value < self.low):
-            return False
-        return not (self.high is not None and (value >= self.high if self.high_open else value > self.high))
-
-    def __str__(self) -> str:
-        if self.high is None:
-            return f"{'>' if self.low_open else '>='} {self.low:g}"
-        return (f"in {'(' if self.low_open else '['}{self.low:g}, {self.high:g}"
-                f"{')' if self.high_open else ']'}")
-
-
-POSITIVE = Bounds(0.0, low_open=True)  # sizes, rates, noise densities
-NON_NEGATIVE = Bounds(0.0)  # distances where 0 switches a feature off, retries, extra levels
-COUNT = Bounds(1.0)  # integer counts of at least one
-PROBABILITY = Bounds(0.0, 1.0, low_open=True, high_open=True)
-FRACTION = Bounds(0.0, 1.0)
-ANGLE_WINDOW = Bounds(0.0, 360.0, low_open=True)  # degrees
-
-
-def bounded(default: Any, bounds: Bounds):
-    """A dataclass field with ``default`` whose loaded values must lie in ``bounds``."""
-    return field(default=default, metadata={"bounds": bounds})
 
 
 @dataclass
@@ -196,42 +172,8 @@ class GlobalInitConfig:
     structure_from_static: bool = True
 
 
-@dataclass
-class TrackingConfig:
-    window_size: int = bounded(20, COUNT)  # N_a: keyframes inside a block
-    window_size_on_switch: int = bounded(5, COUNT)  # N_r: keyframes kept when the map switches
-    keyframe_distance_m: float = bounded(0.0, NON_NEGATIVE)  # 0: every scan is a keyframe
-    ndt_information_scale: float = bounded(1.0, POSITIVE)
-    degeneracy_eigenvalue_ratio: float = bounded(0.01, FRACTION)
-    robust_loss: str = "huber"
-    min_fitness: float = bounded(0.4, FRACTION)
-    max_innovation_m: float = bounded(1.0, POSITIVE)
-    use_odometry_factor: bool = False
-    max_innovation_deg: float = bounded(10.0, POSITIVE)
-    # rejected scans in a row before relocalizing around the last good pose
-    max_bad_frames: int = bounded(3, COUNT)
-    ndt_min_sigma_trans_m: float = bounded(0.02, POSITIVE)  # floor of the NDT factor's standard deviations
-    ndt_min_sigma_rot_deg: float = bounded(0.1, POSITIVE)
-    huber_k: float = bounded(1.345, POSITIVE)
-    lm_iterations: int = bounded(6, COUNT)
-    imu_noise_inflation: float = bounded(1.0, POSITIVE)
-    # LiDAR-only tracking (no IMU in the sequence, or use_imu false): a constant-velocity prior on
-    # SE(3) between keyframes, white-noise acceleration of these densities (body frame, per axis).
-    use_imu: bool = True  # true: the IMU when the sequence has one; false: ignore it (--no-imu)
-    # Measured on the real walk (held-out half, 2 Hz): 0.5 m/s^2 doubled the ATE (0.019 -> 0.036 m),
-    # 0.5 rad/s^2 lost the track (its prediction gate narrows to 29 deg); 2 rad/s^2 changed nothing.
-    motion_sigma_acc_m_s2: float = bounded(1.0, POSITIVE)  # m/s^2/sqrt(s)
-    motion_sigma_acc_rad_s2: float = bounded(1.0, POSITIVE)  # rad/s^2/sqrt(s)
-    init_sigma_rate_rad_s: float = bounded(1.0, POSITIVE)  # angular-rate prior of the first keyframe (starts at zero)
-    # LiDAR-only innovation gates: max(max_innovation_*, this many sigmas of the prior's prediction)
-    lidar_only_gate_sigmas: float = bounded(5.0, POSITIVE)
-    # LiDAR-only: when registration from the prediction fails its health check, these rotated
-    # predictions are tried in turn (yaw about the vertical, then roll and pitch), before the
-    # scan counts as rejected.
-    rotation_retry_yaw_deg: tuple[float, ...] = (15.0, -15.0, 30.0, -30.0, 45.0, -45.0)
-    rotation_retry_tilt_deg: tuple[float, ...] = (15.0, -15.0)
-    # ... and one is accepted only with this fraction of the recent scans' fitness
-    rotation_retry_fitness_ratio: float = bounded(0.8, FRACTION)
+# The tracking section is the tracker's own parameter dataclass: each knob declared once.
+TrackingConfig = TrackingParams
 
 
 @dataclass
