@@ -28,6 +28,7 @@ from blockloc.bounds import (  # noqa: F401  (re-exported: presets and tests nam
     bounded,
 )
 from blockloc.errors import ConfigError
+from blockloc.global_init.params import GlobalInitParams
 from blockloc.tracking.params import TrackingParams
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -130,47 +131,8 @@ class RegistrationConfig:
     voxel_grids: int = bounded(2, COUNT)
 
 
-@dataclass
-class GlobalInitConfig:
-    window_m: float = bounded(40.0, POSITIVE)
-    yaw_window_deg: float = bounded(360.0, ANGLE_WINDOW)
-    resolution_m: float = bounded(0.5, POSITIVE)  # 2D cell of the branch and bound (NDT refines afterwards)
-    pyramid_levels: int = bounded(6, COUNT)  # top level: a sliding max over 2^5 cells = 16 m
-    height_band_m: tuple[float, float] = (0.3, 3.0)  # projected points: height above local ground
-    projection: str = "band"  # band (height band above local ground) | all (plain occupancy)
-    max_range_m: float = bounded(60.0, POSITIVE)  # scan cells used by the 2D search (sets the angular step)
-    top_k: int = bounded(5, COUNT)
-    use_s0: bool = True  # greedy initial score S0 (block-map paper); False: plain BBS
-    s0_ratio: float = bounded(0.9, FRACTION)  # prune below this fraction of S0
-    # NDT inlier ratio for a verified match (sim: true 0.8-0.97, false <= 0.61)
-    min_fitness: float = bounded(0.75, PROBABILITY)
-    # same for the above-ground points alone (true >= 0.9, false <= 0.37)
-    min_structure_fitness: float = bounded(0.6, PROBABILITY)
-    ambiguity_distance_m: float = bounded(0.5, NON_NEGATIVE)  # rivals farther than this (NDT merges closer ones)
-    ndt_resolution_m: float = bounded(1.0, POSITIVE)
-    reloc_window_m: float = bounded(100.0, POSITIVE)  # regions of the no-hint relocalization (the place index's fallback)
-    # No-hint relocalization through the map's place index (blockloc/global_init/place_index.py).
-    use_place_index: bool = True
-    place_candidates: tuple[int, ...] = (8, 64, 256)  # places whose windows are searched, stage by stage
-    place_window_m: float = bounded(12.0, POSITIVE)  # window around each place (x, y), metres
-    place_yaw_window_deg: float = bounded(16.0, ANGLE_WINDOW)  # around each place's yaw guess
-    place_band_m: tuple[float, float] = (2.0, 4.0)  # static band: above people, cars and fences
-    place_max_range_m: float = bounded(63.0, POSITIVE)
-    place_spacing_m: float = bounded(3.0, POSITIVE)  # grid of places over the drivable area
-    place_tolerance_m: float = bounded(1.5, POSITIVE)  # a scan this far from a place still matches it
-    place_max_offset_m: float = bounded(20.0, POSITIVE)  # grid places within this of a mapping keyframe
-    whole_map_fallback: bool = True  # then the regions of reloc_window_m, as without an index
-    # no-hint search budget, seconds (0: none); then "not found" (verified false) rather than minutes
-    max_search_s: float = bounded(10.0, NON_NEGATIVE)
-    # Verification at the refined pose, in the static band (both the hinted and the no-hint path).
-    min_coverage: float = bounded(0.9, FRACTION)  # scan structure the map covers (true poses: >= 0.91 on campus)
-    max_see_through: float = bounded(0.35, FRACTION)  # share of the map's visible structure the scan saw through (true: <= 0.25)
-    ambiguity_z: float = bounded(2.5, NON_NEGATIVE)  # a rival is no ambiguity when the best fits this significantly better
-    # The structure test on the static band (>= place_band_m[0] above ground: above people and cars)
-    # when the scan has enough of it; false: on the projection band (height_band_m) always (indoors,
-    # configs/handheld.yaml says why).
-    structure_from_static: bool = True
-
+# The global_init section is global initialization's own parameter dataclass.
+GlobalInitConfig = GlobalInitParams
 
 # The tracking section is the tracker's own parameter dataclass: each knob declared once.
 TrackingConfig = TrackingParams

@@ -20,15 +20,15 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
 from blockloc.errors import GlobalInitError
 from blockloc.geometry import transform_points
 from blockloc.global_init.bnb import Candidate2D, required_cells, search
-from blockloc.global_init.maps import ArrayMap, ProjectionParams, StoreMap
+from blockloc.global_init.maps import ArrayMap, StoreMap
 from blockloc.global_init.no_hint import NoHintSearch
+from blockloc.global_init.params import InitParams
 from blockloc.global_init.pyramid import extend
 from blockloc.global_init.projection import ScanProjection, heading_offset, project_scan
 from blockloc.global_init.refine import Refiner
@@ -47,92 +47,6 @@ from blockloc.global_init.verify import (  # noqa: F401  (InitCandidate, InitRes
 from blockloc.voxels import voxel_select
 
 log = logging.getLogger(__name__)
-
-@dataclass
-class InitParams:
-    """Every knob of global initialization (defaults: ``GlobalInitConfig``)."""
-
-    resolution_m: float = 0.5
-    pyramid_levels: int = 6
-    band_m: tuple[float, float] = (0.3, 3.0)
-    projection: str = "band"  # band | all
-    max_range_m: float = 60.0
-    max_scan_cells: int = 1500
-    min_scan_cells: int = 50
-    top_k: int = 5
-    use_s0: bool = True
-    s0_ratio: float = 0.9
-    min_score: float = 0.05
-    nms_m: float = 1.0
-    nms_deg: float = 5.0
-    min_fitness: float = 0.75
-    min_structure_fitness: float = 0.6
-    ambiguity_distance_m: float = 0.5  # rivals farther than this (NDT merges closer ones) count
-    probe_m: tuple[float, ...] = (1.0, 2.0)  # NDT restarts from the best moved this far look for rivals
-    ambiguity_fitness_margin: float = 0.05
-    ndt_resolution_m: float = 1.0
-    scan_voxel_m: float = 0.5
-    max_ndt_points: int = 3000
-    ambiguity_score_ratio: float = 0.8  # once one is verified, refine others only above this x best
-    ambiguity_z: float = 2.5  # a rival is no ambiguity when the best fits significantly better (z)
-    refine_range_m: float = 50.0
-    reloc_window_m: float = 100.0
-    max_regions: int = 0  # 0: every region of the map
-    num_threads: int = 2
-    # no-hint relocalization through the place index
-    use_place_index: bool = True
-    place_candidates: tuple[int, ...] = (8, 64, 256)  # places searched per stage (around the yaw guesses)
-    place_all_yaw_candidates: int = 0  # then this many of them at every yaw (0: none)
-    place_window_m: float = 12.0  # window around each place (>= 2 x the index's tolerance + spacing)
-    place_yaw_window_deg: float = 16.0  # around each place's yaw guess (its error: p95 ~5 deg)
-    place_top_k: int = 6  # leaves refined per stage
-    # the best leaves of each window (0: one top place_top_k over all windows, by 2D score)
-    place_leaves_per_window: int = 1
-    place_top_level: int = 3  # its roots' level (2^3 cells = 4 m at 0.5 m: tight bounds in small windows)
-    place_band_m: tuple[float, float] = (2.0, 4.0)
-    place_max_range_m: float = 63.0
-    place_spacing_m: float = 3.0
-    place_tolerance_m: float = 1.5
-    place_max_offset_m: float = 20.0
-    whole_map_fallback: bool = True
-    # No-hint search budget (s, 0: none): checked between place stages and between the fallback's
-    # regions, so a scan that the place stages miss ends as "not found" instead of searching a large
-    # map region by region for minutes (seen: 349 s on campus). It bounds the search, not one stage.
-    max_search_s: float = 10.0
-    # static-band consistency at the refined pose (verification)
-    min_coverage: float = 0.9
-    max_see_through: float = 0.35
-    consistency_tolerance_m: float = 0.75
-    min_consistency_bits: int = 20
-    min_static_points: int = 300  # fewer static-band points: the structure test uses the low band
-    structure_from_static: bool = True  # False: the structure test always uses the projection band
-
-    @property
-    def projection_params(self) -> ProjectionParams:
-        return ProjectionParams(self.resolution_m, self.pyramid_levels, tuple(self.band_m), self.projection)
-
-    @property
-    def place_index_params(self):
-        from blockloc.global_init.place_index import PlaceIndexParams
-
-        return PlaceIndexParams(resolution_m=self.resolution_m, num_levels=self.pyramid_levels,
-                                band_m=tuple(self.place_band_m), max_range_m=self.place_max_range_m,
-                                spacing_m=self.place_spacing_m, tolerance_m=self.place_tolerance_m,
-                                max_offset_m=self.place_max_offset_m)
-
-    @classmethod
-    def from_config(cls, gi, registration=None) -> "InitParams":
-        """From ``blockloc.config.GlobalInitConfig`` (and optionally ``RegistrationConfig``)."""
-        kw = {}
-        for name in cls.__dataclass_fields__:
-            if hasattr(gi, name):
-                kw[name] = getattr(gi, name)
-        if "band_m" not in kw and hasattr(gi, "height_band_m"):
-            kw["band_m"] = tuple(gi.height_band_m)
-        if registration is not None and "num_threads" not in kw:
-            kw["num_threads"] = registration.num_threads
-        return cls(**kw)
-
 
 def _check_args(window_m: float, yaw_window_deg: float) -> None:
     if not (window_m > 0 and math.isfinite(window_m)):
@@ -213,7 +127,7 @@ class GlobalLocalizer(NoHintSearch):
         p = self.params
         _check_args(window_m, yaw_window_deg)
         self._structure_body = None
-        scan = project_scan(points_body, gravity_body, p.resolution_m, p.band_m, p.projection, p.max_range_m,
+        scan = project_scan(points_body, gravity_body, p.resolution_m, p.height_band_m, p.projection, p.max_range_m,
                             p.max_scan_cells, p.min_scan_cells)
         scan_ndt = points_body[voxel_select(points_body, p.scan_voxel_m)]
         scan_ndt = scan_ndt[np.linalg.norm(scan_ndt, axis=1) <= p.max_range_m]

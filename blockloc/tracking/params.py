@@ -9,9 +9,8 @@ first keyframe, LiDAR odometry noise, retry cadence).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
-
-import numpy as np
 
 from blockloc.bounds import COUNT, FRACTION, NON_NEGATIVE, POSITIVE, bounded
 
@@ -58,6 +57,8 @@ class TrackingParams:
 
     def ndt_factor_params(self):
         """The NDT factor's :class:`blockloc.tracking.factors.NdtFactorParams` (radians)."""
+        import numpy as np
+
         from blockloc.tracking.factors import NdtFactorParams
 
         return NdtFactorParams(information_scale=self.ndt_information_scale,
@@ -94,11 +95,11 @@ class FixedParams:
     """Tracker settings no config exposes."""
 
     relocalize_every: int = 5  # while lost, frames between relocalization attempts
-    odometry_sigma_rot_rad: float = np.deg2rad(0.5)
+    odometry_sigma_rot_rad: float = math.radians(0.5)
     odometry_sigma_trans_m: float = 0.05
     compute_covariance: bool = True
     # first keyframe priors
-    init_sigma_rot_rad: float = np.deg2rad(1.0)
+    init_sigma_rot_rad: float = math.radians(1.0)
     init_sigma_trans_m: float = 0.1
     init_sigma_vel_m_s: float = 1.0
     recover_sigma_vel_m_s: float = 1.5  # velocity prior after a relocalization (around the last good one)
