@@ -250,7 +250,7 @@ def threshold_study(seq, store, cfg, frames: list[int], hints: np.ndarray, windo
     from blockloc.config import GlobalInitConfig
     from blockloc.global_init.relocalize import pose_error
     from blockloc.global_init.verify import Thresholds
-    from blockloc.tracking.scan_prep import prepare_for_init
+    from blockloc.global_init.scan_prep import prepare_for_init
 
     loc = localizer(seq, store, cfg, min_fitness=0.0, min_structure_fitness=0.0, ambiguity_score_ratio=0.0)
     gt = seq.ground_truth()
@@ -295,7 +295,7 @@ def global_init_walk(seq, store, cfg, frames: list[int], hints: np.ndarray | Non
     within the refinement: cropping the map around the candidates, building the NDT target,
     aligning and verifying."""
     from blockloc.global_init.relocalize import pose_error
-    from blockloc.tracking.scan_prep import prepare_for_init
+    from blockloc.global_init.scan_prep import prepare_for_init
 
     gi, rc = cfg.global_init, cfg.registration
     loc = localizer(seq, store, cfg)

@@ -99,7 +99,7 @@ MUTATIONS: list[Mutation] = [
       "T_pred[:3, 3] + v_pred[None] * (table_t - stamp)[:, None]",
       "T_pred[:3, 3] - v_pred[None] * (table_t - stamp)[:, None]",
       "tests/tracking/test_tracker_branches.py"),
-    M("deskew_table_inverted", "blockloc/tracking/deskew.py",
+    M("deskew_table_inverted", "blockloc/deskew.py",
       "return inv_T(T_ref)[None] @ T_map_lidar", "return inv_T(T_map_lidar) @ T_ref[None]",
       "tests/tracking/test_deskew.py"),
     M("imu_extrinsic_inverted", "blockloc/tracking/imu.py",

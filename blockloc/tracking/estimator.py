@@ -33,10 +33,10 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from blockloc import deskew as dsk
 from blockloc.datasets.base import LidarFrame
 from blockloc.errors import TrackingError
 from blockloc.geometry import inv_T, rotation_angle
-from blockloc.tracking import deskew as dsk
 from blockloc.tracking.factors import ndt_factor, ndt_information, odometry_factor
 from blockloc.tracking.params import TrackerSettings
 from blockloc.tracking.results import REJECT_REASONS, Diagnostics, Estimate, plain_id, reject_reason

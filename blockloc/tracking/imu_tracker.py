@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from blockloc.tracking import deskew as dsk
+from blockloc import deskew as dsk
 from blockloc.tracking.estimator import Tracker
 from blockloc.tracking.factors import state_priors
 from blockloc.tracking.imu import ImuBuffer, ImuNoise, integrate, make_preintegration_params, predict_states

@@ -25,8 +25,8 @@ import logging
 
 import numpy as np
 
+from blockloc import deskew as dsk
 from blockloc.geometry import rotation_angle
-from blockloc.tracking import deskew as dsk
 from blockloc.tracking import motion
 from blockloc.tracking.estimator import Tracker
 from blockloc.tracking.factors import pose_prior
