@@ -97,7 +97,7 @@ class InitParams(GlobalInitParams):
     @property
     def place_index_params(self):
         """The place index's parameters (``PlaceIndexParams.from_config`` of these)."""
-        from blockloc.global_init.place_index import PlaceIndexParams
+        from blockloc.global_init.place_descriptors import PlaceIndexParams
 
         return PlaceIndexParams.from_config(self)
 

@@ -282,7 +282,7 @@ class GlobalLocalizer(NoHintSearch):
 
     def _scan_cells(self, points_body: np.ndarray, gravity_body: np.ndarray):
         """The scan's cells in the place index's band (consistency checks, place queries)."""
-        from blockloc.global_init.place_index import scan_cells
+        from blockloc.global_init.place_descriptors import scan_cells
 
         ip = self._place_index.params if self._place_index is not None else self.params.place_index_params
         return scan_cells(points_body, gravity_body, ip)
@@ -292,7 +292,7 @@ class GlobalLocalizer(NoHintSearch):
         fewer than ``min_consistency_bits`` bins were observed (nothing to judge by)."""
         from dataclasses import replace
 
-        from blockloc.global_init.place_index import consistency_at
+        from blockloc.global_init.place_descriptors import consistency_at
 
         p = self.params
         ip = self._place_index.params if self._place_index is not None else p.place_index_params
