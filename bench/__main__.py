@@ -2,7 +2,7 @@
 
     python -m bench all            # every benchmark, then assemble
     python -m bench ndt maps       # some of them, then assemble
-    python -m bench assemble       # only rebuild docs/benchmarks.md from docs/bench/*.md
+    python -m bench assemble       # only rebuild docs/benchmarks.md (headline table + section index)
 
 Each benchmark is a module ``bench.<name>`` with a ``main()`` that writes its own fragment
 ``docs/bench/<name>.md`` (machine, exact command, medians). Order follows ORDER.
@@ -62,7 +62,19 @@ def stale_note(text: str) -> str | None:
     return None
 
 
+#: The hand-kept table of headline figures (each copied from a section) that opens benchmarks.md.
+HEADLINE = "headline"
+
+
+def _headings(text: str, name: str) -> str:
+    """The fragment's section titles (its ``## `` lines; some fragments hold several sections)."""
+    titles = [line[3:].strip() for line in text.splitlines() if line.startswith("## ")]
+    return "; ".join(titles) or name
+
+
 def assemble() -> Path:
+    """docs/benchmarks.md: the headline table, then one row per section linking its fragment
+    (docs/bench/<name>.md holds the section itself, with its command and plots)."""
     parts = [
         "# Benchmarks",
         "",
@@ -72,19 +84,23 @@ def assemble() -> Path:
         "unless stated otherwise.",
         "",
     ]
+    head = FRAGMENTS / f"{HEADLINE}.md"
+    if head.exists():
+        # the fragment links its neighbours (x.md) and plots (x.png); this file is one level up
+        text = re.sub(r"(\]\()([^/():]+\.(?:md|png)\))", r"\1bench/\2", head.read_text().rstrip())
+        parts += [text, ""]
     names = [n for n in ORDER if (FRAGMENTS / f"{n}.md").exists()]
-    names += sorted(p.stem for p in FRAGMENTS.glob("*.md") if p.stem not in ORDER)
+    names += sorted(p.stem for p in FRAGMENTS.glob("*.md") if p.stem not in ORDER and p.stem != HEADLINE)
+    parts += ["## Sections", "", "| section | first date in it | file |", "|---|---|---|"]
     for name in names:
-        text = (FRAGMENTS / f"{name}.md").read_text().rstrip() + "\n"
-        # fragments link their plots beside themselves (docs/bench/x.png); this file is one level up
-        text = re.sub(r"(!\[[^\]]*\]\()([^/():]+\.png\))", r"\1bench/\2", text)
-        note = stale_note(text)
-        if note:  # after the section's heading
-            head, _, rest = text.partition("\n")
-            text = f"{head}\n\n{note}\n{rest}"
-        parts.append(text)
+        text = (FRAGMENTS / f"{name}.md").read_text()
+        m = re.search(r"\b(\d{4}-\d{2}-\d{2})\b", text)
+        date = m.group(1) if m else "-"
+        if stale_note(text):
+            date += " (earlier simulator: figures on simulated data are optimistic)"
+        parts.append(f"| {_headings(text, name)} | {date} | [bench/{name}.md](bench/{name}.md) |")
     out = ROOT / "docs" / "benchmarks.md"
-    atomic_write_text(out, "\n".join(parts))
+    atomic_write_text(out, "\n".join(parts) + "\n")
     return out
 
 

@@ -200,7 +200,8 @@ class BackendRun:
             # 3 points per voxel: a map of a few sparse scans fills voxels more thinly than a prior map
             engine = engine_from_settings(engine_settings(rc), min_points_per_voxel=min(3, rc.min_points_per_voxel))
             provider = RollingMapProvider(engine)
-            tracker = make_tracker(cfg, seq.info, map_provider=provider, registration=engine)
+            tracker = make_tracker(cfg, seq.info, map_provider=provider, registration=engine,
+                                   use_imu=len(seq.imu()) > 0 and cfg.tracking.use_imu)
             self.session = Session(seq, tracker, provider)  # odometry has no map to relocalize in
         else:
             self.session = build_session(cfg, seq, open_store(map_path, cfg.map), backend=backend)

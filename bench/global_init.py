@@ -59,7 +59,7 @@ def ensure_map(seq_name: str, out: Path, kind: str, source: str = "builder") -> 
         return out
     if source == "gt":
         from blockloc.geometry import transform_points
-        from blockloc.tracking.scan_prep import deskew_rotation
+        from blockloc.global_init.scan_prep import deskew_rotation
         from blockloc.voxels import voxel_downsample
         from blockloc.maps.store import MapWriter
 
@@ -178,7 +178,7 @@ def run(argv: list[str]) -> dict:
 
     logging.basicConfig(level=logging.WARNING)
     from blockloc.app.catalog import open_sequence
-    from blockloc.tracking.scan_prep import prepare_for_init
+    from blockloc.global_init.scan_prep import prepare_for_init
     from blockloc.voxels import voxel_select
     from blockloc.global_init.relocalize import GlobalLocalizer, InitParams, pose_error
     from blockloc.maps.store import open_map

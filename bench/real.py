@@ -226,18 +226,19 @@ def localizer(seq, store, cfg, **params):
     return GlobalLocalizer.for_store(store, seq.info.gravity_map, init_params, engine=engine)
 
 
-def decide(cands: list[tuple], min_fitness: float, min_structure: float, min_coverage: float = 0.0,
-           max_see_through: float = 1.0) -> str | None:
-    """What verification with these thresholds answers for one search whose every candidate was
-    refined: cands = [(correct, fitness, structure fitness, converged, ndt score[, static-band
-    coverage, see-through])] (NaN coverage / see-through: not judged, passes); the best candidate by
-    NDT score among those passing (as ``GlobalLocalizer`` ranks verified ones) decides: 'ok' or
-    'wrong'; None when none passes (unverified)."""
-    def consistent(c):
-        cov, see = (c[5], c[6]) if len(c) > 6 else (math.nan, math.nan)
-        return not (cov < min_coverage) and not (see > max_see_through)
+def decide(cands: list[tuple], thresholds) -> str | None:
+    """What verification with these thresholds (``blockloc.global_init.verify.Thresholds``)
+    answers for one search whose every candidate was refined: cands = [(correct, fitness,
+    structure fitness, converged, ndt score[, static-band coverage, see-through])] (NaN coverage /
+    see-through: not judged, passes); the best candidate by NDT score among those passing
+    (``verify.passes``, as ``GlobalLocalizer`` ranks verified ones) decides: 'ok' or 'wrong'; None
+    when none passes (unverified)."""
+    from blockloc.global_init.verify import passes
 
-    passing = [c for c in cands if c[3] and c[1] >= min_fitness and c[2] >= min_structure and consistent(c)]
+    def consistency(c):
+        return (c[5], c[6]) if len(c) > 6 else (math.nan, math.nan)
+
+    passing = [c for c in cands if passes(c[3], c[1], c[2], *consistency(c), thresholds)]
     if not passing:
         return None
     return "ok" if max(passing, key=lambda c: c[4])[0] else "wrong"
@@ -249,7 +250,8 @@ def threshold_study(seq, store, cfg, frames: list[int], hints: np.ndarray, windo
     default and the configured thresholds would answer (``decide``)."""
     from blockloc.config import GlobalInitConfig
     from blockloc.global_init.relocalize import pose_error
-    from blockloc.tracking.scan_prep import prepare_for_init
+    from blockloc.global_init.verify import Thresholds
+    from blockloc.global_init.scan_prep import prepare_for_init
 
     loc = localizer(seq, store, cfg, min_fitness=0.0, min_structure_fitness=0.0, ambiguity_score_ratio=0.0)
     gt = seq.ground_truth()
@@ -263,13 +265,10 @@ def threshold_study(seq, store, cfg, frames: list[int], hints: np.ndarray, windo
                           c.converged, c.ndt_score, c.coverage, c.see_through) for c in res.candidates])
     good = np.array([c[1:3] for s in searches for c in s if c[0]]).reshape(-1, 2)
     bad = np.array([c[1:3] for s in searches for c in s if not c[0]]).reshape(-1, 2)
-    d, gi = GlobalInitConfig(), cfg.global_init
     answers = {}
-    for name, fmin, smin, cmin, smax in (
-            ("default", d.min_fitness, d.min_structure_fitness, d.min_coverage, d.max_see_through),
-            ("configured", gi.min_fitness, gi.min_structure_fitness, gi.min_coverage, gi.max_see_through)):
-        a = [decide(s, fmin, smin, cmin, smax) for s in searches]
-        answers[name] = {"thresholds": (fmin, smin, cmin, smax), "ok": a.count("ok"), "wrong": a.count("wrong"),
+    for name, th in (("default", Thresholds.of(GlobalInitConfig())), ("configured", Thresholds.of(cfg.global_init))):
+        a = [decide(s, th) for s in searches]
+        answers[name] = {"thresholds": dataclasses.astuple(th), "ok": a.count("ok"), "wrong": a.count("wrong"),
                          "unverified": a.count(None)}
     cov_good = np.array([c[5] for s in searches for c in s if c[0]], float)
     cov_bad = np.array([c[5] for s in searches for c in s if not c[0]], float)
@@ -297,7 +296,7 @@ def global_init_walk(seq, store, cfg, frames: list[int], hints: np.ndarray | Non
     within the refinement: cropping the map around the candidates, building the NDT target,
     aligning and verifying."""
     from blockloc.global_init.relocalize import pose_error
-    from blockloc.tracking.scan_prep import prepare_for_init
+    from blockloc.global_init.scan_prep import prepare_for_init
 
     gi, rc = cfg.global_init, cfg.registration
     loc = localizer(seq, store, cfg)

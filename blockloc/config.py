@@ -19,47 +19,24 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from blockloc.bounds import (  # noqa: F401  (re-exported: presets and tests name them from here)
+    ANGLE_WINDOW,
+    COUNT,
+    FRACTION,
+    NON_NEGATIVE,
+    POSITIVE,
+    PROBABILITY,
+    Bounds,
+    bounded,
+)
 from blockloc.errors import ConfigError
+from blockloc.global_init.params import GlobalInitParams
+from blockloc.tracking.params import TrackingParams
 
 log = logging.getLogger(__name__)
 
 #: The presets shipped inside the package (``--config NAME``): ``blockloc/presets/<NAME>.yaml``.
 PRESET_DIR = Path(__file__).resolve().parent / "presets"
-
-
-@dataclass(frozen=True)
-class Bounds:
-    """The range a config value must lie in: ``low`` / ``high`` (None: unbounded), each open
-    (excluded) or closed. Tuples are checked value by value."""
-
-    low: float | None = None
-    high: float | None = None
-    low_open: bool = False
-    high_open: bool = False
-
-    def contains(self, value: float) -> bool:
-        if self.low is not None and (value <= self.low if self.low_open else value < self.low):
-            return False
-        return not (self.high is not None and (value >= self.high if self.high_open else value > self.high))
-
-    def __str__(self) -> str:
-        if self.high is None:
-            return f"{'>' if self.low_open else '>='} {self.low:g}"
-        return (f"in {'(' if self.low_open else '['}{self.low:g}, {self.high:g}"
-                f"{')' if self.high_open else ']'}")
-
-
-POSITIVE = Bounds(0.0, low_open=True)  # sizes, rates, noise densities
-NON_NEGATIVE = Bounds(0.0)  # distances where 0 switches a feature off, retries, extra levels
-COUNT = Bounds(1.0)  # integer counts of at least one
-PROBABILITY = Bounds(0.0, 1.0, low_open=True, high_open=True)
-FRACTION = Bounds(0.0, 1.0)
-ANGLE_WINDOW = Bounds(0.0, 360.0, low_open=True)  # degrees
-
-
-def bounded(default: Any, bounds: Bounds):
-    """A dataclass field with ``default`` whose loaded values must lie in ``bounds``."""
-    return field(default=default, metadata={"bounds": bounds})
 
 
 @dataclass
@@ -159,84 +136,11 @@ class RegistrationConfig:
     voxel_grids: int = bounded(2, COUNT)
 
 
-@dataclass
-class GlobalInitConfig:
-    window_m: float = bounded(40.0, POSITIVE)
-    yaw_window_deg: float = bounded(360.0, ANGLE_WINDOW)
-    resolution_m: float = bounded(0.5, POSITIVE)  # 2D cell of the branch and bound (NDT refines afterwards)
-    pyramid_levels: int = bounded(6, COUNT)  # top level: a sliding max over 2^5 cells = 16 m
-    height_band_m: tuple[float, float] = (0.3, 3.0)  # projected points: height above local ground
-    projection: str = "band"  # band (height band above local ground) | all (plain occupancy)
-    max_range_m: float = bounded(60.0, POSITIVE)  # scan cells used by the 2D search (sets the angular step)
-    top_k: int = bounded(5, COUNT)
-    use_s0: bool = True  # greedy initial score S0 (block-map paper); False: plain BBS
-    s0_ratio: float = bounded(0.9, FRACTION)  # prune below this fraction of S0
-    # NDT inlier ratio for a verified match (sim: true 0.8-0.97, false <= 0.61)
-    min_fitness: float = bounded(0.75, PROBABILITY)
-    # same for the above-ground points alone (true >= 0.9, false <= 0.37)
-    min_structure_fitness: float = bounded(0.6, PROBABILITY)
-    ambiguity_distance_m: float = bounded(0.5, NON_NEGATIVE)  # rivals farther than this (NDT merges closer ones)
-    ndt_resolution_m: float = bounded(1.0, POSITIVE)
-    reloc_window_m: float = bounded(100.0, POSITIVE)  # regions of the no-hint relocalization (the place index's fallback)
-    # No-hint relocalization through the map's place index (blockloc/global_init/place_index.py).
-    use_place_index: bool = True
-    place_candidates: tuple[int, ...] = (8, 64, 256)  # places whose windows are searched, stage by stage
-    place_window_m: float = bounded(12.0, POSITIVE)  # window around each place (x, y), metres
-    place_yaw_window_deg: float = bounded(16.0, ANGLE_WINDOW)  # around each place's yaw guess
-    place_band_m: tuple[float, float] = (2.0, 4.0)  # static band: above people, cars and fences
-    place_max_range_m: float = bounded(63.0, POSITIVE)
-    place_spacing_m: float = bounded(3.0, POSITIVE)  # grid of places over the drivable area
-    place_tolerance_m: float = bounded(1.5, POSITIVE)  # a scan this far from a place still matches it
-    place_max_offset_m: float = bounded(20.0, POSITIVE)  # grid places within this of a mapping keyframe
-    whole_map_fallback: bool = True  # then the regions of reloc_window_m, as without an index
-    # no-hint search budget, seconds (0: none); then "not found" (verified false) rather than minutes
-    max_search_s: float = bounded(10.0, NON_NEGATIVE)
-    # Verification at the refined pose, in the static band (both the hinted and the no-hint path).
-    min_coverage: float = bounded(0.9, FRACTION)  # scan structure the map covers (true poses: >= 0.91 on campus)
-    max_see_through: float = bounded(0.35, FRACTION)  # share of the map's visible structure the scan saw through (true: <= 0.25)
-    ambiguity_z: float = bounded(2.5, NON_NEGATIVE)  # a rival is no ambiguity when the best fits this significantly better
-    # The structure test on the static band (>= place_band_m[0] above ground: above people and cars)
-    # when the scan has enough of it; false: on the projection band (height_band_m) always (indoors,
-    # blockloc/presets/handheld.yaml says why).
-    structure_from_static: bool = True
+# The global_init section is global initialization's own parameter dataclass.
+GlobalInitConfig = GlobalInitParams
 
-
-@dataclass
-class TrackingConfig:
-    window_size: int = bounded(20, COUNT)  # N_a: keyframes inside a block
-    window_size_on_switch: int = bounded(5, COUNT)  # N_r: keyframes kept when the map switches
-    keyframe_distance_m: float = bounded(0.0, NON_NEGATIVE)  # 0: every scan is a keyframe
-    ndt_information_scale: float = bounded(1.0, POSITIVE)
-    degeneracy_eigenvalue_ratio: float = bounded(0.01, FRACTION)
-    robust_loss: str = "huber"
-    min_fitness: float = bounded(0.4, FRACTION)
-    max_innovation_m: float = bounded(1.0, POSITIVE)
-    use_odometry_factor: bool = False
-    max_innovation_deg: float = bounded(10.0, POSITIVE)
-    # rejected scans in a row before relocalizing around the last good pose
-    max_bad_frames: int = bounded(3, COUNT)
-    ndt_min_sigma_trans_m: float = bounded(0.02, POSITIVE)  # floor of the NDT factor's standard deviations
-    ndt_min_sigma_rot_deg: float = bounded(0.1, POSITIVE)
-    huber_k: float = bounded(1.345, POSITIVE)
-    lm_iterations: int = bounded(6, COUNT)
-    imu_noise_inflation: float = bounded(1.0, POSITIVE)
-    # LiDAR-only tracking (no IMU in the sequence, or use_imu false): a constant-velocity prior on
-    # SE(3) between keyframes, white-noise acceleration of these densities (body frame, per axis).
-    use_imu: bool = True  # true: the IMU when the sequence has one; false: ignore it (--no-imu)
-    # Measured on the real walk (held-out half, 2 Hz): 0.5 m/s^2 doubled the ATE (0.019 -> 0.036 m),
-    # 0.5 rad/s^2 lost the track (its prediction gate narrows to 29 deg); 2 rad/s^2 changed nothing.
-    motion_sigma_acc_m_s2: float = bounded(1.0, POSITIVE)  # m/s^2/sqrt(s)
-    motion_sigma_acc_rad_s2: float = bounded(1.0, POSITIVE)  # rad/s^2/sqrt(s)
-    init_sigma_rate_rad_s: float = bounded(1.0, POSITIVE)  # angular-rate prior of the first keyframe (starts at zero)
-    # LiDAR-only innovation gates: max(max_innovation_*, this many sigmas of the prior's prediction)
-    lidar_only_gate_sigmas: float = bounded(5.0, POSITIVE)
-    # LiDAR-only: when registration from the prediction fails its health check, these rotated
-    # predictions are tried in turn (yaw about the vertical, then roll and pitch), before the
-    # scan counts as rejected.
-    rotation_retry_yaw_deg: tuple[float, ...] = (15.0, -15.0, 30.0, -30.0, 45.0, -45.0)
-    rotation_retry_tilt_deg: tuple[float, ...] = (15.0, -15.0)
-    # ... and one is accepted only with this fraction of the recent scans' fitness
-    rotation_retry_fitness_ratio: float = bounded(0.8, FRACTION)
+# The tracking section is the tracker's own parameter dataclass: each knob declared once.
+TrackingConfig = TrackingParams
 
 
 @dataclass

@@ -11,12 +11,19 @@ Public API (see ``relocalize``):
 
 Modules: ``projection`` (levelling, local ground, height band, rasters), ``pyramid`` (admissible
 sliding-window max pyramid), ``bnb`` + ``_kernels`` (numba branch and bound), ``maps`` (array and
-store map sources, on-disk pyramid cache), ``refine`` (NDT), ``relocalize`` (the pipeline),
-``command`` (``blockloc init``).
+store map sources, on-disk pyramid cache), ``refine`` (NDT), ``verify`` (verification and the
+decision over candidates), ``no_hint`` (the place stages and the regions' fallback), ``relocalize``
+(the pipeline), ``params`` (the ``global_init`` config section and the localizer's parameters).
 """
-
-from blockloc.global_init.relocalize import (GlobalLocalizer, InitCandidate, InitParams, InitResult, localize,
-                                             localize_points, pose_error)
 
 __all__ = ["GlobalLocalizer", "InitCandidate", "InitParams", "InitResult", "localize", "localize_points",
            "pose_error"]
+
+
+def __getattr__(name):
+    # Lazy: ``blockloc.config`` imports ``global_init.params``, which must not load the pipeline.
+    if name in __all__:
+        from blockloc.global_init import relocalize
+
+        return getattr(relocalize, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -162,14 +162,24 @@ def test_assemble_points_plot_links_at_the_fragments_folder(tmp_path, monkeypatc
 
     frags = tmp_path / "docs" / "bench"
     frags.mkdir(parents=True)
-    (frags / "scaling.md").write_text("## Scaling\n\n![time vs size](scaling.png)\n![abs](https://x.org/a.png)\n")
+    (frags / "scaling.md").write_text("## Scaling\n\nMeasured 2026-12-02.\n\n## Scaling, again\n")
+    (frags / "sim.md").write_text("## Simulator\n\nMeasured 2026-11-22.\n")
     (frags / "extra.md").write_text("## Extra\n")
+    (frags / "headline.md").write_text("## Headline figures\n\n| what | value | section |\n|---|---|---|\n"
+                                       "| time | 3 s | [scaling](scaling.md) |\n\n![plot](scaling.png)\n"
+                                       "![abs](https://x.org/a.png)\n")
     monkeypatch.setattr(entry, "ROOT", tmp_path)
     monkeypatch.setattr(entry, "FRAGMENTS", frags)
     text = entry.assemble().read_text()
-    assert "![time vs size](bench/scaling.png)" in text
+    # the headline table first, its links turned to the fragments folder
+    assert text.index("## Headline figures") < text.index("## Sections")
+    assert "[scaling](bench/scaling.md)" in text and "![plot](bench/scaling.png)" in text
     assert "![abs](https://x.org/a.png)" in text  # absolute links are left alone
-    assert text.index("## Scaling") < text.index("## Extra")  # ORDER first, unknown fragments after
+    # then one row per fragment: its section titles, its first date, a link; ORDER first
+    assert "| Scaling; Scaling, again | 2026-12-02 | [bench/scaling.md](bench/scaling.md) |" in text
+    assert "| Simulator | 2026-11-22 (earlier simulator" in text
+    assert text.index("[bench/sim.md]") < text.index("[bench/scaling.md]") < text.index("[bench/extra.md]")
+    assert "bench/headline.md" not in text and "Measured" not in text  # sections stay in their files
 
 
 def test_run_fragment_lists_every_part_with_its_time_and_exit(tmp_path, monkeypatch):
@@ -211,10 +221,9 @@ def test_fragments_from_before_the_realistic_sim_are_flagged(tmp_path, monkeypat
     (tmp_path / "docs").mkdir()
     (tmp_path / "sim.md").write_text("## Simulator\n\nCommand: `python -m bench.sim`, run 2026-11-22 11:46 UTC.\n")
     (tmp_path / "ndt.md").write_text("## NDT registration\n\nCommand: `python -m bench.ndt` (2026-12-02 01:42 UTC).\n")
-    text = entry.assemble().read_text()
-    sim, ndt = text.split("## Simulator")[1].split("## NDT registration")
-    assert "Measured 2026-11-22, on the earlier simulator" in sim
-    assert "earlier simulator" not in ndt
+    rows = {line.split(" | ")[0]: line for line in entry.assemble().read_text().splitlines()}
+    assert "2026-11-22 (earlier simulator" in rows["| Simulator"]
+    assert "earlier simulator" not in rows["| NDT registration"]
 
 
 def _segment(tmp_path, name, start, n, failures, backends=("block",)):

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from bench import real
+from blockloc.global_init.verify import Thresholds
 
 
 def test_init_frames_are_every_fourth_held_out_scan():
@@ -125,6 +126,9 @@ def test_the_handheld_preset_is_the_walk_tests_config_but_for_documented_setting
 def test_decide_takes_the_best_passing_candidate_by_ndt_score():
     # (correct, fitness, above-ground inlier ratio, converged, NDT score)
     cands = [(True, 0.55, 0.80, True, 1.0), (False, 0.65, 0.65, True, 1.2), (False, 0.9, 0.9, False, 2.0)]
-    assert real.decide(cands, 0.75, 0.6) is None  # the only fit one did not converge
-    assert real.decide(cands, 0.5, 0.6) == "wrong"  # the wrong one scores higher and passes
-    assert real.decide(cands, 0.5, 0.7) == "ok"  # the above-ground ratio rules it out
+    assert real.decide(cands, Thresholds(0.75, 0.6, 0.9, 0.35)) is None  # the only fit one did not converge
+    assert real.decide(cands, Thresholds(0.5, 0.6, 0.9, 0.35)) == "wrong"  # the wrong one scores higher and passes
+    assert real.decide(cands, Thresholds(0.5, 0.7, 0.9, 0.35)) == "ok"  # the above-ground ratio rules it out
+    # static-band consistency: the wrong one's map structure where the scan saw through
+    cands = [c + (0.95, 0.1) for c in cands[:1]] + [cands[1] + (0.95, 0.5), cands[2] + (np.nan, np.nan)]
+    assert real.decide(cands, Thresholds(0.5, 0.6, 0.9, 0.35)) == "ok"

@@ -16,10 +16,10 @@ def small_world():
 
 def prepared_scans(seq, indices):
     """(InitScan, T_map_body ground truth at its stamp) for frames ``indices`` of ``seq``, prepared
-    as ``blockloc init`` prepares them (:func:`blockloc.tracking.scan_prep.prepare_for_init`)."""
+    as ``blockloc init`` prepares them (:func:`blockloc.global_init.scan_prep.prepare_for_init`)."""
     import numpy as np
 
-    from blockloc.tracking.scan_prep import prepare_for_init
+    from blockloc.global_init.scan_prep import prepare_for_init
 
     imu = seq.imu()
     gt = seq.ground_truth()

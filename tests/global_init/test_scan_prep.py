@@ -10,7 +10,7 @@ from blockloc.errors import BlocklocError
 from blockloc.datasets.base import ImuData, LidarFrame, SequenceInfo
 from blockloc.geometry import rpy_to_R
 from blockloc.commands.common import parse_pose_hint
-from blockloc.tracking.scan_prep import deskew_rotation, gravity_from_imu
+from blockloc.global_init.scan_prep import deskew_rotation, gravity_from_imu
 from blockloc.global_init.projection import R_level_from_gravity, heading_offset, rotation_aligning
 
 

@@ -7,7 +7,7 @@ from blockloc.app.catalog import open_sequence
 from blockloc.geometry import transform_points
 from blockloc.global_init.relocalize import localize, pose_error
 from blockloc.maps.store import MapWriter, open_map
-from blockloc.tracking.scan_prep import deskew_rotation, gravity_from_imu
+from blockloc.global_init.scan_prep import deskew_rotation, gravity_from_imu
 from blockloc.voxels import voxel_downsample
 
 LOC_FRAME = 700  # frame 500 lies in a corridor whose NDT optimum is 0.6 m off the truth

@@ -1,7 +1,7 @@
 import numpy as np
 
 from blockloc.geometry import inv_T, transform_points
-from blockloc.tracking import deskew as dsk
+from blockloc import deskew as dsk
 from tests.tracking.synthetic import T_BODY_LIDAR, CircleTrajectory, make_scan, make_scene
 
 

@@ -5,7 +5,9 @@ import numpy as np
 import pytest
 
 from blockloc.geometry import inv_T, rpy_to_R, so3_log, xyzrpy_to_T
-from blockloc.tracking.tracker import Tracker, TrackerParams
+from blockloc.tracking.params import TrackerSettings
+from blockloc.tracking.tracker import Tracker
+from blockloc.tracking.tracker import make_tracker as build_tracker
 from tests.tracking.synthetic import (
     T_BODY_LIDAR,
     CircleTrajectory,
@@ -30,11 +32,11 @@ def world():
                 frames=frames, imu=imu)
 
 
-def make_tracker(world, switch_calls=(), target=None, **params):
+def make_tracker(world, switch_calls=(), target=None, imu=False, **params):
     prov = ScriptedProvider(world["target"] if target is None else target, switch_calls)
-    return Tracker(map_provider=prov, registration=world["reg"], T_body_lidar=T_BODY_LIDAR,
-                   T_body_imu=np.eye(4), gravity_map=world["traj"].gravity_map,
-                   params=TrackerParams(**params))
+    return build_tracker(imu=imu, map_provider=prov, registration=world["reg"], T_body_lidar=T_BODY_LIDAR,
+                         T_body_imu=np.eye(4), gravity_map=world["traj"].gravity_map,
+                         settings=TrackerSettings.of(**params))
 
 
 def run(world, tracker, stamps, feed_imu=False):
@@ -57,7 +59,7 @@ def test_lidar_only_tracks_deskews_and_keeps_the_20_to_5_window(world):
     s0 = world["stamps"][0]
     tr.initialize(world["traj"].pose(s0)[0], s0)  # velocity unknown: 2 m/s against a zero prior
     ests = run(world, tr, world["stamps"])
-    assert tr.lidar_only  # no IMU sample arrived before the first frame
+    assert tr.lidar_only
     err = pos_errors(world, ests)
     assert np.sqrt(np.mean(err[10:] ** 2)) < 0.01 and err.max() < 0.3 and err[5:].max() < 0.03
     assert all(e.diagnostics.status == "ok" for e in ests)
@@ -96,13 +98,13 @@ def test_use_imu_false_ignores_the_imu_and_with_it_nothing_changes(world):
     s0 = world["stamps"][0]
     stamps = world["stamps"][:30]
     runs = {}
-    for name, use_imu in (("forced", False), ("auto", None)):
-        tr = make_tracker(world, use_imu=use_imu)
+    for name, imu in (("forced", False), ("auto", True)):
+        tr = make_tracker(world, imu=imu)
         tr.initialize(world["traj"].pose(s0)[0], s0, world["traj"].velocity(s0)[0])
         runs[name] = (tr, run(world, tr, stamps, feed_imu=True))
     forced, auto = runs["forced"], runs["auto"]
     assert forced[0].lidar_only and not auto[0].lidar_only
-    assert len(forced[0].imu) == 0 and len(auto[0].imu) > 0
+    assert not hasattr(forced[0], "imu") and len(auto[0].imu) > 0  # the samples were dropped
     # LiDAR-only at 10 Hz is as accurate as with the IMU here (NDT dominates); both track
     for tr, ests in (forced, auto):
         assert np.sqrt(np.mean(pos_errors(world, ests) ** 2)) < 0.03
@@ -143,7 +145,7 @@ def test_rotated_prediction_recovers_a_scan_40_degrees_off_in_yaw(world, yaw_deg
     results = {}
     for retries in (True, False):
         extra = {} if retries else dict(rotation_retry_yaw_deg=(), rotation_retry_tilt_deg=())
-        tr = make_tracker(world, use_imu=False, **extra)
+        tr = make_tracker(world, **extra)
         tr.initialize(T0, 0.0)  # at rest: the prediction for 0.5 s later is T0, 40 deg off
         est = tr.insert_frame(frame)
         err = np.linalg.norm(est.T_map_body[:3, 3] - T1[:3, 3])
@@ -178,9 +180,8 @@ def test_a_turn_beyond_the_retries_falls_back_to_relocalization(world):
         return T1.copy()  # as a branch-and-bound search around the hint would find it
 
     prov = ScriptedProvider(world["target"])
-    tr = Tracker(map_provider=prov, registration=world["reg"], T_body_lidar=T_BODY_LIDAR, T_body_imu=np.eye(4),
-                 gravity_map=world["traj"].gravity_map, params=TrackerParams(use_imu=False),
-                 relocalize=relocalize)
+    tr = build_tracker(imu=False, map_provider=prov, registration=world["reg"], T_body_lidar=T_BODY_LIDAR,
+                       T_body_imu=np.eye(4), gravity_map=world["traj"].gravity_map, relocalize=relocalize)
     tr.initialize(T0, 0.0)
     ests = []
     for i, t in enumerate((0.0, 0.1, 0.2, 0.5, 1.0, 1.5, 2.0)):
@@ -213,15 +214,15 @@ def test_mode_from_config_and_explicit_choice(world):
     def mode(**kw):
         return Tracker.from_config(cfg, info, map_provider=prov, registration=world["reg"], **kw).lidar_only
 
-    assert mode() is None  # decided at the first frame
+    assert mode() is False  # tracking.use_imu true: the IMU (the caller says when there is none)
     assert mode(use_imu=True) is False and mode(use_imu=False) is True
     cfg.tracking.use_imu = False  # --no-imu
     assert mode() is True
-    p = Tracker.from_config(cfg, info, map_provider=prov, registration=world["reg"]).params
-    assert p.motion.sigma_rot == cfg.tracking.motion_sigma_acc_rad_s2
-    assert p.rotation_retry_yaw_deg == tuple(cfg.tracking.rotation_retry_yaw_deg)
+    tr = Tracker.from_config(cfg, info, map_provider=prov, registration=world["reg"])
+    assert tr.params is cfg.tracking  # the section itself, not a copy of some of its fields
+    assert tr.motion_noise.sigma_rot == cfg.tracking.motion_sigma_acc_rad_s2
     # told there is an IMU, the tracker keeps preintegration even before the first sample
-    tr = make_tracker(world, use_imu=True)
+    tr = make_tracker(world, imu=True)
     s0 = world["stamps"][0]
     tr.initialize(world["traj"].pose(s0)[0], s0)
     tr.insert_frame(world["frames"][s0])
@@ -235,7 +236,7 @@ def test_a_stop_after_fast_motion_is_found_from_the_last_estimate(world):
     still = StepTrajectory(T0, T0, 0.25)
     frame = make_scan(world["scene"], still, 0.5, T_BODY_LIDAR, index=1, max_points=6000, seed=11)
     frame.time_offsets = None
-    tr = make_tracker(world, use_imu=False)
+    tr = make_tracker(world)
     v = T0[:3, :3] @ np.array([3.0, 0.0, 0.0])  # it was driving at 3 m/s
     tr.initialize(T0, 0.0, velocity_map=v, sigma_vel_m_s=1.5)  # a velocity estimate, not a certainty
     est = tr.insert_frame(frame)

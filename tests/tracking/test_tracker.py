@@ -7,7 +7,8 @@ import pytest
 from blockloc.errors import TrackingError
 from blockloc.geometry import inv_T, so3_log, xyzrpy_to_T
 from blockloc.tracking.imu import ImuNoise
-from blockloc.tracking.tracker import Tracker, TrackerParams
+from blockloc.tracking.params import TrackerSettings
+from blockloc.tracking.tracker import make_tracker as build_tracker
 from tests.tracking.synthetic import (T_BODY_LIDAR, CircleTrajectory, GicpRegistration, ScriptedProvider,
                                       imu_from_trajectory, make_scan, make_scene)
 
@@ -31,9 +32,10 @@ def world():
 
 def make_tracker(world, switch_calls=(), relocalize=None, **params):
     prov = ScriptedProvider(world["target"], switch_calls)
-    return Tracker(map_provider=prov, registration=world["reg"], T_body_lidar=T_BODY_LIDAR, T_body_imu=T_BODY_IMU,
+    return build_tracker(imu=True, map_provider=prov, registration=world["reg"], T_body_lidar=T_BODY_LIDAR,
+                         T_body_imu=T_BODY_IMU,
                    gravity_map=world["traj"].gravity_map, imu_noise=ImuNoise(0.01, 0.001, 0.001, 0.0001),
-                   params=TrackerParams(**params), relocalize=relocalize)
+                   settings=TrackerSettings.of(**params), relocalize=relocalize)
 
 
 def run(world, tracker, skip=lambda s: False, imu_keep=lambda t: True, empty=lambda s: False):

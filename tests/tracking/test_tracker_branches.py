@@ -12,7 +12,8 @@ import pytest
 from blockloc.datasets.base import LidarFrame
 from blockloc.errors import TrackingError
 from blockloc.geometry import xyzrpy_to_T
-from blockloc.tracking.tracker import Tracker, TrackerParams
+from blockloc.tracking.params import TrackerSettings
+from blockloc.tracking.tracker import make_tracker
 from tests.tracking.synthetic import LocalMap
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
@@ -54,9 +55,9 @@ def _frame(index, stamp, n=2000):
 
 
 def _tracker(registration, relocalize=None, **params):
-    return Tracker(map_provider=FixedProvider(), registration=registration, T_body_lidar=T_BODY_LIDAR,
-                   T_body_imu=np.eye(4), gravity_map=GRAVITY, params=TrackerParams(**params),
-                   relocalize=relocalize)
+    return make_tracker(imu=True, map_provider=FixedProvider(), registration=registration,
+                        T_body_lidar=T_BODY_LIDAR, T_body_imu=np.eye(4), gravity_map=GRAVITY,
+                        settings=TrackerSettings.of(**params), relocalize=relocalize)
 
 
 def _feed_imu(tracker, t0, t1):
@@ -116,9 +117,9 @@ def test_gravity_from_a_resting_imu_before_any_pose():
         return None
 
     T_body_imu = xyzrpy_to_T(0.0, 0.0, 0.0, np.pi, 0.0, 0.0)  # imu mounted upside down
-    tr = Tracker(map_provider=FixedProvider(), registration=ScriptedRegistration(),
-                 T_body_lidar=T_BODY_LIDAR, T_body_imu=T_body_imu, gravity_map=GRAVITY,
-                 relocalize=relocalize)
+    tr = make_tracker(imu=True, map_provider=FixedProvider(), registration=ScriptedRegistration(),
+                      T_body_lidar=T_BODY_LIDAR, T_body_imu=T_body_imu, gravity_map=GRAVITY,
+                      relocalize=relocalize)
     for t in np.arange(0.0, 0.5, 0.01):
         tr.insert_imu(float(t), np.array([0.0, 0.0, -9.81]), np.zeros(3))  # upside down: reads -z
     tr.insert_frame(_frame(0, 0.5))

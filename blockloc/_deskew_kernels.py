@@ -1,4 +1,4 @@
-"""numba kernels of the tracking hot path (imported lazily; compiled once, cached on disk)."""
+"""numba kernel of scan deskewing (imported lazily by ``blockloc.deskew``; compiled once, cached on disk)."""
 
 from __future__ import annotations
 

@@ -1,0 +1,204 @@
+"""The no-hint search's stages (``GlobalLocalizer.localize`` without a position hint).
+
+The map's place index ranks the places that look like the scan, with a yaw guess each; one branch
+and bound runs over small windows around the best ``place_candidates[0]`` of them (yaw within
+``place_yaw_window_deg`` of the guess), then, while nothing is verified, around more of them
+(optionally around the first ones at every yaw: ``place_all_yaw_candidates``); only then
+(``whole_map_fallback``) are square regions tiling the map searched in the order of a cheap score
+(the best coarse bound of a subsampled scan over coarse angles) until one gives a verified match
+or ``max_search_s`` has passed.
+
+:class:`NoHintSearch` is a base of :class:`blockloc.global_init.relocalize.GlobalLocalizer`; it
+uses the localizer's ``params``, ``map``, ``_search_region``, ``_refine`` and ``_decide``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from blockloc.errors import GlobalInitError
+from blockloc.global_init.bnb import Candidate2D, Window, make_angles, required_cells, rotated_cells, search_windows
+from blockloc.global_init.projection import ScanProjection
+from blockloc.global_init.verify import InitCandidate
+
+GROUP_M = 400.0  # windows of the no-hint search share one pyramid crop per square of this side
+
+
+class NoHintSearch:
+    """The place stages and the regions' fallback of a localizer."""
+
+    def _relocalize_places(self, scan: ScanProjection, scan_ndt: np.ndarray, cells, index, theta_c: float,
+                           yaw_win: float, stats: dict, deadline: float = math.inf):
+        """No-hint search through the place index, widening stage by stage (module docstring) while
+        ``time.perf_counter()`` is before ``deadline``."""
+        p = self.params
+        t = time.perf_counter()
+        theta_window = (theta_c, yaw_win) if yaw_win < 2 * math.pi else None
+        places = index.query_cells(cells, max(p.place_candidates), theta_window=theta_window)
+        stats.update(place_query_s=time.perf_counter() - t, places=len(index), place_stage=0)
+        if not places:
+            return [], stats
+        yaw_guess = math.radians(p.place_yaw_window_deg)
+        # An optional last stage tries every yaw around the best places (a yaw guess off by more
+        # than the window: a symmetric scene); it costs most of a search that finds nothing (seen:
+        # 15 of 20 s on the small world), so by default the regions' search (all yaws) follows.
+        stages = [(k, yaw_guess) for k in p.place_candidates]
+        if p.place_all_yaw_candidates > 0:
+            stages.append((p.place_all_yaw_candidates, min(yaw_win, 2 * math.pi)))
+        out: list[InitCandidate] = []
+        done: list[Candidate2D] = []
+        k_done = 0
+        for i, (k, yaw) in enumerate(stages):
+            if yaw >= min(yaw_win, 2 * math.pi) and yaw_guess >= min(yaw_win, 2 * math.pi) and i > 0:
+                break  # the guesses' windows already covered every allowed yaw
+            if i > 0 and time.perf_counter() >= deadline:
+                stats["timed_out"] = True
+                break
+            # The places not searched yet (a later yaw-only stage: its places again, at every yaw).
+            first = k_done if yaw == yaw_guess else 0
+            windows = [Window(c.xy_L, p.place_window_m, c.theta if yaw < 2 * math.pi else theta_c, yaw)
+                       for c in places[first:k]]
+            k_done = max(k_done, k) if yaw == yaw_guess else k_done
+            if not windows:
+                continue
+            t = time.perf_counter()
+            c2d, st = self._search_windows(scan, windows)
+            stats["bnb_time_s"] = stats.get("bnb_time_s", 0.0) + time.perf_counter() - t
+            stats["nodes_visited"] = stats.get("nodes_visited", 0) + st.nodes_visited
+            t = time.perf_counter()
+            out.extend(self._refine(c2d, scan, scan_ndt, cells, skip=done, ordered=p.place_leaves_per_window > 0))
+            stats["refine_time_s"] = stats.get("refine_time_s", 0.0) + time.perf_counter() - t
+            stats["place_stage"] = i + 1
+            stats["windows"] = len(windows)
+            stats["regions_searched"] = st.regions  # the GROUP_M squares holding windows
+            res = self._decide(list(out), {}, 0.0, scan_ndt, final=False)
+            if res.verified or res.ambiguous:
+                break  # found; or two places fit, which searching more would not change
+        return out, stats
+
+    def _search_windows(self, scan: ScanProjection, windows: list[Window]):
+        """Branch and bound over the windows, one pyramid per group of nearby windows."""
+        from blockloc.global_init.bnb import SearchStats
+
+        p = self.params
+        r = p.resolution_m
+        top = min(p.pyramid_levels - 1, p.place_top_level)
+        reach = float(np.hypot(*scan.xy.T).max()) + (1 << top) * r + 2 * r
+        # Windows (best place first) in groups spanning at most GROUP_M: one pyramid crop each,
+        # however large the map.
+        groups: list[tuple[np.ndarray, np.ndarray, list[Window]]] = []
+        for w in windows:
+            c = np.asarray(w.center, float)
+            for g in groups:
+                lo, hi = np.minimum(g[0], c), np.maximum(g[1], c)
+                if np.all(hi - lo <= GROUP_M):
+                    g[0][:], g[1][:] = lo, hi
+                    g[2].append(w)
+                    break
+            else:
+                groups.append((c.copy(), c.copy(), [w]))
+        cands: list[Candidate2D] = []
+        total = SearchStats(0, 0.0, 0, 0, 0.0, 0.0)
+        best = 0.0
+        rank = {id(w): i for i, w in enumerate(windows)}
+        for _, _, ws in groups:
+            c = np.array([w.center for w in ws])
+            half = 0.5 * max(w.size_m for w in ws) + reach
+            lo = np.floor((c.min(axis=0) - half) / r).astype(np.int64) - 2
+            hi = np.floor((c.max(axis=0) + half) / r).astype(np.int64) + 3
+            try:
+                pyr = self.map.pyramid(lo, hi)
+            except GlobalInitError:
+                continue
+            # Leaves below ambiguity_score_ratio x the best matter neither as the answer nor as its
+            # runner-up (_refine would not refine them): prune them, across groups too.
+            c2d, st = search_windows(pyr, scan.xy, ws, p.place_top_k, p.use_s0, p.s0_ratio, p.min_score, p.nms_m,
+                                     p.nms_deg, max_range=scan.max_range, keep_ratio=p.ambiguity_score_ratio,
+                                     min_leaf_score=p.ambiguity_score_ratio * best, top_level=p.place_top_level,
+                                     per_window_k=p.place_leaves_per_window)
+            for c in c2d:
+                c.window = rank[id(ws[c.window])] if c.window >= 0 else -1
+            cands.extend(c2d)
+            best = max([best] + [c.score for c in c2d])
+            total = SearchStats(st.num_angles, st.angle_step_rad, total.num_roots + st.num_roots,
+                                total.nodes_visited + st.nodes_visited, max(total.s0, st.s0),
+                                total.time_s + st.time_s)
+        total.regions = len(groups)
+        cands = [c for c in cands if c.score >= p.ambiguity_score_ratio * best]
+        if p.place_leaves_per_window > 0:
+            # Best places first (the index's ranking sees free space, which the 2D score does not),
+            # each window's leaves by score: a saturated window cannot take every refinement.
+            cands.sort(key=lambda c: (c.window, -c.score))
+        else:
+            cands.sort(key=lambda c: -c.score)
+        return cands[: p.place_top_k], total
+
+    def _relocalize(self, scan: ScanProjection, scan_ndt: np.ndarray, theta_c: float, yaw_win: float, cells=None,
+                    deadline: float = math.inf):
+        """The regions' search (module docstring), region by region while before ``deadline``."""
+        p = self.params
+        w = p.reloc_window_m
+        centers = self.map.region_centers(w)
+        if len(centers) == 0:
+            raise GlobalInitError("the map has no blocks/tiles to relocalize in")
+        t = time.perf_counter()
+        cheap = np.full(len(centers), -np.inf)
+        for i, c in enumerate(centers):
+            if time.perf_counter() >= deadline:
+                break  # the regions scored so far come first
+            cheap[i] = self._cheap_score(scan, c, w)
+        order = np.argsort(-cheap, kind="stable")
+        if p.max_regions > 0:
+            order = order[: p.max_regions]
+        t_cheap = time.perf_counter() - t
+        all_cands: list[InitCandidate] = []
+        stats: dict = {"regions": len(centers), "cheap_time_s": t_cheap, "regions_searched": 0}
+        for k, i in enumerate(order):
+            if time.perf_counter() >= deadline:
+                stats["timed_out"] = True
+                break
+            # Regions overlap by the scan's reach, so a pose near a border is inside some window.
+            cands, st = self._search_region(scan, scan_ndt, centers[i], w + 2.0 * p.resolution_m, theta_c, yaw_win,
+                                            cells=cells)
+            stats["regions_searched"] = k + 1
+            for key in ("bnb_time_s", "refine_time_s", "nodes_visited"):
+                stats[key] = stats.get(key, 0) + st[key]
+            all_cands.extend(cands)
+            if any(c.verified for c in cands):
+                stats["found_in_rank"] = k + 1
+                break
+        return all_cands, stats
+
+    def _cheap_score(self, scan: ScanProjection, center: np.ndarray, window_m: float) -> float:
+        """Orders regions (prunes none): the best level-3 bound (4 m windows at 0.5 m cells) of a
+        200-cell subsample over 128 angles and a 2^3-cell translation stride. The top level alone
+        saturates over a 100 m region; this is still ~16M lookups per region."""
+        from blockloc.global_init import _kernels as K
+
+        p = self.params
+        sub = scan.xy[:: max(1, len(scan.xy) // 200)]
+        lo, hi = required_cells(sub, center, window_m, p.resolution_m)
+        try:
+            pyr = self.map.pyramid(lo, hi)
+        except GlobalInitError:
+            return 0.0
+        angles, _ = make_angles(0.0, 2 * math.pi, 2 * math.pi / 128)
+        cx, cy = rotated_cells(sub, angles, p.resolution_m)
+        dx = (cx - pyr.origin[0]).astype(np.int32)
+        dy = (cy - pyr.origin[1]).astype(np.int32)
+        level = min(pyr.num_levels - 1, 3)
+        r = p.resolution_m
+        half = int(math.ceil(0.5 * window_m / r))
+        c0 = np.floor(center / r).astype(np.int64)
+        g = np.arange(-half, half + 1, 1 << level)
+        gx, gy = np.meshgrid(c0[0] + g, c0[1] + g, indexing="ij")
+        A = len(angles)
+        n = gx.size
+        ra = np.repeat(np.arange(A), n).astype(np.int64)
+        rtx = np.tile(gx.ravel(), A).astype(np.int64)
+        rty = np.tile(gy.ravel(), A).astype(np.int64)
+        b = K.root_scores(pyr.levels, level, dx, dy, ra, rtx, rty)
+        return float(b.max()) / (255.0 * len(sub))

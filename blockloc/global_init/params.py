@@ -1,0 +1,110 @@
+"""Global initialization's settings, each declared once.
+
+:class:`GlobalInitParams` IS the config's ``global_init`` section (``blockloc.config`` imports
+it): the YAML keys are its fields, with their defaults and bounds. :class:`InitParams`, what the
+localizer takes, extends it with the knobs no config exposes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+from blockloc.bounds import ANGLE_WINDOW, COUNT, FRACTION, NON_NEGATIVE, POSITIVE, PROBABILITY, bounded
+
+
+@dataclass
+class GlobalInitParams:
+    """The ``global_init`` section: search windows, projection, branch and bound, place index,
+    verification (``verify``). ``window_m`` / ``yaw_window_deg``: the hinted search's window, read
+    by the caller that passes them to ``localize``."""
+
+    window_m: float = bounded(40.0, POSITIVE)
+    yaw_window_deg: float = bounded(360.0, ANGLE_WINDOW)
+    resolution_m: float = bounded(0.5, POSITIVE)  # 2D cell of the branch and bound (NDT refines afterwards)
+    pyramid_levels: int = bounded(6, COUNT)  # top level: a sliding max over 2^5 cells = 16 m
+    height_band_m: tuple[float, float] = (0.3, 3.0)  # projected points: height above local ground
+    projection: str = "band"  # band (height band above local ground) | all (plain occupancy)
+    max_range_m: float = bounded(60.0, POSITIVE)  # scan cells used by the 2D search (sets the angular step)
+    top_k: int = bounded(5, COUNT)
+    use_s0: bool = True  # greedy initial score S0 (block-map paper); False: plain BBS
+    s0_ratio: float = bounded(0.9, FRACTION)  # prune below this fraction of S0
+    # NDT inlier ratio for a verified match (sim: true 0.8-0.97, false <= 0.61)
+    min_fitness: float = bounded(0.75, PROBABILITY)
+    # same for the above-ground points alone (true >= 0.9, false <= 0.37)
+    min_structure_fitness: float = bounded(0.6, PROBABILITY)
+    ambiguity_distance_m: float = bounded(0.5, NON_NEGATIVE)  # rivals farther than this (NDT merges closer ones)
+    ndt_resolution_m: float = bounded(1.0, POSITIVE)
+    reloc_window_m: float = bounded(100.0, POSITIVE)  # regions of the no-hint relocalization (the place index's fallback)
+    # No-hint relocalization through the map's place index (blockloc/global_init/place_index.py).
+    use_place_index: bool = True
+    place_candidates: tuple[int, ...] = (8, 64, 256)  # places whose windows are searched, stage by stage
+    place_window_m: float = bounded(12.0, POSITIVE)  # window around each place (x, y), metres
+    place_yaw_window_deg: float = bounded(16.0, ANGLE_WINDOW)  # around each place's yaw guess
+    place_band_m: tuple[float, float] = (2.0, 4.0)  # static band: above people, cars and fences
+    place_max_range_m: float = bounded(63.0, POSITIVE)
+    place_spacing_m: float = bounded(3.0, POSITIVE)  # grid of places over the drivable area
+    place_tolerance_m: float = bounded(1.5, POSITIVE)  # a scan this far from a place still matches it
+    place_max_offset_m: float = bounded(20.0, POSITIVE)  # grid places within this of a mapping keyframe
+    whole_map_fallback: bool = True  # then the regions of reloc_window_m, as without an index
+    # no-hint search budget, seconds (0: none); then "not found" (verified false) rather than minutes
+    max_search_s: float = bounded(10.0, NON_NEGATIVE)
+    # Verification at the refined pose, in the static band (both the hinted and the no-hint path).
+    min_coverage: float = bounded(0.9, FRACTION)  # scan structure the map covers (true poses: >= 0.91 on campus)
+    max_see_through: float = bounded(0.35, FRACTION)  # share of the map's visible structure the scan saw through (true: <= 0.25)
+    ambiguity_z: float = bounded(2.5, NON_NEGATIVE)  # a rival is no ambiguity when the best fits this significantly better
+    # The structure test on the static band (>= place_band_m[0] above ground: above people and cars)
+    # when the scan has enough of it; false: on the projection band (height_band_m) always (indoors,
+    # blockloc/presets/handheld.yaml says why).
+    structure_from_static: bool = True
+
+
+@dataclass
+class InitParams(GlobalInitParams):
+    """The localizer's parameters: the ``global_init`` section's fields (inherited, declared once
+    there) and the knobs no config exposes. Build from a config with :meth:`from_config`."""
+
+    max_scan_cells: int = 1500
+    min_scan_cells: int = 50
+    min_score: float = 0.05
+    nms_m: float = 1.0
+    nms_deg: float = 5.0
+    probe_m: tuple[float, ...] = (1.0, 2.0)  # NDT restarts from the best moved this far look for rivals
+    ambiguity_fitness_margin: float = 0.05
+    scan_voxel_m: float = 0.5
+    max_ndt_points: int = 3000
+    ambiguity_score_ratio: float = 0.8  # once one is verified, refine others only above this x best
+    refine_range_m: float = 50.0
+    max_regions: int = 0  # 0: every region of the map
+    num_threads: int = 2  # the registration section's
+    # no-hint relocalization through the place index
+    place_all_yaw_candidates: int = 0  # then this many of them at every yaw (0: none)
+    place_top_k: int = 6  # leaves refined per stage
+    # the best leaves of each window (0: one top place_top_k over all windows, by 2D score)
+    place_leaves_per_window: int = 1
+    place_top_level: int = 3  # its roots' level (2^3 cells = 4 m at 0.5 m: tight bounds in small windows)
+    # static-band consistency at the refined pose (verification)
+    consistency_tolerance_m: float = 0.75
+    min_consistency_bits: int = 20
+    min_static_points: int = 300  # fewer static-band points: the structure test uses the low band
+
+    @property
+    def projection_params(self):
+        """The 2D projection (``blockloc.global_init.maps.ProjectionParams``) of the search."""
+        from blockloc.global_init.maps import ProjectionParams
+
+        return ProjectionParams(self.resolution_m, self.pyramid_levels, tuple(self.height_band_m), self.projection)
+
+    @property
+    def place_index_params(self):
+        """The place index's parameters (``PlaceIndexParams.from_config`` of these)."""
+        from blockloc.global_init.place_descriptors import PlaceIndexParams
+
+        return PlaceIndexParams.from_config(self)
+
+    @classmethod
+    def from_config(cls, gi: GlobalInitParams, registration=None) -> "InitParams":
+        """The section ``gi`` field by field, ``num_threads`` from the registration section."""
+        kw = {f.name: getattr(gi, f.name) for f in fields(GlobalInitParams)}
+        if registration is not None:
+            kw["num_threads"] = registration.num_threads
+        return cls(**kw)

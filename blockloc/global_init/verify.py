@@ -1,0 +1,251 @@
+"""Verification of global-init candidates and the decision over them.
+
+A refined candidate is verified when more than a good NDT fit holds, because a wrong place with
+similar structure can fit well (:func:`passes`): NDT converged, its inlier ratio >= ``min_fitness``,
+the above-ground points' inlier ratio >= ``min_structure_fitness`` (those of the projection band
+or, when the scan has ``min_static_points`` of them and ``structure_from_static``, the points at or
+above the static band's bottom: either set may pass, :func:`structure_sets`), and, in the place
+index's static band, the scan's structure covered by the map (>= ``min_coverage``) and the map's
+structure not where the scan saw through (<= ``max_see_through`` of the bins seen through).
+
+:func:`decide` turns refined candidates into an :class:`InitResult`: the best verified candidate
+by NDT score per point wins; another verified candidate more than ``ambiguity_distance_m`` away
+that fits nearly as well (:func:`better_fit` below ``ambiguity_z``), or another NDT optimum near the
+best (:func:`nearby_rival`), makes the result ambiguous, and an ambiguous result is never
+reported as verified.
+
+The thresholds are the ``global_init`` section's (:class:`Thresholds` copies them); ``bench/real.py``
+replays verification with other thresholds through :func:`passes` too.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from blockloc.geometry import inv_T, rotation_angle
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    """What a refined candidate must reach to be verified (fractions in [0, 1]); the defaults are
+    the ``global_init`` section's (``Thresholds.of(GlobalInitConfig())``)."""
+
+    min_fitness: float
+    min_structure_fitness: float
+    min_coverage: float
+    max_see_through: float
+
+    @classmethod
+    def of(cls, params) -> "Thresholds":
+        """The thresholds of a ``global_init`` section or ``InitParams``, field by field."""
+        return cls(params.min_fitness, params.min_structure_fitness, params.min_coverage, params.max_see_through)
+
+
+def fit_passes(converged: bool, finite: bool, fitness: float, structure_fitness: float, th: Thresholds) -> bool:
+    """The NDT part of verification: converged to a finite pose, inlier ratios above the floors."""
+    return bool(converged and finite and fitness >= th.min_fitness and structure_fitness >= th.min_structure_fitness)
+
+
+def consistency_passes(coverage: float, see_through: float, th: Thresholds) -> bool:
+    """The static-band part: NaN (too few bins observed to judge) passes."""
+    if math.isfinite(coverage) and coverage < th.min_coverage:
+        return False
+    return not (math.isfinite(see_through) and see_through > th.max_see_through)
+
+
+def passes(converged: bool, fitness: float, structure_fitness: float, coverage: float, see_through: float,
+           th: Thresholds, finite: bool = True) -> bool:
+    """Whether a refined candidate with these measurements is verified under ``th``."""
+    return fit_passes(converged, finite, fitness, structure_fitness, th) and consistency_passes(coverage, see_through, th)
+
+
+def structure_sets(projection_structure: np.ndarray, static_body: np.ndarray | None, min_static_points: int,
+                   structure_from_static: bool) -> list[np.ndarray]:
+    """The scan's above-ground point sets (N, 3), body frame, the structure test tries in turn.
+
+    Ground points fit the ground almost anywhere: the structure above it must fit too. Judged on
+    the static structure (at or above the place band's bottom) when the scan has enough of it:
+    people, cars and bushes near the sensor fill the low band with points no map holds (seen: 0.16
+    of the low points within 10 m fit at the true pose). Either band may pass: tree crowns dominate
+    the static band where the foliage changed between sessions (seen on campus: 0.43-0.51 of it fit
+    at true poses whose projection band fit 0.98), as crowds dominate the low band.
+    """
+    if structure_from_static and static_body is not None and len(static_body) >= min_static_points:
+        return [static_body, projection_structure]
+    return [projection_structure]
+
+
+def structure_fit(refiner, structures: list[np.ndarray], T_map_body: np.ndarray, min_structure_fitness: float) -> float:
+    """The best inlier ratio of the point sets at a pose; the first set passing the test ends it."""
+    best = 0.0
+    for pts in structures:
+        best = max(best, refiner.inlier_ratio(pts, T_map_body))
+        if best >= min_structure_fitness:
+            break
+    return best
+
+
+@dataclass
+class InitCandidate:
+    """A refined candidate. T_map_body (4, 4); score: 2D BnB score [0, 1]; fitness: NDT inlier ratio."""
+
+    T_map_body: np.ndarray
+    score: float
+    fitness: float
+    converged: bool
+    verified: bool
+    T_map_body_2d: np.ndarray | None = None  # before refinement
+    ndt_score: float = 0.0  # NDT score per scan point (higher is better)
+    structure_fitness: float = 0.0  # inlier ratio of the scan's above-ground (band) points
+    coverage: float = float("nan")  # static-band scan bins the map covers (NaN: not tested)
+    see_through: float = float("nan")  # static-band bins seen through that the map fills
+    refiner: object = field(default=None, repr=False, compare=False)  # its NDT target, while deciding
+
+
+@dataclass
+class InitResult:
+    """Outcome of global initialization.
+
+    T_map_body: (4, 4) best pose (the best verified candidate; without one, the best-scoring
+    refined candidate, or None when the search found nothing); verified candidates are ranked by
+    NDT score per point. verified: the best candidate passed verification and the result is not
+    ambiguous (only then may the pose be used).
+    ambiguous: another verified candidate nearly as good lies > ambiguity_distance_m away.
+    candidates: every refined candidate, best first. time_s: wall time of the search and refinement
+    (map pieces and the place index load lazily on the first call; ``stats['index_load_s']``).
+    stats: search details.
+    """
+
+    T_map_body: np.ndarray | None
+    score: float
+    fitness: float
+    candidates: list[InitCandidate]
+    ambiguous: bool
+    time_s: float
+    verified: bool
+    stats: dict = field(default_factory=dict)
+
+
+def nearby_rival(best: InitCandidate, scan_ndt: np.ndarray, structures: list[np.ndarray] | None,
+                 p) -> InitCandidate | None:
+    """Another NDT optimum near the best that fits about as well, or None.
+
+    NDT started from the best moved by ``probe_m`` along the map axes slides to the nearest other
+    local optimum where the scan constrains a direction weakly (a corridor: walls fit along
+    their length). One more than ``ambiguity_distance_m`` away, within the fitness margin and
+    not significantly worse (:func:`better_fit` < ``ambiguity_z``) means the scan cannot tell
+    where along that direction the body is: the result must not be verified. A rival is
+    plausible only as a candidate is (as in :func:`decide`): its above-ground structure fits too
+    (seen on the real walk: optima 4.7 m off with fitness 0.55 whose structure did not fit, 0.50,
+    kept two correct poses unverified). ``p``: the localizer's ``InitParams``.
+    """
+    for d in p.probe_m:
+        for dx, dy in ((d, 0.0), (-d, 0.0), (0.0, d), (0.0, -d)):
+            T0 = best.T_map_body.copy()
+            T0[:2, 3] += (dx, dy)
+            r = best.refiner.align(scan_ndt, T0)
+            if not r.converged and np.all(np.isfinite(r.T_map_body)):
+                # out of iterations on its way (back to the best, or on to another optimum): an
+                # optimum is where it stops; one still sliding after this counts as a rival
+                r = best.refiner.align(scan_ndt, r.T_map_body)
+            if not (np.all(np.isfinite(r.T_map_body)) and r.fitness >= p.min_fitness):
+                continue
+            dist = float(np.linalg.norm(r.T_map_body[:3, 3] - best.T_map_body[:3, 3]))
+            if dist <= p.ambiguity_distance_m or r.fitness < best.fitness - p.ambiguity_fitness_margin:
+                continue
+            sfit = (structure_fit(best.refiner, structures, r.T_map_body, p.min_structure_fitness)
+                    if structures is not None else 1.0)
+            if sfit < p.min_structure_fitness:
+                log.debug("an NDT optimum %.2f m from the best (fitness %.2f) whose structure does not fit "
+                          "(%.2f): no rival", dist, r.fitness, sfit)
+                continue
+            rival = InitCandidate(r.T_map_body, 0.0, r.fitness, r.converged, False, T0, r.ndt_score, sfit,
+                                  refiner=best.refiner)
+            if better_fit(scan_ndt, best, rival) < p.ambiguity_z:
+                log.info("a rival NDT optimum %.2f m from the best fits about as well", dist)
+                return rival
+    return None
+
+
+def decide(cands: list[InitCandidate], stats: dict, elapsed: float, p, scan_ndt: np.ndarray | None = None,
+           final: bool = True, structures: list[np.ndarray] | None = None) -> InitResult:
+    """The result from refined candidates (module docstring). With ``scan_ndt`` (the points
+    refined, body frame), a plausible rival far from the best is no ambiguity when the best
+    explains the scan significantly better (:func:`better_fit`). ``final``: look for a nearby
+    rival of a verified best (the scan's ``structures`` test it) and drop the candidates' NDT
+    targets. ``p``: the localizer's ``InitParams``."""
+    # Verified first, then by the NDT score per point: smoother than the inlier ratio, which
+    # ties along weakly constrained directions (corridors).
+    cands = sorted(cands, key=lambda c: (c.verified, c.ndt_score, c.fitness), reverse=True)
+    # Candidates that NDT brought to the same pose are one candidate (keep the best 2D score).
+    merged: list[InitCandidate] = []
+    for c in cands:
+        same = next((m for m in merged if np.linalg.norm(m.T_map_body[:3, 3] - c.T_map_body[:3, 3]) < 0.3
+                     and pose_error(m.T_map_body, c.T_map_body)[1] < 1.0), None)
+        if same is None:
+            merged.append(c)
+        else:
+            same.score = max(same.score, c.score)
+    cands = merged
+    if not cands:
+        return InitResult(None, 0.0, 0.0, [], False, elapsed, False, stats)
+    best = cands[0]
+    ambiguous = False
+    if best.verified:
+        for c in cands[1:]:
+            far = np.linalg.norm(c.T_map_body[:3, 3] - best.T_map_body[:3, 3]) > p.ambiguity_distance_m
+            # Unconverged candidates count too: fitting as well elsewhere is what matters.
+            plausible = c.fitness >= p.min_fitness and c.structure_fitness >= p.min_structure_fitness
+            if plausible and far and c.fitness >= best.fitness - p.ambiguity_fitness_margin:
+                if scan_ndt is not None and best.refiner is not None and c.refiner is not None \
+                        and better_fit(scan_ndt, best, c) >= p.ambiguity_z:
+                    continue
+                ambiguous = True
+                break
+    if final and best.verified and not ambiguous and scan_ndt is not None and best.refiner is not None:
+        rival = nearby_rival(best, scan_ndt, structures, p)
+        if rival is not None:
+            ambiguous = True
+            cands.append(rival)
+    if final:
+        for c in cands:
+            c.refiner = None
+    if ambiguous:
+        log.warning("global init is ambiguous: two verified candidates more than %.1f m apart",
+                    p.ambiguity_distance_m)
+    return InitResult(best.T_map_body, best.score, best.fitness, cands, ambiguous, elapsed,
+                      best.verified and not ambiguous, stats)
+
+
+def better_fit(points_body: np.ndarray, a: InitCandidate, b: InitCandidate, block_m: float = 2.0) -> float:
+    """How significantly candidate ``a`` explains the scan better than ``b``: a z statistic.
+
+    The points (N, 3), body frame, fall in blocks of ``block_m`` (body xy); per block, d = inliers at
+    ``a`` (against a's map) - inliers at ``b`` (against b's). Under "equally good", d is symmetric
+    about 0 and sum(d) / sqrt(sum(d^2)) is about standard normal (a sign-flip test; blocks, not
+    points, because neighbouring points on one surface pass or fail together). Large: ``a`` fits
+    better; around 0: the scan cannot tell them apart.
+    """
+    pts = np.asarray(points_body, float).reshape(-1, 3)
+    keys = np.floor(pts[:, :2] / block_m).astype(np.int64)
+    _, block = np.unique(keys, axis=0, return_inverse=True)
+    block = block.reshape(-1)
+    d = []
+    for k in range(int(block.max()) + 1 if len(block) else 0):
+        q = pts[block == k]
+        d.append(len(q) * (a.refiner.inlier_ratio(q, a.T_map_body) - b.refiner.inlier_ratio(q, b.T_map_body)))
+    d = np.asarray(d)
+    den = math.sqrt(float(np.sum(d * d)))
+    return float(np.sum(d) / den) if den > 0 else 0.0
+
+
+def pose_error(T_est: np.ndarray, T_ref: np.ndarray) -> tuple[float, float]:
+    """(translation error m, rotation error deg) between two (4, 4) poses."""
+    d = inv_T(T_ref) @ T_est
+    return float(np.linalg.norm(T_est[:3, 3] - T_ref[:3, 3])), float(np.degrees(rotation_angle(d[:3, :3])))
