@@ -7,14 +7,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from blockloc.errors import GlobalInitError
-
-if TYPE_CHECKING:
-    from blockloc.global_init.place_index import PlaceIndex
 
 OBSTACLE_M = 0.3  # a scan point this high above the local ground hides what lies behind it
 BAND_TOP_UNSEEN_M = 20.0
@@ -329,7 +325,7 @@ def shifted(bits: np.ndarray, num_sectors: int) -> np.ndarray:
     return np.stack([pack(np.roll(occ, s, axis=-1)) for s in range(num_sectors)])
 
 
-def match_scores(scan: ScanDescriptor, index: "PlaceIndex") -> np.ndarray:
+def match_scores(scan: ScanDescriptor, index) -> np.ndarray:
     """(P, S) log-likelihood ratio per observed scan bit of "the scan was taken at place p, turned by
     shift s" against "taken anywhere" (see the module docstring)."""
     from blockloc.global_init import _kernels as K

@@ -1,4 +1,4 @@
-"""The streaming pose tracker's shared frame step; the variants differ only in the states, priors
+"""The streaming pose tracker's shared frame step (:class:`Estimator`); the variants differ only in the states, priors
 and motion factors they create (as GLIM's estimators do):
 :class:`blockloc.tracking.imu_tracker.ImuTracker` (IMU preintegration) and
 :class:`blockloc.tracking.lidar_only.LidarOnlyTracker` (a constant-velocity prior on SE(3)).
@@ -47,7 +47,7 @@ log = logging.getLogger(__name__)
 Relocalizer = Callable[[np.ndarray, Optional[np.ndarray], np.ndarray, float], Optional[np.ndarray]]
 
 
-class Tracker:
+class Estimator:
     """Streaming estimator: ``insert_imu`` for every IMU sample, ``insert_frame`` for every scan.
 
     The base of the two variants; ``lidar_only`` says which one an object is. Build one with
@@ -83,13 +83,6 @@ class Tracker:
         # why each rejected scan was rejected (the first test it failed, in this order), to tell an
         # engine that does not converge from one whose fits are poor or land off the prediction
         self.counters.update({f"rejected_{r}": 0 for r in REJECT_REASONS})
-
-    @classmethod
-    def from_config(cls, cfg, info, **kwargs) -> "Tracker":
-        """The boundary factory: :func:`blockloc.tracking.tracker.tracker_from_config`."""
-        from blockloc.tracking.tracker import tracker_from_config
-
-        return tracker_from_config(cfg, info, **kwargs)
 
     # ----------------------------------------------------------------- what a variant provides
     def insert_imu(self, t: float, acc: np.ndarray, gyro: np.ndarray) -> None:

@@ -8,13 +8,13 @@ from __future__ import annotations
 import numpy as np
 
 from blockloc import deskew as dsk
-from blockloc.tracking.estimator import Tracker
+from blockloc.tracking.estimator import Estimator
 from blockloc.tracking.factors import state_priors
 from blockloc.tracking.imu import ImuBuffer, ImuNoise, integrate, make_preintegration_params, predict_states
 from blockloc.tracking.window import keys_of
 
 
-class ImuTracker(Tracker):
+class ImuTracker(Estimator):
     """Tracker with IMU preintegration; ``T_body_imu`` (4, 4) places the IMU on the body."""
 
     lidar_only = False

@@ -28,7 +28,7 @@ import numpy as np
 from blockloc import deskew as dsk
 from blockloc.geometry import rotation_angle
 from blockloc.tracking import motion
-from blockloc.tracking.estimator import Tracker
+from blockloc.tracking.estimator import Estimator
 from blockloc.tracking.factors import pose_prior
 from blockloc.tracking.window import keys_of
 
@@ -39,7 +39,7 @@ def _has_point_times(offsets: np.ndarray) -> bool:
     return bool(len(offsets) and (offsets.max() - offsets.min()) > 1e-6)
 
 
-class LidarOnlyTracker(Tracker):
+class LidarOnlyTracker(Estimator):
     """Tracker with a constant-velocity motion prior in place of an IMU."""
 
     lidar_only = True

@@ -1,29 +1,30 @@
 """Building a tracker: :func:`make_tracker` picks the estimator variant, IMU
 (:class:`blockloc.tracking.imu_tracker.ImuTracker`) or LiDAR-only
 (:class:`blockloc.tracking.lidar_only.LidarOnlyTracker`); both share the frame step of
-:class:`blockloc.tracking.estimator.Tracker`. :func:`tracker_from_config` is the boundary that
-reads the config (``Tracker.from_config`` calls it).
+:class:`blockloc.tracking.estimator.Estimator`. :func:`tracker_from_config` is the boundary that
+reads the config; ``Tracker.from_config`` is the name the session calls it by (until the
+application layer's assemble takes it over).
 
-The names callers used from this module before the split (``Tracker``, ``Estimate``,
-``Diagnostics``, ``REJECT_REASONS``, ``reject_reason``) are re-exported here.
+The names callers used from this module before the split (``Estimate``, ``Diagnostics``,
+``REJECT_REASONS``, ``reject_reason``) are re-exported here.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from blockloc.tracking.estimator import Relocalizer, Tracker
+from blockloc.tracking.estimator import Estimator, Relocalizer
 from blockloc.tracking.imu import ImuNoise
 from blockloc.tracking.params import FixedParams, ScanParams, TrackerSettings, TrackingParams
 from blockloc.tracking.results import REJECT_REASONS, Diagnostics, Estimate, reject_reason
 
-__all__ = ["REJECT_REASONS", "Diagnostics", "Estimate", "FixedParams", "ScanParams", "Tracker",
+__all__ = ["REJECT_REASONS", "Diagnostics", "Estimate", "FixedParams", "ScanParams", "Estimator", "Tracker",
            "TrackerSettings", "TrackingParams", "make_tracker", "reject_reason", "tracker_from_config"]
 
 
 def make_tracker(*, imu: bool, map_provider, registration, T_body_lidar: np.ndarray, T_body_imu: np.ndarray,
                  gravity_map: np.ndarray, settings: TrackerSettings = TrackerSettings(),
-                 imu_noise: ImuNoise = ImuNoise(), relocalize: Relocalizer | None = None) -> Tracker:
+                 imu_noise: ImuNoise = ImuNoise(), relocalize: Relocalizer | None = None) -> Estimator:
     """The IMU estimator when ``imu`` (the sequence has an IMU and it is to be used), else the
     LiDAR-only one. T_body_lidar, T_body_imu: (4, 4); gravity_map: (3,) m/s^2 in the map frame."""
     common = dict(map_provider=map_provider, registration=registration, T_body_lidar=T_body_lidar,
@@ -47,7 +48,7 @@ def settings_from_config(cfg) -> TrackerSettings:
 
 
 def tracker_from_config(cfg, info, *, map_provider, registration, relocalize=None,
-                        use_imu: bool | None = None) -> Tracker:
+                        use_imu: bool | None = None) -> Estimator:
     """From a ``blockloc.config.Config`` and a ``SequenceInfo``.
 
     use_imu: whether to use the IMU, e.g. ``len(seq.imu()) > 0 and cfg.tracking.use_imu`` (the
@@ -58,3 +59,9 @@ def tracker_from_config(cfg, info, *, map_provider, registration, relocalize=Non
                         T_body_lidar=info.T_body_lidar, T_body_imu=info.T_body_imu, gravity_map=info.gravity_map,
                         settings=settings_from_config(cfg), imu_noise=ImuNoise.from_config(cfg.imu),
                         relocalize=relocalize)
+
+
+class Tracker:
+    """``Tracker.from_config``: :func:`tracker_from_config` under the name the session calls."""
+
+    from_config = staticmethod(tracker_from_config)
