@@ -33,7 +33,9 @@ from blockloc.maps.remote import DEFAULT_CACHE_BYTES, RetryPolicy
 from blockloc.maps.store import MapStore, open_map
 from blockloc.registration.engines import engine_from_settings
 from blockloc.registration.ndt import NdtRegistration
-from blockloc.tracking.tracker import Tracker
+from blockloc.tracking.imu import ImuNoise
+from blockloc.tracking.params import ScanParams, TrackerSettings
+from blockloc.tracking.tracker import Estimator, make_tracker as make_estimator
 
 log = logging.getLogger(__name__)
 
@@ -152,10 +154,34 @@ def make_localizer(store: MapStore, gravity_map, cfg: Config, engine=None):
 
 
 # ----------------------------------------------------------------------------- tracking
-def make_tracker(cfg: Config, info, *, map_provider, registration, relocalize=None, use_imu: bool = True):
-    """The tracker (sliding-window smoother) from the ``tracking`` and ``imu`` sections."""
-    return Tracker.from_config(cfg, info, map_provider=map_provider, registration=registration,
-                               relocalize=relocalize, use_imu=use_imu)
+def imu_noise(imu_cfg) -> ImuNoise:
+    """The IMU's noise model from the ``imu`` section."""
+    return ImuNoise(imu_cfg.acc_noise_density, imu_cfg.gyro_noise_density, imu_cfg.acc_bias_random_walk,
+                    imu_cfg.gyro_bias_random_walk, imu_cfg.integration_sigma,
+                    tuple(imu_cfg.acc_noise_density_axes), tuple(imu_cfg.gyro_noise_density_axes))
+
+
+def tracker_settings(cfg: Config) -> TrackerSettings:
+    """The tracker's settings: the ``tracking`` section as is (it is the tracker's own dataclass),
+    the scan cut from the ``lidar`` and ``dataset`` sections field by field."""
+    lc, dc = cfg.lidar, cfg.dataset
+    scan = ScanParams(voxel_size_m=lc.voxel_size_m, max_points=lc.max_points, min_range_m=dc.min_range_m,
+                      max_range_m=dc.max_range_m, deskew=lc.deskew)
+    return TrackerSettings(tracking=cfg.tracking, scan=scan)
+
+
+def make_tracker(cfg: Config, info, *, map_provider, registration, relocalize=None,
+                 use_imu: bool | None = None) -> Estimator:
+    """The tracker (sliding-window smoother) from the ``tracking``, ``imu``, ``lidar`` and
+    ``dataset`` sections and a ``SequenceInfo`` (extrinsics, gravity): the IMU estimator or the
+    LiDAR-only one.
+
+    use_imu: whether to use the IMU, e.g. ``len(seq.imu()) > 0 and cfg.tracking.use_imu`` (the
+    caller knows whether the sequence has one); None: ``cfg.tracking.use_imu``."""
+    imu = cfg.tracking.use_imu if use_imu is None else bool(use_imu)
+    return make_estimator(imu=imu, map_provider=map_provider, registration=registration,
+                          T_body_lidar=info.T_body_lidar, T_body_imu=info.T_body_imu, gravity_map=info.gravity_map,
+                          settings=tracker_settings(cfg), imu_noise=imu_noise(cfg.imu), relocalize=relocalize)
 
 
 def evaluation_options(cfg: Config) -> dict[str, Any]:

@@ -57,13 +57,6 @@ class ImuNoise:
         return (np.asarray(self.gyro_noise_axes, float) if self.gyro_noise_axes
                 else np.full(3, self.gyro_noise_density))
 
-    @classmethod
-    def from_config(cls, imu_cfg) -> "ImuNoise":
-        """From a ``blockloc.config.ImuConfig``."""
-        return cls(imu_cfg.acc_noise_density, imu_cfg.gyro_noise_density, imu_cfg.acc_bias_random_walk,
-                   imu_cfg.gyro_bias_random_walk, imu_cfg.integration_sigma,
-                   tuple(imu_cfg.acc_noise_density_axes), tuple(imu_cfg.gyro_noise_density_axes))
-
 
 def make_preintegration_params(gravity_map: np.ndarray, T_body_imu: np.ndarray, noise: ImuNoise,
                                noise_inflation: float = 1.0):

@@ -6,7 +6,7 @@ import pytest
 
 from blockloc.geometry import inv_T, rpy_to_R, so3_log, xyzrpy_to_T
 from blockloc.tracking.params import TrackerSettings
-from blockloc.tracking.tracker import Tracker
+from blockloc.app.assemble import make_tracker as tracker_from_config
 from blockloc.tracking.tracker import make_tracker as build_tracker
 from tests.tracking.synthetic import (
     T_BODY_LIDAR,
@@ -212,13 +212,13 @@ def test_mode_from_config_and_explicit_choice(world):
     prov = ScriptedProvider(world["target"])
 
     def mode(**kw):
-        return Tracker.from_config(cfg, info, map_provider=prov, registration=world["reg"], **kw).lidar_only
+        return tracker_from_config(cfg, info, map_provider=prov, registration=world["reg"], **kw).lidar_only
 
     assert mode() is False  # tracking.use_imu true: the IMU (the caller says when there is none)
     assert mode(use_imu=True) is False and mode(use_imu=False) is True
     cfg.tracking.use_imu = False  # --no-imu
     assert mode() is True
-    tr = Tracker.from_config(cfg, info, map_provider=prov, registration=world["reg"])
+    tr = tracker_from_config(cfg, info, map_provider=prov, registration=world["reg"])
     assert tr.params is cfg.tracking  # the section itself, not a copy of some of its fields
     assert tr.motion_noise.sigma_rot == cfg.tracking.motion_sigma_acc_rad_s2
     # told there is an IMU, the tracker keeps preintegration even before the first sample

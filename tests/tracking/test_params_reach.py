@@ -14,7 +14,7 @@ import numpy as np
 from blockloc.config import Config, TrackingConfig
 from blockloc.datasets.base import SequenceInfo
 from blockloc.tracking.params import TrackingParams
-from blockloc.tracking.tracker import tracker_from_config
+from blockloc.app.assemble import make_tracker as tracker_from_config
 from tests.tracking.test_tracker_branches import GRAVITY, T_START, FixedProvider, ScriptedRegistration, _frame
 
 # Declared, loaded and checked, but read by no estimator (every scan is a keyframe).
