@@ -15,7 +15,7 @@ from blockloc.errors import GlobalInitError, MapError, RegistrationError, Tracki
 from blockloc.geometry import transform_points
 from blockloc.global_init.relocalize import pose_error
 from blockloc.jit import CompileClock
-from blockloc.tracking.scan_prep import gravity_from_imu, prepare_for_init
+from blockloc.global_init.scan_prep import gravity_from_imu, prepare_for_init
 
 log = logging.getLogger("blockloc.app.session")
 

@@ -31,7 +31,7 @@ from blockloc.maps.build_plan import Drive, build_block_map_from_sequence, build
 from blockloc.maps.files import open_map_files
 from blockloc.maps.store import MapStore, open_map
 from blockloc.maps.summary import map_points_xy
-from blockloc.tracking.scan_prep import prepare_for_init
+from blockloc.global_init.scan_prep import prepare_for_init
 from blockloc.viz.layout import REPORT_NAME
 from blockloc.viz.report import write_report
 

@@ -17,7 +17,7 @@ hint) or ``global`` (global init over the whole map on the first frames, until o
 the map's place index, see :mod:`blockloc.global_init.place_index`). A tracker that is lost
 relocalizes around its last good pose, then over the whole map (:mod:`blockloc.app.recovery`);
 only verified poses restart it, and the frames in between are reported lost, never ok.
-Every path prepares its scan with :func:`blockloc.tracking.scan_prep.prepare_for_init`, as
+Every path prepares its scan with :func:`blockloc.global_init.scan_prep.prepare_for_init`, as
 ``blockloc init`` does.
 
 A run survives bad frames: a scan that cannot be read is skipped (``skipped_frames``), a map
