@@ -96,11 +96,14 @@ def sim_cmd(
     fmt: str = typer.Option("nclt", "--format", metavar="FORMAT", help="nclt | rosbag1 | rosbag2."),
     azimuth_steps: Optional[int] = typer.Option(None, "--azimuth-steps", metavar="N", min=8,
                                                 help="Columns per revolution (preset default)."),
+    months: str = typer.Option("", "--months", metavar="3,12",
+                               help="Also write the changed world's later days: 3 -> loc_m3, 12 -> loc_m12 and "
+                                    "map_m12, with point labels and changes.json (nclt format)."),
 ) -> None:
     """Simulate a world and write its sessions (map, loc[, loc2]) with HDL-32E scans, IMU and ground truth."""
     from blockloc.commands.sim import sim_command
 
-    sim_command(preset, seed, out, fmt, azimuth_steps)
+    sim_command(preset, seed, out, fmt, azimuth_steps, months)
 
 
 # ----------------------------------------------------------------------------- map
