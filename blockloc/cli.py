@@ -216,6 +216,53 @@ def map_serve_cmd(
     serve_command(map_path, host, port)
 
 
+@map_app.command("changes")
+def map_changes_cmd(
+    map_path: str = typer.Option(..., "--map", metavar=MAP, help="Block map store the run tracked in."),
+    run: Path = typer.Option(..., "--run", metavar=DIR, help="Results folder of a blockloc track run."),
+    seq: Optional[str] = typer.Option(None, "--seq", metavar=SEQ,
+                                      help="The run's sequence (default: the one its metrics.json names)."),
+    out: Optional[Path] = typer.Option(None, "--out", metavar=FILE, help="Report (default: RUN/changes.json)."),
+    data_root: Optional[str] = typer.Option(None, "--data-root", metavar=DIR, help="Root of the datasets."),
+    stride: int = typer.Option(1, "--stride", metavar="N", min=1, help="Use every N-th trusted frame."),
+) -> None:
+    """What changed since the map was made, per block, from a run's verified frames (changes.json)."""
+    from blockloc.commands.lifelong import changes_command
+
+    changes_command(map_path, run, seq, out, data_root, stride)
+
+
+@map_app.command("update")
+def map_update_cmd(
+    map_path: str = typer.Argument(..., metavar=MAP, help="Local block map store."),
+    runs: List[Path] = typer.Option(..., "--run", metavar=DIR, help="Results folder of a track run (repeatable)."),
+    seqs: Optional[List[str]] = typer.Option(None, "--seq", metavar=SEQ,
+                                             help="Each run's sequence, once per --run (default: from the runs)."),
+    out: Optional[Path] = typer.Option(None, "--out", metavar=DIR,
+                                       help="Write the updated map here (default: a new version of MAP, in place)."),
+    data_root: Optional[str] = typer.Option(None, "--data-root", metavar=DIR, help="Root of the datasets."),
+    stride: int = typer.Option(1, "--stride", metavar="N", min=1, help="Use every N-th trusted frame."),
+    strong_scans: int = typer.Option(15, "--strong-scans", metavar="N", min=1,
+                                     help="A change one run saw in fewer scans waits for a second run."),
+    min_runs: int = typer.Option(2, "--min-runs", metavar="N", min=1, help="Runs that confirm a change on their own."),
+) -> None:
+    """Rebuild the blocks with confirmed changes from verified runs, as a new map version."""
+    from blockloc.commands.lifelong import update_command
+
+    update_command(map_path, runs, seqs, out, data_root, stride, strong_scans, min_runs)
+
+
+@map_app.command("rollback")
+def map_rollback_cmd(
+    map_path: str = typer.Argument(..., metavar=MAP, help="Local block map store."),
+    to: int = typer.Option(..., "--to", metavar="V", min=1, help="Version to make current (see map info)."),
+) -> None:
+    """Make an earlier (or later) version of a map current again (atomic; nothing is deleted)."""
+    from blockloc.commands.lifelong import rollback_command
+
+    rollback_command(map_path, to)
+
+
 # ----------------------------------------------------------------------------- init
 @app.command("init")
 def init_cmd(

@@ -3,7 +3,7 @@
 World (map frame, z up, metres): flat ground; a street along x (y = 0) between two long building
 rows (y = +-11); a few pillars; on the mapping day a garden wall W at x 2..10, y 5.8..6.2.
 On the run day: the wall W is gone (removed), a box B stands at x -8..-5, y -7.5..-4.5 (added),
-and a pedestrian walks across the street at x = 12 (dynamic).
+and a pedestrian walks across the street at x = 12 (dynamic). Day "nowall": only W is gone.
 
 A drive goes along y = 0 from x = -24 to 24, sensor 1.2 m above the ground, a scan every 0.25 m:
 32 beams from -25 to +12 deg, 720 columns. Scans are cast with open3d's RaycastingScene.
@@ -48,6 +48,8 @@ def scene(day: str, t: float = 0.0):
     boxes = list(static_boxes())
     if day == "map":
         boxes.append(WALL_W)
+    elif day == "nowall":  # only the wall gone: block 000 (x < 0) sees no change
+        pass
     else:
         boxes.append(BOX_B)
         y = -8.0 + 1.4 * t  # walks +y at 1.4 m/s
@@ -105,7 +107,9 @@ def write_scan_folder(out: Path, day: str, T: np.ndarray, t0: float = 1000.0, dt
 
 
 def build_map(out: Path, T: np.ndarray, voxel_m: float = 0.2) -> Path:
-    """A block store of the mapping day's scans: block 000 for x < 0, 001 for x >= 0."""
+    """A block store of the mapping day's scans: block 000 holds the points with x < 0 and the
+    keyframes there, 001 those with x >= 0 (a partition: a change on one side leaves the other
+    block alone)."""
     from blockloc.maps.store import MapWriter
     from blockloc.voxels import voxel_downsample
 
@@ -113,13 +117,13 @@ def build_map(out: Path, T: np.ndarray, voxel_m: float = 0.2) -> Path:
     kf = {"000": [], "001": []}
     for i, T_i in enumerate(T):
         p = cast("map", T_i, 0.0).astype(np.float64) + T_i[:3, 3]
-        b = "000" if T_i[0, 3] < 0 else "001"
-        pts[b].append(p[np.linalg.norm(p[:, :2] - T_i[:2, 3], axis=1) < 30])
-        kf[b].append(T_i[:3, 3])
+        pts["000"].append(p[p[:, 0] < 0])
+        pts["001"].append(p[p[:, 0] >= 0])
+        kf["000" if T_i[0, 3] < 0 else "001"].append(T_i[:3, 3])
     with MapWriter(out, "block", params={"block_size_m": 24.0, "voxel_size_m": voxel_m}) as w:
         for b in ("000", "001"):
             P, I = voxel_downsample(np.concatenate(pts[b]), voxel_m, np.full(sum(map(len, pts[b])), 50.0))
-            w.add(b, P, I, keyframes=np.array(kf[b][::4]))
+            w.add(b, P, I, keyframes=np.array(kf[b][::2]))
         return w.commit()
 
 

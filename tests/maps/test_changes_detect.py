@@ -79,9 +79,10 @@ def test_detects_the_removed_wall_the_added_box_and_the_pedestrian(detected):
     ped_box = (W.PED_X - 0.3, W.PED_X + 0.3, -9, 9, 0, 1.7)
     assert not _inside(ad, ped_box).any()
     by = {b["block"]: b for b in res.blocks}
-    # the wall is in both blocks (their points overlap), the box in block 000 (x < 0)
+    # the wall is in block 001 (x >= 0), the box in block 000 (x < 0)
     assert by["000"]["added_voxels"] == len(ad) and by["001"]["added_voxels"] == 0
-    assert by["001"]["removed_voxels"] > 0 and by["001"]["removed_points"] > 0
+    assert by["001"]["removed_voxels"] == len(rm) and by["001"]["removed_points"] > 0
+    assert by["000"]["removed_voxels"] == 0
     assert all(b["confirmed"] for b in res.blocks) and 0.9 < by["001"]["confidence"] <= 1.0
 
 

@@ -53,8 +53,8 @@ class ChangeResult:
         return {"format": "blockloc-changes", "version": 1, **facts, "params": self.params,
                 "frames_trusted": self.frames_trusted, "scans_used": self.scans_used,
                 "scans_rejected": self.scans_rejected,
-                "totals": {k: int(sum(b[k] for b in self.blocks))
-                           for k in ("removed_voxels", "added_voxels", "dynamic_voxels")},
+                "totals": {f"{k}_voxels": int(len(getattr(self.voxels, k)))  # distinct voxels (blocks overlap)
+                           for k in ("removed", "added", "dynamic")},
                 "blocks": self.blocks}
 
 
