@@ -170,9 +170,9 @@ class SequenceRef:
         ranges = {k: options[k] for k in ("min_range_m", "max_range_m")}
         if self.kind == "sim":
             from blockloc.datasets.base import RangeLimited
-            from blockloc.sim.stream import open_sim_sequence
+            from blockloc.sim.changes import open_session  # the preset's sessions and the changed days
 
-            return RangeLimited(open_sim_sequence(*self.sim), ranges["min_range_m"], ranges["max_range_m"])
+            return RangeLimited(open_session(*self.sim), ranges["min_range_m"], ranges["max_range_m"])
         if self.kind == "nclt":
             from blockloc.datasets.nclt import NcltSequence
 

@@ -291,6 +291,17 @@ def changed_world(world: World, session: str) -> tuple[World, Movables, list[Cha
     return day, unchanged, active + mv_changes
 
 
+def open_session(preset: str, session: str, seed: int, **overrides):
+    """``blockloc.sim.stream.open_sim_sequence``, plus the changed days (``loc_m3``, ``loc_m12``,
+    ``map_m12``): what ``sim:<preset>/<session>@<seed>`` names open."""
+    from blockloc.sim.presets import get_preset
+    from blockloc.sim.stream import open_sim_sequence
+
+    if session in CHANGE_SESSIONS:
+        return ChangedSimSequence(get_preset(preset, **overrides), session, int(seed))
+    return open_sim_sequence(preset, session, seed, **overrides)
+
+
 class ChangedSimSequence(SimSequence):
     """A changed session (``loc_m3``, ``loc_m12``, ``map_m12``): the route of ``loc`` / the
     mapping drive, on a later day, in the changed world; its own sensor noise, day and name.

@@ -448,14 +448,7 @@ def _gauss_markov(rng: np.random.Generator, n: int, dt: float, tau: float, sigma
 
 def open_sim_sequence(preset: str, session: str, seed: int, **overrides) -> SimSequence:
     """A simulated session streamed on the fly: ``preset`` small | campus | city | tiny,
-    ``session`` map | loc | loc2 (campus) | map1..map5, loc (city), or a later day of the
-    changing world: loc_m3 | loc_m12 | map_m12 (``blockloc.sim.changes``), ``seed`` any int.
+    ``session`` map | loc | loc2 (campus) | map1..map5, loc (city), ``seed`` any int.
     ``overrides``: preset fields, e.g. ``azimuth_steps=200`` for a sparse, fast sensor, or
     ``ideal=True`` for every error source off."""
-    p = get_preset(preset, **overrides)
-    if session not in p.sessions:  # the changing world's later days (issue 43)
-        from blockloc.sim.changes import CHANGE_SESSIONS, ChangedSimSequence
-
-        if session in CHANGE_SESSIONS:
-            return ChangedSimSequence(p, session, int(seed))
-    return SimSequence(p, session, int(seed))
+    return SimSequence(get_preset(preset, **overrides), session, int(seed))

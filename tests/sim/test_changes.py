@@ -14,7 +14,7 @@ from blockloc.datasets.nclt import NCLT_POINT_DTYPE, NcltSequence
 from blockloc.errors import SimError
 from blockloc.sim.changes import (LABEL_CHANGED, LABEL_MOVING, LABEL_STATIC, read_point_labels,
                                   sessions_for_months)
-from blockloc.sim.stream import open_sim_sequence
+from blockloc.sim.changes import open_session as open_sim_sequence
 from blockloc.sim.writer import generate_dataset
 
 SEED, STEPS = 1, 60
