@@ -162,3 +162,27 @@ def test_cli_changes_update_info_rollback(base, tmp_path):
     assert r.returncode == 2 and "error: --run" in r.stderr and "poses.tum" in r.stderr
     r = _cli("map", "update", m, "--run", run1, "--out", d / "nowall")
     assert r.returncode == 2 and "already exists" in r.stderr
+
+
+def test_served_clients_pick_up_a_new_version_when_they_open_the_map_again(base, tmp_path):
+    """``map serve`` reads files per request: a client that opens the map after an update (or a
+    rollback) gets that version; one still holding the old version reads its old block files
+    (a version's files are never rewritten)."""
+    import shutil
+
+    from blockloc.maps.server import MapServer
+
+    d, T = base
+    shutil.copytree(d / "map", tmp_path / "m")
+    root = tmp_path / "m"
+    res, run = _result(d, T, "nowall", "run_served")
+    with MapServer(root) as srv:
+        old = open_map(srv.url, cache_dir=tmp_path / "cache")
+        old_pts, _ = old.load("001")
+        apply_update(root, plan_update([res], strong_scans=10), [res], runs=[str(run)])
+        new = open_map(srv.url, cache_dir=tmp_path / "cache")
+        assert new.entry("001").file == "001.v2.pcd" and new.entry("000").sha256 == old.entry("000").sha256
+        assert len(new.load("001")[0]) < len(old_pts)
+        np.testing.assert_array_equal(old.load("001")[0], old_pts)  # the old version still reads
+        versions.rollback(root, 1)
+        assert open_map(srv.url, cache_dir=tmp_path / "cache").entry("001").file == "001.pcd"
