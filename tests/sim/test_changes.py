@@ -100,8 +100,15 @@ def test_written_sessions_carry_labels_and_leave_existing_bytes_alone(tmp_path):
 
 
 def test_cli_sim_months(tmp_path):
-    env = dict(os.environ)
-    r = subprocess.run(["blockloc", "sim", "--preset", "tiny", "--out",
-                        str(tmp_path / "d"), "--azimuth-steps", "8", "--months", "7"],
-                       capture_output=True, text=True, env=env)
-    assert r.returncode != 0 and "error: --months 7" in r.stderr and not (tmp_path / "d").exists()
+    r = subprocess.run(["blockloc", "sim", "--preset", "tiny", "--out", str(tmp_path / "d"), "--azimuth-steps", "8",
+                        "--months", "7"], capture_output=True, text=True)
+    assert r.returncode == 2 and "error: --months 7" in r.stderr and not (tmp_path / "d").exists()
+    r = subprocess.run(["blockloc", "sim", "--preset", "tiny", "--out", str(tmp_path / "d"), "--azimuth-steps", "8",
+                        "--months", "3"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    d = tmp_path / "d"
+    assert sorted(p.name for p in d.iterdir()) == ["loc", "loc_m3", "map", "sim.json"]
+    scans = sorted((d / "loc_m3" / "velodyne_sync").glob("*.bin"))
+    labels = sorted((d / "loc_m3" / "point_labels").glob("*.npy"))
+    assert len(scans) == len(labels) > 100 and [p.stem for p in scans] == [p.stem for p in labels]
+    assert json.loads((d / "loc_m3" / "changes.json").read_text())["month"] == 3
