@@ -112,3 +112,13 @@ def test_cli_sim_months(tmp_path):
     labels = sorted((d / "loc_m3" / "point_labels").glob("*.npy"))
     assert len(scans) == len(labels) > 100 and [p.stem for p in scans] == [p.stem for p in labels]
     assert json.loads((d / "loc_m3" / "changes.json").read_text())["month"] == 3
+
+
+def test_sim_names_open_the_changed_days():
+    from blockloc.datasets import open_sequence
+    from blockloc.datasets.refs import SequenceRef
+
+    seq = open_sequence("sim:tiny/loc_m12@3")
+    assert seq.info.name == "sim:tiny/loc_m12@3" and len(seq) > 0
+    # their default map is the mapping day's
+    assert SequenceRef.parse("sim:tiny/loc_m12@3").mapping_source() == "sim:tiny/map@3"

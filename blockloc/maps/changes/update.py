@@ -45,6 +45,7 @@ class UpdatePlan:
     added: np.ndarray
     blocks: dict = field(default_factory=dict)
     held_back: list = field(default_factory=list)
+    added_owner: dict = field(default_factory=dict)  # added voxel key -> block id that gains it
 
 
 def _strong(keys_per_run: list[np.ndarray], scans_per_run: list[np.ndarray], strong_scans: int, min_runs: int):
@@ -167,7 +168,7 @@ def apply_update(map_root: str | Path, plan: UpdatePlan, results: list, *, runs:
         store_voxel = float(store.params.get("voxel_size_m", 0.2))
         added_keys = np.asarray(plan.added, np.int64)
         by_block_new = {b: (np.zeros((0, 3)), np.zeros(0, np.float32)) for b in plan.blocks}
-        owner = getattr(plan, "added_owner", {})
+        owner = plan.added_owner
         for r in results:
             if not len(r.offmap_points) or not len(added_keys):
                 continue
