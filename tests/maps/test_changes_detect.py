@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from blockloc.maps.changes.detect import (Evidence, cluster_sizes, pack_keys, ray_free_keys, ray_margins,
-                                          unpack_keys, voxel_keys)
+                                          unpack_keys)
 from blockloc.maps.changes.pipeline import detect_changes
 from blockloc.maps.changes.runs import read_run, trusted_mask
 from tests.maps import lifelong_world as W

@@ -59,8 +59,6 @@ def test_labels_say_what_each_point_hit():
     counts = np.zeros(3, int)
     inside_changed = inside_total = 0
     gt = seq.ground_truth()
-    from blockloc.geometry import Trajectory  # noqa: F401 (type of gt)
-
     for i in range(0, len(seq), 40):
         frame, lab = seq.frame_labels(i)
         assert lab.shape == (len(frame.points),) and lab.dtype == np.uint8
