@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-WALL_W = (2.0, 10.0, 5.8, 6.2, 0.0, 2.5)
+WALL_W = (2.0, 10.0, 5.8, 6.2, 0.0, 3.5)  # reaches into the place index's 2-4 m band
 BOX_B = (-8.0, -5.0, -7.5, -4.5, 0.0, 2.0)
 PED_X = 12.0
 SENSOR_Z = 1.2

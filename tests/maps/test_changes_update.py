@@ -66,7 +66,8 @@ def test_update_rebuilds_only_the_changed_block(base, tmp_path):
         x0, x1, y0, y1, z0, z1 = W.WALL_W
         return (p[:, 0] > x0) & (p[:, 0] < x1) & (p[:, 1] > y0 - 0.1) & (p[:, 1] < y1 + 0.1) & (p[:, 2] > 0.6)
 
-    assert in_wall(old).sum() > 200 and in_wall(new).sum() == 0
+    # all but a few points of voxels held back (seen by fewer than 10 scans: the wall's far corners)
+    assert in_wall(old).sum() > 200 and in_wall(new).sum() <= 0.02 * in_wall(old).sum()
     assert len(new) > 0.95 * (len(old) - in_wall(old).sum())
     # the source map is untouched (no --out: in place)
     assert _entries(d / "map") == before and not (d / "map" / "versions").exists()
@@ -186,3 +187,26 @@ def test_served_clients_pick_up_a_new_version_when_they_open_the_map_again(base,
         np.testing.assert_array_equal(old.load("001")[0], old_pts)  # the old version still reads
         versions.rollback(root, 1)
         assert open_map(srv.url, cache_dir=tmp_path / "cache").entry("001").file == "001.pcd"
+
+
+def test_the_place_index_is_rebuilt_for_the_new_version(base, tmp_path):
+    import shutil
+
+    from blockloc.global_init.place_index import (PlaceIndex, build_place_index, load_place_index,
+                                                   write_place_index)
+
+    d, T = base
+    shutil.copytree(d / "map", tmp_path / "m")
+    root = tmp_path / "m"
+    g = np.array([0.0, 0.0, -9.81])
+    _, idx1 = write_place_index(root, g)
+    res, run = _result(d, T, "nowall", "run_index")
+    apply_update(root, plan_update([res], strong_scans=10), [res], runs=[str(run)], gravity_map=g)
+    store = open_map(root)
+    assert store.extras["place_index.npz"].file == "place_index.v2.npz"
+    idx2 = load_place_index(store, g, build_missing=False)
+    fresh = build_place_index(store, g)  # what the new version's blocks give
+    assert isinstance(idx2, PlaceIndex) and np.array_equal(idx2.bits, fresh.bits)
+    assert not np.array_equal(idx2.bits, idx1.bits)  # the wall's bits are gone
+    versions.rollback(root, 1)  # the old version keeps its own index
+    assert load_place_index(open_map(root), g, build_missing=False).to_bytes() == idx1.to_bytes()
