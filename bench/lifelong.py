@@ -63,14 +63,16 @@ def main(argv: list[str] | None = None) -> Path:
     work = args.work / f"{P}_{S}"
     work.mkdir(parents=True, exist_ok=True)
     mp, run_dir = work / "map", work / f"run_{sess}"
-    cmds = []
-    if not (mp / "manifest.json").exists():
-        cmds.append(["blockloc", "map", "build", "--seq", f"sim:{P}/map@{S}", "--kind", "block", "--out", str(mp)])
-        _run(cmds[-1])
-    if not (run_dir / "metrics.json").exists():
-        cmds.append(["blockloc", "track", "--seq", f"sim:{P}/{sess}@{S}", "--map", str(mp), "--init", "gt",
-                     "--no-record", "--out", str(run_dir)])
-        _run(cmds[-1])
+    cmds = [["blockloc", "map", "build", "--seq", f"sim:{P}/map@{S}", "--kind", "block", "--out", str(mp)],
+            ["blockloc", "track", "--seq", f"sim:{P}/{sess}@{S}", "--map", str(mp), "--init", "gt",
+             "--no-record", "--out", str(run_dir)]]
+    reused = []
+    for cmd, done in zip(cmds, (mp / "manifest.json", run_dir / "metrics.json")):
+        if done.exists():
+            reused.append(True)
+        else:
+            _run(cmd)
+            reused.append(False)
     run = read_run(run_dir)
     seq = open_session(P, sess, S)
     t0 = time.perf_counter()
@@ -103,7 +105,7 @@ def main(argv: list[str] | None = None) -> Path:
              f"Machine: {machine()}. Command: `python -m bench.lifelong --preset {P} --seed {S} --session {sess} "
              f"--stride {args.stride}`, run {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. "
              f"One run (seed {S}); the map and the run come from "
-             + ("; ".join(f"`{' '.join(c)}`" for c in cmds) if cmds else f"earlier runs of the same commands in {work}")
+             + "; ".join(f"`{' '.join(c)}`" + (" (kept from an earlier run)" if r else "") for c, r in zip(cmds, reused))
              + ".", "",
              f"Detection: {res.frames_trusted} trusted frames, {res.scans_used} scans used (stride {args.stride}), "
              f"{res.scans_rejected} dropped by the consistency gate, {t_detect:.0f} s wall on this (shared) machine.", "",
