@@ -96,11 +96,14 @@ def sim_cmd(
     fmt: str = typer.Option("nclt", "--format", metavar="FORMAT", help="nclt | rosbag1 | rosbag2."),
     azimuth_steps: Optional[int] = typer.Option(None, "--azimuth-steps", metavar="N", min=8,
                                                 help="Columns per revolution (preset default)."),
+    months: str = typer.Option("", "--months", metavar="3,12",
+                               help="Also write the changed world's later days: 3 -> loc_m3, 12 -> loc_m12 and "
+                                    "map_m12, with point labels and changes.json (nclt format)."),
 ) -> None:
     """Simulate a world and write its sessions (map, loc[, loc2]) with HDL-32E scans, IMU and ground truth."""
     from blockloc.commands.sim import sim_command
 
-    sim_command(preset, seed, out, fmt, azimuth_steps)
+    sim_command(preset, seed, out, fmt, azimuth_steps, months)
 
 
 # ----------------------------------------------------------------------------- map
@@ -211,6 +214,53 @@ def map_serve_cmd(
     from blockloc.commands.map import serve_command
 
     serve_command(map_path, host, port)
+
+
+@map_app.command("changes")
+def map_changes_cmd(
+    map_path: str = typer.Option(..., "--map", metavar=MAP, help="Block map store the run tracked in."),
+    run: Path = typer.Option(..., "--run", metavar=DIR, help="Results folder of a blockloc track run."),
+    seq: Optional[str] = typer.Option(None, "--seq", metavar=SEQ,
+                                      help="The run's sequence (default: the one its metrics.json names)."),
+    out: Optional[Path] = typer.Option(None, "--out", metavar=FILE, help="Report (default: RUN/changes.json)."),
+    data_root: Optional[str] = typer.Option(None, "--data-root", metavar=DIR, help="Root of the datasets."),
+    stride: int = typer.Option(1, "--stride", metavar="N", min=1, help="Use every N-th trusted frame."),
+) -> None:
+    """What changed since the map was made, per block, from a run's verified frames (changes.json)."""
+    from blockloc.commands.lifelong import changes_command
+
+    changes_command(map_path, run, seq, out, data_root, stride)
+
+
+@map_app.command("update")
+def map_update_cmd(
+    map_path: str = typer.Argument(..., metavar=MAP, help="Local block map store."),
+    runs: List[Path] = typer.Option(..., "--run", metavar=DIR, help="Results folder of a track run (repeatable)."),
+    seqs: Optional[List[str]] = typer.Option(None, "--seq", metavar=SEQ,
+                                             help="Each run's sequence, once per --run (default: from the runs)."),
+    out: Optional[Path] = typer.Option(None, "--out", metavar=DIR,
+                                       help="Write the updated map here (default: a new version of MAP, in place)."),
+    data_root: Optional[str] = typer.Option(None, "--data-root", metavar=DIR, help="Root of the datasets."),
+    stride: int = typer.Option(1, "--stride", metavar="N", min=1, help="Use every N-th trusted frame."),
+    strong_scans: int = typer.Option(15, "--strong-scans", metavar="N", min=1,
+                                     help="A change one run saw in fewer scans waits for a second run."),
+    min_runs: int = typer.Option(2, "--min-runs", metavar="N", min=1, help="Runs that confirm a change on their own."),
+) -> None:
+    """Rebuild the blocks with confirmed changes from verified runs, as a new map version."""
+    from blockloc.commands.lifelong import update_command
+
+    update_command(map_path, runs, seqs, out, data_root, stride, strong_scans, min_runs)
+
+
+@map_app.command("rollback")
+def map_rollback_cmd(
+    map_path: str = typer.Argument(..., metavar=MAP, help="Local block map store."),
+    to: int = typer.Option(..., "--to", metavar="V", min=1, help="Version to make current (see map info)."),
+) -> None:
+    """Make an earlier (or later) version of a map current again (atomic; nothing is deleted)."""
+    from blockloc.commands.lifelong import rollback_command
+
+    rollback_command(map_path, to)
 
 
 # ----------------------------------------------------------------------------- init

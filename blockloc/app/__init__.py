@@ -6,4 +6,6 @@
   and relocalization) and ``stream_checks`` (IMU and LiDAR gaps).
 - ``runs``: the recipes the commands, the benchmarks and a live node share (open a session,
   global init of one frame, build a map and its place index, the demo's world).
+- ``lifelong``: change detection and map updates from runs (the run's sequence and config; the
+  core is ``blockloc.maps.changes``).
 """

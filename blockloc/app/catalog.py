@@ -177,9 +177,9 @@ class SequenceRef:
     def _open_named(self, data_root, dataset_cfg, lidar_topic, imu_topic, options):
         ranges = {k: options[k] for k in ("min_range_m", "max_range_m")}
         if self.kind == "sim":
-            from blockloc.sim.stream import open_sim_sequence  # the simulator, only for sim: names
+            from blockloc.sim.changes import open_session  # the simulator, only for sim: names (and the changed days)
 
-            return RangeLimited(open_sim_sequence(*self.sim), ranges["min_range_m"], ranges["max_range_m"])
+            return RangeLimited(open_session(*self.sim), ranges["min_range_m"], ranges["max_range_m"])
         if self.kind == "nclt":
             from blockloc.datasets.nclt import NcltSequence
 

@@ -130,14 +130,17 @@ def tile_command(global_pcd: Path, tile_size: float, out: Path, overwrite: bool)
 
 def info_command(map_path: str, json_out: bool, quick: bool) -> None:
     from blockloc.commands.common import console
+    from blockloc.commands.lifelong import history_lines, history_records
     from blockloc.maps.store import open_map
     from blockloc.maps.summary import map_summary
 
     summary = map_summary(open_map(map_path), with_overlap=not quick)
     if json_out:
-        print(json.dumps(summary))
+        print(json.dumps({**summary, "versions": history_records(map_path)}))
     else:
         print_summary(summary, console())
+        for line in history_lines(map_path):  # lifelong maps: the version history
+            print(line)
 
 
 def plot_command(map_path: str, seq: str | None, out: Path | None, data_root: str | None) -> None:

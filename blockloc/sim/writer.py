@@ -6,6 +6,8 @@ Layout of ``out`` (NCLT, the default)::
     out/map/            the mapping drive: velodyne_sync/, velodyne_hits.bin, ms25.csv,
                         groundtruth_<date>.csv, slam_poses_<date>.csv (offline-SLAM poses)
     out/loc/            a localization drive on another day (campus: also out/loc2/)
+    out/loc_m3/ ...     with ``months``: the changing world's later days, each with
+                        point_labels/<utime>.npy and changes.json (``blockloc.sim.changes``)
 
 ``--format rosbag1`` writes ``out/<session>.bag``, ``rosbag2`` a bag directory ``out/<session>/``
 (sqlite3), each with ``out/<session>_groundtruth.csv`` (NCLT csv, T_map_body; mapping drives
@@ -49,11 +51,13 @@ def _counting(frames, seq: SimSequence, progress: Progress | None):
 
 def generate_dataset(preset: str, seed: int, out: Path, fmt: str = "nclt", *,
                      progress: Progress | None = None, sessions: tuple[str, ...] | None = None,
-                     max_frames: int | None = None, **overrides) -> Path:
+                     max_frames: int | None = None, months: tuple[int, ...] = (), **overrides) -> Path:
     """Simulate every session of ``preset`` with ``seed`` and write them under ``out``.
 
     fmt: nclt | rosbag1 | rosbag2. progress: called after each frame. sessions: a subset (default
-    all). max_frames: cap per session (tests). overrides: preset fields (``azimuth_steps``...).
+    all). max_frames: cap per session (tests). months: also write the changing world's later days
+    (``blockloc.sim.changes``: 3 -> loc_m3, 12 -> loc_m12 and map_m12; NCLT format only), each
+    with ``point_labels/`` and ``changes.json``. overrides: preset fields (``azimuth_steps``...).
     Returns ``out``. An existing ``out`` is replaced only when the new dataset is complete.
     """
     from blockloc.datasets.nclt import NCLT_GRAVITY_MAP, NCLT_T_BODY_IMU, NCLT_T_BODY_LIDAR, write_session
@@ -61,9 +65,14 @@ def generate_dataset(preset: str, seed: int, out: Path, fmt: str = "nclt", *,
     if fmt not in FORMATS:
         raise SimError(f"sim format {fmt!r}: expected one of {', '.join(FORMATS)}")
     p = get_preset(preset, **overrides)
-    names = tuple(sessions) if sessions else p.sessions
+    from blockloc.sim import changes
+
+    later = changes.sessions_for_months(months)
+    if later and fmt != "nclt":
+        raise SimError(f"--months with --format {fmt}: the changed days are written in the nclt format only")
+    names = (tuple(sessions) if sessions else p.sessions) + later
     for s in names:
-        if s not in p.sessions:
+        if s not in p.sessions + later:
             raise SimError(f"sim session {s!r}: preset {p.name} has {', '.join(p.sessions)}")
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -76,9 +85,10 @@ def generate_dataset(preset: str, seed: int, out: Path, fmt: str = "nclt", *,
                            "T_body_imu": np.asarray(NCLT_T_BODY_IMU).tolist(),
                            "gravity_map": list(NCLT_GRAVITY_MAP)}}
         for s in names:
-            seq = SimSequence(p, s, seed)
+            seq = SimSequence(p, s, seed) if s in p.sessions else changes.ChangedSimSequence(p, s, seed)
             n = len(seq) if max_frames is None else min(len(seq), int(max_frames))
-            frames = _counting(seq.frames(0, n), seq, progress)
+            frames = _counting(seq.frames(0, n) if s in p.sessions else
+                               changes.labelled_frames(seq, n, tmp / f".{s}-labels"), seq, progress)
             imu = seq.imu()
             gt = seq.ground_truth()
             if max_frames is not None:  # keep IMU / ground truth to the frames' time span
@@ -93,6 +103,8 @@ def generate_dataset(preset: str, seed: int, out: Path, fmt: str = "nclt", *,
             if fmt == "nclt":
                 write_session(tmp / s, date=seq.date, frames=frames, imu=imu, ground_truth=gt,
                               slam_poses=slam, write_hits=True)
+                if s not in p.sessions:
+                    changes.finish_session(tmp / s, tmp / f".{s}-labels", seq)
             else:
                 from blockloc.datasets.nclt import write_groundtruth_csv
                 from blockloc.datasets.rosbag import write_rosbag, write_sidecar

@@ -1,0 +1,93 @@
+"""Lifelong maps' recipes (issue 43): what ``blockloc map changes | update | rollback`` do, with
+the run's sequence opened by name and the config read here (the core, which reads neither, is
+:mod:`blockloc.maps.changes`).
+
+- :func:`detect_run_changes`: a map store + a run folder -> what changed (its sequence from
+  ``--seq`` or the name the run's ``metrics.json`` records, the config that fits it);
+- :func:`update_map`: several runs' detections -> a new version of the store, its place index
+  rebuilt with the ``global_init`` settings of the first run's config and its sequence's gravity.
+
+No printing, no progress bars (the commands draw them): a long step takes ``progress``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from blockloc.app.assemble import place_index_params
+from blockloc.app.catalog import config_for_sequence, open_sequence
+from blockloc.config import Config
+from blockloc.errors import MapError
+from blockloc.maps.changes.pipeline import ChangeResult, detect_changes
+from blockloc.maps.changes.runs import RunError, RunPoses, read_run
+from blockloc.maps.changes.update import apply_update, plan_update
+from blockloc.maps.store import MapStore, open_map
+
+log = logging.getLogger("blockloc")
+
+
+@dataclass
+class RunChanges:
+    """One run's detection: the result, the sequence name it was made from, the opened sequence
+    and the config that fits it."""
+
+    result: ChangeResult
+    sequence_name: str
+    sequence: object
+    config: Config
+
+
+def open_block_store(map_path: str | Path, option: str = "--map") -> MapStore:
+    """The block map store at ``map_path``; MapError naming it unless it is one with a manifest."""
+    store = open_map(map_path)
+    if store.kind != "block" or store.legacy:
+        raise MapError(f"{option} {map_path}: expected a block map store with a manifest (blockloc map build "
+                       f"--kind block), got a {'released-layout block' if store.legacy else store.kind} map")
+    return store
+
+
+def open_run_sequence(run: RunPoses, seq: str | None, data_root: str | None):
+    """The sequence a run was made from (``seq``, else the name its metrics.json records), its
+    name and the config that fits it: (Sequence, name, Config)."""
+    name = seq or run.sequence
+    if not name:
+        raise RunError(f"--run {run.path}: its metrics.json names no sequence (an interrupted run?); give --seq")
+    cfg = config_for_sequence(name)
+    return open_sequence(name, data_root=data_root, dataset_cfg=cfg.dataset), name, cfg
+
+
+def detect_run_changes(store: MapStore, run_dir: str | Path, *, seq: str | None = None,
+                       data_root: str | None = None, stride: int = 1,
+                       progress: Callable[[int, int], None] | None = None) -> RunChanges:
+    """What changed in ``store`` according to the trusted frames of the run folder ``run_dir``."""
+    run = read_run(run_dir)
+    sequence, name, cfg = open_run_sequence(run, seq, data_root)
+    if not len(run):
+        log.warning("%s: no trusted frame (status ok after 10 ok frames): nothing to learn from it", run_dir)
+    res = detect_changes(store, sequence, run, stride=stride, progress=progress)
+    return RunChanges(res, name, sequence, cfg)
+
+
+def place_index_builder(gravity_map, cfg: Config) -> Callable[[MapStore], bytes]:
+    """The function :func:`~blockloc.maps.changes.update.apply_update` calls to rebuild a new
+    version's place index: the ``global_init`` settings of ``cfg``, gravity (3,) in the map frame."""
+    from blockloc.global_init.place_index import build_place_index
+
+    params = place_index_params(cfg.global_init)
+    return lambda store: build_place_index(store, gravity_map, params).to_bytes()
+
+
+def update_map(map_path: str | Path, detected: list[RunChanges], *, runs: list[str], out: str | Path | None = None,
+               strong_scans: int = 15, min_runs: int = 2) -> dict:
+    """Apply what the runs' detections confirm as a new version of the local block store at
+    ``map_path`` (or of a copy at ``out``); the version record (``version``, ``path``,
+    ``changed_blocks``, ``blocks``, ``held_back``)."""
+    if not detected:
+        raise MapError("map update: no run to update from")
+    plan = plan_update([d.result for d in detected], strong_scans=strong_scans, min_runs=min_runs)
+    first = detected[0]
+    return apply_update(map_path, plan, [d.result for d in detected], runs=list(runs), out=out,
+                        place_index=place_index_builder(first.sequence.info.gravity_map, first.config))

@@ -1,0 +1,91 @@
+"""A tracking run's folder as change detection reads it: poses and which frames are trusted.
+
+A run folder (``blockloc track --out``) holds ``poses.tum`` (time s, T_map_body) and
+``diagnostics.csv`` (index, stamp, status, ...; ``blockloc.evaluation.results``). Statuses
+(``blockloc.viz.events.STATUSES``, set by ``blockloc.tracking.estimator`` and ``blockloc.app.session``):
+``ok`` (scan registered and accepted), ``rejected``, ``imu_only``, ``lost``, ``recovered`` (just
+relocalized), ``uninitialized``; ``skipped`` (unreadable frame). Only ``ok`` frames that follow at
+least ``settle_frames`` ``ok`` frames are trusted: a frame right after a loss, a rejection or a
+relocalization is not (its pose has not been confirmed by the scans after it yet).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from blockloc.errors import BlocklocError
+
+TRUSTED_STATUS = "ok"
+
+
+class RunError(BlocklocError):
+    """A run folder that cannot be read for change detection."""
+
+
+@dataclass
+class RunPoses:
+    """A run's trusted frames. index: (N,) frame index; stamps: (N,) s; T_map_body: (N, 4, 4);
+    statuses: every diagnostics row's status by frame index; sequence: the name the run was made
+    from (metrics.json), or None."""
+
+    path: Path
+    index: np.ndarray
+    stamps: np.ndarray
+    T_map_body: np.ndarray
+    statuses: dict
+    sequence: str | None
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+
+def trusted_mask(statuses: list[str], settle_frames: int) -> np.ndarray:
+    """(N,) bool: status ``ok`` with the ``settle_frames`` frames before it ``ok`` too."""
+    ok = np.array([s == TRUSTED_STATUS for s in statuses], dtype=bool)
+    if settle_frames <= 0 or not len(ok):
+        return ok
+    bad = np.concatenate([np.zeros(1, int), np.cumsum(~ok)])  # bad[k] = non-ok before k
+    k = np.arange(len(ok))
+    lo = np.maximum(k - settle_frames, 0)
+    return ok & (bad[k] - bad[lo] == 0) & (k >= settle_frames)
+
+
+def read_run(run_dir: str | Path, settle_frames: int = 10) -> RunPoses:
+    """The trusted frames of the run folder ``run_dir`` (module docstring)."""
+    from blockloc.trajectory_io import read_tum
+
+    run_dir = Path(run_dir)
+    poses_path, diag_path = run_dir / "poses.tum", run_dir / "diagnostics.csv"
+    for p in (poses_path, diag_path):
+        if not p.is_file():
+            raise RunError(f"--run {run_dir}: no {p.name} (expected a folder written by blockloc track)")
+    with open(diag_path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    try:
+        idx = np.array([int(r["index"]) for r in rows], dtype=np.int64)
+        stamps = np.array([float(r["stamp"]) for r in rows])
+        status = [r["status"] for r in rows]
+    except (KeyError, ValueError) as exc:
+        raise RunError(f"{diag_path}: expected columns index, stamp, status ({exc})") from None
+    trusted = trusted_mask(status, settle_frames)
+    traj = read_tum(poses_path)
+    # a pose belongs to the frame with its stamp (poses.tum writes the frame's stamp)
+    j = np.searchsorted(traj.stamps, stamps)
+    j = np.clip(j, 0, max(len(traj.stamps) - 1, 0))
+    has = len(traj.stamps) > 0
+    match = has & (np.abs(traj.stamps[j] - stamps) < 1e-4) if has else np.zeros(len(stamps), bool)
+    keep = trusted & match
+    seq = None
+    metrics = run_dir / "metrics.json"
+    if metrics.is_file():
+        try:
+            seq = json.loads(metrics.read_text()).get("sequence")
+        except (OSError, ValueError):
+            seq = None
+    return RunPoses(run_dir, idx[keep], stamps[keep], traj.poses[j[keep]] if has else np.zeros((0, 4, 4)),
+                    dict(zip(idx.tolist(), status)), seq)

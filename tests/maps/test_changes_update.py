@@ -1,0 +1,214 @@
+"""Map update and versions (``blockloc.maps.changes.update`` / ``.versions``), the safety of an
+update against wrong poses, and every new command as a user types it."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+
+import numpy as np
+import pytest
+
+from blockloc.errors import MapError
+from blockloc.maps.changes import versions
+from blockloc.maps.changes.pipeline import detect_changes
+from blockloc.maps.changes.runs import read_run
+from blockloc.maps.changes.update import apply_update, plan_update
+from blockloc.maps.store import open_map
+from tests.maps import lifelong_world as W
+
+STEP = 2.0  # a scan every 2 m: 25 scans along the street
+
+
+def _sha(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _entries(root):
+    return {e["id"]: e for e in json.loads((root / "manifest.json").read_text())["entries"]}
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory):
+    d = tmp_path_factory.mktemp("update")
+    T = W.drive(STEP)
+    W.build_map(d / "map", T)
+    W.write_scan_folder(d / "nowall", "nowall", T)
+    W.write_scan_folder(d / "same", "map", T)
+    return d, T
+
+
+def _result(d, T, day, name, poses=None, status=None):
+    run = W.write_run(d / name, d / day, T if poses is None else poses, status or ["ok"] * len(T))
+    return detect_changes(open_map(d / "map"), W.ArraySequence(day if day != "same" else "map", T),
+                          read_run(run, settle_frames=0)), run
+
+
+def test_update_rebuilds_only_the_changed_block(base, tmp_path):
+    d, T = base
+    res, run = _result(d, T, "nowall", "run_nowall")
+    plan = plan_update([res], strong_scans=10)
+    assert list(plan.blocks) == ["001"]  # the wall stood at x 2..10
+    before = _entries(d / "map")
+    rec = apply_update(d / "map", plan, [res], runs=[str(run)], out=tmp_path / "map2")
+    assert rec["version"] == 2 and rec["changed_blocks"] == ["001"]
+    after = _entries(tmp_path / "map2")
+    # the unchanged block: same entry, same file, same bytes
+    assert after["000"] == before["000"]
+    assert _sha(tmp_path / "map2" / after["000"]["file"]) == _sha(d / "map" / "000.pcd") == before["000"]["sha256"]
+    # the changed block: a new file, the wall's points gone, the rest kept
+    assert after["001"]["file"] == "001.v2.pcd" and (tmp_path / "map2" / "001.pcd").exists()
+    old, _ = open_map(d / "map").load("001")
+    new, _ = open_map(tmp_path / "map2").load("001")
+
+    def in_wall(p):  # above the lowest 0.6 m: the ground's voxels there are not carved (docs/lifelong.md)
+        x0, x1, y0, y1, z0, z1 = W.WALL_W
+        return (p[:, 0] > x0) & (p[:, 0] < x1) & (p[:, 1] > y0 - 0.1) & (p[:, 1] < y1 + 0.1) & (p[:, 2] > 0.6)
+
+    # all but a few points of voxels held back (seen by fewer than 10 scans: the wall's far corners)
+    assert in_wall(old).sum() > 200 and in_wall(new).sum() <= 0.02 * in_wall(old).sum()
+    assert len(new) > 0.95 * (len(old) - in_wall(old).sum())
+    # the source map is untouched (no --out: in place)
+    assert _entries(d / "map") == before and not (d / "map" / "versions").exists()
+    # detection against the updated map finds the day unchanged
+    again = detect_changes(open_map(tmp_path / "map2"), W.ArraySequence("nowall", T),
+                           read_run(run, settle_frames=0))
+    assert len(again.voxels.removed) == 0
+
+
+def test_weak_evidence_is_held_back(base):
+    d, T = base
+    res, _ = _result(d, T, "nowall", "run_weak")
+    plan = plan_update([res], strong_scans=10_000)  # one run never enough
+    assert plan.blocks == {} and any(h["block"] == "001" for h in plan.held_back)
+    plan2 = plan_update([res, res], strong_scans=10_000)  # two runs are
+    assert list(plan2.blocks) == ["001"]
+
+
+def test_versions_and_rollback(base, tmp_path):
+    d, T = base
+    import shutil
+
+    shutil.copytree(d / "map", tmp_path / "m")
+    root = tmp_path / "m"
+    v1_manifest = (root / "manifest.json").read_bytes()
+    res, run = _result(d, T, "nowall", "run_versions")
+    rec = apply_update(root, plan_update([res], strong_scans=10), [res], runs=[str(run)])
+    assert versions.current_version(root) == 2
+    hist = versions.history(root)
+    assert [h["version"] for h in hist] == [1, 2] and hist[1]["parent"] == 1 and hist[1]["current"]
+    assert hist[1]["changed_blocks"] == ["001"] and hist[1]["runs"] == [str(run)]
+    assert open_map(root).entry("001").file == "001.v2.pcd"
+    versions.rollback(root, 1)
+    assert versions.current_version(root) == 1 and open_map(root).entry("001").file == "001.pcd"
+    assert json.loads((root / "manifest.json").read_bytes())["entries"] == json.loads(v1_manifest)["entries"]
+    versions.rollback(root, 2)  # forward again: nothing was deleted
+    assert open_map(root).entry("001").file == "001.v2.pcd" and rec["version"] == 2
+    with pytest.raises(MapError, match="--to 7"):
+        versions.rollback(root, 7)
+
+
+@pytest.mark.parametrize("status", ["recovered", "ok"])
+def test_a_wrong_segment_does_not_change_the_map(base, status):
+    """The day is unchanged; frames 5..16 of the run are 2 m off, marked as just relocalized (then
+    skipped by their status and the frames after them) or marked ok (then dropped by the
+    consistency gate). Nothing is applied."""
+    d, T = base
+    P = T.copy()
+    P[5:17, 0, 3] += 1.4
+    P[5:17, 1, 3] -= 1.4
+    st = ["ok"] * len(T)
+    st[5] = status
+    res, _ = _result(d, T, "same", f"run_wrong_{status}", poses=P, status=st)
+    if status == "ok":
+        assert res.scans_rejected >= 10
+    plan = plan_update([res, res], strong_scans=1)  # even the weakest rule applies nothing
+    assert plan.blocks == {} and len(plan.removed) == 0 and len(plan.added) == 0
+
+
+# --------------------------------------------------------------------------- the commands
+
+def _cli(*args):
+    return subprocess.run(["blockloc", *map(str, args)], capture_output=True, text=True)
+
+
+def test_cli_changes_update_info_rollback(base, tmp_path):
+    d, T = base
+    import shutil
+
+    shutil.copytree(d / "map", tmp_path / "map")
+    m = tmp_path / "map"
+    run1 = W.write_run(tmp_path / "run1", d / "nowall", T, ["ok"] * len(T))
+    run2 = W.write_run(tmp_path / "run2", d / "nowall", T, ["ok"] * len(T))
+    r = _cli("map", "changes", "--map", m, "--run", run1)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((run1 / "changes.json").read_text())
+    assert doc["sequence"] == str(d / "nowall") and doc["totals"]["removed_voxels"] > 20
+    assert {b["block"]: b["confirmed"] for b in doc["blocks"]} == {"000": False, "001": True}
+    sha_000 = _sha(m / "000.pcd")
+    r = _cli("map", "update", m, "--run", run1, "--run", run2)
+    assert r.returncode == 0, r.stderr
+    assert "version 2" in r.stdout and "block 001" in r.stdout
+    assert open_map(m).entry("000").sha256 == sha_000 and open_map(m).entry("001").file == "001.v2.pcd"
+    r = _cli("map", "info", m, "--quick")
+    assert r.returncode == 0 and "* v2 (parent v1)" in r.stdout and "blocks 001" in r.stdout
+    r = _cli("map", "info", m, "--quick", "--json")
+    assert [v["version"] for v in json.loads(r.stdout)["versions"]] == [1, 2]
+    r = _cli("map", "rollback", m, "--to", "1")
+    assert r.returncode == 0 and open_map(m).entry("001").file == "001.pcd"
+    r = _cli("map", "rollback", m, "--to", "9")
+    assert r.returncode == 2 and r.stderr.strip().startswith("error: --to 9") and "Traceback" not in r.stderr
+    r = _cli("map", "changes", "--map", m, "--run", tmp_path / "nope")
+    assert r.returncode == 2 and "error: --run" in r.stderr and "poses.tum" in r.stderr
+    r = _cli("map", "update", m, "--run", run1, "--out", d / "nowall")
+    assert r.returncode == 2 and "already exists" in r.stderr
+
+
+def test_served_clients_pick_up_a_new_version_when_they_open_the_map_again(base, tmp_path):
+    """``map serve`` reads files per request: a client that opens the map after an update (or a
+    rollback) gets that version; one still holding the old version reads its old block files
+    (a version's files are never rewritten)."""
+    import shutil
+
+    from blockloc.maps.server import MapServer
+
+    d, T = base
+    shutil.copytree(d / "map", tmp_path / "m")
+    root = tmp_path / "m"
+    res, run = _result(d, T, "nowall", "run_served")
+    with MapServer(root) as srv:
+        old = open_map(srv.url, cache_dir=tmp_path / "cache")
+        old_pts, _ = old.load("001")
+        apply_update(root, plan_update([res], strong_scans=10), [res], runs=[str(run)])
+        new = open_map(srv.url, cache_dir=tmp_path / "cache")
+        assert new.entry("001").file == "001.v2.pcd" and new.entry("000").sha256 == old.entry("000").sha256
+        assert len(new.load("001")[0]) < len(old_pts)
+        np.testing.assert_array_equal(old.load("001")[0], old_pts)  # the old version still reads
+        versions.rollback(root, 1)
+        assert open_map(srv.url, cache_dir=tmp_path / "cache").entry("001").file == "001.pcd"
+
+
+def test_the_place_index_is_rebuilt_for_the_new_version(base, tmp_path):
+    import shutil
+
+    from blockloc.global_init.place_index import (PlaceIndex, build_place_index, load_place_index,
+                                                   write_place_index)
+
+    d, T = base
+    shutil.copytree(d / "map", tmp_path / "m")
+    root = tmp_path / "m"
+    g = np.array([0.0, 0.0, -9.81])
+    _, idx1 = write_place_index(root, g)
+    res, run = _result(d, T, "nowall", "run_index")
+    apply_update(root, plan_update([res], strong_scans=10), [res], runs=[str(run)],
+                 place_index=lambda staged: build_place_index(staged, g).to_bytes())
+    store = open_map(root)
+    assert store.extras["place_index.npz"].file == "place_index.v2.npz"
+    idx2 = load_place_index(store, g, build_missing=False)
+    fresh = build_place_index(store, g)  # what the new version's blocks give
+    assert isinstance(idx2, PlaceIndex) and np.array_equal(idx2.bits, fresh.bits)
+    assert not np.array_equal(idx2.bits, idx1.bits)  # the wall's bits are gone
+    versions.rollback(root, 1)  # the old version keeps its own index
+    assert load_place_index(open_map(root), g, build_missing=False).to_bytes() == idx1.to_bytes()
+
