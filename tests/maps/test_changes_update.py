@@ -212,3 +212,30 @@ def test_the_place_index_is_rebuilt_for_the_new_version(base, tmp_path):
     versions.rollback(root, 1)  # the old version keeps its own index
     assert load_place_index(open_map(root), g, build_missing=False).to_bytes() == idx1.to_bytes()
 
+
+def test_the_app_recipe_updates_with_the_runs_sequence_and_config(base, tmp_path):
+    """``blockloc.app.lifelong`` (what ``map update`` runs): the run's sequence opened from the name
+    its metrics.json records, the config that fits it; the place index of the new version built
+    with that config's ``global_init`` settings and the sequence's gravity."""
+    import shutil
+
+    from blockloc.app.assemble import place_index_params
+    from blockloc.app.lifelong import detect_run_changes, open_block_store, update_map
+    from blockloc.global_init.place_index import build_place_index, load_place_index, write_place_index
+
+    d, T = base
+    shutil.copytree(d / "map", tmp_path / "m")
+    root = tmp_path / "m"
+    run = W.write_run(tmp_path / "run", d / "nowall", T, ["ok"] * len(T))
+    found = detect_run_changes(open_block_store(root), run)
+    assert found.sequence_name == str(d / "nowall") and found.result.scans_used > 0
+    g = np.asarray(found.sequence.info.gravity_map, float)
+    params = place_index_params(found.config.global_init)
+    write_place_index(root, g, params)
+    rec = update_map(root, [found, found], runs=[str(run), str(run)])
+    assert rec["version"] == 2 and rec["changed_blocks"] == ["001"]
+    store = open_map(root)
+    assert store.extras["place_index.npz"].file == "place_index.v2.npz"
+    assert load_place_index(store, g, build_missing=False).to_bytes() == build_place_index(store, g, params).to_bytes()
+    with pytest.raises(MapError, match="no run"):
+        update_map(root, [], runs=[])
