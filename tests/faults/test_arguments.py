@@ -208,11 +208,13 @@ def test_bad_invocation(c: Case, places):
 
 # ----------------------------------------------------------------------------- --help
 COMMANDS = [(), ("eval",), ("sim",), ("map",), ("map", "build"), ("map", "tile"), ("map", "info"),
-            ("map", "plot"), ("map", "serve"), ("map", "index"), ("init",), ("track",), ("demo",), ("view",)]
+            ("map", "plot"), ("map", "serve"), ("map", "index"), ("map", "changes"), ("map", "update"),
+            ("map", "rollback"), ("init",), ("track",), ("demo",), ("view",)]
 
 
 USAGE_METAVARS = {("map", "tile"): "GLOBAL_PCD", ("map", "info"): "MAP", ("map", "plot"): "MAP",
-                  ("map", "serve"): "MAP", ("map", "index"): "MAP", ("view",): "DIR"}
+                  ("map", "serve"): "MAP", ("map", "index"): "MAP", ("map", "update"): "MAP",
+                  ("map", "rollback"): "MAP", ("view",): "DIR"}
 
 
 @case(4, "--help of every command", "exit 0; real metavars: no <bool> or <int> on an option, no "
@@ -254,7 +256,7 @@ def readme_commands(text: str) -> tuple[list[list[str]], list[str]]:
 
 def _command_path(words: list[str]) -> tuple[str, ...]:
     groups = {(): {"eval", "sim", "map", "init", "track", "demo", "view"},
-              ("map",): {"build", "tile", "info", "plot", "serve", "index"}}
+              ("map",): {"build", "tile", "info", "plot", "serve", "index", "changes", "update", "rollback"}}
     path: tuple[str, ...] = ()
     for w in words:
         if w in groups.get(path, ()):
