@@ -63,6 +63,8 @@ M2DGR_LIDAR_TOPIC = "/velodyne_points"
 M2DGR_IMU_TOPIC = "/handsfree/imu"
 
 _SIM_RE = re.compile(r"^sim:(?P<preset>[A-Za-z0-9_\-]+)/(?P<session>[A-Za-z0-9_\-]+)(@(?P<seed>\d+))?$")
+#: the changed world's later days (``loc_m3``, ``loc_m12``, ``map_m12``: ``blockloc.sim.changes``)
+_SIM_LATER_DAY_RE = re.compile(r"^[A-Za-z0-9]+_m\d+$")
 MAP_KINDS = ("block", "grid")
 
 #: Loaders of ``--seq`` paths, tried in this order: kind -> module with ``detect(path) -> bool``,
@@ -176,10 +178,13 @@ class SequenceRef:
 
     def _open_named(self, data_root, dataset_cfg, lidar_topic, imu_topic, options):
         ranges = {k: options[k] for k in ("min_range_m", "max_range_m")}
-        if self.kind == "sim":
-            from blockloc.sim.changes import open_session  # the simulator, only for sim: names (and the changed days)
+        if self.kind == "sim":  # the simulator, only for sim: names
+            if _SIM_LATER_DAY_RE.match(self.sim[1]):  # a day of the changing world (it says which exist)
+                from blockloc.sim.changes import open_session as open_sim
+            else:
+                from blockloc.sim.stream import open_sim_sequence as open_sim
 
-            return RangeLimited(open_session(*self.sim), ranges["min_range_m"], ranges["max_range_m"])
+            return RangeLimited(open_sim(*self.sim), ranges["min_range_m"], ranges["max_range_m"])
         if self.kind == "nclt":
             from blockloc.datasets.nclt import NcltSequence
 

@@ -104,6 +104,12 @@ def test_sim_names_dispatch(monkeypatch):
     assert seq.info == "INFO" and (seq.min_range_m, seq.max_range_m) == (2.0, 80.0)
     assert open_sequence("sim:small/map").info == "INFO"
     assert calls == [("campus", "loc", 7), ("small", "map", 1)]
+    # the changing world's later days open through blockloc.sim.changes
+    later = types.ModuleType("blockloc.sim.changes")
+    later.open_session = lambda preset, session, seed: calls.append(("changes", session)) or SimpleNamespace(
+        info="LATER")
+    monkeypatch.setitem(sys.modules, "blockloc.sim.changes", later)
+    assert open_sequence("sim:small/loc_m12@2").info == "LATER" and calls[-1] == ("changes", "loc_m12")
     with pytest.raises(DatasetError, match=r"expected sim:<preset>/<session>\[@<seed>\]"):
         open_sequence("sim:campus")
 
