@@ -13,6 +13,8 @@ ALBEDO = {"terrain": 0.3, "road": 0.09, "building": 0.3, "wall": 0.25, "fence": 
           "pole": 0.3, "trunk": 0.12, "crown": 0.35, "car": 0.25, "bin": 0.2,
           "pedestrian": 0.15, "vehicle": 0.25, "sign": 0.5, "ceiling": 0.3, "self": 0.15,
           "foliage": 0.4, "sidewalk": 0.22, "grass": 0.35, "glass": 0.05}
+#: Reflectance by ground material code (``World.ground_material``: road, sidewalk, grass, footpath).
+GROUND_ALBEDO = np.array([ALBEDO["road"], ALBEDO["sidewalk"], ALBEDO["grass"], ALBEDO["sidewalk"]])
 
 
 class MeshBuilder:

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from blockloc.sim.world import (_ICO_F, _ICO_V, ALBEDO, MeshBuilder, Movables, World, movable_mesh,
+from blockloc.sim.world import (_ICO_F, _ICO_V, ALBEDO, GROUND_ALBEDO, MeshBuilder, Movables, World, movable_mesh,
                                 movable_meshes, stable_hash)
 from blockloc.threads import raycast_threads
 
@@ -415,9 +415,13 @@ class SessionScene:
         on_ground = cat == self.terrain_cat
         if on_ground.any():
             p = origins[on_ground] + dirs[on_ground] * rng_[on_ground, None]
-            reflect[on_ground] = self.world.ground_albedo(p[:, 0], p[:, 1])
-            if self.detail.ground_relief:
-                self._ground_relief(np.flatnonzero(on_ground), origins, dirs, rng_, normals, reflect, rng)
+            if self.detail.ground_relief:  # the material is looked up once, for both
+                mat = self.world.ground_material(p[:, 0], p[:, 1])
+                reflect[on_ground] = GROUND_ALBEDO[mat]
+                self._ground_relief(np.flatnonzero(on_ground), origins, dirs, rng_, normals, reflect, rng,
+                                    p, mat)
+            else:
+                reflect[on_ground] = self.world.ground_albedo(p[:, 0], p[:, 1])
         on_bldg = np.isin(cat, self._facade_cats)
         lost_at = np.full(len(rng_), np.inf)  # range of the pane a ray is lost at
         if on_bldg.any():
@@ -427,7 +431,7 @@ class SessionScene:
                 self._facades(np.flatnonzero(on_bldg), owner, origins, dirs, rng_, normals,
                               reflect, glass, rng, cat, lost_at)
         if self._vol_scene is not None:
-            self._vegetation(origins, dirs, rng_, normals, reflect, cat, rng)
+            self._vegetation(origins, dirs, rays, rng_, normals, reflect, cat, rng)
         if t is not None and len(self.actors.kind):
             self._cast_actors(origins, dirs, rays, t, max_range, rng_, normals, reflect, cat)
         # A ray lost at a pane stays lost: vegetation or actors stop it only in front of the pane
@@ -444,14 +448,13 @@ class SessionScene:
         return {"range": rng_, "normal": normals, "reflect": reflect, "cat": cat, "glass": glass,
                 "retro": retro}
 
-    def _ground_relief(self, idx, origins, dirs, rng_, normals, reflect, rng) -> None:
+    def _ground_relief(self, idx, origins, dirs, rng_, normals, reflect, rng, p, mat) -> None:
         """Kerbs (sidewalks KERB_M above the road), grass (a layer 4-12 cm high that rays
-        enter and stop in) and a few cm of micro relief, applied along each ground ray."""
+        enter and stop in) and a few cm of micro relief, applied along each ground ray ``idx``,
+        which hit the terrain at ``p`` (len(idx), 3), of ground material ``mat``."""
         world = self.world
         o, d, r = origins[idx], dirs[idx], rng_[idx]
         down = np.maximum(-d[:, 2], 0.02)
-        p = o + d * r[:, None]
-        mat = world.ground_material(p[:, 0], p[:, 1])
         seed = self._seed
         micro = value_noise(p[:, 0], p[:, 1], 0.7, seed) * np.where(mat == 2, 0.02, 0.004)
         r_new = r - micro / down
@@ -554,22 +557,26 @@ class SessionScene:
             refl[ground] = self.world.ground_albedo(p[:, 0], p[:, 1])
         reflect[rays] = refl
 
-    def _vegetation(self, origins, dirs, rng_, normals, reflect, cat, rng) -> None:
+    def _vegetation(self, origins, dirs, rays, rng_, normals, reflect, cat, rng) -> None:
         """Rays through crowns, bushes and hedges: inside a volume a ray stops after an
         exponential free path (mean ``mfp``), or leaves it and goes on (to the trunk, another
-        crown, the ground). Up to four volumes a ray."""
+        crown, the ground). Up to four volumes a ray. ``rays``: (N, 6) float32 origins and
+        directions, the first pass's rays (every ray from its origin)."""
         o3d = self._o3d
         vol = self.world.volumes
         active = np.arange(len(rng_))
         t_cur = np.zeros(len(rng_))
         fol = self._cat_index["foliage"]
-        for _ in range(4):
+        for k in range(4):
             if not len(active):
                 break
-            o = origins[active] + dirs[active] * t_cur[active, None]
-            rays = np.concatenate([o, dirs[active]], axis=1).astype(np.float32)
+            if k:  # on from where each ray left its last volume
+                o = origins[active] + dirs[active] * t_cur[active, None]
+                rays = np.concatenate([o, dirs[active]], axis=1).astype(np.float32)
             a = self._vol_scene.cast_rays(o3d.core.Tensor(rays), nthreads=raycast_threads())
-            th = a["t_hit"].numpy().astype(np.float64) + t_cur[active]
+            th = a["t_hit"].numpy().astype(np.float64)
+            if k:
+                th += t_cur[active]
             hit = np.isfinite(th) & (th < rng_[active])
             active, th = active[hit], th[hit]
             if not len(active):
