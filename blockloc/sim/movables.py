@@ -190,3 +190,82 @@ def session_movables(world: World, session: str, base: bool) -> Movables:
     return Movables(np.concatenate([mv.kind[keep], mv.kind[src]]),
                     np.concatenate([xy[keep], add_xy]), np.concatenate([yaw[keep], add_yaw]),
                     np.concatenate([mv.uid[keep], n + np.arange(n_add) + 1_000_000 * (1 + stable_hash(session) % 97)]))
+
+
+def _boxes_each(cx, cy, z0, z1, lx, ly, yaw) -> np.ndarray:
+    """:func:`box_mesh` of M boxes of their own sizes (lx, ly (M,) too): vertices (M, 8, 3), the
+    same arithmetic as one box at a time."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    corners = np.empty((len(yaw), 4, 2))
+    corners[:, :, 0] = np.stack([-lx, lx, lx, -lx], axis=1)
+    corners[:, :, 1] = np.stack([-ly, -ly, ly, ly], axis=1)
+    corners *= 0.5
+    R = np.empty((len(yaw), 2, 2))
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1] = c, s, -s, c
+    xy = np.matmul(corners, R) + np.stack([cx, cy], axis=-1)[:, None, :]
+    V = np.empty((len(yaw), 8, 3))
+    V[:, :4, :2] = V[:, 4:, :2] = xy
+    V[:, :4, 2], V[:, 4:, 2] = z0[:, None], z1[:, None]
+    return V
+
+
+def _limbs(bx, by, bz, yaw, swing, length: float, thick: float) -> tuple:
+    """:func:`_limb` of M limbs (bx, by, bz, yaw, swing (M,)): the box_mesh arguments, arrays."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    sw, cw = np.sin(swing), np.cos(swing)
+    tx, ty, tz = bx + length * (sw * c), by + length * (sw * s), bz + length * -cw
+    mx, my = (bx + tx) / 2, (by + ty) / 2
+    L = np.abs(sw) * length + thick
+    th = np.full(len(yaw), thick)
+    return mx, my, np.minimum(bz, tz), np.maximum(bz, tz), np.maximum(L, th), th, yaw
+
+
+def actor_meshes(kind: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray, gait: np.ndarray,
+                 terrain: Terrain) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The meshes :func:`movable_mesh` gives actor by actor ('vehicle', 'pedestrian'; gait (K,)
+    rad, NaN: a rigid walker), built at once: vertices (P * 8, 3), triangles (P * 12, 3) and the
+    actor (K,) index of each triangle, the parts in the actors' order (a scan's 20-40 actors were
+    ~150 boxes built one at a time)."""
+    kind = np.asarray(kind).astype(str)
+    z = terrain.height(x, y)
+    veh = kind == "vehicle"
+    walk = (kind == "pedestrian") & np.isfinite(gait)
+    rigid = (kind == "pedestrian") & ~np.isfinite(gait)
+    unknown = ~(veh | walk | rigid)
+    if unknown.any():
+        raise ValueError(f"actor kinds {sorted(set(kind[unknown].tolist()))}: expected vehicle, pedestrian")
+    nparts = np.where(veh, 2, np.where(walk, 6, 1))
+    first = np.concatenate([[0], np.cumsum(nparts)[:-1]]).astype(np.int64)
+    V = np.empty((int(nparts.sum()), 8, 3))
+
+    def put(sel, part, boxes):
+        V[first[sel] + part] = _boxes_each(*boxes)
+
+    if veh.any():
+        m = veh
+        xv, yv, zv, a = x[m], y[m], z[m], yaw[m]
+        one = np.ones(len(a))
+        put(m, 0, (xv, yv, zv + 0.25, zv + 1.0, 4.4 * one, 1.8 * one, a))
+        put(m, 1, (xv - 0.2 * np.cos(a), yv - 0.2 * np.sin(a), zv + 1.0, zv + 1.5, 2.4 * one, 1.6 * one, a))
+    if rigid.any():
+        m = rigid
+        one = np.ones(int(m.sum()))
+        put(m, 0, (x[m], y[m], z[m] - 0.05, z[m] + 1.75, 0.35 * one, 0.5 * one, yaw[m]))
+    if walk.any():  # pedestrian_mesh, height 1.75 m (k = 1)
+        m = walk
+        xw, yw, zw, a = x[m], y[m], z[m], yaw[m]
+        k = 1.75 / 1.75
+        one = np.ones(len(a))
+        hip = zw + 0.9 * k
+        latx, laty = -np.sin(a), np.cos(a)
+        put(m, 0, (xw, yw, hip, zw + 1.5 * k, 0.24 * one, 0.42 * one, a))
+        put(m, 1, (xw, yw, zw + 1.52 * k, zw + 1.75, 0.2 * one, 0.18 * one, a))
+        swing = 0.45 * np.sin(gait[m])
+        for j, (side, sgn) in enumerate(((-1, 1), (1, -1))):
+            put(m, 2 + 2 * j, _limbs(xw + latx * side * 0.1, yw + laty * side * 0.1, hip + 0.0 * side * 0.1,
+                                     a, sgn * swing, 0.9 * k, 0.14))
+            put(m, 3 + 2 * j, _limbs(xw + latx * side * 0.25, yw + laty * side * 0.25,
+                                     zw + 1.45 * k + 0.0 * side * 0.25, a, -sgn * 0.8 * swing, 0.65 * k, 0.09))
+    F = (_BOX_F[None] + 8 * np.arange(len(V))[:, None, None]).reshape(-1, 3).astype(np.int64)
+    owner = np.repeat(np.repeat(np.arange(len(kind)), nparts), len(_BOX_F))
+    return V.reshape(-1, 3), F, owner

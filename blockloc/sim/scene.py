@@ -19,8 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from blockloc.sim.world import (_ICO_F, _ICO_V, ALBEDO, GROUND_ALBEDO, MeshBuilder, Movables, World, movable_mesh,
-                                movable_meshes, stable_hash)
+from blockloc.sim.movables import actor_meshes
+from blockloc.sim.world import (_ICO_F, _ICO_V, ALBEDO, GROUND_ALBEDO, Movables, World, movable_meshes,
+                                stable_hash)
 from blockloc.threads import raycast_threads
 
 log = logging.getLogger(__name__)
@@ -462,23 +463,27 @@ class SessionScene:
         # meets the kerb's face instead
         side = mat == 1
         if side.any():
-            r_side = r[side] - KERB_M / down[side]
-            p1 = o[side] + d[side] * r_side[:, None]
+            o_s, d_s, r_0 = o[side], d[side], r[side]
+            r_side = r_0 - KERB_M / down[side]
+            p1 = o_s + d_s * r_side[:, None]
             face = world.ground_material(p1[:, 0], p1[:, 1]) == 0
-            lo, hi = r_side.copy(), r[side].copy()
-            for _ in range(5):  # bisect on the road edge along the ray
-                mid = 0.5 * (lo + hi)
-                pm = o[side] + d[side] * mid[:, None]
-                on_road = world.ground_material(pm[:, 0], pm[:, 1]) == 0
-                lo = np.where(on_road, mid, lo)
-                hi = np.where(on_road, hi, mid)
-            r_s = np.where(face, hi, r_side)
-            r_new[side] = r_s + (r_new[side] - r[side])
-            n_face = np.c_[-d[side][:, :2], np.zeros(side.sum())]
-            n_face /= np.maximum(np.linalg.norm(n_face, axis=1, keepdims=True), 1e-9)
-            nn = normals[idx[side]]
-            nn[face] = n_face[face]
-            normals[idx[side]] = nn
+            r_s = r_side.copy()
+            if face.any():  # only those rays meet the kerb's face
+                o_f, d_f = o_s[face], d_s[face]
+                lo, hi = r_side[face], r_0[face]
+                for _ in range(5):  # bisect on the road edge along the ray
+                    mid = 0.5 * (lo + hi)
+                    pm = o_f + d_f * mid[:, None]
+                    on_road = world.ground_material(pm[:, 0], pm[:, 1]) == 0
+                    lo = np.where(on_road, mid, lo)
+                    hi = np.where(on_road, hi, mid)
+                r_s[face] = hi
+                n_face = np.c_[-d_f[:, :2], np.zeros(len(d_f))]
+                n_face /= np.maximum(np.linalg.norm(n_face, axis=1, keepdims=True), 1e-9)
+                nn = normals[idx[side]]
+                nn[face] = n_face
+                normals[idx[side]] = nn
+            r_new[side] = r_s + (r_new[side] - r_0)
         grass = mat == 2
         if grass.any():
             g_h = 0.08 + 0.04 * value_noise(p[grass, 0], p[grass, 1], 1.5, seed + 1)
@@ -602,17 +607,13 @@ class SessionScene:
         """Actors within ``radius`` of ``center`` (2,) at time t: (V, F, category per triangle)."""
         xy, yaw = self.actors.poses(t)
         gait = self.actors.gait(t)
-        near = np.linalg.norm(xy - center[:2], axis=1) < radius
-        b = MeshBuilder()
-        cats = []
-        for k in np.flatnonzero(near):
-            kind = str(self.actors.kind[k])
-            g = None if not np.isfinite(gait[k]) else float(gait[k])
-            for V, F in movable_mesh(kind, xy[k, 0], xy[k, 1], yaw[k], self.world.terrain, gait=g):
-                b.add(V, F)
-                cats.append(np.full(len(F), self._cat_index[kind]))
-        V, F = b.build()
-        return V, F, (np.concatenate(cats) if cats else np.zeros(0, dtype=int))
+        near = np.flatnonzero(np.linalg.norm(xy - center[:2], axis=1) < radius)
+        if not len(near):
+            return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), np.zeros(0, dtype=int)
+        kind = self.actors.kind[near]
+        V, F, owner = actor_meshes(kind, xy[near, 0], xy[near, 1], yaw[near], gait[near], self.world.terrain)
+        kind_cat = np.array([self._cat_index[str(k)] for k in kind])
+        return V, F, kind_cat[owner]
 
     def _cast_actors(self, origins, dirs, rays, t, max_range, rng_, normals, reflect, cat) -> None:
         """Overwrite (in place) the returns of rays that hit a moving actor first. Only rays
@@ -630,14 +631,13 @@ class SessionScene:
         o = origins[::step, :2]
         dv = dirs[::step, :2]
         hx = np.hypot(dv[:, 0], dv[:, 1]) + 1e-12
-        sel_c = np.zeros(len(o), dtype=bool)
-        for p in xy[near]:
-            rel = p - o
-            dist = np.hypot(rel[:, 0], rel[:, 1])
-            along = (rel[:, 0] * dv[:, 0] + rel[:, 1] * dv[:, 1]) / hx
-            perp2 = np.maximum(dist * dist - along * along, 0.0)
-            # a column's beams fan out in xy when the sensor tilts: the margin grows with range
-            sel_c |= (perp2 < (3.5 + 0.1 * dist) ** 2) & ((along > 0) | (dist < 3.5))
+        # every (actor, column) pair at once: (K, columns)
+        rel_x, rel_y = xy[near, 0, None] - o[None, :, 0], xy[near, 1, None] - o[None, :, 1]
+        dist = np.hypot(rel_x, rel_y)
+        along = (rel_x * dv[:, 0] + rel_y * dv[:, 1]) / hx
+        perp2 = np.maximum(dist * dist - along * along, 0.0)
+        # a column's beams fan out in xy when the sensor tilts: the margin grows with range
+        sel_c = ((perp2 < (3.5 + 0.1 * dist) ** 2) & ((along > 0) | (dist < 3.5))).any(axis=0)
         sel = np.repeat(sel_c, step)
         idx = np.flatnonzero(sel)
         if not len(idx):
