@@ -7,7 +7,7 @@ and bytes. Writes docs/bench/sim.md.
 Speed probes (print only; docs/bench/sim.md quotes them with their commands), each optionally run
 on another tree (``--tree /work/main``: that tree on PYTHONPATH, for a paired before / after):
 
-    python -m bench.sim --scan-ms campus --frames 40   # median ms a scan, default sensor
+    python -m bench.sim --scan-ms campus --frames 40   # median ms a scan (wall, CPU), default sensor
     python -m bench.sim --write-s small --runs 2       # `blockloc sim --preset small` wall time
 """
 
@@ -46,12 +46,13 @@ from blockloc.sim.stream import open_sim_sequence
 preset, n = sys.argv[1], int(sys.argv[2])
 s = open_sim_sequence(preset, "loc", 1)
 s.frame(100)
-per = []
+per, cpu = [], []
 for i in range(101, 101 + n):
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     s.frame(i)
     per.append(time.perf_counter() - t0)
-print(f"{statistics.median(per) * 1e3:.1f}")
+    cpu.append(time.process_time() - c0)
+print(f"{statistics.median(per) * 1e3:.1f} ms median wall, {statistics.median(cpu) * 1e3:.1f} ms CPU")
 """
 
 
@@ -78,7 +79,7 @@ def speed_probe(args) -> None:
             out = subprocess.run([sys.executable, "-c", _SCAN_MS, args.scan_ms, str(args.frames)], check=True,
                                  capture_output=True, text=True, env=_env(tree), cwd=tree or ROOT).stdout
             print(f"scan-ms {args.scan_ms} ({where}, seed 1, loc frames 101-{100 + args.frames}): "
-                  f"{out.strip()} ms median | before: {load} | after: {_uptime()}", flush=True)
+                  f"{out.strip()} | before: {load} | after: {_uptime()}", flush=True)
     if args.write_s:
         for _ in range(args.runs):
             tmp = Path(tempfile.mkdtemp(prefix="bench-sim-"))

@@ -208,18 +208,24 @@ def value_noise(x: np.ndarray, y: np.ndarray, cell_m: float, seed: int) -> np.nd
     return top * (1 - sy) + bot * sy
 
 
+def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise dot products (N,) of (N, 3) arrays: the bits of ``(a * b).sum(axis=1)`` (the same
+    three products added in the same order), in 40% of its time (a scan has ~70k rays)."""
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+
+
 def _random_unit(rng: np.random.Generator, n: int) -> np.ndarray:
     v = rng.normal(size=(n, 3))
-    return v / np.linalg.norm(v, axis=1, keepdims=True)
+    return v / np.sqrt(dot3(v, v))[:, None]  # np.linalg.norm(v, axis=1, keepdims=True), its bits
 
 
 def ellipsoid_interval(o: np.ndarray, d: np.ndarray, c: np.ndarray, r: np.ndarray):
     """Ray parameters (t_in, t_out) where rays o + t d (N, 3) cross axis-aligned ellipsoids
     (centres c, semi-axes r, (N, 3) each); NaN where they miss."""
     oo, dd = (o - c) / r, d / r
-    a = (dd * dd).sum(axis=1)
-    b = (oo * dd).sum(axis=1)
-    cc = (oo * oo).sum(axis=1) - 1.0
+    a = dot3(dd, dd)
+    b = dot3(oo, dd)
+    cc = dot3(oo, oo) - 1.0
     disc = b * b - a * cc
     sq = np.sqrt(np.where(disc >= 0, disc, np.nan))
     return (-b - sq) / a, (-b + sq) / a
@@ -415,12 +421,12 @@ class SessionScene:
         glass = np.zeros(len(rng_), dtype=bool)
         on_ground = cat == self.terrain_cat
         if on_ground.any():
-            p = origins[on_ground] + dirs[on_ground] * rng_[on_ground, None]
+            o_g, d_g = origins[on_ground], dirs[on_ground]
+            p = o_g + d_g * rng_[on_ground, None]
             if self.detail.ground_relief:  # the material is looked up once, for both
                 mat = self.world.ground_material(p[:, 0], p[:, 1])
                 reflect[on_ground] = GROUND_ALBEDO[mat]
-                self._ground_relief(np.flatnonzero(on_ground), origins, dirs, rng_, normals, reflect, rng,
-                                    p, mat)
+                self._ground_relief(np.flatnonzero(on_ground), o_g, d_g, rng_, normals, reflect, rng, p, mat)
             else:
                 reflect[on_ground] = self.world.ground_albedo(p[:, 0], p[:, 1])
         on_bldg = np.isin(cat, self._facade_cats)
@@ -449,12 +455,13 @@ class SessionScene:
         return {"range": rng_, "normal": normals, "reflect": reflect, "cat": cat, "glass": glass,
                 "retro": retro}
 
-    def _ground_relief(self, idx, origins, dirs, rng_, normals, reflect, rng, p, mat) -> None:
+    def _ground_relief(self, idx, o, d, rng_, normals, reflect, rng, p, mat) -> None:
         """Kerbs (sidewalks KERB_M above the road), grass (a layer 4-12 cm high that rays
-        enter and stop in) and a few cm of micro relief, applied along each ground ray ``idx``,
-        which hit the terrain at ``p`` (len(idx), 3), of ground material ``mat``."""
+        enter and stop in) and a few cm of micro relief, applied along each ground ray ``idx``
+        (origins ``o``, directions ``d``, (len(idx), 3)), which hit the terrain at ``p``
+        (len(idx), 3), of ground material ``mat``."""
         world = self.world
-        o, d, r = origins[idx], dirs[idx], rng_[idx]
+        r = rng_[idx]
         down = np.maximum(-d[:, 2], 0.02)
         seed = self._seed
         micro = value_noise(p[:, 0], p[:, 1], 0.7, seed) * np.where(mat == 2, 0.02, 0.004)
@@ -490,8 +497,9 @@ class SessionScene:
             depth = g_h / down[grass]  # path length through the layer
             stop = np.minimum(rng.exponential(0.25, grass.sum()), depth)
             r_new[grass] = r_new[grass] - depth + stop
-            normals[idx[grass]] = _random_unit(rng, int(grass.sum())) * 0.5 + normals[idx[grass]]
-            normals[idx[grass]] /= np.linalg.norm(normals[idx[grass]], axis=1, keepdims=True)
+            i_g = idx[grass]
+            n_g = _random_unit(rng, len(i_g)) * 0.5 + normals[i_g]
+            normals[i_g] = n_g / np.sqrt(dot3(n_g, n_g))[:, None]
             reflect[idx[grass]] *= rng.uniform(0.6, 1.4, grass.sum())
         rng_[idx] = np.maximum(r_new, 0.05)
 
@@ -515,7 +523,7 @@ class SessionScene:
         level = np.floor(hz / f[:, 7])
         v = hz - level * f[:, 7]
         uu = np.mod(u + f[:, 9], f[:, 8]) / f[:, 8]
-        cos_i = np.maximum(np.abs((n * d).sum(axis=1)), 0.25)
+        cos_i = np.maximum(np.abs(dot3(n, d)), 0.25)
         ledge = vertical & (level >= 1) & (v < 0.4)
         window = vertical & ~ledge & (uu > 0.25) & (uu < 0.85) & (v > 0.9) & (v < f[:, 7] - 0.5) & (hz > 0.3)
         pilaster = vertical & ~ledge & ~window & (uu < 0.12)

@@ -43,3 +43,33 @@ def test_the_pool_hands_frames_back_in_order_across_chunks():
 def test_short_runs_render_in_process():
     assert default_workers(MIN_FRAMES_FOR_WORKERS - 1) == 0
     assert default_workers(10_000) in (0, 2, 3, 4)  # 0 only on a single core
+
+
+def test_actor_meshes_at_once_are_the_meshes_built_one_actor_at_a_time():
+    """``actor_meshes`` (a scan's actors at once) gives the vertices, triangles and order that
+    ``movable_mesh`` per actor gathered in a MeshBuilder gave, bit for bit (walkers mid-stride,
+    rigid walkers, vehicles): the scans stay the same."""
+    from blockloc.sim.movables import actor_meshes
+    from blockloc.sim.world import MeshBuilder, movable_mesh
+
+    scene = open_sim_sequence("small", "loc", 1).scene
+    actors = scene.actors
+    rng = np.random.default_rng(4)
+    kind = np.concatenate([actors.kind, ["pedestrian", "vehicle"]])
+    for t in (0.0, 17.3, 123.45):
+        xy, yaw = actors.poses(t)
+        gait = actors.gait(t)
+        xy = np.vstack([xy, rng.uniform(-60, 60, (2, 2))])
+        yaw, gait = np.append(yaw, [0.3, -2.0]), np.append(gait, [np.nan, np.nan])
+        assert np.isfinite(gait).any() and np.isnan(gait).any()
+        b = MeshBuilder()
+        owner = []
+        for k in range(len(kind)):
+            g = None if not np.isfinite(gait[k]) else float(gait[k])
+            for V, F in movable_mesh(str(kind[k]), xy[k, 0], xy[k, 1], yaw[k], scene.world.terrain, gait=g):
+                b.add(V, F)
+                owner.append(np.full(len(F), k))
+        V0, F0 = b.build()
+        V1, F1, own1 = actor_meshes(kind, xy[:, 0], xy[:, 1], yaw, gait, scene.world.terrain)
+        assert V0.tobytes() == V1.tobytes() and np.array_equal(F0, F1)
+        assert np.array_equal(np.concatenate(owner), own1)
