@@ -4,16 +4,12 @@ removes and adds some), and the meshes of movables and of moving actors (pedestr
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from blockloc.sim.meshes import _BOX_F, box_mesh
 from blockloc.sim.seeds import stable_hash
 from blockloc.sim.terrain import Terrain
-
-if TYPE_CHECKING:
-    from blockloc.sim.world import World
 
 MOVABLE_KINDS = ("car", "bin")
 #: half length and half width (m) of each movable's footprint, as :func:`movable_meshes` draws it
@@ -158,8 +154,8 @@ def off_routes(movables: Movables, route_xy: np.ndarray, clearance_m: float = RO
     return Movables(movables.kind[keep], movables.xy[keep], movables.yaw[keep], movables.uid[keep])
 
 
-def session_movables(world: World, session: str, base: bool) -> Movables:
-    """The movable objects present on a session's day.
+def session_movables(world, session: str, base: bool) -> Movables:
+    """The movable objects present on a session's day (``world``: a ``blockloc.sim.world.World``).
 
     ``base``: the mapping day, the world's base set. Otherwise a deterministic ``movable_change``
     share (at least 10%) of the base objects is changed: a third removed, a third moved (cars
@@ -233,7 +229,8 @@ def actor_meshes(kind: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray
     rigid = (kind == "pedestrian") & ~np.isfinite(gait)
     unknown = ~(veh | walk | rigid)
     if unknown.any():
-        raise ValueError(f"actor kinds {sorted(set(kind[unknown].tolist()))}: expected vehicle, pedestrian")
+        raise ValueError(f"actor kinds {sorted(set(kind[unknown].tolist()))}: "
+                         "expected vehicle, pedestrian")
     nparts = np.where(veh, 2, np.where(walk, 6, 1))
     first = np.concatenate([[0], np.cumsum(nparts)[:-1]]).astype(np.int64)
     V = np.empty((int(nparts.sum()), 8, 3))
@@ -246,7 +243,8 @@ def actor_meshes(kind: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray
         xv, yv, zv, a = x[m], y[m], z[m], yaw[m]
         one = np.ones(len(a))
         put(m, 0, (xv, yv, zv + 0.25, zv + 1.0, 4.4 * one, 1.8 * one, a))
-        put(m, 1, (xv - 0.2 * np.cos(a), yv - 0.2 * np.sin(a), zv + 1.0, zv + 1.5, 2.4 * one, 1.6 * one, a))
+        put(m, 1, (xv - 0.2 * np.cos(a), yv - 0.2 * np.sin(a), zv + 1.0, zv + 1.5, 2.4 * one, 1.6 * one,
+                   a))
     if rigid.any():
         m = rigid
         one = np.ones(int(m.sum()))
@@ -265,7 +263,8 @@ def actor_meshes(kind: np.ndarray, x: np.ndarray, y: np.ndarray, yaw: np.ndarray
             put(m, 2 + 2 * j, _limbs(xw + latx * side * 0.1, yw + laty * side * 0.1, hip + 0.0 * side * 0.1,
                                      a, sgn * swing, 0.9 * k, 0.14))
             put(m, 3 + 2 * j, _limbs(xw + latx * side * 0.25, yw + laty * side * 0.25,
-                                     zw + 1.45 * k + 0.0 * side * 0.25, a, -sgn * 0.8 * swing, 0.65 * k, 0.09))
+                                     zw + 1.45 * k + 0.0 * side * 0.25, a, -sgn * 0.8 * swing,
+                                     0.65 * k, 0.09))
     F = (_BOX_F[None] + 8 * np.arange(len(V))[:, None, None]).reshape(-1, 3).astype(np.int64)
     owner = np.repeat(np.repeat(np.arange(len(kind)), nparts), len(_BOX_F))
     return V.reshape(-1, 3), F, owner

@@ -26,8 +26,8 @@ import numpy as np
 from blockloc.sim.layout import (Roads, Volumes, _add_building, _bush, _buildings, _Facades, _fence,
                                  _footpath, _hedge, _passages, _road_lines, _tree, _Vegetation,
                                  polyline_distance)
-from blockloc.sim.meshes import (_BOX_F, _ICO_F, _ICO_V, ALBEDO, GROUND_ALBEDO, MeshBuilder, box_mesh, cylinder_mesh,
-                                 ellipsoid_mesh)
+from blockloc.sim.meshes import (_BOX_F, _ICO_F, _ICO_V, ALBEDO, GROUND_ALBEDO, MeshBuilder, box_mesh,
+                                 cylinder_mesh, ellipsoid_mesh)
 from blockloc.sim.movables import (MOVABLE_HALF_EXTENT_M, MOVABLE_KINDS, ROUTE_CLEARANCE_M, Movables,
                                    movable_mesh, movable_meshes, off_routes, pedestrian_mesh,
                                    session_movables)
@@ -37,11 +37,12 @@ from blockloc.sim.terrain import Terrain, make_terrain, smootherstep, smootherst
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ALBEDO", "GROUND_ALBEDO", "MATERIAL_TILES", "MOVABLE_HALF_EXTENT_M", "MOVABLE_KINDS", "ROUTE_CLEARANCE_M",
-           "MeshBuilder", "Movables", "Roads", "Terrain", "Volumes", "World", "_BOX_F", "_ICO_F", "_ICO_V",
-           "box_mesh", "build_world", "cylinder_mesh", "ellipsoid_mesh", "make_terrain", "movable_mesh",
-           "movable_meshes", "off_routes", "pedestrian_mesh", "polyline_distance", "session_movables",
-           "smootherstep", "smootherstep_d", "stable_hash", "terrain_mesh"]
+__all__ = ["ALBEDO", "GROUND_ALBEDO", "MATERIAL_TILES", "MOVABLE_HALF_EXTENT_M", "MOVABLE_KINDS",
+           "ROUTE_CLEARANCE_M", "MeshBuilder", "Movables", "Roads", "Terrain", "Volumes", "World",
+           "_BOX_F", "_ICO_F", "_ICO_V", "box_mesh", "build_world", "cylinder_mesh", "ellipsoid_mesh",
+           "make_terrain", "movable_mesh", "movable_meshes", "off_routes", "pedestrian_mesh",
+           "polyline_distance", "session_movables", "smootherstep", "smootherstep_d", "stable_hash",
+           "terrain_mesh"]
 
 #: Ground-material raster tiles (128 m, 0.25 m cells, four 2-bit codes a byte: 64 KiB each) a
 #: world keeps, the least recently used dropped first: 64 MiB at most. Grazing rays hit the
