@@ -14,6 +14,7 @@ on another tree (``--tree /work/main``: that tree on PYTHONPATH, for a paired be
 from __future__ import annotations
 
 import argparse
+import resource
 import shutil
 import statistics
 import subprocess
@@ -86,13 +87,16 @@ def speed_probe(args) -> None:
             try:
                 load = _uptime()
                 t0 = time.perf_counter()
+                r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 subprocess.run(["blockloc", "sim", "--preset", args.write_s, "--seed", "1", "--out",
                                 str(tmp / "sim_out")], check=True, stdout=subprocess.DEVNULL,
                                stderr=subprocess.DEVNULL, env=_env(tree), cwd=tree or ROOT)
                 wall = time.perf_counter() - t0
+                r1 = resource.getrusage(resource.RUSAGE_CHILDREN)  # the command and its workers
+                cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
             finally:
                 shutil.rmtree(tmp, ignore_errors=True)
-            print(f"write-s {args.write_s} ({where}, seed 1): {wall:.1f} s wall | before: {load} | "
+            print(f"write-s {args.write_s} ({where}, seed 1): {wall:.1f} s wall, {cpu:.1f} s CPU | before: {load} | "
                   f"after: {_uptime()}", flush=True)
 
 
