@@ -62,11 +62,12 @@ def _uptime() -> str:
 
 
 def _env(tree: Path | None) -> dict:
+    """The environment of a probe's command: ``tree`` (default this one) first on PYTHONPATH, so
+    that the `blockloc` console script (installed editable from elsewhere) runs that code."""
     import os
 
     env = dict(os.environ)
-    if tree is not None:
-        env["PYTHONPATH"] = str(tree)
+    env["PYTHONPATH"] = str(tree or ROOT)
     return env
 
 
