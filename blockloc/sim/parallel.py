@@ -1,10 +1,9 @@
 """Rendering a session's frames in worker processes, handed back in order.
 
 A frame is a pure function of (preset, seed, session, index) (``blockloc.sim.stream``), so the
-process that casts it does not change its bytes (tested). Most of a scan's CPU is single-threaded
-numpy (open3d's casts are about a quarter of it), so a dataset written by one process uses about
-one core; workers cast chunks of consecutive frames while the calling process writes. Opt-in
-(``generate_dataset(..., workers=2)``): see :func:`default_workers`.
+process that casts it does not change its bytes. Most of a scan's CPU is single-threaded numpy
+(open3d's casts are about a third of it), so writing a dataset on one process used one core of
+two; workers cast chunks of consecutive frames while the calling process writes.
 """
 
 from __future__ import annotations
@@ -21,23 +20,21 @@ log = logging.getLogger(__name__)
 
 #: Consecutive frames a worker renders per task (~2 MB a frame travels back pickled).
 CHUNK_FRAMES = 8
-#: A worker costs ~2 s of CPU to start (numpy, open3d and the world's scene in a fresh process):
-#: below this many frames in all it cannot pay for itself.
+#: Fewer frames than this in all are rendered in the calling process: a worker costs ~1-2 s to
+#: start (numpy, open3d and the world's scene in a fresh process).
 MIN_FRAMES_FOR_WORKERS = 200
 
 _SEQUENCES: dict = {}  # in a worker: (preset, session, seed) -> SimSequence
 
 
 def default_workers(n_frames: int) -> int:
-    """Worker processes ``generate_dataset`` uses unless told: 0 (render in the calling process).
-
-    Not on by default yet: on this 2-core machine, shared and loaded (load 12-22), a whole
-    ``blockloc sim --preset small`` with 2 workers spent ~4x the CPU a frame of the same run in
-    one process (workers' CPU over frames written, 2026-12-05 22:42-23:00), while short runs
-    (64 frames, ``generate_dataset(..., max_frames=64, workers=2)``) spent what one process does
-    plus each worker's ~2 s start. Until that is understood, ask for them (``workers=2``)."""
-    del n_frames
-    return 0
+    """Worker processes for ``n_frames`` frames: 0 (render here) for short runs or one core,
+    else the cores this process may use (at most 4)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    return 0 if n_frames < MIN_FRAMES_FOR_WORKERS or cores < 2 else min(cores, 4)
 
 
 def _init_worker() -> None:

@@ -40,9 +40,9 @@ def test_the_pool_hands_frames_back_in_order_across_chunks():
             assert x.dtype == y.dtype and np.array_equal(x, y)
 
 
-def test_datasets_render_in_the_calling_process_unless_workers_are_asked_for():
+def test_short_runs_render_in_process():
     assert default_workers(MIN_FRAMES_FOR_WORKERS - 1) == 0
-    assert default_workers(10_000) == 0
+    assert default_workers(10_000) in (0, 2, 3, 4)  # 0 only on a single core
 
 
 def test_actor_meshes_at_once_are_the_meshes_built_one_actor_at_a_time():
