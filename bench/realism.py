@@ -182,6 +182,8 @@ def main(argv: list[str] | None = None) -> Path:
     ap.add_argument("--skip-kiss", action="store_true")
     ap.add_argument("--scans", type=int, default=24, help="scans per simulated column (>= 20)")
     ap.add_argument("--kiss-frames", type=int, nargs=2, default=(1000, 650), metavar=("SMALL", "CAMPUS"))
+    ap.add_argument("--out", type=Path, default=OUT,
+                    help="where the fragment goes (default docs/bench/realism.md, whose notes are by hand)")
     args = ap.parse_args(argv)
     from bench.__main__ import machine
 
@@ -245,10 +247,10 @@ def main(argv: list[str] | None = None) -> Path:
     lines += ["", f"Run time {(time.time() - t_start) / 60:.1f} min."]
     from blockloc.fileio import atomic_write_text
 
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(OUT, "\n".join(lines) + "\n")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(args.out, "\n".join(lines) + "\n")
     print("\n".join(lines))
-    return OUT
+    return args.out
 
 
 if __name__ == "__main__":

@@ -3,11 +3,18 @@ and bytes. Writes docs/bench/sim.md.
 
     python -m bench.sim            # full (writes the small dataset once, ~1 min)
     python -m bench.sim --quick    # fewer repetitions, no dataset write
+
+Speed probes (print only; docs/bench/sim.md quotes them with their commands), each optionally run
+on another tree (``--tree /work/main``: that tree on PYTHONPATH, for a paired before / after):
+
+    python -m bench.sim --scan-ms campus --frames 40   # median ms a scan (wall, CPU), default sensor
+    python -m bench.sim --write-s small --runs 2       # `blockloc sim --preset small` wall time
 """
 
 from __future__ import annotations
 
 import argparse
+import resource
 import shutil
 import statistics
 import subprocess
@@ -33,10 +40,79 @@ def _du(path: Path) -> int:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
 
 
-def main(argv: list[str] | None = None) -> Path:
+# frames 100 .. 100 + n of a session's `loc` drive, timed one by one after a first (the scene)
+_SCAN_MS = """
+import statistics, sys, time
+from blockloc.sim.stream import open_sim_sequence
+preset, n = sys.argv[1], int(sys.argv[2])
+s = open_sim_sequence(preset, "loc", 1)
+s.frame(100)
+per, cpu = [], []
+for i in range(101, 101 + n):
+    t0, c0 = time.perf_counter(), time.process_time()
+    s.frame(i)
+    per.append(time.perf_counter() - t0)
+    cpu.append(time.process_time() - c0)
+print(f"{statistics.median(per) * 1e3:.1f} ms median wall, {statistics.median(cpu) * 1e3:.1f} ms CPU")
+"""
+
+
+def _uptime() -> str:
+    return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+
+
+def _env(tree: Path | None) -> dict:
+    """The environment of a probe's command: ``tree`` (default this one) first on PYTHONPATH, so
+    that the `blockloc` console script (installed editable from elsewhere) runs that code."""
+    import os
+
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(tree or ROOT)
+    return env
+
+
+def speed_probe(args) -> None:
+    """--scan-ms / --write-s: print each run's figure with the machine's load beside it."""
+    tree = Path(args.tree).resolve() if args.tree else None
+    where = f"tree {tree}" if tree else f"tree {ROOT}"
+    if args.scan_ms:
+        for _ in range(args.runs):
+            load = _uptime()
+            out = subprocess.run([sys.executable, "-c", _SCAN_MS, args.scan_ms, str(args.frames)], check=True,
+                                 capture_output=True, text=True, env=_env(tree), cwd=tree or ROOT).stdout
+            print(f"scan-ms {args.scan_ms} ({where}, seed 1, loc frames 101-{100 + args.frames}): "
+                  f"{out.strip()} | before: {load} | after: {_uptime()}", flush=True)
+    if args.write_s:
+        for _ in range(args.runs):
+            tmp = Path(tempfile.mkdtemp(prefix="bench-sim-"))
+            try:
+                load = _uptime()
+                t0 = time.perf_counter()
+                r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+                subprocess.run(["blockloc", "sim", "--preset", args.write_s, "--seed", "1", "--out",
+                                str(tmp / "sim_out")], check=True, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL, env=_env(tree), cwd=tree or ROOT)
+                wall = time.perf_counter() - t0
+                r1 = resource.getrusage(resource.RUSAGE_CHILDREN)  # the command and its workers
+                cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+            finally:
+                shutil.rmtree(tmp, ignore_errors=True)
+            print(f"write-s {args.write_s} ({where}, seed 1): {wall:.1f} s wall, {cpu:.1f} s CPU | before: {load} | "
+                  f"after: {_uptime()}", flush=True)
+
+
+def main(argv: list[str] | None = None) -> Path | None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--scan-ms", metavar="PRESET", help="probe: median ms a scan of PRESET's loc drive")
+    ap.add_argument("--write-s", metavar="PRESET", help="probe: wall s of `blockloc sim --preset PRESET`")
+    ap.add_argument("--frames", type=int, default=40, help="--scan-ms: frames timed")
+    ap.add_argument("--runs", type=int, default=1, help="probe runs (each printed)")
+    ap.add_argument("--tree", help="probe another source tree (its path on PYTHONPATH), e.g. /work/main")
     args = ap.parse_args(argv)
+    if args.scan_ms or args.write_s:
+        speed_probe(args)
+        return None
     from bench.__main__ import machine
 
     from blockloc.sim.presets import get_preset

@@ -3,7 +3,9 @@
 - ``generate_dataset(preset, seed, out, fmt="nclt")`` writes every session (NCLT layout or bags).
 - ``blockloc.sim.stream.open_sim_sequence(preset, session, seed)`` streams one session.
 
-Submodules: presets, world, trajectory, scene, lidar, stream, writer.
+Submodules: presets, seeds; the world: terrain, meshes, layout, movables, world (``build_world``);
+trajectory, scene (ray casting), lidar, stream (``SimSequence``), parallel (worker processes),
+writer, render.
 """
 
 from __future__ import annotations

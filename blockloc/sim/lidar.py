@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from blockloc.sim.presets import LidarModel
+from blockloc.sim.scene import dot3
 
 #: Elevation (deg, up positive) of HDL-32E lasers 0..31 in firing order (Velodyne manual).
 HDL32E_ELEVATION_DEG = np.array([
@@ -157,7 +158,7 @@ def simulate_scan(scene, T_world_lidar_cols: np.ndarray, col_offsets: np.ndarray
         rng_true = np.where(mine, r_self, rng_true)
         cat = np.where(mine, scene.categories.index("self"), cat)
         reflect = np.where(mine, 0.15, reflect)
-    cosi = np.abs((normals * dirs).sum(axis=1))
+    cosi = np.abs(dot3(normals, dirs))
     if model.mixed_pixel_prob > 0:
         rng_true = _mixed_pixels(rng_true.reshape(A, 32), model, rng).reshape(-1)
     noise = rng.normal(0.0, model.range_noise_m, n)

@@ -32,6 +32,7 @@ import numpy as np
 
 from blockloc.errors import SimError
 from blockloc.fileio import replace_dir
+from blockloc.sim.parallel import FramePool, default_workers
 from blockloc.sim.presets import get_preset
 from blockloc.sim.stream import SimSequence
 
@@ -51,13 +52,17 @@ def _counting(frames, seq: SimSequence, progress: Progress | None):
 
 def generate_dataset(preset: str, seed: int, out: Path, fmt: str = "nclt", *,
                      progress: Progress | None = None, sessions: tuple[str, ...] | None = None,
-                     max_frames: int | None = None, months: tuple[int, ...] = (), **overrides) -> Path:
+                     max_frames: int | None = None, months: tuple[int, ...] = (), workers: int | None = None,
+                     **overrides) -> Path:
     """Simulate every session of ``preset`` with ``seed`` and write them under ``out``.
 
     fmt: nclt | rosbag1 | rosbag2. progress: called after each frame. sessions: a subset (default
     all). max_frames: cap per session (tests). months: also write the changing world's later days
     (``blockloc.sim.changes``: 3 -> loc_m3, 12 -> loc_m12 and map_m12; NCLT format only), each
-    with ``point_labels/`` and ``changes.json``. overrides: preset fields (``azimuth_steps``...).
+    with ``point_labels/`` and ``changes.json``, rendered in this process. workers: processes
+    rendering the preset's own sessions while this one writes (0: render here; None:
+    :func:`blockloc.sim.parallel.default_workers`); the bytes written do not depend on it.
+    overrides: preset fields (``azimuth_steps``...).
     Returns ``out``. An existing ``out`` is replaced only when the new dataset is complete.
     """
     from blockloc.datasets.nclt import NCLT_GRAVITY_MAP, NCLT_T_BODY_IMU, NCLT_T_BODY_LIDAR, write_session
@@ -76,7 +81,13 @@ def generate_dataset(preset: str, seed: int, out: Path, fmt: str = "nclt", *,
             raise SimError(f"sim session {s!r}: preset {p.name} has {', '.join(p.sessions)}")
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
+    seqs = {s: SimSequence(p, s, seed) if s in p.sessions else changes.ChangedSimSequence(p, s, seed)
+            for s in names}
+    counts = {s: len(q) if max_frames is None else min(len(q), int(max_frames)) for s, q in seqs.items()}
+    if workers is None:
+        workers = default_workers(sum(counts.values()))
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    pool = FramePool(workers) if workers > 0 else None
     try:
         meta = {"generator": "blockloc.sim", "format_version": 1, "preset": p.name, "seed": int(seed),
                 "format": fmt, "sessions": {}, "azimuth_steps": p.lidar.azimuth_steps,
@@ -85,10 +96,12 @@ def generate_dataset(preset: str, seed: int, out: Path, fmt: str = "nclt", *,
                            "T_body_imu": np.asarray(NCLT_T_BODY_IMU).tolist(),
                            "gravity_map": list(NCLT_GRAVITY_MAP)}}
         for s in names:
-            seq = SimSequence(p, s, seed) if s in p.sessions else changes.ChangedSimSequence(p, s, seed)
-            n = len(seq) if max_frames is None else min(len(seq), int(max_frames))
-            frames = _counting(seq.frames(0, n) if s in p.sessions else
-                               changes.labelled_frames(seq, n, tmp / f".{s}-labels"), seq, progress)
+            seq, n = seqs[s], counts[s]
+            if s not in p.sessions:  # a changed day: labelled frames, rendered here
+                rendered = changes.labelled_frames(seq, n, tmp / f".{s}-labels")
+            else:
+                rendered = seq.frames(0, n) if pool is None else pool.frames(p, s, int(seed), 0, n)
+            frames = _counting(rendered, seq, progress)
             imu = seq.imu()
             gt = seq.ground_truth()
             if max_frames is not None:  # keep IMU / ground truth to the frames' time span
@@ -128,3 +141,6 @@ def generate_dataset(preset: str, seed: int, out: Path, fmt: str = "nclt", *,
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    finally:
+        if pool is not None:
+            pool.close()
