@@ -291,6 +291,56 @@ class Session:
             return None, True
         return np.asarray(res.T_map_body), True
 
+    # ----------------------------------------------------------------- live sources
+    def extend_imu(self, t: np.ndarray, acc: np.ndarray, gyro: np.ndarray) -> int:
+        """A live source's IMU samples that arrived after the session was made: t (K,) s ascending,
+        acc, gyro (K, 3) imu frame; ``step`` feeds them like the sequence's own. Samples not after
+        the last one held are ignored; those fed more than 2 s ago are let go (a long run keeps
+        no growing buffer). Returns how many were appended."""
+        from blockloc.datasets.base import ImuData
+
+        t = np.asarray(t, np.float64).reshape(-1)
+        last = float(self.imu.t[-1]) if len(self.imu) else -np.inf
+        keep = t > last
+        if not keep.any():
+            return 0
+        fed_until = float(self.imu.t[self._imu_next - 1]) if self._imu_next > 0 else -np.inf
+        drop = int(np.searchsorted(self.imu.t, fed_until - 2.0, side="left")) if self._imu_next > 0 else 0
+        drop = min(drop, self._imu_next)
+        self.imu = ImuData(np.concatenate([self.imu.t[drop:], t[keep]]),
+                           np.concatenate([np.asarray(self.imu.acc).reshape(-1, 3)[drop:],
+                                           np.asarray(acc, np.float64).reshape(-1, 3)[keep]]),
+                           np.concatenate([np.asarray(self.imu.gyro).reshape(-1, 3)[drop:],
+                                           np.asarray(gyro, np.float64).reshape(-1, 3)[keep]]))
+        self._imu_next -= drop
+        return int(keep.sum())
+
+    def restart_stream(self) -> None:
+        """A live source restarted (its stamps jumped back): the tracker forgets its state and
+        the IMU held is let go; the next verified :meth:`reinitialize` starts it again."""
+        from blockloc.datasets.base import ImuData
+
+        self.tracker.reset()
+        self.imu = ImuData(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)))
+        self._imu_next = 0
+        self._last_stamp = None
+        self._imu_gap_s = 0.0
+
+    def reinitialize(self, frame, pose_hint: tuple | None = None) -> bool:
+        """A live source: global init of ``frame`` (a LidarFrame) around ``pose_hint`` = (x, y,
+        yaw or None), map frame, m and rad (None: over the whole map). A verified pose restarts
+        the tracker there (True); otherwise the tracker is left as it was (False)."""
+        self.start()
+        # (the mode of ``step`` stays: it does not search again on the same frame)
+        self.init_info.setdefault("mode", "global" if pose_hint is None else "pose")
+        hint_xy = None if pose_hint is None else (float(pose_hint[0]), float(pose_hint[1]))
+        T, _, _ = self._global_init(frame, hint_xy, None if pose_hint is None else pose_hint[2])
+        if T is None:
+            return False
+        self.tracker.initialize(T, float(frame.stamp))
+        self.init_info["first_frame"] = int(frame.index)
+        return True
+
     # ----------------------------------------------------------------- the frame step
     def start(self) -> None:
         """Tell the observers the run starts (``step`` does it on the first frame)."""

@@ -310,6 +310,31 @@ class Tracker:
         self._bad_streak = 0
         self._lost_frames = 0
 
+    def reset(self) -> None:
+        """Forget the state: window, IMU samples, last good pose (a live stream that restarted
+        with earlier stamps); ``initialize`` starts it again. Counters and the mode stay."""
+        self.window.clear()
+        self.imu = ImuBuffer()
+        self._last_ndt = None
+        self._last_good = None
+        self._last_good_motion = None
+        self._recent_fitness = []
+        self._bad_streak = 0
+        self._lost_frames = 0
+
+    def use_lidar_only(self) -> None:
+        """Go on LiDAR-only (the IMU stopped): the window restarts at the newest keyframe's pose
+        and velocity as a pose + twist keyframe; later IMU samples are ignored. No-op when
+        LiDAR-only already."""
+        if self.lidar_only:
+            return
+        latest = self.window.latest
+        state = self._state(latest) if latest is not None else None
+        self.lidar_only = True
+        if state is not None:
+            nav, _ = state
+            self.initialize(nav.pose().matrix(), self.window.stamps[latest], velocity_map=np.asarray(nav.velocity()))
+
     def insert_imu(self, t: float, acc: np.ndarray, gyro: np.ndarray) -> None:
         """One IMU sample: t seconds, acc (3,) m/s^2 specific force and gyro (3,) rad/s, imu frame.
 
