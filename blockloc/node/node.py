@@ -296,6 +296,8 @@ class LocalizationNode:
             hint, self._hint = self._hint, None
             reloc, self._relocalize = self._relocalize, False
         if not session.tracker.initialized or hint is not None or reloc:
+            log.info("t=%.2f: global init %s", frame.stamp, "over the whole map" if hint is None
+                     else f"around ({hint[0]:.1f}, {hint[1]:.1f})")
             ok = session.reinitialize(frame, hint)
             if not ok:
                 if hint is not None and not session.tracker.initialized:

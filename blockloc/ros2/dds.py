@@ -14,9 +14,11 @@ keep last 1: /tf_static, a map).
 
 from __future__ import annotations
 
+import atexit
 import logging
 import os
 import threading
+import weakref
 from typing import Callable
 
 from blockloc.errors import BlocklocError
@@ -134,6 +136,7 @@ class Dds:
         self.user_uri = user_uri or None
         self._topics: dict[str, object] = {}
         self._entities: list = []
+        _register_for_exit(self)
 
     def _topic(self, ros_topic: str, msg_type):
         from cyclonedds.topic import Topic
@@ -159,7 +162,9 @@ class Dds:
         from cyclonedds.internal import InvalidSample
         from cyclonedds.sub import DataReader
 
-        def on_data_available(reader):
+        made: list = []
+
+        def drain(reader) -> None:
             try:
                 for msg in reader.take(64):
                     if isinstance(msg, InvalidSample):  # a writer left (dispose / unregister): no data
@@ -168,13 +173,22 @@ class Dds:
             except Exception:  # noqa: BLE001 - a bad sample must not end the subscription
                 log.exception("%s: a message could not be handled", ros_topic)
 
+        def on_data_available(_reader) -> None:
+            # Cyclone may call back while the reader is being made (latched samples), before the
+            # Python object exists: those are taken right after construction
+            if made:
+                drain(made[0])
+
         r = DataReader(self.participant, self._topic(ros_topic, msg_type), qos=_qos(*qos),
                        listener=Listener(on_data_available=on_data_available))
+        made.append(r)
+        drain(r)
         self._entities.append(r)
         return r
 
     def close(self) -> None:
-        """Leave the domain (readers stop calling back). Idempotent."""
+        """Leave the domain (readers stop calling back). Idempotent; done at exit for a
+        participant left open (a process whose listeners still call back does not exit)."""
         if self.participant is None:
             return
         for e in self._entities:
@@ -185,3 +199,17 @@ class Dds:
         self._entities.clear()
         self._topics.clear()
         self.participant = None  # cyclonedds deletes the entities with their last reference
+
+
+_OPEN: "weakref.WeakSet[Dds]" = weakref.WeakSet()
+
+
+def _register_for_exit(dds: Dds) -> None:
+    if not _OPEN:
+        atexit.register(_close_all)
+    _OPEN.add(dds)
+
+
+def _close_all() -> None:
+    for dds in list(_OPEN):
+        dds.close()
