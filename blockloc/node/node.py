@@ -30,6 +30,7 @@ from typing import Callable
 
 import numpy as np
 
+from blockloc.errors import BlocklocError
 from blockloc.node.player import FrameNames
 
 log = logging.getLogger(__name__)
@@ -66,6 +67,7 @@ class NodeStats:
     dropped: int = 0
     bad_scans: int = 0
     failed_scans: int = 0
+    max_waiting: int = 0  # the most scans ever waiting at once (at most queue_size)
     nan_points: int = 0
     imu_samples: int = 0
     imu_out_of_order: int = 0
@@ -138,6 +140,7 @@ class LocalizationNode:
                 self._scans.popleft()  # the oldest waiting scan: processing fell behind
                 self.stats.dropped += 1
             self._scans.append((msg, time.monotonic()))
+            self.stats.max_waiting = max(self.stats.max_waiting, len(self._scans))
             self._last_arrival = time.monotonic()
             self._lock.notify_all()
 
@@ -298,7 +301,11 @@ class LocalizationNode:
         if not session.tracker.initialized or hint is not None or reloc:
             log.info("t=%.2f: global init %s", frame.stamp, "over the whole map" if hint is None
                      else f"around ({hint[0]:.1f}, {hint[1]:.1f})")
-            ok = session.reinitialize(frame, hint)
+            try:
+                ok = session.reinitialize(frame, hint)
+            except BlocklocError as exc:  # e.g. a scan that cannot be levelled without an IMU
+                ok = False
+                log.warning("t=%.2f: global init failed: %s", frame.stamp, exc)
             if not ok:
                 if hint is not None and not session.tracker.initialized:
                     with self._lock:
