@@ -12,11 +12,32 @@ from blockloc.errors import BlocklocError
 
 log = logging.getLogger("blockloc")
 
-GRAVITY = {"up": (0.0, 0.0, -9.81), "down": (0.0, 0.0, 9.81)}  # the map's z axis (REP 103: up)
+def map_gravity(store, option: str | None) -> np.ndarray:
+    """Gravity (3,) in the map frame, m/s^2: ``--gravity`` (down | up | X,Y,Z), else the one the
+    map's place index was built for, else that of the sequence the map was built from, else z up
+    (REP 103) with a warning."""
+    from blockloc.commands.map import parse_gravity
+    from blockloc.global_init.place_index import PLACE_INDEX_NAME, PlaceIndex
+
+    if option is not None:
+        return parse_gravity(option)
+    if store.has_extra(PLACE_INDEX_NAME):
+        return np.asarray(PlaceIndex.from_bytes(store.load_extra(PLACE_INDEX_NAME)).gravity_map, float)
+    source = store.params.get("sequence")
+    if source:
+        from blockloc.datasets import open_sequence
+
+        try:
+            return np.asarray(open_sequence(str(source)).info.gravity_map, float)
+        except BlocklocError:
+            pass
+    log.warning("the map's gravity is unknown (no place index, no mapping sequence): z up; "
+                "give --gravity down|up|X,Y,Z")
+    return parse_gravity("up")
 
 
 def node_command(map_path: str, config: str | None, init_pose: str | None, points_topic: str, imu_topic: str,
-                 out: Path | None, discovery: str | None, gravity: str = "up", sets: list[str] | None = None,
+                 out: Path | None, discovery: str | None, gravity: str | None = None, sets: list[str] | None = None,
                  no_data_timeout_s: float = 5.0, queue_size: int = 2, frames: dict | None = None) -> None:
     from blockloc.commands.common import Interrupted, check_results_dir, config_for, interruptible, parse_pose_hint
     from blockloc.commands.track import run_observers, write_run_report
@@ -25,11 +46,10 @@ def node_command(map_path: str, config: str | None, init_pose: str | None, point
     from blockloc.node.player import FrameNames
     from blockloc.ros2.dds import Dds
 
-    if gravity not in GRAVITY:
-        raise BlocklocError(f"--gravity {gravity!r}: expected up or down (the map's z axis)")
     hint = parse_pose_hint(init_pose, "--init-pose") if init_pose else None
     cfg = config_for(None, config, sets)
     store = _assemble.open_store(map_path, cfg)
+    gravity_map = map_gravity(store, gravity)
     lo = np.min([e.bounds_min[:2] for e in store.entries], axis=0)
     hi = np.max([e.bounds_max[:2] for e in store.entries], axis=0)
     if out is not None:
@@ -42,7 +62,7 @@ def node_command(map_path: str, config: str | None, init_pose: str | None, point
     dds = Dds(discovery)
     settings = NodeSettings(points_topic=points_topic, imu_topic=imu_topic, frames=FrameNames(**(frames or {})),
                             queue_size=queue_size, no_data_timeout_s=no_data_timeout_s)
-    node = LocalizationNode(dds, make_session, settings=settings, gravity_map=GRAVITY[gravity],
+    node = LocalizationNode(dds, make_session, settings=settings, gravity_map=gravity_map,
                             map_bounds=(tuple(lo), tuple(hi)), init_pose=hint)
     where = "CYCLONEDDS_URI" if dds.user_uri else f"{dds.discovery} discovery"
     print(f"blockloc node: map {map_path}; listening on {points_topic} and {imu_topic} "

@@ -10,6 +10,7 @@ import threading
 import time
 
 import numpy as np
+import pytest
 
 from tests.faults.conftest import blockloc_env
 from tests.node.conftest import wait_until
@@ -146,3 +147,24 @@ def test_node_with_a_missing_map_is_one_error_line(loopback_dds, tmp_path):
     assert p.finish(60) == 2
     lines = p.err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error:") and "nowhere" in lines[0]
+
+
+def test_the_node_takes_gravity_from_the_option_else_the_maps_place_index(tiny_live_world, tmp_path):
+    import shutil
+
+    from blockloc.commands.node import map_gravity
+    from blockloc.maps.store import open_map
+
+    store = open_map(tiny_live_world["map"])
+    assert map_gravity(store, None) == pytest.approx(tiny_live_world["seq"].info.gravity_map)
+    assert map_gravity(store, "down") == pytest.approx([0.0, 0.0, 9.81])
+    # no place index and a mapping sequence that cannot be opened: z up, said once
+    bare = tmp_path / "bare"
+    shutil.copytree(tiny_live_world["map"], bare)
+    import json
+
+    manifest = json.loads((bare / "manifest.json").read_text())
+    manifest.pop("extras", None)
+    manifest["parameters"]["sequence"] = "nowhere:at/all"
+    (bare / "manifest.json").write_text(json.dumps(manifest))
+    assert map_gravity(open_map(bare), None) == pytest.approx([0.0, 0.0, -9.81])
