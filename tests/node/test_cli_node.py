@@ -78,9 +78,10 @@ def test_play_into_node_end_to_end_and_ctrl_c_keeps_the_run(tiny_live_world, loo
     play = None
     try:
         node.wait_for("listening on /points", 120)
-        # half the recorded pace: the machine running the tests is shared
-        play = Proc("play", "--seq", w["session"], "--config", w["config"], "--rate", "0.5")
-        assert play.finish(180) == 0, play.err
+        # a quarter of the recorded pace: the machine running the tests is shared (a node that falls
+        # behind drops scans, by design)
+        play = Proc("play", "--seq", w["session"], "--config", w["config"], "--rate", "0.25")
+        assert play.finish(300) == 0, play.err
         assert "120 scans" in play.err and "ground-truth poses published" in play.err
         wait_until(lambda: len(got["pose"]) >= 40, 30, f"poses ({len(got['pose'])} so far)")
         time.sleep(1.0)
