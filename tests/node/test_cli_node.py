@@ -83,7 +83,10 @@ def test_play_into_node_end_to_end_and_ctrl_c_keeps_the_run(tiny_live_world, loo
         play = Proc("play", "--seq", w["session"], "--config", w["config"], "--rate", "0.25")
         assert play.finish(300) == 0, play.err
         assert "120 scans" in play.err and "ground-truth poses published" in play.err
-        wait_until(lambda: len(got["pose"]) >= 40, 30, f"poses ({len(got['pose'])} so far)")
+        try:
+            wait_until(lambda: len(got["pose"]) >= 40, 30, "poses")
+        except AssertionError as exc:
+            raise AssertionError(f"{exc} ({len(got['pose'])} so far); the node said: {node.err[-2000:]}") from None
         time.sleep(1.0)
         node.proc.send_signal(signal.SIGINT)
         assert node.finish(120) == 130, node.err
