@@ -340,6 +340,54 @@ def demo_cmd(
     demo_command(out, max_frames, record=not no_record)
 
 
+# ----------------------------------------------------------------------------- live: ROS 2 over DDS
+@app.command("node")
+def node_cmd(
+    map_path: str = typer.Option(..., "--map", metavar=MAP, help="Map store directory or URL."),
+    config: Optional[str] = typer.Option(None, "--config", metavar=FILE, help="Config file or preset name."),
+    init_pose: Optional[str] = typer.Option(None, "--init-pose", metavar="X,Y[,YAW]",
+                                            help="x,y[,yaw]: global init around a hint (default: the whole map)."),
+    points_topic: str = typer.Option("/points", "--points-topic", metavar="TOPIC", help="sensor_msgs/PointCloud2 in."),
+    imu_topic: str = typer.Option("/imu/data", "--imu-topic", metavar="TOPIC", help="sensor_msgs/Imu in (none: LiDAR-only)."),
+    out: Optional[Path] = typer.Option(None, "--out", metavar=DIR, help="Also write a results folder as track does."),
+    discovery: Optional[str] = typer.Option(None, "--discovery", metavar="localhost|subnet",
+                                            help="DDS discovery range (default localhost, or ROS_AUTOMATIC_DISCOVERY_RANGE)."),
+    gravity: Optional[str] = typer.Option(None, "--gravity", metavar="down|up|X,Y,Z",
+                                          help="Gravity in the map frame (default: the map's place index's)."),
+    no_data_timeout: float = typer.Option(5.0, "--no-data-timeout", metavar="S", min=0.0,
+                                          help="Seconds without a scan before the diagnostics say 'no data'."),
+    map_frame: str = typer.Option("map", "--map-frame", metavar="FRAME", help="TF name of the map frame."),
+    odom_frame: str = typer.Option("odom", "--odom-frame", metavar="FRAME", help="TF name of the odometry frame."),
+    base_frame: str = typer.Option("base_link", "--base-frame", metavar="FRAME", help="TF name of the body frame."),
+    sets: Optional[list[str]] = typer.Option(None, "--set", metavar="SECTION.KEY=VALUE", help=SET_HELP),
+) -> None:
+    """Localize live: a ROS 2 node over DDS (PointCloud2 + Imu in; pose, odometry, /tf, diagnostics
+    and the local map out) until Ctrl-C."""
+    from blockloc.commands.node import node_command
+
+    node_command(map_path, config, init_pose, points_topic, imu_topic, out, discovery, gravity, sets or [],
+                 no_data_timeout_s=no_data_timeout, frames={"map": map_frame, "odom": odom_frame, "base": base_frame})
+
+
+@app.command("play")
+def play_cmd(
+    seq: str = typer.Option(..., "--seq", metavar=SEQ, help="Sequence: sim:small/loc, nclt_2, a bag, a scan folder."),
+    rate: float = typer.Option(1.0, "--rate", metavar="X", help="Pace: 1.0 as recorded, 3.0 three times faster."),
+    loop: bool = typer.Option(False, "--loop", help="Start over at the end (the stamps jump back)."),
+    max_frames: Optional[int] = typer.Option(None, "--max-frames", metavar="N", min=1, help="Play only this many scans."),
+    config: Optional[str] = typer.Option(None, "--config", metavar=FILE, help="Config file or preset name."),
+    data_root: Optional[str] = typer.Option(None, "--data-root", metavar=DIR, help="Root of the datasets."),
+    discovery: Optional[str] = typer.Option(None, "--discovery", metavar="localhost|subnet",
+                                            help="DDS discovery range (default localhost)."),
+    points_topic: str = typer.Option("/points", "--points-topic", metavar="TOPIC", help="PointCloud2 out."),
+    imu_topic: str = typer.Option("/imu/data", "--imu-topic", metavar="TOPIC", help="Imu out."),
+) -> None:
+    """Publish a sequence as ROS 2 topics over DDS at its recorded pace (clouds, IMU, /tf_static, ground truth)."""
+    from blockloc.commands.play import play_command
+
+    play_command(seq, rate, loop, max_frames, config, data_root, discovery, points_topic, imu_topic)
+
+
 @app.command("view")
 def view_cmd(
     run_dir: Path = typer.Argument(..., metavar=DIR, help="A results folder (or one .mcap file)."),

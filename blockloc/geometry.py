@@ -7,6 +7,7 @@ convention of NCLT's ground truth and of ROS's ``rpy``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -116,6 +117,57 @@ def rotation_angle(R: np.ndarray) -> np.ndarray:
     """Angle (rad) of rotation matrices (3, 3) or (N, 3, 3)."""
     tr = np.trace(R, axis1=-2, axis2=-1)
     return np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0))
+
+
+def covariance_to_ros(cov_tangent: np.ndarray, R_map_body: np.ndarray) -> np.ndarray:
+    """(6, 6) Pose3 tangent covariance (rot, trans; body frame, right perturbation) -> ROS order.
+
+    ROS's ``PoseWithCovariance`` holds (x, y, z, rotation about X, Y, Z) in the header's frame
+    (``map``). With ``T = T_hat Exp([w, v])`` the position moves by ``R v`` and the orientation by
+    the rotation vector ``R w`` about the map's fixed axes (first order), so the ROS covariance
+    is ``J P J^T`` with ``J = [[0, R], [R, 0]]``. Returns (6, 6) float64.
+    """
+    R = np.asarray(R_map_body, dtype=np.float64)
+    J = np.zeros((6, 6))
+    J[:3, 3:] = R
+    J[3:, :3] = R
+    out = J @ np.asarray(cov_tangent, dtype=np.float64) @ J.T
+    return 0.5 * (out + out.T)
+
+
+def quat_xyzw(R: np.ndarray) -> np.ndarray:
+    """(3, 3) or (N, 3, 3) rotation -> (4,) or (N, 4) unit quaternion x, y, z, w (w >= 0)."""
+    R = np.asarray(R, dtype=np.float64)
+    if R.ndim == 3:
+        from scipy.spatial.transform import Rotation
+
+        q = Rotation.from_matrix(R).as_quat()
+        return q * np.where(q[:, 3:] < 0, -1.0, 1.0)
+    return _quat_one(R)
+
+
+def _quat_one(R: np.ndarray) -> np.ndarray:
+    """One (3, 3) rotation -> (4,) x, y, z, w with w >= 0. Shepperd's method on the largest of
+    w, x, y, z; numpy scalars because scipy's Rotation costs ~0.3 ms a call, too much per frame."""
+    m00, m01, m02 = R[0]
+    m10, m11, m12 = R[1]
+    m20, m21, m22 = R[2]
+    tr = m00 + m11 + m22
+    if tr >= max(m00, m11, m22):
+        w = 0.5 * math.sqrt(max(1.0 + tr, 0.0))
+        x, y, z = (m21 - m12) / (4 * w), (m02 - m20) / (4 * w), (m10 - m01) / (4 * w)
+    elif m00 >= m11 and m00 >= m22:
+        x = 0.5 * math.sqrt(max(1.0 + m00 - m11 - m22, 0.0))
+        w, y, z = (m21 - m12) / (4 * x), (m01 + m10) / (4 * x), (m02 + m20) / (4 * x)
+    elif m11 >= m22:
+        y = 0.5 * math.sqrt(max(1.0 - m00 + m11 - m22, 0.0))
+        w, x, z = (m02 - m20) / (4 * y), (m01 + m10) / (4 * y), (m12 + m21) / (4 * y)
+    else:
+        z = 0.5 * math.sqrt(max(1.0 - m00 - m11 + m22, 0.0))
+        w, x, y = (m10 - m01) / (4 * z), (m02 + m20) / (4 * z), (m12 + m21) / (4 * z)
+    q = np.array([x, y, z, w])
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
 
 
 def lever_arm_scaling(H: np.ndarray) -> np.ndarray:

@@ -135,7 +135,7 @@ def test_the_contracts_name_every_top_level_module_and_package():
     assert not missing, f"pyproject.toml's layers contract places no layer for: {missing}"
 
 
-HEAVY = ("numba", "gtsam", "open3d", "small_gicp", "dask", "distributed", "scipy", "matplotlib")
+HEAVY = ("numba", "gtsam", "open3d", "small_gicp", "dask", "distributed", "scipy", "matplotlib", "cyclonedds")
 
 
 def test_help_loads_no_heavy_library():

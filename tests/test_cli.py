@@ -15,7 +15,7 @@ def test_help_and_version():
 
 def test_cli_import_stays_light():
     code = ("import sys, blockloc.cli; heavy = [m for m in ('gtsam', 'open3d', 'numba', 'matplotlib', "
-            "'small_gicp', 'rosbags', 'scipy') if m in sys.modules]; print(','.join(heavy))")
+            "'small_gicp', 'rosbags', 'scipy', 'cyclonedds') if m in sys.modules]; print(','.join(heavy))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == ""
 

@@ -38,6 +38,7 @@ import numpy as np
 
 from blockloc.app.recovery import GlobalInitSettings, Recovery
 from blockloc.app.stream_checks import StreamChecks
+from blockloc.datasets.base import ImuData
 from blockloc.errors import BlocklocError, TrackingError
 from blockloc.evaluation.results import run_metrics
 from blockloc.geometry import Trajectory
@@ -177,6 +178,63 @@ class Session:
         """The tracker's recovery (:meth:`Recovery.relocalize`): a verified T_map_body or None;
         every attempt is in ``reloc_log``."""
         return self.recovery.relocalize(points_lidar, hint, gravity_body, stamp)
+
+    # ----------------------------------------------------------------- live sources
+    def extend_imu(self, t: np.ndarray, acc: np.ndarray, gyro: np.ndarray) -> int:
+        """A live source's IMU samples that arrived after the session was made: t (K,) s ascending,
+        acc, gyro (K, 3) imu frame; ``step`` feeds them like the sequence's own (and global init
+        and relocalization level and deskew scans with them). Samples not after the last one held
+        are ignored; those fed more than 2 s ago are let go (a long run keeps no growing buffer).
+        Returns how many were appended."""
+        t = np.asarray(t, np.float64).reshape(-1)
+        last = float(self.imu.t[-1]) if len(self.imu) else -np.inf
+        keep = t > last
+        if not keep.any():
+            return 0
+        fed_until = float(self.imu.t[self._imu_next - 1]) if self._imu_next > 0 else -np.inf
+        drop = int(np.searchsorted(self.imu.t, fed_until - 2.0, side="left")) if self._imu_next > 0 else 0
+        drop = min(drop, self._imu_next)
+        self._hold_imu(ImuData(np.concatenate([self.imu.t[drop:], t[keep]]),
+                               np.concatenate([np.asarray(self.imu.acc).reshape(-1, 3)[drop:],
+                                               np.asarray(acc, np.float64).reshape(-1, 3)[keep]]),
+                               np.concatenate([np.asarray(self.imu.gyro).reshape(-1, 3)[drop:],
+                                               np.asarray(gyro, np.float64).reshape(-1, 3)[keep]])))
+        self._imu_next -= drop
+        return int(keep.sum())
+
+    def restart_stream(self) -> None:
+        """A live source restarted (its stamps jumped back): the tracker forgets its state and
+        the IMU held is let go, the gap checks start over; the next verified
+        :meth:`reinitialize` starts it again."""
+        self.tracker.reset()
+        self._hold_imu(ImuData(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3))))
+        self._imu_next = 0
+        self.stream.restart()
+
+    def drop_imu(self) -> None:
+        """A live source's IMU stopped: the tracker goes on LiDAR-only from its newest state
+        (:meth:`blockloc.tracking.estimator.Estimator.without_imu`; no change when it is already)."""
+        self.tracker = self.tracker.without_imu()
+
+    def reinitialize(self, frame, pose_hint: tuple | None = None) -> bool:
+        """A live source: global init of ``frame`` (a LidarFrame) around ``pose_hint`` = (x, y,
+        yaw or None), map frame, m and rad (None: over the whole map). A verified pose restarts
+        the tracker there (True); otherwise the tracker is left as it was (False)."""
+        self.start()
+        # (the mode of ``step`` stays: it does not search again on the same frame)
+        self.init_info.setdefault("mode", "global" if pose_hint is None else "pose")
+        hint_xy = None if pose_hint is None else (float(pose_hint[0]), float(pose_hint[1]))
+        T, _, _ = self._global_init(frame, hint_xy, None if pose_hint is None else pose_hint[2])
+        if T is None:
+            return False
+        self.tracker.initialize(T, float(frame.stamp))
+        self.init_info["first_frame"] = int(frame.index)
+        return True
+
+    def _hold_imu(self, imu: ImuData) -> None:
+        """The IMU samples held from now on (the session's and its recovery's: one buffer)."""
+        self.imu = imu
+        self.recovery.imu = imu
 
     # ----------------------------------------------------------------- the frame step
     def start(self) -> None:

@@ -20,6 +20,11 @@ class StreamChecks:
         self._last_stamp: float | None = None
         self._imu_gap_s = 0.0  # the longest gap of the IMU gap in progress, or 0
 
+    def restart(self) -> None:
+        """The stream started over (a live source's stamps jumped back): no gap in progress."""
+        self._last_stamp = None
+        self._imu_gap_s = 0.0
+
     def imu_gap(self, index: int, gap_s: float) -> None:
         """Count a gap of the IMU stream once, logged on the first frame it spans and on the
         frame where samples are back (the frames between see the same gap, growing)."""

@@ -60,7 +60,7 @@ def run_observers(out_dir: Path, *, record: bool = True, record_path: Path | Non
         from blockloc.viz.live import LiveServer
 
         server = LiveServer(host, port)
-        web, _ = server.app_urls
+        web, _ = server.app_urls()
         print(f"live view: {server.url} (Foxglove: {web})", file=sys.stderr, flush=True)
         observers.append(server)
     return observers

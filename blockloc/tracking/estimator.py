@@ -159,6 +159,22 @@ class Estimator:
         self._bad_streak = 0
         self._lost_frames = 0
 
+    def reset(self) -> None:
+        """Forget the state: window, last good pose, recent fitness (a live stream that restarted
+        with earlier stamps); :meth:`initialize` starts it again. Counters and the variant stay."""
+        self.window.clear()
+        self._last_ndt = None
+        self._last_good = None
+        self._last_good_motion = None
+        self._recent_fitness = []
+        self._bad_streak = 0
+        self._lost_frames = 0
+
+    def without_imu(self) -> "Estimator":
+        """The estimator to go on with when the IMU stops mid-run: the LiDAR-only variant
+        continuing from this one's newest state (itself when it uses no IMU)."""
+        raise NotImplementedError
+
     def _gravity_body(self, T_map_body: np.ndarray | None) -> np.ndarray:
         if T_map_body is not None:
             return T_map_body[:3, :3].T @ self.gravity_map

@@ -29,6 +29,17 @@ class ImuTracker(Estimator):
     def insert_imu(self, t: float, acc: np.ndarray, gyro: np.ndarray) -> None:
         self.imu.insert(t, acc, gyro)
 
+    def reset(self) -> None:
+        """Forget the state and the IMU samples held (their stamps are from before the restart)."""
+        super().reset()
+        self.imu = ImuBuffer()
+
+    def without_imu(self) -> Estimator:
+        """A :class:`LidarOnlyTracker` restarted at the newest keyframe's pose and velocity."""
+        from blockloc.tracking.lidar_only import LidarOnlyTracker
+
+        return LidarOnlyTracker.continuing(self)
+
     def _start_keyframe(self, i, T, stamp, vel, bias, sigma_vel_m_s) -> None:
         import gtsam
 

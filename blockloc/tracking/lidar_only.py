@@ -48,6 +48,27 @@ class LidarOnlyTracker(Estimator):
         super().__init__(**kwargs)
         self.motion_noise = self.params.motion_noise()
 
+    @classmethod
+    def continuing(cls, other: Estimator) -> "LidarOnlyTracker":
+        """A LiDAR-only tracker going on from ``other`` (an estimator whose IMU stopped): the
+        same collaborators, settings and counters, its window restarted at ``other``'s newest
+        keyframe as a pose + twist keyframe (pose and map velocity of that state, at its stamp);
+        uninitialized when ``other`` was."""
+        new = cls(map_provider=other.map_provider, registration=other.registration,
+                  T_body_lidar=other.T_body_lidar, gravity_map=other.gravity_map, settings=other.settings,
+                  relocalize=other.relocalize)
+        new.counters = other.counters
+        new._next_index = other._next_index
+        new.last_scan_lidar = other.last_scan_lidar
+        latest = other.window.latest
+        if latest is not None:
+            nav, _ = other._state(latest)
+            new.initialize(nav.pose().matrix(), other.window.stamps[latest], velocity_map=np.asarray(nav.velocity()))
+        return new
+
+    def without_imu(self) -> "LidarOnlyTracker":
+        return self
+
     def insert_imu(self, t: float, acc: np.ndarray, gyro: np.ndarray) -> None:
         """Ignored: this estimator uses no IMU."""
 

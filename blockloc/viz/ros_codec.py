@@ -2,8 +2,9 @@
 
 Nothing here hand-encodes bytes: messages are rosbags' generated classes, serialized by
 ``typestore.serialize_cdr``; the schemas are rosbags' concatenated ``.msg`` definitions
-(``ros2msg``, what ``ros2 bag`` writes). Plus the small math the messages need: quaternions and
-the covariance in ROS's order and frame.
+(``ros2msg``, what ``ros2 bag`` writes). The small math the messages need, quaternions and the
+covariance in ROS's order and frame, is :mod:`blockloc.geometry`'s (shared with
+:mod:`blockloc.ros2`); a rotation vector is here.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from typing import Iterable
 
 import numpy as np
 
+from blockloc.geometry import _quat_one, covariance_to_ros, quat_xyzw  # noqa: F401 - their names here too
 from blockloc.viz.events import VizError
 
 FRAME_MAP, FRAME_ODOM, FRAME_BASE, FRAME_LIDAR = "map", "odom", "base_link", "lidar"
@@ -46,57 +48,6 @@ def stamp_ns(stamp_s: float) -> int:
     if not stamp_s >= 0.0:
         raise VizError(f"stamp {stamp_s!r} s: MCAP and ROS 2 need non-negative times")
     return int(round(stamp_s * 1e9))
-
-
-def covariance_to_ros(cov_tangent: np.ndarray, R_map_body: np.ndarray) -> np.ndarray:
-    """(6, 6) Pose3 tangent covariance (rot, trans; body frame, right perturbation) -> ROS order.
-
-    ROS's ``PoseWithCovariance`` holds (x, y, z, rotation about X, Y, Z) in the header's frame
-    (``map``). With ``T = T_hat Exp([w, v])`` the position moves by ``R v`` and the orientation by
-    the rotation vector ``R w`` about the map's fixed axes (first order), so the ROS covariance
-    is ``J P J^T`` with ``J = [[0, R], [R, 0]]``. Returns (6, 6) float64.
-    """
-    R = np.asarray(R_map_body, dtype=np.float64)
-    J = np.zeros((6, 6))
-    J[:3, 3:] = R
-    J[3:, :3] = R
-    out = J @ np.asarray(cov_tangent, dtype=np.float64) @ J.T
-    return 0.5 * (out + out.T)
-
-
-def quat_xyzw(R: np.ndarray) -> np.ndarray:
-    """(3, 3) or (N, 3, 3) rotation -> (4,) or (N, 4) unit quaternion x, y, z, w (w >= 0)."""
-    R = np.asarray(R, dtype=np.float64)
-    if R.ndim == 3:
-        from scipy.spatial.transform import Rotation
-
-        q = Rotation.from_matrix(R).as_quat()
-        return q * np.where(q[:, 3:] < 0, -1.0, 1.0)
-    return _quat_one(R)
-
-
-def _quat_one(R: np.ndarray) -> np.ndarray:
-    """One (3, 3) rotation -> (4,) x, y, z, w with w >= 0. Shepperd's method on the largest of
-    w, x, y, z; numpy scalars because scipy's Rotation costs ~0.3 ms a call, too much per frame."""
-    m00, m01, m02 = R[0]
-    m10, m11, m12 = R[1]
-    m20, m21, m22 = R[2]
-    tr = m00 + m11 + m22
-    if tr >= max(m00, m11, m22):
-        w = 0.5 * math.sqrt(max(1.0 + tr, 0.0))
-        x, y, z = (m21 - m12) / (4 * w), (m02 - m20) / (4 * w), (m10 - m01) / (4 * w)
-    elif m00 >= m11 and m00 >= m22:
-        x = 0.5 * math.sqrt(max(1.0 + m00 - m11 - m22, 0.0))
-        w, y, z = (m21 - m12) / (4 * x), (m01 + m10) / (4 * x), (m02 + m20) / (4 * x)
-    elif m11 >= m22:
-        y = 0.5 * math.sqrt(max(1.0 - m00 + m11 - m22, 0.0))
-        w, x, z = (m02 - m20) / (4 * y), (m01 + m10) / (4 * y), (m12 + m21) / (4 * y)
-    else:
-        z = 0.5 * math.sqrt(max(1.0 - m00 - m11 + m22, 0.0))
-        w, x, y = (m10 - m01) / (4 * z), (m02 + m20) / (4 * z), (m12 + m21) / (4 * z)
-    q = np.array([x, y, z, w])
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
 
 
 def rotation_vector(R: np.ndarray) -> np.ndarray:

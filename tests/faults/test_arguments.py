@@ -209,7 +209,7 @@ def test_bad_invocation(c: Case, places):
 # ----------------------------------------------------------------------------- --help
 COMMANDS = [(), ("eval",), ("sim",), ("map",), ("map", "build"), ("map", "tile"), ("map", "info"),
             ("map", "plot"), ("map", "serve"), ("map", "index"), ("map", "changes"), ("map", "update"),
-            ("map", "rollback"), ("init",), ("track",), ("demo",), ("view",)]
+            ("map", "rollback"), ("init",), ("track",), ("demo",), ("view",), ("node",), ("play",)]
 
 
 USAGE_METAVARS = {("map", "tile"): "GLOBAL_PCD", ("map", "info"): "MAP", ("map", "plot"): "MAP",
@@ -255,7 +255,7 @@ def readme_commands(text: str) -> tuple[list[list[str]], list[str]]:
 
 
 def _command_path(words: list[str]) -> tuple[str, ...]:
-    groups = {(): {"eval", "sim", "map", "init", "track", "demo", "view"},
+    groups = {(): {"eval", "sim", "map", "init", "track", "demo", "view", "node", "play"},
               ("map",): {"build", "tile", "info", "plot", "serve", "index", "changes", "update", "rollback"}}
     path: tuple[str, ...] = ()
     for w in words:

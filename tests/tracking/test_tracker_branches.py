@@ -244,3 +244,54 @@ def test_each_rejection_is_counted_under_its_reason(flaw):
     assert said == ["", flaw, flaw]  # what diagnostics.csv shows per scan
     reasons = {k: v for k, v in tr.counters.items() if k.startswith("rejected_") and v}
     assert tr.counters["rejected"] == 2 and reasons == {f"rejected_{flaw}": 2}
+
+
+def test_imu_stopping_mid_run_goes_on_lidar_only_from_the_current_state():
+    """``without_imu`` (a live IMU that stopped): a LiDAR-only estimator starting at the IMU
+    estimator's newest pose and velocity, sharing its counters; the drive goes on without a jump."""
+    from blockloc.tracking.lidar_only import LidarOnlyTracker
+    from blockloc.tracking.window import keys_of
+
+    v = np.array([1.0, 0.5, 0.0])  # constant velocity: the IMU reads only gravity's reaction
+
+    def truth(t):
+        T = T_START.copy()
+        T[:3, 3] += v * t
+        return T
+
+    tr = _tracker(ScriptedRegistration())
+    tr.initialize(truth(0.0), 0.0, velocity_map=v)
+    for k in range(1, 6):
+        _feed_imu(tr, 0.1 * (k - 1), 0.1 * k + 1e-9)
+        est = tr.insert_frame(_frame(k, 0.1 * k))
+    assert est.diagnostics.status == "ok"
+    lo = tr.without_imu()
+    assert isinstance(lo, LidarOnlyTracker) and lo.lidar_only and not tr.lidar_only
+    assert lo.counters is tr.counters and lo.initialized and len(lo.window) == 1
+    T_last = tr.window.values.atPose3(keys_of(tr.window.latest)[0]).matrix()
+    np.testing.assert_allclose(lo.window.values.atPose3(keys_of(lo.window.latest)[0]).matrix(), T_last, atol=1e-9)
+    assert lo.window.stamps[lo.window.latest] == pytest.approx(0.5)
+    frames_before = tr.counters["frames"]
+    for k in range(6, 16):
+        lo.insert_imu(0.1 * k, np.zeros(3), np.ones(3))  # ignored: no IMU from here
+        est = lo.insert_frame(_frame(k, 0.1 * k))
+        assert est.diagnostics.status == "ok"
+        assert np.linalg.norm(est.T_map_body[:3, 3] - truth(0.1 * k)[:3, 3]) < 0.01
+    np.testing.assert_allclose(est.velocity_map, v, atol=0.01)
+    assert tr.counters["frames"] == frames_before + 10  # one set of counters for the run
+    assert lo.without_imu() is lo
+
+
+def test_reset_forgets_the_state_and_the_imu_but_keeps_the_counters():
+    tr = _tracker(ScriptedRegistration())
+    tr.initialize(T_START, 0.0, velocity_map=np.zeros(3))
+    _feed_imu(tr, 0.0, 0.1 + 1e-9)
+    tr.insert_frame(_frame(1, 0.1))
+    tr.reset()
+    assert not tr.initialized and len(tr.imu) == 0 and tr.counters["frames"] == 1
+    T2 = xyzrpy_to_T(-3.0, 4.0, 0.0, 0.0, 0.0, -1.0)
+    tr.initialize(T2, 10.0, velocity_map=np.zeros(3))  # earlier history does not matter
+    _feed_imu(tr, 10.0, 10.1 + 1e-9)
+    est = tr.insert_frame(_frame(2, 10.1))
+    assert est.diagnostics.status == "ok"
+    np.testing.assert_allclose(est.T_map_body, T2, atol=1e-3)

@@ -1,0 +1,174 @@
+"""``blockloc play`` and ``blockloc node`` as a user types them, side by side over loopback DDS."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from tests.faults.conftest import blockloc_env
+from tests.node.conftest import wait_until
+
+
+class Proc:
+    """A ``blockloc`` subprocess whose stderr is collected as it comes."""
+
+    def __init__(self, *args: str) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-m", "blockloc.cli", *map(str, args)], stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, env=blockloc_env())
+        self._err = bytearray()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        while chunk := os.read(self.proc.stderr.fileno(), 4096):
+            self._err += chunk
+
+    @property
+    def err(self) -> str:
+        return self._err.decode(errors="replace")
+
+    def wait_for(self, text: str, timeout_s: float) -> None:
+        t0 = time.monotonic()
+        while text not in self.err:
+            assert self.proc.poll() is None, f"exited {self.proc.returncode} before {text!r}: {self.err[-1500:]}"
+            assert time.monotonic() - t0 < timeout_s, f"no {text!r} within {timeout_s} s: {self.err[-1500:]}"
+            time.sleep(0.05)
+
+    def finish(self, timeout_s: float) -> int:
+        try:
+            code = self.proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait(10)
+            raise AssertionError(f"still running after {timeout_s} s: {self.err[-1500:]}") from None
+        self._reader.join(10)
+        return code
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(10)
+
+
+def listen():
+    """A participant of the test collecting the node's poses and the player's ground truth."""
+    from blockloc.ros2 import dds as d
+    from blockloc.ros2 import messages as m
+
+    p = d.Dds()
+    got = {"pose": [], "gt": [], "diag": []}
+    p.reader("/blockloc/pose", m.PoseWithCovarianceStamped, got["pose"].append, d.RELIABLE)
+    p.reader("/blockloc/ground_truth", m.Odometry, got["gt"].append, d.RELIABLE)
+    p.reader("/diagnostics", m.DiagnosticArray, got["diag"].append, d.RELIABLE)
+    return p, got
+
+
+def test_play_into_node_end_to_end_and_ctrl_c_keeps_the_run(tiny_live_world, loopback_dds, tmp_path):
+    w = tiny_live_world
+    out = tmp_path / "run"
+    dds, got = listen()
+    node = Proc("node", "--map", w["map"], "--config", w["config"], "--out", out)
+    play = None
+    try:
+        node.wait_for("listening on /points", 120)
+        # a quarter of the recorded pace: the machine running the tests is shared (a node that falls
+        # behind drops scans, by design)
+        play = Proc("play", "--seq", w["session"], "--config", w["config"], "--rate", "0.25")
+        assert play.finish(300) == 0, play.err
+        assert "120 scans" in play.err and "ground-truth poses published" in play.err
+        try:
+            wait_until(lambda: len(got["pose"]) >= 40, 30, "poses")
+        except AssertionError as exc:
+            raise AssertionError(f"{exc} ({len(got['pose'])} so far); the node said: {node.err[-2000:]}") from None
+        time.sleep(1.0)
+        node.proc.send_signal(signal.SIGINT)
+        assert node.finish(120) == 130, node.err
+    finally:
+        node.kill()
+        if play is not None:
+            play.kill()
+        dds.close()
+    assert "node stopped:" in node.err and "Traceback" not in node.err
+    from blockloc.ros2.messages import time_to_stamp
+
+    truth = w["seq"].ground_truth()
+
+    def error(msg) -> float:
+        p = msg.pose.pose.position
+        return float(np.linalg.norm(np.array([p.x, p.y, p.z])
+                                    - truth.interpolate(np.array([time_to_stamp(msg.header.stamp)]))[0][:3, 3]))
+
+    assert len(got["gt"]) >= 100 and max(error(g) for g in got["gt"]) < 1e-6  # the player's ground truth
+    errors = [error(p) for p in got["pose"]]
+    assert len(errors) >= 40 and np.median(errors) < 0.3, (len(errors), np.round(errors, 2))
+    # the run folder track writes, kept after Ctrl-C
+    for name in ("poses.tum", "metrics.json", "diagnostics.csv", "run.mcap", "report.html"):
+        assert (out / name).is_file(), name
+    import json
+
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["interrupted"] is True and metrics["frames"] >= 40
+
+
+def test_sigterm_during_global_init_ends_cleanly(tiny_live_world, loopback_dds, tmp_path):
+    w = tiny_live_world
+    node = Proc("-v", "node", "--map", w["map"], "--config", w["config"], "--out", tmp_path / "run")
+    play = None
+    try:
+        node.wait_for("listening on /points", 120)
+        play = Proc("play", "--seq", w["session"], "--config", w["config"], "--loop")
+        node.wait_for("global init over the whole map", 120)
+        node.proc.send_signal(signal.SIGTERM)
+        assert node.finish(120) == 143, node.err
+    finally:
+        node.kill()
+        if play is not None:
+            play.proc.send_signal(signal.SIGINT)
+            assert play.finish(60) == 130, play.err
+    assert "node stopped:" in node.err and "Traceback" not in node.err
+    assert "play stopped:" in play.err
+
+
+def test_play_stops_after_max_frames_and_rejects_a_bad_rate(tiny_live_world, loopback_dds):
+    w = tiny_live_world
+    p = Proc("play", "--seq", w["session"], "--config", w["config"], "--max-frames", "5", "--rate", "4")
+    assert p.finish(60) == 0, p.err
+    assert "5 scans" in p.err
+    bad = Proc("play", "--seq", w["session"], "--rate", "0")
+    assert bad.finish(60) == 2
+    assert bad.err.strip().splitlines()[-1].startswith("error: --rate 0")
+
+
+def test_node_with_a_missing_map_is_one_error_line(loopback_dds, tmp_path):
+    p = Proc("node", "--map", tmp_path / "nowhere")
+    assert p.finish(60) == 2
+    lines = p.err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:") and "nowhere" in lines[0]
+
+
+def test_the_node_takes_gravity_from_the_option_else_the_maps_place_index(tiny_live_world, tmp_path):
+    import shutil
+
+    from blockloc.commands.node import map_gravity
+    from blockloc.maps.store import open_map
+
+    store = open_map(tiny_live_world["map"])
+    assert map_gravity(store, None) == pytest.approx(tiny_live_world["seq"].info.gravity_map)
+    assert map_gravity(store, "down") == pytest.approx([0.0, 0.0, 9.81])
+    # no place index and a mapping sequence that cannot be opened: z up, said once
+    bare = tmp_path / "bare"
+    shutil.copytree(tiny_live_world["map"], bare)
+    import json
+
+    manifest = json.loads((bare / "manifest.json").read_text())
+    manifest.pop("extras", None)
+    manifest["parameters"]["sequence"] = "nowhere:at/all"
+    (bare / "manifest.json").write_text(json.dumps(manifest))
+    assert map_gravity(open_map(bare), None) == pytest.approx([0.0, 0.0, -9.81])
