@@ -2,8 +2,8 @@
 one), and replacing only what blockloc made.
 
 Replace-only-what-we-made: a directory is replaced or written into only when it is empty or
-carries one of blockloc's markers (:data:`OUTPUT_MARKERS`: a map store's manifest, a simulated
-dataset's sidecar, a results folder's metrics); anything else is the user's and is never deleted.
+blockloc's own output of the right kind holding no foreign file (:mod:`blockloc.outdir`: a marker
+file whose content blockloc checks); anything else is the user's and is never deleted.
 """
 
 from __future__ import annotations
@@ -122,49 +122,45 @@ def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
     return path
 
 
-#: Files that mark a directory as blockloc's own output: a map store, a simulated dataset
-#: (``blockloc sim``), a results folder (``blockloc track``), an NCLT-layout session it wrote.
-OUTPUT_MARKERS = ("manifest.json", "sim.json", "metrics.json", "blockloc_session.json")
-#: The marker of each kind of output, for a command that replaces only its own kind.
-MAP_STORE, SIM_DATASET, RESULTS = ("manifest.json",), ("sim.json",), ("metrics.json",)
+#: The kinds of blockloc's output (see :mod:`blockloc.outdir`: a marker file whose content names
+#: the kind, or, for folders written before markers, the kind's own format), as the ``markers``
+#: a command accepts.
+OUTPUT_MARKERS = ("map store", "simulated dataset", "results folder", "session", "plot folder")
+MAP_STORE, SIM_DATASET, RESULTS = ("map store",), ("simulated dataset",), ("results folder",)
 
 
 def is_blockloc_output(path: str | Path, markers: tuple[str, ...] = OUTPUT_MARKERS) -> bool:
-    """True for a directory blockloc made (it holds one of ``markers``) or an empty one."""
-    path = Path(path)
-    if not path.is_dir() or path.is_symlink():
-        return False
-    names = {p.name for p in path.iterdir()}
-    return not names or bool(names & set(markers))
+    """True for an empty directory or one blockloc made as one of the kinds ``markers``."""
+    from blockloc.outdir import is_blockloc_output as owned
+
+    return owned(path, markers)
 
 
 def check_replaceable(path: str | Path, option: str = "--out", markers: tuple[str, ...] = OUTPUT_MARKERS,
                       kind: str | None = None) -> None:
     """Raise BlocklocError (one line naming ``path``) unless ``path`` is absent, an empty
-    directory, or a directory blockloc made (holding one of ``markers``; ``kind`` names what they
-    mark, e.g. "a map store"): the check before any work that will replace it."""
-    from blockloc.errors import BlocklocError
+    directory, or a directory blockloc made as one of the kinds ``markers`` (``kind``: what they
+    are called, e.g. "a map store") that holds no file blockloc did not write
+    (:func:`blockloc.outdir.check_replaceable`): the check before any work that will replace it."""
+    from blockloc.outdir import check_replaceable as check
 
-    path = Path(path)
-    if path.is_symlink() or (path.exists() and not path.is_dir()):
-        raise BlocklocError(f"{option} {path}: exists and is not a directory; blockloc replaces only "
-                            "directories it made (choose another path)")
-    if path.exists() and not is_blockloc_output(path, markers):
-        what = (f"not {kind} (no {' / '.join(markers)})" if kind and is_blockloc_output(path)
-                else f"a directory blockloc did not make (no {' / '.join(markers)})")
-        raise BlocklocError(f"{option} {path}: {what}; not replacing it (choose another path or empty it)")
-    check_output_parent(path, option)
+    check(path, option, markers, kind)
 
 
-def replace_dir(src: str | Path, dst: str | Path) -> None:
+def replace_dir(src: str | Path, dst: str | Path, kind: str) -> None:
     """Move the finished directory ``src`` to ``dst``, replacing any ``dst`` as whole as possible:
-    the old one is renamed aside first and removed only after the new one is in place. A ``dst``
-    that blockloc did not make (:func:`check_replaceable`) is never replaced. ``dst`` gets the
-    mode a plain ``mkdir`` would give it (the umask's), whatever ``src`` had."""
+    the old one is renamed aside first and removed only after the new one is in place. ``src``
+    gets blockloc's marker of ``kind`` (one of :data:`OUTPUT_MARKERS`, listing its files); a
+    ``dst`` that is not blockloc's ``kind`` or holds a file blockloc did not write
+    (:func:`check_replaceable`) is never replaced. ``dst`` gets the mode a plain ``mkdir`` would
+    give it (the umask's), whatever ``src`` had."""
     import shutil
 
+    from blockloc.outdir import write_marker
+
     src, dst = Path(src), Path(dst)
-    check_replaceable(dst, "output")
+    write_marker(src, kind)
+    check_replaceable(dst, "output", (kind,), f"a {kind}")
     os.chmod(src, _umask_dir_mode())  # a temp dir is 0700; the output gets a plain mkdir's mode
     old = None
     if dst.exists():
@@ -176,9 +172,10 @@ def replace_dir(src: str | Path, dst: str | Path) -> None:
 
 
 @contextlib.contextmanager
-def atomic_dir(path: str | Path) -> Iterator[Path]:
+def atomic_dir(path: str | Path, kind: str) -> Iterator[Path]:
     """Yield an empty temp directory beside ``path``; on success it replaces ``path``
-    (:func:`replace_dir`), on any exception it is removed and ``path`` is left untouched."""
+    (:func:`replace_dir`, marked blockloc's ``kind``), on any exception it is removed and ``path``
+    is left untouched."""
     import secrets
     import shutil
 
@@ -196,7 +193,7 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
                 continue
             tmp = name
         yield tmp
-        replace_dir(tmp, path)
+        replace_dir(tmp, path, kind)
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)

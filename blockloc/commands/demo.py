@@ -113,14 +113,14 @@ def demo_session(cfg=None, *, out: Path | None = None, observers=(), say: Callab
 
 
 def demo_command(out: Path | None, max_frames: int | None, record: bool = True) -> None:
-    from blockloc.commands.common import check_results_dir, console, results_dir
+    from blockloc.commands.common import check_results_dir, console, results_dir, track_bytes
     from blockloc.commands.init import compile_note
     from blockloc.commands.track import (print_track_summary, print_where, run_observers, run_tracking,
                                          write_run_report)
 
     con = console()
     out_dir = results_dir(out, "demo")
-    check_results_dir(out_dir)
+    check_results_dir(out_dir, track_bytes(max_frames or 1, record))
 
     def say(msg: str) -> None:
         con.print(f"[bold cyan]demo[/] {msg}")

@@ -153,18 +153,20 @@ def track_command(seq: str, map_path: str | None, backend: str | None, init: str
                   lidar_topic: str | None = None, imu_topic: str | None = None, poses: Path | None = None,
                   sets: list[str] | None = None, record: bool = True, record_path: Path | None = None,
                   live: bool = False, host: str = "127.0.0.1", port: int = 8765) -> None:
-    from blockloc.commands.common import check_results_dir, config_for, console, results_dir
+    from blockloc.commands.common import check_results_dir, config_for, console, results_dir, track_bytes
+    from blockloc.outdir import check_free_space
 
     mode, hint = init_mode(init, init_pose)
     if max_frames is not None and max_frames < 1:
         raise TrackingError(f"--max-frames {max_frames}: expected a positive number of frames")
     cfg = config_for(seq, config, sets)
     out_dir = results_dir(out, seq)
-    check_results_dir(out_dir)  # before any work
+    check_results_dir(out_dir, track_bytes(max_frames or 1, record))  # before any work
     observers = run_observers(out_dir, record=record, record_path=record_path, live=live, host=host, port=port)
     session = open_session(seq, cfg=cfg, map_path=map_path, backend=backend, data_root=data_root,
                            observers=observers, out_dir=out_dir, lidar_topic=lidar_topic,
                            imu_topic=imu_topic, poses=poses)
+    check_free_space(out_dir, track_bytes(min(max_frames or len(session.stamps), len(session.stamps)), record))
     try:
         res = run_tracking(session, mode=mode, hint=hint, out_dir=out_dir, max_frames=max_frames)
     finally:

@@ -783,7 +783,7 @@ def write_session(out_dir: str | Path, *, date: str, frames: Iterable[LidarFrame
              "gravity_map": np.asarray(NCLT_GRAVITY_MAP if gravity_map is None else gravity_map,
                                        dtype=float).tolist()}
         atomic_write_text(tmp / SIDECAR_NAME, json.dumps(d, indent=1))
-        replace_dir(tmp, out_dir)
+        replace_dir(tmp, out_dir, "session")
         log.info("wrote %d frames to %s", n_frames, out_dir)
         return out_dir
     except BaseException:

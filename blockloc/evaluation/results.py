@@ -116,7 +116,10 @@ class RunWriter:
 
         from blockloc.evaluation.trajectory_io import TUM_HEADER
 
+        from blockloc.outdir import RESULTS, write_marker
+
         self.out.mkdir(parents=True, exist_ok=True)
+        write_marker(self.out, RESULTS)  # first: what follows is blockloc's, a kill or not
         atomic_write_text(self.out / "config.yaml", yaml.safe_dump(to_jsonable(info.config), sort_keys=False))
         self._poses = open(self.out / "poses.tum", "w")
         self._poses.write(TUM_HEADER + "\n")
@@ -154,12 +157,19 @@ class RunWriter:
 
 
 def _point_latest(out: Path) -> None:
-    """``latest`` beside ``out`` -> ``out`` (only when ``latest`` is absent or already a link)."""
+    """``latest`` beside ``out`` -> ``out``, only when ``latest`` is absent or a link blockloc
+    made (it points at a results folder beside it: :func:`blockloc.outdir.is_blockloc_link`); a
+    user's own ``latest`` (a link elsewhere, a file, a directory) is left alone, with a warning."""
     import os
+
+    from blockloc.outdir import is_blockloc_link
 
     latest = out.parent / "latest"
     try:
-        if latest.is_symlink() or not latest.exists():
+        if latest.is_symlink() and not is_blockloc_link(latest):
+            log.warning("%s: not updated (a link blockloc did not make: it points at %s)", latest,
+                        os.readlink(latest))
+        elif latest.is_symlink() or not latest.exists():
             tmp = out.parent / f".latest.{os.getpid()}.tmp"
             if tmp.is_symlink():
                 tmp.unlink()
