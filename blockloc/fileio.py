@@ -217,3 +217,70 @@ def to_jsonable(x):
     if isinstance(x, float) and not math.isfinite(x):
         return None
     return x
+
+
+class RowFile:
+    """A text file that grows by whole rows (``poses.tum``, ``diagnostics.csv``): each row is
+    appended with one ``write`` to an unbuffered descriptor; a row that cannot be written whole
+    (disk full, a read-only file system) is cut off again, so the file never ends in a torn row,
+    and :class:`~blockloc.errors.OutputWriteError` names the file. A file unlinked while written
+    (its folder removed) is noticed at the next row, not written into the void."""
+
+    def __init__(self, path: str | Path) -> None:
+        from blockloc.errors import OutputWriteError
+
+        self.path = Path(path)
+        try:
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_APPEND, 0o666)
+        except OSError as exc:
+            raise OutputWriteError.of(self.path, exc) from None
+        self.size = 0
+
+    def write(self, text: str) -> None:
+        """Append ``text`` (whole rows, ending in a newline) or nothing."""
+        from blockloc.errors import OutputWriteError
+
+        data = text.encode()
+        try:
+            if os.fstat(self._fd).st_nlink == 0:
+                raise OutputWriteError(self.path, "the file or its folder was removed during the run")
+            done = 0
+            while done < len(data):
+                done += os.write(self._fd, data[done:])
+        except OSError as exc:
+            try:
+                os.ftruncate(self._fd, self.size)  # no torn row
+            except OSError:
+                pass
+            raise OutputWriteError.of(self.path, exc) from None
+        self.size += len(data)
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+
+def reserve_space(path: str | Path, nbytes: int) -> Path | None:
+    """A file of ``nbytes`` allocated at ``path``, to be removed (:func:`release_space`) when the
+    disk fills, so that what closes a run (its metrics) still fits; None when the file system
+    cannot allocate it now (the run goes on without a reserve)."""
+    path = Path(path)
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        try:
+            os.posix_fallocate(fd, 0, nbytes)
+        finally:
+            os.close(fd)
+        return path
+    except (OSError, AttributeError):
+        Path(path).unlink(missing_ok=True)
+        return None
+
+
+def release_space(path: str | Path | None) -> None:
+    if path is not None:
+        try:
+            Path(path).unlink(missing_ok=True)
+        except OSError:
+            pass

@@ -36,7 +36,7 @@ from typing import Callable, Iterator, Optional, Sequence
 
 import numpy as np
 
-from blockloc.errors import BlocklocError, GlobalInitError, MapError, RegistrationError, TrackingError
+from blockloc.errors import BlocklocError, GlobalInitError, MapError, OutputWriteError, RegistrationError, TrackingError
 from blockloc.geometry import Trajectory, transform_points
 from blockloc.viz.events import FrameEvent, ObserverGroup, RunInfo
 
@@ -106,6 +106,7 @@ class Session:
         self.store = store
         self.init_settings = init_settings
         self.observers = ObserverGroup(observers)  # a failing viewer is dropped, never stops tracking
+        self.output_error: OutputWriteError | None = None  # the results folder could not be finished
         self.evaluation = evaluation or {}
         self.plots = plots
         self.facts = dict(facts or {})
@@ -434,7 +435,10 @@ class Session:
             else:
                 self.close()
             raise
-        return self.finish(interrupted=interrupted)
+        res = self.finish(interrupted=interrupted)
+        if self.output_error is not None:
+            raise self.output_error
+        return res
 
     def finish(self, interrupted: bool = False) -> RunResult:
         """Metrics of what was computed; observers finish; the map provider closes. Idempotent."""
@@ -463,6 +467,8 @@ class Session:
             self.observers.finish(metrics)  # every observer finishes, then the first failure is logged
         except Exception as exc:  # noqa: BLE001 - what was computed is returned all the same
             log.error("an observer could not finish: %s", exc)
+            if isinstance(exc, OutputWriteError):  # the results folder lacks its metrics: run() raises it
+                self.output_error = exc
         self._finished = RunResult(traj, self.diagnostics, metrics, self.out_dir,
                                    self.estimates if self.keep_estimates else [])
         return self._finished

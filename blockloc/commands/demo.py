@@ -127,11 +127,13 @@ def demo_command(out: Path | None, max_frames: int | None, record: bool = True) 
 
     session, hint = demo_session(out=out_dir, observers=run_observers(out_dir, record=record), say=say)
     say(f"global init: branch-and-bound around the hint ({hint[0]:.1f}, {hint[1]:.1f}), yaw unknown")
+    ok = False
     try:
         res = run_tracking(session, mode="pose", hint=hint, out_dir=out_dir, max_frames=max_frames)
+        ok = True
     finally:
         if session.result is not None:
-            write_run_report(session, session.result, out_dir)
+            write_run_report(session, session.result, out_dir, quiet=not ok)
     init = res.metrics.get("init") or {}
     if init.get("time_s") is not None:
         say(f"global init: {init.get('error_m', float('nan')):.2f} m from the truth in {init['time_s']:.2f} s"

@@ -6,7 +6,7 @@ import logging
 from pathlib import Path
 from typing import Optional
 
-from blockloc.errors import MapError, TrackingError
+from blockloc.errors import BlocklocError, MapError, OutputWriteError, TrackingError
 
 log = logging.getLogger("blockloc")
 
@@ -71,13 +71,30 @@ def run_tracking(session, *, mode: str, hint, out_dir: Path | None, label: str =
 
     stop_at = None if max_frames is None else max_frames
     total = len(session.stamps) if stop_at is None else min(stop_at, len(session.stamps))
-    with interruptible() as stop, progress(label, total) as cb:
-        res = session.run(0, stop_at, init=mode, pose_hint=hint, progress=cb, should_stop=stop)
+    try:
+        with interruptible() as stop, progress(label, total) as cb:
+            res = session.run(0, stop_at, init=mode, pose_hint=hint, progress=cb, should_stop=stop)
+    except OutputWriteError as exc:  # disk full, folder removed: say what was kept and what is left
+        raise OutputWriteError(exc.path, exc.cause, stopped_note(session, total, out_dir)) from None
     if stop():
         done = res.metrics.get("processed", 0)
         where = f"; partial results in {out_dir}" if out_dir is not None else ""
         raise Interrupted(f"interrupted after {done} of {total} frames{where}", stop.exit_code)
     return res
+
+
+def stopped_note(session, total: int, out_dir: Path | None) -> str:
+    """What a run stopped by an output it could not write kept: frames done, whether its metrics
+    were written, the temporary files left (named, to be removed or kept by the user)."""
+    done = len(session.diagnostics)
+    note = f"tracking stopped after {done} of {total} frames; every row written is whole"
+    if out_dir is not None:
+        written = session.output_error is None and (out_dir / "metrics.json").is_file()
+        note += "; metrics.json " + ("written" if written else "not written")
+        left = sorted(p.name for p in out_dir.glob("*.partial")) if out_dir.is_dir() else []
+        if left:
+            note += f"; left: {', '.join(left)}"
+    return note
 
 
 def run_observers(out_dir: Path, *, record: bool = True, record_path: Path | None = None, live: bool = False,
@@ -104,8 +121,20 @@ def run_observers(out_dir: Path, *, record: bool = True, record_path: Path | Non
     return observers
 
 
-def write_run_report(session, res, out_dir: Path) -> Path:
-    """``report.html`` in the results folder: metrics, plots, config and an interactive top view."""
+def write_run_report(session, res, out_dir: Path, quiet: bool = False) -> Path | None:
+    """``report.html`` in the results folder: metrics, plots, config and an interactive top view.
+    quiet: the run already failed (its error is on its way): a report that cannot be written is
+    logged in one line instead of replacing that error."""
+    try:
+        return _write_run_report(session, res, out_dir)
+    except (OSError, BlocklocError) as exc:
+        if not quiet:
+            raise
+        log.error("report not written: %s", exc)
+        return None
+
+
+def _write_run_report(session, res, out_dir: Path) -> Path:
     from blockloc.maps.summary import map_points_xy
     from blockloc.viz.layout import REPORT_NAME
     from blockloc.viz.report import write_report
@@ -167,11 +196,13 @@ def track_command(seq: str, map_path: str | None, backend: str | None, init: str
                            observers=observers, out_dir=out_dir, lidar_topic=lidar_topic,
                            imu_topic=imu_topic, poses=poses)
     check_free_space(out_dir, track_bytes(min(max_frames or len(session.stamps), len(session.stamps)), record))
+    ok = False
     try:
         res = run_tracking(session, mode=mode, hint=hint, out_dir=out_dir, max_frames=max_frames)
+        ok = True
     finally:
         if session.result is not None:  # whatever was computed, also when interrupted
-            write_run_report(session, session.result, out_dir)
+            write_run_report(session, session.result, out_dir, quiet=not ok)
     print_track_summary(console(), res.metrics, res.out_dir)
     print_where(console(), out_dir)
 
