@@ -298,6 +298,11 @@ def print_summary(summary: dict[str, Any], console) -> None:
         t.add_row("LiDAR mounting", f"{drive}: estimated from {m['used']} of {m['pairs']} keyframe pairs, "
                                     f"rotation {m['rotation_deg']} deg, translation {m['translation_m']} m "
                                     "from the nominal (body frame)")
+    skipped = summary["parameters"].get("skipped_keyframes") or []
+    if skipped:  # scans a build could not read: counted and named (also in the manifest)
+        t.add_row("skipped keyframes", f"{len(skipped)}: " + "; ".join(
+            f"{k['sequence']} frame {k['frame']} ({k['error']})" for k in skipped[:3])
+            + (f"; and {len(skipped) - 3} more (see manifest.json)" if len(skipped) > 3 else ""))
     if summary["legacy_layout"]:
         t.add_row("layout", "released block-map layout (no manifest, no checksums)")
     console.print(t)
