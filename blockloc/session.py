@@ -129,7 +129,8 @@ class Session:
         self.estimates: list = []
         self._poses: list[np.ndarray] = []
         self._pose_stamps: list[float] = []
-        self.counters = {"skipped_frames": 0, "map_faults": 0, "imu_gaps": 0, "lidar_gaps": 0}
+        self.counters = {"skipped_frames": 0, "map_faults": 0, "imu_gaps": 0, "lidar_gaps": 0,
+                         "nonfinite_points": 0}
         self.timings: dict[str, float] = {}
         self._t_start = time.perf_counter()
 
@@ -300,12 +301,23 @@ class Session:
         self._started = True
         self.observers.start(self.run_info())
 
+    def _count_nonfinite(self, frame) -> None:
+        """Count the points the loader dropped for NaN/inf coordinates (metrics: nonfinite_points);
+        the first frame with any is warned about, naming it."""
+        n = int(getattr(frame, "num_nonfinite", 0) or 0)
+        if n:
+            if not self.counters["nonfinite_points"]:
+                log.warning("frame %d: %d points with NaN/inf coordinates dropped (counted in metrics "
+                            "nonfinite_points; later frames are not warned about)", frame.index, n)
+            self.counters["nonfinite_points"] += n
+
     def step(self, frame):
         """Process one scan: feed the IMU samples up to the end of its sweep, then the scan.
         Returns the tracker's Estimate."""
         self.start()
         t0 = time.perf_counter()
         self._check_lidar_gap(frame)
+        self._count_nonfinite(frame)
         imu = self.imu
         t_end = frame.stamp + (float(np.max(frame.time_offsets)) if frame.time_offsets is not None
                                and len(frame.time_offsets) else 0.0)

@@ -69,3 +69,35 @@ def test_nclt_session_without_imu(tiny_world, tmp_path):
     warned = [ln for ln in r.err_lines if "ms25.csv" in ln]
     assert r.code == 0 and len(warned) == 1, r.err
     assert "blockloc sim --preset small --seed 2" in warned[0] and "download" not in warned[0]
+
+
+@case(11, "a scan-folder PCD whose header undercounts its points (POINTS/WIDTH 100 of 5000), and a scan "
+      "with 1000 NaN points among its 5000", "exit 0; the first is an error naming the file (skipped_frames 1, "
+      "was read silently as 100 points); the NaN points are counted (metrics nonfinite_points 1000) and "
+      "warned about once")
+def test_pcd_counts_and_headers(tiny_world, tmp_path):
+    import re
+
+    import numpy as np
+
+    from blockloc.datasets.pointclouds import read_point_cloud, write_point_cloud
+
+    folder = tmp_path / "folder"
+    shutil.copytree(tiny_world["folder"], folder)
+    scans = sorted((folder / "scans").glob("*.pcd"), key=lambda p: float(p.stem))
+    data = scans[5].read_bytes()
+    n = int(re.search(rb"\nPOINTS (\d+)\n", data).group(1))
+    scans[5].write_bytes(data.replace(f"\nWIDTH {n}\n".encode(), b"\nWIDTH 100\n")
+                         .replace(f"\nPOINTS {n}\n".encode(), b"\nPOINTS 100\n"))
+    c = read_point_cloud(scans[8])
+    pts = c.points.astype(np.float32).copy()
+    pts[:1000] = np.nan
+    write_point_cloud(scans[8], pts, intensity=c.intensity,
+                      extra={"time": np.asarray(c.time_offsets, np.float32)})
+    r = cli_process("track", "--seq", folder, "--map", tiny_world["map"], "--init", "gt", "--config",
+                    tiny_world["config"], "--out", tmp_path / "res", "--max-frames", "15")
+    assert r.code == 0, r.err
+    assert scans[5].name in r.err and "header does not match its payload" in r.err
+    m = json.loads((tmp_path / "res" / "metrics.json").read_text())
+    assert m["skipped_frames"] == 1 and m["nonfinite_points"] == 1000
+    assert len([ln for ln in r.err_lines if "NaN/inf" in ln]) == 1
