@@ -257,6 +257,11 @@ class StopRequest:
     def exit_code(self) -> int:
         return EXIT_CODES.get(self.signal, 130)
 
+    @property
+    def name(self) -> str:
+        """SIGINT / SIGTERM (the signal that asked to stop)."""
+        return signal.Signals(self.signal).name if self.signal is not None else "SIGINT"
+
 
 @contextlib.contextmanager
 def interruptible() -> Iterator[StopRequest]:
@@ -273,7 +278,10 @@ def interruptible() -> Iterator[StopRequest]:
         if stop.signal is not None:
             raise Stopped(signum)
         stop.signal = signum
-        print("stopping after the current frame (Ctrl-C again to abort)", file=sys.stderr, flush=True)
+        name = signal.Signals(signum).name
+        again = "Ctrl-C" if signum == signal.SIGINT else name
+        print(f"{name} received: stopping after the current frame ({again} again to abort at once)",
+              file=sys.stderr, flush=True)
 
     old = {s: signal.signal(s, handler) for s in EXIT_CODES if signal.getsignal(s) is not signal.SIG_IGN}
     try:

@@ -79,7 +79,7 @@ def run_tracking(session, *, mode: str, hint, out_dir: Path | None, label: str =
     if stop():
         done = res.metrics.get("processed", 0)
         where = f"; partial results in {out_dir}" if out_dir is not None else ""
-        raise Interrupted(f"interrupted after {done} of {total} frames{where}", stop.exit_code)
+        raise Interrupted(f"interrupted by {stop.name} after {done} of {total} frames{where}", stop.exit_code)
     return res
 
 

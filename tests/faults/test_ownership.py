@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from .cases import Case, case, table
-from .conftest import Running, cli_in_process, live_holder, small_fs
+from .conftest import Running, cli_in_process, cli_process, live_holder, small_fs
 
 #: What each writing command is run as ({out} is the folder under test).
 COMMANDS = {
@@ -199,3 +199,24 @@ def test_too_little_free_space_is_refused(tiny_world, tmp_path):
                                         "--init", "gt", "--config", tiny_world["config"], "--out", fs / "res"))
         assert f"--out {fs / 'res'}: " in line and "MiB free on its file system, the run needs about" in line, line
         assert not (fs / "res" / "poses.tum").exists()
+
+
+# ----------------------------------------------------------------------------- the latest link
+@case(12, "a user's own symlink `latest` (to their thesis folder) beside track's --out; then a `latest` "
+      "blockloc made", "the user's link is left pointing where it pointed (a warning names it); a link "
+      "blockloc made (to a results folder beside it) is moved to the new run")
+def test_latest_link_is_repointed_only_when_blockloc_made_it(tiny_world, tmp_path):
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    thesis = _user_dir(tmp_path)
+    (runs / "latest").symlink_to(thesis)
+    track = ("track", "--seq", tiny_world["session"], "--map", tiny_world["map"], "--init", "gt", "--config",
+             tiny_world["config"], "--max-frames", "3", "--out")
+    r = cli_process(*track, runs / "a")
+    assert r.code == 0, r.err
+    assert (runs / "latest").readlink() == thesis
+    assert "latest: not updated (a link blockloc did not make" in r.err
+    (runs / "latest").unlink()
+    for name in ("a", "b"):
+        assert cli_in_process(*track, runs / name).code == 0
+        assert (runs / "latest").readlink() == Path(name)

@@ -44,7 +44,7 @@ def assert_stopped(r: Outcome, signum: int) -> str:
     """Exit 130 / 143, no traceback, one message line (naming the signal); returns it."""
     assert r.code == CODES[signum], (r.code, r.err[-800:])
     assert "Traceback" not in r.err
-    lines = [ln for ln in r.err_lines if not ln.startswith("stopping after the current frame")]
+    lines = [ln for ln in r.err_lines if "received: stopping after the current frame" not in ln]
     assert len(lines) == 1, lines
     return lines[0]
 
@@ -99,18 +99,23 @@ def test_track_stopped_keeps_partial_results(signum, tiny_world, tmp_path):
     m = json.loads((out / "metrics.json").read_text())
     assert m["interrupted"] is True
     rows = [ln for ln in (out / "poses.tum").read_text().splitlines() if ln and not ln.startswith("#")]
-    assert re.fullmatch(rf"interrupted after {m['frames']} of 120 frames; partial results in {re.escape(str(out))}",
-                        line), line
+    name = signal.Signals(signum).name
+    assert re.fullmatch(rf"interrupted by {name} after {m['frames']} of 120 frames; partial results in "
+                        rf"{re.escape(str(out))}", line), line
+    # the first line says which signal arrived and what happens now
+    assert f"{name} received: stopping after the current frame" in r.err
     assert 3 <= len(rows) == m["frames"] < 120
     assert (out / "diagnostics.csv").is_file() and (out / "config.yaml").is_file()
 
 
 table("test_track_stopped_keeps_partial_results", [
     Case("SIGINT", 3, "SIGINT during `blockloc track`",
-         "exit 130 (was 0), 'interrupted after N of 120 frames; partial results in DIR', metrics.json "
-         "'interrupted': true, poses.tum has the N frames"),
+         "exit 130 (was 0), 'SIGINT received: stopping after the current frame', then 'interrupted by "
+         "SIGINT after N of 120 frames; partial results in DIR', metrics.json 'interrupted': true, poses.tum "
+         "has the N frames"),
     Case("SIGTERM", 3, "SIGTERM during `blockloc track`",
-         "exit 143 (was killed without metrics), same partial results"),
+         "exit 143 (was killed without metrics), 'SIGTERM received: stopping after the current frame' "
+         "(was the same words as for Ctrl-C), 'interrupted by SIGTERM after ...', same partial results"),
 ])
 
 
