@@ -281,6 +281,7 @@ class OutputLock:
 
     def acquire(self) -> "OutputLock":
         self.file.parent.mkdir(parents=True, exist_ok=True)
+        remove_dead_locks(self.file.parent)
         text = f"pid {os.getpid()}\n"
         for _ in range(3):
             try:
@@ -310,6 +311,21 @@ class OutputLock:
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+def remove_dead_locks(parent: str | Path) -> list[Path]:
+    """Remove the ``.NAME.blockloc-lock`` files in ``parent`` whose process is gone (a run killed
+    with SIGKILL could not remove its own); returns what was removed."""
+    removed = []
+    for f in Path(parent).glob(".*.blockloc-lock"):
+        try:
+            pid = int(f.read_text().split()[1])
+        except (OSError, ValueError, IndexError):
+            continue
+        if not _process_is_blockloc(pid):
+            f.unlink(missing_ok=True)
+            removed.append(f)
+    return removed
 
 
 #: Locks taken by :func:`claim_output`, released by :func:`release_outputs` (the CLI's exit).

@@ -121,14 +121,16 @@ table("test_track_stopped_keeps_partial_results", [
 
 @case(3, "`map tile` killed with SIGKILL (its .NAME.building-* dir left behind), then another build "
       "into the same parent; and a building dir whose process still runs",
-      "the next build removes the dead build's dir (a warning names it) and keeps the live one's")
+      "the next build removes the dead build's dir (a warning names it) and its lock file, and keeps the "
+      "live one's")
 def test_killed_build_is_cleaned_by_the_next(big_pcd, tmp_path):
     run = Running("map", "tile", big_pcd, "--tile-size", "4", "--out", tmp_path / "a")
-    run.wait_for(lambda: leftovers(tmp_path, "a"))
+    run.wait_for(lambda: any(".building-" in n for n in leftovers(tmp_path, "a")))
     r = run.signal(signal.SIGKILL)
     assert r.code == -signal.SIGKILL
-    stale = leftovers(tmp_path, "a")
+    stale = [n for n in leftovers(tmp_path, "a") if ".building-" in n]
     assert len(stale) == 1 and stale[0].startswith(".a.building-")
+    assert (tmp_path / ".a.blockloc-lock").is_file()  # its lock, which nothing could remove
     live = tmp_path / ".c.building-live"
     live.mkdir()
     (live / ".incomplete").write_text(f"build started now pid {os.getpid()}\n")  # this test's process
@@ -139,7 +141,7 @@ def test_killed_build_is_cleaned_by_the_next(big_pcd, tmp_path):
     r = cli_process("map", "tile", small, "--tile-size", "5", "--out", tmp_path / "b")
     assert r.code == 0, r.err
     assert stale[0] in r.err and "interrupted build" in r.err
-    assert leftovers(tmp_path, "a") == [] and live.is_dir()
+    assert leftovers(tmp_path, "a") == [] and live.is_dir()  # the dead run's lock is gone too
 
 
 @case(3, "SIGINT to a process whose parent ignores SIGINT (a background job of a script, nohup)",
