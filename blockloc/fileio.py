@@ -14,6 +14,8 @@ import tempfile
 from pathlib import Path
 from typing import Iterator
 
+from blockloc.outdir import check_output_parent  # noqa: F401 - here since before outdir.py
+
 
 def _umask() -> int:
     mask = os.umask(0)
@@ -81,18 +83,6 @@ def check_figure_path(path: str | Path, option: str = "--out") -> Path:
                             f"{', '.join('.' + f for f in FIGURE_FORMATS[:3])}, ...")
     check_output_parent(path, option)
     return path
-
-
-def check_output_parent(path: str | Path, option: str = "--out") -> None:
-    """BlocklocError unless every existing ancestor of ``path`` is a directory (so that
-    ``mkdir(parents=True)`` can make the rest)."""
-    from blockloc.errors import BlocklocError
-
-    for parent in Path(path).absolute().parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise BlocklocError(f"{option} {path}: {parent} is a file, not a directory")
-            return
 
 
 def check_output_dir(path: str | Path, option: str) -> Path:

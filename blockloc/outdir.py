@@ -191,8 +191,6 @@ def check_replaceable(path: str | Path, option: str = "--out", kinds: tuple[str,
     ``option`` and ``path``, unless it is absent, an empty directory, or a directory blockloc made
     as one of ``kinds`` (``kind``: what they are called, e.g. "a map store") holding no file
     blockloc did not write (those are named)."""
-    from blockloc.fileio import check_output_parent
-
     path = Path(path)
     if path.is_symlink() or (path.exists() and not path.is_dir()):
         raise BlocklocError(f"{option} {path}: exists and is not a directory; blockloc replaces only "
@@ -214,6 +212,16 @@ def check_replaceable(path: str | Path, option: str = "--out", kinds: tuple[str,
 
 
 # ----------------------------------------------------------------------------- pre-checks
+def check_output_parent(path: str | Path, option: str = "--out") -> None:
+    """BlocklocError unless every existing ancestor of ``path`` is a directory (so that
+    ``mkdir(parents=True)`` can make the rest)."""
+    for parent in Path(path).absolute().parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise BlocklocError(f"{option} {path}: {parent} is a file, not a directory")
+            return
+
+
 def _existing_ancestor(path: Path) -> Path:
     p = path.absolute()
     while not p.exists():

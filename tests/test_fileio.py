@@ -142,8 +142,10 @@ def test_output_lock_names_a_live_holder_and_takes_over_a_dead_one(tmp_path):
 
     out = tmp_path / "res"
     # a live holder that runs blockloc (its command line says so)
-    holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "blockloc"])
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; print(1, flush=True); time.sleep(60)",
+                               "blockloc"], stdout=subprocess.PIPE)
     try:
+        holder.stdout.readline()  # it runs (exec done: its command line is its own)
         (tmp_path / ".res.blockloc-lock").write_text(f"pid {holder.pid}\n")
         with pytest.raises(BlocklocError, match=f"in use by another blockloc run .process {holder.pid}"):
             OutputLock(out).acquire()

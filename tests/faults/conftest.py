@@ -197,9 +197,12 @@ def small_fs(where: Path, size: str = "1m", *, fill_from: Path | None = None, re
 @contextlib.contextmanager
 def live_holder():
     """A live process whose command line names blockloc (a run holding an output's lock)."""
-    p = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)", "blockloc"])
+    p = subprocess.Popen([sys.executable, "-c", "import time; print(1, flush=True); time.sleep(120)", "blockloc"],
+                         stdout=subprocess.PIPE)
     try:
+        p.stdout.readline()  # exec done: /proc shows its own command line
         yield p.pid
     finally:
         p.kill()
         p.wait()
+        p.stdout.close()
