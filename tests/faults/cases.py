@@ -20,7 +20,7 @@ FINDINGS = {
     9: "issue 40: output folders checked before any work (writable, free space, not in use)",
     10: "issue 40: disk full, folder removed, permissions changed mid-run",
     11: "issue 40: inputs (no IMU file, a bad keyframe in a map build, PCD counts and headers)",
-    12: "issue 40: the `latest` link, signals",
+    12: "issue 40: the `latest` link (its signal messages: finding 3)",
 }
 
 

@@ -47,7 +47,7 @@ def test_bad_keyframe_in_map_build(tiny_world, tmp_path):
 
 @case(11, "an NCLT-layout session without ms25.csv, tracked with --no-imu and without it; the same "
       "session inside a `blockloc sim` dataset", "exit 0 both ways (was: error 'ms25.csv: not found' even "
-      "with --no-imu); without the flag one warning naming ms25.csv and 'LiDAR-only'; the remedy is a "
+      "with --no-imu); one warning naming ms25.csv and 'LiDAR-only' (with the flag too); the remedy is a "
       "download for NCLT and re-running `blockloc sim` for a simulated session")
 def test_nclt_session_without_imu(tiny_world, tmp_path):
     sess = tmp_path / "2020-01-01"

@@ -107,9 +107,10 @@ def test_foreign_folder_is_never_replaced(c: Case, places, tiny_world):
     assert _tree(places["root"]) == before
 
 
-@case(8, "map build --overwrite twice into the same --out (a store it made), then map index on it, "
-      "then --overwrite again", "replaced each time (exit 0); the marker lists the store's files; the place "
-      "index added later is blockloc's too (no foreign file)")
+@case(8, "map build --overwrite twice into the same --out (each build adds its place index after the store "
+      "is written), then map tile --overwrite over it", "replaced each time (exit 0); the marker lists the "
+      "store's files; the place index added later is blockloc's too (its manifest lists it: no foreign file); "
+      "no lock or temp file left")
 def test_overwrite_replaces_its_own_store_again(places):
     from blockloc.outdir import MARKER_NAME, read_marker
 
