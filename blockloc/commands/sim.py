@@ -6,6 +6,10 @@ import sys
 from pathlib import Path
 
 
+#: Free space a simulation needs at least (the `tiny` preset writes ~5 MiB).
+SIM_MIN_BYTES = 16 * 2**20
+
+
 def sim_command(preset: str, seed: int, out: Path, fmt: str, azimuth_steps: int | None) -> None:
     from blockloc.commands.common import progress
     from blockloc.fileio import SIM_DATASET, check_replaceable
@@ -13,6 +17,9 @@ def sim_command(preset: str, seed: int, out: Path, fmt: str, azimuth_steps: int 
 
     # before any work: never replace what blockloc did not make, nor another kind of its output
     check_replaceable(out, "--out", SIM_DATASET, "a simulated dataset")
+    from blockloc.outdir import claim_output
+
+    claim_output(out, "--out", need_bytes=SIM_MIN_BYTES)  # writable, room, no other run on it
     overrides = {} if azimuth_steps is None else {"azimuth_steps": azimuth_steps}
     current = {"session": None}
     with progress(f"sim {preset}") as cb:
