@@ -63,7 +63,7 @@ def open_session(seq: str, *, cfg: Config, map_path: str | None = None, backend:
     ref = SequenceRef.parse(seq)
     backend = backend or cfg.map.backend
     sequence = ref.open(data_root=data_root, dataset_cfg=cfg.dataset, lidar_topic=lidar_topic, imu_topic=imu_topic,
-                        poses=poses)
+                        poses=poses, want_imu=cfg.tracking.use_imu)
     path = resolve_map(ref, map_path, backend, cfg, data_root)
     store = open_store(path, cfg.map)
     return build_session(cfg, sequence, store, backend=backend, observers=observers, out_dir=out_dir,

@@ -270,8 +270,9 @@ class NcltSequence:
     def __init__(self, session_dir: str | Path, *, use_hits_times: bool = True,
                  min_range_m: float = 1.0, max_range_m: float = 100.0, date: str | None = None,
                  ms25_path: str | Path | None = None, groundtruth_path: str | Path | None = None,
-                 name: str | None = None):
+                 name: str | None = None, want_imu: bool = True):
         self.session_dir = Path(session_dir)
+        self.want_imu = bool(want_imu)  # False: the run ignores the IMU, a missing ms25.csv is no news
         self.min_range_m = float(min_range_m)
         self.max_range_m = float(max_range_m)
         sync_dir = self.session_dir / "velodyne_sync"
@@ -370,7 +371,7 @@ class NcltSequence:
         for c in cands:
             if c.is_file():
                 return c
-        self._ms25_missing = f"{cands[0]}: not found; no IMU, tracking LiDAR-only ({self._imu_remedy()})"
+        self._ms25_missing = cands[0]
         return None
 
     def _imu_remedy(self) -> str:
@@ -467,10 +468,15 @@ class NcltSequence:
 
     def imu(self) -> ImuData:
         """The ms25.csv samples, or an empty ImuData (len 0) when the session has no IMU file
-        (one warning, naming it and the remedy: the run is LiDAR-only)."""
+        (one warning, naming it and the remedy: the run is LiDAR-only; an info line only when
+        the session was opened with ``want_imu=False``: the user asked for LiDAR-only)."""
         if self._imu is None:
             if self._ms25_path is None:
-                log.warning("%s", self._ms25_missing)
+                if self.want_imu:
+                    log.warning("%s: not found; no IMU, tracking LiDAR-only (%s)", self._ms25_missing,
+                                self._imu_remedy())
+                else:
+                    log.info("%s: not found; no IMU (LiDAR-only, as asked)", self._ms25_missing)
                 self._imu = ImuData(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)))
             else:
                 self._imu = read_ms25_csv(self._ms25_path)
@@ -604,6 +610,8 @@ def detect(path: Path) -> bool:
 
 
 def open_path(path: Path, options: dict) -> "NcltSequence":
-    """The session at ``path``; options: min_range_m, max_range_m, use_hits_times."""
+    """The session at ``path``; options: min_range_m, max_range_m, use_hits_times, want_imu
+    (False: the run ignores the IMU, a missing ms25.csv is not warned about)."""
     return NcltSequence(path, use_hits_times=bool(options.get("use_hits_times", True)),
-                        min_range_m=options.get("min_range_m", 1.0), max_range_m=options.get("max_range_m", 100.0))
+                        min_range_m=options.get("min_range_m", 1.0), max_range_m=options.get("max_range_m", 100.0),
+                        want_imu=bool(options.get("want_imu", True)))

@@ -218,6 +218,11 @@ def test_missing_imu_file_means_lidar_only_with_the_remedy_for_its_kind(tmp_path
     warned = [r.getMessage() for r in caplog.records if "ms25.csv" in r.getMessage()]
     assert len(warned) == 1 and f"re-run `blockloc sim --preset small --seed 3 --out {tmp_path}`" in warned[0]
     assert "download" not in warned[0]
+    caplog.clear()  # a run that ignores the IMU (--no-imu): no warning
+    with caplog.at_level(logging.INFO, logger="blockloc.datasets.nclt"):
+        assert len(NcltSequence(out, want_imu=False).imu()) == 0
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING and "ms25.csv" in r.getMessage()]
+    assert any("LiDAR-only, as asked" in r.getMessage() for r in caplog.records)
 
 
 def test_ground_truth_found_beside_session(tmp_path, session_data, caplog):
