@@ -111,8 +111,11 @@ def track_command(seq: str, map_path: str | None, backend: str | None, init: str
     session = open_session(seq, cfg=cfg, map_path=map_path, backend=backend, data_root=data_root,
                            observers=observers, out_dir=out_dir, lidar_topic=lidar_topic,
                            imu_topic=imu_topic, poses=poses)
-    # now that the frame count is known: room for all of them
-    check_free_space(out_dir, track_bytes(min(max_frames or len(session.stamps), len(session.stamps)), record))
+    try:  # now that the frame count is known: room for all of them
+        check_free_space(out_dir, track_bytes(min(max_frames or len(session.stamps), len(session.stamps)), record))
+    except BaseException:
+        session.close()  # the map provider's thread
+        raise
     ok = False
     try:
         res = run_tracking(session, mode=mode, hint=hint, out_dir=out_dir, max_frames=max_frames)
