@@ -510,6 +510,10 @@ def main() -> None:
             raise
         _say(f"error: {type(exc).__name__}: {exc} (rerun with --debug for a traceback)")
         sys.exit(1)
+    finally:  # the output locks this command took (blockloc.outdir.claim_output)
+        from blockloc.outdir import release_outputs
+
+        release_outputs()
 
 
 if __name__ == "__main__":

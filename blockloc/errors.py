@@ -35,3 +35,20 @@ class EvaluationError(BlocklocError):
 
 class SimError(BlocklocError):
     """The simulator got an unusable preset or parameter."""
+
+
+class OutputWriteError(BlocklocError):
+    """An output file could not be written mid-run (disk full, its folder removed, a read-only
+    file system): the message names the file and the cause; exit code 1 (the run was valid,
+    the machine failed it). What was written before is whole."""
+
+    exit_code = 1
+
+    def __init__(self, path, cause: str, note: str = "") -> None:
+        super().__init__(f"{path}: cannot write ({cause})" + (f"; {note}" if note else ""))
+        self.path = path
+        self.cause = cause
+
+    @classmethod
+    def of(cls, path, exc: OSError) -> "OutputWriteError":
+        return cls(path, exc.strerror or str(exc))

@@ -2,8 +2,8 @@
 one), and replacing only what blockloc made.
 
 Replace-only-what-we-made: a directory is replaced or written into only when it is empty or
-carries one of blockloc's markers (:data:`OUTPUT_MARKERS`: a map store's manifest, a simulated
-dataset's sidecar, a results folder's metrics); anything else is the user's and is never deleted.
+blockloc's own output of the right kind holding no foreign file (:mod:`blockloc.outdir`: a marker
+file whose content blockloc checks); anything else is the user's and is never deleted.
 """
 
 from __future__ import annotations
@@ -13,6 +13,8 @@ import os
 import tempfile
 from pathlib import Path
 from typing import Iterator
+
+from blockloc.outdir import check_output_parent  # noqa: F401 - here since before outdir.py
 
 
 def _umask() -> int:
@@ -83,18 +85,6 @@ def check_figure_path(path: str | Path, option: str = "--out") -> Path:
     return path
 
 
-def check_output_parent(path: str | Path, option: str = "--out") -> None:
-    """BlocklocError unless every existing ancestor of ``path`` is a directory (so that
-    ``mkdir(parents=True)`` can make the rest)."""
-    from blockloc.errors import BlocklocError
-
-    for parent in Path(path).absolute().parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise BlocklocError(f"{option} {path}: {parent} is a file, not a directory")
-            return
-
-
 def check_output_dir(path: str | Path, option: str) -> Path:
     """Before any work: ``path`` is a directory files will be written into (never emptied):
     absent or a directory; BlocklocError naming ``option`` otherwise."""
@@ -122,49 +112,45 @@ def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
     return path
 
 
-#: Files that mark a directory as blockloc's own output: a map store, a simulated dataset
-#: (``blockloc sim``), a results folder (``blockloc track``), an NCLT-layout session it wrote.
-OUTPUT_MARKERS = ("manifest.json", "sim.json", "metrics.json", "blockloc_session.json")
-#: The marker of each kind of output, for a command that replaces only its own kind.
-MAP_STORE, SIM_DATASET, RESULTS = ("manifest.json",), ("sim.json",), ("metrics.json",)
+#: The kinds of blockloc's output (see :mod:`blockloc.outdir`: a marker file whose content names
+#: the kind, or, for folders written before markers, the kind's own format), as the ``markers``
+#: a command accepts.
+OUTPUT_MARKERS = ("map store", "simulated dataset", "results folder", "session", "plot folder")
+MAP_STORE, SIM_DATASET, RESULTS = ("map store",), ("simulated dataset",), ("results folder",)
 
 
 def is_blockloc_output(path: str | Path, markers: tuple[str, ...] = OUTPUT_MARKERS) -> bool:
-    """True for a directory blockloc made (it holds one of ``markers``) or an empty one."""
-    path = Path(path)
-    if not path.is_dir() or path.is_symlink():
-        return False
-    names = {p.name for p in path.iterdir()}
-    return not names or bool(names & set(markers))
+    """True for an empty directory or one blockloc made as one of the kinds ``markers``."""
+    from blockloc.outdir import is_blockloc_output as owned
+
+    return owned(path, markers)
 
 
 def check_replaceable(path: str | Path, option: str = "--out", markers: tuple[str, ...] = OUTPUT_MARKERS,
                       kind: str | None = None) -> None:
     """Raise BlocklocError (one line naming ``path``) unless ``path`` is absent, an empty
-    directory, or a directory blockloc made (holding one of ``markers``; ``kind`` names what they
-    mark, e.g. "a map store"): the check before any work that will replace it."""
-    from blockloc.errors import BlocklocError
+    directory, or a directory blockloc made as one of the kinds ``markers`` (``kind``: what they
+    are called, e.g. "a map store") that holds no file blockloc did not write
+    (:func:`blockloc.outdir.check_replaceable`): the check before any work that will replace it."""
+    from blockloc.outdir import check_replaceable as check
 
-    path = Path(path)
-    if path.is_symlink() or (path.exists() and not path.is_dir()):
-        raise BlocklocError(f"{option} {path}: exists and is not a directory; blockloc replaces only "
-                            "directories it made (choose another path)")
-    if path.exists() and not is_blockloc_output(path, markers):
-        what = (f"not {kind} (no {' / '.join(markers)})" if kind and is_blockloc_output(path)
-                else f"a directory blockloc did not make (no {' / '.join(markers)})")
-        raise BlocklocError(f"{option} {path}: {what}; not replacing it (choose another path or empty it)")
-    check_output_parent(path, option)
+    check(path, option, markers, kind)
 
 
-def replace_dir(src: str | Path, dst: str | Path) -> None:
+def replace_dir(src: str | Path, dst: str | Path, kind: str) -> None:
     """Move the finished directory ``src`` to ``dst``, replacing any ``dst`` as whole as possible:
-    the old one is renamed aside first and removed only after the new one is in place. A ``dst``
-    that blockloc did not make (:func:`check_replaceable`) is never replaced. ``dst`` gets the
-    mode a plain ``mkdir`` would give it (the umask's), whatever ``src`` had."""
+    the old one is renamed aside first and removed only after the new one is in place. ``src``
+    gets blockloc's marker of ``kind`` (one of :data:`OUTPUT_MARKERS`, listing its files); a
+    ``dst`` that is not blockloc's ``kind`` or holds a file blockloc did not write
+    (:func:`check_replaceable`) is never replaced. ``dst`` gets the mode a plain ``mkdir`` would
+    give it (the umask's), whatever ``src`` had."""
     import shutil
 
+    from blockloc.outdir import write_marker
+
     src, dst = Path(src), Path(dst)
-    check_replaceable(dst, "output")
+    write_marker(src, kind)
+    check_replaceable(dst, "output", (kind,), f"a {kind}")
     os.chmod(src, _umask_dir_mode())  # a temp dir is 0700; the output gets a plain mkdir's mode
     old = None
     if dst.exists():
@@ -176,9 +162,10 @@ def replace_dir(src: str | Path, dst: str | Path) -> None:
 
 
 @contextlib.contextmanager
-def atomic_dir(path: str | Path) -> Iterator[Path]:
+def atomic_dir(path: str | Path, kind: str) -> Iterator[Path]:
     """Yield an empty temp directory beside ``path``; on success it replaces ``path``
-    (:func:`replace_dir`), on any exception it is removed and ``path`` is left untouched."""
+    (:func:`replace_dir`, marked blockloc's ``kind``), on any exception it is removed and ``path``
+    is left untouched."""
     import secrets
     import shutil
 
@@ -196,7 +183,7 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
                 continue
             tmp = name
         yield tmp
-        replace_dir(tmp, path)
+        replace_dir(tmp, path, kind)
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -220,3 +207,70 @@ def to_jsonable(x):
     if isinstance(x, float) and not math.isfinite(x):
         return None
     return x
+
+
+class RowFile:
+    """A text file that grows by whole rows (``poses.tum``, ``diagnostics.csv``): each row is
+    appended with one ``write`` to an unbuffered descriptor; a row that cannot be written whole
+    (disk full, a read-only file system) is cut off again, so the file never ends in a torn row,
+    and :class:`~blockloc.errors.OutputWriteError` names the file. A file unlinked while written
+    (its folder removed) is noticed at the next row, not written into the void."""
+
+    def __init__(self, path: str | Path) -> None:
+        from blockloc.errors import OutputWriteError
+
+        self.path = Path(path)
+        try:
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_APPEND, 0o666)
+        except OSError as exc:
+            raise OutputWriteError.of(self.path, exc) from None
+        self.size = 0
+
+    def write(self, text: str) -> None:
+        """Append ``text`` (whole rows, ending in a newline) or nothing."""
+        from blockloc.errors import OutputWriteError
+
+        data = text.encode()
+        try:
+            if os.fstat(self._fd).st_nlink == 0:
+                raise OutputWriteError(self.path, "the file or its folder was removed during the run")
+            done = 0
+            while done < len(data):
+                done += os.write(self._fd, data[done:])
+        except OSError as exc:
+            try:
+                os.ftruncate(self._fd, self.size)  # no torn row
+            except OSError:
+                pass
+            raise OutputWriteError.of(self.path, exc) from None
+        self.size += len(data)
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+
+def reserve_space(path: str | Path, nbytes: int) -> Path | None:
+    """A file of ``nbytes`` allocated at ``path``, to be removed (:func:`release_space`) when the
+    disk fills, so that what closes a run (its metrics) still fits; None when the file system
+    cannot allocate it now (the run goes on without a reserve)."""
+    path = Path(path)
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        try:
+            os.posix_fallocate(fd, 0, nbytes)
+        finally:
+            os.close(fd)
+        return path
+    except (OSError, AttributeError):
+        Path(path).unlink(missing_ok=True)
+        return None
+
+
+def release_space(path: str | Path | None) -> None:
+    if path is not None:
+        try:
+            Path(path).unlink(missing_ok=True)
+        except OSError:
+            pass

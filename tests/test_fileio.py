@@ -28,19 +28,24 @@ def test_failed_write_leaves_the_old_file_and_no_temp(tmp_path):
 
 
 def test_atomic_dir_replaces_whole_or_not_at_all(tmp_path):
+    from blockloc.errors import BlocklocError
     from blockloc.fileio import atomic_dir
+    from blockloc.outdir import MARKER_NAME
 
     out = tmp_path / "session"
-    with atomic_dir(out) as tmp:
-        (tmp / "sim.json").write_text("1")  # blockloc's own output carries a marker
+    with atomic_dir(out, "simulated dataset") as tmp:
+        (tmp / "sim.json").write_text("1")
     with pytest.raises(RuntimeError):
-        with atomic_dir(out) as tmp:
+        with atomic_dir(out, "simulated dataset") as tmp:
             (tmp / "b").write_text("2")
             raise RuntimeError("interrupted")
-    assert sorted(p.name for p in out.iterdir()) == ["sim.json"]
-    with atomic_dir(out) as tmp:
+    assert sorted(p.name for p in out.iterdir()) == [MARKER_NAME, "sim.json"]
+    with atomic_dir(out, "simulated dataset") as tmp:
         (tmp / "metrics.json").write_text("3")
-    assert sorted(p.name for p in out.iterdir()) == ["metrics.json"]
+    assert sorted(p.name for p in out.iterdir()) == [MARKER_NAME, "metrics.json"]
+    with pytest.raises(BlocklocError, match="it is blockloc's simulated dataset"):  # another kind
+        with atomic_dir(out, "map store") as tmp:
+            pass
     assert [p.name for p in tmp_path.iterdir()] == ["session"]
 
 
@@ -55,7 +60,7 @@ def test_a_directory_blockloc_did_not_make_is_never_replaced(tmp_path):
     with pytest.raises(BlocklocError, match=r"--out .*thesis: a directory blockloc did not make"):
         check_replaceable(mine)
     with pytest.raises(BlocklocError, match="did not make"):
-        with atomic_dir(mine) as tmp:
+        with atomic_dir(mine, "map store") as tmp:
             (tmp / "manifest.json").write_text("{}")
     assert (mine / "thesis.tex").read_text() == "years of work"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["thesis"]  # the temp dir is gone too
@@ -66,6 +71,100 @@ def test_a_directory_blockloc_did_not_make_is_never_replaced(tmp_path):
     empty = tmp_path / "empty"
     empty.mkdir()
     check_replaceable(empty)  # an empty directory may be written into
+
+
+def test_a_marker_is_proven_by_its_content_not_its_name(tmp_path):
+    """manifest.json / metrics.json / a marker file of another content prove nothing."""
+    from blockloc.errors import BlocklocError
+    from blockloc.outdir import MARKER_NAME, check_replaceable, owner
+
+    d = tmp_path / "d"
+    d.mkdir()
+    (d / "thesis.tex").write_text("years of work")
+    for name, text in (("manifest.json", "not json"), ("manifest.json", '{"version": 1}'),
+                       ("metrics.json", '{"accuracy": 0.9}'), (MARKER_NAME, '{"kind": "map store"}'),
+                       (MARKER_NAME, "blockloc")):
+        (d / name).write_text(text)
+        assert owner(d) is None, (name, text)
+        with pytest.raises(BlocklocError, match="did not make"):
+            check_replaceable(d)
+        (d / name).unlink()
+
+
+def test_a_blockloc_folder_holding_a_foreign_file_is_not_replaced(tmp_path):
+    from blockloc.errors import BlocklocError
+    from blockloc.fileio import atomic_dir
+
+    out = tmp_path / "store"
+    with atomic_dir(out, "map store") as tmp:
+        (tmp / "000.pcd").write_text("x")
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(BlocklocError, match=r"holds files blockloc did not write \(notes.txt\)"):
+        with atomic_dir(out, "map store") as tmp:
+            pass
+    assert (out / "notes.txt").read_text() == "mine" and (out / "000.pcd").exists()
+
+
+def test_stores_written_before_markers_are_proven_by_their_format(tmp_path):
+    """A pre-marker map store (manifest with version/kind/entries+sha256) and results folder
+    (metrics.json with frames/processed/estimated) stay replaceable; their foreign files do not."""
+    import json
+
+    from blockloc.errors import BlocklocError
+    from blockloc.outdir import check_replaceable, owner
+
+    store = tmp_path / "store"
+    store.mkdir()
+    (store / "000.pcd").write_text("x")
+    (store / "manifest.json").write_text(json.dumps({"version": 1, "kind": "block", "entries": [
+        {"file": "000.pcd", "sha256": "00"}]}))
+    assert owner(store) == ("map store", {"manifest.json", "000.pcd", "CentroidCloud.pcd",
+                                          "pointcloud_map_metadata.yaml"})
+    check_replaceable(store, "--out", ("map store",))
+    (store / "thesis.tex").write_text("mine")
+    with pytest.raises(BlocklocError, match="thesis.tex"):
+        check_replaceable(store, "--out", ("map store",))
+    res = tmp_path / "res"
+    res.mkdir()
+    (res / "metrics.json").write_text(json.dumps({"frames": 3, "processed": 3, "estimated": 3}))
+    (res / "poses.tum").write_text("")
+    check_replaceable(res, "--out", ("results folder",))
+    with pytest.raises(BlocklocError, match="not a map store .it is blockloc's results folder"):
+        check_replaceable(res, "--out", ("map store",), "a map store")
+
+
+def test_output_lock_names_a_live_holder_and_takes_over_a_dead_one(tmp_path):
+    import subprocess
+    import sys
+
+    from blockloc.errors import BlocklocError
+    from blockloc.outdir import OutputLock
+
+    out = tmp_path / "res"
+    # a live holder that runs blockloc (its command line says so)
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; print(1, flush=True); time.sleep(60)",
+                               "blockloc"], stdout=subprocess.PIPE)
+    try:
+        holder.stdout.readline()  # it runs (exec done: its command line is its own)
+        (tmp_path / ".res.blockloc-lock").write_text(f"pid {holder.pid}\n")
+        with pytest.raises(BlocklocError, match=f"in use by another blockloc run .process {holder.pid}"):
+            OutputLock(out).acquire()
+    finally:
+        holder.kill()
+        holder.wait()
+    with OutputLock(out) as lock:  # its process is gone: taken over
+        assert lock.holder() == os.getpid()
+    assert not (tmp_path / ".res.blockloc-lock").exists()
+
+
+def test_free_space_and_writability_are_checked(tmp_path):
+    from blockloc.errors import BlocklocError
+    from blockloc.outdir import check_free_space, check_writable
+
+    check_writable(tmp_path / "a" / "b")
+    check_free_space(tmp_path / "a", 1)
+    with pytest.raises(BlocklocError, match=r"--out .*MiB free on its file system, the run needs about"):
+        check_free_space(tmp_path / "a", 2**62)
 
 
 def test_to_jsonable_makes_numpy_and_nan_valid_json():

@@ -154,17 +154,20 @@ class SequenceRef:
     # ------------------------------------------------------------------ opening
     def open(self, *, data_root: str | Path | None = None, dataset_cfg: Any = None,
              lidar_topic: str | None = None, imu_topic: str | None = None, poses=None,
-             poses_frame: str | None = None):
+             poses_frame: str | None = None, want_imu: bool = True):
         """The Sequence this names. dataset_cfg: the dataset settings (range limits, hits use,
         topics, data root; read by attribute); explicit arguments override it. poses: a
         trajectory file (TUM, KITTI, NCLT csv) or Trajectory giving its ground truth and mapping
-        poses (T_map_body); poses_frame: that trajectory's frame name."""
+        poses (T_map_body); poses_frame: that trajectory's frame name. want_imu: False when the
+        run ignores the IMU (``tracking.use_imu`` false): a loader does not warn about a missing
+        IMU file then."""
         dc = DatasetConfig()  # what a setting missing from dataset_cfg defaults to (declared once, there)
         options = dict(min_range_m=float(getattr(dataset_cfg, "min_range_m", dc.min_range_m)),
                        max_range_m=float(getattr(dataset_cfg, "max_range_m", dc.max_range_m)),
                        use_hits_times=bool(getattr(dataset_cfg, "use_hits_times", dc.use_hits_times)),
                        lidar_topic=lidar_topic or getattr(dataset_cfg, "lidar_topic", None),
-                       imu_topic=imu_topic or getattr(dataset_cfg, "imu_topic", None))
+                       imu_topic=imu_topic or getattr(dataset_cfg, "imu_topic", None),
+                       want_imu=bool(want_imu))
         if self.kind in PATH_LOADERS:
             loader = _loader(self.kind)
             seq = loader.open_path(self.path, {**options, "poses": poses, "poses_frame": poses_frame})
@@ -194,7 +197,7 @@ class SequenceRef:
             for c in cands:
                 if (c / "velodyne_sync").is_dir():
                     return NcltSequence(c, use_hits_times=options["use_hits_times"], date=date, name=self.text,
-                                        **ranges)
+                                        want_imu=options["want_imu"], **ranges)
             raise DatasetError(
                 f"{self.text}: NCLT session {date} not found: expected {cands[0]}/velodyne_sync/ "
                 f"(unpack {date}_vel.tar.gz and {date}_sen.tar.gz from the NCLT site into {root / 'nclt'}, "

@@ -22,7 +22,7 @@ from blockloc.app.assemble import build_engine, build_session, make_localizer, o
 from blockloc.app.catalog import SequenceRef, map_kind_for_backend, map_params, open_sequence
 from blockloc.app.session import RunResult, Session
 from blockloc.config import Config, MapConfig, load_config
-from blockloc.errors import DatasetError, GlobalInitError, MapError
+from blockloc.errors import BlocklocError, DatasetError, GlobalInitError, MapError, OutputWriteError
 from blockloc.geometry import T_to_xyzrpy
 from blockloc.global_init.place_index import PLACE_INDEX_NAME, write_place_index
 from blockloc.global_init.relocalize import pose_error
@@ -63,7 +63,7 @@ def open_session(seq: str, *, cfg: Config, map_path: str | None = None, backend:
     ref = SequenceRef.parse(seq)
     backend = backend or cfg.map.backend
     sequence = ref.open(data_root=data_root, dataset_cfg=cfg.dataset, lidar_topic=lidar_topic, imu_topic=imu_topic,
-                        poses=poses)
+                        poses=poses, want_imu=cfg.tracking.use_imu)
     path = resolve_map(ref, map_path, backend, cfg, data_root)
     store = open_store(path, cfg.map)
     return build_session(cfg, sequence, store, backend=backend, observers=observers, out_dir=out_dir,
@@ -73,12 +73,45 @@ def open_session(seq: str, *, cfg: Config, map_path: str | None = None, backend:
 def track(session: Session, *, mode: str, hint=None, max_frames: int | None = None,
           progress: Progress | None = None, should_stop: Callable[[], bool] | None = None) -> RunResult:
     """Run a session from its first frame (``max_frames`` of them, or all): initialize (``mode``
-    gt | pose | global, ``hint`` (x, y, yaw or None) for pose), step, finish."""
-    return session.run(0, max_frames, init=mode, pose_hint=hint, progress=progress, should_stop=should_stop)
+    gt | pose | global, ``hint`` (x, y, yaw or None) for pose), step, finish. A results file that
+    cannot be written (disk full, the folder removed) ends the run with OutputWriteError naming
+    the file, the cause and what was kept (:func:`stopped_note`)."""
+    try:
+        return session.run(0, max_frames, init=mode, pose_hint=hint, progress=progress, should_stop=should_stop)
+    except OutputWriteError as exc:
+        total = len(session.stamps) if max_frames is None else min(max_frames, len(session.stamps))
+        out_dir = Path(session.out_dir) if session.out_dir is not None else None
+        raise OutputWriteError(exc.path, exc.cause, stopped_note(session, total, out_dir)) from None
 
 
-def write_run_report(session: Session, res: RunResult, out_dir: Path) -> Path:
-    """``report.html`` in the results folder: metrics, plots, config and an interactive top view."""
+def stopped_note(session: Session, total: int, out_dir: Path | None) -> str:
+    """What a run stopped by an output it could not write kept: frames done, whether its metrics
+    were written, the temporary files left (named, to be removed or kept by the user)."""
+    done = len(session.diagnostics)
+    note = f"tracking stopped after {done} of {total} frames; every row written is whole"
+    if out_dir is not None:
+        written = session.output_error is None and (out_dir / "metrics.json").is_file()
+        note += "; metrics.json " + ("written" if written else "not written")
+        left = sorted(p.name for p in out_dir.glob("*.partial")) if out_dir.is_dir() else []
+        if left:
+            note += f"; left: {', '.join(left)}"
+    return note
+
+
+def write_run_report(session: Session, res: RunResult, out_dir: Path, quiet: bool = False) -> Path | None:
+    """``report.html`` in the results folder: metrics, plots, config and an interactive top view.
+    quiet: the run already failed (its error is on its way): a report that cannot be written is
+    logged in one line (None returned) instead of replacing that error."""
+    try:
+        return _write_run_report(session, res, out_dir)
+    except (OSError, BlocklocError) as exc:
+        if not quiet:
+            raise
+        log.error("report not written: %s", exc)
+        return None
+
+
+def _write_run_report(session: Session, res: RunResult, out_dir: Path) -> Path:
     images = {caption: out_dir / name for caption, name in (("trajectories", "trajectories.png"),
                                                              ("errors over time", "errors.png"))
               if (out_dir / name).is_file()}

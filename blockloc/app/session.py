@@ -22,9 +22,12 @@ Every path prepares its scan with :func:`blockloc.global_init.scan_prep.prepare_
 
 A run survives bad frames: a scan that cannot be read is skipped (``skipped_frames``), a map
 entry that cannot be loaded is treated as unmapped (``map_faults``), IMU and LiDAR gaps are
-logged and counted (``imu_gaps``, ``lidar_gaps``: :mod:`blockloc.app.stream_checks`); ``run(should_stop=...)`` stops between frames
-(Ctrl-C), and ``finish`` always hands the observers what was computed (``interrupted`` in the
-metrics).
+logged and counted (``imu_gaps``, ``lidar_gaps``: :mod:`blockloc.app.stream_checks`), as are the
+points a loader dropped for NaN/inf coordinates (``nonfinite_points``); ``run(should_stop=...)``
+stops between frames (Ctrl-C), and ``finish`` always hands the observers what was computed
+(``interrupted`` in the metrics). A results file that cannot be written (disk full, its folder
+removed: :class:`~blockloc.errors.OutputWriteError`) stops the run; ``run`` raises it after
+``finish`` wrote what it could (``output_error``).
 """
 
 from __future__ import annotations
@@ -39,7 +42,7 @@ import numpy as np
 from blockloc.app.recovery import GlobalInitSettings, Recovery
 from blockloc.app.stream_checks import StreamChecks
 from blockloc.datasets.base import ImuData
-from blockloc.errors import BlocklocError, TrackingError
+from blockloc.errors import BlocklocError, OutputWriteError, TrackingError
 from blockloc.evaluation.results import run_metrics
 from blockloc.geometry import Trajectory
 from blockloc.maps.summary import entry_footprint
@@ -100,6 +103,7 @@ class Session:
         self.provider = provider
         self.store = store
         self.observers = ObserverGroup(observers)  # a failing viewer is dropped, never stops tracking
+        self.output_error: OutputWriteError | None = None  # the results folder could not be finished
         self.evaluation = evaluation or {}
         self.plots = plots
         self.facts = dict(facts or {})
@@ -119,7 +123,8 @@ class Session:
         self.estimates: list = []
         self._poses: list[np.ndarray] = []
         self._pose_stamps: list[float] = []
-        self.counters = {"skipped_frames": 0, "map_faults": 0, "imu_gaps": 0, "lidar_gaps": 0}
+        self.counters = {"skipped_frames": 0, "map_faults": 0, "imu_gaps": 0, "lidar_gaps": 0,
+                         "nonfinite_points": 0}
         self.recovery = Recovery(localizer, init_settings, self.info, self.imu, self.ground_truth, self.counters)
         self.reloc_log = self.recovery.log  # every relocalization attempt (also in the metrics)
         self.stream = StreamChecks(self.info, self.counters)
@@ -249,7 +254,7 @@ class Session:
         Returns the tracker's Estimate."""
         self.start()
         t0 = time.perf_counter()
-        self.stream.lidar_frame(frame)
+        self.stream.lidar_frame(frame)  # gaps, points dropped for NaN/inf coordinates
         imu = self.imu
         t_end = frame.stamp + (float(np.max(frame.time_offsets)) if frame.time_offsets is not None
                                and len(frame.time_offsets) else 0.0)
@@ -355,7 +360,10 @@ class Session:
             else:
                 self.close()
             raise
-        return self.finish(interrupted=interrupted)
+        res = self.finish(interrupted=interrupted)
+        if self.output_error is not None:
+            raise self.output_error
+        return res
 
     def finish(self, interrupted: bool = False) -> RunResult:
         """Metrics of what was computed; observers finish; the map provider closes. Idempotent."""
@@ -382,6 +390,8 @@ class Session:
             self.observers.finish(metrics)  # every observer finishes, then the first failure is logged
         except Exception as exc:  # noqa: BLE001 - what was computed is returned all the same
             log.error("an observer could not finish: %s", exc)
+            if isinstance(exc, OutputWriteError):  # the results folder lacks its metrics: run() raises it
+                self.output_error = exc
         self._finished = RunResult(traj, self.diagnostics, metrics, self.out_dir,
                                    self.estimates if self.keep_estimates else [])
         return self._finished

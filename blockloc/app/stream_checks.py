@@ -1,5 +1,6 @@
 """Gaps in a session's sensor streams: logged once per gap and counted (``imu_gaps``,
-``lidar_gaps``), never a reason to stop tracking."""
+``lidar_gaps``), never a reason to stop tracking; points a loader dropped for NaN/inf
+coordinates, counted (``nonfinite_points``) and warned about once."""
 
 from __future__ import annotations
 
@@ -38,10 +39,22 @@ class StreamChecks:
             self._imu_gap_s = 0.0
 
     def lidar_frame(self, frame) -> None:
-        """Count and log a gap before ``frame`` longer than LIDAR_GAP_FACTOR scan periods."""
+        """Count and log a gap before ``frame`` longer than LIDAR_GAP_FACTOR scan periods, and the
+        points its loader dropped for NaN/inf coordinates."""
+        self._count_nonfinite(frame)
         stamp = float(frame.stamp)
         period = 1.0 / max(float(getattr(self.info, "lidar_rate_hz", 10.0) or 10.0), 1e-6)
         if self._last_stamp is not None and stamp - self._last_stamp > LIDAR_GAP_FACTOR * period:
             self.counters["lidar_gaps"] += 1
             log.warning("frame %d: no LiDAR scan for %.2f s before it", frame.index, stamp - self._last_stamp)
         self._last_stamp = stamp
+
+    def _count_nonfinite(self, frame) -> None:
+        """Count the points the loader dropped for NaN/inf coordinates (``num_nonfinite``;
+        metrics: nonfinite_points); the first frame with any is warned about, naming it."""
+        n = int(getattr(frame, "num_nonfinite", 0) or 0)
+        if n:
+            if not self.counters.get("nonfinite_points"):
+                log.warning("frame %d: %d points with NaN/inf coordinates dropped (counted in metrics "
+                            "nonfinite_points; later frames are not warned about)", frame.index, n)
+            self.counters["nonfinite_points"] = self.counters.get("nonfinite_points", 0) + n

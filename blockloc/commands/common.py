@@ -137,12 +137,27 @@ def results_dir(out: Path | None, name: str) -> Path:
     return Path("results") / f"{safe[-60:]}_{time.strftime('%Y%m%d-%H%M%S')}"
 
 
-def check_results_dir(out: Path) -> None:
+def check_results_dir(out: Path, need_bytes: int = 0) -> None:
     """Before any work: ``out`` must be absent, empty or a results folder blockloc wrote (not
-    another kind of blockloc output: a map store or a dataset is not replaced by results)."""
-    from blockloc.fileio import RESULTS, check_replaceable
+    another kind of blockloc output: a map store or a dataset is not replaced by results),
+    writable, with ``need_bytes`` free, and not in use by another blockloc run (its lock is taken)."""
+    from blockloc.fileio import RESULTS
+    from blockloc.outdir import claim_output
 
-    check_replaceable(out, "--out", RESULTS, "a results folder")
+    claim_output(out, "--out", need_bytes=need_bytes, kinds=RESULTS, kind="a results folder")
+
+
+#: Bytes a tracking run writes per frame, an upper estimate for the free-space check: poses and
+#: diagnostics rows (~1 kB) and, when recorded, the frame's MCAP messages (the deskewed scan and
+#: the local map's changes, compressed; measured on the tiny fault-suite drive: see
+#: docs/robustness.md).
+TRACK_BYTES_PER_FRAME, TRACK_RECORD_BYTES_PER_FRAME = 2_000, 200_000
+
+
+def track_bytes(frames: int, record: bool) -> int:
+    """The free space a tracking run of ``frames`` frames needs (a floor of 1 MiB for the
+    report and metrics)."""
+    return 2**20 + frames * (TRACK_BYTES_PER_FRAME + (TRACK_RECORD_BYTES_PER_FRAME if record else 0))
 
 
 #: Seconds without a progress line after which a piped progress prints one anyway.
@@ -235,6 +250,11 @@ class StopRequest:
     def exit_code(self) -> int:
         return EXIT_CODES.get(self.signal, 130)
 
+    @property
+    def name(self) -> str:
+        """SIGINT / SIGTERM (the signal that asked to stop)."""
+        return signal.Signals(self.signal).name if self.signal is not None else "SIGINT"
+
 
 @contextlib.contextmanager
 def interruptible() -> Iterator[StopRequest]:
@@ -251,7 +271,10 @@ def interruptible() -> Iterator[StopRequest]:
         if stop.signal is not None:
             raise Stopped(signum)
         stop.signal = signum
-        print("stopping after the current frame (Ctrl-C again to abort)", file=sys.stderr, flush=True)
+        name = signal.Signals(signum).name
+        again = "Ctrl-C" if signum == signal.SIGINT else name
+        print(f"{name} received: stopping after the current frame ({again} again to abort at once)",
+              file=sys.stderr, flush=True)
 
     old = {s: signal.signal(s, handler) for s in EXIT_CODES if signal.getsignal(s) is not signal.SIG_IGN}
     try:

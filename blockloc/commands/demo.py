@@ -14,7 +14,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from blockloc.app.runs import demo_session, prepare_small_world, write_run_report
-from blockloc.commands.common import check_results_dir, console, progress, results_dir
+from blockloc.commands.common import check_results_dir, console, progress, results_dir, track_bytes
 from blockloc.commands.init import compile_note
 from blockloc.commands.track import print_track_summary, print_where, run_observers, run_tracking
 
@@ -22,7 +22,7 @@ from blockloc.commands.track import print_track_summary, print_where, run_observ
 def demo_command(out: Path | None, max_frames: int | None, record: bool = True) -> None:
     con = console()
     out_dir = results_dir(out, "demo")
-    check_results_dir(out_dir)
+    check_results_dir(out_dir, track_bytes(max_frames or 1, record))
 
     def say(msg: str) -> None:
         con.print(f"[bold cyan]demo[/] {msg}")
@@ -32,11 +32,13 @@ def demo_command(out: Path | None, max_frames: int | None, record: bool = True) 
     session, hint = demo_session(cfg, world=world, out=out_dir, observers=run_observers(out_dir, record=record),
                                  say=say)
     say(f"global init: branch-and-bound around the hint ({hint[0]:.1f}, {hint[1]:.1f}), yaw unknown")
+    ok = False
     try:
         res = run_tracking(session, mode="pose", hint=hint, out_dir=out_dir, max_frames=max_frames)
+        ok = True
     finally:
         if session.result is not None:
-            write_run_report(session, session.result, out_dir)
+            write_run_report(session, session.result, out_dir, quiet=not ok)
     init = res.metrics.get("init") or {}
     if init.get("time_s") is not None:
         say(f"global init: {init.get('error_m', float('nan')):.2f} m from the truth in {init['time_s']:.2f} s"

@@ -14,8 +14,17 @@ def eval_command(gt: Path, est: Path, align: bool, json_out: bool, plot: Path | 
     from blockloc.commands.common import console, parse_deltas
     from blockloc.evaluation.report import evaluate_files
 
+    if plot is not None:  # before any work: a folder of blockloc's plots (or a new one), writable, ours
+        from blockloc.outdir import PLOTS, RESULTS, claim_output
+
+        claim_output(plot, "--plot", need_bytes=2**20, kinds=(PLOTS, RESULTS), kind="a plot or results folder")
     metrics = evaluate_files(gt, est, align=align, max_time_diff_s=max_time_diff, plot_dir=plot,
                              interpolate=interpolate, rpe_deltas_m=parse_deltas(rpe_deltas))
+    if plot is not None and Path(plot).is_dir():
+        from blockloc.outdir import PLOTS, owner, write_marker
+
+        if owner(plot) is None:  # a new plot folder: blockloc's from now on (a results folder stays one)
+            write_marker(plot, PLOTS)
     if json_out:
         print(json.dumps(metrics))
     else:

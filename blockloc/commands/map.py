@@ -51,7 +51,7 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
                        "--poses per --seq, in the same order ('-': the sequence's own poses)")
     if not is_url(str(out)):  # an object store is checked by its writer (no local path to look at)
         out = Path(out)
-        check_out(out, overwrite)
+        check_out(out, overwrite, max(MAP_BUILD_MIN_BYTES, 2 * _size(from_pcd)))
     cfg = config_for(drive_sequence_name(seqs[0]) if seqs else None, config)
     overrides = {k: v for k, v in (("block_size_m", block_size), ("tile_size_m", tile_size),
                                    ("voxel_size_m", voxel), ("calibrate_mounting", calibrate_mounting))
@@ -90,11 +90,18 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
     print_summary(map_summary(store), console())
 
 
-def check_out(out: Path, overwrite: bool) -> None:
+#: Free space a map build needs at least (a store of the tiny test drive is ~1 MiB; a build
+#: from a global PCD needs about the PCD's size: every point lands in some tile or block).
+MAP_BUILD_MIN_BYTES = 16 * 2**20
+
+
+def check_out(out: Path, overwrite: bool, need_bytes: int = MAP_BUILD_MIN_BYTES) -> None:
     """Before any work: ``--out`` is absent, or ``--overwrite`` is given and it is a map store
-    (or an empty directory): MapError naming it otherwise."""
+    blockloc made holding no other file (or an empty directory); its folder is writable with
+    ``need_bytes`` free, and no other blockloc run uses it: MapError naming it otherwise."""
     from blockloc.errors import BlocklocError, MapError
     from blockloc.fileio import MAP_STORE, check_replaceable
+    from blockloc.outdir import claim_output
 
     if out.exists() and not overwrite:
         raise MapError(f"--out {out}: already exists (choose another --out, or --overwrite to replace the map there)")
@@ -102,6 +109,15 @@ def check_out(out: Path, overwrite: bool) -> None:
         check_replaceable(out, "--out", MAP_STORE, "a map store")
     except BlocklocError as exc:
         raise MapError(f"{exc}; --overwrite replaces only a map store") from None
+    claim_output(out, "--out", need_bytes=need_bytes)
+
+
+def _size(path: Path | None) -> int:
+    """Bytes of an input file (0 when absent: its reader names it)."""
+    try:
+        return Path(path).stat().st_size if path is not None else 0
+    except OSError:
+        return 0
 
 
 def check_positive(*options: tuple[str, str, float | None]) -> None:
@@ -122,7 +138,7 @@ def tile_command(global_pcd: Path, tile_size: float, out: Path, overwrite: bool)
     from blockloc.maps.summary import map_summary
 
     check_positive(("--tile-size", "tile size", tile_size))
-    check_out(out, overwrite)
+    check_out(out, overwrite, max(MAP_BUILD_MIN_BYTES, 2 * _size(global_pcd)))
     with progress("tiles") as report:
         store = tile_pcd_file(global_pcd, tile_size, out, overwrite=overwrite, progress=report)
     print_summary(map_summary(store), console())
@@ -197,6 +213,11 @@ def print_summary(summary: dict[str, Any], console) -> None:
         t.add_row("LiDAR mounting", f"{drive}: estimated from {m['used']} of {m['pairs']} keyframe pairs, "
                                     f"rotation {m['rotation_deg']} deg, translation {m['translation_m']} m "
                                     "from the nominal (body frame)")
+    skipped = summary["parameters"].get("skipped_keyframes") or []
+    if skipped:  # scans a build could not read: counted and named (also in the manifest)
+        t.add_row("skipped keyframes", f"{len(skipped)}: " + "; ".join(
+            f"{k['sequence']} frame {k['frame']} ({k['error']})" for k in skipped[:3])
+            + (f"; and {len(skipped) - 3} more (see manifest.json)" if len(skipped) > 3 else ""))
     if summary["legacy_layout"]:
         t.add_row("layout", "released block-map layout (no manifest, no checksums)")
     console.print(t)
@@ -239,6 +260,9 @@ def index_command(map_path: str, gravity: str | None, config: str | None) -> Non
     store = open_map(map_path)
     if store.files.is_remote:
         raise MapError(f"{map_path}: a place index can be added only to a local map store")
+    from blockloc.outdir import claim_output
+
+    claim_output(Path(map_path), "MAP", need_bytes=max(MAP_BUILD_MIN_BYTES // 4, store.total_bytes // 4))
     source = store.params.get("sequence")
     if gravity is not None:
         g = parse_gravity(gravity)

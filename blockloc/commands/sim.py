@@ -6,6 +6,10 @@ import sys
 from pathlib import Path
 
 
+#: Free space a simulation needs at least (the `tiny` preset writes ~5 MiB).
+SIM_MIN_BYTES = 16 * 2**20
+
+
 def sim_command(preset: str, seed: int, out: Path, fmt: str, azimuth_steps: int | None, months: str = "") -> None:
     from blockloc.commands.common import progress
     from blockloc.errors import SimError
@@ -21,6 +25,9 @@ def sim_command(preset: str, seed: int, out: Path, fmt: str, azimuth_steps: int 
     from blockloc.sim.changes import sessions_for_months
 
     sessions_for_months(month_list)  # checked before any work
+    from blockloc.outdir import claim_output
+
+    claim_output(out, "--out", need_bytes=SIM_MIN_BYTES)  # writable, room, no other run on it
     overrides = {} if azimuth_steps is None else {"azimuth_steps": azimuth_steps}
     current = {"session": None}
     with progress(f"sim {preset}") as cb:

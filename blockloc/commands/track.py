@@ -9,8 +9,9 @@ from typing import Optional
 
 from blockloc.app.runs import open_session, track, write_run_report
 from blockloc.commands.common import (Interrupted, check_results_dir, config_for, console, interruptible,
-                                      parse_pose_hint, progress, results_dir)
+                                      parse_pose_hint, progress, results_dir, track_bytes)
 from blockloc.errors import TrackingError
+from blockloc.outdir import check_free_space
 
 log = logging.getLogger("blockloc")
 
@@ -31,14 +32,15 @@ def init_mode(init: Optional[str], init_pose: Optional[str]) -> tuple[str, tuple
 def run_tracking(session, *, mode: str, hint, out_dir: Path | None, label: str = "tracking",
                  max_frames: int | None = None):
     """Run a session with a progress display and honest interruption; returns the RunResult.
-    After a SIGINT/SIGTERM the partial results are written, then ``Interrupted`` is raised."""
+    After a SIGINT/SIGTERM the partial results are written, then ``Interrupted`` is raised; a
+    results file that cannot be written raises OutputWriteError (:func:`blockloc.app.runs.track`)."""
     total = len(session.stamps) if max_frames is None else min(max_frames, len(session.stamps))
     with interruptible() as stop, progress(label, total) as cb:
         res = track(session, mode=mode, hint=hint, max_frames=max_frames, progress=cb, should_stop=stop)
     if stop():
         done = res.metrics.get("processed", 0)
         where = f"; partial results in {out_dir}" if out_dir is not None else ""
-        raise Interrupted(f"interrupted after {done} of {total} frames{where}", stop.exit_code)
+        raise Interrupted(f"interrupted by {stop.name} after {done} of {total} frames{where}", stop.exit_code)
     return res
 
 
@@ -104,16 +106,23 @@ def track_command(seq: str, map_path: str | None, backend: str | None, init: str
         raise TrackingError(f"--max-frames {max_frames}: expected a positive number of frames")
     cfg = config_for(seq, config, sets)
     out_dir = results_dir(out, seq)
-    check_results_dir(out_dir)  # before any work
+    check_results_dir(out_dir, track_bytes(max_frames or 1, record))  # before any work
     observers = run_observers(out_dir, record=record, record_path=record_path, live=live, host=host, port=port)
     session = open_session(seq, cfg=cfg, map_path=map_path, backend=backend, data_root=data_root,
                            observers=observers, out_dir=out_dir, lidar_topic=lidar_topic,
                            imu_topic=imu_topic, poses=poses)
+    try:  # now that the frame count is known: room for all of them
+        check_free_space(out_dir, track_bytes(min(max_frames or len(session.stamps), len(session.stamps)), record))
+    except BaseException:
+        session.close()  # the map provider's thread
+        raise
+    ok = False
     try:
         res = run_tracking(session, mode=mode, hint=hint, out_dir=out_dir, max_frames=max_frames)
+        ok = True
     finally:
         if session.result is not None:  # whatever was computed, also when interrupted
-            write_run_report(session, session.result, out_dir)
+            write_run_report(session, session.result, out_dir, quiet=not ok)
     print_track_summary(console(), res.metrics, res.out_dir)
     print_where(console(), out_dir)
 

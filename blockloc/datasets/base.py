@@ -26,6 +26,7 @@ class LidarFrame:
     intensity: (N,) float32 or None.
     time_offsets: (N,) float32 seconds relative to ``stamp`` (may be negative), or None if unknown.
     ring: (N,) uint16 laser/ring id, or None if unknown.
+    num_nonfinite: points the loader dropped for a NaN/inf coordinate (counted by the session).
     """
 
     index: int
@@ -34,6 +35,7 @@ class LidarFrame:
     intensity: np.ndarray | None = None
     time_offsets: np.ndarray | None = None
     ring: np.ndarray | None = None
+    num_nonfinite: int = 0
 
     def __len__(self) -> int:
         return len(self.points)
@@ -42,7 +44,7 @@ class LidarFrame:
         """A frame holding only the points where ``mask`` is True (or at the given indices)."""
         pick = lambda a: None if a is None else a[mask]  # noqa: E731
         return LidarFrame(self.index, self.stamp, self.points[mask], pick(self.intensity),
-                          pick(self.time_offsets), pick(self.ring))
+                          pick(self.time_offsets), pick(self.ring), self.num_nonfinite)
 
 
 @dataclass

@@ -270,8 +270,9 @@ class NcltSequence:
     def __init__(self, session_dir: str | Path, *, use_hits_times: bool = True,
                  min_range_m: float = 1.0, max_range_m: float = 100.0, date: str | None = None,
                  ms25_path: str | Path | None = None, groundtruth_path: str | Path | None = None,
-                 name: str | None = None):
+                 name: str | None = None, want_imu: bool = True):
         self.session_dir = Path(session_dir)
+        self.want_imu = bool(want_imu)  # False: the run ignores the IMU, a missing ms25.csv is no news
         self.min_range_m = float(min_range_m)
         self.max_range_m = float(max_range_m)
         sync_dir = self.session_dir / "velodyne_sync"
@@ -361,16 +362,35 @@ class NcltSequence:
             log.warning("%s: ignored %d files not named <utime>.bin", sync_dir, skipped)
         return np.unique(np.asarray(utimes, dtype=np.int64))
 
-    def _find_ms25(self) -> Path:
+    def _find_ms25(self) -> Path | None:
+        """The IMU file, or None (the session is tracked LiDAR-only; :meth:`imu` warns once,
+        naming the file and the remedy for this kind of session)."""
         cands = [self.session_dir / "ms25.csv",
                  self.session_dir / "sensor_data" / "ms25.csv",
                  self.session_dir.parent / "sensor_data" / self.date / "ms25.csv"]
         for c in cands:
             if c.is_file():
                 return c
-        raise DatasetError(
-            f"{cands[0]}: not found; put the NCLT ms25.csv there (download {self.date}_sen.tar.gz "
-            f"from the NCLT site and unpack it into {self.session_dir.parent})")
+        self._ms25_missing = cands[0]
+        return None
+
+    def _imu_remedy(self) -> str:
+        """How to get this session's IMU file: re-simulate a `blockloc sim` session, download an NCLT one."""
+        import json
+
+        sim = self.session_dir.parent / "sim.json"
+        if sim.is_file():
+            try:
+                meta = json.loads(sim.read_text())
+                how = (f"blockloc sim --preset {meta['preset']} --seed {meta['seed']} "
+                       f"--out {self.session_dir.parent}")
+            except (OSError, ValueError, KeyError, TypeError):
+                how = f"blockloc sim --out {self.session_dir.parent}"
+            return f"a simulated session: re-run `{how}` to write it whole"
+        if (self.session_dir / SIDECAR_NAME).is_file():
+            return "a session blockloc wrote without its IMU; write it again with its IMU samples"
+        return (f"for the IMU, download {self.date}_sen.tar.gz from the NCLT site and unpack it into "
+                f"{self.session_dir.parent}")
 
     def _find_csv(self, fname: str, only_session: bool = False) -> Path | None:
         dirs = self._ground_truth_dirs()
@@ -381,6 +401,8 @@ class NcltSequence:
         return None
 
     def _peek_imu_rate(self) -> float:
+        if self._ms25_path is None:
+            return 100.0  # the MS25's nominal rate (no samples to use it on)
         stamps = []
         for _, line in _text_lines(self._ms25_path, "utime, mag xyz, accel xyz, gyro xyz"):
             head = line.split(",", 1)[0].strip()
@@ -445,8 +467,19 @@ class NcltSequence:
             yield self.frame(i)
 
     def imu(self) -> ImuData:
+        """The ms25.csv samples, or an empty ImuData (len 0) when the session has no IMU file
+        (one warning, naming it and the remedy: the run is LiDAR-only; an info line only when
+        the session was opened with ``want_imu=False``: the user asked for LiDAR-only)."""
         if self._imu is None:
-            self._imu = read_ms25_csv(self._ms25_path)
+            if self._ms25_path is None:
+                if self.want_imu:
+                    log.warning("%s: not found; no IMU, tracking LiDAR-only (%s)", self._ms25_missing,
+                                self._imu_remedy())
+                else:
+                    log.info("%s: not found; no IMU (LiDAR-only, as asked)", self._ms25_missing)
+                self._imu = ImuData(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)))
+            else:
+                self._imu = read_ms25_csv(self._ms25_path)
         return self._imu
 
     def ground_truth(self) -> Trajectory | None:
@@ -559,7 +592,7 @@ def write_session(out_dir: str | Path, *, date: str, frames: Iterable[LidarFrame
              "gravity_map": np.asarray(NCLT_GRAVITY_MAP if gravity_map is None else gravity_map,
                                        dtype=float).tolist()}
         atomic_write_text(tmp / SIDECAR_NAME, json.dumps(d, indent=1))
-        replace_dir(tmp, out_dir)
+        replace_dir(tmp, out_dir, "session")
         log.info("wrote %d frames to %s", n_frames, out_dir)
         return out_dir
     except BaseException:
@@ -577,6 +610,8 @@ def detect(path: Path) -> bool:
 
 
 def open_path(path: Path, options: dict) -> "NcltSequence":
-    """The session at ``path``; options: min_range_m, max_range_m, use_hits_times."""
+    """The session at ``path``; options: min_range_m, max_range_m, use_hits_times, want_imu
+    (False: the run ignores the IMU, a missing ms25.csv is not warned about)."""
     return NcltSequence(path, use_hits_times=bool(options.get("use_hits_times", True)),
-                        min_range_m=options.get("min_range_m", 1.0), max_range_m=options.get("max_range_m", 100.0))
+                        min_range_m=options.get("min_range_m", 1.0), max_range_m=options.get("max_range_m", 100.0),
+                        want_imu=bool(options.get("want_imu", True)))

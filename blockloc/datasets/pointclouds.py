@@ -230,6 +230,23 @@ def _read_pcd(path: Path) -> np.ndarray:
     if kind == "binary" and payload < n * dtype.itemsize:
         raise DatasetError(f"{path}: truncated binary PCD: {payload} payload bytes, expected "
                            f"{n * dtype.itemsize} for {what}")
+    # a header that undercounts its payload would read as a silently shorter cloud
+    width, height = int(getattr(meta, "width", n) or n), int(getattr(meta, "height", 1) or 1)
+    if width * height != n:
+        raise DatasetError(f"{path}: PCD header does not match itself: WIDTH {width} x HEIGHT {height} "
+                           f"is {width * height} points, POINTS says {n}")
+    if kind == "binary" and payload > n * dtype.itemsize:
+        raise DatasetError(f"{path}: PCD header does not match its payload: {payload} payload bytes hold "
+                           f"{payload / dtype.itemsize:g} points, the header says {what}")
+    if kind == "ascii":
+        with open(path, "rb") as fh:
+            fh.seek(offset)
+            rows = sum(1 for line in fh if line.strip())
+        if rows < n:
+            raise DatasetError(f"{path}: truncated ascii PCD: {rows} rows, expected {what}")
+        if rows > n:
+            raise DatasetError(f"{path}: PCD header does not match its payload: {rows} rows, the header "
+                               f"says {what}")
     if kind.startswith("binary") and kind != "binary" and n > 0:
         with open(path, "rb") as fh:
             fh.seek(offset)

@@ -353,7 +353,7 @@ class ScanFolderSequence:
         if len(cloud) == 0:
             log.warning("%s: no valid points", self.files[index])
         return LidarFrame(index, stamp, cloud.points, cloud.intensity, cloud.time_offsets,
-                          cloud.ring)
+                          cloud.ring, cloud.num_dropped)
 
     def frames(self, start: int = 0, stop: int | None = None) -> Iterator[LidarFrame]:
         stop = len(self) if stop is None else min(stop, len(self))

@@ -81,66 +81,114 @@ def run_metrics(*, diagnostics: list[dict], counters: dict, trajectory: Trajecto
     return to_jsonable(m)
 
 
+#: Bytes a results folder keeps allocated while a run writes (``.reserve``), freed when the disk
+#: fills or the run ends, so that its metrics, KITTI poses and report still fit.
+RESERVE_BYTES = 2**20
+RESERVE_NAME = ".reserve"
+
+
 class RunWriter:
-    """Run observer that writes the results folder ``out`` (see the module docstring)."""
+    """Run observer that writes the results folder ``out`` (see the module docstring). Rows are
+    appended whole (:class:`blockloc.fileio.RowFile`); a file that cannot be written raises
+    :class:`~blockloc.errors.OutputWriteError` naming it (the run stops; ``finish`` still writes
+    the metrics of what was done, into the space :data:`RESERVE_BYTES` kept free)."""
 
     def __init__(self, out: str | Path) -> None:
         self.out = Path(out)
         self._poses = None
         self._diag = None
-        self._diag_writer = None
+        self._diag_fields: list[str] | None = None
+        self._reserve: Path | None = None
         self._stamps: list[float] = []
         self._T: list[np.ndarray] = []
 
     def start(self, info) -> None:
         import yaml
 
+        from blockloc.errors import OutputWriteError
+        from blockloc.fileio import RowFile, reserve_space
+        from blockloc.outdir import RESULTS, write_marker
         from blockloc.trajectory_io import TUM_HEADER
 
-        self.out.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(self.out / "config.yaml", yaml.safe_dump(to_jsonable(info.config), sort_keys=False))
-        self._poses = open(self.out / "poses.tum", "w")
+        try:
+            self.out.mkdir(parents=True, exist_ok=True)
+            write_marker(self.out, RESULTS)  # first: what follows is blockloc's, a kill or not
+            (self.out / "metrics.json").unlink(missing_ok=True)  # an earlier run's: not this one's
+            self._reserve = reserve_space(self.out / RESERVE_NAME, RESERVE_BYTES)
+            atomic_write_text(self.out / "config.yaml", yaml.safe_dump(to_jsonable(info.config), sort_keys=False))
+        except OSError as exc:
+            raise OutputWriteError.of(getattr(exc, "filename", None) or self.out, exc) from None
+        self._poses = RowFile(self.out / "poses.tum")
         self._poses.write(TUM_HEADER + "\n")
-        self._poses.flush()
-        self._diag = open(self.out / "diagnostics.csv", "w", newline="")
+        self._diag = RowFile(self.out / "diagnostics.csv")
 
     def frame(self, event) -> None:
         from blockloc.trajectory_io import tum_lines
 
-        if event.T_map_body is not None and self._poses is not None:
-            self._poses.write(tum_lines([event.stamp], event.T_map_body[None])[0] + "\n")
-            self._poses.flush()
-            self._stamps.append(float(event.stamp))
-            self._T.append(np.asarray(event.T_map_body))
-        if self._diag is not None:
-            row = {"index": event.index, "stamp": f"{event.stamp:.9f}", "status": event.status,
-                   **{k: v for k, v in event.diagnostics.items() if k != "status"}}
-            if self._diag_writer is None:
-                self._diag_writer = csv.DictWriter(self._diag, fieldnames=list(row), extrasaction="ignore")
-                self._diag_writer.writeheader()
-            self._diag_writer.writerow(row)
-            self._diag.flush()
+        try:
+            if event.T_map_body is not None and self._poses is not None:
+                self._poses.write(tum_lines([event.stamp], event.T_map_body[None])[0] + "\n")
+                self._stamps.append(float(event.stamp))
+                self._T.append(np.asarray(event.T_map_body))
+            if self._diag is not None:
+                row = {"index": event.index, "stamp": f"{event.stamp:.9f}", "status": event.status,
+                       **{k: v for k, v in event.diagnostics.items() if k != "status"}}
+                text = ""
+                if self._diag_fields is None:
+                    self._diag_fields = list(row)
+                    text = _csv_row(self._diag_fields)
+                text += _csv_row([row.get(k, "") for k in self._diag_fields])
+                self._diag.write(text)
+        except BaseException:
+            from blockloc.fileio import release_space
+
+            release_space(self._reserve)  # the disk is full: make room for the metrics
+            self._reserve = None
+            raise
 
     def finish(self, metrics: dict) -> None:
+        from blockloc.errors import OutputWriteError
+        from blockloc.fileio import release_space
         from blockloc.trajectory_io import write_kitti
 
+        release_space(self._reserve)
+        self._reserve = None
         for fh in (self._poses, self._diag):
             if fh is not None:
                 fh.close()
         self._poses = self._diag = None
-        if self._T:
-            write_kitti(self.out / "poses_kitti.txt", Trajectory(np.asarray(self._stamps), np.asarray(self._T)))
-        atomic_write_text(self.out / "metrics.json", json.dumps(to_jsonable(metrics), indent=2))
+        try:
+            atomic_write_text(self.out / "metrics.json", json.dumps(to_jsonable(metrics), indent=2))
+            if self._T:
+                write_kitti(self.out / "poses_kitti.txt", Trajectory(np.asarray(self._stamps), np.asarray(self._T)))
+        except OSError as exc:
+            raise OutputWriteError.of(getattr(exc, "filename", None) or self.out / "metrics.json", exc) from None
         _point_latest(self.out)
 
 
+def _csv_row(values) -> str:
+    """One CSV row (csv module quoting), with its newline."""
+    import io
+
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator="\n").writerow(values)
+    return buf.getvalue()
+
+
 def _point_latest(out: Path) -> None:
-    """``latest`` beside ``out`` -> ``out`` (only when ``latest`` is absent or already a link)."""
+    """``latest`` beside ``out`` -> ``out``, only when ``latest`` is absent or a link blockloc
+    made (it points at a results folder beside it: :func:`blockloc.outdir.is_blockloc_link`); a
+    user's own ``latest`` (a link elsewhere, a file, a directory) is left alone, with a warning."""
     import os
+
+    from blockloc.outdir import is_blockloc_link
 
     latest = out.parent / "latest"
     try:
-        if latest.is_symlink() or not latest.exists():
+        if latest.is_symlink() and not is_blockloc_link(latest):
+            log.warning("%s: not updated (a link blockloc did not make: it points at %s)", latest,
+                        os.readlink(latest))
+        elif latest.is_symlink() or not latest.exists():
             tmp = out.parent / f".latest.{os.getpid()}.tmp"
             if tmp.is_symlink():
                 tmp.unlink()

@@ -176,6 +176,18 @@ class _Tasks:
                 row[k] += r.get(k, 0)
         return out
 
+    def skipped(self) -> list[dict]:
+        """The keyframes the finished tasks could not read ({sequence, frame, error}), in order."""
+        out = []
+        for fut in self.futures:
+            try:
+                r = fut.result() if fut.done() else None
+            except Exception:  # noqa: BLE001 - a failed task skipped nothing it could report
+                continue
+            if isinstance(r, dict):
+                out += r.get("skipped") or []
+        return sorted(out, key=lambda k: (k["sequence"], k["frame"]))
+
     def close(self) -> None:
         """Nothing to release (the command closes its bar)."""
 
@@ -252,12 +264,20 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
         if mounting:
             common["mounting"] = mounting
         common.update(params or {})
-        if kind == "block":
-            entries, p = _blocks(tasks, target, plans, block_size_m, voxel_size_m, deskew)
-        else:
-            entries, p = _tiles(tasks, target, plans, tile_size_m, voxel_size_m, deskew,
-                                int(chunk_keyframes))
-            common["chunk_keyframes"] = int(chunk_keyframes)
+        try:
+            if kind == "block":
+                entries, p = _blocks(tasks, target, plans, block_size_m, voxel_size_m, deskew)
+            else:
+                entries, p = _tiles(tasks, target, plans, tile_size_m, voxel_size_m, deskew,
+                                    int(chunk_keyframes))
+                common["chunk_keyframes"] = int(chunk_keyframes)
+        except MapError:  # e.g. no points left: because the scans could not be read, say so
+            if tasks.skipped():
+                check_skipped(tasks.skipped(), sum(len(p.frames) for p in plans))
+            raise
+        skipped = tasks.skipped()
+        if skipped:
+            common["skipped_keyframes"] = check_skipped(skipped, sum(len(p.frames) for p in plans))
         target.remove_scratch()
         for e in entries:
             writer.add_entry(e)
@@ -282,6 +302,23 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
     log.info("%s map %s: %d entries from %d drive(s), %d tasks (%s)", kind, out, len(store),
              len(plans), len(tasks.futures), getattr(executor, "description", executor))
     return store
+
+
+#: The share of a drive's keyframes a build may skip (scans it cannot read) and still write a map.
+MAX_SKIPPED_SHARE = 0.5
+
+
+def check_skipped(skipped: list[dict], keyframes: int) -> list[dict]:
+    """The skipped keyframes of a build (``skipped``: {sequence, frame, error}) of ``keyframes``
+    planned: returned for the manifest when few enough remain skipped; MapError saying how many
+    could not be read (and the first file's error) when more than :data:`MAX_SKIPPED_SHARE` or
+    all of them were."""
+    n = len(skipped)
+    if n > MAX_SKIPPED_SHARE * keyframes or n >= keyframes:
+        raise MapError(f"{n} of {keyframes} keyframes could not be read (first: {skipped[0]['error']}); "
+                       f"a map needs at least {1 - MAX_SKIPPED_SHARE:.0%} of them; no map written")
+    log.warning("map build: %d of %d keyframes skipped (scans that could not be read)", n, keyframes)
+    return skipped
 
 
 def _remount(tasks: _Tasks, plans: list[DrivePlan], deskew: bool, keyframe_distance_m: float,

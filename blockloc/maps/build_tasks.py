@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import logging
 import os
 import shutil
 import threading
@@ -24,6 +25,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 SCRATCH = ".work"
 #: Opened drives a process keeps, the least recently read dropped first: a worker reads runs of
@@ -339,12 +342,23 @@ def mounting_task(plan: DrivePlan, deskew: bool, max_pairs: int = MOUNTING_PAIRS
             "raw_points": raw, "bytes": 0}
 
 
-def _keyframe_clouds(drive: Drive, frames: list[int], deskew: bool):
+def _keyframe_clouds(drive: Drive, frames: list[int], deskew: bool, skipped: list | None = None):
+    """The keyframes' (points, intensity) in the map frame. A keyframe whose scan cannot be read
+    (a truncated or corrupt file: DatasetError) is left out and, with ``skipped`` given,
+    recorded there as {"sequence", "frame", "error"} (the build counts and names them; without
+    ``skipped`` the error ends the task)."""
+    from blockloc.errors import DatasetError
     from blockloc.maps.mapping import keyframe_points
 
     seq, traj, T_body_lidar = _opened(drive)
     for i in frames:
-        yield keyframe_points(seq, i, traj, T_body_lidar, deskew)
+        try:
+            yield keyframe_points(seq, i, traj, T_body_lidar, deskew)
+        except DatasetError as exc:
+            if skipped is None:
+                raise
+            log.warning("%s: keyframe %d skipped: %s", drive.name, i, exc)
+            skipped.append({"sequence": drive.name, "frame": int(i), "error": str(exc)})
 
 
 @_timed
@@ -355,12 +369,13 @@ def block_run_task(drive: Drive, frames: list[int], voxel_size_m: float, deskew:
     Returns the record count, whether every keyframe had intensity, the raw point count."""
     from blockloc.maps.block_maps import keyframe_run_sums
 
-    clouds = list(_keyframe_clouds(drive, frames, deskew))
+    skipped: list = []
+    clouds = list(_keyframe_clouds(drive, frames, deskew, skipped))
     rec, has_intensity = keyframe_run_sums(clouds, voxel_size_m)
     data = rec.tobytes()
     target.write(name, data)
     return {"name": name, "records": int(len(rec)), "has_intensity": has_intensity,
-            "raw_points": int(sum(len(p) for p, _ in clouds)), "bytes": len(data)}
+            "raw_points": int(sum(len(p) for p, _ in clouds)), "bytes": len(data), "skipped": skipped}
 
 
 @_timed
@@ -413,8 +428,8 @@ def grid_chunk_task(drive: Drive, frames: list[int], tile_size_m: float, voxel_s
     first record, end record)] and the raw point count."""
     from blockloc.maps.grid_tiles import tile_voxel_sums
 
-    pts, inten = [], []
-    for p, i in _keyframe_clouds(drive, frames, deskew):
+    pts, inten, skipped = [], [], []
+    for p, i in _keyframe_clouds(drive, frames, deskew, skipped):
         pts.append(p)
         inten.append(np.zeros(len(p), np.float32) if i is None else np.asarray(i, np.float32))
     pts = np.concatenate(pts) if pts else np.zeros((0, 3))
@@ -427,7 +442,7 @@ def grid_chunk_task(drive: Drive, frames: list[int], tile_size_m: float, voxel_s
         row += len(rec)
     data = b"".join(r.tobytes() for r in parts)
     target.write(name, data)
-    return {"name": name, "tiles": tiles, "raw_points": int(len(pts)), "bytes": len(data)}
+    return {"name": name, "tiles": tiles, "raw_points": int(len(pts)), "bytes": len(data), "skipped": skipped}
 
 
 @_timed

@@ -371,7 +371,7 @@ class MapWriter:
                            "replace the map there)")
         if self.out.exists():
             try:
-                check_replaceable(self.out)
+                check_replaceable(self.out, "--out", ("map store",), "a map store")
             except BlocklocError as exc:
                 raise MapError(f"{exc}; --overwrite replaces only a map store") from None
         parent = self.out.parent
@@ -464,7 +464,7 @@ class MapWriter:
         if self.out.exists() and not self.overwrite:
             self.abort()
             raise MapError(f"{self.out}: appeared during the build; not overwritten")
-        replace_dir(self.tmp, self.out)
+        replace_dir(self.tmp, self.out, "map store")
         self._committed = True
         log.info("wrote %s map %s: %d entries", self.kind, self.out, len(self.entries))
         return open_map(self.out)

@@ -136,7 +136,7 @@ def generate_dataset(preset: str, seed: int, out: Path, fmt: str = "nclt", *,
                                    "path_length_m": round(seq.trajectory.path_length(), 2)}
             log.info("sim %s/%s: %d frames", p.name, s, n)
         (tmp / "sim.json").write_text(json.dumps(meta, indent=1, sort_keys=True) + "\n")
-        replace_dir(tmp, out)
+        replace_dir(tmp, out, "simulated dataset")
         return out
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
-from blockloc.errors import BlocklocError
+from blockloc.errors import BlocklocError, OutputWriteError
 
 if TYPE_CHECKING:
     from blockloc.geometry import Trajectory
@@ -115,6 +115,8 @@ class ObserverGroup:
         for obs in list(self._active):
             try:
                 obs.frame(event)
+            except OutputWriteError:  # the results cannot be written: the run stops (whole rows kept)
+                raise
             except Exception:
                 log.exception("observer %s failed on frame %d; it gets no more frames",
                               type(obs).__name__, event.index)
@@ -126,7 +128,10 @@ class ObserverGroup:
             try:
                 obs.finish(metrics)
             except Exception as exc:  # finish every member before reporting
-                log.exception("observer %s failed to finish", type(obs).__name__)
+                if isinstance(exc, (OSError, BlocklocError)):  # a file it could not write: one line
+                    log.error("observer %s could not finish: %s", type(obs).__name__, exc)
+                else:
+                    log.exception("observer %s failed to finish", type(obs).__name__)
                 errors.append(exc)
         if errors:
             raise errors[0]

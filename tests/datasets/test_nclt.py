@@ -194,8 +194,35 @@ def test_missing_files(tmp_path, session_data):
         NcltSequence(tmp_path / "nothing")
     out = _write(tmp_path, session_data)
     (out / "ms25.csv").unlink()
-    with pytest.raises(DatasetError, match=r"ms25.csv: not found; put the NCLT ms25.csv there"):
-        NcltSequence(out)
+
+
+def test_missing_imu_file_means_lidar_only_with_the_remedy_for_its_kind(tmp_path, session_data, caplog):
+    """No ms25.csv: an empty IMU (the session tracks LiDAR-only) and one warning naming the file
+    and how to get it: a download for NCLT, `blockloc sim` again for a simulated session."""
+    import json
+    import logging
+
+    out = _write(tmp_path, session_data)
+    (out / "ms25.csv").unlink()
+    (out / "blockloc_session.json").unlink()  # as NCLT's own downloads: no sidecar
+    with caplog.at_level(logging.WARNING, logger="blockloc.datasets.nclt"):
+        seq = NcltSequence(out, date="2012-01-22")
+        assert len(seq.imu()) == 0 and len(seq.imu()) == 0  # warned once
+    warned = [r.getMessage() for r in caplog.records if "ms25.csv" in r.getMessage()]
+    assert len(warned) == 1 and "ms25.csv: not found; no IMU, tracking LiDAR-only" in warned[0]
+    assert "download 2012-01-22_sen.tar.gz" in warned[0]
+    (tmp_path / "sim.json").write_text(json.dumps({"preset": "small", "seed": 3, "sessions": {}}))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="blockloc.datasets.nclt"):
+        NcltSequence(out).imu()
+    warned = [r.getMessage() for r in caplog.records if "ms25.csv" in r.getMessage()]
+    assert len(warned) == 1 and f"re-run `blockloc sim --preset small --seed 3 --out {tmp_path}`" in warned[0]
+    assert "download" not in warned[0]
+    caplog.clear()  # a run that ignores the IMU (--no-imu): no warning
+    with caplog.at_level(logging.INFO, logger="blockloc.datasets.nclt"):
+        assert len(NcltSequence(out, want_imu=False).imu()) == 0
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING and "ms25.csv" in r.getMessage()]
+    assert any("LiDAR-only, as asked" in r.getMessage() for r in caplog.records)
 
 
 def test_ground_truth_found_beside_session(tmp_path, session_data, caplog):
@@ -272,9 +299,14 @@ def test_write_session_is_atomic_on_failure(tmp_path, session_data):
 
 def test_write_session_replaces_and_rejects_unordered_frames(tmp_path, session_data):
     out = _write(tmp_path, session_data)
-    (out / "stale.txt").write_text("x")
+    (out / "stale.txt").write_text("x")  # a file blockloc did not write: the session is not replaced
+    from blockloc.errors import BlocklocError
+
+    with pytest.raises(BlocklocError, match=r"holds files blockloc did not write \(stale.txt\)"):
+        _write(tmp_path, session_data)
+    assert (out / "stale.txt").read_text() == "x"
+    (out / "stale.txt").unlink()
     _write(tmp_path, session_data)
-    assert not (out / "stale.txt").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["2012-01-22"]
     fr = session_data["frames"]
     with pytest.raises(DatasetError, match="is not after"):

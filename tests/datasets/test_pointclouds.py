@@ -305,3 +305,19 @@ def test_walk_scan_reads(shared_data):
     c = read_point_cloud(f)
     assert len(c) == _header_points(f)
     assert c.intensity is not None and c.ring is None and c.time_offsets is None
+
+
+@pytest.mark.parametrize("encoding", ["binary", "ascii"])
+def test_header_that_undercounts_its_payload_is_an_error(tmp_path, encoding):
+    """A PCD whose POINTS (and WIDTH) says fewer points than its payload holds was read silently
+    as a shorter cloud; now it is an error naming the file and both counts."""
+    path = tmp_path / "under.pcd"
+    pts = np.arange(30, dtype=np.float32).reshape(10, 3)
+    write_point_cloud(path, pts, encoding=encoding)
+    data = path.read_bytes().replace(b"WIDTH 10\n", b"WIDTH 6\n").replace(b"POINTS 10\n", b"POINTS 6\n")
+    path.write_bytes(data)
+    with pytest.raises(DatasetError, match=r"under.pcd: PCD header does not match its payload: (10 rows|120 payload bytes hold 10 points), the header says 6 points"):
+        read_point_cloud(path)
+    path.write_bytes(data.replace(b"WIDTH 6\n", b"WIDTH 10\n"))  # WIDTH 10, POINTS 6
+    with pytest.raises(DatasetError, match=r"under.pcd: PCD header does not match itself: WIDTH 10 x HEIGHT 1"):
+        read_point_cloud(path)

@@ -1,4 +1,4 @@
-"""The fault cases, as data: what is injected, which finding of issue 16 it covers and what the
+"""The fault cases, as data: what is injected, which finding of issues 16 and 40 it covers and what the
 test asserts. ``docs/robustness.md`` is generated from this registry and a run of the suite
 (``python -m tests.faults.report``)."""
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Callable
 
-#: The findings of issue 16, by number.
+#: The findings of issues 16 (1-7) and 40 (8-12), by number.
 FINDINGS = {
     1: "silent deletion (replace only what blockloc made)",
     2: "one fault ends the run and discards it",
@@ -16,6 +16,11 @@ FINDINGS = {
     5: "the simulator's ROS bags (another helper)",
     6: "smaller: binary CSV, gaps, config ranges, names, modes, plot, progress",
     7: "tests without the shared data",
+    8: "issue 40: --overwrite deleted a user's files (ownership proven by a marker's content)",
+    9: "issue 40: output folders checked before any work (writable, free space, not in use)",
+    10: "issue 40: disk full, folder removed, permissions changed mid-run",
+    11: "issue 40: inputs (no IMU file, a bad keyframe in a map build, PCD counts and headers)",
+    12: "issue 40: the `latest` link (its signal messages: finding 3)",
 }
 
 

@@ -167,3 +167,42 @@ def tiny_world(tmp_path_factory):
         "config": tiny.write_config(root / "cfg.yaml"),
         "folder": tiny.write_tiny_scan_folder(root / "folder", session),
     }
+
+
+@contextlib.contextmanager
+def small_fs(where: Path, size: str = "1m", *, fill_from: Path | None = None, read_only: bool = False):
+    """A tmpfs of ``size`` mounted at ``where`` (``fill_from``'s tree copied in; ``read_only``:
+    remounted read-only after). Needs root and mount(8): skips with the reason otherwise, and
+    fails under CI=true (CI runs as root: a skip there would hide the case)."""
+    import shutil
+
+    where.mkdir(parents=True, exist_ok=True)
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(where)],
+                       capture_output=True, text=True) if shutil.which("mount") else None
+    if r is None or r.returncode != 0:
+        reason = f"cannot mount a tmpfs at {where} ({r.stderr.strip() if r else 'no mount(8)'}): needs root"
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(reason)
+        pytest.skip(reason)
+    try:
+        if fill_from is not None:
+            shutil.copytree(fill_from, where, dirs_exist_ok=True)
+        if read_only:
+            subprocess.run(["mount", "-o", "remount,ro", str(where)], check=True)
+        yield where
+    finally:
+        subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+@contextlib.contextmanager
+def live_holder():
+    """A live process whose command line names blockloc (a run holding an output's lock)."""
+    p = subprocess.Popen([sys.executable, "-c", "import time; print(1, flush=True); time.sleep(120)", "blockloc"],
+                         stdout=subprocess.PIPE)
+    try:
+        p.stdout.readline()  # exec done: /proc shows its own command line
+        yield p.pid
+    finally:
+        p.kill()
+        p.wait()
+        p.stdout.close()

@@ -177,7 +177,7 @@ def places(tiny_world, tmp_path):
 
     shutil.copytree(tiny_world["map"], tmp_path / "store")
     (tmp_path / "results").mkdir()
-    (tmp_path / "results" / "metrics.json").write_text("{}")
+    (tmp_path / "results" / "metrics.json").write_text('{"frames": 1, "processed": 1, "estimated": 1}')
     (tmp_path / "results" / "poses.tum").write_text("# a run's poses\n")
     return {"sess": tiny_world["session"], "map": tiny_world["map"], "root": tmp_path,
             "store": tmp_path / "store", "results": tmp_path / "results",

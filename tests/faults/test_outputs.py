@@ -38,7 +38,7 @@ def test_output_directories_get_the_umask_mode(mask, umask, tmp_path):
 
     umask(mask)
     want = 0o777 & ~mask
-    with atomic_dir(tmp_path / "results") as tmp:
+    with atomic_dir(tmp_path / "results", "results folder") as tmp:
         (tmp / "metrics.json").write_text("{}")
     with MapWriter(tmp_path / "store", "grid", params={"tile_size_m": 10.0}) as w:
         w.add("5.0_5.0", np.random.default_rng(0).uniform(0, 10, (100, 3)).astype(np.float32))
@@ -68,10 +68,10 @@ def test_overwrite_replaces_only_a_map_store(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.pcd", "b.pcd", "tiles"]  # no old copy left
     results = tmp_path / "run"
     results.mkdir()
-    (results / "metrics.json").write_text("{}")
+    (results / "metrics.json").write_text('{"frames": 1, "processed": 1, "estimated": 1}')
     (results / "poses.tum").write_text("# a run's poses\n")
     r = cli_in_process("map", "tile", tmp_path / "a.pcd", "--tile-size", "5", "--out", results, "--overwrite")
-    assert r.code == 2 and "only a map store" in r.err_lines[0]
+    assert r.code == 2 and "not a map store" in r.err_lines[0]
     assert (results / "poses.tum").read_text() == "# a run's poses\n"
 
 

@@ -44,7 +44,7 @@ def assert_stopped(r: Outcome, signum: int) -> str:
     """Exit 130 / 143, no traceback, one message line (naming the signal); returns it."""
     assert r.code == CODES[signum], (r.code, r.err[-800:])
     assert "Traceback" not in r.err
-    lines = [ln for ln in r.err_lines if not ln.startswith("stopping after the current frame")]
+    lines = [ln for ln in r.err_lines if "received: stopping after the current frame" not in ln]
     assert len(lines) == 1, lines
     return lines[0]
 
@@ -99,31 +99,38 @@ def test_track_stopped_keeps_partial_results(signum, tiny_world, tmp_path):
     m = json.loads((out / "metrics.json").read_text())
     assert m["interrupted"] is True
     rows = [ln for ln in (out / "poses.tum").read_text().splitlines() if ln and not ln.startswith("#")]
-    assert re.fullmatch(rf"interrupted after {m['frames']} of 120 frames; partial results in {re.escape(str(out))}",
-                        line), line
+    name = signal.Signals(signum).name
+    assert re.fullmatch(rf"interrupted by {name} after {m['frames']} of 120 frames; partial results in "
+                        rf"{re.escape(str(out))}", line), line
+    # the first line says which signal arrived and what happens now
+    assert f"{name} received: stopping after the current frame" in r.err
     assert 3 <= len(rows) == m["frames"] < 120
     assert (out / "diagnostics.csv").is_file() and (out / "config.yaml").is_file()
 
 
 table("test_track_stopped_keeps_partial_results", [
     Case("SIGINT", 3, "SIGINT during `blockloc track`",
-         "exit 130 (was 0), 'interrupted after N of 120 frames; partial results in DIR', metrics.json "
-         "'interrupted': true, poses.tum has the N frames"),
+         "exit 130 (was 0), 'SIGINT received: stopping after the current frame', then 'interrupted by "
+         "SIGINT after N of 120 frames; partial results in DIR', metrics.json 'interrupted': true, poses.tum "
+         "has the N frames"),
     Case("SIGTERM", 3, "SIGTERM during `blockloc track`",
-         "exit 143 (was killed without metrics), same partial results"),
+         "exit 143 (was killed without metrics), 'SIGTERM received: stopping after the current frame' "
+         "(was the same words as for Ctrl-C), 'interrupted by SIGTERM after ...', same partial results"),
 ])
 
 
 @case(3, "`map tile` killed with SIGKILL (its .NAME.building-* dir left behind), then another build "
       "into the same parent; and a building dir whose process still runs",
-      "the next build removes the dead build's dir (a warning names it) and keeps the live one's")
+      "the next build removes the dead build's dir (a warning names it) and its lock file, and keeps the "
+      "live one's")
 def test_killed_build_is_cleaned_by_the_next(big_pcd, tmp_path):
     run = Running("map", "tile", big_pcd, "--tile-size", "4", "--out", tmp_path / "a")
-    run.wait_for(lambda: leftovers(tmp_path, "a"))
+    run.wait_for(lambda: any(".building-" in n for n in leftovers(tmp_path, "a")))
     r = run.signal(signal.SIGKILL)
     assert r.code == -signal.SIGKILL
-    stale = leftovers(tmp_path, "a")
+    stale = [n for n in leftovers(tmp_path, "a") if ".building-" in n]
     assert len(stale) == 1 and stale[0].startswith(".a.building-")
+    assert (tmp_path / ".a.blockloc-lock").is_file()  # its lock, which nothing could remove
     live = tmp_path / ".c.building-live"
     live.mkdir()
     (live / ".incomplete").write_text(f"build started now pid {os.getpid()}\n")  # this test's process
@@ -134,7 +141,7 @@ def test_killed_build_is_cleaned_by_the_next(big_pcd, tmp_path):
     r = cli_process("map", "tile", small, "--tile-size", "5", "--out", tmp_path / "b")
     assert r.code == 0, r.err
     assert stale[0] in r.err and "interrupted build" in r.err
-    assert leftovers(tmp_path, "a") == [] and live.is_dir()
+    assert leftovers(tmp_path, "a") == [] and live.is_dir()  # the dead run's lock is gone too
 
 
 @case(3, "SIGINT to a process whose parent ignores SIGINT (a background job of a script, nohup)",

@@ -47,7 +47,7 @@ def test_written_sessions_read_back_with_the_nclt_loader(written):
     from blockloc.app.catalog import open_sequence
 
     a = written[0]
-    assert sorted(p.name for p in a.iterdir()) == ["loc", "map", "sim.json"]
+    assert sorted(p.name for p in a.iterdir()) == [".blockloc-output.json", "loc", "map", "sim.json"]
     for session in ("map", "loc"):
         disk = open_sequence(str(a / session))
         assert isinstance(disk, NcltSequence)

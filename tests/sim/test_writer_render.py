@@ -32,7 +32,7 @@ def test_sim_json_records_sessions_and_nclt_frames(tmp_path):
     assert rec["path_length_m"] == pytest.approx(sim.trajectory.path_length(), abs=0.01)
     total = len(sim)
     assert calls == [("loc", 1, total), ("loc", 2, total), ("loc", 3, total)]
-    assert sorted(p.name for p in out.iterdir()) == ["loc", "sim.json"]
+    assert sorted(p.name for p in out.iterdir()) == [".blockloc-output.json", "loc", "sim.json"]
     seq = NcltSequence(out / "loc")
     assert len(seq) == 3
     np.testing.assert_allclose(seq.info.T_body_lidar, NCLT_T_BODY_LIDAR)
