@@ -111,7 +111,8 @@ def write_run_report(session, res, out_dir: Path) -> Path:
     from blockloc.viz.report import write_report
 
     images = {caption: out_dir / name for caption, name in (("trajectories", "trajectories.png"),
-                                                             ("errors over time", "errors.png"))
+                                                             ("errors over time", "errors.png"),
+                                                             ("error breakdown", "error_breakdown.png"))
               if (out_dir / name).is_file()}
     return write_report(out_dir / REPORT_NAME, metrics=res.metrics, estimate=res.trajectory,
                         ground_truth=session.ground_truth, diagnostics=res.diagnostics, config=session.config,

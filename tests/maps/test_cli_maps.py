@@ -159,6 +159,10 @@ def test_the_mounting_of_an_nclt_session_whose_lidar_sits_off_nominal_is_estimat
                     "--max-frames", "3", "--no-record", "--out", tmp_path / "run")
     assert run.returncode == 0, run.stderr
     assert "LiDAR mounting" not in run.stderr  # no warning: it tracked with the map's
+    # the run's metrics break its error down, and its report shows the breakdown's plot
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert metrics["err_moving_poses"] == 3 and len(metrics["err_offset_m"]) == 3
+    assert 'alt="error breakdown"' in (tmp_path / "run" / "report.html").read_text()
     run = _blockloc("track", "--seq", tmp_path / "sess", "--map", tmp_path / "bm", "--init", "gt",
                     "--max-frames", "3", "--no-record", "--out", tmp_path / "run2",
                     "--set", "map.use_map_mounting=false")
