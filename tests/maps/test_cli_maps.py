@@ -182,3 +182,28 @@ def test_the_mounting_of_an_nclt_session_whose_lidar_sits_off_nominal_is_estimat
     res = runner.invoke(app, ["map", "build", "--from-pcd", str(tmp_path / "g.pcd"), "--poses",
                               str(tmp_path / "p.tum"), "--calibrate-mounting", "--out", str(tmp_path / "m2")])
     assert "--calibrate-mounting needs --seq" in str(res.exception) and not (tmp_path / "m2").exists()
+
+
+def test_a_drive_too_short_to_estimate_its_mounting_builds_nominal_unless_the_estimate_is_insisted_on(tmp_path):
+    """`map build` (default) on a 3 m drive: a warning, the nominal mounting, and `map info` says
+    why; `--calibrate-mounting` on it: one line naming the drive and the option, no map."""
+    from blockloc.datasets.base import ImuData
+    from blockloc.datasets.nclt import NCLT_T_BODY_LIDAR, write_session
+
+    from .synthetic import MemorySequence, route, world_points
+
+    world = world_points(extent=(-20, 40), seed=2, density=0.3)
+    traj = route([[0, 0], [3, 0]], speed=1.0)
+    seq = MemorySequence(world, traj, radius=20.0, T_body_lidar=np.asarray(NCLT_T_BODY_LIDAR, float))
+    imu = ImuData(traj.stamps, np.zeros((len(traj), 3)), np.zeros((len(traj), 3)))
+    write_session(tmp_path / "sess", date="2012-01-15", frames=seq.frames(), imu=imu, ground_truth=traj)
+    res = _blockloc("map", "build", "--seq", tmp_path / "sess", "--kind", "block", "--out", tmp_path / "m")
+    assert res.returncode == 0, res.stderr
+    assert "LiDAR mounting kept as the sequence gives it (nominal: the estimate failed" in res.stderr
+    info = " ".join(_blockloc("map", "info", tmp_path / "m").stdout.split())
+    assert "nominal, the sequence's own (the estimate failed:" in info
+    res = _blockloc("map", "build", "--seq", tmp_path / "sess", "--kind", "block", "--calibrate-mounting",
+                    "--out", tmp_path / "m2")
+    assert res.returncode != 0 and not (tmp_path / "m2").exists()
+    (line,) = [ln for ln in res.stderr.splitlines() if ln.startswith("error: ")]
+    assert "--calibrate-mounting needs keyframes" in line and "Traceback" not in res.stderr
