@@ -478,13 +478,10 @@ class Session:
 
 
 def _with_map_mounting(seq, store, use: bool):
-    """``seq`` seen with the LiDAR mounting ``store`` was built with (``use``: the same robot),
-    or as it is, with a warning when the two differ (a build with ``--calibrate-mounting``)."""
-    from blockloc.maps.mounting import map_mounting, mounting_difference
+    """:func:`blockloc.maps.mounting.with_map_mounting` (the session's and ``init``'s)."""
+    from blockloc.maps.mounting import with_map_mounting
 
-    X_map = map_mounting(getattr(store, "params", {}) or {})
-    if X_map is None:
-        return seq
+    return with_map_mounting(seq, store, use)
     deg, m = mounting_difference(X_map, np.asarray(seq.info.T_body_lidar, np.float64))
     if use:
         from blockloc.datasets.base import RemountedSequence

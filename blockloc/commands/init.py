@@ -28,6 +28,7 @@ def run_init(seq_name: str, frame_index: int, map_path: str, hint: str | None, w
     from blockloc.datasets import open_sequence
     from blockloc.global_init.relocalize import GlobalLocalizer, InitParams, pose_error
     from blockloc.jit import CompileClock
+    from blockloc.maps.mounting import with_map_mounting
     from blockloc.maps.store import open_map_from_config
     from blockloc.registration.engines import engine_from_settings
     from blockloc.tracking.scan_prep import prepare_for_init
@@ -46,6 +47,7 @@ def run_init(seq_name: str, frame_index: int, map_path: str, hint: str | None, w
         raise GlobalInitError(f"--frame {frame_index}: expected 0..{len(seq) - 1} ({seq.info.name} has "
                               f"{len(seq)} frames)")
     store = open_map_from_config(map_path, cfg.map)
+    seq = with_map_mounting(seq, store, cfg.map.use_map_mounting)  # as track does (issue 41)
     engine = engine_from_settings(dataclasses.asdict(rc), resolution_m=gi.ndt_resolution_m)
     loc = GlobalLocalizer.for_store(store, seq.info.gravity_map, InitParams.from_config(gi, rc), engine=engine)
     scan = prepare_for_init(seq.frame(frame_index), seq.imu(), seq.info)

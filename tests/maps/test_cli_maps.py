@@ -130,7 +130,7 @@ def test_the_mounting_of_an_nclt_session_whose_lidar_sits_off_nominal_is_estimat
     so; `track` takes it (map.use_map_mounting); `--nominal-mounting` opts out, and `map info`
     says the map holds the nominal mounting."""
     from blockloc.datasets.base import ImuData
-    from blockloc.datasets.nclt import NCLT_T_BODY_LIDAR, write_session
+    from blockloc.datasets.nclt import NCLT_T_BODY_IMU, NCLT_T_BODY_LIDAR, write_session
     from blockloc.geometry import make_T, so3_exp, so3_log
 
     from .synthetic import MemorySequence, route, world_points
@@ -140,7 +140,9 @@ def test_the_mounting_of_an_nclt_session_whose_lidar_sits_off_nominal_is_estimat
     world = world_points(extent=(-40, 110), seed=5, density=0.5)
     traj = route([[0, 0], [70, 0], [70, 70], [0, 70], [0, 0]], speed=4.0)
     seq = MemorySequence(world, traj, radius=25.0, T_body_lidar=X_true)
-    imu = ImuData(traj.stamps, np.zeros((len(traj), 3)), np.zeros((len(traj), 3)))
+    # at rest on flat ground (NCLT: z down) the IMU reads the specific force -g: init levels with it
+    f_imu = np.asarray(NCLT_T_BODY_IMU, float)[:3, :3].T @ np.array([0.0, 0.0, -9.81])
+    imu = ImuData(traj.stamps, np.tile(f_imu, (len(traj), 1)), np.zeros((len(traj), 3)))
     write_session(tmp_path / "sess", date="2012-01-15", frames=seq.frames(), imu=imu, ground_truth=traj)
     res = _blockloc("map", "build", "--seq", tmp_path / "sess", "--kind", "block", "--block-size", "40",
                     "--out", tmp_path / "bm")
@@ -169,6 +171,13 @@ def test_the_mounting_of_an_nclt_session_whose_lidar_sits_off_nominal_is_estimat
     assert run.returncode == 0, run.stderr
     assert "LiDAR mounting estimated from its drive that differs" in run.stderr
     assert "--set map.use_map_mounting=true tracks with it" in run.stderr
+    # init too (the same session assembly): a warning only when told to keep the sequence's
+    for sets, warned in (([], False), (["--set", "map.use_map_mounting=false"], True)):
+        res = _blockloc("init", "--seq", tmp_path / "sess", "--frame", "30", "--map", tmp_path / "bm",
+                        "--pose-hint", "20,0", "--json", "--set", "global_init.min_fitness=0.5", *sets)
+        assert res.returncode == 0, res.stderr
+        assert ("--set map.use_map_mounting=true tracks with it" in res.stderr) == warned, res.stderr
+        assert json.loads(res.stdout)["error_m"] < 0.05  # the synthetic world's fitness: 0.69
     # opted out: the nominal mounting, and map info says so
     res = _blockloc("map", "build", "--seq", tmp_path / "sess", "--kind", "block", "--block-size", "40",
                     "--nominal-mounting", "--out", tmp_path / "nm")

@@ -135,7 +135,7 @@ def test_tracking_takes_the_map_mounting_only_when_asked_and_warns_otherwise(cap
     from types import SimpleNamespace
 
     from blockloc.maps.mounting import map_mounting
-    from blockloc.session import _with_map_mounting
+    from blockloc.maps.mounting import with_map_mounting as _with_map_mounting
 
     _, seq, X_true = mis_mounted_drive
     store = SimpleNamespace(params={"mounting": {"square": {"T_body_lidar": X_true.tolist()}}})
