@@ -13,7 +13,10 @@ For every seed S (in ``--work``, kept between runs: a step whose output is there
     blockloc track --seq W/sS/loc --map W/sS_map_nominal --init gt --no-record --out W/sS_run_nominal
     blockloc track --seq W/sS/loc --map W/sS_map --init gt --no-imu --no-record --out W/sS_run_no-imu
 
-and reads each run's ``metrics.json`` (ATE, rotation, the error breakdown of ``blockloc eval``).
+    blockloc eval --gt W/sS/loc/groundtruth_*.csv --est W/sS_run_R/poses.tum --interpolate --json
+
+and reads each run's ``metrics.json`` (failures, frames) and its ``blockloc eval`` (ATE, rotation,
+the error breakdown).
 Writes docs/bench/accuracy_seeds.md: one row per seed and run, medians and worst over seeds, and
 the issue's targets (median ATE <= 0.03 m, worst <= 0.035 m, rotation <= 0.15 deg, no failures,
 along-track mean within +-1 cm) checked on the default run.
@@ -82,8 +85,31 @@ def run_seed(work: Path, preset: str, seed: int, runs: list[str]) -> dict:
             _blockloc(["track", "--seq", str(world / "loc"), "--map", str(m), "--init", "gt", *extra,
                        "--no-record", "--out", str(r)], log)
         metrics = json.loads((r / "metrics.json").read_text())
-        out[name] = {**metrics, "_build_s": build_s.get(suffix)}
+        ev = r / "eval.json"  # blockloc eval on the run's poses (the breakdown of this checkout's eval)
+        if not ev.exists():
+            (gt,) = sorted((world / "loc").glob("groundtruth_*.csv"))
+            args = ["eval", "--gt", str(gt), "--est", str(r / "poses.tum"), "--interpolate", "--json"]
+            print("$ blockloc " + shlex.join(args), flush=True)
+            res = subprocess.run(["nice", sys.executable, "-m", "blockloc.cli", *args], capture_output=True,
+                                 text=True, cwd=ROOT)
+            if res.returncode:
+                raise SystemExit(f"blockloc {shlex.join(args)}: exit {res.returncode}: {res.stderr.strip()}")
+            atomic_write_text(ev, res.stdout)
+        evaluated = json.loads(ev.read_text())
+        out[name] = {**metrics, **{k: v for k, v in evaluated.items() if k.startswith(("ate_", "err_"))},
+                     "_build_s": build_s.get(suffix)}
     return out
+
+
+def _with_offset(m: dict) -> str:
+    if m.get("err_along_offset_m") is None:
+        return "-"
+    return f"{1000 * m['err_time_shift_with_offset_s']:+.0f} / {100 * m['err_along_offset_m']:+.1f}"
+
+
+def _body(m: dict) -> str:
+    b = m.get("err_body_offset_m")
+    return "-" if b is None else f"{100 * b[0]:+.1f}, {100 * b[1]:+.1f}"
 
 
 def _row(seed: int, name: str, m: dict) -> str:
@@ -92,7 +118,8 @@ def _row(seed: int, name: str, m: dict) -> str:
     return (f"| {seed} | {name} | {f('ate_trans_rmse_m')} | {f('ate_trans_max_m')} | {f('ate_rot_rmse_deg')} | "
             f"{100 * m['err_along_mean_m']:+.1f} | {100 * m['err_along_rms_m']:.1f} | "
             f"{100 * m['err_cross_rms_m']:.1f} | {100 * m['err_vertical_rms_m']:.1f} | "
-            f"{'-' if shift is None else f'{1000 * shift:+.0f}'} | {m.get('failures', '-')} | "
+            f"{'-' if shift is None else f'{1000 * shift:+.0f}'} | {_with_offset(m)} | {_body(m)} | "
+            f"{m.get('failures', '-')} | "
             f"{m.get('estimated', '-')}/{m.get('frames', '-')} |")
 
 
@@ -107,11 +134,13 @@ def report(results: dict, argv: list[str], started: str, load0: float, work: Pat
              "tracks on the map `blockloc map build` makes by default (LiDAR mounting estimated from the "
              "mapping drive, tracking with it), `nominal` on the map built with `--nominal-mounting` (the "
              "default before issue 41), `no-imu` on the default map with `--no-imu`. Errors from each run's "
-             "`metrics.json` (the breakdown of `blockloc eval`: along-track + = ahead; the time shift that "
+             "`blockloc eval --interpolate` of its `poses.tum` (failures and frames from its `metrics.json`; "
+             "along-track + = ahead; the time shift that "
              "best explains the along-track error, + = the estimate lags).", "",
              "| seed | run | ATE RMSE [m] | ATE max [m] | rotation RMSE [deg] | along mean [cm] | along RMS [cm] | "
-             "cross RMS [cm] | vertical RMS [cm] | time shift [ms] | failures | estimated/frames |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "cross RMS [cm] | vertical RMS [cm] | time shift [ms] | shift [ms] / along offset [cm], fitted "
+             "together | body-frame offset x, y [cm] | failures | estimated/frames |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for seed, runs in results.items():
         for name, m in runs.items():
             lines.append(_row(seed, name, m))

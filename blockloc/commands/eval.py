@@ -93,8 +93,15 @@ def print_breakdown(metrics: dict[str, Any], console) -> None:
                       f"(+: the estimate lags; along-track RMS {_fmt(metrics['err_along_rms_m'])} m -> "
                       f"{_fmt(metrics['err_along_rms_after_shift_m'])} m without it; "
                       f"{metrics['err_moving_poses']} moving poses)")
+    if metrics.get("err_along_offset_m") is not None:
+        console.print(f"with a constant along-track offset as well: time shift "
+                      f"{metrics['err_time_shift_with_offset_s']:+.4f} s, offset {metrics['err_along_offset_m']:+.4f} m")
     x, y, z = metrics["err_offset_m"]
     console.print(f"constant offset (mean error, map frame): [{x:+.4f}, {y:+.4f}, {z:+.4f}] m")
+    if metrics.get("err_body_offset_m") is not None:
+        x, y, z = metrics["err_body_offset_m"]
+        console.print(f"constant offset in the body frame (a mounting translation shows here): "
+                      f"[{x:+.4f}, {y:+.4f}, {z:+.4f}] m")
     for key, label, unit in (("err_by_speed", "speed", "m/s"), ("err_by_turn_rate", "turn rate", "deg/s")):
         t = Table(title=f"error against {label}")
         for col in (f"{label} [{unit}]", "poses", "trans RMSE\n[m]", "along mean\n[m]", "along RMS\n[m]",

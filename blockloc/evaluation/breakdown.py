@@ -11,7 +11,11 @@ Where ATE gives one number, this says what kind of error it is:
 - the **time shift** that best explains the along-track error: the estimate at stamp t is the
   ground truth at ``t - time_shift_s`` to first order (positive: the estimate lags), so its
   along-track error is ``-speed * time_shift_s``; a 1-D least-squares fit over the moving poses.
-- the **constant offset**: the mean error vector in the map frame (a map or mounting shift).
+  With an intercept too (``along = c - speed * shift``, when the speeds vary by more than
+  0.1 m/s): a constant along-track offset ``c`` (a mounting or map shift seen along the way)
+  told apart from a lag, which grows with speed.
+- the **constant offset**: the mean error vector in the map frame (a map shift), and in the
+  body frame (``R_map_body^T`` of each error, averaged: a LiDAR mounting translation error).
 - the error **against speed and turn rate**: the poses binned by the ground truth's speed and
   yaw rate, each bin's count, translation RMSE and along/cross-track figures.
 """
@@ -36,7 +40,9 @@ class ErrorBreakdown:
     along_m, cross_m: (N,) metres, NaN where the ground truth moves slower than ``min_speed_mps``;
     vertical_m: (N,) metres (map z); speed_mps: (N,) ground-truth speed; turn_rate_deg_s: (N,)
     absolute ground-truth rotation rate about the map z axis (yaw rate); moving: (N,) bool.
-    time_shift_s: the 1-D fit (None without moving poses); offset_m: (3,) mean error, map frame.
+    time_shift_s: the 1-D fit (None without moving poses); offset_m: (3,) mean error, map frame;
+    body_offset_m: (3,) mean error, body frame; fit_with_offset: (shift s, along-track offset m)
+    of the fit with an intercept (None when the moving poses' speeds vary by 0.1 m/s or less).
     """
 
     along_m: np.ndarray
@@ -48,6 +54,8 @@ class ErrorBreakdown:
     time_shift_s: float | None
     offset_m: np.ndarray
     trans_m: np.ndarray
+    body_offset_m: np.ndarray
+    fit_with_offset: tuple[float, float] | None  # (shift s, along-track offset m)
 
     def along_after_shift_m(self) -> np.ndarray:
         """(M,) the moving poses' along-track error with the fitted time shift taken out."""
@@ -112,21 +120,28 @@ def error_breakdown(stamps: np.ndarray, poses_gt: np.ndarray, poses_est: np.ndar
     cross = np.einsum("ij,ij->i", err, side)
     yaw = np.unwrap(np.arctan2(G[:, 1, 0], G[:, 0, 0]))  # heading of the body x axis in the map
     turn = np.degrees(np.abs(np.gradient(yaw, t)))
-    shift = None
+    shift, both = None, None
     if moving.any():
         s, a = speed[moving], along[moving]
         # along = -speed * shift: least squares over the moving poses
         shift = float(-np.dot(s, a) / np.dot(s, s))
+        if np.std(s) > 0.1:  # along = c - speed * shift: separable only when the speed varies
+            (c, neg_shift), *_ = np.linalg.lstsq(np.c_[np.ones_like(s), s], a, rcond=None)
+            both = (float(-neg_shift), float(c))
+    body = np.einsum("nji,nj->ni", G[:, :3, :3], err)  # R_map_body^T e
     return ErrorBreakdown(along_m=along, cross_m=cross, vertical_m=err[:, 2], speed_mps=speed,
                           turn_rate_deg_s=turn, moving=moving, time_shift_s=shift,
-                          offset_m=err.mean(axis=0), trans_m=np.linalg.norm(err, axis=1))
+                          offset_m=err.mean(axis=0), trans_m=np.linalg.norm(err, axis=1),
+                          body_offset_m=body.mean(axis=0), fit_with_offset=both)
 
 
 def breakdown_metrics(b: ErrorBreakdown) -> dict:
     """The JSON-able keys ``blockloc eval`` and ``metrics.json`` carry (all ``err_...``):
     ``{along,cross,vertical}_{mean,rms}_m`` (None without moving poses for the horizontal ones),
     ``err_moving_poses``, ``err_time_shift_s``, ``err_along_rms_after_shift_m``, ``err_offset_m``
-    ([x, y, z], map frame), ``err_by_speed`` and ``err_by_turn_rate`` (lists of bin rows,
+    ([x, y, z], map frame), ``err_body_offset_m`` ([x, y, z], body frame),
+    ``err_time_shift_with_offset_s`` and ``err_along_offset_m`` (the fit with an intercept, or
+    None), ``err_by_speed`` and ``err_by_turn_rate`` (lists of bin rows,
     :meth:`ErrorBreakdown.table`)."""
     out: dict = {}
     mov = b.moving
@@ -137,6 +152,8 @@ def breakdown_metrics(b: ErrorBreakdown) -> dict:
     out["err_time_shift_s"] = b.time_shift_s
     out["err_along_rms_after_shift_m"] = _rms(b.along_after_shift_m()) if mov.any() else None
     out["err_offset_m"] = [float(v) for v in b.offset_m]
+    out["err_body_offset_m"] = [float(v) for v in b.body_offset_m]
+    out["err_time_shift_with_offset_s"], out["err_along_offset_m"] = b.fit_with_offset or (None, None)
     out["err_by_speed"] = b.table("speed", SPEED_EDGES_MPS)
     out["err_by_turn_rate"] = b.table("turn_rate", TURN_RATE_EDGES_DEG_S)
     return out
