@@ -23,3 +23,15 @@ def test_the_targets_are_checked_on_the_default_run_over_every_seed(tmp_path):
     assert "worst ATE <= 0.035 m: **not met**" in missed and "rotation <= 0.15 deg (every seed): **not met**" in missed
     assert "no failures: **not met**" in missed and "within +-1 cm (every seed): **not met**" in missed
     assert "seed 1: default 30 s" in missed
+
+
+def test_bench_passes_a_named_benchmarks_options_to_it(monkeypatch):
+    import bench.__main__ as bm
+
+    calls = []
+    monkeypatch.setattr(bm.subprocess, "call", lambda cmd, cwd: calls.append(cmd[2:]) or 0)
+    monkeypatch.setattr(bm, "assemble", lambda: "assembled")
+    assert bm.main(["seeds", "--preset", "small", "--seeds", "1,2,3,4,5"]) == 0
+    assert calls == [["bench.seeds", "--preset", "small", "--seeds", "1,2,3,4,5"]]
+    assert bm.main(["seeds", "ndt", "--seeds", "1"]) == 2 and bm.main(["all", "--seeds", "1"]) == 2
+    assert len(calls) == 1
