@@ -130,6 +130,8 @@ def report(results: dict, argv: list[str], started: str, load0: float, work: Pat
     lines = ["## Accuracy over world seeds (issue 41)", "",
              f"Command: `{cmd}` (started {started}, work directory `{work}`). Machine: {machine()}. "
              f"Load average (1 min) {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end. "
+             "A step whose output the work directory already holds is reused, not run again (the load "
+             "figures are then this invocation's, not the runs'). "
              "Every step is the CLI as a user types it (see `bench/seeds.py` for the commands); `default` "
              "tracks on the map `blockloc map build` makes by default (LiDAR mounting estimated from the "
              "mapping drive, tracking with it), `nominal` on the map built with `--nominal-mounting` (the "
