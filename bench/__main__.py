@@ -3,6 +3,7 @@
     python -m bench all            # every benchmark, then assemble
     python -m bench ndt maps       # some of them, then assemble
     python -m bench assemble       # only rebuild docs/benchmarks.md (headline table + section index)
+    python -m bench seeds --seeds 1,2,3   # one benchmark with its own options (after its name)
 
 Each benchmark is a module ``bench.<name>`` with a ``main()`` that writes its own fragment
 ``docs/bench/<name>.md`` (machine, exact command, medians). Order follows ORDER.
@@ -134,7 +135,11 @@ def write_run_fragment(spent: dict, started, total_s: float, load0: float, commi
 
 
 def main(argv: list[str]) -> int:
-    names = argv or ["all"]
+    first_option = next((i for i, a in enumerate(argv) if a.startswith("-")), len(argv))
+    names, options = argv[:first_option] or ["all"], argv[first_option:]
+    if options and len(names) != 1 or options and names[0] in ("all", "assemble"):
+        print("options go to one named benchmark: python -m bench NAME --option ...", file=sys.stderr)
+        return 2
     if names == ["assemble"]:
         print(assemble())
         return 0
@@ -146,7 +151,7 @@ def main(argv: list[str]) -> int:
     for name in names:
         t0 = time.time()
         print(f"== bench.{name}", flush=True)
-        rc = subprocess.call([sys.executable, "-m", f"bench.{name}"], cwd=ROOT)
+        rc = subprocess.call([sys.executable, "-m", f"bench.{name}", *options], cwd=ROOT)
         spent[name] = (time.time() - t0, rc)
         print(f"== bench.{name}: exit {rc} after {spent[name][0]:.0f} s", flush=True)
         if rc:

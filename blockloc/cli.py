@@ -142,7 +142,9 @@ def map_build_cmd(
     calibrate_mounting: Optional[bool] = typer.Option(
         None, "--calibrate-mounting/--nominal-mounting",
         help="Estimate the LiDAR mounting (T_body_lidar) from the drives' scans first and build "
-             "with it; the estimate is logged and kept in the manifest (default: map.calibrate_mounting)."),
+             "with it; the estimate is logged and kept in the manifest. Default (map.calibrate_mounting: "
+             "true): drives whose poses are the body's, a failed estimate keeps the nominal mounting; "
+             "--calibrate-mounting: every drive, a failed estimate is an error; --nominal-mounting: none."),
 ) -> None:
     """Build a block map or grid tiles from mapping sequences and their poses (or a global PCD),
     serial or on a Dask cluster."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -144,3 +145,33 @@ def test_eval_options_interpolate_and_rpe_deltas(tum_pair):
     assert m["rpe_5m_pairs"] > 0 and "rpe_10m_pairs" not in m
     res = blockloc("eval", "--gt", str(gt), "--est", str(est), "--rpe-deltas", "a")
     assert res.returncode != 0 and res.stderr.strip().startswith("error: --rpe-deltas 'a'")
+
+
+def test_eval_breaks_a_planted_lag_and_offset_down(tmp_path):
+    """`blockloc eval` on an estimate 50 ms late and 5 cm off in x on a circle: the JSON, the
+    tables and the plot say so."""
+    t = 1e9 + 0.1 * np.arange(400)
+    th = 4 * np.pi * np.arange(len(t)) / len(t)  # two whole turns of a 16 m circle at 5.03 m/s
+    gt = np.tile(np.eye(4), (len(t), 1, 1))
+    gt[:, :3, :3] = Rotation.from_euler("z", (th + np.pi / 2)[:, None]).as_matrix()
+    gt[:, :3, 3] = np.stack([16 * np.cos(th), 16 * np.sin(th), np.zeros_like(th)], 1)
+    gt_traj = Trajectory(t, gt)
+    est = gt_traj.interpolate(t - 0.05)
+    est[:, 0, 3] += 0.05
+    write_tum(tmp_path / "gt.tum", gt_traj)
+    write_tum(tmp_path / "est.tum", Trajectory(t, est))
+    res = blockloc("eval", "--gt", str(tmp_path / "gt.tum"), "--est", str(tmp_path / "est.tum"), "--json")
+    assert res.returncode == 0, res.stderr
+    m = json.loads(res.stdout)
+    assert m["err_time_shift_s"] == pytest.approx(0.05, abs=2e-3)
+    assert m["err_offset_m"][0] == pytest.approx(0.05, abs=5e-3)
+    assert m["err_along_mean_m"] == pytest.approx(-0.05 * 1.6 * np.pi, abs=5e-3)
+    assert [r["lo"] for r in m["err_by_speed"]] == [4.0] and m["err_by_speed"][0]["count"] == m["matched"]
+    res = blockloc("eval", "--gt", str(tmp_path / "gt.tum"), "--est", str(tmp_path / "est.tum"),
+                   "--plot", str(tmp_path / "plots"))
+    assert res.returncode == 0, res.stderr
+    text = " ".join(res.stdout.split())
+    assert re.search(r"time shift that best explains the along-track error: \+0\.0(49|50)\d s", text), text
+    assert "constant offset (mean error, map frame): [+0.05" in text
+    assert "error against speed" in text and "error against turn rate" in text
+    assert (tmp_path / "plots" / "error_breakdown.png").stat().st_size > 10_000

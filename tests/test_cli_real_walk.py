@@ -29,6 +29,11 @@ def test_map_from_a_scan_folder_and_its_trajectory(walk_map):
     info = json.loads(_blockloc("map", "info", str(out), "--json", "--quick").stdout)
     assert info["kind"] == "block" and info["entries"] >= 2  # the walk crosses several 8 m blocks
     assert info["parameters"]["num_keyframes"] > 20
+    # its poses are the LiDAR's own (T_body_lidar = I): the default build leaves the mounting alone
+    assert list(info["parameters"]["mounting_source"].values()) == [{"source": "lidar poses"}]
+    assert "mounting" not in info["parameters"]
+    text = " ".join(_blockloc("map", "info", str(out), "--quick").stdout.split())
+    assert "its poses are the LiDAR's: nothing to estimate" in text
 
 
 def test_init_on_a_held_out_scan_reports_its_error_against_the_reference(walk_map):

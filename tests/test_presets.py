@@ -67,7 +67,9 @@ def test_a_sim_folder_in_the_cwd_does_not_break_a_map_build_of_a_sim_session(tin
     r = _blockloc("map", "build", "--seq", "data/loc", "--kind", "block", "--out", "m", "--max-frames", "6",
                   cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]
-    assert "IsADirectoryError" not in r.stderr and "WARNING" not in r.stderr, r.stderr[-2000:]
+    # the only warning: 6 frames are too short to estimate the LiDAR mounting (issue 41's default)
+    warnings = [ln for ln in r.stderr.splitlines() if "WARNING" in ln and "LiDAR mounting kept" not in ln]
+    assert "IsADirectoryError" not in r.stderr and not warnings, r.stderr[-2000:]
     assert open_map(tmp_path / "m").params["block_size_m"] == load_config(preset="sim").map.block_size_m
 
 
@@ -77,7 +79,8 @@ def test_a_preset_name_wins_over_a_file_of_that_name_with_one_warning(tiny_sessi
     args = ("map", "build", "--seq", tiny_session, "--kind", "block", "--max-frames", "6")
     r = _blockloc(*args, "--out", "m1", "--config", "handheld", cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]
-    warnings = [line for line in r.stderr.splitlines() if "WARNING" in line]
+    # (6 frames are too short to estimate the LiDAR mounting: that warning is issue 41's default)
+    warnings = [line for line in r.stderr.splitlines() if "WARNING" in line and "LiDAR mounting kept" not in line]
     assert len(warnings) == 1 and "preset handheld.yaml is used, not ./handheld" in warnings[0], r.stderr
     assert open_map(tmp_path / "m1").params["voxel_size_m"] == load_config(preset="handheld").map.voxel_size_m == 0.1
     # the file, given as a path, is read (and its unknown section named)

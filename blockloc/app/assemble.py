@@ -20,13 +20,11 @@ import dataclasses
 import logging
 from typing import Any, Sequence
 
-import numpy as np
 
 from blockloc.app.session import GlobalInitSettings, Session
 from blockloc.config import Config, GlobalInitConfig, MapConfig, RegistrationConfig
-from blockloc.datasets.base import RemountedSequence
 from blockloc.global_init.relocalize import GlobalLocalizer, InitParams
-from blockloc.maps.mounting import map_mounting, mounting_difference
+from blockloc.maps.mounting import with_map_mounting
 from blockloc.maps.policies import make_policy
 from blockloc.maps.provider import MapProvider
 from blockloc.maps.remote import DEFAULT_CACHE_BYTES, RetryPolicy
@@ -108,24 +106,6 @@ def make_provider(store: MapStore, backend: str, mc: MapConfig, engine) -> MapPr
     policy = make_policy(backend, store, **policy_settings(mc))
     return MapProvider(store, policy, engine=engine, prefetch=mc.prefetch, lookahead_s=mc.prefetch_lookahead_s,
                        cache_mb=mc.cache_mb, retry_missing_s=mc.retry_missing_s)
-
-
-def with_map_mounting(seq, store, use: bool):
-    """``seq`` seen with the LiDAR mounting ``store`` was built with (``use``: the same robot),
-    or as it is, with a warning when the two differ (a build with ``--calibrate-mounting``)."""
-    X_map = map_mounting(getattr(store, "params", {}) or {})
-    if X_map is None:
-        return seq
-    deg, m = mounting_difference(X_map, np.asarray(seq.info.T_body_lidar, np.float64))
-    if use:
-        log.info("%s: tracking with the map's estimated LiDAR mounting (%.2f deg, %.3f m from the "
-                 "sequence's)", seq.info.name, deg, m)
-        return RemountedSequence(seq, X_map)
-    if deg > 0.05 or m > 0.005:
-        log.warning("the map was built with a LiDAR mounting estimated from its drive that differs "
-                    "from %s's by %.2f deg / %.3f m; if the same robot recorded both, "
-                    "--set map.use_map_mounting=true tracks with it", seq.info.name, deg, m)
-    return seq
 
 
 # ----------------------------------------------------------------------------- global init

@@ -24,6 +24,7 @@ from blockloc.errors import MapError
 from blockloc.maps.changes.pipeline import ChangeResult, detect_changes
 from blockloc.maps.changes.runs import RunError, RunPoses, read_run
 from blockloc.maps.changes.update import apply_update, plan_update
+from blockloc.maps.mounting import with_map_mounting
 from blockloc.maps.store import MapStore, open_map
 
 log = logging.getLogger("blockloc")
@@ -65,6 +66,8 @@ def detect_run_changes(store: MapStore, run_dir: str | Path, *, seq: str | None 
     """What changed in ``store`` according to the trusted frames of the run folder ``run_dir``."""
     run = read_run(run_dir)
     sequence, name, cfg = open_run_sequence(run, seq, data_root)
+    # the scans placed with the mounting the run tracked with (track's default: the map's, issue 41)
+    sequence = with_map_mounting(sequence, store, cfg.map.use_map_mounting)
     if not len(run):
         log.warning("%s: no trusted frame (status ok after 10 ok frames): nothing to learn from it", run_dir)
     res = detect_changes(store, sequence, run, stride=stride, progress=progress)

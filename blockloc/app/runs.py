@@ -29,6 +29,7 @@ from blockloc.global_init.relocalize import pose_error
 from blockloc.jit import CompileClock
 from blockloc.maps.build_plan import Drive, build_block_map_from_sequence, build_map_from_drives
 from blockloc.maps.files import open_map_files
+from blockloc.maps.mounting import with_map_mounting
 from blockloc.maps.store import MapStore, open_map
 from blockloc.maps.summary import map_points_xy
 from blockloc.global_init.scan_prep import prepare_for_init
@@ -113,7 +114,8 @@ def write_run_report(session: Session, res: RunResult, out_dir: Path, quiet: boo
 
 def _write_run_report(session: Session, res: RunResult, out_dir: Path) -> Path:
     images = {caption: out_dir / name for caption, name in (("trajectories", "trajectories.png"),
-                                                             ("errors over time", "errors.png"))
+                                                             ("errors over time", "errors.png"),
+                                                             ("error breakdown", "error_breakdown.png"))
               if (out_dir / name).is_file()}
     return write_report(out_dir / REPORT_NAME, metrics=res.metrics, estimate=res.trajectory,
                         ground_truth=session.ground_truth, diagnostics=res.diagnostics, config=session.config,
@@ -143,6 +145,7 @@ def run_init(seq_name: str, frame_index: int, map_path: str, *, cfg: Config, hin
         raise GlobalInitError(f"--frame {frame_index}: expected 0..{len(seq) - 1} ({seq.info.name} has "
                               f"{len(seq)} frames)")
     store = open_store(map_path, cfg.map)
+    seq = with_map_mounting(seq, store, cfg.map.use_map_mounting)  # as track does (issue 41)
     engine = build_engine(cfg.registration, resolution_m=gi.ndt_resolution_m)
     loc = make_localizer(store, seq.info.gravity_map, cfg, engine=engine)
     scan = prepare_for_init(seq.frame(frame_index), seq.imu(), seq.info)
@@ -188,22 +191,31 @@ def init_summary(res, stamp: float | None = None) -> dict:
 
 # ----------------------------------------------------------------------------- maps
 def build_map(seq, kind: str, out: str | Path, map_cfg: MapConfig, *, overwrite: bool = False,
-              progress: Progress | None = None, max_frames: int | None = None, executor=None) -> MapStore:
+              progress: Progress | None = None, max_frames: int | None = None, executor=None,
+              calibrate_mounting: bool | None = None) -> MapStore:
     """Build a block or grid store from a mapping sequence with the ``MapConfig`` settings.
     progress: a ``(done, total)`` callback or None. executor: None (serial) or a Dask executor
-    (:func:`blockloc.maps.distributed.open_executor`)."""
+    (:func:`blockloc.maps.distributed.open_executor`). calibrate_mounting: as
+    :func:`build_map_from_specs`."""
     return build_map_from_specs([Drive.of(seq, stop=max_frames)], kind, out, map_cfg,
-                                overwrite=overwrite, progress=progress, executor=executor)
+                                overwrite=overwrite, progress=progress, executor=executor,
+                                calibrate_mounting=calibrate_mounting)
 
 
 def build_map_from_specs(drives, kind: str, out: str | Path, map_cfg: MapConfig, *, overwrite: bool = False,
-                         progress: Progress | None = None, executor=None) -> MapStore:
-    """:func:`blockloc.maps.build_plan.build_map_from_drives` with the ``MapConfig`` settings."""
+                         progress: Progress | None = None, executor=None,
+                         calibrate_mounting: bool | None = None) -> MapStore:
+    """:func:`blockloc.maps.build_plan.build_map_from_drives` with the ``MapConfig`` settings.
+    calibrate_mounting: None: ``map.calibrate_mounting`` (true: ``"auto"``, body-pose drives
+    only, a failed estimate keeps the nominal mounting); True (``--calibrate-mounting``): every
+    drive, a failed estimate is an error; False (``--nominal-mounting``): none."""
+    if calibrate_mounting is None:
+        calibrate_mounting = "auto" if map_cfg.calibrate_mounting else False
     return build_map_from_drives(
         drives, kind, out, block_size_m=map_cfg.block_size_m, tile_size_m=map_cfg.tile_size_m,
         voxel_size_m=map_cfg.voxel_size_m, keyframe_distance_m=map_cfg.keyframe_distance_m,
         keyframe_angle_deg=map_cfg.keyframe_angle_deg,
-        calibrate_mounting=map_cfg.calibrate_mounting, executor=executor, progress=progress,
+        calibrate_mounting=calibrate_mounting, executor=executor, progress=progress,
         overwrite=overwrite)
 
 

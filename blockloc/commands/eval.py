@@ -76,7 +76,48 @@ def print_metrics(metrics: dict[str, Any], console) -> None:
                     _fmt(metrics[f"{k}_trans_mean_pct"], 2), _fmt(metrics[f"{k}_rot_rmse_deg"], 3),
                     _fmt(metrics[f"{k}_rot_mean_deg_per_m"], 4))
     console.print(rpe)
+    if "err_time_shift_s" in metrics:
+        print_breakdown(metrics, console)
     for note in metrics.get("notes", []):
         console.print(f"note: {escape(note)}", style="yellow")
     for plot in metrics.get("plots", []):
         console.print(f"plot: {escape(plot)}")
+
+
+def print_breakdown(metrics: dict[str, Any], console) -> None:
+    """The error breakdown keys (``err_...``, :mod:`blockloc.evaluation.breakdown`) as tables."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    comp = Table(title="position error by direction (along / cross: horizontal direction of travel)")
+    for col in ("component", "mean [m]", "RMS [m]"):
+        comp.add_column(escape(col), justify="right" if col != "component" else "left")
+    for name, label in (("along", "along track (+ ahead)"), ("cross", "cross track (+ z x forward)"),
+                        ("vertical", "vertical (map z)")):
+        comp.add_row(label, _fmt(metrics[f"err_{name}_mean_m"]), _fmt(metrics[f"err_{name}_rms_m"]))
+    console.print(comp)
+    shift = metrics["err_time_shift_s"]
+    if shift is not None:
+        console.print(f"time shift that best explains the along-track error: {shift:+.4f} s "
+                      f"(+: the estimate lags; along-track RMS {_fmt(metrics['err_along_rms_m'])} m -> "
+                      f"{_fmt(metrics['err_along_rms_after_shift_m'])} m without it; "
+                      f"{metrics['err_moving_poses']} moving poses)")
+    if metrics.get("err_along_offset_m") is not None:
+        console.print(f"with a constant along-track offset as well: time shift "
+                      f"{metrics['err_time_shift_with_offset_s']:+.4f} s, offset {metrics['err_along_offset_m']:+.4f} m")
+    x, y, z = metrics["err_offset_m"]
+    console.print(f"constant offset (mean error, map frame): [{x:+.4f}, {y:+.4f}, {z:+.4f}] m")
+    if metrics.get("err_body_offset_m") is not None:
+        x, y, z = metrics["err_body_offset_m"]
+        console.print(f"constant offset in the body frame (a mounting translation shows here): "
+                      f"[{x:+.4f}, {y:+.4f}, {z:+.4f}] m")
+    for key, label, unit in (("err_by_speed", "speed", "m/s"), ("err_by_turn_rate", "turn rate", "deg/s")):
+        t = Table(title=f"error against {label}")
+        for col in (f"{label} [{unit}]", "poses", "trans RMSE\n[m]", "along mean\n[m]", "along RMS\n[m]",
+                    "cross RMS\n[m]"):
+            t.add_column(escape(col), justify="right")
+        for r in metrics[key]:
+            span = f"{r['lo']:g} - {r['hi']:g}" if r["hi"] is not None else f">= {r['lo']:g}"
+            t.add_row(span, str(r["count"]), _fmt(r["trans_rmse_m"]), _fmt(r["along_mean_m"]),
+                      _fmt(r["along_rms_m"]), _fmt(r["cross_rms_m"]))
+        console.print(t)

@@ -54,8 +54,7 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
         check_out(out, overwrite, max(MAP_BUILD_MIN_BYTES, 2 * _size(from_pcd)))
     cfg = config_for(drive_sequence_name(seqs[0]) if seqs else None, config)
     overrides = {k: v for k, v in (("block_size_m", block_size), ("tile_size_m", tile_size),
-                                   ("voxel_size_m", voxel), ("calibrate_mounting", calibrate_mounting))
-                 if v is not None}
+                                   ("voxel_size_m", voxel)) if v is not None}
     map_cfg = dataclasses.replace(cfg.map, **overrides)
     if from_pcd is not None:
         from blockloc.maps.from_pcd import build_map_from_global_pcd
@@ -84,7 +83,8 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
                   file=sys.stderr, flush=True)
         with progress(f"{kind} map build tasks") as report:
             store = build_map_from_specs(drives, kind, out, map_cfg, overwrite=overwrite,
-                                         progress=report, executor=ex)
+                                         progress=report, executor=ex,
+                                         calibrate_mounting=calibrate_mounting)
     if not is_url(str(out)):  # the place index (no-hint relocalization) goes with a local map
         store = add_place_index(out, drives[0].open().info.gravity_map, cfg)
     print_summary(map_summary(store), console())
@@ -189,6 +189,29 @@ def serve_command(map_path: Path, host: str, port: int) -> None:
     serve(map_path, host, port, on_ready=ready)
 
 
+def mounting_lines(params: dict) -> list[tuple[str, str]]:
+    """(drive, which LiDAR mounting the map was built with and where it came from) for each drive
+    of a map's manifest parameters: estimated (from how many pairs, how far from the nominal),
+    nominal (not estimated, or the estimate failed: why) or LiDAR poses (nothing to estimate). A
+    map built before builds recorded ``mounting_source`` names only its estimates."""
+    estimates = params.get("mounting") or {}
+    sources = params.get("mounting_source") or {}
+    lines = []
+    for drive in dict.fromkeys([*sources, *estimates]):
+        m = estimates.get(drive)
+        if m is not None:
+            lines.append((drive, f"estimated from {m['used']} of {m['pairs']} keyframe pairs, rotation "
+                                 f"{m['rotation_deg']} deg, translation {m['translation_m']} m from "
+                                 "the nominal (body frame)"))
+            continue
+        src = sources[drive]
+        if src.get("source") == "lidar poses":
+            lines.append((drive, "the sequence's own (its poses are the LiDAR's: nothing to estimate)"))
+        else:
+            lines.append((drive, "nominal, the sequence's own" + (f" ({src['reason']})" if "reason" in src else "")))
+    return lines
+
+
 def print_summary(summary: dict[str, Any], console) -> None:
     from rich.table import Table
 
@@ -209,10 +232,8 @@ def print_summary(summary: dict[str, Any], console) -> None:
                              "another entry's")
     params = {k: v for k, v in summary["parameters"].items() if not isinstance(v, (dict, list))}
     t.add_row("parameters", ", ".join(f"{k}={v}" for k, v in params.items()))
-    for drive, m in (summary["parameters"].get("mounting") or {}).items():
-        t.add_row("LiDAR mounting", f"{drive}: estimated from {m['used']} of {m['pairs']} keyframe pairs, "
-                                    f"rotation {m['rotation_deg']} deg, translation {m['translation_m']} m "
-                                    "from the nominal (body frame)")
+    for drive, text in mounting_lines(summary["parameters"]):
+        t.add_row("LiDAR mounting", f"{drive}: {text}")
     skipped = summary["parameters"].get("skipped_keyframes") or []
     if skipped:  # scans a build could not read: counted and named (also in the manifest)
         t.add_row("skipped keyframes", f"{len(skipped)}: " + "; ".join(
@@ -221,8 +242,6 @@ def print_summary(summary: dict[str, Any], console) -> None:
     if summary["legacy_layout"]:
         t.add_row("layout", "released block-map layout (no manifest, no checksums)")
     console.print(t)
-
-
 
 
 # ----------------------------------------------------------------------------- map index

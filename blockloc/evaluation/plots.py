@@ -72,3 +72,44 @@ def plot_errors_over_time(path: Path, stamps: np.ndarray, trans_m: np.ndarray, r
         return _save(fig, Path(path))
     finally:
         plt.close(fig)
+
+
+def plot_error_breakdown(path: Path, stamps: np.ndarray, breakdown, by_speed: list[dict],
+                         by_turn_rate: list[dict], *, title: str = "") -> Path:
+    """Along-track, cross-track and vertical error over time (m; s from the first matched stamp),
+    then translation RMSE and along-track mean against speed and against turn rate (one point a
+    bin, at the bin's lower edge). breakdown: :class:`blockloc.evaluation.breakdown.ErrorBreakdown`;
+    by_speed, by_turn_rate: its ``table`` rows."""
+    plt = _pyplot()
+    t = np.asarray(stamps, dtype=np.float64)
+    t = t - t[0] if len(t) else t
+    fig = plt.figure(figsize=(9, 7))
+    try:
+        ax = fig.add_subplot(2, 1, 1)
+        ax.plot(t, breakdown.along_m, lw=1.0, label="along track")
+        ax.plot(t, breakdown.cross_m, lw=1.0, label="cross track")
+        ax.plot(t, breakdown.vertical_m, lw=1.0, label="vertical (map z)")
+        ax.axhline(0.0, color="0.5", lw=0.8)
+        shift = breakdown.time_shift_s
+        ax.set_title(title or ("position error components" + (
+            f" (best time shift {1000 * shift:+.1f} ms)" if shift is not None else "")))
+        ax.set_ylabel("error [m]")
+        ax.set_xlabel("time [s]")
+        ax.legend(loc="upper right")
+        for k, (rows, label) in enumerate(((by_speed, "speed [m/s]"), (by_turn_rate, "turn rate [deg/s]"))):
+            bx = fig.add_subplot(2, 2, 3 + k)
+            x = np.arange(len(rows))
+            rmse = [r["trans_rmse_m"] for r in rows]
+            along = [np.nan if r["along_mean_m"] is None else r["along_mean_m"] for r in rows]
+            bx.bar(x - 0.2, rmse, width=0.4, label="translation RMSE")
+            bx.bar(x + 0.2, along, width=0.4, label="along-track mean")
+            bx.axhline(0.0, color="0.5", lw=0.8)
+            bx.set_xticks(x, [f"{r['lo']:g}-{'' if r['hi'] is None else format(r['hi'], 'g')}\n({r['count']})"
+                              for r in rows], fontsize=7)
+            bx.set_xlabel(f"{label} (poses)")
+            bx.set_ylabel("error [m]")
+            bx.legend(loc="best", fontsize=7)
+        fig.tight_layout()
+        return _save(fig, Path(path))
+    finally:
+        plt.close(fig)

@@ -10,6 +10,10 @@ The dict is JSON-able and flat (``metrics.json`` of a tracking run embeds it). K
 - ``rpe_deltas_m`` and per delta D (formatted ``{D:g}``, e.g. ``rpe_10m_...``): ``pairs``,
   ``trans_rmse_m``, ``trans_mean_m``, ``trans_mean_pct``, ``rot_rmse_deg``, ``rot_mean_deg``,
   ``rot_mean_deg_per_m``; all None when the path is shorter than D (a note says so);
+- the error breakdown (:mod:`blockloc.evaluation.breakdown`): ``err_{along,cross,vertical}_{mean,rms}_m``,
+  ``err_moving_poses``, ``err_time_shift_s``, ``err_along_rms_after_shift_m``, ``err_offset_m``
+  ([x, y, z], map frame), ``err_by_speed``, ``err_by_turn_rate`` (lists of bin rows); absent
+  when the poses are paired by index (no time to differentiate);
 - ``notes`` (list of str), ``plots`` (list of PNG paths); ``gt_file``, ``est_file`` for files.
 """
 
@@ -132,9 +136,19 @@ def evaluate_trajectories(gt: Trajectory, est: Trajectory, *, align: bool = Fals
         out[f"{key}_rot_mean_deg"] = float(np.mean(rpe.rot_deg))
         out[f"{key}_rot_mean_deg_per_m"] = float(np.mean(rpe.rot_deg_per_m))
 
+    breakdown = None
+    if not by_index:
+        from blockloc.evaluation.breakdown import breakdown_metrics, error_breakdown
+
+        try:
+            breakdown = error_breakdown(stamps, G, ate.T_align @ P)
+            out.update(breakdown_metrics(breakdown))
+        except EvaluationError as exc:  # fewer than two matched poses
+            notes.append(f"no error breakdown: {exc}")
+
     plots: list[str] = []
     if plot_dir is not None:
-        from blockloc.evaluation.plots import plot_errors_over_time, plot_trajectories
+        from blockloc.evaluation.plots import plot_error_breakdown, plot_errors_over_time, plot_trajectories
 
         plot_dir = Path(plot_dir)
         P_shown = ate.T_align @ P
@@ -143,6 +157,9 @@ def evaluate_trajectories(gt: Trajectory, est: Trajectory, *, align: bool = Fals
                                            P_shown[:, :3, 3][:, :2], ate.trans_m,
                                            title=f"ATE RMSE {out['ate_trans_rmse_m']:.3f} m{tag}")))
         plots.append(str(plot_errors_over_time(plot_dir / "errors.png", stamps, ate.trans_m, ate.rot_deg)))
+        if breakdown is not None:
+            plots.append(str(plot_error_breakdown(plot_dir / "error_breakdown.png", stamps, breakdown,
+                                                  out["err_by_speed"], out["err_by_turn_rate"])))
     out["notes"] = notes
     out["plots"] = plots
     for note in notes:

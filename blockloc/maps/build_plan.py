@@ -199,7 +199,7 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
                           block_size_m: float = 100.0, tile_size_m: float = 20.0,
                           voxel_size_m: float = 0.2, keyframe_distance_m: float = 1.0,
                           keyframe_angle_deg: float = 15.0, deskew: bool = True,
-                          calibrate_mounting: bool = False, executor=None, progress=False,
+                          calibrate_mounting: bool | str = False, executor=None, progress=False,
                           overwrite: bool = False,
                           chunk_keyframes: int = CHUNK_KEYFRAMES, params: dict | None = None,
                           stats: dict | None = None):
@@ -209,9 +209,13 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
     ``block_size_m``) or 'grid' (tiles of ``tile_size_m``). voxel_size_m: voxel filter of blocks
     and tiles (<= 0: none). executor: None = :class:`InlineExecutor`, or a Dask executor
     (:func:`blockloc.maps.distributed.open_executor`): the same plan, the same bytes.
-    calibrate_mounting: estimate each drive's LiDAR mounting from its scans first
-    (:mod:`blockloc.maps.mounting`) and build with it instead of the sequence's ``T_body_lidar``;
-    the manifest keeps each estimate under ``mounting``.
+    calibrate_mounting: True: estimate each drive's LiDAR mounting from its scans first
+    (:mod:`blockloc.maps.mounting`) and build with it instead of the sequence's ``T_body_lidar``
+    (MapError when a drive's estimate fails); ``"auto"`` (the command's default): the same for
+    drives whose poses are the body's, while drives with LiDAR poses (``T_body_lidar`` = I) and
+    drives the estimate fails on (a warning) keep their own; False: every drive's own. The
+    manifest keeps each estimate under ``mounting`` and each drive's ``mounting_source``
+    (``{"source": "estimated" | "nominal" | "lidar poses", "reason"?}``).
     progress: None/False or a callback ``(done, total)`` over tasks (commands draw the bar). stats: a dict
     to fill with per-task-kind counts, seconds, bytes and raw points (:meth:`_Tasks.stats`).
     Returns the opened :class:`~blockloc.maps.store.MapStore`.
@@ -246,9 +250,13 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
         plans = [f.result() for f in [tasks.submit(plan_drive_task, d, keyframe_distance_m,
                                                    keyframe_angle_deg, name=f"plan-{n}")
                                       for n, d in enumerate(drives)]]
+        if calibrate_mounting not in (True, False, "auto"):
+            raise MapError(f"calibrate_mounting {calibrate_mounting!r}: expected True, False or 'auto'")
         mounting = {}
+        sources = {p.drive.name: {"source": "nominal", "reason": "not estimated"} for p in plans}
         if calibrate_mounting:
-            plans, mounting = _remount(tasks, plans, deskew, keyframe_distance_m, keyframe_angle_deg)
+            plans, mounting, sources = _remount(tasks, plans, deskew, keyframe_distance_m,
+                                                keyframe_angle_deg, auto=calibrate_mounting == "auto")
             drives = drives + [p.drive for p in plans]  # forgotten with the others at the end
         plans.sort(key=DrivePlan.order_key)
         frames = sorted({p.map_frame for p in plans})
@@ -261,8 +269,9 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
         if len(plans) > 1:
             common["drives"] = [{"sequence": p.drive.name, "first_stamp": float(p.stamps[0]),
                                  "keyframes": len(p.frames)} for p in plans]
-        if mounting:
-            common["mounting"] = mounting
+        if mounting:  # in the plan's order, as every other per-drive field (the same bytes)
+            common["mounting"] = {p.drive.name: mounting[p.drive.name] for p in plans if p.drive.name in mounting}
+        common["mounting_source"] = {p.drive.name: sources[p.drive.name] for p in plans}
         common.update(params or {})
         try:
             if kind == "block":
@@ -322,26 +331,37 @@ def check_skipped(skipped: list[dict], keyframes: int) -> list[dict]:
 
 
 def _remount(tasks: _Tasks, plans: list[DrivePlan], deskew: bool, keyframe_distance_m: float,
-             keyframe_angle_deg: float) -> tuple[list[DrivePlan], dict]:
-    """Each drive's mounting estimated (one task per drive), then the drive planned again with
-    it (keyframe poses are LiDAR poses). Returns the new plans and ``{drive name: estimate}``."""
-    from blockloc.maps.build_tasks import mounting_task, remounted
+             keyframe_angle_deg: float, auto: bool = False) -> tuple[list[DrivePlan], dict, dict]:
+    """Each drive's mounting estimated (one task per drive), then each drive with an estimate
+    planned again with it (keyframe poses are LiDAR poses). auto: see ``mounting_task``. Returns
+    the new plans, ``{drive name: estimate}`` and ``{drive name: {"source": ..., "reason"?}}``."""
+    from blockloc.maps.build_tasks import MOUNTING_PAIRS, mounting_task, remounted
 
-    tasks.expect(2 * len(plans))
-    found = [f.result() for f in [tasks.submit(mounting_task, p, deskew, name=f"mounting-{n}")
-                                  for n, p in enumerate(plans)]]
+    tasks.expect(len(plans))
+    found = [f.result() for f in [tasks.submit(mounting_task, p, deskew, MOUNTING_PAIRS, auto,
+                                               name=f"mounting-{n}") for n, p in enumerate(plans)]]
+    sources = {}
     for p, m in zip(plans, found):
+        sources[p.drive.name] = {k: m[k] for k in ("source", "reason") if k in m}
         e = m["estimate"]
+        if e is None:
+            log.log(logging.WARNING if m["source"] == "nominal" else logging.INFO,
+                    "%s: LiDAR mounting kept as the sequence gives it (%s%s)", p.drive.name,
+                    m["source"], f": {m['reason']}" if "reason" in m else "")
+            continue
         log.info("%s: LiDAR mounting from %d of %d keyframe pairs: rotation %s deg, translation "
                  "%s m (body frame; 1-sigma %s deg, %s m)", p.drive.name, e["used"], e["pairs"],
                  e["rotation_deg"], e["translation_m"], e["sigma_deg"], e["sigma_m"])
         for note in m["notes"]:
             log.warning("%s: %s", p.drive.name, note)
-    drives = [remounted(p.drive, m["T_body_lidar"]) for p, m in zip(plans, found)]
-    new = [f.result() for f in [tasks.submit(plan_drive_task, d, keyframe_distance_m,
-                                             keyframe_angle_deg, name=f"plan-mounted-{n}")
-                                for n, d in enumerate(drives)]]
-    return new, {p.drive.name: m["estimate"] for p, m in zip(plans, found)}
+    todo = [(n, p, m) for n, (p, m) in enumerate(zip(plans, found)) if m["estimate"] is not None]
+    tasks.expect(len(todo))
+    new = {n: f.result() for n, f in [(n, tasks.submit(plan_drive_task, remounted(p.drive, m["T_body_lidar"]),
+                                                       keyframe_distance_m, keyframe_angle_deg,
+                                                       name=f"plan-mounted-{n}"))
+                                      for n, p, m in todo]}
+    return ([new.get(n, p) for n, p in enumerate(plans)],
+            {p.drive.name: m["estimate"] for _, p, m in todo}, sources)
 
 
 def build_block_map_from_sequence(seq, *, out: str | Path, max_frames: int | None = None,

@@ -309,37 +309,53 @@ def remounted(drive: Drive, T_body_lidar: np.ndarray) -> Drive:
 
 
 @_timed
-def mounting_task(plan: DrivePlan, deskew: bool, max_pairs: int = MOUNTING_PAIRS) -> dict:
+def mounting_task(plan: DrivePlan, deskew: bool, max_pairs: int = MOUNTING_PAIRS,
+                  auto: bool = False) -> dict:
     """Task: the drive's LiDAR mounting estimated from registered keyframe pairs
     (:mod:`blockloc.maps.mounting`). Reads the pairs' keyframes only. Returns ``T_body_lidar``
-    (4, 4), ``estimate`` (its JSON summary) and the raw points read.
+    (4, 4), ``estimate`` (its JSON summary), ``source`` (``"estimated"``) and the raw points read.
+
+    auto: the default build's mode. A drive whose ``T_body_lidar`` is the identity has poses of
+    the LiDAR itself (a scan folder without extrinsics, a SLAM's LiDAR trajectory; real NCLT's
+    velodyne_sync scans are already in the body frame): nothing to estimate, ``source`` is
+    ``"lidar poses"``. A drive the estimate fails on keeps its nominal mounting (``source``
+    ``"nominal"``, ``reason`` why) instead of failing the build. Either way ``T_body_lidar`` and
+    ``estimate`` are None.
 
     NDT registers the pairs, whatever engine tracking uses: on the campus map drive's first
     6000 frames (200 pairs) it recovered the simulated mounting to 0.035 deg and 4 mm, VGICP
     scan-to-scan to 0.07 deg and 14 mm.
     """
-    from blockloc.errors import MapError
+    from blockloc.errors import BlocklocError, MapError
     from blockloc.geometry import inv_T, transform_points
     from blockloc.maps.mounting import choose_pairs, estimate_mounting
     from blockloc.registration.engines import make_engine
     from blockloc.voxels import voxel_downsample
 
     _, _, X0 = _opened(plan.drive)
+    if auto and np.allclose(X0, np.eye(4), rtol=0.0, atol=1e-12):
+        return {"T_body_lidar": None, "estimate": None, "source": "lidar poses", "notes": [],
+                "raw_points": 0, "bytes": 0}
     T_map_body = plan.T_map_lidar @ inv_T(X0)
-    pairs = choose_pairs(T_map_body, max_pairs=max_pairs)
-    needed = sorted(set(pairs.ravel().tolist()))
     clouds, raw = {}, 0
-    for k, (pts_map, _) in zip(needed, _keyframe_clouds(plan.drive, plan.frames[needed].tolist(), deskew)):
-        raw += len(pts_map)
-        # back into the LiDAR frame at the scan stamp: deskewed points, as the pair sees them
-        clouds[k] = voxel_downsample(transform_points(inv_T(plan.T_map_lidar[k]), pts_map), 0.2)[0]
     try:
+        pairs = choose_pairs(T_map_body, max_pairs=max_pairs)
+        needed = sorted(set(pairs.ravel().tolist()))
+        for k, (pts_map, _) in zip(needed, _keyframe_clouds(plan.drive, plan.frames[needed].tolist(), deskew)):
+            raw += len(pts_map)
+            # back into the LiDAR frame at the scan stamp: deskewed points, as the pair sees them
+            clouds[k] = voxel_downsample(transform_points(inv_T(plan.T_map_lidar[k]), pts_map), 0.2)[0]
         est = estimate_mounting(clouds, T_map_body, pairs, X0, make_engine("ndt", num_threads=1))
-    except MapError as exc:
+    except BlocklocError as exc:  # too few pairs, a pair too sparse to register, ...
+        if auto:
+            return {"T_body_lidar": None, "estimate": None, "source": "nominal",
+                    "reason": f"the estimate failed: {exc}", "notes": [], "raw_points": raw, "bytes": 0}
+        if not isinstance(exc, MapError):
+            raise
         raise MapError(f"{plan.drive.name}: {exc} (--calibrate-mounting needs keyframes 4-15 m "
                        "apart that see the same structure)") from None
-    return {"T_body_lidar": est.T_body_lidar, "estimate": est.as_dict(), "notes": est.notes,
-            "raw_points": raw, "bytes": 0}
+    return {"T_body_lidar": est.T_body_lidar, "estimate": est.as_dict(), "source": "estimated",
+            "notes": est.notes, "raw_points": raw, "bytes": 0}
 
 
 def _keyframe_clouds(drive: Drive, frames: list[int], deskew: bool, skipped: list | None = None):

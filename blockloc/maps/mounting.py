@@ -279,3 +279,25 @@ def mounting_difference(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]
     """(rotation deg, translation m) between two mountings ``T_body_lidar`` (4, 4)."""
     deg = float(np.rad2deg(rotation_angle(T_a[:3, :3] @ T_b[:3, :3].T)))
     return deg, float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]))
+
+
+def with_map_mounting(seq, store, use: bool):
+    """``seq`` seen with the LiDAR mounting ``store`` was built with (``use``: the same robot, as
+    ``map.use_map_mounting`` says by default), or as it is, with a warning when the two differ.
+    store: anything with ``params`` (a map store's manifest parameters); a map without an
+    estimated mounting leaves ``seq`` as it is."""
+    from blockloc.datasets.base import RemountedSequence
+
+    X_map = map_mounting(getattr(store, "params", {}) or {})
+    if X_map is None:
+        return seq
+    deg, m = mounting_difference(X_map, np.asarray(seq.info.T_body_lidar, np.float64))
+    if use:
+        log.info("%s: tracking with the map's estimated LiDAR mounting (%.2f deg, %.3f m from the "
+                 "sequence's)", seq.info.name, deg, m)
+        return RemountedSequence(seq, X_map)
+    if deg > 0.05 or m > 0.005:
+        log.warning("the map was built with a LiDAR mounting estimated from its drive that differs "
+                    "from %s's by %.2f deg / %.3f m; if the same robot recorded both, "
+                    "--set map.use_map_mounting=true tracks with it", seq.info.name, deg, m)
+    return seq

@@ -36,7 +36,9 @@ TIME_SERIES = (("update_ms", "whole update", "#d62728"), ("registration_ms", "re
                ("deskew_ms", "deskew", "#ff7f0e"))
 FITNESS_SERIES = (("fitness", "fitness", "#1f77b4"),)
 HEADLINE = (("ate_trans_rmse_m", "ATE RMSE", "m"), ("ate_trans_max_m", "ATE max", "m"),
-            ("ate_rot_rmse_deg", "rotation RMSE", "deg"), ("frames", "frames", ""),
+            ("ate_rot_rmse_deg", "rotation RMSE", "deg"), ("err_along_mean_m", "along-track mean", "m"),
+            ("err_cross_rms_m", "cross-track RMS", "m"), ("err_time_shift_s", "best time shift", "s"),
+            ("frames", "frames", ""),
             ("estimated", "estimated", ""), ("failures", "failures", ""), ("recoveries", "recoveries", ""),
             ("switches", "switches", ""), ("update_ms_median", "update median", "ms"),
             ("update_ms_p99", "update p99", "ms"), ("path_length_m", "path", "m"), ("duration_s", "duration", "s"))

@@ -78,11 +78,12 @@ def test_plots_are_written_as_png(tmp_path, rng):
     gt = random_trajectory(rng, n=120)
     est = perturb(rng, gt, 0.1, 0.02)
     m = evaluate_trajectories(gt, est, plot_dir=tmp_path / "plots")
-    assert sorted(m["plots"]) == sorted(str(tmp_path / "plots" / n) for n in ("errors.png", "trajectories.png"))
+    names = ("error_breakdown.png", "errors.png", "trajectories.png")
+    assert sorted(m["plots"]) == sorted(str(tmp_path / "plots" / n) for n in names)
     for p in m["plots"]:
         data = open(p, "rb").read()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
-    assert sorted(p.name for p in (tmp_path / "plots").iterdir()) == ["errors.png", "trajectories.png"]
+    assert sorted(p.name for p in (tmp_path / "plots").iterdir()) == list(names)
 
 
 def test_print_metrics_shows_the_numbers(rng):

@@ -51,7 +51,7 @@ def test_plan_blocks_equal_the_in_memory_builder(tmp_path, world, loop_seq, monk
         builder.end_drive()
     builder.finish()
     params = {k: plan.params[k] for k in ("sequence", "keyframe_distance_m", "keyframe_angle_deg",
-                                          "deskew", "drives")}
+                                          "deskew", "drives", "mounting_source")}
     ref = write_block_map(builder, tmp_path / "memory", params=params)
     assert [(e.id, e.sha256) for e in plan.entries] == [(e.id, e.sha256) for e in ref.entries]
     assert (tmp_path / "plan" / "manifest.json").read_bytes() == (tmp_path / "memory" / "manifest.json").read_bytes()

@@ -239,3 +239,31 @@ def test_the_app_recipe_updates_with_the_runs_sequence_and_config(base, tmp_path
     assert load_place_index(store, g, build_missing=False).to_bytes() == build_place_index(store, g, params).to_bytes()
     with pytest.raises(MapError, match="no run"):
         update_map(root, [], runs=[])
+
+
+def test_the_app_recipe_places_scans_with_the_maps_mounting(base, tmp_path, monkeypatch):
+    """Issue 41: ``track`` tracks with the LiDAR mounting the map's build estimated
+    (``map.use_map_mounting``, default true), so ``map changes`` / ``update`` read the run's scans
+    with that mounting too, not the sequence's nominal one; a map without an estimate leaves the
+    sequence as it is."""
+    import blockloc.app.lifelong as lifelong
+    from blockloc.geometry import xyzrpy_to_T
+
+    d, T = base
+    run = W.write_run(tmp_path / "run", d / "nowall", T, ["ok"] * len(T))
+    seen = []
+    real = lifelong.detect_changes
+
+    def spy(store, seq, *args, **kw):
+        seen.append(seq)
+        return real(store, seq, *args, **kw)
+
+    monkeypatch.setattr(lifelong, "detect_changes", spy)
+    store = open_map(d / "map")
+    lifelong.detect_run_changes(store, run)
+    nominal = np.asarray(seen[-1].info.T_body_lidar)
+    X = xyzrpy_to_T(0.02, -0.01, 0.0, 0.0, 0.0, np.deg2rad(0.5)) @ nominal
+    monkeypatch.setattr(store, "params", {**store.params, "mounting": {"map": {"T_body_lidar": X.tolist()}}})
+    found = lifelong.detect_run_changes(store, run)
+    assert np.allclose(seen[-1].info.T_body_lidar, X) and not np.allclose(X, nominal)
+    assert found.result.scans_used > 0

@@ -115,11 +115,22 @@ def test_gravity_goes_with_from_pcd_only(tmp_path):
     assert not (tmp_path / "m").exists()
 
 
-def test_calibrate_mounting_on_an_nclt_session_whose_lidar_sits_off_nominal(tmp_path):
-    """NCLT's ground truth is body poses and its extrinsic nominal: `map build --calibrate-mounting`
-    finds how the session's LiDAR really sits and keeps the estimate in the manifest."""
+def _blockloc(*args):
+    """``blockloc ARGS`` as a user types it (a subprocess of the console script's module)."""
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "blockloc.cli", *map(str, args)], capture_output=True,
+                          text=True, timeout=900)
+
+
+def test_the_mounting_of_an_nclt_session_whose_lidar_sits_off_nominal_is_estimated_by_default(tmp_path):
+    """NCLT's ground truth is body poses and its extrinsic nominal: `map build` (by default) finds
+    how the session's LiDAR really sits and keeps the estimate in the manifest; `map info` says
+    so; `track` takes it (map.use_map_mounting); `--nominal-mounting` opts out, and `map info`
+    says the map holds the nominal mounting."""
     from blockloc.datasets.base import ImuData
-    from blockloc.datasets.nclt import NCLT_T_BODY_LIDAR, write_session
+    from blockloc.datasets.nclt import NCLT_T_BODY_IMU, NCLT_T_BODY_LIDAR, write_session
     from blockloc.geometry import make_T, so3_exp, so3_log
 
     from .synthetic import MemorySequence, route, world_points
@@ -129,18 +140,79 @@ def test_calibrate_mounting_on_an_nclt_session_whose_lidar_sits_off_nominal(tmp_
     world = world_points(extent=(-40, 110), seed=5, density=0.5)
     traj = route([[0, 0], [70, 0], [70, 70], [0, 70], [0, 0]], speed=4.0)
     seq = MemorySequence(world, traj, radius=25.0, T_body_lidar=X_true)
-    imu = ImuData(traj.stamps, np.zeros((len(traj), 3)), np.zeros((len(traj), 3)))
+    # at rest on flat ground (NCLT: z down) the IMU reads the specific force -g: init levels with it
+    f_imu = np.asarray(NCLT_T_BODY_IMU, float)[:3, :3].T @ np.array([0.0, 0.0, -9.81])
+    imu = ImuData(traj.stamps, np.tile(f_imu, (len(traj), 1)), np.zeros((len(traj), 3)))
     write_session(tmp_path / "sess", date="2012-01-15", frames=seq.frames(), imu=imu, ground_truth=traj)
-    res = runner.invoke(app, ["map", "build", "--seq", str(tmp_path / "sess"), "--kind", "block",
-                              "--block-size", "40", "--calibrate-mounting", "--out", str(tmp_path / "bm")])
-    assert res.exit_code == 0, res.output
-    (m,) = open_map(tmp_path / "bm").params["mounting"].values()
+    res = _blockloc("map", "build", "--seq", tmp_path / "sess", "--kind", "block", "--block-size", "40",
+                    "--out", tmp_path / "bm")
+    assert res.returncode == 0, res.stderr
+    params = open_map(tmp_path / "bm").params
+    (m,) = params["mounting"].values()
+    assert list(params["mounting_source"].values()) == [{"source": "estimated"}]
     X = np.asarray(m["T_body_lidar"])
     assert np.abs(np.rad2deg(so3_log(X[:3, :3] @ X_true[:3, :3].T))).max() < 0.1, m
     assert np.abs(X[:2, 3] - X_true[:2, 3]).max() < 0.01, m
-    info = runner.invoke(app, ["map", "info", str(tmp_path / "bm")])
-    assert info.exit_code == 0 and "LiDAR mounting" in info.output and "keyframe pairs" in info.output
+    info = _blockloc("map", "info", tmp_path / "bm")
+    assert info.returncode == 0 and "LiDAR mounting" in info.stdout, info.stderr
+    assert f"estimated from {m['used']} of {m['pairs']} keyframe pairs" in " ".join(info.stdout.split())
+    # tracking the same robot's session takes the map's mounting (the default)
+    run = _blockloc("track", "--seq", tmp_path / "sess", "--map", tmp_path / "bm", "--init", "gt",
+                    "--max-frames", "3", "--no-record", "--out", tmp_path / "run")
+    assert run.returncode == 0, run.stderr
+    assert "LiDAR mounting" not in run.stderr  # no warning: it tracked with the map's
+    # the run's metrics break its error down, and its report shows the breakdown's plot
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert metrics["err_moving_poses"] == 3 and len(metrics["err_offset_m"]) == 3
+    assert 'alt="error breakdown"' in (tmp_path / "run" / "report.html").read_text()
+    run = _blockloc("track", "--seq", tmp_path / "sess", "--map", tmp_path / "bm", "--init", "gt",
+                    "--max-frames", "3", "--no-record", "--out", tmp_path / "run2",
+                    "--set", "map.use_map_mounting=false")
+    assert run.returncode == 0, run.stderr
+    assert "LiDAR mounting estimated from its drive that differs" in run.stderr
+    assert "--set map.use_map_mounting=true tracks with it" in run.stderr
+    # init too (the same session assembly): a warning only when told to keep the sequence's
+    for sets, warned in (([], False), (["--set", "map.use_map_mounting=false"], True)):
+        res = _blockloc("init", "--seq", tmp_path / "sess", "--frame", "30", "--map", tmp_path / "bm",
+                        "--pose-hint", "20,0", "--json", "--set", "global_init.min_fitness=0.5", *sets)
+        assert res.returncode == 0, res.stderr
+        assert ("--set map.use_map_mounting=true tracks with it" in res.stderr) == warned, res.stderr
+        assert json.loads(res.stdout)["error_m"] < 0.05  # the synthetic world's fitness: 0.69
+    # opted out: the nominal mounting, and map info says so
+    res = _blockloc("map", "build", "--seq", tmp_path / "sess", "--kind", "block", "--block-size", "40",
+                    "--nominal-mounting", "--out", tmp_path / "nm")
+    assert res.returncode == 0, res.stderr
+    params = open_map(tmp_path / "nm").params
+    assert "mounting" not in params
+    assert list(params["mounting_source"].values()) == [{"source": "nominal", "reason": "not estimated"}]
+    info = _blockloc("map", "info", tmp_path / "nm")
+    assert info.returncode == 0 and "nominal, the sequence's own (not estimated)" in " ".join(info.stdout.split())
     # a global PCD has no scans to register: refused before any work, naming the option
     res = runner.invoke(app, ["map", "build", "--from-pcd", str(tmp_path / "g.pcd"), "--poses",
                               str(tmp_path / "p.tum"), "--calibrate-mounting", "--out", str(tmp_path / "m2")])
     assert "--calibrate-mounting needs --seq" in str(res.exception) and not (tmp_path / "m2").exists()
+
+
+def test_a_drive_too_short_to_estimate_its_mounting_builds_nominal_unless_the_estimate_is_insisted_on(tmp_path):
+    """`map build` (default) on a 3 m drive: a warning, the nominal mounting, and `map info` says
+    why; `--calibrate-mounting` on it: one line naming the drive and the option, no map."""
+    from blockloc.datasets.base import ImuData
+    from blockloc.datasets.nclt import NCLT_T_BODY_LIDAR, write_session
+
+    from .synthetic import MemorySequence, route, world_points
+
+    world = world_points(extent=(-20, 40), seed=2, density=0.3)
+    traj = route([[0, 0], [3, 0]], speed=1.0)
+    seq = MemorySequence(world, traj, radius=20.0, T_body_lidar=np.asarray(NCLT_T_BODY_LIDAR, float))
+    imu = ImuData(traj.stamps, np.zeros((len(traj), 3)), np.zeros((len(traj), 3)))
+    write_session(tmp_path / "sess", date="2012-01-15", frames=seq.frames(), imu=imu, ground_truth=traj)
+    res = _blockloc("map", "build", "--seq", tmp_path / "sess", "--kind", "block", "--out", tmp_path / "m")
+    assert res.returncode == 0, res.stderr
+    assert "LiDAR mounting kept as the sequence gives it (nominal: the estimate failed" in res.stderr
+    info = " ".join(_blockloc("map", "info", tmp_path / "m").stdout.split())
+    assert "nominal, the sequence's own (the estimate failed:" in info
+    res = _blockloc("map", "build", "--seq", tmp_path / "sess", "--kind", "block", "--calibrate-mounting",
+                    "--out", tmp_path / "m2")
+    assert res.returncode != 0 and not (tmp_path / "m2").exists()
+    (line,) = [ln for ln in res.stderr.splitlines() if ln.startswith("error: ")]
+    assert "--calibrate-mounting needs keyframes" in line and "Traceback" not in res.stderr

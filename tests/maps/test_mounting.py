@@ -135,7 +135,7 @@ def test_tracking_takes_the_map_mounting_only_when_asked_and_warns_otherwise(cap
     from types import SimpleNamespace
 
     from blockloc.maps.mounting import map_mounting
-    from blockloc.app.assemble import with_map_mounting as _with_map_mounting
+    from blockloc.maps.mounting import with_map_mounting as _with_map_mounting
 
     _, seq, X_true = mis_mounted_drive
     store = SimpleNamespace(params={"mounting": {"square": {"T_body_lidar": X_true.tolist()}}})
@@ -186,3 +186,36 @@ def test_a_drive_too_short_to_calibrate_is_one_error_naming_it_and_leaves_nothin
     with pytest.raises(MapError, match=r"^short: .*--calibrate-mounting needs keyframes"):
         build_map_from_drives([Drive.of(short)], "block", tmp_path / "m", calibrate_mounting=True)
     assert list(tmp_path.iterdir()) == []  # no map, no half-built directory
+
+
+def test_the_default_build_estimates_body_pose_drives_only_and_never_fails_on_the_estimate(tmp_path):
+    """``calibrate_mounting="auto"`` (what `map build` does unless told otherwise): a drive whose
+    poses are the LiDAR's (T_body_lidar = I) is left alone; a drive
+    too short to estimate keeps its nominal mounting, with the reason in the manifest, where an
+    explicit request (True) fails."""
+    world = world_points(extent=(-20, 40), seed=2, density=0.3)
+    lidar_poses = MemorySequence(world, route([[0, 0], [3, 0]], speed=1.0), radius=20.0, name="lidar")
+    body_poses = MemorySequence(world, route([[0, 0], [3, 0]], speed=1.0), radius=20.0,
+                                T_body_lidar=X_NOMINAL, name="body")
+    store = build_map_from_drives([Drive.of(lidar_poses), Drive.of(body_poses)], "block", tmp_path / "m",
+                                  calibrate_mounting="auto")
+    assert "mounting" not in store.params
+    src = store.params["mounting_source"]
+    assert src["lidar"] == {"source": "lidar poses"}
+    assert src["body"]["source"] == "nominal" and src["body"]["reason"].startswith("the estimate failed: ")
+    # the same drives without the estimate: the same map
+    plain = build_map_from_drives([Drive.of(lidar_poses), Drive.of(body_poses)], "block", tmp_path / "p")
+    assert plain.params["mounting_source"] == {"lidar": {"source": "nominal", "reason": "not estimated"},
+                                               "body": {"source": "nominal", "reason": "not estimated"}}
+    assert [e.num_points for e in store.entries] == [e.num_points for e in plain.entries]
+    with pytest.raises(Exception, match="calibrate_mounting 'yes'"):
+        build_map_from_drives([Drive.of(body_poses)], "block", tmp_path / "x", calibrate_mounting="yes")
+
+
+def test_the_default_build_finds_a_body_pose_drives_mounting(tmp_path, mis_mounted_drive):
+    _, seq, X_true = mis_mounted_drive
+    store = build_map_from_drives([Drive.of(seq)], "block", tmp_path / "m", block_size_m=60.0,
+                                  calibrate_mounting="auto")
+    assert store.params["mounting_source"] == {"square": {"source": "estimated"}}
+    rot, trans = _body_frame_error(np.asarray(store.params["mounting"]["square"]["T_body_lidar"]), X_true)
+    assert np.abs(rot).max() < 0.1 and np.abs(trans[:2]).max() < 0.01
