@@ -52,6 +52,15 @@ def lidar_motion_table(T_map_body: np.ndarray, T_body_lidar: np.ndarray, ref: in
     return inv_T(T_ref)[None] @ T_map_lidar
 
 
+def _one_transform(pts: np.ndarray, table_times: np.ndarray, T_ref_table: np.ndarray) -> np.ndarray | None:
+    """The points moved by the table's one transform when there is nothing to interpolate (one
+    table entry or no points), else None."""
+    if len(table_times) == 1 or len(pts) == 0:
+        T = T_ref_table[0]
+        return pts @ T[:3, :3].T + T[:3, 3]
+    return None
+
+
 def deskew_points(points: np.ndarray, times: np.ndarray, table_times: np.ndarray,
                   T_ref_table: np.ndarray) -> np.ndarray:
     """Move points measured at their own times into the reference lidar frame.
@@ -62,12 +71,11 @@ def deskew_points(points: np.ndarray, times: np.ndarray, table_times: np.ndarray
     T_ref_table: (K, 4, 4) ``T_lidarref_lidar(table_times[j])``.
     Returns (N, 3) float64 in the reference lidar frame.
     """
-    pts = np.asarray(points, dtype=np.float64)
-    table_times = np.asarray(table_times, dtype=np.float64)
+    pts, table_times = np.asarray(points, dtype=np.float64), np.asarray(table_times, dtype=np.float64)
+    rigid = _one_transform(pts, table_times, T_ref_table)
+    if rigid is not None:
+        return rigid
     K = len(table_times)
-    if K == 1 or len(pts) == 0:
-        T = T_ref_table[0]
-        return pts @ T[:3, :3].T + T[:3, 3]
     R = np.ascontiguousarray(T_ref_table[:, :3, :3])
     # Per-interval relative rotation vectors w_j = log(R_j^T R_{j+1}).
     w_int = np.ascontiguousarray(so3_log(np.swapaxes(R[:-1], 1, 2) @ R[1:]).reshape(K - 1, 3))
@@ -81,12 +89,11 @@ def deskew_points(points: np.ndarray, times: np.ndarray, table_times: np.ndarray
 def deskew_points_numpy(points: np.ndarray, times: np.ndarray, table_times: np.ndarray,
                         T_ref_table: np.ndarray) -> np.ndarray:
     """Reference (pure numpy) version of :func:`deskew_points`, same arguments and result."""
-    pts = np.asarray(points, dtype=np.float64)
-    table_times = np.asarray(table_times, dtype=np.float64)
+    pts, table_times = np.asarray(points, dtype=np.float64), np.asarray(table_times, dtype=np.float64)
+    rigid = _one_transform(pts, table_times, T_ref_table)
+    if rigid is not None:
+        return rigid
     K = len(table_times)
-    if K == 1 or len(pts) == 0:
-        T = T_ref_table[0]
-        return pts @ T[:3, :3].T + T[:3, 3]
     t = np.clip(np.asarray(times, dtype=np.float64), table_times[0], table_times[-1])
     j = np.clip(np.searchsorted(table_times, t, side="right") - 1, 0, K - 2)
     span = table_times[j + 1] - table_times[j]

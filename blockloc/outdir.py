@@ -253,16 +253,25 @@ def check_free_space(path: str | Path, need_bytes: int, option: str = "--out") -
                             f"needs about {need_bytes / 2**20:.1f} MiB (free space or choose another {option})")
 
 
-def _process_is_blockloc(pid: int) -> bool:
-    """True when ``pid`` runs (and, where /proc tells, runs blockloc: a reused PID is not a holder)."""
+def process_alive(pid: int) -> bool:
+    """True when a process ``pid`` exists (this one included; another user's counts)."""
     if pid == os.getpid():
         return True
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
-    except PermissionError:
-        pass
+    except PermissionError:  # someone else's process
+        return True
+    return True
+
+
+def _process_is_blockloc(pid: int) -> bool:
+    """True when ``pid`` runs (and, where /proc tells, runs blockloc: a reused PID is not a holder)."""
+    if not process_alive(pid):
+        return False
+    if pid == os.getpid():
+        return True
     try:
         cmd = Path(f"/proc/{pid}/cmdline").read_bytes()
     except OSError:

@@ -119,6 +119,23 @@ class Sequence(Protocol):
         """T_map_body poses maps are built from: offline-SLAM poses when present, else ground truth."""
 
 
+def frame_index(index: int, n: int) -> int:
+    """``index`` (negative counts from the end) as 0..n-1 of ``n`` frames; IndexError naming both
+    when it is out of range."""
+    if not -n <= index < n:
+        raise IndexError(f"frame {index} out of range for {n} frames")
+    return index % n
+
+
+class FramesByIndex:
+    """``frames(start, stop)`` as ``frame(i)`` for each i: the loaders that read a frame at a time."""
+
+    def frames(self, start: int = 0, stop: int | None = None) -> Iterator[LidarFrame]:
+        stop = len(self) if stop is None else min(stop, len(self))
+        for i in range(start, stop):
+            yield self.frame(i)
+
+
 class SequenceView:
     """A sequence seen through a wrapper: ``info``, ``len`` and every attribute are the wrapped
     sequence's (``inner``) unless a subclass changes them."""

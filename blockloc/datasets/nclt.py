@@ -31,11 +31,11 @@ import re
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Iterable
 
 import numpy as np
 
-from blockloc.datasets.base import ImuData, LidarFrame, SequenceInfo
+from blockloc.datasets.base import FramesByIndex, ImuData, LidarFrame, SequenceInfo, frame_index
 from blockloc.datasets.nclt_hits import (  # noqa: F401  (re-exported: the hits layout and index are NCLT's)
     HITS_INDEX_CHUNK_WORDS,
     HITS_PACKET_US,
@@ -242,7 +242,7 @@ def write_ms25_csv(path: str | Path, imu: ImuData) -> None:
 SIDECAR_NAME = "blockloc_session.json"
 
 
-class NcltSequence:
+class NcltSequence(FramesByIndex):
     """A session directory in NCLT layout as a ``Sequence``.
 
     Frames: one per ``velodyne_sync/<utime>.bin``, loaded lazily. ``stamp`` = the file's utime in
@@ -425,10 +425,7 @@ class NcltSequence:
         return self._utimes * 1e-6
 
     def frame(self, index: int) -> LidarFrame:
-        n = len(self._utimes)
-        if not -n <= index < n:
-            raise IndexError(f"frame {index} out of range for {n} frames")
-        index = index % n
+        index = frame_index(index, len(self._utimes))
         utime = int(self._utimes[index])
         path = self._sync_dir / f"{utime}.bin"
         size = path.stat().st_size
@@ -460,11 +457,6 @@ class NcltSequence:
                 offsets[~found] = az[~found]
             return offsets
         return azimuth_time_offsets(xyz)
-
-    def frames(self, start: int = 0, stop: int | None = None) -> Iterator[LidarFrame]:
-        stop = len(self) if stop is None else min(stop, len(self))
-        for i in range(start, stop):
-            yield self.frame(i)
 
     def imu(self) -> ImuData:
         """The ms25.csv samples, or an empty ImuData (len 0) when the session has no IMU file

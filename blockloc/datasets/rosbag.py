@@ -24,7 +24,7 @@ from typing import Iterable, Iterator, Literal
 
 import numpy as np
 
-from blockloc.datasets.base import ImuData, LidarFrame, SequenceInfo
+from blockloc.datasets.base import ImuData, LidarFrame, SequenceInfo, frame_index
 from blockloc.errors import DatasetError
 from blockloc.geometry import Trajectory
 
@@ -258,10 +258,7 @@ class RosbagSequence:
         return self._stamps_ns * 1e-9
 
     def frame(self, index: int) -> LidarFrame:
-        n = len(self)
-        if not -n <= index < n:
-            raise IndexError(f"frame {index} out of range for {n} frames")
-        index %= n
+        index = frame_index(index, len(self))
         ts = int(self._bag_ts[index])
         want = int(self._stamps_ns[index])
         for conn, _, raw in self._reader.messages(connections=self._lidar_conns, start=ts, stop=ts + 1):

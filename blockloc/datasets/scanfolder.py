@@ -37,11 +37,10 @@ import os
 import re
 from collections import Counter
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
-from blockloc.datasets.base import ImuData, LidarFrame, SequenceInfo
+from blockloc.datasets.base import FramesByIndex, ImuData, LidarFrame, SequenceInfo, frame_index
 from blockloc.datasets.pointclouds import CLOUD_SUFFIXES, cloud_time_range, read_point_cloud
 from blockloc.datasets.with_poses import (TrajectoryInfo, info_with_frame, load_trajectory,
                                           match_trajectory, stamp_range, warn_uncovered)
@@ -214,7 +213,7 @@ def read_extrinsics(path: str | Path) -> dict:
 # ----------------------------------------------------------------------------- the sequence
 
 
-class ScanFolderSequence:
+class ScanFolderSequence(FramesByIndex):
     """A folder of point clouds with a trajectory (see the module docstring).
 
     path: DIR (holding the clouds or ``scans/``). poses: a trajectory (path, Trajectory or
@@ -343,10 +342,7 @@ class ScanFolderSequence:
         return self._stamps.copy()
 
     def frame(self, index: int) -> LidarFrame:
-        n = len(self)
-        if not -n <= index < n:
-            raise IndexError(f"frame {index} out of range for {n} frames")
-        index %= n
+        index = frame_index(index, len(self))
         stamp = float(self._stamps[index])
         cloud = read_point_cloud(self.files[index], stamp=stamp, min_range_m=self.min_range_m,
                                  max_range_m=self.max_range_m)
@@ -354,11 +350,6 @@ class ScanFolderSequence:
             log.warning("%s: no valid points", self.files[index])
         return LidarFrame(index, stamp, cloud.points, cloud.intensity, cloud.time_offsets,
                           cloud.ring, cloud.num_dropped)
-
-    def frames(self, start: int = 0, stop: int | None = None) -> Iterator[LidarFrame]:
-        stop = len(self) if stop is None else min(stop, len(self))
-        for i in range(start, stop):
-            yield self.frame(i)
 
     def imu(self) -> ImuData:
         """The samples of DIR/imu.csv, or an empty ImuData (len 0) when the folder has none."""

@@ -48,6 +48,7 @@ from blockloc.errors import BlocklocError, MapError
 from blockloc.fileio import check_replaceable, replace_dir
 from blockloc.maps.files import MapFiles, open_map_files
 from blockloc.maps.pcd import decode_pcd, encode_pcd
+from blockloc.outdir import process_alive
 
 log = logging.getLogger(__name__)
 
@@ -528,24 +529,12 @@ def remove_stale_builds(parent: Path) -> list[Path]:
             pid = int(marker.read_text().split("pid")[-1].split()[0])
         except (OSError, ValueError, IndexError):
             continue
-        if _process_alive(pid):
+        if process_alive(pid):
             continue
         shutil.rmtree(d, ignore_errors=True)
         log.warning("removed %s, left by an interrupted build (process %d is gone)", d, pid)
         removed.append(d)
     return removed
-
-
-def _process_alive(pid: int) -> bool:
-    if pid == os.getpid():
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # someone else's process
-        return True
-    return True
 
 
 def autoware_metadata(entries: list[MapEntry], params: dict[str, Any]) -> str:

@@ -19,7 +19,7 @@ from typing import Iterator
 
 import numpy as np
 
-from blockloc.datasets.base import ImuData, LidarFrame, SequenceInfo
+from blockloc.datasets.base import ImuData, LidarFrame, SequenceInfo, frame_index
 from blockloc.errors import SimError
 from blockloc.geometry import Trajectory, make_T, so3_exp
 from blockloc.sim.presets import Preset, get_preset
@@ -317,10 +317,7 @@ class SimSequence:
         """The frame and a (N,) int category per point (index into ``scene.categories``)."""
         from blockloc.sim.lidar import simulate_scan
 
-        n = self._n
-        if not -n <= index < n:
-            raise IndexError(f"frame {index} out of range for {n} frames")
-        index %= n
+        index = frame_index(index, self._n)
         t0 = (self._utime(index) - self.epoch_us) * 1e-6
         A = self.preset.lidar.azimuth_steps
         col_off = np.arange(A) * (self.period_s / A)
