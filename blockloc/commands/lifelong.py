@@ -57,6 +57,12 @@ def update_command(map_path: str, runs: list[Path], seqs: list[str] | None, out:
     store = open_block_store(map_path, "map")
     if store.files.is_remote:
         raise MapError(f"{map_path}: map update writes a local store; copy it first")
+    # before any work: the store (or --out) writable, room for the rebuilt blocks, no other run on it
+    from blockloc.commands.map import MAP_BUILD_MIN_BYTES
+    from blockloc.outdir import claim_output
+
+    claim_output(Path(out) if out is not None else Path(map_path), "--out" if out is not None else "MAP",
+                 need_bytes=max(MAP_BUILD_MIN_BYTES, store.total_bytes if out is not None else 0))
     detected = []
     for k, run_dir in enumerate(runs):
         found = _detect(store, Path(run_dir), seqs[k] if seqs else None, data_root, stride)
@@ -79,7 +85,10 @@ def rollback_command(map_path: str, to: int) -> None:
     from blockloc.app.lifelong import open_block_store
     from blockloc.maps.changes.versions import rollback
 
+    from blockloc.outdir import claim_output
+
     open_block_store(map_path, "map")
+    claim_output(Path(map_path), "MAP")  # writable, and no other run (an update) on it
     rec = rollback(map_path, to)
     print(f"{map_path}: version {rec['version']} is current")
 

@@ -21,11 +21,15 @@ COMMANDS = {
     "map-build": ("map", "build", "--seq", "{sess}", "--out", "{out}", "--overwrite"),
     "map-tile": ("map", "tile", "{pcd}", "--tile-size", "5", "--out", "{out}", "--overwrite"),
     "map-index": ("map", "index", "{out}", "--gravity", "down"),
+    "map-update": ("map", "update", "{out}", "--run", "{root}/no_run"),
+    "map-rollback": ("map", "rollback", "{out}", "--to", "1"),
     "track": ("track", "--seq", "{sess}", "--map", "{map}", "--init", "gt", "--out", "{out}"),
     "demo": ("demo", "--out", "{out}"),
     "eval-plot": ("eval", "--gt", "{gt}", "--est", "{gt}", "--plot", "{out}"),
 }
-OPTION = {"map-index": "MAP", "eval-plot": "--plot"}
+OPTION = {"map-index": "MAP", "map-update": "MAP", "map-rollback": "MAP", "eval-plot": "--plot"}
+#: the commands that work on a map store in place (the test copies the tiny map there first)
+IN_PLACE = ("map-index", "map-update", "map-rollback")
 
 
 def _args(cmd: str, places: dict, out: Path) -> list[str]:
@@ -138,10 +142,10 @@ UNWRITABLE_CASES = table("test_unwritable_out_fails_before_any_work", [
 def test_unwritable_out_fails_before_any_work(c: Case, places, tiny_world):
     src = places["root"] / "src"
     src.mkdir()
-    if c.id == "map-index":
+    if c.id in IN_PLACE:
         shutil.copytree(tiny_world["map"], src / "store")
     with small_fs(places["root"] / "ro", "4m", fill_from=src, read_only=True) as ro:
-        out = ro / ("store" if c.id == "map-index" else "out")
+        out = ro / ("store" if c.id in IN_PLACE else "out")
         t0 = time.monotonic()
         line = _one_line(cli_in_process(*_args(c.id, places, out)))
         assert line.startswith(f"error: {c.needle} {out}") and "cannot write" in line, line
@@ -158,7 +162,7 @@ LOCKED_CASES = table("test_output_in_use_is_refused", [
 @pytest.mark.parametrize("c", LOCKED_CASES, ids=lambda c: c.id)
 def test_output_in_use_is_refused(c: Case, places, tiny_world):
     out = places["root"] / "out"
-    if c.id == "map-index":
+    if c.id in IN_PLACE:
         shutil.copytree(tiny_world["map"], out)
     lock = places["root"] / ".out.blockloc-lock"
     with live_holder() as pid:
