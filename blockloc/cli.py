@@ -512,10 +512,11 @@ def main() -> None:
             raise
         _say(f"error: {type(exc).__name__}: {exc} (rerun with --debug for a traceback)")
         sys.exit(1)
-    finally:  # the output locks this command took (blockloc.outdir.claim_output)
-        from blockloc.outdir import release_outputs
-
-        release_outputs()
+    finally:  # the output locks this command took (blockloc.outdir.claim_output); a command that
+        # took none never loaded outdir, and --help stays as light as it was
+        outdir = sys.modules.get("blockloc.outdir")
+        if outdir is not None:
+            outdir.release_outputs()
 
 
 if __name__ == "__main__":
