@@ -10,6 +10,10 @@ from pathlib import Path
 
 log = logging.getLogger("blockloc")
 
+#: Free space an update needs at least (its rebuilt blocks and place index; with --out, a copy of
+#: the store besides), as map build's floor.
+UPDATE_MIN_BYTES = 16 * 2**20
+
 
 def _detect(store, run_dir: Path, seq: str | None, data_root: str | None, stride: int):
     from blockloc.app.lifelong import detect_run_changes
@@ -58,11 +62,10 @@ def update_command(map_path: str, runs: list[Path], seqs: list[str] | None, out:
     if store.files.is_remote:
         raise MapError(f"{map_path}: map update writes a local store; copy it first")
     # before any work: the store (or --out) writable, room for the rebuilt blocks, no other run on it
-    from blockloc.commands.map import MAP_BUILD_MIN_BYTES
     from blockloc.outdir import claim_output
 
     claim_output(Path(out) if out is not None else Path(map_path), "--out" if out is not None else "MAP",
-                 need_bytes=max(MAP_BUILD_MIN_BYTES, store.total_bytes if out is not None else 0))
+                 need_bytes=max(UPDATE_MIN_BYTES, store.total_bytes if out is not None else 0))
     detected = []
     for k, run_dir in enumerate(runs):
         found = _detect(store, Path(run_dir), seqs[k] if seqs else None, data_root, stride)
