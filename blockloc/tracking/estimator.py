@@ -163,12 +163,9 @@ class Estimator:
         """Forget the state: window, last good pose, recent fitness (a live stream that restarted
         with earlier stamps); :meth:`initialize` starts it again. Counters and the variant stay."""
         self.window.clear()
-        self._last_ndt = None
-        self._last_good = None
-        self._last_good_motion = None
+        self._last_ndt = self._last_good = self._last_good_motion = None
         self._recent_fitness = []
-        self._bad_streak = 0
-        self._lost_frames = 0
+        self._bad_streak = self._lost_frames = 0
 
     def without_imu(self) -> "Estimator":
         """The estimator to go on with when the IMU stops mid-run: the LiDAR-only variant
