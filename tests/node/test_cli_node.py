@@ -2,37 +2,20 @@
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
-import sys
-import threading
 import time
 
 import numpy as np
 import pytest
 
-from tests.faults.conftest import blockloc_env
+from tests.faults.conftest import Running
 from tests.node.conftest import wait_until
 
 
-class Proc:
-    """A ``blockloc`` subprocess whose stderr is collected as it comes."""
-
-    def __init__(self, *args: str) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-m", "blockloc.cli", *map(str, args)], stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, env=blockloc_env())
-        self._err = bytearray()
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        while chunk := os.read(self.proc.stderr.fileno(), 4096):
-            self._err += chunk
-
-    @property
-    def err(self) -> str:
-        return self._err.decode(errors="replace")
+class Proc(Running):
+    """A ``blockloc`` subprocess whose stderr is collected as it comes (the fault suite's
+    :class:`Running`), waited for by the text it prints."""
 
     def wait_for(self, text: str, timeout_s: float) -> None:
         t0 = time.monotonic()
