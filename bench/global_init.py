@@ -133,6 +133,60 @@ def refine_ndt(map_pts: np.ndarray, scan_body: np.ndarray, T0: np.ndarray, param
     return Refiner(engine, map_pts).align(src, T0).T_map_body
 
 
+BBS3D_METHOD = "3D-BBS (CPU), then NDT"
+
+
+def bbs3d_rows(args, loc, frames, hints, seq, imu, gt, params, rows, methods) -> str:
+    """3D-BBS on the first ``--bbs3d-frames`` hinted frames with the hints ours got; appends its rows
+    (refined by the same NDT) to ``rows`` and returns the note under the table (or why it did not run)."""
+    from bench import _bbs3d
+    from blockloc.global_init.relocalize import pose_error
+    from blockloc.global_init.scan_prep import prepare_for_init
+    from blockloc.voxels import voxel_select
+
+    try:
+        _bbs3d.ensure_built()
+    except _bbs3d.Unavailable as e:
+        print(f"3D-BBS not run: {e}", flush=True)
+        return f"3D-BBS was not run: {e}."
+    lo_L, hi_L = loc.map.bounds_L()
+    whole = loc.map.points_in_box(lo_L, hi_L)
+    whole = whole[voxel_select(whole, 0.1)]  # its published target leaf size
+    whole_L = whole @ loc.map.R_L_map.T
+    z_range = (float(whole_L[:, 2].min()), float(whole_L[:, 2].max()))
+    rows[BBS3D_METHOD] = []
+    methods.append(BBS3D_METHOD)
+    searches, claimed = [], 0
+    with _bbs3d.BBS3D(whole_L, threads=os.cpu_count() or 2) as drv:
+        for k, i in enumerate(frames[: args.bbs3d_frames]):
+            f = seq.frame(int(i))
+            scan = prepare_for_init(f, imu, seq.info)
+            T_gt = gt.interpolate(scan.stamp)[0]
+            c = (loc.map.R_L_map @ np.r_[hints[int(i)], 0.0])[:2]
+            t = time.perf_counter()
+            T0, res = _bbs3d.localize_hinted(drv, scan.points_body, scan.gravity_body, loc.map.R_L_map, c,
+                                             args.window, z_range, timeout_s=args.bbs3d_timeout)
+            if res.localized:  # its claim; without it there is no pose to refine (a time-out returns none)
+                c = (loc.map.R_L_map @ T0[:3, 3])[:2]
+                near = loc.map.points_in_box(c - params.refine_range_m, c + params.refine_range_m)
+                T = refine_ndt(near, scan.points_body, T0, params) if len(near) >= 100 else T0
+            dt = time.perf_counter() - t
+            e_t, e_r = pose_error(T, T_gt) if res.localized else (math.inf, math.inf)
+            rows[BBS3D_METHOD].append((int(i), e_t, e_r, dt, 0))
+            searches.append(res.search_s)
+            claimed += res.localized
+            print(f"[3d-bbs {k + 1}] frame {i}: {e_t:.2f} m {e_r:.2f} deg {dt:.2f} s (search {res.search_s:.2f} s, "
+                  f"score {res.score_pct:.2f}, localized {res.localized}, timed out {res.timed_out})", flush=True)
+        prep = drv.prep_s
+    return (f"3D-BBS rows: the public CPU implementation (KOKIAOKI/3d_bbs {_bbs3d.COMMIT[:7]}, built by "
+            f"`bench/_bbs3d.py`), published outdoor settings (finest voxel 1 m, 6 levels, scan voxel 2 m, score "
+            f"threshold 0.9, roll/pitch +-0.02 rad, yaw free), {os.cpu_count()} OpenMP threads, timeout "
+            f"{args.bbs3d_timeout:g} s; the same {args.window:g} m window around the same hint over the map's height "
+            f"range, then the same NDT refinement. Its voxel maps of the whole map ({len(whole):,} points at 0.1 m) "
+            f"took {prep:.1f} s, once. Its own search time: median {np.median(searches):.2f} s; it claimed "
+            f"success on {claimed} of {len(searches)}.")
+
+
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--preset", default="small")
@@ -150,6 +204,9 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--kiss-voxel", type=float, default=0.5, help="KISS-Matcher's voxel size (m)")
     ap.add_argument("--kiss-map-max-points", type=int, default=3_000_000,
                     help="KISS-Matcher against the whole map only up to this many map points")
+    ap.add_argument("--bbs3d-frames", type=int, default=0,
+                    help="3D-BBS (CPU, built by bench/_bbs3d.py) on the first K hinted frames, same hints")
+    ap.add_argument("--bbs3d-timeout", type=float, default=10.0, help="3D-BBS's own timeout per frame (s)")
     ap.add_argument("--hint-error", type=float, default=15.0)
     ap.add_argument("--window", type=float, default=40.0)
     ap.add_argument("--methods", default="bbs+s0,bbs,fpfh+ransac,bbs+s0/all",
@@ -221,12 +278,14 @@ def run(argv: list[str]) -> dict:
     frames = np.sort(rng.choice(np.arange(20, len(seq)), size=min(args.frames, len(seq) - 20), replace=False))
     methods = [m for m in args.methods.split(",") if m]
     rows = {m: [] for m in methods}
+    hints = {}  # frame -> the hint every method got
     for k, i in enumerate(frames):
         f = seq.frame(int(i))
         scan = prepare_for_init(f, imu, seq.info)
         pts, t_ref, g = scan.points_body, scan.stamp, scan.gravity_body
         T_gt = gt.interpolate(t_ref)[0]  # the pose at mid-sweep, the time the result is stamped
         hint = T_gt[:2, 3] + rng.uniform(-args.hint_error, args.hint_error, 2)
+        hints[int(i)] = hint
         for m in methods:
             if m in ("bbs+s0", "bbs", "bbs+s0/all"):
                 loc.params.use_s0 = m != "bbs"
@@ -253,6 +312,7 @@ def run(argv: list[str]) -> dict:
         line = "  ".join(f"{m} {rows[m][-1][1]:.2f}m {rows[m][-1][3]:.2f}s" for m in methods if rows[m]
                          and rows[m][-1][0] == int(i))
         print(f"[{k + 1}/{len(frames)}] frame {i}: {line}", flush=True)
+    bbs_note = bbs3d_rows(args, loc, frames, hints, seq, imu, gt, params, rows, methods) if args.bbs3d_frames else ""
 
     # Relocalization without a hint over the whole map: the place index (then, when it finds
     # nothing verified, the regions), and with --reloc-regions also the regions alone.
@@ -345,6 +405,8 @@ def run(argv: list[str]) -> dict:
             "failed": [(x[0], x[1]) for x, good in zip(rows[m], ok) if not good]}
         lines.append(f"| {m} | {len(r)} | {100 * ok.mean():.1f}% | {np.median(r[:, 0]):.3f} | "
                      f"{np.median(r[:, 1]):.3f} | {np.median(r[:, 2]):.2f} | {np.percentile(r[:, 2], 90):.2f} |")
+    if args.bbs3d_frames:
+        lines.append("\n" + bbs_note)
     nodes = [f"{m} {np.median([x[4] for x in rows[m]]):,.0f}" for m in ("bbs+s0", "bbs", "bbs+s0/all")
              if m in rows and rows[m]]
     if nodes:
