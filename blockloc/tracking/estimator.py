@@ -252,16 +252,16 @@ class Estimator:
     # ----------------------------------------------------------------- steps
     def _preprocess(self, frame: LidarFrame) -> tuple[np.ndarray, np.ndarray]:
         s = self.settings.scan
-        pts = np.asarray(frame.points, dtype=np.float64)
+        pts = np.asarray(frame.points)
         if len(pts) == 0:
             return np.zeros((0, 3)), np.zeros(0)
-        ok = dsk.range_filter(pts, s.min_range_m, s.max_range_m)
-        idx = np.flatnonzero(ok)
-        sel = dsk.voxel_downsample_indices(pts[idx], s.voxel_size_m, s.max_points, seed=frame.index)
-        idx = idx[sel]
+        # range filter and voxel selection in one pass over the raw cloud (float32 as read: only
+        # the points kept are converted)
+        idx = dsk.voxel_downsample_indices(pts, s.voxel_size_m, s.max_points, seed=frame.index,
+                                           range_m=(s.min_range_m, s.max_range_m))
         offsets = (np.zeros(len(idx)) if frame.time_offsets is None
                    else np.asarray(frame.time_offsets, dtype=np.float64)[idx])
-        return pts[idx], offsets
+        return np.ascontiguousarray(pts[idx, :3], dtype=np.float64), offsets
 
     def _align(self, target, scan_pts, T_guess, T_pred, gates):
         """One registration from ``T_guess``: (T_ndt, result, fitness, innovation m, deg, reject
