@@ -78,11 +78,14 @@ def deskew_points(points: np.ndarray, times: np.ndarray, table_times: np.ndarray
     if rigid is not None:
         return rigid
     K = len(table_times)
-    R = np.ascontiguousarray(T_ref_table[:, :3, :3])
+    R = np.ascontiguousarray(T_ref_table[:, :3, :3], dtype=np.float64)
+    from blockloc._deskew_kernels import deskew_kernel, interval_rotvecs
+
     # Per-interval relative rotation vectors w_j = log(R_j^T R_{j+1}).
-    w_int = np.ascontiguousarray(so3_log(np.swapaxes(R[:-1], 1, 2) @ R[1:]).reshape(K - 1, 3))
+    w_int, ok = interval_rotvecs(R)
+    if not ok:  # an interval turning by more than 3 rad: the log that is exact near pi
+        w_int = np.ascontiguousarray(so3_log(np.swapaxes(R[:-1], 1, 2) @ R[1:]).reshape(K - 1, 3))
     trans = np.ascontiguousarray(T_ref_table[:, :3, 3])
-    from blockloc._deskew_kernels import deskew_kernel
 
     return deskew_kernel(np.ascontiguousarray(pts), np.ascontiguousarray(times, dtype=np.float64),
                          np.ascontiguousarray(table_times), R, w_int, trans)

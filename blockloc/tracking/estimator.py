@@ -127,7 +127,8 @@ class Estimator:
 
     def _pose_at_stamp(self, k: int, state, tau: float):
         """(NavState, covariance (6, 6) | None) at the frame stamp, ``tau`` s after keyframe k."""
-        return state, self._covariance(lambda: self.window.covariance(keys_of(k)[0]))
+        frozen = self.window.frozen()
+        return state, self._covariance(lambda: frozen.covariance(keys_of(k)[0]))
 
     def _after_frame(self) -> None:
         """Housekeeping at the end of a frame step."""
@@ -188,6 +189,7 @@ class Estimator:
 
         points, offsets = self._preprocess(frame)
         diag.num_points = len(points)
+        diag.prep_ms = (time.perf_counter() - t_start) * 1e3
 
         if not self.initialized:
             est = self._start_without_pose(frame, points, stamp, diag)
@@ -380,14 +382,23 @@ class Estimator:
         diag.window_size = len(self.window)
         return T
 
-    def _covariance(self, compute) -> np.ndarray | None:
+    def _covariance(self, compute):
+        """The estimate's covariance, deferred: a callable that ``Estimate.covariance`` calls on the
+        first read (``compute`` must read a :meth:`SlidingWindow.frozen` window, not the live one);
+        None when ``compute_covariance`` is off. Why deferred: the marginals cost as much as the
+        smoother's optimization, and a run that never reads them (a bench, track without a
+        recording) should not pay for them inside the per-scan update."""
         if not self.settings.fixed.compute_covariance:
             return None
-        try:
-            return compute()
-        except RuntimeError as exc:  # an indeterminant system: report, do not crash
-            log.debug("no covariance: %s", exc)
-            return None
+
+        def deferred() -> np.ndarray | None:
+            try:
+                return compute()
+            except RuntimeError as exc:  # an indeterminant system: report, do not crash
+                log.debug("no covariance: %s", exc)
+                return None
+
+        return deferred
 
     def _estimate(self, index, stamp, k, diag, t_start) -> Estimate:
         state, bias = self._state(k)
