@@ -50,7 +50,8 @@ def _q(a, p) -> float:
     return float(np.percentile(a, p)) if len(a) else float("nan")
 
 
-def run_seed(world: Path, map_path: Path, frames: int | None, skip: int, profile: bool) -> dict:
+def run_seed(world: Path, map_path: Path, frames: int | None, skip: int, profile: bool,
+             threads: int | None = None) -> dict:
     """One session through the tracker, timed per scan. Returns the figures (see module doc)."""
     import cProfile
 
@@ -58,7 +59,10 @@ def run_seed(world: Path, map_path: Path, frames: int | None, skip: int, profile
     from blockloc.app.runs import open_session
 
     seq = str(world / "loc")
-    cfg = config_for_sequence(seq, overrides={"evaluation": {"plots": False}})
+    overrides: dict = {"evaluation": {"plots": False}}
+    if threads:
+        overrides["registration"] = {"num_threads": threads}
+    cfg = config_for_sequence(seq, overrides=overrides)
     session = open_session(seq, cfg=cfg, map_path=str(map_path))
     tracker = session.tracker
     stop = len(session.seq) if frames is None else min(len(session.seq), frames)
@@ -174,15 +178,15 @@ def render(after: dict, before: dict | None, command: str) -> str:
              "ATE: position RMSE against ground truth over every scan of the session, no alignment, "
              "interpolated; the worlds are seeds 2 and 3 of `python -m bench.seeds` (small world, "
              "`loc` session, block map with the mounting estimated).", "",
-             "| seed | code | scans | wall median / p90 / p99 [ms] | thread CPU median / p90 / p99 [ms] | "
+             "| seed | code | NDT threads | scans | wall median / p90 / p99 [ms] | thread CPU median / p90 / p99 [ms] | "
              "process CPU median [ms] | load start / end | ATE [m] | rot. ATE [deg] | failures |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for label, res in (("before", before), ("after", after)):
         if not res:
             continue
         for s in res["seeds"]:
             w, c, p = s["wall_ms"], s["thread_cpu_ms"], s["process_cpu_ms"]
-            lines.append(f"| {Path(s['world']).name} | {label} | {s['timed']} | {_f(w['median'])} / {_f(w['p90'])} / "
+            lines.append(f"| {Path(s['world']).name} | {label} | {s.get('num_threads')} | {s['timed']} | {_f(w['median'])} / {_f(w['p90'])} / "
                          f"{_f(w['p99'])} | {_f(c['median'])} / {_f(c['p90'])} / {_f(c['p99'])} | {_f(p['median'])} | "
                          f"{_f(s['load_avg']['start'], '{:.1f}')} / {_f(s['load_avg']['end'], '{:.1f}')} | "
                          f"{_f(s['ate_trans_rmse_m'], '{:.4f}')} | {_f(s['ate_rot_rmse_deg'], '{:.3f}')} | "
@@ -226,6 +230,8 @@ def main(argv=None) -> int:
     ap.add_argument("--skip", type=int, default=5, help="first scans left out of the times (warm-up)")
     ap.add_argument("--profile", type=int, default=0, metavar="N",
                     help="also a cProfile split by stage: a second run of N scans per seed (0: none)")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="registration.num_threads (numba threads of the NDT passes; default: the preset's)")
     ap.add_argument("--json", type=Path, default=None, help="write the figures here too")
     ap.add_argument("--before", type=Path, default=None, help="an earlier run's --json, shown beside")
     ap.add_argument("--out", type=Path, default=OUT, help="the markdown section ('-': none)")
@@ -246,9 +252,9 @@ def main(argv=None) -> int:
             print(f"error: {world}/loc or {map_path} missing: make them with python -m bench.seeds --seeds {seed} "
                   f"--runs default --work {work}", file=sys.stderr)
             return 2
-        s = run_seed(world, map_path, a.frames, a.skip, False)
+        s = run_seed(world, map_path, a.frames, a.skip, False, a.threads)
         if a.profile:  # apart: the profiler's overhead stays out of the timed run
-            s["profile"] = run_seed(world, map_path, a.profile, a.skip, True)["profile"]
+            s["profile"] = run_seed(world, map_path, a.profile, a.skip, True, a.threads)["profile"]
             s["profile_scans"] = a.profile
         res["seeds"].append(s)
         print(f"seed {seed}: update wall median {s['wall_ms']['median']:.2f} ms, thread CPU median "

@@ -52,8 +52,8 @@ def test_render_writes_before_and_after_rows_with_their_commands():
     assert "`python -m bench.update --seeds 2`" in text and "commit old" in text
     rows = [line for line in text.splitlines() if line.startswith("| s2 |")]
     assert len(rows) == 6  # times, stages, profile: before and after each
-    assert "| s2 | before | 100 | 12.00 / 13.00 / 14.00 |" in rows[0]
-    assert "| s2 | after | 100 | 6.00 / 7.00 / 8.00 |" in rows[1]
+    assert "| s2 | before | None | 100 | 12.00 / 13.00 / 14.00 |" in rows[0]
+    assert "| s2 | after | None | 100 | 6.00 / 7.00 / 8.00 |" in rows[1]
     assert "| - | 1.00 | 0.20 | 3.50 |" in rows[2]  # a stage the old code did not report: "-"
     assert "first 300 scans" in text
 
