@@ -47,6 +47,22 @@ log = logging.getLogger(__name__)
 Relocalizer = Callable[[np.ndarray, Optional[np.ndarray], np.ndarray, float], Optional[np.ndarray]]
 
 
+def _deferred(compute: Callable[[], np.ndarray]) -> Callable[[], np.ndarray | None]:
+    """``compute`` (reading a :meth:`SlidingWindow.frozen` window, not the live one) as the callable
+    ``Estimate.covariance`` runs on its first read; an indeterminant system gives None. Why: the
+    marginals cost about as much as the smoother's optimization, and a caller that never reads
+    them (a benchmark, track without a recording) should not pay for them in the per-scan update."""
+
+    def run() -> np.ndarray | None:
+        try:
+            return compute()
+        except RuntimeError as exc:  # an indeterminant system: report, do not crash
+            log.debug("no covariance: %s", exc)
+            return None
+
+    return run
+
+
 class Estimator:
     """Streaming estimator: ``insert_imu`` for every IMU sample, ``insert_frame`` for every scan.
 
@@ -257,8 +273,7 @@ class Estimator:
         pts = np.asarray(frame.points)
         if len(pts) == 0:
             return np.zeros((0, 3)), np.zeros(0)
-        # range filter and voxel selection in one pass over the raw cloud (float32 as read: only
-        # the points kept are converted)
+        # range filter + voxel selection: one pass over the raw cloud; only the points kept are converted
         idx = dsk.voxel_downsample_indices(pts, s.voxel_size_m, s.max_points, seed=frame.index,
                                            range_m=(s.min_range_m, s.max_range_m))
         offsets = (np.zeros(len(idx)) if frame.time_offsets is None
@@ -383,22 +398,8 @@ class Estimator:
         return T
 
     def _covariance(self, compute):
-        """The estimate's covariance, deferred: a callable that ``Estimate.covariance`` calls on the
-        first read (``compute`` must read a :meth:`SlidingWindow.frozen` window, not the live one);
-        None when ``compute_covariance`` is off. Why deferred: the marginals cost as much as the
-        smoother's optimization, and a run that never reads them (a bench, track without a
-        recording) should not pay for them inside the per-scan update."""
-        if not self.settings.fixed.compute_covariance:
-            return None
-
-        def deferred() -> np.ndarray | None:
-            try:
-                return compute()
-            except RuntimeError as exc:  # an indeterminant system: report, do not crash
-                log.debug("no covariance: %s", exc)
-                return None
-
-        return deferred
+        """The estimate's covariance deferred (:func:`_deferred`); None when not computed at all."""
+        return _deferred(compute) if self.settings.fixed.compute_covariance else None
 
     def _estimate(self, index, stamp, k, diag, t_start) -> Estimate:
         state, bias = self._state(k)
