@@ -57,3 +57,32 @@ def deskew_kernel(pts, t, table_t, R, w_int, trans):  # pragma: no cover - compi
             out[i, r] = (R[j, r, 0] * qx + R[j, r, 1] * qy + R[j, r, 2] * qz
                          + trans[j, r] + (trans[j + 1, r] - trans[j, r]) * a)
     return out
+
+
+@nb.njit(cache=True)
+def interval_rotvecs(R):  # pragma: no cover - compiled
+    """(K-1, 3) rotation vectors w_j = log(R_j^T R_{j+1}) of a (K, 3, 3) table, and whether every
+    angle stayed below 3 rad (else the caller uses a log that is exact near pi: the axis from
+    the antisymmetric part is ill-conditioned there; within a sweep angles are milliradians)."""
+    K = R.shape[0]
+    out = np.zeros((max(K - 1, 0), 3))
+    for j in range(K - 1):
+        # M = R_j^T R_{j+1}: only its trace and antisymmetric part are needed
+        m = np.zeros((3, 3))
+        for a in range(3):
+            for b in range(3):
+                m[a, b] = R[j, 0, a] * R[j + 1, 0, b] + R[j, 1, a] * R[j + 1, 1, b] + R[j, 2, a] * R[j + 1, 2, b]
+        c = 0.5 * (m[0, 0] + m[1, 1] + m[2, 2] - 1.0)
+        c = min(1.0, max(-1.0, c))
+        th = np.arccos(c)
+        vx = 0.5 * (m[2, 1] - m[1, 2])
+        vy = 0.5 * (m[0, 2] - m[2, 0])
+        vz = 0.5 * (m[1, 0] - m[0, 1])
+        if th > 3.0:
+            return out, False
+        # theta / sin(theta) (series below 1e-4 rad: 1 + theta^2 / 6)
+        f = 1.0 + th * th / 6.0 if th < 1e-4 else th / np.sin(th)
+        out[j, 0] = f * vx
+        out[j, 1] = f * vy
+        out[j, 2] = f * vz
+    return out, True

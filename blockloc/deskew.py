@@ -20,22 +20,24 @@ from blockloc.geometry import inv_T, so3_log
 
 def range_filter(points: np.ndarray, min_range_m: float, max_range_m: float) -> np.ndarray:
     """Boolean mask (N,) of finite points whose range lies in [min_range_m, max_range_m]."""
-    r2 = np.einsum("ij,ij->i", points, points)
-    ok = np.isfinite(r2) & (r2 >= min_range_m**2) & (r2 <= max_range_m**2)
-    return ok
+    from blockloc.voxels import in_range
+
+    return in_range(points, min_range_m, max_range_m)
 
 
 def voxel_downsample_indices(points: np.ndarray, voxel_size_m: float, max_points: int = 0,
-                             seed: int = 0) -> np.ndarray:
+                             seed: int = 0, range_m: tuple[float, float] | None = None) -> np.ndarray:
     """Indices of one point per occupied voxel (the first in input order, ``blockloc.voxels.
     voxel_select``), sorted.
 
     points: (N, 3) any frame, metres. Keeping a real point (not a centroid) keeps its time offset
-    exact for deskewing. When more than ``max_points`` (> 0) remain, a fixed-seed random subset.
+    exact for deskewing. range_m: (min, max) metres: only finite points in that range count (the
+    range filter in the same pass). When more than ``max_points`` (> 0) remain, a fixed-seed
+    random subset.
     """
     from blockloc.voxels import voxel_select
 
-    idx = voxel_select(points, voxel_size_m)
+    idx = voxel_select(points, voxel_size_m, range_m)
     if max_points > 0 and len(idx) > max_points:
         rng = np.random.default_rng(seed)
         idx = np.sort(rng.choice(idx, size=max_points, replace=False))
@@ -76,11 +78,14 @@ def deskew_points(points: np.ndarray, times: np.ndarray, table_times: np.ndarray
     if rigid is not None:
         return rigid
     K = len(table_times)
-    R = np.ascontiguousarray(T_ref_table[:, :3, :3])
+    R = np.ascontiguousarray(T_ref_table[:, :3, :3], dtype=np.float64)
+    from blockloc._deskew_kernels import deskew_kernel, interval_rotvecs
+
     # Per-interval relative rotation vectors w_j = log(R_j^T R_{j+1}).
-    w_int = np.ascontiguousarray(so3_log(np.swapaxes(R[:-1], 1, 2) @ R[1:]).reshape(K - 1, 3))
+    w_int, ok = interval_rotvecs(R)
+    if not ok:  # an interval turning by more than 3 rad: the log that is exact near pi
+        w_int = np.ascontiguousarray(so3_log(np.swapaxes(R[:-1], 1, 2) @ R[1:]).reshape(K - 1, 3))
     trans = np.ascontiguousarray(T_ref_table[:, :3, 3])
-    from blockloc._deskew_kernels import deskew_kernel
 
     return deskew_kernel(np.ascontiguousarray(pts), np.ascontiguousarray(times, dtype=np.float64),
                          np.ascontiguousarray(table_times), R, w_int, trans)

@@ -80,15 +80,54 @@ def voxel_downsample(points: np.ndarray, voxel_size_m: float, intensity: np.ndar
     return out, out_i
 
 
-def voxel_select(points: np.ndarray, voxel_size_m: float) -> np.ndarray:
+def voxel_select(points: np.ndarray, voxel_size_m: float,
+                 range_m: tuple[float, float] | None = None) -> np.ndarray:
     """Indices (M,) int64, ascending, of the first point (input order) in each occupied voxel.
 
-    points: (N, 3) float, any frame, metres; finite. ``voxel_size_m <= 0`` keeps every point.
+    points: (N, 3+) float32 or float64, any frame, metres (extra columns ignored); finite unless
+    ``range_m`` is given. range_m: (min, max) metres from the frame's origin: only finite points
+    at a range within [min, max] are considered (a scan's range filter, in the same pass).
+    ``voxel_size_m <= 0`` keeps every point (in range).
+
+    One pass with a hash table (``blockloc._voxel_kernels``); the numpy reference
+    (:func:`voxel_select_numpy`, the same indices) serves clouds spanning more than 2**20 voxels.
     """
+    pts = np.asarray(points)
+    n = len(pts)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    if not voxel_size_m > 0 or pts.dtype not in (np.float32, np.float64):
+        return voxel_select_numpy(pts, voxel_size_m, range_m)
+    size = _check_size(voxel_size_m)
+    from blockloc._voxel_kernels import select_first, table_bits
+
+    if not pts.flags.c_contiguous:
+        pts = np.ascontiguousarray(pts[:, :3])
+    lo, hi = (0.0, 0.0) if range_m is None else (float(range_m[0]), float(range_m[1]))
+    idx, ok = select_first(pts, size, lo * lo, hi * hi, range_m is not None, table_bits(n))
+    return idx if ok else voxel_select_numpy(pts, voxel_size_m, range_m)
+
+
+def in_range(points: np.ndarray, min_range_m: float, max_range_m: float) -> np.ndarray:
+    """Boolean mask (N,) of finite points whose range lies in [min_range_m, max_range_m]."""
+    pts = np.asarray(points, dtype=np.float64)[:, :3]
+    r2 = np.einsum("ij,ij->i", pts, pts)
+    return np.isfinite(r2) & (r2 >= min_range_m**2) & (r2 <= max_range_m**2)
+
+
+def voxel_select_numpy(points: np.ndarray, voxel_size_m: float,
+                       range_m: tuple[float, float] | None = None) -> np.ndarray:
+    """The reference of :func:`voxel_select` (numpy: unique over flat voxel keys), same arguments
+    and result; any extent."""
     n = len(points)
     if n == 0:
         return np.zeros(0, dtype=np.int64)
+    cand = np.arange(n) if range_m is None else np.flatnonzero(in_range(points, *range_m))
     if not voxel_size_m > 0:
-        return np.arange(n, dtype=np.int64)
-    _, first, _ = voxel_groups(points, voxel_size_m)
-    return np.sort(first)
+        return cand.astype(np.int64)
+    if len(cand) == 0:
+        _check_size(voxel_size_m)
+        return np.zeros(0, dtype=np.int64)
+    pts = np.asarray(points)[cand] if range_m is not None else points
+    _, first, _ = voxel_groups(pts, voxel_size_m)
+    return cand[np.sort(first)].astype(np.int64)

@@ -28,8 +28,9 @@ it is positive definite and otherwise with the Gauss-Newton / IRLS matrix ``H_gn
 step with |eigenvalues| crawls there instead). ``step="gauss_newton"`` always uses ``H_gn`` and
 evaluates the exact Hessian once at the end for the result (measured slightly slower: more
 iterations). The step is capped to ``max_step_m`` / ``max_step_rad``, then a backtracking line
-search (Armijo, halving up to 8 times) on the score: simpler than More-Thuente and enough with
-descent directions of the right scale (measured: on the real HDL-32E pair, 100/100 random starts
+search (Armijo, halving up to 8 times; a Newton step under 10 x epsilon with a positive-definite
+Hessian stops halving below epsilon: no decrease there is convergence) on the score: simpler
+than More-Thuente and enough with descent directions of the right scale (measured: on the real HDL-32E pair, 100/100 random starts
 within +-1 m, +-5 deg yaw, +-2 deg roll/pitch end within 5 cm / 0.5 deg with coarse-to-fine).
 A level stops when the next step ``|d|`` (rad and m together) is below its epsilon, without
 taking it (the pose then lies within about epsilon of the minimum of the quadratic model that b

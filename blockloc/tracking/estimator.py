@@ -47,6 +47,22 @@ log = logging.getLogger(__name__)
 Relocalizer = Callable[[np.ndarray, Optional[np.ndarray], np.ndarray, float], Optional[np.ndarray]]
 
 
+def _deferred(compute: Callable[[], np.ndarray]) -> Callable[[], np.ndarray | None]:
+    """``compute`` (reading a :meth:`SlidingWindow.frozen` window, not the live one) as the callable
+    ``Estimate.covariance`` runs on its first read; an indeterminant system gives None. Why: the
+    marginals cost about as much as the smoother's optimization, and a caller that never reads
+    them (a benchmark, track without a recording) should not pay for them in the per-scan update."""
+
+    def run() -> np.ndarray | None:
+        try:
+            return compute()
+        except RuntimeError as exc:  # an indeterminant system: report, do not crash
+            log.debug("no covariance: %s", exc)
+            return None
+
+    return run
+
+
 class Estimator:
     """Streaming estimator: ``insert_imu`` for every IMU sample, ``insert_frame`` for every scan.
 
@@ -127,7 +143,8 @@ class Estimator:
 
     def _pose_at_stamp(self, k: int, state, tau: float):
         """(NavState, covariance (6, 6) | None) at the frame stamp, ``tau`` s after keyframe k."""
-        return state, self._covariance(lambda: self.window.covariance(keys_of(k)[0]))
+        frozen = self.window.frozen()
+        return state, self._covariance(lambda: frozen.covariance(keys_of(k)[0]))
 
     def _after_frame(self) -> None:
         """Housekeeping at the end of a frame step."""
@@ -188,6 +205,7 @@ class Estimator:
 
         points, offsets = self._preprocess(frame)
         diag.num_points = len(points)
+        diag.prep_ms = (time.perf_counter() - t_start) * 1e3
 
         if not self.initialized:
             est = self._start_without_pose(frame, points, stamp, diag)
@@ -252,16 +270,15 @@ class Estimator:
     # ----------------------------------------------------------------- steps
     def _preprocess(self, frame: LidarFrame) -> tuple[np.ndarray, np.ndarray]:
         s = self.settings.scan
-        pts = np.asarray(frame.points, dtype=np.float64)
+        pts = np.asarray(frame.points)
         if len(pts) == 0:
             return np.zeros((0, 3)), np.zeros(0)
-        ok = dsk.range_filter(pts, s.min_range_m, s.max_range_m)
-        idx = np.flatnonzero(ok)
-        sel = dsk.voxel_downsample_indices(pts[idx], s.voxel_size_m, s.max_points, seed=frame.index)
-        idx = idx[sel]
+        # range filter + voxel selection: one pass over the raw cloud; only the points kept are converted
+        idx = dsk.voxel_downsample_indices(pts, s.voxel_size_m, s.max_points, seed=frame.index,
+                                           range_m=(s.min_range_m, s.max_range_m))
         offsets = (np.zeros(len(idx)) if frame.time_offsets is None
                    else np.asarray(frame.time_offsets, dtype=np.float64)[idx])
-        return pts[idx], offsets
+        return np.ascontiguousarray(pts[idx, :3], dtype=np.float64), offsets
 
     def _align(self, target, scan_pts, T_guess, T_pred, gates):
         """One registration from ``T_guess``: (T_ndt, result, fitness, innovation m, deg, reject
@@ -380,14 +397,9 @@ class Estimator:
         diag.window_size = len(self.window)
         return T
 
-    def _covariance(self, compute) -> np.ndarray | None:
-        if not self.settings.fixed.compute_covariance:
-            return None
-        try:
-            return compute()
-        except RuntimeError as exc:  # an indeterminant system: report, do not crash
-            log.debug("no covariance: %s", exc)
-            return None
+    def _covariance(self, compute):
+        """The estimate's covariance deferred (:func:`_deferred`); None when not computed at all."""
+        return _deferred(compute) if self.settings.fixed.compute_covariance else None
 
     def _estimate(self, index, stamp, k, diag, t_start) -> Estimate:
         state, bias = self._state(k)

@@ -93,6 +93,18 @@ class ImuBuffer:
         self._t: list[float] = []
         self._acc: list[np.ndarray] = []
         self._gyro: list[np.ndarray] = []
+        self._arrays: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # the lists as arrays
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The samples held as arrays: times (K,) s, acc (K, 3) m/s^2, gyro (K, 3) rad/s, imu frame.
+        Built once per change of the buffer (a frame step reads them a dozen times); read-only."""
+        if self._arrays is None:
+            arrs = (np.asarray(self._t, dtype=np.float64), np.asarray(self._acc, dtype=np.float64).reshape(-1, 3),
+                    np.asarray(self._gyro, dtype=np.float64).reshape(-1, 3))
+            for a in arrs:
+                a.flags.writeable = False
+            self._arrays = arrs
+        return self._arrays
 
     def __len__(self) -> int:
         return len(self._t)
@@ -112,6 +124,7 @@ class ImuBuffer:
         self._t.append(float(t))
         self._acc.append(acc)
         self._gyro.append(gyro)
+        self._arrays = None
         return True
 
     def discard_before(self, t: float) -> None:
@@ -119,6 +132,7 @@ class ImuBuffer:
         i = int(np.searchsorted(self._t, t, side="right")) - 1
         if i > 0:
             del self._t[:i], self._acc[:i], self._gyro[:i]
+            self._arrays = None
 
     def segments(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """Zero-order-hold pieces covering [t0, t1].
@@ -129,7 +143,7 @@ class ImuBuffer:
         """
         if t1 <= t0 or not self._t:
             return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), 0.0
-        t = np.asarray(self._t)
+        t, acc_all, gyro_all = self.arrays()
         i0 = max(int(np.searchsorted(t, t0, side="right")) - 1, 0)
         i1 = int(np.searchsorted(t, t1, side="left"))
         idx = np.arange(i0, max(i1, i0 + 1))
@@ -138,8 +152,8 @@ class ImuBuffer:
         ends = np.append(starts[1:], t1)
         dt = ends - starts
         keep = dt > 1e-9
-        acc = np.asarray(self._acc)[idx][keep]
-        gyro = np.asarray(self._gyro)[idx][keep]
+        acc = acc_all[idx][keep]
+        gyro = gyro_all[idx][keep]
         # Longest stretch without a fresh sample, counted from the sample holding at t0 (so a
         # gap spanning several frames is seen whole), up to t1.
         first = t[i0] if t[i0] <= t0 else t0 - (t[0] - t0)  # none before t0: extrapolated back
@@ -161,7 +175,10 @@ def predict_states(params, state_i, bias, buffer: ImuBuffer, t_i: float,
     """IMU-propagated body poses at increasing ``times`` (K,) from the NavState at ``t_i``.
 
     Returns T_map_body (K, 4, 4) and velocities (K, 3) in the map frame. Times before t_i get
-    the state at t_i (the window never needs to go back in time).
+    the state at t_i (the window never needs to go back in time). One preintegration over
+    [t_i, times[-1]], read at every time (the zero-order-hold pieces of ``buffer.segments``,
+    one cut at each time that falls inside a piece): the same pieces as integrating from one
+    time to the next.
     """
     import gtsam
 
@@ -169,11 +186,21 @@ def predict_states(params, state_i, bias, buffer: ImuBuffer, t_i: float,
     poses = np.empty((len(times), 4, 4))
     vels = np.empty((len(times), 3))
     pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
-    t_prev = t_i
+    if len(times) == 0:
+        return poses, vels
+    acc, gyro, dt, _ = buffer.segments(t_i, float(times[-1]))
+    ends = t_i + np.cumsum(dt)
+    if len(ends):
+        ends[-1] = max(ends[-1], float(times[-1]))  # no rounding sliver after the last piece
+    j, t_at = 0, t_i  # the piece integrating now; the time integrated up to
     for k, t in enumerate(times):
-        if t > t_prev:
-            integrate(pim, buffer, t_prev, t)
-            t_prev = t
+        while j < len(dt) and t_at < t:
+            stop = min(ends[j], t)
+            if stop - t_at > 1e-9:  # as segments(): slivers below a nanosecond are not integrated
+                pim.integrateMeasurement(acc[j], gyro[j], float(stop - t_at))
+            t_at = stop
+            if stop >= ends[j]:
+                j += 1
         s = pim.predict(state_i, bias) if pim.deltaTij() > 0 else state_i
         poses[k] = s.pose().matrix()
         vels[k] = s.velocity()

@@ -73,7 +73,7 @@ class ImuTracker(Estimator):
         state_prev, bias_prev = self._state(last)
         if self.settings.scan.deskew and len(offsets) and (offsets.max() - offsets.min()) > 1e-6:
             t_lo, t_hi = stamp + offsets.min(), stamp + offsets.max()
-            imu_t = np.asarray(self.imu._t)
+            imu_t = self.imu.arrays()[0]
             inner = imu_t[(imu_t > max(t_lo, t_prev)) & (imu_t < t_hi)]
             table_t = np.unique(np.concatenate([[t_lo, t_hi, stamp], inner]))
         else:

@@ -210,8 +210,10 @@ class LidarOnlyTracker(Estimator):
         T = motion.predict(state.pose().matrix(), twist, tau)
         state = gtsam.NavState(gtsam.Pose3(T), motion.map_velocity(T, twist))
 
+        frozen = self.window.frozen()
+
         def propagated():
             J = np.hstack(motion.extrapolation_jacobians(twist, tau))
-            return J @ self.window.joint_covariance([kx, kv]) @ J.T
+            return J @ frozen.joint_covariance([kx, kv]) @ J.T
 
         return state, self._covariance(propagated)

@@ -4,6 +4,7 @@ scan's registration was rejected (:func:`reject_reason`)."""
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -45,6 +46,7 @@ class Diagnostics:
     num_points: int = 0
     weak_dims: int = 0
     imu_gap_s: float = 0.0
+    prep_ms: float = 0.0  # range filter + voxel selection of the raw scan
     deskew_ms: float = 0.0
     registration_ms: float = 0.0
     smoother_ms: float = 0.0
@@ -55,12 +57,13 @@ class Diagnostics:
     reject_reason: str = ""  # a rejected scan: the first acceptance test it failed (REJECT_REASONS)
 
 
-@dataclass
+@dataclass(init=False)
 class Estimate:
     """The tracker's answer for one frame.
 
     T_map_body: (4, 4) or None before the first successful initialization.
-    covariance: (6, 6) Pose3 tangent (rotation rad, translation m) of T_map_body, or None.
+    covariance: (6, 6) Pose3 tangent (rotation rad, translation m) of T_map_body, or None; the
+    tracker hands it over deferred (a callable), computed on the first read and kept.
     (LiDAR-only with per-point times the keyframe sits at the scan's mean point time; pose and
     covariance are carried to ``stamp`` with its twist.)
     velocity_map: (3,) m/s; acc_bias (3,) m/s^2 and gyro_bias (3,) rad/s in the imu frame (zeros
@@ -70,11 +73,24 @@ class Estimate:
     index: int
     stamp: float
     T_map_body: np.ndarray | None
-    covariance: np.ndarray | None
     velocity_map: np.ndarray
     acc_bias: np.ndarray
     gyro_bias: np.ndarray
     diagnostics: Diagnostics
+
+    def __init__(self, index: int, stamp: float, T_map_body: np.ndarray | None,
+                 covariance: np.ndarray | Callable[[], np.ndarray | None] | None, velocity_map: np.ndarray,
+                 acc_bias: np.ndarray, gyro_bias: np.ndarray, diagnostics: Diagnostics) -> None:
+        self.index, self.stamp, self.T_map_body = index, stamp, T_map_body
+        self._covariance = covariance
+        self.velocity_map, self.acc_bias, self.gyro_bias = velocity_map, acc_bias, gyro_bias
+        self.diagnostics = diagnostics
+
+    @property
+    def covariance(self) -> np.ndarray | None:
+        if callable(self._covariance):
+            self._covariance = self._covariance()
+        return self._covariance
 
     def as_dict(self) -> dict:
         return asdict(self.diagnostics)

@@ -126,17 +126,19 @@ class SlidingWindow:
 
     def covariance(self, key) -> np.ndarray:
         """Marginal covariance of one variable at the current estimate (tangent space)."""
-        import gtsam
-
-        marginals = gtsam.Marginals(self.graph(), self.values)
-        return np.asarray(marginals.marginalCovariance(key))
+        return self.frozen().covariance(key)
 
     def joint_covariance(self, keys) -> np.ndarray:
         """Joint marginal covariance of several variables, blocks in the order of ``keys``."""
+        return self.frozen().joint_covariance(keys)
+
+    def frozen(self) -> "FrozenWindow":
+        """The window's factors and estimate as they are now, for marginals asked for later (the
+        window itself moves on with the next frame). Cheap: a list of the same factor objects and
+        a copy of the values (microseconds); the marginals are computed only when asked."""
         import gtsam
 
-        joint = gtsam.Marginals(self.graph(), self.values).jointMarginalCovariance(gtsam.KeyVector(list(keys)))
-        return np.block([[np.asarray(joint.at(a, b)) for b in keys] for a in keys])
+        return FrozenWindow([e.factor for e in self._factors], gtsam.Values(self.values))
 
     def marginalize_to(self, n_keep: int) -> int:
         """Keep the newest ``n_keep`` keyframes, turn the rest into a prior; returns how many went."""
@@ -182,6 +184,37 @@ class SlidingWindow:
     def enforce_size(self, switched: bool, size_on_switch: int) -> int:
         """Marginalize down to N_r on a switch, else down to N_a; returns keyframes dropped."""
         return self.marginalize_to(size_on_switch if switched else self.max_size)
+
+
+class FrozenWindow:
+    """A window's factor graph and estimate at one moment (:meth:`SlidingWindow.frozen`): marginal
+    covariances of its variables, tangent space, computed on the first request."""
+
+    def __init__(self, factors: list, values) -> None:
+        self._factors = factors
+        self._values = values
+        self._marginals = None
+
+    def _get(self):
+        import gtsam
+
+        if self._marginals is None:
+            g = gtsam.NonlinearFactorGraph()
+            for f in self._factors:
+                g.add(f)
+            self._marginals = gtsam.Marginals(g, self._values)
+        return self._marginals
+
+    def covariance(self, key) -> np.ndarray:
+        """Marginal covariance of one variable."""
+        return np.asarray(self._get().marginalCovariance(key))
+
+    def joint_covariance(self, keys) -> np.ndarray:
+        """Joint marginal covariance of several variables, blocks in the order of ``keys``."""
+        import gtsam
+
+        joint = self._get().jointMarginalCovariance(gtsam.KeyVector(list(keys)))
+        return np.block([[np.asarray(joint.at(a, b)) for b in keys] for a in keys])
 
 
 def _subset(values, keys):

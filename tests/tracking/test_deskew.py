@@ -49,3 +49,34 @@ def test_voxel_downsample_keeps_one_real_point_per_voxel():
 def test_range_filter():
     pts = np.array([[0.5, 0, 0], [2, 0, 0], [200, 0, 0], [np.nan, 0, 0]])
     np.testing.assert_array_equal(dsk.range_filter(pts, 1.0, 100.0), [False, True, False, False])
+
+
+def test_interval_rotation_vectors_equal_the_scipy_log():
+    from blockloc._deskew_kernels import interval_rotvecs
+    from blockloc.geometry import so3_log
+
+    rng = np.random.default_rng(5)
+    # tiny (a sweep's IMU steps), moderate, zero, and near-pi turns between table entries
+    angles = np.r_[1e-9, 1e-6, 1e-4, 3e-3, 0.05, 0.4, 1.5, 0.0, 2.9, 3.1]
+    axes = rng.normal(size=(len(angles), 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    from scipy.spatial.transform import Rotation
+
+    steps = Rotation.from_rotvec(axes * angles[:, None]).as_matrix()
+    R = [Rotation.from_rotvec(rng.normal(size=3)).as_matrix()]
+    for S in steps:
+        R.append(R[-1] @ S)
+    R = np.ascontiguousarray(R)
+    w, ok = interval_rotvecs(R[:-1])  # up to 2.9 rad: the kernel's own log
+    assert ok
+    np.testing.assert_allclose(w, so3_log(np.swapaxes(R[:-2], 1, 2) @ R[1:-1]), atol=1e-9, rtol=1e-7)
+    _, ok = interval_rotvecs(R)  # 3.1 rad: the caller's exact log instead
+    assert not ok
+    pts = rng.uniform(-10, 10, (500, 3))
+    T = np.tile(np.eye(4), (len(R), 1, 1))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = rng.normal(size=(len(R), 3))
+    table_t = np.arange(len(R)) * 0.01
+    times = rng.uniform(-0.01, table_t[-1] + 0.01, len(pts))
+    np.testing.assert_allclose(dsk.deskew_points(pts, times, table_t, T),
+                               dsk.deskew_points_numpy(pts, times, table_t, T), atol=1e-9)

@@ -79,3 +79,43 @@ def test_per_axis_noise_densities_reach_the_preintegration_covariances():
     np.testing.assert_allclose(scalar.getAccelerometerCovariance(), np.eye(3) * 1e-4)
     with pytest.raises(TrackingError, match="acc_noise_axes"):
         ImuNoise(acc_noise_axes=(0.1, 0.2))
+
+
+def _predict_stepwise(params, state_i, bias, buffer, t_i, times):
+    """The reference: integrate from one time to the next (buffer.segments per interval)."""
+    import gtsam
+
+    pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
+    poses, vels, t_prev = [], [], t_i
+    for t in times:
+        if t > t_prev:
+            integrate(pim, buffer, t_prev, t)
+            t_prev = t
+        s = pim.predict(state_i, bias) if pim.deltaTij() > 0 else state_i
+        poses.append(s.pose().matrix())
+        vels.append(s.velocity())
+    return np.array(poses), np.array(vels)
+
+
+def test_predict_states_in_one_pass_equals_integrating_interval_by_interval():
+    import gtsam
+
+    traj = CircleTrajectory()
+    imu = imu_from_trajectory(traj, 0.0, 3.0, rate_hz=100.0)
+    keep = (imu.t < 1.2) | (imu.t > 1.45)  # a gap inside the sweep
+    buf = ImuBuffer()
+    for t, a, w in zip(imu.t[keep], imu.acc[keep], imu.gyro[keep]):
+        buf.insert(t, a, w)
+    params = make_preintegration_params(traj.gravity_map, np.eye(4), ImuNoise())
+    bias = gtsam.imuBias.ConstantBias(np.array([0.05, -0.02, 0.01]), np.array([0.001, 0.002, -0.001]))
+    t_i = 1.003
+    state = gtsam.NavState(gtsam.Pose3(traj.pose(t_i)[0]), traj.velocity(t_i)[0])
+    rng = np.random.default_rng(3)
+    # times on IMU samples, between them, repeated, before t_i, and past the newest sample
+    times = np.sort(np.r_[0.9, t_i, imu.t[(imu.t > 1.0) & (imu.t < 1.6)][::3], rng.uniform(1.0, 1.6, 7), 1.3, 1.3, 3.2])
+    times = np.maximum(times, t_i)
+    got_T, got_v = predict_states(params, state, bias, buf, t_i, times)
+    want_T, want_v = _predict_stepwise(params, state, bias, buf, t_i, times)
+    np.testing.assert_allclose(got_T, want_T, atol=1e-9)
+    np.testing.assert_allclose(got_v, want_v, atol=1e-9)
+    assert np.linalg.norm(got_T[-1][:3, 3] - got_T[0][:3, 3]) > 1.0  # it moved

@@ -14,6 +14,7 @@ from blockloc.errors import TrackingError
 from blockloc.geometry import xyzrpy_to_T
 from blockloc.tracking.params import TrackerSettings
 from blockloc.tracking.tracker import make_tracker
+from blockloc.tracking.window import FrozenWindow, keys_of
 from tests.tracking.synthetic import LocalMap
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
@@ -134,10 +135,10 @@ def test_covariance_failure_gives_no_covariance_not_a_crash(monkeypatch):
     assert est.covariance is not None and est.covariance.shape == (6, 6)
     assert np.all(np.linalg.eigvalsh(est.covariance) > 0)
 
-    def indeterminant(key):
+    def indeterminant(self, key):
         raise RuntimeError("Indeterminant linear system detected while working near variable x2")
 
-    monkeypatch.setattr(tr.window, "covariance", indeterminant)
+    monkeypatch.setattr(FrozenWindow, "covariance", indeterminant)
     _feed_imu(tr, 0.1 + 1e-9, 0.2 + 1e-9)
     est = tr.insert_frame(_frame(2, 0.2))
     assert est.covariance is None and est.diagnostics.status == "ok"
@@ -295,3 +296,24 @@ def test_reset_forgets_the_state_and_the_imu_but_keeps_the_counters():
     est = tr.insert_frame(_frame(2, 10.1))
     assert est.diagnostics.status == "ok"
     np.testing.assert_allclose(est.T_map_body, T2, atol=1e-3)
+
+
+def test_covariance_read_later_is_the_one_of_its_own_frame():
+    """The covariance is computed on the first read, from the window as it was at its frame: the
+    window moving on (new keyframes, marginalization) does not change it."""
+    tr = _tracker(ScriptedRegistration())
+    tr.initialize(T_START, 0.0, velocity_map=np.zeros(3))
+    tr.window.max_size = 3  # marginalize within the few frames below
+    _feed_imu(tr, 0.0, 0.1 + 1e-9)
+    first = tr.insert_frame(_frame(1, 0.1))
+    assert callable(first._covariance)  # deferred: not computed inside insert_frame
+    then = tr.window.covariance(keys_of(tr.window.latest)[0])
+    later = []
+    for i in range(2, 7):
+        _feed_imu(tr, 0.1 * (i - 1) + 1e-9, 0.1 * i + 1e-9)
+        later.append(tr.insert_frame(_frame(i, 0.1 * i)))
+    now = tr.window.covariance(keys_of(tr.window.latest)[0])
+    assert not np.allclose(now, then)  # the window did move on
+    np.testing.assert_allclose(first.covariance, then, rtol=1e-9, atol=1e-15)
+    assert first.covariance is first.covariance  # computed once, kept
+    np.testing.assert_allclose(later[-1].covariance, now, rtol=1e-9, atol=1e-15)
