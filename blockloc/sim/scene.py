@@ -192,20 +192,13 @@ def make_actors(world: World, session: str) -> Actors:
 # --- surface detail ---------------------------------------------------------------------------
 
 def value_noise(x: np.ndarray, y: np.ndarray, cell_m: float, seed: int) -> np.ndarray:
-    """Smooth deterministic noise in [-1, 1] at (x, y): bilinear over a hashed lattice."""
-    gx, gy = np.asarray(x) / cell_m, np.asarray(y) / cell_m
-    ix, iy = np.floor(gx).astype(np.int64), np.floor(gy).astype(np.int64)
-    fx, fy = gx - ix, gy - iy
+    """Smooth deterministic noise in [-1, 1] at (x, y) (broadcastable arrays): bilinear over a
+    hashed lattice (``blockloc.sim._kernels.value_noise``, one pass; it was ~12 numpy passes)."""
+    from blockloc.sim import _kernels
 
-    def h(i, j):
-        v = (i * 73856093) ^ (j * 19349663) ^ (seed * 83492791)
-        v = (v ^ (v >> 13)) * 1274126177
-        return ((v ^ (v >> 16)) & 0xFFFF) / 32767.5 - 1.0
-
-    sx, sy = fx * fx * (3 - 2 * fx), fy * fy * (3 - 2 * fy)
-    top = h(ix, iy) * (1 - sx) + h(ix + 1, iy) * sx
-    bot = h(ix, iy + 1) * (1 - sx) + h(ix + 1, iy + 1) * sx
-    return top * (1 - sy) + bot * sy
+    x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
+    out = _kernels.value_noise(x.ravel(), y.ravel(), float(cell_m), np.int64(int(seed) * 83492791))
+    return out.reshape(x.shape)
 
 
 def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -411,6 +404,8 @@ class SessionScene:
             return self._cast_full(origins, dirs, t, max_range, rng)
 
     def _cast_full(self, origins, dirs, t, max_range, rng) -> dict:
+        from blockloc.sim import _kernels
+
         rng = rng if rng is not None else np.random.default_rng(0)
         self._ensure_window(origins[len(origins) // 2])
         rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
@@ -419,16 +414,14 @@ class SessionScene:
         cat = np.where(hit, self._tri_cat[tri].astype(np.int64), -1)
         reflect = self._reflect_by_cat[cat]
         glass = np.zeros(len(rng_), dtype=bool)
-        on_ground = cat == self.terrain_cat
-        if on_ground.any():
-            o_g, d_g = origins[on_ground], dirs[on_ground]
-            p = o_g + d_g * rng_[on_ground, None]
+        g_idx, p = _kernels.ground_hits(origins, dirs, rng_, cat, self.terrain_cat)
+        if len(g_idx):
             if self.detail.ground_relief:  # the material is looked up once, for both
                 mat = self.world.ground_material(p[:, 0], p[:, 1])
-                reflect[on_ground] = GROUND_ALBEDO[mat]
-                self._ground_relief(np.flatnonzero(on_ground), o_g, d_g, rng_, normals, reflect, rng, p, mat)
+                reflect[g_idx] = GROUND_ALBEDO[mat]
+                self._ground_relief(g_idx, origins, dirs, rng_, normals, reflect, rng, p, mat)
             else:
-                reflect[on_ground] = self.world.ground_albedo(p[:, 0], p[:, 1])
+                reflect[g_idx] = self.world.ground_albedo(p[:, 0], p[:, 1])
         on_bldg = np.isin(cat, self._facade_cats)
         lost_at = np.full(len(rng_), np.inf)  # range of the pane a ray is lost at
         if on_bldg.any():
@@ -455,22 +448,22 @@ class SessionScene:
         return {"range": rng_, "normal": normals, "reflect": reflect, "cat": cat, "glass": glass,
                 "retro": retro}
 
-    def _ground_relief(self, idx, o, d, rng_, normals, reflect, rng, p, mat) -> None:
+    def _ground_relief(self, idx, origins, dirs, rng_, normals, reflect, rng, p, mat) -> None:
         """Kerbs (sidewalks KERB_M above the road), grass (a layer 4-12 cm high that rays
         enter and stop in) and a few cm of micro relief, applied along each ground ray ``idx``
-        (origins ``o``, directions ``d``, (len(idx), 3)), which hit the terrain at ``p``
-        (len(idx), 3), of ground material ``mat``."""
+        (of the rays ``origins``, ``dirs`` (N, 3)), which hit the terrain at ``p`` (len(idx), 3),
+        of ground material ``mat``."""
+        from blockloc.sim import _kernels
+
         world = self.world
         r = rng_[idx]
-        down = np.maximum(-d[:, 2], 0.02)
         seed = self._seed
-        micro = value_noise(p[:, 0], p[:, 1], 0.7, seed) * np.where(mat == 2, 0.02, 0.004)
-        r_new = r - micro / down
+        r_new, down = _kernels.ground_micro(r, dirs[idx, 2], p, mat, np.int64(seed * 83492791))
         # kerb: the sidewalk surface is raised; a ray whose raised hit falls back over the road
         # meets the kerb's face instead
-        side = mat == 1
-        if side.any():
-            o_s, d_s, r_0 = o[side], d[side], r[side]
+        side = np.flatnonzero(mat == 1)
+        if len(side):
+            o_s, d_s, r_0 = origins[idx[side]], dirs[idx[side]], r[side]
             r_side = r_0 - KERB_M / down[side]
             p1 = o_s + d_s * r_side[:, None]
             face = world.ground_material(p1[:, 0], p1[:, 1]) == 0
@@ -491,16 +484,13 @@ class SessionScene:
                 nn[face] = n_face
                 normals[idx[side]] = nn
             r_new[side] = r_s + (r_new[side] - r_0)
-        grass = mat == 2
-        if grass.any():
-            g_h = 0.08 + 0.04 * value_noise(p[grass, 0], p[grass, 1], 1.5, seed + 1)
-            depth = g_h / down[grass]  # path length through the layer
-            stop = np.minimum(rng.exponential(0.25, grass.sum()), depth)
-            r_new[grass] = r_new[grass] - depth + stop
-            i_g = idx[grass]
-            n_g = _random_unit(rng, len(i_g)) * 0.5 + normals[i_g]
-            normals[i_g] = n_g / np.sqrt(dot3(n_g, n_g))[:, None]
-            reflect[idx[grass]] *= rng.uniform(0.6, 1.4, grass.sum())
+        grass = np.flatnonzero(mat == 2)
+        if len(grass):  # the draws in their order: stops, tilts, reflectances
+            stop = rng.exponential(0.25, len(grass))
+            tilt = rng.normal(size=(len(grass), 3))
+            refl = rng.uniform(0.6, 1.4, len(grass))
+            _kernels.ground_grass(r_new, down, p, grass, idx, stop, tilt, normals, reflect, refl,
+                                  np.int64((seed + 1) * 83492791))
         rng_[idx] = np.maximum(r_new, 0.05)
 
     def _facades(self, idx, owner, origins, dirs, rng_, normals, reflect, glass, rng, cat, lost_at) -> None:

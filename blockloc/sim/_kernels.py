@@ -1,0 +1,258 @@
+"""Numba kernels of the simulator's per-ray models (leaf module: importing it imports numba).
+
+Each kernel is one pass over a scan's rays (~70k) doing what a chain of numpy expressions did in
+as many passes, with the same IEEE operations in the same order, so its results are the numpy
+expressions' bits (held to them by tests/test_sim_kernels.py). What a kernel must not compute
+itself is left to numpy by its caller: random draws (the generator's stream is the scan's bytes)
+and transcendental functions (numpy's SIMD ``exp`` / ``power`` differ from libm's in the last
+bit now and then, and a return kept or dropped on such a bit is a different scan).
+
+Ray layout: ray ``i = column * 32 + laser``, the lidar model's (A, 32) sweep flattened.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def lidar_ranges(rng_true, normals, dirs, reflect, cat, r_self, self_cat, self_hits,
+                 mix_u, mix_frac, mix_prob, gap_m):
+    """Self hits, incidence and mixed pixels of one sweep.
+
+    rng_true, reflect (N,) float64 and cat (N,) int64 are the cast's, changed in place where the
+    robot's own parts (``r_self`` (N,), inf: none) are nearer (``self_hits``): range r_self,
+    reflectance 0.15, category ``self_cat``. normals, dirs: (N, 3) float64 (world).
+    mix_u, mix_frac: (N,) the mixed-pixel draws (uniform [0, 1) and [0.1, 0.9); mix_prob 0: none):
+    where a laser's next column (wrapping) jumps by more than ``gap_m`` and ``mix_u < mix_prob``
+    the range moves ``mix_frac`` of the way to the next one.
+    Returns |cos incidence| (N,) and the ranges after mixing (N,) float64 metres.
+    """
+    n = len(rng_true)
+    cosi = np.empty(n)
+    if self_hits:
+        for i in range(n):
+            if r_self[i] < rng_true[i]:
+                rng_true[i] = r_self[i]
+                cat[i] = self_cat
+                reflect[i] = 0.15
+    for i in range(n):
+        cosi[i] = abs(normals[i, 0] * dirs[i, 0] + normals[i, 1] * dirs[i, 1] + normals[i, 2] * dirs[i, 2])
+    out = rng_true.copy()
+    if mix_prob > 0:
+        for i in range(n):
+            j = i + 32 if i + 32 < n else i + 32 - n  # the same laser's next column
+            gap = rng_true[j] - rng_true[i]
+            if np.isfinite(gap) and abs(gap) > gap_m and mix_u[i] < mix_prob:
+                out[i] = rng_true[i] + mix_frac[i] * gap
+    return cosi, out
+
+
+@njit(cache=True, nogil=True)
+def lidar_returns(rng_true, cosi, reflect, nrm, tail_u, tail_prob, lap, range_offset, use_offset,
+                  u_drop, u_graze, gain, max_range, min_range, dropout_prob, grazing_cos):
+    """Measured ranges and the returns kept before the weak-signal test.
+
+    rng_true, cosi, reflect: (N,) from :func:`lidar_ranges`. Range noise: ``nrm`` (N,) Gaussian,
+    replaced by the Laplace tail ``lap`` (N,) where ``tail_u < tail_prob``, plus the laser's
+    ``range_offset`` (32,) when ``use_offset``. u_drop, u_graze: (N,) uniform draws. gain: (32,).
+    Returns r (N,) measured range, ok (N,) bool, power (N,) (reflectance-and-incidence, no gain),
+    rr (N,) range for the intensity's fall-off (>= 1 m; 1 km where nothing was hit) and snr (N,).
+    """
+    n = len(rng_true)
+    r = np.empty(n)
+    ok = np.empty(n, np.bool_)
+    power = np.empty(n)
+    rr = np.empty(n)
+    snr = np.empty(n)
+    for i in range(n):
+        laser = i % 32
+        noise = lap[i] if tail_u[i] < tail_prob else nrm[i]
+        if use_offset:
+            noise = noise + range_offset[laser]
+        rt = rng_true[i]
+        r[i] = rt + noise
+        fin = np.isfinite(rt)
+        ok[i] = (fin and rt <= max_range and r[i] >= min_range and u_drop[i] >= dropout_prob
+                 and not (cosi[i] < grazing_cos and u_graze[i] < 0.5))
+        p = reflect[i] * (0.2 + 0.8 * cosi[i])
+        power[i] = p
+        v = rt if fin else 1e3
+        v = v if v > 1.0 else 1.0
+        rr[i] = v
+        q = 10.0 / v
+        snr[i] = p * gain[laser] * (q * q)
+    return r, ok, power, rr, snr
+
+
+@njit(cache=True, nogil=True)
+def lidar_points(idx, r, d_nom, col_offsets, inten):
+    """The kept returns ``idx`` (K,) int64: points (K, 3) float64 along the nominal directions
+    ``d_nom`` (N, 3) at ranges ``r``; ring (K,) uint16; time offsets (K,) float32 from the
+    columns' ``col_offsets`` (A,) float32; intensity (K,) float32 = floor(clip(inten, 0, 255))
+    of ``inten`` (K,) (already taken at idx)."""
+    k = len(idx)
+    pts = np.empty((k, 3))
+    ring = np.empty(k, np.uint16)
+    toff = np.empty(k, np.float32)
+    i_out = np.empty(k, np.float32)
+    for m in range(k):
+        i = idx[m]
+        ri = r[i]
+        pts[m, 0] = d_nom[i, 0] * ri
+        pts[m, 1] = d_nom[i, 1] * ri
+        pts[m, 2] = d_nom[i, 2] * ri
+        ring[m] = i % 32
+        toff[m] = col_offsets[i // 32]
+        v = inten[m]
+        v = 0.0 if v < 0.0 else (255.0 if v > 255.0 else v)
+        i_out[m] = np.floor(v)
+    return pts, ring, toff, i_out
+
+
+@njit(cache=True, nogil=True)
+def value_noise(x, y, cell_m, seed_term):
+    """Smooth noise in [-1, 1] at (x, y) (N,) float64 each: bilinear over a hashed lattice of
+    ``cell_m`` cells; ``seed_term`` = seed * 83492791 (int64). See blockloc.sim.scene.value_noise."""
+    out = np.empty(len(x))
+    for k in range(len(x)):
+        out[k] = _noise_at(x[k], y[k], cell_m, seed_term)
+    return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _noise_at(x, y, cell_m, seed_term):
+    gx = x / cell_m
+    gy = y / cell_m
+    ix = np.int64(np.floor(gx))
+    iy = np.int64(np.floor(gy))
+    fx = gx - ix
+    fy = gy - iy
+    sx = fx * fx * (3 - 2 * fx)
+    sy = fy * fy * (3 - 2 * fy)
+    top = _lattice(ix, iy, seed_term) * (1 - sx) + _lattice(ix + 1, iy, seed_term) * sx
+    bot = _lattice(ix, iy + 1, seed_term) * (1 - sx) + _lattice(ix + 1, iy + 1, seed_term) * sx
+    return top * (1 - sy) + bot * sy
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _lattice(i, j, seed_term):
+    v = (i * np.int64(73856093)) ^ (j * np.int64(19349663)) ^ seed_term
+    v = (v ^ (v >> np.int64(13))) * np.int64(1274126177)
+    return ((v ^ (v >> np.int64(16))) & np.int64(0xFFFF)) / 32767.5 - 1.0
+
+
+@njit(cache=True, nogil=True)
+def material_tiles(x, y, tile, max_tiles):
+    """The raster tiles of side ``tile`` (m) that points (x, y) (N,) float64 fall in: tile
+    numbers ti, tj (N,) int64 (floor of x / tile, y / tile), their bounding box of tiles
+    (i0, j0, ni, nj) and, when it holds at most ``max_tiles`` tiles, each point's tile within
+    it ``(ti - i0) * nj + (tj - j0)`` (N,) and which of them are used (ni * nj,) bool (else
+    both empty: the caller numbers the tiles by a sort). N >= 1."""
+    n = len(x)
+    ti = np.empty(n, np.int64)
+    tj = np.empty(n, np.int64)
+    for k in range(n):
+        ti[k] = np.int64(np.floor(x[k] / tile))
+        tj[k] = np.int64(np.floor(y[k] / tile))
+    i0, i1, j0, j1 = ti[0], ti[0], tj[0], tj[0]
+    for k in range(n):
+        i0 = min(i0, ti[k])
+        i1 = max(i1, ti[k])
+        j0 = min(j0, tj[k])
+        j1 = max(j1, tj[k])
+    ni, nj = i1 - i0 + 1, j1 - j0 + 1
+    if ni * nj > max_tiles:
+        return ti, tj, i0, j0, ni, nj, np.empty(0, np.int64), np.empty(0, np.bool_)
+    local = np.empty(n, np.int64)
+    used = np.zeros(ni * nj, np.bool_)
+    for k in range(n):
+        c = (ti[k] - i0) * nj + (tj[k] - j0)
+        local[k] = c
+        used[c] = True
+    return ti, tj, i0, j0, ni, nj, local, used
+
+
+@njit(cache=True, nogil=True)
+def material_lookup(R, slot, local, ti, tj, x, y, tile, res):
+    """Ground codes (N,) uint8 of points (x, y) (N,) in packed raster tiles R (T, n, n / 4)
+    uint8 (four 2-bit codes a byte, column j in bits 2 (j % 4)); point k is in tile
+    ``slot[local[k]]`` numbered (ti, tj) (N,); cells of ``res`` m, clamped to the tile."""
+    n = R.shape[1]
+    out = np.empty(len(x), np.uint8)
+    for k in range(len(x)):
+        i = np.int64((y[k] - tj[k] * tile) / res)
+        j = np.int64((x[k] - ti[k] * tile) / res)
+        i = 0 if i < 0 else (n - 1 if i > n - 1 else i)
+        j = 0 if j < 0 else (n - 1 if j > n - 1 else j)
+        out[k] = (R[slot[local[k]], i, j >> 2] >> ((j & 3) << 1)) & 3
+    return out
+
+
+@njit(cache=True, nogil=True)
+def ground_hits(origins, dirs, rng_, cat, terrain_cat):
+    """The rays (N,) whose hit is on the terrain (``cat == terrain_cat``): their indices (K,)
+    int64 and hit points origin + dir * range (K, 3) float64 (world)."""
+    n = len(rng_)
+    k = 0
+    for i in range(n):
+        if cat[i] == terrain_cat:
+            k += 1
+    idx = np.empty(k, np.int64)
+    p = np.empty((k, 3))
+    m = 0
+    for i in range(n):
+        if cat[i] == terrain_cat:
+            idx[m] = i
+            r = rng_[i]
+            p[m, 0] = origins[i, 0] + dirs[i, 0] * r
+            p[m, 1] = origins[i, 1] + dirs[i, 1] * r
+            p[m, 2] = origins[i, 2] + dirs[i, 2] * r
+            m += 1
+    return idx, p
+
+
+@njit(cache=True, nogil=True)
+def ground_micro(r, dz, p, mat, seed_term):
+    """Micro relief along ground rays: ranges r (K,) less noise(p, 0.7 m cells) x (2 cm on grass,
+    mat 2; else 4 mm) over the ray's downward slope ``down`` = max(-dz, 0.02). Returns the new
+    ranges (K,) and down (K,)."""
+    k = len(r)
+    down = np.empty(k)
+    r_new = np.empty(k)
+    for m in range(k):
+        v = -dz[m]
+        dn = v if v > 0.02 else 0.02
+        down[m] = dn
+        amp = 0.02 if mat[m] == 2 else 0.004
+        micro = _noise_at(p[m, 0], p[m, 1], 0.7, seed_term) * amp
+        r_new[m] = r[m] - micro / dn
+    return r_new, down
+
+
+@njit(cache=True, nogil=True)
+def ground_grass(r_new, down, p, grass, idx, stop_draw, unit_draw, normals, reflect, refl_draw, seed_term):
+    """The grass layer (4-12 cm high) along the ground rays ``grass`` (G,) (positions in idx):
+    a ray enters it and stops after ``stop_draw`` (G,) (exponential) or at the ground; its normal
+    tilts by half the random direction ``unit_draw`` (G, 3) (normal draws, normalized here) and
+    its reflectance scales by ``refl_draw`` (G,). Changes r_new (K,), normals and reflect (N, ...)
+    (at idx[grass]) in place."""
+    for m in range(len(grass)):
+        g = grass[m]
+        g_h = 0.08 + 0.04 * _noise_at(p[g, 0], p[g, 1], 1.5, seed_term)
+        depth = g_h / down[g]
+        s = stop_draw[m]
+        stop = s if s < depth else depth
+        r_new[g] = r_new[g] - depth + stop
+        i = idx[g]
+        v0, v1, v2 = unit_draw[m, 0], unit_draw[m, 1], unit_draw[m, 2]
+        nv = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        a0 = v0 / nv * 0.5 + normals[i, 0]
+        a1 = v1 / nv * 0.5 + normals[i, 1]
+        a2 = v2 / nv * 0.5 + normals[i, 2]
+        na = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+        normals[i, 0] = a0 / na
+        normals[i, 1] = a1 / na
+        normals[i, 2] = a2 / na
+        reflect[i] = reflect[i] * refl_draw[m]
