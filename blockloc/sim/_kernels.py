@@ -4,8 +4,11 @@ Each kernel is one pass over a scan's rays (~70k) doing what a chain of numpy ex
 as many passes, with the same IEEE operations in the same order, so its results are the numpy
 expressions' bits (held to them by tests/test_sim_kernels.py). What a kernel must not compute
 itself is left to numpy by its caller: random draws (the generator's stream is the scan's bytes)
-and transcendental functions (numpy's SIMD ``exp`` / ``power`` differ from libm's in the last
-bit now and then, and a return kept or dropped on such a bit is a different scan).
+and numpy's transcendental ufuncs (its SIMD ``exp`` / ``power`` differ from libm's in the last
+bit now and then, and a return kept or dropped on such a bit is a different scan). A kernel may
+finish a draw the generator's C code finishes with libm (``laplace``: log of a uniform;
+``lognormal``: exp of a normal): numba calls the same libm, so those bits are numpy's, and the
+kernel takes them only for the rays that use them.
 
 Ray layout: ray ``i = column * 32 + laser``, the lidar model's (A, 32) sweep flattened.
 """
@@ -50,13 +53,14 @@ def lidar_ranges(rng_true, normals, dirs, reflect, cat, r_self, self_cat, self_h
 
 
 @njit(cache=True, nogil=True)
-def lidar_returns(rng_true, cosi, reflect, nrm, tail_u, tail_prob, lap, range_offset, use_offset,
-                  u_drop, u_graze, gain, max_range, min_range, dropout_prob, grazing_cos):
+def lidar_returns(rng_true, cosi, reflect, nrm, tail_u, tail_prob, lap_u, lap_scale, range_offset,
+                  use_offset, u_drop, u_graze, gain, max_range, min_range, dropout_prob, grazing_cos):
     """Measured ranges and the returns kept before the weak-signal test.
 
     rng_true, cosi, reflect: (N,) from :func:`lidar_ranges`. Range noise: ``nrm`` (N,) Gaussian,
-    replaced by the Laplace tail ``lap`` (N,) where ``tail_u < tail_prob``, plus the laser's
-    ``range_offset`` (32,) when ``use_offset``. u_drop, u_graze: (N,) uniform draws. gain: (32,).
+    replaced where ``tail_u < tail_prob`` by a Laplace tail of scale ``lap_scale`` drawn from the
+    uniform ``lap_u`` (N,) in (0, 1) as numpy's ``Generator.laplace`` does (libm's log, as numpy's
+    C code: the same bits), plus the laser's ``range_offset`` (32,) when ``use_offset``. u_drop, u_graze: (N,) uniform draws. gain: (32,).
     Returns r (N,) measured range, ok (N,) bool, power (N,) (reflectance-and-incidence, no gain),
     rr (N,) range for the intensity's fall-off (>= 1 m; 1 km where nothing was hit) and snr (N,).
     """
@@ -68,7 +72,11 @@ def lidar_returns(rng_true, cosi, reflect, nrm, tail_u, tail_prob, lap, range_of
     snr = np.empty(n)
     for i in range(n):
         laser = i % 32
-        noise = lap[i] if tail_u[i] < tail_prob else nrm[i]
+        if tail_u[i] < tail_prob:
+            u = lap_u[i]
+            noise = 0.0 - lap_scale * np.log(2.0 - u - u) if u >= 0.5 else 0.0 + lap_scale * np.log(u + u)
+        else:
+            noise = nrm[i]
         if use_offset:
             noise = noise + range_offset[laser]
         rt = rng_true[i]
@@ -87,16 +95,19 @@ def lidar_returns(rng_true, cosi, reflect, nrm, tail_u, tail_prob, lap, range_of
 
 
 @njit(cache=True, nogil=True)
-def lidar_points(idx, r, d_nom, col_offsets, inten):
-    """The kept returns ``idx`` (K,) int64: points (K, 3) float64 along the nominal directions
-    ``d_nom`` (N, 3) at ranges ``r``; ring (K,) uint16; time offsets (K,) float32 from the
-    columns' ``col_offsets`` (A,) float32; intensity (K,) float32 = floor(clip(inten, 0, 255))
-    of ``inten`` (K,) (already taken at idx)."""
+def lidar_points(idx, r, d_nom, col_offsets, scale, gain, power, speckle_n, falloff, retro, retro_u):
+    """The kept returns ``idx`` (K,) int64 of the N rays: points (K, 3) float64 along the nominal
+    directions ``d_nom`` (N, 3) at ranges ``r`` (N,); ring (K,) uint16; time offsets (K,)
+    float32 from the columns' ``col_offsets`` (A,) float32; intensity (K,) float32, floor of
+    ``scale * gain (32,) * power (N,) * speckle * falloff (K,)`` clipped to 0..255, where the
+    speckle is exp of the normal draw ``speckle_n`` (N,) (numpy's ``lognormal``, libm's exp;
+    empty: none) and retroreflectors (``retro`` (N,) bool) read ``retro_u`` (N,) instead."""
     k = len(idx)
     pts = np.empty((k, 3))
     ring = np.empty(k, np.uint16)
     toff = np.empty(k, np.float32)
     i_out = np.empty(k, np.float32)
+    spk = len(speckle_n) > 0
     for m in range(k):
         i = idx[m]
         ri = r[i]
@@ -105,7 +116,13 @@ def lidar_points(idx, r, d_nom, col_offsets, inten):
         pts[m, 2] = d_nom[i, 2] * ri
         ring[m] = i % 32
         toff[m] = col_offsets[i // 32]
-        v = inten[m]
+        if retro[i]:
+            v = retro_u[i]
+        else:
+            v = scale * gain[i % 32] * power[i]
+            if spk:
+                v = v * np.exp(speckle_n[i])
+            v = v * falloff[m]
         v = 0.0 if v < 0.0 else (255.0 if v > 255.0 else v)
         i_out[m] = np.floor(v)
     return pts, ring, toff, i_out
@@ -256,3 +273,132 @@ def ground_grass(r_new, down, p, grass, idx, stop_draw, unit_draw, normals, refl
         normals[i, 1] = a1 / na
         normals[i, 2] = a2 / na
         reflect[i] = reflect[i] * refl_draw[m]
+
+
+@njit(cache=True, nogil=True)
+def actor_columns(xy, o, dv):
+    """Which rays (C,) (xy origins ``o`` and directions ``dv`` (C, 2), the columns of a sweep)
+    pass within an actor's bounding circle: 3.5 m around its position ``xy`` (K, 2), widened
+    by 0.1 m a metre of distance (a column's beams fan out in xy when the sensor tilts), ahead
+    of the origin (or the origin inside the circle). Conservative: a ray it leaves out cannot
+    hit an actor, so its exact bits do not matter."""
+    c_n = len(o)
+    sel = np.zeros(c_n, np.bool_)
+    for c in range(c_n):
+        hx = np.hypot(dv[c, 0], dv[c, 1]) + 1e-12
+        for k in range(len(xy)):
+            rx = xy[k, 0] - o[c, 0]
+            ry = xy[k, 1] - o[c, 1]
+            dist = np.hypot(rx, ry)
+            along = (rx * dv[c, 0] + ry * dv[c, 1]) / hx
+            perp2 = max(dist * dist - along * along, 0.0)
+            lim = 3.5 + 0.1 * dist
+            if perp2 < lim * lim and (along > 0 or dist < 3.5):
+                sel[c] = True
+                break
+    return sel
+
+
+@njit(cache=True, nogil=True)
+def vegetation_rays(origins, dirs, active, t_cur):
+    """(M, 6) float32 rays (origin, direction) of the ``active`` rays (M,) of origins, dirs
+    (N, 3), starting ``t_cur`` (N,) metres along them (where they left their last volume)."""
+    out = np.empty((len(active), 6), np.float32)
+    for q in range(len(active)):
+        i = active[q]
+        t = t_cur[i]
+        for c in range(3):
+            out[q, c] = origins[i, c] + dirs[i, c] * t
+            out[q, 3 + c] = dirs[i, c]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def vegetation_hits(th32, prim, active, t_cur, rng_, vsel, faces_per_volume, origins, dirs, center, radii,
+                    first):
+    """The ``active`` rays (M,) that meet a vegetation volume's hull before their range, after
+    their cast at the hulls (float32 distances ``th32`` (M,), inf: none, from the origin when
+    ``first``, else from ``t_cur`` (N,) along the ray; hull triangles ``prim`` (M,), volume
+    ``vsel[prim // faces_per_volume]``). For those rays (H,): indices, hull distance from the
+    origin th, volume v, and the stretch of the ray inside the volume's ellipsoid (``center``,
+    semi-axes ``radii`` (V, 3); origins, dirs (N, 3)): t_in (from t_cur on) and t_out, both th
+    where the ray misses the ellipsoid (miss True)."""
+    m = len(active)
+    h = 0
+    for q in range(m):
+        t = np.float64(th32[q])
+        if not first:
+            t = t + t_cur[active[q]]
+        if np.isfinite(t) and t < rng_[active[q]]:
+            h += 1
+    act = np.empty(h, np.int64)
+    th = np.empty(h)
+    v = np.empty(h, np.int64)
+    t_in = np.empty(h)
+    t_out = np.empty(h)
+    miss = np.empty(h, np.bool_)
+    j = 0
+    for q in range(m):
+        i = active[q]
+        t = np.float64(th32[q])
+        if not first:
+            t = t + t_cur[i]
+        if not (np.isfinite(t) and t < rng_[i]):
+            continue
+        k = vsel[np.int64(prim[q]) // faces_per_volume]
+        act[j], th[j], v[j] = i, t, k
+        o0 = (origins[i, 0] - center[k, 0]) / radii[k, 0]
+        o1 = (origins[i, 1] - center[k, 1]) / radii[k, 1]
+        o2 = (origins[i, 2] - center[k, 2]) / radii[k, 2]
+        d0 = dirs[i, 0] / radii[k, 0]
+        d1 = dirs[i, 1] / radii[k, 1]
+        d2 = dirs[i, 2] / radii[k, 2]
+        a = d0 * d0 + d1 * d1 + d2 * d2
+        b = o0 * d0 + o1 * d1 + o2 * d2
+        cc = o0 * o0 + o1 * o1 + o2 * o2 - 1.0
+        disc = b * b - a * cc
+        sq = np.sqrt(disc) if disc >= 0 else np.nan
+        ti = (-b - sq) / a
+        if np.isfinite(ti):
+            miss[j] = False
+            tc = t_cur[i]
+            t_in[j] = ti if ti >= tc else tc
+            t_out[j] = (-b + sq) / a
+        else:
+            miss[j] = True
+            t_in[j] = t
+            t_out[j] = t
+        j += 1
+    return act, th, v, t_in, t_out, miss
+
+
+@njit(cache=True, nogil=True)
+def vegetation_stops(act, th, t_in, t_out, miss, free_path, rng_, t_cur):
+    """Where the rays ``act`` (H,) stop inside their volume: at t_in + ``free_path`` (H,) (the
+    exponential draws) when that lies before both the ray's exit ``t_out`` and its range
+    ``rng_`` (N,), which it becomes (in place). The others go on: ``t_cur`` (N,) (in place)
+    moves 1 mm past where they leave the volume. Returns the stopped rays' indices and the rays
+    going on."""
+    h = len(act)
+    stop = np.empty(h, np.bool_)
+    ns = 0
+    for q in range(h):
+        ts = t_in[q] + free_path[q]
+        stop[q] = (not miss[q]) and ts < t_out[q] and ts < rng_[act[q]]
+        if stop[q]:
+            ns += 1
+    stopped = np.empty(ns, np.int64)
+    going = np.empty(h - ns, np.int64)
+    a = b = 0
+    for q in range(h):
+        i = act[q]
+        if stop[q]:
+            rng_[i] = t_in[q] + free_path[q]
+            stopped[a] = i
+            a += 1
+        else:
+            to, tt = t_out[q], th[q]
+            t_cur[i] = (to if to >= tt else tt) + 1e-3
+            going[b] = i
+            b += 1
+    return stopped, going

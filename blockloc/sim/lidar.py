@@ -142,7 +142,7 @@ def simulate_scan(scene, T_world_lidar_cols: np.ndarray, col_offsets: np.ndarray
     rng_true, cat = h["range"], h["cat"]
     n = len(rng_true)
     # the draws in their order (the generator's stream is the scan's bytes); the per-ray models
-    # run in the kernels, the transcendental functions in numpy (see blockloc.sim._kernels)
+    # run in the kernels, numpy's exp and power ufuncs here (see blockloc.sim._kernels)
     if model.mixed_pixel_prob > 0:
         mix_u = rng.random((A, 32)).reshape(-1)
         mix_frac = rng.uniform(0.1, 0.9, (A, 32)).reshape(-1)
@@ -155,19 +155,32 @@ def simulate_scan(scene, T_world_lidar_cols: np.ndarray, col_offsets: np.ndarray
     nrm = rng.normal(0.0, model.range_noise_m, n)
     if model.range_tail_prob > 0:
         tail_u = rng.random(n)
-        lap = rng.laplace(0.0, model.range_tail_scale_m, n)
+        # Generator.laplace(0, s, n) is s * log of its n uniform draws, computed in the kernel
+        # where the tail is used; a draw of exactly 0 (p = 2^-53 a ray) makes numpy's laplace draw
+        # again, so then the stream is drawn again by numpy itself
+        state = rng.bit_generator.state
+        lap_u = rng.random(n)
+        if not lap_u.all():
+            rng.bit_generator.state = state
+            lap_u = None
+            lap = rng.laplace(0.0, model.range_tail_scale_m, n)
     else:
-        tail_u = lap = nrm
+        tail_u = lap_u = nrm
     u_drop = rng.random(n)
     u_graze = rng.random(n)
     u_weak = rng.random(n)
-    speckle = rng.lognormal(0.0, model.intensity_speckle, n) if model.intensity_speckle > 0 else None
+    # lognormal(0, s, n) is exp of normal(0, s, n): the exp is taken in the kernel for the kept returns
+    speckle_n = rng.normal(0.0, model.intensity_speckle, n) if model.intensity_speckle > 0 else np.zeros(0)
     gain = calib.gain if calib is not None else np.ones(32)
+    if lap_u is None:  # the rare redraw: the tail's values as numpy gave them
+        nrm = np.where(tail_u < model.range_tail_prob, lap, nrm)
+        tail_u = np.ones(n)
+        lap_u = nrm
     r, ok, power, rr, snr = _kernels.lidar_returns(
-        rng_true, cosi, h["reflect"], nrm, tail_u, float(model.range_tail_prob), lap,
-        calib.range_offset_m if calib is not None else np.zeros(32), calib is not None, u_drop, u_graze,
-        gain, float(model.max_range_m), float(model.min_range_m), float(model.dropout_prob),
-        float(model.grazing_dropout_cos))
+        rng_true, cosi, h["reflect"], nrm, tail_u, float(model.range_tail_prob), lap_u,
+        float(model.range_tail_scale_m), calib.range_offset_m if calib is not None else np.zeros(32),
+        calib is not None, u_drop, u_graze, gain, float(model.max_range_m), float(model.min_range_m),
+        float(model.dropout_prob), float(model.grazing_dropout_cos))
     if model.weak_return_dropout:
         # received power ~ reflectance * cos(incidence) / range^2: weak returns are lost (dark,
         # far, grazing)
@@ -175,13 +188,9 @@ def simulate_scan(scene, T_world_lidar_cols: np.ndarray, col_offsets: np.ndarray
         ok[cand] = u_weak[cand] >= np.exp(-snr[cand] / 0.004)
     idx = np.flatnonzero(ok)
     # intensity: the unit reports the power partly range-compensated (see LidarModel.intensity_*)
-    inten = model.intensity_scale * gain[idx % 32] * power[idx]
-    if speckle is not None:
-        inten = inten * speckle[idx]
-    inten = inten * np.minimum(1.0, (model.intensity_knee_m / rr[idx]) ** model.intensity_exponent)
+    falloff = np.minimum(1.0, (model.intensity_knee_m / rr[idx]) ** model.intensity_exponent)
     retro_u = rng.uniform(180.0, 255.0, n)
-    retro = h["retro"][idx]
-    inten = np.where(retro, retro_u[idx], inten)
-    pts, ring, toff, i_out = _kernels.lidar_points(idx, r, d_nom.reshape(-1, 3), col_offsets.astype(np.float32),
-                                                   inten)
+    pts, ring, toff, i_out = _kernels.lidar_points(
+        idx, r, d_nom.reshape(-1, 3), col_offsets.astype(np.float32), float(model.intensity_scale), gain,
+        power, speckle_n, falloff, h["retro"], retro_u)
     return ScanResult(pts, i_out, ring, toff, cat[idx])

@@ -212,18 +212,6 @@ def _random_unit(rng: np.random.Generator, n: int) -> np.ndarray:
     return v / np.sqrt(dot3(v, v))[:, None]  # np.linalg.norm(v, axis=1, keepdims=True), its bits
 
 
-def ellipsoid_interval(o: np.ndarray, d: np.ndarray, c: np.ndarray, r: np.ndarray):
-    """Ray parameters (t_in, t_out) where rays o + t d (N, 3) cross axis-aligned ellipsoids
-    (centres c, semi-axes r, (N, 3) each); NaN where they miss."""
-    oo, dd = (o - c) / r, d / r
-    a = dot3(dd, dd)
-    b = dot3(oo, dd)
-    cc = dot3(oo, oo) - 1.0
-    disc = b * b - a * cc
-    sq = np.sqrt(np.where(disc >= 0, disc, np.nan))
-    return (-b - sq) / a, (-b + sq) / a
-
-
 #: A box this deep along a ray behind a window holds a room (shallower: a wall, a pillar).
 ROOM_MIN_M = 1.5
 BACK_WALL_M = 0.3  # a room's return stops this short of the box's far side
@@ -565,6 +553,8 @@ class SessionScene:
         exponential free path (mean ``mfp``), or leaves it and goes on (to the trunk, another
         crown, the ground). Up to four volumes a ray. ``rays``: (N, 6) float32 origins and
         directions, the first pass's rays (every ray from its origin)."""
+        from blockloc.sim import _kernels
+
         o3d = self._o3d
         vol = self.world.volumes
         active = np.arange(len(rng_))
@@ -574,32 +564,18 @@ class SessionScene:
             if not len(active):
                 break
             if k:  # on from where each ray left its last volume
-                o = origins[active] + dirs[active] * t_cur[active, None]
-                rays = np.concatenate([o, dirs[active]], axis=1).astype(np.float32)
+                rays = _kernels.vegetation_rays(origins, dirs, active, t_cur)
             a = self._vol_scene.cast_rays(o3d.core.Tensor(rays), nthreads=raycast_threads())
-            th = a["t_hit"].numpy().astype(np.float64)
-            if k:
-                th += t_cur[active]
-            hit = np.isfinite(th) & (th < rng_[active])
-            active, th = active[hit], th[hit]
+            active, th, v, t_in, t_out, miss = _kernels.vegetation_hits(
+                a["t_hit"].numpy(), a["primitive_ids"].numpy(), active, t_cur, rng_, self._vsel, len(_ICO_F),
+                origins, dirs, vol.center, self._vol_radii, k == 0)
             if not len(active):
                 break
-            v = self._vsel[a["primitive_ids"].numpy()[hit].astype(np.int64) // len(_ICO_F)]
-            t_in, t_out = ellipsoid_interval(origins[active], dirs[active], vol.center[v],
-                                             self._vol_radii[v])
-            miss = ~np.isfinite(t_in)
-            t_in = np.where(miss, th, np.maximum(t_in, t_cur[active]))
-            t_out = np.where(miss, th, t_out)
-            t_stop = t_in + rng.exponential(self._vol_mfp[v])
-            stop = ~miss & (t_stop < t_out) & (t_stop < rng_[active])
-            j = active[stop]
-            rng_[j] = t_stop[stop]
+            free_path = rng.exponential(self._vol_mfp[v])
+            j, active = _kernels.vegetation_stops(active, th, t_in, t_out, miss, free_path, rng_, t_cur)
             normals[j] = _random_unit(rng, len(j))
             reflect[j] = ALBEDO["foliage"] * rng.uniform(0.4, 1.4, len(j))
             cat[j] = fol
-            go = ~stop
-            active = active[go]
-            t_cur[active] = np.maximum(t_out[go], th[go]) + 1e-3
 
     def actor_mesh(self, t: float, center: np.ndarray, radius: float):
         """Actors within ``radius`` of ``center`` (2,) at time t: (V, F, category per triangle)."""
@@ -626,16 +602,9 @@ class SessionScene:
         # select per column when rays come in columns sharing an origin (the lidar model casts
         # 32 a column); the bounding circle is 3.5 m, wider than any actor, for the tilt margin
         step = 32 if len(rays) % 32 == 0 and np.allclose(origins[::32], origins[31::32]) else 1
-        o = origins[::step, :2]
-        dv = dirs[::step, :2]
-        hx = np.hypot(dv[:, 0], dv[:, 1]) + 1e-12
-        # every (actor, column) pair at once: (K, columns)
-        rel_x, rel_y = xy[near, 0, None] - o[None, :, 0], xy[near, 1, None] - o[None, :, 1]
-        dist = np.hypot(rel_x, rel_y)
-        along = (rel_x * dv[:, 0] + rel_y * dv[:, 1]) / hx
-        perp2 = np.maximum(dist * dist - along * along, 0.0)
-        # a column's beams fan out in xy when the sensor tilts: the margin grows with range
-        sel_c = ((perp2 < (3.5 + 0.1 * dist) ** 2) & ((along > 0) | (dist < 3.5))).any(axis=0)
+        from blockloc.sim import _kernels
+
+        sel_c = _kernels.actor_columns(np.ascontiguousarray(xy[near]), origins[::step, :2], dirs[::step, :2])
         sel = np.repeat(sel_c, step)
         idx = np.flatnonzero(sel)
         if not len(idx):

@@ -214,3 +214,139 @@ def test_ground_material_gives_the_numpy_lookup():
     # 2-D input keeps its shape
     X, Y = np.meshgrid(np.linspace(x0, x1, 7), np.linspace(y0, y1, 5))
     assert np.array_equal(world.ground_material(X, Y), _ref_ground_material(world, X.ravel(), Y.ravel()).reshape(5, 7))
+
+
+# --- the scene's ground relief and vegetation (24340d4) ----------------------------------------
+
+def _ref_random_unit(rng, n):
+    v = rng.normal(size=(n, 3))
+    return v / np.sqrt(_dot3(v, v))[:, None]
+
+
+def _ref_ellipsoid_interval(o, d, c, r):
+    oo, dd = (o - c) / r, d / r
+    a = _dot3(dd, dd)
+    b = _dot3(oo, dd)
+    cc = _dot3(oo, oo) - 1.0
+    disc = b * b - a * cc
+    sq = np.sqrt(np.where(disc >= 0, disc, np.nan))
+    return (-b - sq) / a, (-b + sq) / a
+
+
+def _ref_ground_relief(self, idx, origins, dirs, rng_, normals, reflect, rng, p, mat):
+    from blockloc.sim.scene import KERB_M
+
+    o, d = origins[idx], dirs[idx]
+    world = self.world
+    r = rng_[idx]
+    down = np.maximum(-d[:, 2], 0.02)
+    seed = self._seed
+    micro = _ref_value_noise(p[:, 0], p[:, 1], 0.7, seed) * np.where(mat == 2, 0.02, 0.004)
+    r_new = r - micro / down
+    side = mat == 1
+    if side.any():
+        o_s, d_s, r_0 = o[side], d[side], r[side]
+        r_side = r_0 - KERB_M / down[side]
+        p1 = o_s + d_s * r_side[:, None]
+        face = _ref_ground_material(world, p1[:, 0], p1[:, 1]) == 0
+        r_s = r_side.copy()
+        if face.any():
+            o_f, d_f = o_s[face], d_s[face]
+            lo, hi = r_side[face], r_0[face]
+            for _ in range(5):
+                mid = 0.5 * (lo + hi)
+                pm = o_f + d_f * mid[:, None]
+                on_road = _ref_ground_material(world, pm[:, 0], pm[:, 1]) == 0
+                lo = np.where(on_road, mid, lo)
+                hi = np.where(on_road, hi, mid)
+            r_s[face] = hi
+            n_face = np.c_[-d_f[:, :2], np.zeros(len(d_f))]
+            n_face /= np.maximum(np.linalg.norm(n_face, axis=1, keepdims=True), 1e-9)
+            nn = normals[idx[side]]
+            nn[face] = n_face
+            normals[idx[side]] = nn
+        r_new[side] = r_s + (r_new[side] - r_0)
+    grass = mat == 2
+    if grass.any():
+        g_h = 0.08 + 0.04 * _ref_value_noise(p[grass, 0], p[grass, 1], 1.5, seed + 1)
+        depth = g_h / down[grass]
+        stop = np.minimum(rng.exponential(0.25, grass.sum()), depth)
+        r_new[grass] = r_new[grass] - depth + stop
+        i_g = idx[grass]
+        n_g = _ref_random_unit(rng, len(i_g)) * 0.5 + normals[i_g]
+        normals[i_g] = n_g / np.sqrt(_dot3(n_g, n_g))[:, None]
+        reflect[idx[grass]] *= rng.uniform(0.6, 1.4, grass.sum())
+    rng_[idx] = np.maximum(r_new, 0.05)
+
+
+def _ref_vegetation(self, origins, dirs, rays, rng_, normals, reflect, cat, rng):
+    from blockloc.sim.scene import raycast_threads
+    from blockloc.sim.world import _ICO_F, ALBEDO
+
+    o3d = self._o3d
+    vol = self.world.volumes
+    active = np.arange(len(rng_))
+    t_cur = np.zeros(len(rng_))
+    fol = self._cat_index["foliage"]
+    for k in range(4):
+        if not len(active):
+            break
+        if k:
+            o = origins[active] + dirs[active] * t_cur[active, None]
+            rays = np.concatenate([o, dirs[active]], axis=1).astype(np.float32)
+        a = self._vol_scene.cast_rays(o3d.core.Tensor(rays), nthreads=raycast_threads())
+        th = a["t_hit"].numpy().astype(np.float64)
+        if k:
+            th += t_cur[active]
+        hit = np.isfinite(th) & (th < rng_[active])
+        active, th = active[hit], th[hit]
+        if not len(active):
+            break
+        v = self._vsel[a["primitive_ids"].numpy()[hit].astype(np.int64) // len(_ICO_F)]
+        t_in, t_out = _ref_ellipsoid_interval(origins[active], dirs[active], vol.center[v], self._vol_radii[v])
+        miss = ~np.isfinite(t_in)
+        t_in = np.where(miss, th, np.maximum(t_in, t_cur[active]))
+        t_out = np.where(miss, th, t_out)
+        t_stop = t_in + rng.exponential(self._vol_mfp[v])
+        stop = ~miss & (t_stop < t_out) & (t_stop < rng_[active])
+        j = active[stop]
+        rng_[j] = t_stop[stop]
+        normals[j] = _ref_random_unit(rng, len(j))
+        reflect[j] = ALBEDO["foliage"] * rng.uniform(0.4, 1.4, len(j))
+        cat[j] = fol
+        go = ~stop
+        active = active[go]
+        t_cur[active] = np.maximum(t_out[go], th[go]) + 1e-3
+
+
+def test_scene_cast_gives_the_numpy_ground_and_vegetation_bits(monkeypatch):
+    """A real scene's cast (tiny world, a localization day: grass, kerbs, crowns, walkers), with
+    the kernels and with the numpy they replaced, from the same generator: the same bits."""
+    from blockloc.sim.scene import SessionScene
+    from blockloc.sim.stream import open_sim_sequence
+
+    seq = open_sim_sequence("tiny", "loc", 3)
+    scene = seq.scene
+    A = 720
+    col = np.arange(A) * (0.1 / A)
+    casts = []
+    for t0 in (4.0, 20.0, 33.0):
+        T = seq.trajectory.T_world_flu(t0 + col) @ seq.T_flu_lidar
+        d_nom, d_true, _ = _beams(A, 0.0, None)
+        dirs = np.matmul(d_true, T[:, :3, :3].transpose(0, 2, 1)).reshape(-1, 3)
+        origins = np.repeat(T[:, :3, 3], 32, axis=0)
+        casts.append((origins, dirs, t0 + 0.05))
+
+    def run():
+        return [scene.cast_full(o, d, t, 100.0, np.random.default_rng(7 + k)) for k, (o, d, t) in enumerate(casts)]
+
+    got = run()
+    monkeypatch.setattr(SessionScene, "_ground_relief", _ref_ground_relief)
+    monkeypatch.setattr(SessionScene, "_vegetation", _ref_vegetation)
+    want = run()
+    fol, grass_like = scene.categories.index("foliage"), scene.categories.index("terrain")
+    assert sum(int((w["cat"] == fol).sum()) for w in want) > 50  # rays stopped in crowns
+    assert sum(int((w["cat"] == grass_like).sum()) for w in want) > 1000
+    for g, w in zip(got, want):
+        for key in ("range", "normal", "reflect", "cat", "glass", "retro"):
+            assert g[key].dtype == w[key].dtype and g[key].tobytes() == w[key].tobytes(), key
