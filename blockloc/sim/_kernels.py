@@ -402,3 +402,46 @@ def vegetation_stops(act, th, t_in, t_out, miss, free_path, rng_, t_cur):
             going[b] = i
             b += 1
     return stopped, going
+
+
+@njit(cache=True, nogil=True)
+def make_rays(origins, dirs):
+    """(N, 6) float32 rays (origin, direction) of origins, dirs (N, 3) float64."""
+    out = np.empty((len(origins), 6), np.float32)
+    for i in range(len(origins)):
+        for c in range(3):
+            out[i, c] = origins[i, c]
+            out[i, 3 + c] = dirs[i, c]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def static_hits(t32, prim, n32, sel):
+    """An open3d cast's answer as the scene uses it: range (N,) float64 (inf: no hit), triangle
+    (N,) int64 (``sel[prim]``: the scene's triangles are a selection of the world's; -1: no hit)
+    and normals (N, 3) float64 (t_hit (N,) float32, primitive ids (N,) uint32, normals (N, 3)
+    float32)."""
+    n = len(t32)
+    t = np.empty(n)
+    tri = np.empty(n, np.int64)
+    nrm = np.empty((n, 3))
+    for i in range(n):
+        t[i] = t32[i]
+        tri[i] = sel[np.int64(prim[i])] if np.isfinite(t32[i]) else -1
+        for c in range(3):
+            nrm[i, c] = n32[i, c]
+    return t, tri, nrm
+
+
+@njit(cache=True, nogil=True)
+def hit_categories(rng_, tri, tri_cat, reflect_by_cat):
+    """Category (N,) int64 of each hit (``tri_cat[tri]``; -1 where ``rng_`` is inf) and its
+    reflectance (N,) (``reflect_by_cat[cat]``; the last entry: no hit)."""
+    n = len(rng_)
+    cat = np.empty(n, np.int64)
+    refl = np.empty(n)
+    for i in range(n):
+        c = np.int64(tri_cat[tri[i]]) if np.isfinite(rng_[i]) else np.int64(-1)
+        cat[i] = c
+        refl[i] = reflect_by_cat[c]
+    return cat, refl

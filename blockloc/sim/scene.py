@@ -362,6 +362,11 @@ class SessionScene:
         o3d = self._o3d
         tensor = o3d.core.Tensor(rays)
         ans = self.scene.cast_rays(tensor, nthreads=raycast_threads())
+        if self._terrain_scene is None:
+            from blockloc.sim import _kernels
+
+            return _kernels.static_hits(ans["t_hit"].numpy(), ans["primitive_ids"].numpy(),
+                                        ans["primitive_normals"].numpy(), self._sel)
         t = ans["t_hit"].numpy()
         prim = ans["primitive_ids"].numpy().astype(np.int64)
         normals = ans["primitive_normals"].numpy()
@@ -396,11 +401,9 @@ class SessionScene:
 
         rng = rng if rng is not None else np.random.default_rng(0)
         self._ensure_window(origins[len(origins) // 2])
-        rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
+        rays = _kernels.make_rays(origins, dirs)
         rng_, tri, normals = self._cast_static(rays)
-        hit = np.isfinite(rng_)
-        cat = np.where(hit, self._tri_cat[tri].astype(np.int64), -1)
-        reflect = self._reflect_by_cat[cat]
+        cat, reflect = _kernels.hit_categories(rng_, tri, self._tri_cat, self._reflect_by_cat)
         glass = np.zeros(len(rng_), dtype=bool)
         g_idx, p = _kernels.ground_hits(origins, dirs, rng_, cat, self.terrain_cat)
         if len(g_idx):
