@@ -60,7 +60,8 @@ def lidar_returns(rng_true, cosi, reflect, nrm, tail_u, tail_prob, lap_u, lap_sc
     rng_true, cosi, reflect: (N,) from :func:`lidar_ranges`. Range noise: ``nrm`` (N,) Gaussian,
     replaced where ``tail_u < tail_prob`` by a Laplace tail of scale ``lap_scale`` drawn from the
     uniform ``lap_u`` (N,) in (0, 1) as numpy's ``Generator.laplace`` does (libm's log, as numpy's
-    C code: the same bits), plus the laser's ``range_offset`` (32,) when ``use_offset``. u_drop, u_graze: (N,) uniform draws. gain: (32,).
+    C code: the same bits), plus the laser's ``range_offset`` (32,) when ``use_offset``.
+    u_drop, u_graze: (N,) uniform draws. gain: (32,).
     Returns r (N,) measured range, ok (N,) bool, power (N,) (reflectance-and-incidence, no gain),
     rr (N,) range for the intensity's fall-off (>= 1 m; 1 km where nothing was hit) and snr (N,).
     """
