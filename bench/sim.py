@@ -9,6 +9,9 @@ on another tree (``--tree /work/main``: that tree on PYTHONPATH, for a paired be
 
     python -m bench.sim --scan-ms campus --frames 40   # median ms a scan (wall, CPU), default sensor
     python -m bench.sim --write-s small --runs 2       # `blockloc sim --preset small` wall time
+    python -m bench.sim --write-s small --max-frames 300   # its first 300 frames a session (~2 min)
+
+--write-s writes under the temp directory (``TMPDIR=/big/disk``: the small preset is 2.7 GB).
 """
 
 from __future__ import annotations
@@ -57,6 +60,15 @@ print(f"{statistics.median(per) * 1e3:.1f} ms median wall, {statistics.median(cp
 """
 
 
+# `blockloc sim`'s writing of the first n frames of each session (generate_dataset's max_frames;
+# its workers as for the whole preset when the frames are >= MIN_FRAMES_FOR_WORKERS in all)
+_WRITE_FIRST = """
+import sys
+from blockloc.sim.writer import generate_dataset
+generate_dataset(sys.argv[1], 1, sys.argv[2], max_frames=int(sys.argv[3]))
+"""
+
+
 def _uptime() -> str:
     return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
 
@@ -89,16 +101,21 @@ def speed_probe(args) -> None:
                 load = _uptime()
                 t0 = time.perf_counter()
                 r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-                subprocess.run(["blockloc", "sim", "--preset", args.write_s, "--seed", "1", "--out",
-                                str(tmp / "sim_out")], check=True, stdout=subprocess.DEVNULL,
-                               stderr=subprocess.DEVNULL, env=_env(tree), cwd=tree or ROOT)
+                if args.max_frames:  # the first frames of each session, written as the command does
+                    cmd = [sys.executable, "-c", _WRITE_FIRST, args.write_s, str(tmp / "sim_out"),
+                           str(args.max_frames)]
+                else:
+                    cmd = ["blockloc", "sim", "--preset", args.write_s, "--seed", "1", "--out", str(tmp / "sim_out")]
+                subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                               env=_env(tree), cwd=tree or ROOT)
                 wall = time.perf_counter() - t0
                 r1 = resource.getrusage(resource.RUSAGE_CHILDREN)  # the command and its workers
                 cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
             finally:
                 shutil.rmtree(tmp, ignore_errors=True)
-            print(f"write-s {args.write_s} ({where}, seed 1): {wall:.1f} s wall, {cpu:.1f} s CPU | before: {load} | "
-                  f"after: {_uptime()}", flush=True)
+            first = f", first {args.max_frames} frames a session" if args.max_frames else ""
+            print(f"write-s {args.write_s} ({where}, seed 1{first}): {wall:.1f} s wall, {cpu:.1f} s CPU | "
+                  f"before: {load} | after: {_uptime()}", flush=True)
 
 
 def main(argv: list[str] | None = None) -> Path | None:
@@ -107,6 +124,8 @@ def main(argv: list[str] | None = None) -> Path | None:
     ap.add_argument("--scan-ms", metavar="PRESET", help="probe: median ms a scan of PRESET's loc drive")
     ap.add_argument("--write-s", metavar="PRESET", help="probe: wall s of `blockloc sim --preset PRESET`")
     ap.add_argument("--frames", type=int, default=40, help="--scan-ms: frames timed")
+    ap.add_argument("--max-frames", type=int, default=0,
+                    help="--write-s: only the first N frames of each session (a quick re-run)")
     ap.add_argument("--runs", type=int, default=1, help="probe runs (each printed)")
     ap.add_argument("--tree", help="probe another source tree (its path on PYTHONPATH), e.g. /work/main")
     args = ap.parse_args(argv)

@@ -13,7 +13,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from blockloc.sim.presets import LidarModel
-from blockloc.sim.scene import dot3
 
 #: Elevation (deg, up positive) of HDL-32E lasers 0..31 in firing order (Velodyne manual).
 HDL32E_ELEVATION_DEG = np.array([
@@ -122,19 +121,6 @@ def _beams(A: int, az0: float, calib: SensorCalibration | None):
     return _BEAMS[key]
 
 
-def _mixed_pixels(r: np.ndarray, model: LidarModel, rng: np.random.Generator) -> np.ndarray:
-    """Ranges (A, 32): where a laser's next column jumps by more than ``mixed_pixel_gap_m``
-    the footprint straddles the edge and, with ``mixed_pixel_prob``, the return lies between
-    the two surfaces."""
-    nxt = np.roll(r, -1, axis=0)
-    with np.errstate(invalid="ignore"):
-        gap = nxt - r
-    edge = np.isfinite(gap) & (np.abs(gap) > model.mixed_pixel_gap_m)
-    mix = edge & (rng.random(r.shape) < model.mixed_pixel_prob)
-    frac = rng.uniform(0.1, 0.9, r.shape)
-    return np.where(mix, r + frac * np.where(np.isfinite(gap), gap, 0.0), r)
-
-
 def simulate_scan(scene, T_world_lidar_cols: np.ndarray, col_offsets: np.ndarray,
                   model: LidarModel, rng: np.random.Generator, t_mid: float | None,
                   az0: float = 0.0, calib: SensorCalibration | None = None) -> ScanResult:
@@ -151,46 +137,60 @@ def simulate_scan(scene, T_world_lidar_cols: np.ndarray, col_offsets: np.ndarray
     dirs = np.matmul(d_true, R.transpose(0, 2, 1)).reshape(-1, 3)
     origins = np.repeat(T_world_lidar_cols[:, :3, 3], 32, axis=0)
     h = scene.cast_full(origins, dirs, t_mid, model.max_range_m, rng)
-    rng_true, normals, reflect, cat = h["range"], h["normal"], h["reflect"], h["cat"]
+    from blockloc.sim import _kernels
+
+    rng_true, cat = h["range"], h["cat"]
     n = len(rng_true)
-    if model.self_hits:
-        mine = r_self < rng_true
-        rng_true = np.where(mine, r_self, rng_true)
-        cat = np.where(mine, scene.categories.index("self"), cat)
-        reflect = np.where(mine, 0.15, reflect)
-    cosi = np.abs(dot3(normals, dirs))
+    # the draws in their order (the generator's stream is the scan's bytes); the per-ray models
+    # run in the kernels, numpy's exp and power ufuncs here (see blockloc.sim._kernels)
     if model.mixed_pixel_prob > 0:
-        rng_true = _mixed_pixels(rng_true.reshape(A, 32), model, rng).reshape(-1)
-    noise = rng.normal(0.0, model.range_noise_m, n)
+        mix_u = rng.random((A, 32)).reshape(-1)
+        mix_frac = rng.uniform(0.1, 0.9, (A, 32)).reshape(-1)
+    else:
+        mix_u = mix_frac = np.zeros(n)
+    cosi, rng_true = _kernels.lidar_ranges(rng_true, h["normal"], dirs, h["reflect"], cat, r_self,
+                                           scene.categories.index("self"), bool(model.self_hits),
+                                           mix_u, mix_frac, float(model.mixed_pixel_prob),
+                                           float(model.mixed_pixel_gap_m))
+    nrm = rng.normal(0.0, model.range_noise_m, n)
     if model.range_tail_prob > 0:
-        tail = rng.random(n) < model.range_tail_prob
-        noise = np.where(tail, rng.laplace(0.0, model.range_tail_scale_m, n), noise)
-    laser = np.tile(np.arange(32), A)
-    if calib is not None:
-        noise = noise + calib.range_offset_m[laser]
+        tail_u = rng.random(n)
+        # Generator.laplace(0, s, n) is s * log of its n uniform draws, computed in the kernel
+        # where the tail is used; a draw of exactly 0 (p = 2^-53 a ray) makes numpy's laplace draw
+        # again, so then the stream is drawn again by numpy itself
+        state = rng.bit_generator.state
+        lap_u = rng.random(n)
+        if not lap_u.all():
+            rng.bit_generator.state = state
+            lap_u = None
+            lap = rng.laplace(0.0, model.range_tail_scale_m, n)
+    else:
+        tail_u = lap_u = nrm
     u_drop = rng.random(n)
     u_graze = rng.random(n)
     u_weak = rng.random(n)
-    speckle = rng.lognormal(0.0, model.intensity_speckle, n) if model.intensity_speckle > 0 else np.ones(n)
-    r = rng_true + noise
-    ok = np.isfinite(rng_true) & (rng_true <= model.max_range_m) & (r >= model.min_range_m)
-    ok &= u_drop >= model.dropout_prob
-    ok &= ~((cosi < model.grazing_dropout_cos) & (u_graze < 0.5))
-    gain = calib.gain[laser] if calib is not None else np.ones(n)
-    # received power ~ reflectance * cos(incidence) / range^2, which the unit reports partly
-    # range-compensated (see LidarModel.intensity_*); weak returns are lost (dark, far, grazing)
-    power = reflect * (0.2 + 0.8 * cosi)
-    rr = np.maximum(np.where(np.isfinite(rng_true), rng_true, 1e3), 1.0)
-    inten = (model.intensity_scale * gain * power * speckle
-             * np.minimum(1.0, (model.intensity_knee_m / rr) ** model.intensity_exponent))
+    # lognormal(0, s, n) is exp of normal(0, s, n): the exp is taken in the kernel for the kept returns
+    speckle_n = rng.normal(0.0, model.intensity_speckle, n) if model.intensity_speckle > 0 else np.zeros(0)
+    gain = calib.gain if calib is not None else np.ones(32)
+    if lap_u is None:  # the rare redraw: the tail's values as numpy gave them
+        nrm = np.where(tail_u < model.range_tail_prob, lap, nrm)
+        tail_u = np.ones(n)
+        lap_u = nrm
+    r, ok, power, rr, snr = _kernels.lidar_returns(
+        rng_true, cosi, h["reflect"], nrm, tail_u, float(model.range_tail_prob), lap_u,
+        float(model.range_tail_scale_m), calib.range_offset_m if calib is not None else np.zeros(32),
+        calib is not None, u_drop, u_graze, gain, float(model.max_range_m), float(model.min_range_m),
+        float(model.dropout_prob), float(model.grazing_dropout_cos))
     if model.weak_return_dropout:
-        snr = power * gain * (10.0 / rr) ** 2
-        ok &= u_weak >= np.exp(-snr / 0.004)
-    retro = h["retro"]
-    inten = np.where(retro, rng.uniform(180.0, 255.0, n), inten)
+        # received power ~ reflectance * cos(incidence) / range^2: weak returns are lost (dark,
+        # far, grazing)
+        cand = np.flatnonzero(ok)
+        ok[cand] = u_weak[cand] >= np.exp(-snr[cand] / 0.004)
     idx = np.flatnonzero(ok)
-    pts = d_nom.reshape(-1, 3)[idx] * r[idx, None]
-    ring = laser[idx].astype(np.uint16)
-    toff = np.repeat(col_offsets.astype(np.float32), 32)[idx]
-    i_out = np.floor(np.clip(inten[idx], 0.0, 255.0)).astype(np.float32)
+    # intensity: the unit reports the power partly range-compensated (see LidarModel.intensity_*)
+    falloff = np.minimum(1.0, (model.intensity_knee_m / rr[idx]) ** model.intensity_exponent)
+    retro_u = rng.uniform(180.0, 255.0, n)
+    pts, ring, toff, i_out = _kernels.lidar_points(
+        idx, r, d_nom.reshape(-1, 3), col_offsets.astype(np.float32), float(model.intensity_scale), gain,
+        power, speckle_n, falloff, h["retro"], retro_u)
     return ScanResult(pts, i_out, ring, toff, cat[idx])

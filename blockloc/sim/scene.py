@@ -192,20 +192,13 @@ def make_actors(world: World, session: str) -> Actors:
 # --- surface detail ---------------------------------------------------------------------------
 
 def value_noise(x: np.ndarray, y: np.ndarray, cell_m: float, seed: int) -> np.ndarray:
-    """Smooth deterministic noise in [-1, 1] at (x, y): bilinear over a hashed lattice."""
-    gx, gy = np.asarray(x) / cell_m, np.asarray(y) / cell_m
-    ix, iy = np.floor(gx).astype(np.int64), np.floor(gy).astype(np.int64)
-    fx, fy = gx - ix, gy - iy
+    """Smooth deterministic noise in [-1, 1] at (x, y) (broadcastable arrays): bilinear over a
+    hashed lattice (``blockloc.sim._kernels.value_noise``, one pass; it was ~12 numpy passes)."""
+    from blockloc.sim import _kernels
 
-    def h(i, j):
-        v = (i * 73856093) ^ (j * 19349663) ^ (seed * 83492791)
-        v = (v ^ (v >> 13)) * 1274126177
-        return ((v ^ (v >> 16)) & 0xFFFF) / 32767.5 - 1.0
-
-    sx, sy = fx * fx * (3 - 2 * fx), fy * fy * (3 - 2 * fy)
-    top = h(ix, iy) * (1 - sx) + h(ix + 1, iy) * sx
-    bot = h(ix, iy + 1) * (1 - sx) + h(ix + 1, iy + 1) * sx
-    return top * (1 - sy) + bot * sy
+    x, y = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64))
+    out = _kernels.value_noise(x.ravel(), y.ravel(), float(cell_m), np.int64(int(seed) * 83492791))
+    return out.reshape(x.shape)
 
 
 def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -217,18 +210,6 @@ def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def _random_unit(rng: np.random.Generator, n: int) -> np.ndarray:
     v = rng.normal(size=(n, 3))
     return v / np.sqrt(dot3(v, v))[:, None]  # np.linalg.norm(v, axis=1, keepdims=True), its bits
-
-
-def ellipsoid_interval(o: np.ndarray, d: np.ndarray, c: np.ndarray, r: np.ndarray):
-    """Ray parameters (t_in, t_out) where rays o + t d (N, 3) cross axis-aligned ellipsoids
-    (centres c, semi-axes r, (N, 3) each); NaN where they miss."""
-    oo, dd = (o - c) / r, d / r
-    a = dot3(dd, dd)
-    b = dot3(oo, dd)
-    cc = dot3(oo, oo) - 1.0
-    disc = b * b - a * cc
-    sq = np.sqrt(np.where(disc >= 0, disc, np.nan))
-    return (-b - sq) / a, (-b + sq) / a
 
 
 #: A box this deep along a ray behind a window holds a room (shallower: a wall, a pillar).
@@ -381,6 +362,11 @@ class SessionScene:
         o3d = self._o3d
         tensor = o3d.core.Tensor(rays)
         ans = self.scene.cast_rays(tensor, nthreads=raycast_threads())
+        if self._terrain_scene is None:
+            from blockloc.sim import _kernels
+
+            return _kernels.static_hits(ans["t_hit"].numpy(), ans["primitive_ids"].numpy(),
+                                        ans["primitive_normals"].numpy(), self._sel)
         t = ans["t_hit"].numpy()
         prim = ans["primitive_ids"].numpy().astype(np.int64)
         normals = ans["primitive_normals"].numpy()
@@ -411,24 +397,22 @@ class SessionScene:
             return self._cast_full(origins, dirs, t, max_range, rng)
 
     def _cast_full(self, origins, dirs, t, max_range, rng) -> dict:
+        from blockloc.sim import _kernels
+
         rng = rng if rng is not None else np.random.default_rng(0)
         self._ensure_window(origins[len(origins) // 2])
-        rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
+        rays = _kernels.make_rays(origins, dirs)
         rng_, tri, normals = self._cast_static(rays)
-        hit = np.isfinite(rng_)
-        cat = np.where(hit, self._tri_cat[tri].astype(np.int64), -1)
-        reflect = self._reflect_by_cat[cat]
+        cat, reflect = _kernels.hit_categories(rng_, tri, self._tri_cat, self._reflect_by_cat)
         glass = np.zeros(len(rng_), dtype=bool)
-        on_ground = cat == self.terrain_cat
-        if on_ground.any():
-            o_g, d_g = origins[on_ground], dirs[on_ground]
-            p = o_g + d_g * rng_[on_ground, None]
+        g_idx, p = _kernels.ground_hits(origins, dirs, rng_, cat, self.terrain_cat)
+        if len(g_idx):
             if self.detail.ground_relief:  # the material is looked up once, for both
                 mat = self.world.ground_material(p[:, 0], p[:, 1])
-                reflect[on_ground] = GROUND_ALBEDO[mat]
-                self._ground_relief(np.flatnonzero(on_ground), o_g, d_g, rng_, normals, reflect, rng, p, mat)
+                reflect[g_idx] = GROUND_ALBEDO[mat]
+                self._ground_relief(g_idx, origins, dirs, rng_, normals, reflect, rng, p, mat)
             else:
-                reflect[on_ground] = self.world.ground_albedo(p[:, 0], p[:, 1])
+                reflect[g_idx] = self.world.ground_albedo(p[:, 0], p[:, 1])
         on_bldg = np.isin(cat, self._facade_cats)
         lost_at = np.full(len(rng_), np.inf)  # range of the pane a ray is lost at
         if on_bldg.any():
@@ -455,22 +439,22 @@ class SessionScene:
         return {"range": rng_, "normal": normals, "reflect": reflect, "cat": cat, "glass": glass,
                 "retro": retro}
 
-    def _ground_relief(self, idx, o, d, rng_, normals, reflect, rng, p, mat) -> None:
+    def _ground_relief(self, idx, origins, dirs, rng_, normals, reflect, rng, p, mat) -> None:
         """Kerbs (sidewalks KERB_M above the road), grass (a layer 4-12 cm high that rays
         enter and stop in) and a few cm of micro relief, applied along each ground ray ``idx``
-        (origins ``o``, directions ``d``, (len(idx), 3)), which hit the terrain at ``p``
-        (len(idx), 3), of ground material ``mat``."""
+        (of the rays ``origins``, ``dirs`` (N, 3)), which hit the terrain at ``p`` (len(idx), 3),
+        of ground material ``mat``."""
+        from blockloc.sim import _kernels
+
         world = self.world
         r = rng_[idx]
-        down = np.maximum(-d[:, 2], 0.02)
         seed = self._seed
-        micro = value_noise(p[:, 0], p[:, 1], 0.7, seed) * np.where(mat == 2, 0.02, 0.004)
-        r_new = r - micro / down
+        r_new, down = _kernels.ground_micro(r, dirs[idx, 2], p, mat, np.int64(seed * 83492791))
         # kerb: the sidewalk surface is raised; a ray whose raised hit falls back over the road
         # meets the kerb's face instead
-        side = mat == 1
-        if side.any():
-            o_s, d_s, r_0 = o[side], d[side], r[side]
+        side = np.flatnonzero(mat == 1)
+        if len(side):
+            o_s, d_s, r_0 = origins[idx[side]], dirs[idx[side]], r[side]
             r_side = r_0 - KERB_M / down[side]
             p1 = o_s + d_s * r_side[:, None]
             face = world.ground_material(p1[:, 0], p1[:, 1]) == 0
@@ -491,16 +475,13 @@ class SessionScene:
                 nn[face] = n_face
                 normals[idx[side]] = nn
             r_new[side] = r_s + (r_new[side] - r_0)
-        grass = mat == 2
-        if grass.any():
-            g_h = 0.08 + 0.04 * value_noise(p[grass, 0], p[grass, 1], 1.5, seed + 1)
-            depth = g_h / down[grass]  # path length through the layer
-            stop = np.minimum(rng.exponential(0.25, grass.sum()), depth)
-            r_new[grass] = r_new[grass] - depth + stop
-            i_g = idx[grass]
-            n_g = _random_unit(rng, len(i_g)) * 0.5 + normals[i_g]
-            normals[i_g] = n_g / np.sqrt(dot3(n_g, n_g))[:, None]
-            reflect[idx[grass]] *= rng.uniform(0.6, 1.4, grass.sum())
+        grass = np.flatnonzero(mat == 2)
+        if len(grass):  # the draws in their order: stops, tilts, reflectances
+            stop = rng.exponential(0.25, len(grass))
+            tilt = rng.normal(size=(len(grass), 3))
+            refl = rng.uniform(0.6, 1.4, len(grass))
+            _kernels.ground_grass(r_new, down, p, grass, idx, stop, tilt, normals, reflect, refl,
+                                  np.int64((seed + 1) * 83492791))
         rng_[idx] = np.maximum(r_new, 0.05)
 
     def _facades(self, idx, owner, origins, dirs, rng_, normals, reflect, glass, rng, cat, lost_at) -> None:
@@ -575,6 +556,8 @@ class SessionScene:
         exponential free path (mean ``mfp``), or leaves it and goes on (to the trunk, another
         crown, the ground). Up to four volumes a ray. ``rays``: (N, 6) float32 origins and
         directions, the first pass's rays (every ray from its origin)."""
+        from blockloc.sim import _kernels
+
         o3d = self._o3d
         vol = self.world.volumes
         active = np.arange(len(rng_))
@@ -584,32 +567,18 @@ class SessionScene:
             if not len(active):
                 break
             if k:  # on from where each ray left its last volume
-                o = origins[active] + dirs[active] * t_cur[active, None]
-                rays = np.concatenate([o, dirs[active]], axis=1).astype(np.float32)
+                rays = _kernels.vegetation_rays(origins, dirs, active, t_cur)
             a = self._vol_scene.cast_rays(o3d.core.Tensor(rays), nthreads=raycast_threads())
-            th = a["t_hit"].numpy().astype(np.float64)
-            if k:
-                th += t_cur[active]
-            hit = np.isfinite(th) & (th < rng_[active])
-            active, th = active[hit], th[hit]
+            active, th, v, t_in, t_out, miss = _kernels.vegetation_hits(
+                a["t_hit"].numpy(), a["primitive_ids"].numpy(), active, t_cur, rng_, self._vsel, len(_ICO_F),
+                origins, dirs, vol.center, self._vol_radii, k == 0)
             if not len(active):
                 break
-            v = self._vsel[a["primitive_ids"].numpy()[hit].astype(np.int64) // len(_ICO_F)]
-            t_in, t_out = ellipsoid_interval(origins[active], dirs[active], vol.center[v],
-                                             self._vol_radii[v])
-            miss = ~np.isfinite(t_in)
-            t_in = np.where(miss, th, np.maximum(t_in, t_cur[active]))
-            t_out = np.where(miss, th, t_out)
-            t_stop = t_in + rng.exponential(self._vol_mfp[v])
-            stop = ~miss & (t_stop < t_out) & (t_stop < rng_[active])
-            j = active[stop]
-            rng_[j] = t_stop[stop]
+            free_path = rng.exponential(self._vol_mfp[v])
+            j, active = _kernels.vegetation_stops(active, th, t_in, t_out, miss, free_path, rng_, t_cur)
             normals[j] = _random_unit(rng, len(j))
             reflect[j] = ALBEDO["foliage"] * rng.uniform(0.4, 1.4, len(j))
             cat[j] = fol
-            go = ~stop
-            active = active[go]
-            t_cur[active] = np.maximum(t_out[go], th[go]) + 1e-3
 
     def actor_mesh(self, t: float, center: np.ndarray, radius: float):
         """Actors within ``radius`` of ``center`` (2,) at time t: (V, F, category per triangle)."""
@@ -636,16 +605,9 @@ class SessionScene:
         # select per column when rays come in columns sharing an origin (the lidar model casts
         # 32 a column); the bounding circle is 3.5 m, wider than any actor, for the tilt margin
         step = 32 if len(rays) % 32 == 0 and np.allclose(origins[::32], origins[31::32]) else 1
-        o = origins[::step, :2]
-        dv = dirs[::step, :2]
-        hx = np.hypot(dv[:, 0], dv[:, 1]) + 1e-12
-        # every (actor, column) pair at once: (K, columns)
-        rel_x, rel_y = xy[near, 0, None] - o[None, :, 0], xy[near, 1, None] - o[None, :, 1]
-        dist = np.hypot(rel_x, rel_y)
-        along = (rel_x * dv[:, 0] + rel_y * dv[:, 1]) / hx
-        perp2 = np.maximum(dist * dist - along * along, 0.0)
-        # a column's beams fan out in xy when the sensor tilts: the margin grows with range
-        sel_c = ((perp2 < (3.5 + 0.1 * dist) ** 2) & ((along > 0) | (dist < 3.5))).any(axis=0)
+        from blockloc.sim import _kernels
+
+        sel_c = _kernels.actor_columns(np.ascontiguousarray(xy[near]), origins[::step, :2], dirs[::step, :2])
         sel = np.repeat(sel_c, step)
         idx = np.flatnonzero(sel)
         if not len(idx):

@@ -94,29 +94,27 @@ class World:
         out = np.empty(x.shape, dtype=np.uint8)
         if not x.size:
             return out
-        ti = np.floor(x / tile).astype(np.int64)
-        tj = np.floor(y / tile).astype(np.int64)
+        if x.ndim != 1 or y.shape != x.shape:  # the kernels take flat arrays
+            x, y = np.broadcast_arrays(x, y)
+            return self.ground_material(x.ravel(), y.ravel()).reshape(x.shape)
+        from blockloc.sim import _kernels
+
         # tiles numbered within the points' bounding box of tiles (a scan's ground hits span a few):
         # grouping them by a sort (np.unique) took a third of a campus scan's ground lookups
-        i0, j0 = int(ti.min()), int(tj.min())
-        ni, nj = int(ti.max()) - i0 + 1, int(tj.max()) - j0 + 1
-        if ni * nj > 1 << 16:  # scattered far apart: number them by a sort instead
+        ti, tj, i0, j0, ni, nj, local, used = _kernels.material_tiles(x, y, tile, 1 << 16)
+        if not len(local) and len(x):  # scattered far apart: number them by a sort instead
             uniq, local = np.unique(ti * 1_000_003 + tj, return_inverse=True)
             ids = [(int(k // 1_000_003), int(k % 1_000_003)) for k in uniq]
             ids = [(a + 1, b - 1_000_003) if b > 500_000 else (a, b) for a, b in ids]  # negative tj
-            local = local.reshape(x.shape)
+            slot = np.arange(len(ids))
         else:
-            local = (ti - i0) * nj + (tj - j0)
-            used = np.flatnonzero(np.bincount(local.ravel(), minlength=ni * nj))
-            ids = [(i0 + int(k) // nj, j0 + int(k) % nj) for k in used]
+            used = np.flatnonzero(used)
+            ids = [(int(i0) + int(k) // int(nj), int(j0) + int(k) % int(nj)) for k in used]
             slot = np.zeros(ni * nj, dtype=np.int64)
             slot[used] = np.arange(len(used))
-            local = slot[local]
         tiles = [self._material_tile(a, b, n, res, tile) for a, b in ids]  # in (ti, tj) order
         R = tiles[0][None] if len(tiles) == 1 else np.stack(tiles)
-        i = np.clip(((y - tj * tile) / res).astype(np.int64), 0, n - 1)
-        j = np.clip(((x - ti * tile) / res).astype(np.int64), 0, n - 1)
-        out[...] = (R[local, i, j >> 2] >> ((j & 3) << 1).astype(np.uint8)) & 3
+        out[...] = _kernels.material_lookup(R, slot, local.reshape(-1), ti, tj, x, y, tile, res)
         return out
 
     def _material_tile(self, a: int, b: int, n: int, res: float, tile: float) -> np.ndarray:

@@ -1,0 +1,448 @@
+"""Numba kernels of the simulator's per-ray models (leaf module: importing it imports numba).
+
+Each kernel is one pass over a scan's rays (~70k) doing what a chain of numpy expressions did in
+as many passes, with the same IEEE operations in the same order, so its results are the numpy
+expressions' bits (held to them by tests/test_sim_kernels.py). What a kernel must not compute
+itself is left to numpy by its caller: random draws (the generator's stream is the scan's bytes)
+and numpy's transcendental ufuncs (its SIMD ``exp`` / ``power`` differ from libm's in the last
+bit now and then, and a return kept or dropped on such a bit is a different scan). A kernel may
+finish a draw the generator's C code finishes with libm (``laplace``: log of a uniform;
+``lognormal``: exp of a normal): numba calls the same libm, so those bits are numpy's, and the
+kernel takes them only for the rays that use them.
+
+Ray layout: ray ``i = column * 32 + laser``, the lidar model's (A, 32) sweep flattened.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def lidar_ranges(rng_true, normals, dirs, reflect, cat, r_self, self_cat, self_hits,
+                 mix_u, mix_frac, mix_prob, gap_m):
+    """Self hits, incidence and mixed pixels of one sweep.
+
+    rng_true, reflect (N,) float64 and cat (N,) int64 are the cast's, changed in place where the
+    robot's own parts (``r_self`` (N,), inf: none) are nearer (``self_hits``): range r_self,
+    reflectance 0.15, category ``self_cat``. normals, dirs: (N, 3) float64 (world).
+    mix_u, mix_frac: (N,) the mixed-pixel draws (uniform [0, 1) and [0.1, 0.9); mix_prob 0: none):
+    where a laser's next column (wrapping) jumps by more than ``gap_m`` and ``mix_u < mix_prob``
+    the range moves ``mix_frac`` of the way to the next one.
+    Returns |cos incidence| (N,) and the ranges after mixing (N,) float64 metres.
+    """
+    n = len(rng_true)
+    cosi = np.empty(n)
+    if self_hits:
+        for i in range(n):
+            if r_self[i] < rng_true[i]:
+                rng_true[i] = r_self[i]
+                cat[i] = self_cat
+                reflect[i] = 0.15
+    for i in range(n):
+        cosi[i] = abs(normals[i, 0] * dirs[i, 0] + normals[i, 1] * dirs[i, 1] + normals[i, 2] * dirs[i, 2])
+    out = rng_true.copy()
+    if mix_prob > 0:
+        for i in range(n):
+            j = i + 32 if i + 32 < n else i + 32 - n  # the same laser's next column
+            gap = rng_true[j] - rng_true[i]
+            if np.isfinite(gap) and abs(gap) > gap_m and mix_u[i] < mix_prob:
+                out[i] = rng_true[i] + mix_frac[i] * gap
+    return cosi, out
+
+
+@njit(cache=True, nogil=True)
+def lidar_returns(rng_true, cosi, reflect, nrm, tail_u, tail_prob, lap_u, lap_scale, range_offset,
+                  use_offset, u_drop, u_graze, gain, max_range, min_range, dropout_prob, grazing_cos):
+    """Measured ranges and the returns kept before the weak-signal test.
+
+    rng_true, cosi, reflect: (N,) from :func:`lidar_ranges`. Range noise: ``nrm`` (N,) Gaussian,
+    replaced where ``tail_u < tail_prob`` by a Laplace tail of scale ``lap_scale`` drawn from the
+    uniform ``lap_u`` (N,) in (0, 1) as numpy's ``Generator.laplace`` does (libm's log, as numpy's
+    C code: the same bits), plus the laser's ``range_offset`` (32,) when ``use_offset``.
+    u_drop, u_graze: (N,) uniform draws. gain: (32,).
+    Returns r (N,) measured range, ok (N,) bool, power (N,) (reflectance-and-incidence, no gain),
+    rr (N,) range for the intensity's fall-off (>= 1 m; 1 km where nothing was hit) and snr (N,).
+    """
+    n = len(rng_true)
+    r = np.empty(n)
+    ok = np.empty(n, np.bool_)
+    power = np.empty(n)
+    rr = np.empty(n)
+    snr = np.empty(n)
+    for i in range(n):
+        laser = i % 32
+        if tail_u[i] < tail_prob:
+            u = lap_u[i]
+            noise = 0.0 - lap_scale * np.log(2.0 - u - u) if u >= 0.5 else 0.0 + lap_scale * np.log(u + u)
+        else:
+            noise = nrm[i]
+        if use_offset:
+            noise = noise + range_offset[laser]
+        rt = rng_true[i]
+        r[i] = rt + noise
+        fin = np.isfinite(rt)
+        ok[i] = (fin and rt <= max_range and r[i] >= min_range and u_drop[i] >= dropout_prob
+                 and not (cosi[i] < grazing_cos and u_graze[i] < 0.5))
+        p = reflect[i] * (0.2 + 0.8 * cosi[i])
+        power[i] = p
+        v = rt if fin else 1e3
+        v = v if v > 1.0 else 1.0
+        rr[i] = v
+        q = 10.0 / v
+        snr[i] = p * gain[laser] * (q * q)
+    return r, ok, power, rr, snr
+
+
+@njit(cache=True, nogil=True)
+def lidar_points(idx, r, d_nom, col_offsets, scale, gain, power, speckle_n, falloff, retro, retro_u):
+    """The kept returns ``idx`` (K,) int64 of the N rays: points (K, 3) float64 along the nominal
+    directions ``d_nom`` (N, 3) at ranges ``r`` (N,); ring (K,) uint16; time offsets (K,)
+    float32 from the columns' ``col_offsets`` (A,) float32; intensity (K,) float32, floor of
+    ``scale * gain (32,) * power (N,) * speckle * falloff (K,)`` clipped to 0..255, where the
+    speckle is exp of the normal draw ``speckle_n`` (N,) (numpy's ``lognormal``, libm's exp;
+    empty: none) and retroreflectors (``retro`` (N,) bool) read ``retro_u`` (N,) instead."""
+    k = len(idx)
+    pts = np.empty((k, 3))
+    ring = np.empty(k, np.uint16)
+    toff = np.empty(k, np.float32)
+    i_out = np.empty(k, np.float32)
+    spk = len(speckle_n) > 0
+    for m in range(k):
+        i = idx[m]
+        ri = r[i]
+        pts[m, 0] = d_nom[i, 0] * ri
+        pts[m, 1] = d_nom[i, 1] * ri
+        pts[m, 2] = d_nom[i, 2] * ri
+        ring[m] = i % 32
+        toff[m] = col_offsets[i // 32]
+        if retro[i]:
+            v = retro_u[i]
+        else:
+            v = scale * gain[i % 32] * power[i]
+            if spk:
+                v = v * np.exp(speckle_n[i])
+            v = v * falloff[m]
+        v = 0.0 if v < 0.0 else (255.0 if v > 255.0 else v)
+        i_out[m] = np.floor(v)
+    return pts, ring, toff, i_out
+
+
+@njit(cache=True, nogil=True)
+def value_noise(x, y, cell_m, seed_term):
+    """Smooth noise in [-1, 1] at (x, y) (N,) float64 each: bilinear over a hashed lattice of
+    ``cell_m`` cells; ``seed_term`` = seed * 83492791 (int64). See blockloc.sim.scene.value_noise."""
+    out = np.empty(len(x))
+    for k in range(len(x)):
+        out[k] = _noise_at(x[k], y[k], cell_m, seed_term)
+    return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _noise_at(x, y, cell_m, seed_term):
+    gx = x / cell_m
+    gy = y / cell_m
+    ix = np.int64(np.floor(gx))
+    iy = np.int64(np.floor(gy))
+    fx = gx - ix
+    fy = gy - iy
+    sx = fx * fx * (3 - 2 * fx)
+    sy = fy * fy * (3 - 2 * fy)
+    top = _lattice(ix, iy, seed_term) * (1 - sx) + _lattice(ix + 1, iy, seed_term) * sx
+    bot = _lattice(ix, iy + 1, seed_term) * (1 - sx) + _lattice(ix + 1, iy + 1, seed_term) * sx
+    return top * (1 - sy) + bot * sy
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _lattice(i, j, seed_term):
+    v = (i * np.int64(73856093)) ^ (j * np.int64(19349663)) ^ seed_term
+    v = (v ^ (v >> np.int64(13))) * np.int64(1274126177)
+    return ((v ^ (v >> np.int64(16))) & np.int64(0xFFFF)) / 32767.5 - 1.0
+
+
+@njit(cache=True, nogil=True)
+def material_tiles(x, y, tile, max_tiles):
+    """The raster tiles of side ``tile`` (m) that points (x, y) (N,) float64 fall in: tile
+    numbers ti, tj (N,) int64 (floor of x / tile, y / tile), their bounding box of tiles
+    (i0, j0, ni, nj) and, when it holds at most ``max_tiles`` tiles, each point's tile within
+    it ``(ti - i0) * nj + (tj - j0)`` (N,) and which of them are used (ni * nj,) bool (else
+    both empty: the caller numbers the tiles by a sort). N >= 1."""
+    n = len(x)
+    ti = np.empty(n, np.int64)
+    tj = np.empty(n, np.int64)
+    for k in range(n):
+        ti[k] = np.int64(np.floor(x[k] / tile))
+        tj[k] = np.int64(np.floor(y[k] / tile))
+    i0, i1, j0, j1 = ti[0], ti[0], tj[0], tj[0]
+    for k in range(n):
+        i0 = min(i0, ti[k])
+        i1 = max(i1, ti[k])
+        j0 = min(j0, tj[k])
+        j1 = max(j1, tj[k])
+    ni, nj = i1 - i0 + 1, j1 - j0 + 1
+    if ni * nj > max_tiles:
+        return ti, tj, i0, j0, ni, nj, np.empty(0, np.int64), np.empty(0, np.bool_)
+    local = np.empty(n, np.int64)
+    used = np.zeros(ni * nj, np.bool_)
+    for k in range(n):
+        c = (ti[k] - i0) * nj + (tj[k] - j0)
+        local[k] = c
+        used[c] = True
+    return ti, tj, i0, j0, ni, nj, local, used
+
+
+@njit(cache=True, nogil=True)
+def material_lookup(R, slot, local, ti, tj, x, y, tile, res):
+    """Ground codes (N,) uint8 of points (x, y) (N,) in packed raster tiles R (T, n, n / 4)
+    uint8 (four 2-bit codes a byte, column j in bits 2 (j % 4)); point k is in tile
+    ``slot[local[k]]`` numbered (ti, tj) (N,); cells of ``res`` m, clamped to the tile."""
+    n = R.shape[1]
+    out = np.empty(len(x), np.uint8)
+    for k in range(len(x)):
+        i = np.int64((y[k] - tj[k] * tile) / res)
+        j = np.int64((x[k] - ti[k] * tile) / res)
+        i = 0 if i < 0 else (n - 1 if i > n - 1 else i)
+        j = 0 if j < 0 else (n - 1 if j > n - 1 else j)
+        out[k] = (R[slot[local[k]], i, j >> 2] >> ((j & 3) << 1)) & 3
+    return out
+
+
+@njit(cache=True, nogil=True)
+def ground_hits(origins, dirs, rng_, cat, terrain_cat):
+    """The rays (N,) whose hit is on the terrain (``cat == terrain_cat``): their indices (K,)
+    int64 and hit points origin + dir * range (K, 3) float64 (world)."""
+    n = len(rng_)
+    k = 0
+    for i in range(n):
+        if cat[i] == terrain_cat:
+            k += 1
+    idx = np.empty(k, np.int64)
+    p = np.empty((k, 3))
+    m = 0
+    for i in range(n):
+        if cat[i] == terrain_cat:
+            idx[m] = i
+            r = rng_[i]
+            p[m, 0] = origins[i, 0] + dirs[i, 0] * r
+            p[m, 1] = origins[i, 1] + dirs[i, 1] * r
+            p[m, 2] = origins[i, 2] + dirs[i, 2] * r
+            m += 1
+    return idx, p
+
+
+@njit(cache=True, nogil=True)
+def ground_micro(r, dz, p, mat, seed_term):
+    """Micro relief along ground rays: ranges r (K,) less noise(p, 0.7 m cells) x (2 cm on grass,
+    mat 2; else 4 mm) over the ray's downward slope ``down`` = max(-dz, 0.02). Returns the new
+    ranges (K,) and down (K,)."""
+    k = len(r)
+    down = np.empty(k)
+    r_new = np.empty(k)
+    for m in range(k):
+        v = -dz[m]
+        dn = v if v > 0.02 else 0.02
+        down[m] = dn
+        amp = 0.02 if mat[m] == 2 else 0.004
+        micro = _noise_at(p[m, 0], p[m, 1], 0.7, seed_term) * amp
+        r_new[m] = r[m] - micro / dn
+    return r_new, down
+
+
+@njit(cache=True, nogil=True)
+def ground_grass(r_new, down, p, grass, idx, stop_draw, unit_draw, normals, reflect, refl_draw, seed_term):
+    """The grass layer (4-12 cm high) along the ground rays ``grass`` (G,) (positions in idx):
+    a ray enters it and stops after ``stop_draw`` (G,) (exponential) or at the ground; its normal
+    tilts by half the random direction ``unit_draw`` (G, 3) (normal draws, normalized here) and
+    its reflectance scales by ``refl_draw`` (G,). Changes r_new (K,), normals and reflect (N, ...)
+    (at idx[grass]) in place."""
+    for m in range(len(grass)):
+        g = grass[m]
+        g_h = 0.08 + 0.04 * _noise_at(p[g, 0], p[g, 1], 1.5, seed_term)
+        depth = g_h / down[g]
+        s = stop_draw[m]
+        stop = s if s < depth else depth
+        r_new[g] = r_new[g] - depth + stop
+        i = idx[g]
+        v0, v1, v2 = unit_draw[m, 0], unit_draw[m, 1], unit_draw[m, 2]
+        nv = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        a0 = v0 / nv * 0.5 + normals[i, 0]
+        a1 = v1 / nv * 0.5 + normals[i, 1]
+        a2 = v2 / nv * 0.5 + normals[i, 2]
+        na = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+        normals[i, 0] = a0 / na
+        normals[i, 1] = a1 / na
+        normals[i, 2] = a2 / na
+        reflect[i] = reflect[i] * refl_draw[m]
+
+
+@njit(cache=True, nogil=True)
+def actor_columns(xy, o, dv):
+    """Which rays (C,) (xy origins ``o`` and directions ``dv`` (C, 2), the columns of a sweep)
+    pass within an actor's bounding circle: 3.5 m around its position ``xy`` (K, 2), widened
+    by 0.1 m a metre of distance (a column's beams fan out in xy when the sensor tilts), ahead
+    of the origin (or the origin inside the circle). Conservative: a ray it leaves out cannot
+    hit an actor, so its exact bits do not matter."""
+    c_n = len(o)
+    sel = np.zeros(c_n, np.bool_)
+    for c in range(c_n):
+        hx = np.hypot(dv[c, 0], dv[c, 1]) + 1e-12
+        for k in range(len(xy)):
+            rx = xy[k, 0] - o[c, 0]
+            ry = xy[k, 1] - o[c, 1]
+            dist = np.hypot(rx, ry)
+            along = (rx * dv[c, 0] + ry * dv[c, 1]) / hx
+            perp2 = max(dist * dist - along * along, 0.0)
+            lim = 3.5 + 0.1 * dist
+            if perp2 < lim * lim and (along > 0 or dist < 3.5):
+                sel[c] = True
+                break
+    return sel
+
+
+@njit(cache=True, nogil=True)
+def vegetation_rays(origins, dirs, active, t_cur):
+    """(M, 6) float32 rays (origin, direction) of the ``active`` rays (M,) of origins, dirs
+    (N, 3), starting ``t_cur`` (N,) metres along them (where they left their last volume)."""
+    out = np.empty((len(active), 6), np.float32)
+    for q in range(len(active)):
+        i = active[q]
+        t = t_cur[i]
+        for c in range(3):
+            out[q, c] = origins[i, c] + dirs[i, c] * t
+            out[q, 3 + c] = dirs[i, c]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def vegetation_hits(th32, prim, active, t_cur, rng_, vsel, faces_per_volume, origins, dirs, center, radii,
+                    first):
+    """The ``active`` rays (M,) that meet a vegetation volume's hull before their range, after
+    their cast at the hulls (float32 distances ``th32`` (M,), inf: none, from the origin when
+    ``first``, else from ``t_cur`` (N,) along the ray; hull triangles ``prim`` (M,), volume
+    ``vsel[prim // faces_per_volume]``). For those rays (H,): indices, hull distance from the
+    origin th, volume v, and the stretch of the ray inside the volume's ellipsoid (``center``,
+    semi-axes ``radii`` (V, 3); origins, dirs (N, 3)): t_in (from t_cur on) and t_out, both th
+    where the ray misses the ellipsoid (miss True)."""
+    m = len(active)
+    h = 0
+    for q in range(m):
+        t = np.float64(th32[q])
+        if not first:
+            t = t + t_cur[active[q]]
+        if np.isfinite(t) and t < rng_[active[q]]:
+            h += 1
+    act = np.empty(h, np.int64)
+    th = np.empty(h)
+    v = np.empty(h, np.int64)
+    t_in = np.empty(h)
+    t_out = np.empty(h)
+    miss = np.empty(h, np.bool_)
+    j = 0
+    for q in range(m):
+        i = active[q]
+        t = np.float64(th32[q])
+        if not first:
+            t = t + t_cur[i]
+        if not (np.isfinite(t) and t < rng_[i]):
+            continue
+        k = vsel[np.int64(prim[q]) // faces_per_volume]
+        act[j], th[j], v[j] = i, t, k
+        o0 = (origins[i, 0] - center[k, 0]) / radii[k, 0]
+        o1 = (origins[i, 1] - center[k, 1]) / radii[k, 1]
+        o2 = (origins[i, 2] - center[k, 2]) / radii[k, 2]
+        d0 = dirs[i, 0] / radii[k, 0]
+        d1 = dirs[i, 1] / radii[k, 1]
+        d2 = dirs[i, 2] / radii[k, 2]
+        a = d0 * d0 + d1 * d1 + d2 * d2
+        b = o0 * d0 + o1 * d1 + o2 * d2
+        cc = o0 * o0 + o1 * o1 + o2 * o2 - 1.0
+        disc = b * b - a * cc
+        sq = np.sqrt(disc) if disc >= 0 else np.nan
+        ti = (-b - sq) / a
+        if np.isfinite(ti):
+            miss[j] = False
+            tc = t_cur[i]
+            t_in[j] = ti if ti >= tc else tc
+            t_out[j] = (-b + sq) / a
+        else:
+            miss[j] = True
+            t_in[j] = t
+            t_out[j] = t
+        j += 1
+    return act, th, v, t_in, t_out, miss
+
+
+@njit(cache=True, nogil=True)
+def vegetation_stops(act, th, t_in, t_out, miss, free_path, rng_, t_cur):
+    """Where the rays ``act`` (H,) stop inside their volume: at t_in + ``free_path`` (H,) (the
+    exponential draws) when that lies before both the ray's exit ``t_out`` and its range
+    ``rng_`` (N,), which it becomes (in place). The others go on: ``t_cur`` (N,) (in place)
+    moves 1 mm past where they leave the volume. Returns the stopped rays' indices and the rays
+    going on."""
+    h = len(act)
+    stop = np.empty(h, np.bool_)
+    ns = 0
+    for q in range(h):
+        ts = t_in[q] + free_path[q]
+        stop[q] = (not miss[q]) and ts < t_out[q] and ts < rng_[act[q]]
+        if stop[q]:
+            ns += 1
+    stopped = np.empty(ns, np.int64)
+    going = np.empty(h - ns, np.int64)
+    a = b = 0
+    for q in range(h):
+        i = act[q]
+        if stop[q]:
+            rng_[i] = t_in[q] + free_path[q]
+            stopped[a] = i
+            a += 1
+        else:
+            to, tt = t_out[q], th[q]
+            t_cur[i] = (to if to >= tt else tt) + 1e-3
+            going[b] = i
+            b += 1
+    return stopped, going
+
+
+@njit(cache=True, nogil=True)
+def make_rays(origins, dirs):
+    """(N, 6) float32 rays (origin, direction) of origins, dirs (N, 3) float64."""
+    out = np.empty((len(origins), 6), np.float32)
+    for i in range(len(origins)):
+        for c in range(3):
+            out[i, c] = origins[i, c]
+            out[i, 3 + c] = dirs[i, c]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def static_hits(t32, prim, n32, sel):
+    """An open3d cast's answer as the scene uses it: range (N,) float64 (inf: no hit), triangle
+    (N,) int64 (``sel[prim]``: the scene's triangles are a selection of the world's; -1: no hit)
+    and normals (N, 3) float64 (t_hit (N,) float32, primitive ids (N,) uint32, normals (N, 3)
+    float32)."""
+    n = len(t32)
+    t = np.empty(n)
+    tri = np.empty(n, np.int64)
+    nrm = np.empty((n, 3))
+    for i in range(n):
+        t[i] = t32[i]
+        tri[i] = sel[np.int64(prim[i])] if np.isfinite(t32[i]) else -1
+        for c in range(3):
+            nrm[i, c] = n32[i, c]
+    return t, tri, nrm
+
+
+@njit(cache=True, nogil=True)
+def hit_categories(rng_, tri, tri_cat, reflect_by_cat):
+    """Category (N,) int64 of each hit (``tri_cat[tri]``; -1 where ``rng_`` is inf) and its
+    reflectance (N,) (``reflect_by_cat[cat]``; the last entry: no hit)."""
+    n = len(rng_)
+    cat = np.empty(n, np.int64)
+    refl = np.empty(n)
+    for i in range(n):
+        c = np.int64(tri_cat[tri[i]]) if np.isfinite(rng_[i]) else np.int64(-1)
+        cat[i] = c
+        refl[i] = reflect_by_cat[c]
+    return cat, refl

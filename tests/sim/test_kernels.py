@@ -1,0 +1,352 @@
+"""The simulator's numba kernels give the bits of the numpy code they replaced.
+
+The reference functions below are the numpy implementations as they were before the kernels
+(blockloc 24340d4), kept here only as the yardstick: a scan of a given seed must not change by
+one bit when its per-ray models move into compiled code (other engineers measure accuracy on
+the simulator's output, and the realism bands were measured on it).
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from blockloc.sim.lidar import SensorCalibration, _beams, simulate_scan
+from blockloc.sim.presets import LidarModel
+from blockloc.sim.scene import value_noise
+
+
+# --- the numpy references (24340d4) -----------------------------------------------------------
+
+def _ref_value_noise(x, y, cell_m, seed):
+    gx, gy = np.asarray(x) / cell_m, np.asarray(y) / cell_m
+    ix, iy = np.floor(gx).astype(np.int64), np.floor(gy).astype(np.int64)
+    fx, fy = gx - ix, gy - iy
+
+    def h(i, j):
+        v = (i * 73856093) ^ (j * 19349663) ^ (seed * 83492791)
+        v = (v ^ (v >> 13)) * 1274126177
+        return ((v ^ (v >> 16)) & 0xFFFF) / 32767.5 - 1.0
+
+    sx, sy = fx * fx * (3 - 2 * fx), fy * fy * (3 - 2 * fy)
+    top = h(ix, iy) * (1 - sx) + h(ix + 1, iy) * sx
+    bot = h(ix, iy + 1) * (1 - sx) + h(ix + 1, iy + 1) * sx
+    return top * (1 - sy) + bot * sy
+
+
+def _ref_ground_material(world, x, y):
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    res, tile = 0.25, 128.0
+    n = int(tile / res)
+    out = np.empty(x.shape, dtype=np.uint8)
+    ti = np.floor(x / tile).astype(np.int64)
+    tj = np.floor(y / tile).astype(np.int64)
+    uniq, local = np.unique(ti * 1_000_003 + tj, return_inverse=True)
+    ids = [(int(k // 1_000_003), int(k % 1_000_003)) for k in uniq]
+    ids = [(a + 1, b - 1_000_003) if b > 500_000 else (a, b) for a, b in ids]
+    local = local.reshape(x.shape)
+    tiles = [world._material_tile(a, b, n, res, tile) for a, b in ids]
+    R = np.stack(tiles)
+    i = np.clip(((y - tj * tile) / res).astype(np.int64), 0, n - 1)
+    j = np.clip(((x - ti * tile) / res).astype(np.int64), 0, n - 1)
+    out[...] = (R[local, i, j >> 2] >> ((j & 3) << 1).astype(np.uint8)) & 3
+    return out
+
+
+def _dot3(a, b):
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+
+
+def _ref_mixed_pixels(r, model, rng):
+    nxt = np.roll(r, -1, axis=0)
+    with np.errstate(invalid="ignore"):
+        gap = nxt - r
+    edge = np.isfinite(gap) & (np.abs(gap) > model.mixed_pixel_gap_m)
+    mix = edge & (rng.random(r.shape) < model.mixed_pixel_prob)
+    frac = rng.uniform(0.1, 0.9, r.shape)
+    return np.where(mix, r + frac * np.where(np.isfinite(gap), gap, 0.0), r)
+
+
+def _ref_simulate_scan(scene, T_world_lidar_cols, col_offsets, model, rng, t_mid, az0=0.0, calib=None):
+    A = len(col_offsets)
+    d_nom, d_true, r_self = _beams(A, az0, calib)
+    R = T_world_lidar_cols[:, :3, :3]
+    dirs = np.matmul(d_true, R.transpose(0, 2, 1)).reshape(-1, 3)
+    origins = np.repeat(T_world_lidar_cols[:, :3, 3], 32, axis=0)
+    h = scene.cast_full(origins, dirs, t_mid, model.max_range_m, rng)
+    rng_true, normals, reflect, cat = h["range"], h["normal"], h["reflect"], h["cat"]
+    n = len(rng_true)
+    if model.self_hits:
+        mine = r_self < rng_true
+        rng_true = np.where(mine, r_self, rng_true)
+        cat = np.where(mine, scene.categories.index("self"), cat)
+        reflect = np.where(mine, 0.15, reflect)
+    cosi = np.abs(_dot3(normals, dirs))
+    if model.mixed_pixel_prob > 0:
+        rng_true = _ref_mixed_pixels(rng_true.reshape(A, 32), model, rng).reshape(-1)
+    noise = rng.normal(0.0, model.range_noise_m, n)
+    if model.range_tail_prob > 0:
+        tail = rng.random(n) < model.range_tail_prob
+        noise = np.where(tail, rng.laplace(0.0, model.range_tail_scale_m, n), noise)
+    laser = np.tile(np.arange(32), A)
+    if calib is not None:
+        noise = noise + calib.range_offset_m[laser]
+    u_drop = rng.random(n)
+    u_graze = rng.random(n)
+    u_weak = rng.random(n)
+    speckle = rng.lognormal(0.0, model.intensity_speckle, n) if model.intensity_speckle > 0 else np.ones(n)
+    r = rng_true + noise
+    ok = np.isfinite(rng_true) & (rng_true <= model.max_range_m) & (r >= model.min_range_m)
+    ok &= u_drop >= model.dropout_prob
+    ok &= ~((cosi < model.grazing_dropout_cos) & (u_graze < 0.5))
+    gain = calib.gain[laser] if calib is not None else np.ones(n)
+    power = reflect * (0.2 + 0.8 * cosi)
+    rr = np.maximum(np.where(np.isfinite(rng_true), rng_true, 1e3), 1.0)
+    inten = (model.intensity_scale * gain * power * speckle
+             * np.minimum(1.0, (model.intensity_knee_m / rr) ** model.intensity_exponent))
+    if model.weak_return_dropout:
+        snr = power * gain * (10.0 / rr) ** 2
+        ok &= u_weak >= np.exp(-snr / 0.004)
+    retro = h["retro"]
+    inten = np.where(retro, rng.uniform(180.0, 255.0, n), inten)
+    idx = np.flatnonzero(ok)
+    pts = d_nom.reshape(-1, 3)[idx] * r[idx, None]
+    ring = laser[idx].astype(np.uint16)
+    toff = np.repeat(col_offsets.astype(np.float32), 32)[idx]
+    i_out = np.floor(np.clip(inten[idx], 0.0, 255.0)).astype(np.float32)
+    return pts, i_out, ring, toff, cat[idx]
+
+
+# --- a scene that returns a drawn cast --------------------------------------------------------
+
+class _DrawnScene:
+    """Stands in for a SessionScene: ``cast_full`` returns a cast drawn from ``seed`` (ranges
+    0.3-120 m with misses, edges and duplicates, unit normals, reflectance, a few retroreflectors)
+    and draws from the scan's generator as the real one does (its stream position matters)."""
+
+    categories = ["terrain", "building", "sign", "self", "glass"]
+
+    def __init__(self, seed: int):
+        self.seed = seed
+
+    def cast_full(self, origins, dirs, t, max_range, rng):
+        g = np.random.default_rng(self.seed)
+        n = len(origins)
+        r = g.choice([0.3, 0.95, 5.0, 30.0, 99.9, 100.0, 120.0], n) * g.uniform(0.5, 1.5, n)
+        r[g.random(n) < 0.1] = np.inf
+        r[g.random(n) < 0.05] = 100.0  # exactly at the maximum range
+        nrm = g.normal(size=(n, 3))
+        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+        rng.random(7)  # the scene's own draws move the stream
+        return {"range": r, "normal": nrm, "reflect": g.uniform(0.02, 0.9, n),
+                "cat": g.integers(0, 3, n).astype(np.int64), "glass": np.zeros(n, bool),
+                "retro": g.random(n) < 0.02}
+
+
+def _poses(A: int, seed: int) -> np.ndarray:
+    g = np.random.default_rng(seed)
+    T = np.tile(np.eye(4), (A, 1, 1))
+    yaw = 0.3 + 0.01 * np.arange(A) + g.normal(0, 0.01)
+    T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = np.cos(yaw), -np.sin(yaw), np.sin(yaw), np.cos(yaw)
+    T[:, :3, 3] = g.normal(0, 10, 3) + np.arange(A)[:, None] * [0.001, 0.0005, 0.0]
+    return T
+
+
+MODELS = {
+    "default": LidarModel(azimuth_steps=360),
+    "no errors": LidarModel(azimuth_steps=360, range_noise_m=0.0, range_tail_prob=0.0, dropout_prob=0.0,
+                            mixed_pixel_prob=0.0, weak_return_dropout=False, self_hits=False,
+                            intensity_speckle=0.0),
+    "exponent 1.7": LidarModel(azimuth_steps=200, intensity_exponent=1.7, intensity_knee_m=7.0),
+}
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+@pytest.mark.parametrize("calibrated", [False, True])
+def test_simulate_scan_gives_the_numpy_models_bits(name, calibrated):
+    model = MODELS[name]
+    A = model.azimuth_steps
+    calib = SensorCalibration.draw(model, 4) if calibrated else None
+    T = _poses(A, 2)
+    off = np.arange(A) * (0.1 / A)
+    got = simulate_scan(_DrawnScene(9), T, off, model, np.random.default_rng(5), 1.0, 0.2, calib)
+    want = _ref_simulate_scan(_DrawnScene(9), T, off, model, np.random.default_rng(5), 1.0, 0.2, calib)
+    assert 0 < len(want[0]) < A * 32  # some returns dropped, some kept
+    for a, b, what in zip((got.points, got.intensity, got.ring, got.time_offsets, got.category), want,
+                          ("points", "intensity", "ring", "time_offsets", "category")):
+        assert a.dtype == b.dtype and a.shape == b.shape, what
+        assert a.tobytes() == b.tobytes(), what
+
+
+def test_value_noise_gives_the_numpy_bits():
+    g = np.random.default_rng(3)
+    x = np.concatenate([g.uniform(-3000, 3000, 20000), np.arange(-5.0, 5.0, 0.35), [0.0, -0.0]])
+    y = np.concatenate([g.uniform(-3000, 3000, 20000), np.arange(5.0, -5.0, -0.35), [-0.0, 0.0]])
+    for cell, seed in ((0.7, 1), (1.5, 2), (0.8, 123456)):
+        assert value_noise(x, y, cell, seed).tobytes() == _ref_value_noise(x, y, cell, seed).tobytes()
+    # strided inputs (columns of a point array) and a 2-D grid
+    P = np.stack([x, y, x], axis=1)
+    assert value_noise(P[:, 0], P[:, 1], 0.7, 5).tobytes() == _ref_value_noise(P[:, 0], P[:, 1], 0.7, 5).tobytes()
+    X, Y = np.meshgrid(np.linspace(-9, 9, 40), np.linspace(-3, 3, 30))
+    assert np.array_equal(value_noise(X, Y, 1.5, 2), _ref_value_noise(X, Y, 1.5, 2))
+
+
+def test_ground_material_gives_the_numpy_lookup():
+    from blockloc.sim.presets import get_preset
+    from blockloc.sim.world import build_world
+
+    world = build_world(get_preset("tiny"), 3)
+    g = np.random.default_rng(1)
+    x0, x1, y0, y1 = world.extent
+    # a scan's ground hits (a few tiles), tile borders and negative coordinates
+    x = np.concatenate([g.uniform(x0, x1, 5000), [-128.0, -0.1, 0.0, 127.99, 128.0]])
+    y = np.concatenate([g.uniform(y0, y1, 5000), [0.0, -128.0, 127.99, -0.01, 5.0]])
+    got = world.ground_material(x, y)
+    assert got.dtype == np.uint8 and np.array_equal(got, _ref_ground_material(world, x, y))
+    assert set(np.unique(got)) >= {0, 1, 2}
+    # scattered far apart (more than 2**16 tiles in their box): numbered by a sort
+    xs = np.array([-40_000.0, 40_000.0, 3.0])
+    ys = np.array([-40_000.0, 40_000.0, 4.0])
+    assert np.array_equal(world.ground_material(xs, ys), _ref_ground_material(world, xs, ys))
+    # 2-D input keeps its shape
+    X, Y = np.meshgrid(np.linspace(x0, x1, 7), np.linspace(y0, y1, 5))
+    assert np.array_equal(world.ground_material(X, Y), _ref_ground_material(world, X.ravel(), Y.ravel()).reshape(5, 7))
+
+
+# --- the scene's ground relief and vegetation (24340d4) ----------------------------------------
+
+def _ref_random_unit(rng, n):
+    v = rng.normal(size=(n, 3))
+    return v / np.sqrt(_dot3(v, v))[:, None]
+
+
+def _ref_ellipsoid_interval(o, d, c, r):
+    oo, dd = (o - c) / r, d / r
+    a = _dot3(dd, dd)
+    b = _dot3(oo, dd)
+    cc = _dot3(oo, oo) - 1.0
+    disc = b * b - a * cc
+    sq = np.sqrt(np.where(disc >= 0, disc, np.nan))
+    return (-b - sq) / a, (-b + sq) / a
+
+
+def _ref_ground_relief(self, idx, origins, dirs, rng_, normals, reflect, rng, p, mat):
+    from blockloc.sim.scene import KERB_M
+
+    o, d = origins[idx], dirs[idx]
+    world = self.world
+    r = rng_[idx]
+    down = np.maximum(-d[:, 2], 0.02)
+    seed = self._seed
+    micro = _ref_value_noise(p[:, 0], p[:, 1], 0.7, seed) * np.where(mat == 2, 0.02, 0.004)
+    r_new = r - micro / down
+    side = mat == 1
+    if side.any():
+        o_s, d_s, r_0 = o[side], d[side], r[side]
+        r_side = r_0 - KERB_M / down[side]
+        p1 = o_s + d_s * r_side[:, None]
+        face = _ref_ground_material(world, p1[:, 0], p1[:, 1]) == 0
+        r_s = r_side.copy()
+        if face.any():
+            o_f, d_f = o_s[face], d_s[face]
+            lo, hi = r_side[face], r_0[face]
+            for _ in range(5):
+                mid = 0.5 * (lo + hi)
+                pm = o_f + d_f * mid[:, None]
+                on_road = _ref_ground_material(world, pm[:, 0], pm[:, 1]) == 0
+                lo = np.where(on_road, mid, lo)
+                hi = np.where(on_road, hi, mid)
+            r_s[face] = hi
+            n_face = np.c_[-d_f[:, :2], np.zeros(len(d_f))]
+            n_face /= np.maximum(np.linalg.norm(n_face, axis=1, keepdims=True), 1e-9)
+            nn = normals[idx[side]]
+            nn[face] = n_face
+            normals[idx[side]] = nn
+        r_new[side] = r_s + (r_new[side] - r_0)
+    grass = mat == 2
+    if grass.any():
+        g_h = 0.08 + 0.04 * _ref_value_noise(p[grass, 0], p[grass, 1], 1.5, seed + 1)
+        depth = g_h / down[grass]
+        stop = np.minimum(rng.exponential(0.25, grass.sum()), depth)
+        r_new[grass] = r_new[grass] - depth + stop
+        i_g = idx[grass]
+        n_g = _ref_random_unit(rng, len(i_g)) * 0.5 + normals[i_g]
+        normals[i_g] = n_g / np.sqrt(_dot3(n_g, n_g))[:, None]
+        reflect[idx[grass]] *= rng.uniform(0.6, 1.4, grass.sum())
+    rng_[idx] = np.maximum(r_new, 0.05)
+
+
+def _ref_vegetation(self, origins, dirs, rays, rng_, normals, reflect, cat, rng):
+    from blockloc.sim.scene import raycast_threads
+    from blockloc.sim.world import _ICO_F, ALBEDO
+
+    o3d = self._o3d
+    vol = self.world.volumes
+    active = np.arange(len(rng_))
+    t_cur = np.zeros(len(rng_))
+    fol = self._cat_index["foliage"]
+    for k in range(4):
+        if not len(active):
+            break
+        if k:
+            o = origins[active] + dirs[active] * t_cur[active, None]
+            rays = np.concatenate([o, dirs[active]], axis=1).astype(np.float32)
+        a = self._vol_scene.cast_rays(o3d.core.Tensor(rays), nthreads=raycast_threads())
+        th = a["t_hit"].numpy().astype(np.float64)
+        if k:
+            th += t_cur[active]
+        hit = np.isfinite(th) & (th < rng_[active])
+        active, th = active[hit], th[hit]
+        if not len(active):
+            break
+        v = self._vsel[a["primitive_ids"].numpy()[hit].astype(np.int64) // len(_ICO_F)]
+        t_in, t_out = _ref_ellipsoid_interval(origins[active], dirs[active], vol.center[v], self._vol_radii[v])
+        miss = ~np.isfinite(t_in)
+        t_in = np.where(miss, th, np.maximum(t_in, t_cur[active]))
+        t_out = np.where(miss, th, t_out)
+        t_stop = t_in + rng.exponential(self._vol_mfp[v])
+        stop = ~miss & (t_stop < t_out) & (t_stop < rng_[active])
+        j = active[stop]
+        rng_[j] = t_stop[stop]
+        normals[j] = _ref_random_unit(rng, len(j))
+        reflect[j] = ALBEDO["foliage"] * rng.uniform(0.4, 1.4, len(j))
+        cat[j] = fol
+        go = ~stop
+        active = active[go]
+        t_cur[active] = np.maximum(t_out[go], th[go]) + 1e-3
+
+
+def test_scene_cast_gives_the_numpy_ground_and_vegetation_bits(monkeypatch):
+    """A real scene's cast (tiny world, a localization day: grass, kerbs, crowns, walkers), with
+    the kernels and with the numpy they replaced, from the same generator: the same bits."""
+    from blockloc.sim.scene import SessionScene
+    from blockloc.sim.stream import open_sim_sequence
+
+    seq = open_sim_sequence("tiny", "loc", 3)
+    scene = seq.scene
+    A = 720
+    col = np.arange(A) * (0.1 / A)
+    casts = []
+    for t0 in (4.0, 20.0, 33.0):
+        T = seq.trajectory.T_world_flu(t0 + col) @ seq.T_flu_lidar
+        d_nom, d_true, _ = _beams(A, 0.0, None)
+        dirs = np.matmul(d_true, T[:, :3, :3].transpose(0, 2, 1)).reshape(-1, 3)
+        origins = np.repeat(T[:, :3, 3], 32, axis=0)
+        casts.append((origins, dirs, t0 + 0.05))
+
+    def run():
+        return [scene.cast_full(o, d, t, 100.0, np.random.default_rng(7 + k)) for k, (o, d, t) in enumerate(casts)]
+
+    got = run()
+    monkeypatch.setattr(SessionScene, "_ground_relief", _ref_ground_relief)
+    monkeypatch.setattr(SessionScene, "_vegetation", _ref_vegetation)
+    want = run()
+    fol, grass_like = scene.categories.index("foliage"), scene.categories.index("terrain")
+    assert sum(int((w["cat"] == fol).sum()) for w in want) > 50  # rays stopped in crowns
+    assert sum(int((w["cat"] == grass_like).sum()) for w in want) > 1000
+    for g, w in zip(got, want):
+        for key in ("range", "normal", "reflect", "cat", "glass", "retro"):
+            assert g[key].dtype == w[key].dtype and g[key].tobytes() == w[key].tobytes(), key
