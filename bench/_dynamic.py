@@ -35,7 +35,7 @@ def _ours(scans, up, params=None):
 
     params = params or DynamicParams()
     ev = scan_evidence(((T[:3, 3], p) for p, T in scans), params, up=up)
-    keys = dynamic_voxels(ev, params)
+    keys = dynamic_voxels(ev, params, up)
     return [static_mask(p, keys, params.voxel_m) for p, _ in scans]
 
 

@@ -73,7 +73,8 @@ def main(argv: list[str] | None = None) -> Path:
               f"{DUFOMAP_PARAMS['d_p']})`, every scan `run` in order, then `oncePropagateCluster(if_propagate=True, "
               "if_cluster=False)` and each scan's `segment` (label 0 kept), as its offline tool does. "
               f"blockloc: voxel {p.voxel_m} m, ray margin {p.margin_m} m, log-odds {p.l_occ} / {p.l_free}, "
-              f"min_free {p.min_free}, {p.grow_rounds} growing rounds (`blockloc.maps.dynamic_removal`).", ""]
+              f"min_free {p.min_free}, {p.grow_rounds} vertical growing rounds at ratio {p.grow_ratio} "
+              "(`blockloc.maps.dynamic_removal`).", ""]
     atomic_write_text(args.out, "\n".join(lines) + "\n")
     print("\n".join(lines))
     return args.out

@@ -29,8 +29,9 @@ class DynamicParams:
     """voxel_m: evidence voxel edge (m). margin_m: free space stops this short of a ray's endpoint
     (m). ray_voxel_m: a scan's endpoints are thinned to one per cell of this edge before rays are
     walked (None: voxel_m / 2). l_occ / l_free: log-odds per scan hit / seen free. min_free: scans
-    that saw through a voxel before it can be dynamic. grow_rounds: rounds of growing the dynamic
-    voxels into neighbours hit in no more scans than they were (see :func:`dynamic_voxels`)."""
+    that saw through a voxel before it can be dynamic. grow_rounds, grow_ratio: rounds of growing the
+    dynamic voxels into the voxels above and below them hit in no more than ``grow_ratio`` times as
+    many scans (see :func:`dynamic_voxels`)."""
 
     voxel_m: float = 0.4
     margin_m: float = 0.5
@@ -39,6 +40,7 @@ class DynamicParams:
     l_free: float = -0.4
     min_free: int = 2
     grow_rounds: int = 2
+    grow_ratio: float = 2.0
 
 
 def scan_evidence(scans: Iterable[tuple[np.ndarray, np.ndarray]], params: DynamicParams = DynamicParams(),
@@ -59,33 +61,37 @@ def scan_evidence(scans: Iterable[tuple[np.ndarray, np.ndarray]], params: Dynami
     return ev
 
 
-def dynamic_voxels(ev: Evidence, params: DynamicParams = DynamicParams()) -> np.ndarray:
-    """Sorted int64 keys of the dynamic voxels (module docstring), then grown.
+def dynamic_voxels(ev: Evidence, params: DynamicParams = DynamicParams(), up: np.ndarray | None = None) -> np.ndarray:
+    """Sorted int64 keys of the dynamic voxels (module docstring), then grown vertically.
 
-    Free space is never marked next to a scan's hits, so the voxels of a walker just above the
-    ground (neighbours of ground hits) never collect free evidence. Each growing round makes a hit
-    voxel next to a dynamic one dynamic too when it was hit in no more scans than that dynamic
-    neighbour: the walker's lower voxels were hit only while it stood there, the ground under it
-    in every scan that looked (it stays)."""
-    from blockloc.maps.changes.detect import _NEIGHBOURS, pack_keys, unpack_keys
+    Free space is never marked next to a scan's hits, so the voxels of a walker or a car just
+    above the ground (neighbours of ground hits) never collect free evidence. Each growing round
+    makes a hit voxel directly above or below a dynamic one dynamic too when it was hit in no more
+    than ``grow_ratio`` times the scans that neighbour was: the walker's lower voxels were hit only
+    while it stood there, the ground under it in every scan that looked (it stays). Growing only
+    along the vertical (the voxel axis nearest ``up``; z when None) keeps walls and foliage beside
+    a passing car. (On the small world's busiest stretch, growing into all 26 neighbours cost 1 to
+    10 points of SA for the same DA: docs/dynamic_points.md.)"""
+    from blockloc.maps.changes.detect import pack_keys, unpack_keys
 
     L = ev.logodds(params.l_occ, params.l_free)
     dyn = (ev.n_free >= params.min_free) & (ev.n_hit >= 1) & (L < 0)
+    axis = 2 if up is None else int(np.argmax(np.abs(np.asarray(up, float).reshape(3))))
+    steps = np.zeros((2, 3), np.int64)
+    steps[0, axis], steps[1, axis] = 1, -1
     hit = np.flatnonzero(ev.n_hit >= 1)
     for _ in range(params.grow_rounds):
         cand = hit[~dyn[hit]]
         if not len(cand) or not dyn.any():
             break
         ijk = unpack_keys(ev.keys[cand])
-        best = np.zeros(len(cand), np.int64)  # most hits of a dynamic neighbour (0: none)
-        for off in _NEIGHBOURS:
-            if not off.any():
-                continue
+        best = np.zeros(len(cand), np.int64)  # most hits of a dynamic vertical neighbour (0: none)
+        for off in steps:
             nb = pack_keys(ijk + off)
             j = np.minimum(np.searchsorted(ev.keys, nb), len(ev.keys) - 1)
             ok = (ev.keys[j] == nb) & dyn[j]
             best = np.where(ok, np.maximum(best, ev.n_hit[j]), best)
-        grow = (best > 0) & (ev.n_hit[cand] <= best)
+        grow = (best > 0) & (ev.n_hit[cand] <= params.grow_ratio * best)
         if not grow.any():
             break
         dyn[cand[grow]] = True
