@@ -69,3 +69,27 @@ def test_errors_are_one_line_and_touch_nothing(tmp_path):
     assert r.returncode == 2 and "error: --min-range" in r.stderr and not (tmp_path / "x").exists()
     r = run("export", "dynamicmap", "--seq", SEQ, "--out", str(tmp_path / "x"), "--start", "100000")
     assert r.returncode == 2 and "error: --start 100000" in r.stderr and not (tmp_path / "x").exists()
+
+
+def test_labels_of_a_written_session(tmp_path):
+    """A session `blockloc sim --months` wrote: labels from its point_labels/, one per point of the scan file."""
+    from blockloc.app.dynamicmap import export_dynamicmap
+    from blockloc.datasets.nclt import NCLT_POINT_DTYPE, decode_points
+    from blockloc.sim.changes import LABEL_MOVING, read_point_labels
+    from blockloc.sim.writer import generate_dataset
+
+    d = generate_dataset("tiny", 3, tmp_path / "d", sessions=("map",), max_frames=2, months=(12,),
+                         workers=0, azimuth_steps=64)
+    s = export_dynamicmap(str(d / "map_m12"), tmp_path / "out", min_range_m=2.5, max_range_m=50.0)
+    assert s.labelled and s.scans == 2
+    want = total = 0
+    for path in sorted((d / "map_m12" / "velodyne_sync").glob("*.bin")):
+        xyz, _, _ = decode_points(np.fromfile(path, dtype=NCLT_POINT_DTYPE))
+        r = np.linalg.norm(xyz, axis=1)
+        keep = (r >= 2.5) & (r <= 50.0)
+        lab = read_point_labels(d / "map_m12", int(path.stem))
+        want += int((lab[keep] == LABEL_MOVING).sum())
+        total += int(keep.sum())
+        assert len(lab) == len(xyz)
+    g, dyn = read_gt_cloud(tmp_path / "out")
+    assert int(dyn.sum()) == want == s.dynamic_points and len(g) == s.points == total
