@@ -42,3 +42,20 @@ def test_dufomap_row(folder):
     (row,) = run_dynamic_comparison(folder, None, methods=("DUFOMap",), up=(0.0, 0.0, 1.0))
     assert row["method"] == "DUFOMap" and set(METHODS) >= {"DUFOMap"}
     assert row["sa"] > 90.0 and row["da"] > 50.0  # it sees through where the walker stood, too
+
+
+def test_bench_dynamic_command(tmp_path):
+    """`python -m bench.dynamic` as README names it, on two scans of the tiny world."""
+    import subprocess
+
+    pytest.importorskip("dufomap", reason="dufomap is a bench extra: pip install -e .[bench]")
+    root = Path(__file__).resolve().parent.parent.parent
+    out = tmp_path / "dynamic.md"
+    r = subprocess.run([sys.executable, "-m", "bench.dynamic", "--preset", "tiny", "--seed", "3", "--starts", "5",
+                        "--frames", "2", "--step", "1", "--work", str(tmp_path / "w"), "--out", str(out)],
+                       cwd=root, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    text = out.read_text()
+    assert "sim:tiny/map_m12@3" in text and "| raw map | 100.00 | 0.00 |" in text
+    assert "| DUFOMap |" in text and "| blockloc (voxel evidence) |" in text
+    assert (tmp_path / "w" / "tiny_map_m12_s3_5_2x1" / "gt_cloud.pcd").is_file()
