@@ -39,10 +39,10 @@ def _ours(scans, up, params=None):
     return [static_mask(p, keys, params.voxel_m) for p, _ in scans]
 
 
-def _dufomap(scans, up):
+def _dufomap(scans, up, d_p=DUFOMAP_PARAMS["d_p"]):
     from dufomap import dufomap
 
-    d = dufomap(DUFOMAP_PARAMS["resolution"], DUFOMAP_PARAMS["d_s"], DUFOMAP_PARAMS["d_p"],
+    d = dufomap(DUFOMAP_PARAMS["resolution"], DUFOMAP_PARAMS["d_s"], d_p,
                 num_threads=int(os.environ.get("BENCH_DUFOMAP_THREADS", "0")))
     for p, T in scans:  # points already in the world frame: no transform
         d.run(p, T, cloud_transform=False)
@@ -50,7 +50,18 @@ def _dufomap(scans, up):
     return [d.segment(p, T, cloud_transform=False) == 0 for p, T in scans]
 
 
-METHODS = {"raw map": _raw, "blockloc (voxel evidence)": _ours, "DUFOMap": _dufomap}
+def _dufomap_dp0(scans, up):
+    return _dufomap(scans, up, d_p=0)
+
+
+#: "DUFOMap d_p 0" is not its published setting: a sensitivity row. With d_p 1 a voxel counts as
+#: free only when no unknown voxel is next to it; a 32-beam scan leaves unknown cells between its
+#: rings beyond ~10 m, so far objects are never seen free (docs/dynamic_points.md).
+METHODS = {"raw map": _raw, "blockloc (voxel evidence)": _ours, "DUFOMap": _dufomap,
+           "DUFOMap d_p 0 (not its published setting)": _dufomap_dp0}
+#: file names of the cleaned maps (``<slug>_output.pcd``, as the benchmark names method outputs)
+SLUGS = {"raw map": "raw", "blockloc (voxel evidence)": "blockloc", "DUFOMap": "dufomap",
+         "DUFOMap d_p 0 (not its published setting)": "dufomap_dp0"}
 
 
 def run_dynamic_comparison(seq_dir: str | Path, work_dir: str | Path | None = None, *,
@@ -74,7 +85,7 @@ def run_dynamic_comparison(seq_dir: str | Path, work_dir: str | Path | None = No
             from blockloc.datasets.pointclouds import write_point_cloud
 
             Path(work_dir).mkdir(parents=True, exist_ok=True)
-            slug = name.split(" ")[0].lower()
+            slug = SLUGS.get(name, name.split(" ")[0].lower())
             write_point_cloud(Path(work_dir) / f"{slug}_output.pcd", kept.astype(np.float32))
         s = dynamic_scores(gt_pts, gt_dyn, kept, BENCHMARK_RADIUS_M)
         rows.append({"method": name, **s.as_dict(), "kept_points": int(len(kept)),

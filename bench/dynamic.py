@@ -77,7 +77,10 @@ def main(argv: list[str] | None = None) -> Path:
     p = DynamicParams()
     lines += [f"DUFOMap {_dufomap_version()}: `dufomap({DUFOMAP_PARAMS['resolution']}, {DUFOMAP_PARAMS['d_s']}, "
               f"{DUFOMAP_PARAMS['d_p']})`, every scan `run` in order, then `oncePropagateCluster(if_propagate=True, "
-              "if_cluster=False)` and each scan's `segment` (label 0 kept), as its offline tool does. "
+              "if_cluster=False)` and each scan's `segment` (label 0 kept), as its offline tool does. The row "
+              "`DUFOMap d_p 0` is not its published setting: a sensitivity check (with d_p 1 a voxel is free "
+              "only with no unknown voxel beside it, and a 32-beam scan leaves unknown cells between its rings "
+              "beyond ~10 m). "
               f"blockloc: voxel {p.voxel_m} m, ray margin {p.margin_m} m, log-odds {p.l_occ} / {p.l_free}, "
               f"min_free {p.min_free}, {p.grow_rounds} vertical growing rounds at ratio {p.grow_ratio} "
               "(`blockloc.maps.dynamic_removal`): chosen on the stretch from frame 250 (about 30 variants of "
