@@ -62,7 +62,7 @@ def main(argv: list[str] | None = None) -> Path:
         load0 = os.getloadavg()[0]
         rows = run_dynamic_comparison(seq_dir, args.work / f"outputs_{start}")
         r0 = rows[0]
-        lines += [f"### Frames {start}.. (every {args.step}th, {args.frames} scans)", "",
+        lines += [f"### Frames {start}.. (every {args.step} frames, {args.frames} scans)", "",
                   f"Data: `{' '.join(export).replace(str(args.work), 'WORK')}` (default ranges 2.5-50 m): "
                   f"{r0['static_points'] + r0['dynamic_points']:,} ground-truth points, {r0['dynamic_points']:,} "
                   f"dynamic. Load average {load0:.1f} at the start.", "",
@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> Path:
     lines += [f"DUFOMap {_dufomap_version()}: `dufomap({DUFOMAP_PARAMS['resolution']}, {DUFOMAP_PARAMS['d_s']}, "
               f"{DUFOMAP_PARAMS['d_p']})`, every scan `run` in order, then `oncePropagateCluster(if_propagate=True, "
               "if_cluster=False)` and each scan's `segment` (label 0 kept), as its offline tool does. The row "
-              "`DUFOMap d_p 0` is not its published setting: a sensitivity check (with d_p 1 a voxel is free "
+              "`DUFOMap d_p 0` is not its published setting: a sensitivity check (our reading of the d_p 1 result: a voxel is free "
               "only with no unknown voxel beside it, and a 32-beam scan leaves unknown cells between its rings "
               "beyond ~10 m). "
               f"blockloc: voxel {p.voxel_m} m, ray margin {p.margin_m} m, log-odds {p.l_occ} / {p.l_free}, "
