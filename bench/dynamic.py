@@ -29,8 +29,8 @@ def main(argv: list[str] | None = None) -> Path:
     ap.add_argument("--seed", type=int, default=2)
     ap.add_argument("--session", default="map_m12", help="a labelled day: map_m12, loc_m3, loc_m12")
     ap.add_argument("--starts", default="250,600",
-                    help="first frame of each stretch, comma-separated (250: the small world's busiest "
-                         "stretch, on which our parameters were chosen; 600: held out)")
+                    help="first frame of each stretch, comma-separated (250: seed 2's busiest stretch, on "
+                         "which our parameters were chosen; 600: held out)")
     ap.add_argument("--frames", type=int, default=150, help="scans exported per stretch")
     ap.add_argument("--step", type=int, default=2)
     ap.add_argument("--work", type=Path, default=Path(os.environ.get("BENCH_WORK", "/tmp")) / "blockloc-bench-dynamic")
@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> Path:
     cmd = "python -m bench.dynamic " + " ".join(argv if argv is not None else sys.argv[1:])
     started = time.gmtime()
     lines = [
-        "## Dynamic points against DUFOMap (DynamicMap Benchmark format)", "",
+        f"## Dynamic points against DUFOMap (DynamicMap Benchmark format), {seq}", "",
         f"`{cmd.strip()}` ({time.strftime('%Y-%m-%d %H:%M UTC', started)}, {machine()}). One run per "
         f"stretch of `{seq}` (seed {args.seed}): the pedestrians and moving cars of the simulator's "
         "12-month day are dynamic; everything else, changed structure included, is static on its own day.", "",
@@ -83,9 +83,9 @@ def main(argv: list[str] | None = None) -> Path:
               "beyond ~10 m). "
               f"blockloc: voxel {p.voxel_m} m, ray margin {p.margin_m} m, log-odds {p.l_occ} / {p.l_free}, "
               f"min_free {p.min_free}, {p.grow_rounds} vertical growing rounds at ratio {p.grow_ratio} "
-              "(`blockloc.maps.dynamic_removal`): chosen on the stretch from frame 250 (about 30 variants of "
-              "ratio, growth and free weight screened there by exact point masks); the stretch from 600 was not "
-              "looked at before this run.", ""]
+              "(`blockloc.maps.dynamic_removal`): chosen on seed 2's stretch from frame 250 (about 30 variants of "
+              "ratio, growth and free weight screened there by exact point masks); no other stretch or seed was "
+              "looked at before its run.", ""]
     atomic_write_text(args.out, "\n".join(lines) + "\n")
     print("\n".join(lines))
     return args.out
