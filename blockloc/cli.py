@@ -32,6 +32,9 @@ app = typer.Typer(
 map_app = typer.Typer(help="Build, tile, inspect and serve map stores.", no_args_is_help=True,
                       rich_markup_mode=None)
 app.add_typer(map_app, name="map")
+export_app = typer.Typer(help="Write a sequence in another tool's layout.", no_args_is_help=True,
+                         rich_markup_mode=None)
+app.add_typer(export_app, name="export")
 
 _state = {"debug": False}
 log = logging.getLogger("blockloc")
@@ -104,6 +107,27 @@ def sim_cmd(
     from blockloc.commands.sim import sim_command
 
     sim_command(preset, seed, out, fmt, azimuth_steps, months)
+
+
+@export_app.command("dynamicmap")
+def export_dynamicmap_cmd(
+    seq: str = typer.Option(..., "--seq", metavar=SEQ,
+                            help="Sequence: name (sim:small/map_m12@2) or path (a session blockloc sim wrote)."),
+    out: Path = typer.Option(..., "--out", metavar=DIR, help="Output folder (pcd/, gt_cloud.pcd; replaced when complete)."),
+    poses: Optional[Path] = typer.Option(None, "--poses", metavar=FILE,
+                                         help="Trajectory T_map_body (TUM, KITTI, NCLT csv; default: the ground truth)."),
+    start: int = typer.Option(0, "--start", metavar="N", min=0, help="First frame."),
+    frames: Optional[int] = typer.Option(None, "--frames", metavar="N", min=1, help="Scans to write (default: to the end)."),
+    step: int = typer.Option(1, "--step", metavar="N", min=1, help="Every N-th frame."),
+    min_range: float = typer.Option(2.5, "--min-range", metavar="M", min=0.0, help="Leave out points nearer (m)."),
+    max_range: float = typer.Option(50.0, "--max-range", metavar="M", min=0.1, help="Leave out points further (m)."),
+    data_root: Optional[str] = typer.Option(None, "--data-root", metavar=DIR, help="Root of the datasets."),
+) -> None:
+    """Write scans in the DynamicMap Benchmark layout (world frame, sensor pose in VIEWPOINT) with
+    the labelled gt_cloud.pcd when the sequence has labels (the simulator's changed days)."""
+    from blockloc.commands.export import dynamicmap_command
+
+    dynamicmap_command(seq, out, poses, start, frames, step, min_range, max_range, data_root)
 
 
 # ----------------------------------------------------------------------------- map

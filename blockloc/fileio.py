@@ -115,7 +115,7 @@ def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
 #: The kinds of blockloc's output (see :mod:`blockloc.outdir`: a marker file whose content names
 #: the kind, or, for folders written before markers, the kind's own format), as the ``markers``
 #: a command accepts.
-OUTPUT_MARKERS = ("map store", "simulated dataset", "results folder", "session", "plot folder")
+OUTPUT_MARKERS = ("map store", "simulated dataset", "results folder", "session", "plot folder", "dynamicmap export")
 MAP_STORE, SIM_DATASET, RESULTS = ("map store",), ("simulated dataset",), ("results folder",)
 
 

@@ -46,7 +46,8 @@ MARKER_KEY, MARKER_VERSION = "blockloc_output", 1
 #: Kinds of output.
 MAP_STORE, SIM_DATASET, RESULTS, SESSION, PLOTS = ("map store", "simulated dataset", "results folder",
                                                    "session", "plot folder")
-KINDS = (MAP_STORE, SIM_DATASET, RESULTS, SESSION, PLOTS)
+DYNAMIC_MAP = "dynamicmap export"  # ``blockloc export dynamicmap``: the DynamicMap Benchmark layout
+KINDS = (MAP_STORE, SIM_DATASET, RESULTS, SESSION, PLOTS, DYNAMIC_MAP)
 
 #: Files a results folder holds (a run writes them in place, so its marker lists no files).
 RESULT_NAMES = frozenset({"poses.tum", "diagnostics.csv", "config.yaml", "poses_kitti.txt",

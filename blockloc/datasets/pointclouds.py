@@ -366,14 +366,16 @@ def cloud_time_range(path: str | Path) -> tuple[float, float] | None:
 
 def write_point_cloud(path: str | Path, points: np.ndarray, *, intensity: np.ndarray | None = None,
                       ring: np.ndarray | None = None, extra: dict[str, np.ndarray] | None = None,
-                      encoding: str = "binary") -> Path:
+                      encoding: str = "binary", viewpoint=None) -> Path:
     """Write a cloud as PCD, KITTI ``.bin`` or PLY (by suffix), atomically.
 
     points: (N, 3) metres (stored float32, or float64 if given float64). intensity (N,) float32,
     ring (N,) uint16 and ``extra`` fields (name -> (N,) array, stored with its own dtype, e.g.
     ``{"time": offsets_f32}`` or ``{"t": ns_u32}``) are optional. ``encoding``: PCD ``ascii``,
     ``binary`` or ``binary_compressed``; PLY ``ascii`` or ``binary`` (little endian); ignored for
-    ``.bin``, which holds x y z intensity only (intensity 0 when None).
+    ``.bin``, which holds x y z intensity only (intensity 0 when None). viewpoint: PCD only, the
+    header's ``VIEWPOINT tx ty tz qw qx qy qz`` (the sensor pose in the cloud's frame; default
+    identity).
     """
     path = Path(path)
     pts = np.asarray(points)
@@ -403,6 +405,8 @@ def write_point_cloud(path: str | Path, points: np.ndarray, *, intensity: np.nda
                                    "binary_compressed")
             pc = pypcd4.PointCloud.from_points(list(cols.values()), tuple(cols),
                                                tuple(v.dtype for v in cols.values()))
+            if viewpoint is not None:
+                pc.metadata.viewpoint = tuple(float(v) for v in np.asarray(viewpoint, float).reshape(7))
             with open(tmp, "wb") as fh:
                 pc.save(fh, encoding=pypcd4.Encoding(encoding))
         elif suffix == ".bin":
