@@ -132,8 +132,12 @@ class LocalizationNode:
         self._pub_tf = dds.writer("/tf", m.TFMessage, RELIABLE)
         self._pub_diag = dds.writer("/diagnostics", m.DiagnosticArray, RELIABLE)
         self._pub_map = dds.writer("/blockloc/local_map", m.PointCloud2, LATCHED)
-        dds.reader(s.points_topic, m.PointCloud2, self._on_cloud, SENSOR_DATA)
-        dds.reader(s.imu_topic, m.Imu, self._on_imu, SENSOR_DATA)
+        # Polled (not on Cyclone's delivery thread, which would wait for the GIL while the worker
+        # computes), with histories deep enough to outlast a stall: the backlog's scans, and
+        # 10 s of IMU at 200 Hz (every sample is kept). Best effort, as sensor drivers publish.
+        dds.reader(s.points_topic, m.PointCloud2, self._on_cloud, ("sensor", max(SENSOR_DATA[1], s.backlog_size)),
+                   poll=True)
+        dds.reader(s.imu_topic, m.Imu, self._on_imu, ("sensor", 2000), poll=True)
         dds.reader("/tf", m.TFMessage, self._on_tf, SENSOR_DATA)
         dds.reader("/tf_static", m.TFMessage, self._on_tf_static, LATCHED)
         dds.reader("/initialpose", m.PoseWithCovarianceStamped, self._on_initialpose, RELIABLE)
