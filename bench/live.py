@@ -6,13 +6,16 @@
 ``blockloc play`` publishes the cached small world's loc session (its first scans written once in
 NCLT layout: the simulator renders too slowly to play live) at each rate into ``blockloc
 node`` (both as subprocesses, DDS on loopback with multicast off); a third participant here
-listens to the node's /blockloc/pose and /diagnostics. Then ``blockloc track`` runs the same
-frames in the same map. Both start from the same global init around the demo's noisy hint
+listens to the node's /blockloc/pose and /diagnostics. A last run at 1x sends an /initialpose
+10 m and 90 degrees wrong half-way (``--no-initialpose``: not). Then ``blockloc track`` runs the
+same frames in the same map. Both start from the same global init around the demo's noisy hint
 (``--init-pose``). Reported: ATE (position RMSE against the ground truth at each pose stamp, no
 alignment: both are in the map frame), poses published against scans played, scans the node
-dropped, latency from a scan's arrival at the node to its pose being published (median, p99,
-the node's own ``latency_ms`` in /diagnostics), CPU seconds per scan (user + system of the
-whole process, from wait4) and peak RSS (ru_maxrss), beside track's.
+dropped and caught up on after its global init, latency from a scan's stamp (its sweep's end in
+the player's pace, ``play --pace-file``) to its pose received here, and from its arrival at the
+node to its pose being published (the node's own ``latency_ms`` in /diagnostics), CPU seconds per
+scan (user + system of the whole process, from wait4) and peak RSS (ru_maxrss), beside track's;
+the time from the wrong /initialpose to the verified pose that follows it.
 """
 
 from __future__ import annotations
@@ -60,49 +63,147 @@ def _ate(poses_tum: Path, gt) -> tuple[float, int]:
     return float(np.sqrt(np.mean(e ** 2))), len(d)
 
 
-def run_node(world, hint: str, rate: float, frames: int, work: Path, env: dict) -> dict:
+def _due(anchor: dict, stamp: float, sweep_end_s: float) -> float:
+    """CLOCK_MONOTONIC second a scan stamped ``stamp`` was due at the node: the end of its sweep
+    (``stamp`` + its last point's offset, when a real driver could publish it) in the player's
+    pace (``play --pace-file``)."""
+    return anchor["monotonic"] + (stamp + sweep_end_s - anchor["stamp"]) / anchor["rate"]
+
+
+def run_node(world, hint: str, rate: float, frames: int, work: Path, env: dict, sweep_end: dict,
+             initialpose_after: int | None = None) -> dict:
+    """One ``blockloc play`` into ``blockloc node`` at ``rate``; with ``initialpose_after``, an
+    /initialpose 10 m and 90 degrees off the ground truth is sent once the node published that many poses."""
+    import json
+    import threading
+
+    from blockloc.geometry import rpy_to_R
+    from blockloc.ros2 import convert
     from blockloc.ros2 import dds as d
     from blockloc.ros2 import messages as m
+    from blockloc.ros2.messages import time_to_stamp
 
-    out = work / f"node_{rate:g}x"
+    tag = f"{rate:g}x" + ("_initialpose" if initialpose_after is not None else "")
+    out = work / f"node_{tag}"
     node = _start(["node", "--map", str(world.block_map), "--config", "sim", "--init-pose", hint, "--out", str(out)],
-                  env, work / f"node_{rate:g}x.log")
+                  env, work / f"node_{tag}.log")
     os.environ.update({k: env[k] for k in ("CYCLONEDDS_URI", "ROS_DOMAIN_ID")})
     listener = d.Dds()
     diags: list = []
-    poses: list = []
-    listener.reader("/diagnostics", m.DiagnosticArray, diags.append, d.RELIABLE)
-    listener.reader("/blockloc/pose", m.PoseWithCovarianceStamped, poses.append, d.RELIABLE)
+    poses: list = []  # (CLOCK_MONOTONIC s received, message)
+    truth: list = []
+    listener.reader("/diagnostics", m.DiagnosticArray, lambda x: diags.append((time.monotonic(), x)), d.RELIABLE)
+    listener.reader("/blockloc/pose", m.PoseWithCovarianceStamped, lambda x: poses.append((time.monotonic(), x)),
+                    d.RELIABLE)
+    listener.reader("/blockloc/ground_truth", m.Odometry, truth.append, d.RELIABLE)
+    initialpose = listener.writer("/initialpose", m.PoseWithCovarianceStamped, d.RELIABLE)
+    sent: list = []
+
+    def send_initialpose() -> None:
+        if not truth:
+            return
+        T = convert.matrix_of(truth[-1].pose.pose.position, truth[-1].pose.pose.orientation)
+        wrong = T.copy()
+        heading = T[:2, 0] / np.linalg.norm(T[:2, 0])
+        wrong[:2, 3] += 10.0 * np.array([-heading[1], heading[0]])  # 10 m to the robot's left
+        wrong[:3, :3] = rpy_to_R(0.0, 0.0, np.pi / 2) @ T[:3, :3]  # and turned 90 degrees
+        sent.append(time.monotonic())
+        initialpose.write(convert.pose_with_covariance(wrong, None, 0.0, "map"))
+
+    pace = work / f"pace_{tag}.json"
     try:
         t0 = time.monotonic()
-        while "listening on" not in (work / f"node_{rate:g}x.log").read_text():
+        while "listening on" not in (work / f"node_{tag}.log").read_text():
             if node.poll() is not None or time.monotonic() - t0 > 300:
-                raise SystemExit(f"the node did not start: {(work / f'node_{rate:g}x.log').read_text()[-2000:]}")
+                raise SystemExit(f"the node did not start: {(work / f'node_{tag}.log').read_text()[-2000:]}")
             time.sleep(0.2)
         play = _start(["play", "--seq", world.session, "--config", "sim", "--rate", f"{rate:g}", "--max-frames",
-                       str(frames)], env, work / f"play_{rate:g}x.log")
+                       str(frames), "--pace-file", str(pace)], env, work / f"play_{tag}.log")
         t_play = time.monotonic()
+        done = threading.Event()
+
+        def when_tracking() -> None:
+            while not done.is_set() and len(poses) < initialpose_after:
+                time.sleep(0.01)
+            if not done.is_set():
+                send_initialpose()
+
+        if initialpose_after is not None:
+            threading.Thread(target=when_tracking, daemon=True).start()
         play_code, _, _ = _reap(play)
         play_s = time.monotonic() - t_play
+        done.set()
         time.sleep(3.0)  # the node finishes its queue
-        node.send_signal(signal.SIGINT)
+        # SIGTERM (the node ends it as Ctrl-C, exit 143): a bench started in the background by a
+        # shell has SIGINT ignored, and so have its children
+        node.send_signal(signal.SIGTERM)
         code, cpu_s, rss_mb = _reap(node)
     finally:
         if node.poll() is None:
             node.kill()
         listener.close()
-    values = [{kv.key: kv.value for kv in x.status[0].values} for x in diags]
-    scans = [v for v in values if "latency_ms" in v]
+    anchor = json.loads(pace.read_text())
+    values = [(t, {kv.key: kv.value for kv in x.status[0].values}) for t, x in diags]
+    scans = [v for _, v in values if "latency_ms" in v]
+    steady = {round(float(v["stamp"]), 6) for v in scans if v.get("catching_up") == "False"
+              and v.get("state") == "ok"}
     latency = np.array([float(v["latency_ms"]) for v in scans])
-    last = values[-1] if values else {}
-    ate, n = _ate(out / "poses.tum", world_gt(world))
+    # stamp -> pose: the sweep's end in the player's pace to the pose received here
+    stamp_ms = np.array([1e3 * (t - _due(anchor, s, sweep_end[round(s, 6)]))
+                         for t, x in poses for s in [time_to_stamp(x.header.stamp)] if round(s, 6) in steady])
+    last = values[-1][1] if values else {}
+    gt = world_gt(world)
+    ate, n = _ate(out / "poses.tum", gt)
     processed = int(last.get("scans_processed", 0))
-    return {"rate": rate, "play_exit": play_code, "node_exit": code, "play_s": play_s, "ate_m": ate,
-            "poses": len(poses), "poses_file": n, "scans_received": int(last.get("scans_received", 0)),
-            "processed": processed, "dropped": int(last.get("dropped_scans", 0)),
-            "latency_ms_median": float(np.median(latency)) if len(latency) else float("nan"),
-            "latency_ms_p99": float(np.percentile(latency, 99)) if len(latency) else float("nan"),
-            "cpu_s": cpu_s, "cpu_ms_per_scan": 1e3 * cpu_s / max(processed, 1), "peak_rss_mb": rss_mb}
+    s0 = next(iter(sweep_end))  # the first scan's: from when it was due to the first pose
+    first_pose_s = poses[0][0] - _due(anchor, s0, sweep_end[s0]) if poses else float("nan")
+    res = {"rate": rate, "play_exit": play_code, "node_exit": code, "play_s": play_s, "ate_m": ate,
+           "poses": len(poses), "poses_file": n, "scans_received": int(last.get("scans_received", 0)),
+           "processed": processed, "dropped": int(last.get("dropped_scans", 0)),
+           "caught_up": int(last.get("caught_up_scans", 0)), "first_pose_s": first_pose_s,
+           "latency_ms_median": float(np.median(latency)) if len(latency) else float("nan"),
+           "latency_ms_p99": float(np.percentile(latency, 99)) if len(latency) else float("nan"),
+           "stamp_latency_ms_median": float(np.median(stamp_ms)) if len(stamp_ms) else float("nan"),
+           "stamp_latency_ms_p99": float(np.percentile(stamp_ms, 99)) if len(stamp_ms) else float("nan"),
+           "stamp_latency_n": int(len(stamp_ms)),
+           "cpu_s": cpu_s, "cpu_ms_per_scan": 1e3 * cpu_s / max(processed, 1), "peak_rss_mb": rss_mb}
+    if initialpose_after is not None:
+        res.update(_initialpose_outcome(sent, values, poses, gt))
+    return res
+
+
+def _initialpose_outcome(sent: list, values: list, poses: list, gt) -> dict:
+    """Seconds from the /initialpose to the first pose of the global init it started (verified),
+    and the largest error of any pose published after it."""
+    from blockloc.ros2.messages import time_to_stamp
+
+    if not sent:
+        return {"initialpose_sent": False}
+    t_sent = sent[0]
+    inits = [v for t, v in values if t > t_sent and int(v.get("verified_inits", 0)) >= 2 and v.get("state") == "ok"]
+    first = None
+    if inits:
+        s0 = float(inits[0]["stamp"])
+        first = next((t for t, x in poses if abs(time_to_stamp(x.header.stamp) - s0) < 1e-6), None)
+    after = [x for t, x in poses if t > t_sent]
+    err = [float(np.linalg.norm(np.array([x.pose.pose.position.x, x.pose.pose.position.y, x.pose.pose.position.z])
+                                - gt.interpolate(np.array([time_to_stamp(x.header.stamp)]))[0][:3, 3])) for x in after]
+    return {"initialpose_sent": True, "initialpose_verified_s": (first - t_sent) if first is not None else float("nan"),
+            "initialpose_max_err_m": max(err) if err else float("nan"), "initialpose_poses_after": len(after)}
+
+
+def sweep_ends(session: Path, frames: int) -> dict:
+    """{round(stamp, 6): the last point's time offset, s} of the first ``frames`` scans (cached beside them)."""
+    cache = session / "sweep_end.npy"
+    if cache.exists():
+        a = np.load(cache)
+    else:
+        from blockloc.datasets.nclt import NcltSequence
+
+        seq = NcltSequence(session)
+        a = np.array([(f.stamp, float(np.max(f.time_offsets))) for f in seq.frames(0, frames)])
+        np.save(cache, a)
+    return {round(float(s), 6): float(e) for s, e in a[:frames]}
 
 
 def recorded_session(world, frames: int) -> Path:
@@ -151,6 +252,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.live")
     ap.add_argument("--frames", type=int, default=None, help="scans to play (default: the whole session)")
     ap.add_argument("--rates", default="1,3")
+    ap.add_argument("--no-initialpose", action="store_true", help="skip the run with a wrong /initialpose")
     ap.add_argument("--no-fragment", action="store_true")
     a = ap.parse_args(argv)
     from blockloc.app.runs import noisy_hint, prepare_small_world
@@ -159,17 +261,25 @@ def main(argv=None) -> int:
     world, cfg = prepare_small_world()
     seq = open_sequence(world.loc, dataset_cfg=cfg.dataset)
     frames = min(a.frames or len(seq), len(seq))
-    world.session = str(recorded_session(world, frames))
+    session = recorded_session(world, frames)
+    world.session = str(session)
+    sweep_end = sweep_ends(session, frames)
     x, y, _ = noisy_hint(seq)
     hint = f"{x:.2f},{y:.2f}"
     env = _env()
     started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    load_start = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="bench-live-") as tmp:
         work = Path(tmp)
         nodes = []
         for rate in [float(r) for r in a.rates.split(",")]:
-            nodes.append(run_node(world, hint, rate, frames, work, env))
+            nodes.append(run_node(world, hint, rate, frames, work, env, sweep_end))
             print(nodes[-1], flush=True)
+        reinit = None
+        if not a.no_initialpose:
+            # while tracking: once the node published poses for a third of the scans
+            reinit = run_node(world, hint, 1.0, frames, work, env, sweep_end, initialpose_after=frames // 3)
+            print({"initialpose": reinit}, flush=True)
         track = run_track(world, hint, frames, work, env)
         print({"track": track}, flush=True)
     if a.no_fragment:
@@ -178,28 +288,49 @@ def main(argv=None) -> int:
     from blockloc.fileio import atomic_write_text
 
     cmd = "python -m bench.live" + (f" --frames {a.frames}" if a.frames else "") + \
-        (f" --rates {a.rates}" if a.rates != "1,3" else "")
+        (f" --rates {a.rates}" if a.rates != "1,3" else "") + (" --no-initialpose" if a.no_initialpose else "")
     lines = ["## The live node (ROS 2 over DDS) against track", "",
-             f"`{cmd}`, {started}, on {machine()} (load average {os.getloadavg()[0]:.1f} at the end; the machine "
-             "is shared). The small world's loc session (`sim:small/loc@1`, seed 1, written once in NCLT layout), its cached block map, "
+             f"`{cmd}`, {started}, on {machine()} (1-min load average {load_start:.1f} at the start, "
+             f"{os.getloadavg()[0]:.1f} at the end; the machine is shared). The small world's loc session "
+             "(`sim:small/loc@1`, seed 1, written once in NCLT layout), its cached block map, "
              f"{frames} scans played by `blockloc play` into `blockloc node` over loopback DDS; both start from "
              f"global init around `--init-pose {hint}` (the demo's noisy hint). ATE: position RMSE against "
-             "ground truth, no alignment. Latency: the scan's arrival at the node to its pose published "
-             "(the node's `latency_ms`). CPU: user + system seconds of the whole process over the scans it "
-             "processed; RSS: peak.", "",
-             "| run | play took [s] | scans played / received / processed / dropped | poses | ATE [m] | latency median / p99 [ms] | CPU per scan [ms] | peak RSS [MB] |",
-             "|---|---|---|---|---|---|---|---|"]
-    for r in nodes:
-        lines.append(f"| node at {r['rate']:g}x | {r['play_s']:.0f} | {frames} / {r['scans_received']} / {r['processed']} / "
-                     f"{r['dropped']} | {r['poses']} | "
-                     f"{r['ate_m']:.3f} | {r['latency_ms_median']:.0f} / {r['latency_ms_p99']:.0f} | "
+             "ground truth, no alignment. Latency from the stamp: from the end of the scan's sweep (its stamp, "
+             "the sweep's start, + its last point's time offset: the moment a driver can publish it) in the "
+             "player's pace (`play --pace-file`: the CLOCK_MONOTONIC second a stamp was due) to its pose "
+             "received on /blockloc/pose by a third process, over the scans tracked in step (not those that "
+             "waited through the first global init and were caught up on: their count is the caught-up "
+             "column); it includes the player's own lateness. Latency from arrival: the node's `latency_ms`. "
+             "First pose: from the first scan's sweep end to the first pose received (the global init "
+             "included). CPU: user + system seconds of the whole process over the scans it processed "
+             "(wait4); RSS: peak.", "",
+             "| run | play took [s] | scans played / received / processed / dropped / caught up | poses | ATE [m] "
+             "| first pose [s] | latency from stamp median / p99 [ms] (scans) | latency from arrival median / p99 [ms] "
+             "| CPU per scan [ms] | peak RSS [MB] |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in nodes + ([reinit] if reinit is not None else []):
+        name = f"node at {r['rate']:g}x" + (" + /initialpose" if r.get("initialpose_sent") is not None else "")
+        lines.append(f"| {name} | {r['play_s']:.0f} | {frames} / {r['scans_received']} / {r['processed']} / "
+                     f"{r['dropped']} / {r['caught_up']} | {r['poses']} | {r['ate_m']:.3f} | {r['first_pose_s']:.1f} | "
+                     f"{r['stamp_latency_ms_median']:.0f} / {r['stamp_latency_ms_p99']:.0f} ({r['stamp_latency_n']}) | "
+                     f"{r['latency_ms_median']:.0f} / {r['latency_ms_p99']:.0f} | "
                      f"{r['cpu_ms_per_scan']:.0f} | {r['peak_rss_mb']:.0f} |")
-    lines.append(f"| track | - ({track['wall_s']:.0f} wall) | {frames} / {frames} / {frames} / 0 | {track['poses']} | "
-                 f"{track['ate_m']:.3f} | - | "
+    lines.append(f"| track | - ({track['wall_s']:.0f} wall) | {frames} / {frames} / {frames} / 0 / - | {track['poses']} | "
+                 f"{track['ate_m']:.3f} | - | - | - | "
                  f"{track['cpu_ms_per_scan']:.0f} | {track['peak_rss_mb']:.0f} |")
+    if reinit is not None:
+        lines += ["", f"/initialpose 10 m to the robot's left and turned 90 degrees, sent once the node had published "
+                  f"{frames // 3} poses (1x): "
+                  + (f"the node's first pose from the global init around it was received "
+                     f"{reinit['initialpose_verified_s']:.2f} s after it was sent (issue 39: within 3 s); the largest "
+                     f"error of the {reinit['initialpose_poses_after']} poses published after it: "
+                     f"{reinit['initialpose_max_err_m']:.3f} m." if reinit.get("initialpose_sent") else
+                     "not sent (no ground truth received).")]
     lines += ["", "One run each (no repeats): the figures move with the machine's load. Scans played but not "
-              "received were overwritten in the node's DDS reader (best effort, keep last 5) while its process "
-              "did not get the CPU; the node counts only the scans it dropped itself."]
+              "received were overwritten in the node's DDS reader (best effort; its history holds 40 scans and "
+              "2000 IMU samples) while its process did not get the CPU; the node counts only the scans it dropped "
+              "itself. With `play took` above the scans' 0.1 s x count / rate, the player itself ran late: the "
+              "latency from the stamp then measures the machine, not the node."]
     atomic_write_text(FRAGMENTS / "live.md", "\n".join(lines) + "\n\n")
     print(FRAGMENTS / "live.md")
     return 0

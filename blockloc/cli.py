@@ -407,11 +407,15 @@ def play_cmd(
                                             help="DDS discovery range (default localhost)."),
     points_topic: str = typer.Option("/points", "--points-topic", metavar="TOPIC", help="PointCloud2 out."),
     imu_topic: str = typer.Option("/imu/data", "--imu-topic", metavar="TOPIC", help="Imu out."),
+    pace_file: Optional[Path] = typer.Option(
+        None, "--pace-file", metavar=FILE,
+        help="Write where the pace starts (JSON: a stamp, the CLOCK_MONOTONIC second it was due, the rate), "
+             "so a listener on this machine can tell when each stamp was due."),
 ) -> None:
     """Publish a sequence as ROS 2 topics over DDS at its recorded pace (clouds, IMU, /tf_static, ground truth)."""
     from blockloc.commands.play import play_command
 
-    play_command(seq, rate, loop, max_frames, config, data_root, discovery, points_topic, imu_topic)
+    play_command(seq, rate, loop, max_frames, config, data_root, discovery, points_topic, imu_topic, pace_file)
 
 
 @app.command("view")

@@ -192,6 +192,14 @@ MUTATIONS: list[Mutation] = [
     M("mounting_not_applied", "blockloc/maps/build_plan.py",
       'drives = [remounted(p.drive, m["T_body_lidar"]) for p, m in zip(plans, found)]',
       'drives = [p.drive for p in plans]', "tests/maps/test_mounting.py"),
+    M("restart_sweep_without_rotation", "blockloc/tracking/imu_tracker.py",
+      "early = table_t[0] < t_prev - 1e-9 and abs(stamp - t_prev) < 1e-4", "early = False",
+      "tests/node/test_session_live.py"),
+    M("restart_not_refined", "blockloc/tracking/restart.py",
+      "return None if reason else T_ndt", "return None", "tests/global_init/test_kidnap.py"),
+    M("backlog_drops_the_oldest", "blockloc/node/buffer.py",
+      "if not (self.backlog or self._catching_up) or len(self._items) < 3:", "if True:",
+      "tests/node/test_buffer.py"),
 ]
 
 

@@ -224,7 +224,8 @@ class Session:
     def reinitialize(self, frame, pose_hint: tuple | None = None) -> bool:
         """A live source: global init of ``frame`` (a LidarFrame) around ``pose_hint`` = (x, y,
         yaw or None), map frame, m and rad (None: over the whole map). A verified pose restarts
-        the tracker there (True); otherwise the tracker is left as it was (False)."""
+        the tracker there (True; while tracking, with the velocity and biases it had); otherwise
+        the tracker is left as it was (False)."""
         self.start()
         # (the mode of ``step`` stays: it does not search again on the same frame)
         self.init_info.setdefault("mode", "global" if pose_hint is None else "pose")
@@ -232,7 +233,11 @@ class Session:
         T, _, _ = self._global_init(frame, hint_xy, None if pose_hint is None else pose_hint[2])
         if T is None:
             return False
-        self.tracker.initialize(T, float(frame.stamp))
+        if self.tracker.initialized:  # while tracking: keep the robot's motion (Estimator.restart)
+            self._feed_imu(frame)  # the restart deskews the frame with it
+            self.tracker.restart_on(frame, T)
+        else:
+            self.tracker.initialize(T, float(frame.stamp))
         self.init_info["first_frame"] = int(frame.index)
         return True
 
@@ -255,14 +260,7 @@ class Session:
         self.start()
         t0 = time.perf_counter()
         self.stream.lidar_frame(frame)  # gaps, points dropped for NaN/inf coordinates
-        imu = self.imu
-        t_end = frame.stamp + (float(np.max(frame.time_offsets)) if frame.time_offsets is not None
-                               and len(frame.time_offsets) else 0.0)
-        j = self._imu_next
-        while j < len(imu.t) and imu.t[j] <= t_end:
-            self.tracker.insert_imu(imu.t[j], imu.acc[j], imu.gyro[j])
-            j += 1
-        self._imu_next = j
+        self._feed_imu(frame)
         if self._mode == "global" and not self.tracker.initialized:
             T, _, _ = self._global_init(frame, None, None)
             if T is not None:
@@ -283,6 +281,17 @@ class Session:
             self.estimates.append(est)
         self._notify(frame, est, d)
         return est
+
+    def _feed_imu(self, frame) -> None:
+        """The tracker gets the IMU samples held up to the end of ``frame``'s sweep (once each)."""
+        imu = self.imu
+        t_end = frame.stamp + (float(np.max(frame.time_offsets)) if frame.time_offsets is not None
+                               and len(frame.time_offsets) else 0.0)
+        j = self._imu_next
+        while j < len(imu.t) and imu.t[j] <= t_end:
+            self.tracker.insert_imu(imu.t[j], imu.acc[j], imu.gyro[j])
+            j += 1
+        self._imu_next = j
 
     def skip(self, index: int, stamp: float | None, reason: BaseException | str) -> None:
         """Record a frame that could not be read (logged, counted, the run goes on)."""

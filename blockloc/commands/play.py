@@ -8,7 +8,9 @@ from blockloc.errors import BlocklocError
 
 
 def play_command(seq: str, rate: float, loop: bool, max_frames: int | None, config: str | None,
-                 data_root: str | None, discovery: str | None, points_topic: str, imu_topic: str) -> None:
+                 data_root: str | None, discovery: str | None, points_topic: str, imu_topic: str,
+                 pace_file=None) -> None:
+    """``pace_file``: where to write the pace's anchor (:func:`write_pace`), or None."""
     from blockloc.commands.common import Interrupted, config_for, interruptible
     from blockloc.app.catalog import SequenceRef
     from blockloc.node.player import Player
@@ -21,7 +23,8 @@ def play_command(seq: str, rate: float, loop: bool, max_frames: int | None, conf
     dds = Dds(discovery)
     try:
         player = Player(dds, sequence, rate=rate, loop=loop, max_frames=max_frames, points_topic=points_topic,
-                        imu_topic=imu_topic)
+                        imu_topic=imu_topic,
+                        on_pace=None if pace_file is None else lambda t, m: write_pace(pace_file, t, m, rate))
         where = "CYCLONEDDS_URI" if dds.user_uri else f"{dds.discovery} discovery"
         print(f"blockloc play: {sequence.info.name} on {points_topic}, {imu_topic}, /tf_static, "
               f"/blockloc/ground_truth at {rate:g}x (DDS domain {dds.domain}, {where})", file=sys.stderr, flush=True)
@@ -33,3 +36,16 @@ def play_command(seq: str, rate: float, loop: bool, max_frames: int | None, conf
         print(summary, file=sys.stderr)
     finally:
         dds.close()
+
+
+def write_pace(path, stamp: float, monotonic_s: float, rate: float) -> None:
+    """The pace's anchor as JSON: a message with stamp ``t`` s is due at CLOCK_MONOTONIC second
+    ``monotonic + (t - stamp) / rate`` (the same clock for every process of this machine); a scan
+    is published when its sweep ends (its stamp + its last point's time offset). With --loop,
+    rewritten at every start."""
+    import json
+
+    from blockloc.fileio import atomic_write_text
+
+    atomic_write_text(path, json.dumps({"stamp": stamp, "monotonic": monotonic_s, "rate": rate,
+                                        "clock": "CLOCK_MONOTONIC"}) + "\n")

@@ -13,15 +13,18 @@ latency, block, dropped scans); /blockloc/local_map (PointCloud2, reliable + tra
 again at every block switch. Nothing is published as a pose before a verified initialization.
 
 Real time: Cyclone's receive threads only queue. Scans are processed on one worker thread in
-arrival order; at most ``queue_size`` wait, and when processing falls behind the oldest is
-dropped (counted, in the diagnostics). Every IMU sample is kept (until fed). Time is the
-messages' stamps; wall time only measures latency and how long no scan came (``no data``).
+arrival order (:class:`blockloc.node.buffer.ScanBuffer`): while tracking at most ``queue_size``
+wait, and when processing falls behind the oldest is dropped; while a global initialization runs
+(and while the worker catches up after it) up to ``backlog_size`` wait, thinned evenly when
+more come, so the tracker follows them from the verified pose to the newest scan instead of
+jumping seconds ahead. Every drop is counted (in the diagnostics). Every IMU sample is kept
+(until fed). Time is the messages' stamps; wall time only measures latency and how long no
+scan came (``no data``).
 A scan stamp that jumps back (a player restarted) resets the tracker (one warning line).
 """
 
 from __future__ import annotations
 
-import collections
 import logging
 import threading
 import time
@@ -31,6 +34,7 @@ from typing import Callable
 import numpy as np
 
 from blockloc.errors import BlocklocError
+from blockloc.node.buffer import ScanBuffer
 from blockloc.node.player import FrameNames
 
 log = logging.getLogger(__name__)
@@ -45,7 +49,9 @@ _PUBLISHED = ("ok", "recovered", "rejected", "imu_only")  # statuses whose pose 
 @dataclass
 class NodeSettings:
     """points_topic, imu_topic: ROS topics in. frames: TF frame names. queue_size: scans that may
-    wait (older ones are dropped). no_data_timeout_s: wall seconds without a scan before the
+    wait while tracking (older ones are dropped). backlog_size: scans that may wait while a global
+    initialization runs and the worker catches up after it (thinned evenly past it; 40 scans of
+    64k points hold about 80 MB). no_data_timeout_s: wall seconds without a scan before the
     diagnostics say "no data". imu_timeout_s: stamp seconds without an IMU sample before the end
     of a sweep after which tracking goes on LiDAR-only. extrinsics_wait_s: wall seconds the first
     scan waits for /tf_static. local_map_points_max: points of /blockloc/local_map (thinned)."""
@@ -54,6 +60,7 @@ class NodeSettings:
     imu_topic: str = "/imu/data"
     frames: FrameNames = field(default_factory=FrameNames)
     queue_size: int = 2
+    backlog_size: int = 40
     no_data_timeout_s: float = 5.0
     imu_timeout_s: float = 0.5
     extrinsics_wait_s: float = 1.0
@@ -67,7 +74,9 @@ class NodeStats:
     dropped: int = 0
     bad_scans: int = 0
     failed_scans: int = 0
-    max_waiting: int = 0  # the most scans ever waiting at once (at most queue_size)
+    max_waiting: int = 0  # the most scans ever waiting at once (at most backlog_size)
+    caught_up: int = 0  # scans processed while catching up after a global initialization
+    verified_inits: int = 0  # global initializations that restarted the tracker
     nan_points: int = 0
     imu_samples: int = 0
     imu_out_of_order: int = 0
@@ -101,7 +110,7 @@ class LocalizationNode:
         self._hint = init_pose  # (x, y, yaw|None) for the next global init
         self._relocalize = False
         self._lock = threading.Condition()
-        self._scans: collections.deque = collections.deque()
+        self._scans = ScanBuffer(s.queue_size, s.backlog_size)
         self._imu_t: list[float] = []
         self._imu_acc: list = []
         self._imu_gyro: list = []
@@ -123,8 +132,12 @@ class LocalizationNode:
         self._pub_tf = dds.writer("/tf", m.TFMessage, RELIABLE)
         self._pub_diag = dds.writer("/diagnostics", m.DiagnosticArray, RELIABLE)
         self._pub_map = dds.writer("/blockloc/local_map", m.PointCloud2, LATCHED)
-        dds.reader(s.points_topic, m.PointCloud2, self._on_cloud, SENSOR_DATA)
-        dds.reader(s.imu_topic, m.Imu, self._on_imu, SENSOR_DATA)
+        # Polled (not on Cyclone's delivery thread, which would wait for the GIL while the worker
+        # computes), with histories deep enough to outlast a stall: the backlog's scans, and
+        # 10 s of IMU at 200 Hz (every sample is kept). Best effort, as sensor drivers publish.
+        dds.reader(s.points_topic, m.PointCloud2, self._on_cloud, ("sensor", max(SENSOR_DATA[1], s.backlog_size)),
+                   poll=True)
+        dds.reader(s.imu_topic, m.Imu, self._on_imu, ("sensor", 2000), poll=True)
         dds.reader("/tf", m.TFMessage, self._on_tf, SENSOR_DATA)
         dds.reader("/tf_static", m.TFMessage, self._on_tf_static, LATCHED)
         dds.reader("/initialpose", m.PoseWithCovarianceStamped, self._on_initialpose, RELIABLE)
@@ -134,12 +147,12 @@ class LocalizationNode:
 
     # ----------------------------------------------------------------- receive threads (queue only)
     def _on_cloud(self, msg) -> None:
+        from blockloc.ros2.messages import time_to_stamp
+
+        stamp = time_to_stamp(msg.header.stamp)
         with self._lock:
             self.stats.received += 1
-            if len(self._scans) >= self.settings.queue_size:
-                self._scans.popleft()  # the oldest waiting scan: processing fell behind
-                self.stats.dropped += 1
-            self._scans.append((msg, time.monotonic()))
+            self.stats.dropped += len(self._scans.push(stamp, (msg, time.monotonic())))
             self.stats.max_waiting = max(self.stats.max_waiting, len(self._scans))
             self._last_arrival = time.monotonic()
             self._lock.notify_all()
@@ -244,13 +257,14 @@ class LocalizationNode:
                 with self._lock:
                     if not self._scans:
                         self._lock.wait(0.05)
-                    item = self._scans.popleft() if self._scans else None
+                    catching_up = self._scans.catching_up
+                    item = self._scans.pop()
                 if item is None:
                     self._check_no_data()
                     continue
                 self._no_data_said = False
                 try:
-                    self._process(*item)
+                    self._process(*item, catching_up=catching_up)
                 except Exception as exc:  # noqa: BLE001 - one scan's failure, the node goes on
                     self.stats.failed_scans += 1
                     log.error("scan %d could not be processed: %s: %s", self._next_index - 1, type(exc).__name__, exc,
@@ -267,7 +281,7 @@ class LocalizationNode:
             log.warning("no scan on %s for %.1f s", self.settings.points_topic, quiet)
             self._publish_diagnostics(self._last_stamp or 0.0, None, {})
 
-    def _process(self, msg, arrived: float) -> None:
+    def _process(self, msg, arrived: float, catching_up: bool = False) -> None:
         from blockloc.datasets.base import LidarFrame
         from blockloc.ros2.convert import CloudError, cloud_arrays
 
@@ -303,11 +317,20 @@ class LocalizationNode:
         if not session.tracker.initialized or hint is not None or reloc:
             log.info("t=%.2f: global init %s", frame.stamp, "over the whole map" if hint is None
                      else f"around ({hint[0]:.1f}, {hint[1]:.1f})")
+            with self._lock:  # the scans coming while it searches wait, to be caught up on
+                self._scans.start_backlog()
+            t0 = time.monotonic()
             try:
                 ok = session.reinitialize(frame, hint)
             except BlocklocError as exc:  # e.g. a scan that cannot be levelled without an IMU
                 ok = False
                 log.warning("t=%.2f: global init failed: %s", frame.stamp, exc)
+            if ok:
+                self.stats.verified_inits += 1
+                with self._lock:
+                    waiting = len(self._scans)
+                log.info("t=%.2f: verified pose in %.2f s; catching up on %d scans that came meanwhile",
+                         frame.stamp, time.monotonic() - t0, waiting)
             if not ok:
                 if hint is not None and not session.tracker.initialized:
                     with self._lock:
@@ -317,7 +340,11 @@ class LocalizationNode:
                          "" if session.tracker.initialized else "; still initializing")
         est = session.step(frame)
         self.stats.processed += 1
-        self._publish(frame, est, arrived)
+        self.stats.caught_up += int(catching_up)
+        if session.tracker.initialized:
+            with self._lock:
+                self._scans.end_backlog()
+        self._publish(frame, est, arrived, catching_up)
 
     def _restart(self) -> None:
         if self.session is not None:
@@ -370,7 +397,7 @@ class LocalizationNode:
             self.session.drop_imu()
 
     # ----------------------------------------------------------------- publishing
-    def _publish(self, frame, est, arrived: float) -> None:
+    def _publish(self, frame, est, arrived: float, catching_up: bool = False) -> None:
         from blockloc.geometry import inv_T
         from blockloc.ros2 import convert
         from blockloc.ros2 import messages as m
@@ -393,7 +420,8 @@ class LocalizationNode:
         self._publish_local_map(stamp)
         latency_ms = (time.monotonic() - arrived) * 1e3
         self.stats.latency_ms.append(latency_ms)
-        self._publish_diagnostics(stamp, est, {"latency_ms": f"{latency_ms:.1f}"})
+        # catching_up: the scan waited through a global initialization (its latency is that wait)
+        self._publish_diagnostics(stamp, est, {"latency_ms": f"{latency_ms:.1f}", "catching_up": catching_up})
 
     def _publish_local_map(self, stamp: float) -> None:
         from blockloc.ros2 import convert
@@ -414,6 +442,8 @@ class LocalizationNode:
         d = est.diagnostics if est is not None else None
         values = {"state": self.state, "stamp": f"{stamp:.6f}", "scans_received": self.stats.received,
                   "scans_processed": self.stats.processed, "dropped_scans": self.stats.dropped,
+                  "waiting_scans": len(self._scans), "caught_up_scans": self.stats.caught_up,
+                  "verified_inits": self.stats.verified_inits,
                   "bad_scans": self.stats.bad_scans, "restarts": self.stats.restarts,
                   "imu_out_of_order": self.stats.imu_out_of_order,
                   "lidar_only": bool(self.session is not None and self.session.tracker.lidar_only)}

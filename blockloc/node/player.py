@@ -7,7 +7,8 @@ truth at each scan stamp when the sequence has some (nav_msgs/Odometry ``map -> 
 ``/blockloc/ground_truth``), and once, latched, the extrinsics on ``/tf_static``
 (``base_link -> lidar``, ``base_link -> imu``).
 
-Pace: message stamps against a monotonic clock, scaled by ``rate``; a player that falls behind
+Pace: message stamps against a monotonic clock, scaled by ``rate`` (``on_pace`` is told where it
+starts: a stamp and the clock second it is due); a player that falls behind
 publishes at once and does not skip. ``loop`` starts over (the stamps jump back, as a restarted
 recording does).
 """
@@ -51,7 +52,8 @@ class Player:
     def __init__(self, dds, seq, *, rate: float = 1.0, loop: bool = False, max_frames: int | None = None,
                  points_topic: str = "/points", imu_topic: str = "/imu/data",
                  ground_truth_topic: str = "/blockloc/ground_truth", frames: FrameNames = FrameNames(),
-                 clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep) -> None:
+                 clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep,
+                 on_pace: Callable[[float, float], None] | None = None) -> None:
         from blockloc.ros2 import messages as m
         from blockloc.ros2.dds import LATCHED, RELIABLE, SENSOR_DATA
 
@@ -60,6 +62,7 @@ class Player:
         self.seq, self.rate, self.loop, self.max_frames = seq, float(rate), bool(loop), max_frames
         self.frames = frames
         self.clock, self.sleep = clock, sleep
+        self.on_pace = on_pace  # (stamp s, clock s it is due at): called when a pass starts
         self.stats = PlayStats()
         self._points = dds.writer(points_topic, m.PointCloud2, SENSOR_DATA)
         self._imu = dds.writer(imu_topic, m.Imu, SENSOR_DATA)
@@ -116,6 +119,8 @@ class Player:
                 return
             if start_wall is None:
                 start_wall, start_t = self.clock(), t
+                if self.on_pace is not None:
+                    self.on_pace(start_t, start_wall)
                 self.publish_static(t)
             wait = start_wall + (t - start_t) / self.rate - self.clock()
             if wait > 0:

@@ -136,6 +136,8 @@ class Dds:
         self.user_uri = user_uri or None
         self._topics: dict[str, object] = {}
         self._entities: list = []
+        self._stop = threading.Event()
+        self._pollers: list[threading.Thread] = []
         _register_for_exit(self)
 
     def _topic(self, ros_topic: str, msg_type):
@@ -154,10 +156,17 @@ class Dds:
         self._entities.append(w)
         return w
 
-    def reader(self, ros_topic: str, msg_type, on_message: Callable[[object], None], qos=SENSOR_DATA):
+    def reader(self, ros_topic: str, msg_type, on_message: Callable[[object], None], qos=SENSOR_DATA,
+               poll: bool = False):
         """A DataReader of ``msg_type`` on ``ros_topic``; ``on_message(msg)`` is called on
         Cyclone's receive thread for every sample (keep it short: queue and return). An
-        exception in it is logged, never lost silently, and the reader goes on."""
+        exception in it is logged, never lost silently, and the reader goes on.
+
+        poll: no listener; a thread of its own waits for samples (releasing the GIL) and takes
+        them. A listener runs on Cyclone's delivery thread, which waits for the GIL while this
+        process computes (a global init, a smoother update), and samples that come meanwhile
+        are lost; polled, Cyclone keeps them in the reader's history (``qos``'s depth) until the
+        thread gets the GIL back."""
         from cyclonedds.core import Listener
         from cyclonedds.internal import InvalidSample
         from cyclonedds.sub import DataReader
@@ -179,6 +188,11 @@ class Dds:
             if made:
                 drain(made[0])
 
+        if poll:
+            r = DataReader(self.participant, self._topic(ros_topic, msg_type), qos=_qos(*qos))
+            self._entities.append(r)
+            self._poll(ros_topic, r, drain)
+            return r
         r = DataReader(self.participant, self._topic(ros_topic, msg_type), qos=_qos(*qos),
                        listener=Listener(on_data_available=on_data_available))
         made.append(r)
@@ -186,11 +200,33 @@ class Dds:
         self._entities.append(r)
         return r
 
+    def _poll(self, ros_topic: str, reader, drain: Callable) -> None:
+        from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet
+        from cyclonedds.util import duration
+
+        waitset = WaitSet(self.participant)
+        waitset.attach(ReadCondition(reader, SampleState.Any | ViewState.Any | InstanceState.Any))
+
+        def loop() -> None:
+            while not self._stop.is_set():
+                waitset.wait(duration(milliseconds=100))  # releases the GIL
+                if not self._stop.is_set():
+                    drain(reader)
+
+        t = threading.Thread(target=loop, name=f"dds-poll{ros_topic}", daemon=True)
+        self._pollers.append(t)
+        t.start()
+
     def close(self) -> None:
         """Leave the domain (readers stop calling back). Idempotent; done at exit for a
         participant left open (a process whose listeners still call back does not exit)."""
         if self.participant is None:
             return
+        self._stop.set()
+        for t in self._pollers:
+            if t is not threading.current_thread():
+                t.join(1.0)
+        self._pollers.clear()
         for e in self._entities:
             try:
                 e.set_listener(None)

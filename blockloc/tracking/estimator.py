@@ -39,6 +39,7 @@ from blockloc.errors import TrackingError
 from blockloc.geometry import inv_T, rotation_angle
 from blockloc.tracking.factors import ndt_factor, ndt_information, odometry_factor
 from blockloc.tracking.params import TrackerSettings
+from blockloc.tracking.restart import Restarts
 from blockloc.tracking.results import REJECT_REASONS, Diagnostics, Estimate, plain_id, reject_reason
 from blockloc.tracking.window import SlidingWindow, keys_of
 
@@ -63,7 +64,7 @@ def _deferred(compute: Callable[[], np.ndarray]) -> Callable[[], np.ndarray | No
     return run
 
 
-class Estimator:
+class Estimator(Restarts):
     """Streaming estimator: ``insert_imu`` for every IMU sample, ``insert_frame`` for every scan.
 
     The base of the two variants; ``lidar_only`` says which one an object is. Build one with
@@ -261,7 +262,7 @@ class Estimator:
                     log.warning("frame %d: %d rejected scans in a row, relocalizing", frame.index,
                                 self._bad_streak)
                 diag.status = "lost"
-                if self._try_recover(scan_pts, t_key, k, diag) is not None:
+                if self._try_recover(scan_pts, t_key, k, diag, (points, offsets, stamp)) is not None:
                     k = self.window.latest
         self._after_frame()
 
@@ -362,8 +363,9 @@ class Estimator:
         self.initialize(T, stamp)
         return None
 
-    def _try_recover(self, scan_pts, stamp, k, diag) -> np.ndarray | None:
-        """Relocalize around the last good pose; on success restart the window there."""
+    def _try_recover(self, scan_pts, stamp, k, diag, raw=None) -> np.ndarray | None:
+        """Relocalize around the last good pose; on success restart the window there
+        (:meth:`restart`, with ``raw`` = (points, offsets, frame stamp) of the scan)."""
         p = self.params
         if self.relocalize is None or len(scan_pts) < self.settings.scan.min_points:
             return None
@@ -378,19 +380,8 @@ class Estimator:
         self.counters["recoveries"] += 1
         log.warning("relocalized at %s (%.2f m from the last good pose)", np.round(T[:3, 3], 2),
                     np.linalg.norm(T[:3, 3] - hint[:3, 3]))
-        # The diverged state's velocity and biases are not to be trusted (seen: 6 m/s and 0.9 m/s^2
-        # of accelerometer bias after a kidnapped start). Restart from the last accepted keyframe's:
-        # its velocity in the body frame turned into the relocalized pose (a robot drives on the
-        # way it faces; zero instead made the next scans 0.25-0.35 m off, reported ok: the
-        # prediction and the deskew of the first scans a whole speed wrong), held loosely, and its
-        # biases (they change slowly); zero velocity and the initial bias prior without one.
-        v_body, bias = self._last_good_motion if self._last_good_motion is not None else (np.zeros(3), None)
-        self.initialize(T, stamp, velocity_map=T[:3, :3] @ v_body, bias=bias,
-                        sigma_vel_m_s=self.settings.fixed.recover_sigma_vel_m_s)
-        # The next scan registers against the map where the robot is now, not where it was.
-        relocate = getattr(self.map_provider, "relocate", None)
-        if relocate is not None:
-            local = relocate(T[:3, 3].copy(), T[:3, :3] @ v_body, stamp)
+        local = self.restart(T, stamp, raw)
+        if local is not None:
             diag.block_id = plain_id(getattr(local, "block_id", getattr(local, "region_id", None)))
         self.window.optimize()
         diag.status = "recovered"

@@ -18,7 +18,11 @@ from .kidnap import SplicedSequence
 pytestmark = pytest.mark.slow
 
 FIRST = (140, 180)  # ends at (-24.4, 0.8) m on the small world's loop
-SECOND = (950, 1020)  # starts at (22.5, 1.8) m: 47 m away, beyond the 40 m local search window
+# starts at (22.5, 1.8) m: 47 m away, beyond the 40 m local search window. It ends before frame 993:
+# from there to 1004 uninterrupted tracking from ground truth is itself 0.10-0.11 m off (measured
+# 2026-12-06, the same with and without the kidnap: the tracker on that stretch, not its recovery),
+# and this test is about the recovery.
+SECOND = (950, 990)
 
 
 @pytest.fixture(scope="module")
@@ -63,16 +67,18 @@ def test_kidnapped_robot_is_detected_and_recovered_with_nothing_wrong_published(
     assert res.metrics["recoveries"] >= 1 and res.metrics["failures"] >= 1
     # Nothing between the jump and the recovery was published as good.
     assert all(s != "ok" for s in status[k0:back]), status[k0:back]
-    # After the recovery: accurate again, from the first scan on. Measured 2026-12-02 (helper
-    # reloc): the recovered pose 0.13 m off, then 0.027, 0.023, 0.023 m ..., max 0.093 m and median
-    # 0.034 m over the 67 ok scans after it. Before the fix these scans overshot to 0.25-0.35 m,
-    # reported ok: the first scan after the jump was registered against the block the robot came
-    # from (the provider served it while the new one loaded; now ``MapProvider.relocate`` waits),
-    # with the prediction and deskew of a robot at rest (now the last good body-frame velocity).
-    assert err[back] < 0.3
+    # After the recovery: accurate again, from the recovered scan on, every scan within 0.10 m.
+    # Measured 2026-12-06 (helper kidnap): the recovered pose 0.018 m off, then 0.017, 0.021,
+    # 0.027 m ..., max 0.03 m over the 37 ok scans after it. Before: these scans overshot to
+    # 0.25-0.35 m, reported ok (the first scan after the jump registered against the block the robot
+    # came from, with the prediction and deskew of a robot at rest: now ``MapProvider.relocate``
+    # waits for the new block and the tracker restarts with the last good body-frame velocity), and
+    # the recovered pose itself was 0.13 m off (found on a scan deskewed with the diverged motion:
+    # now deskewed again from the restarted state and registered, ``Estimator._refine_restart``).
+    assert err[back] < 0.10
     good = [k for k in range(back, len(ests)) if status[k] == "ok"]
-    assert len(good) > 0.9 * (len(ests) - back) and err[good].max() < 0.2
-    assert np.median(err[good]) < 0.07
+    assert len(good) > 0.9 * (len(ests) - back) and err[good].max() < 0.10, np.round(err[good], 3)
+    assert np.median(err[good]) < 0.05
     # The whole-map search found it (the search around the last good pose could not).
     reloc = res.metrics["relocalizations"]
     assert any(r["verified"] and not r["hint"] for r in reloc)

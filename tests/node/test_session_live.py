@@ -69,3 +69,36 @@ def test_restart_forgets_the_imu_and_resets_the_tracker():
     assert tracker.resets == 1 and len(s.imu) == 0
     s.extend_imu(*imu([0.1, 0.2]))  # earlier stamps than before: accepted after the restart
     assert len(s.imu) == 2
+
+
+def test_a_new_initial_pose_while_tracking_restarts_on_the_spot_with_the_robots_motion(tiny_live_world):
+    """reinitialize while tracking (an /initialpose 9 m off): the pose it restarts at is the scan
+    registered again with the motion kept (this 5 m/s drive's sweeps are stamped at their end), so
+    neither that frame nor the next are off. Measured: 0.004 m, 0.003 m; before, 0.13 m and 0.38 m
+    (zero velocity, the gyro-only deskew of global init)."""
+    from blockloc.config import load_config
+    from blockloc.node import _assemble
+
+    w = tiny_live_world
+    seq = w["seq"]
+    cfg = load_config(str(w["config"]))
+    store = _assemble.open_store(str(w["map"]), cfg)
+    session = _assemble.build_session(cfg, store, str(w["map"]), seq.info, seq.imu())
+    gt = seq.ground_truth()
+    frames = list(seq.frames(0, 34))
+
+    def error(est) -> float:
+        return float(np.linalg.norm(est.T_map_body[:3, 3] - gt.interpolate(np.array([est.stamp]))[0][:3, 3]))
+
+    errors = {}
+    for f in frames:
+        if not session.tracker.initialized:
+            session.reinitialize(f, None)
+        if f.index == 30:
+            assert session.tracker.initialized
+            T = gt.interpolate(np.array([f.stamp]))[0]
+            assert session.reinitialize(f, (T[0, 3] - 5.0, T[1, 3] - 7.5, None))
+        errors[f.index] = error(session.step(f)) if session.tracker.initialized else None
+    session.close()
+    assert errors[29] < 0.05
+    assert errors[30] < 0.03 and errors[31] < 0.03 and max(errors[k] for k in range(30, 34)) < 0.05, errors
