@@ -159,6 +159,14 @@ class BBS3D:
         return BBSResult(np.asarray(ans["T"], float).reshape(4, 4), bool(ans["localized"]), bool(ans["timed_out"]),
                          float(ans["score_pct"]), float(ans["ms"]) / 1e3)
 
+    def cpu_s(self) -> float:
+        """CPU seconds (user + system, all threads) the driver process has used so far (Linux /proc)."""
+        try:
+            fields = Path(f"/proc/{self._proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            return float("nan")
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
     def close(self) -> None:
         if self._proc.poll() is None:
             try:

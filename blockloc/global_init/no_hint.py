@@ -31,13 +31,16 @@ class NoHintSearch:
     """The place stages and the regions' fallback of a localizer."""
 
     def _relocalize_places(self, scan: ScanProjection, scan_ndt: np.ndarray, cells, index, theta_c: float,
-                           yaw_win: float, stats: dict, deadline: float = math.inf):
+                           yaw_win: float, stats: dict, deadline: float = math.inf,
+                           candidates: tuple[int, ...] | None = None):
         """No-hint search through the place index, widening stage by stage (module docstring) while
-        ``time.perf_counter()`` is before ``deadline``."""
+        ``time.perf_counter()`` is before ``deadline``; ``candidates``: the stages' place counts
+        (default ``place_candidates``)."""
         p = self.params
+        candidates = p.place_candidates if candidates is None else candidates
         t = time.perf_counter()
         theta_window = (theta_c, yaw_win) if yaw_win < 2 * math.pi else None
-        places = index.query_cells(cells, max(p.place_candidates), theta_window=theta_window)
+        places = index.query_cells(cells, max(candidates), theta_window=theta_window)
         stats.update(place_query_s=time.perf_counter() - t, places=len(index), place_stage=0)
         if not places:
             return [], stats
@@ -45,7 +48,7 @@ class NoHintSearch:
         # An optional last stage tries every yaw around the best places (a yaw guess off by more
         # than the window: a symmetric scene); it costs most of a search that finds nothing (seen:
         # 15 of 20 s on the small world), so by default the regions' search (all yaws) follows.
-        stages = [(k, yaw_guess) for k in p.place_candidates]
+        stages = [(k, yaw_guess) for k in candidates]
         if p.place_all_yaw_candidates > 0:
             stages.append((p.place_all_yaw_candidates, min(yaw_win, 2 * math.pi)))
         out: list[InitCandidate] = []

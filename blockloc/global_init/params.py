@@ -81,6 +81,9 @@ class InitParams(GlobalInitParams):
     place_top_k: int = 6  # leaves refined per stage
     # the best leaves of each window (0: one top place_top_k over all windows, by 2D score)
     place_leaves_per_window: int = 1
+    # the hinted search's place stages (``hinted``): a window holds a few dozen places, and the true
+    # one ranked first in it on 40 of 40 small-world frames (seed 2); later stages take every place in it
+    hint_place_candidates: tuple[int, ...] = (4, 64, 256)
     place_top_level: int = 3  # its roots' level (2^3 cells = 4 m at 0.5 m: tight bounds in small windows)
     # static-band consistency at the refined pose (verification)
     consistency_tolerance_m: float = 0.75

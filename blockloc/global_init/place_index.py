@@ -123,6 +123,15 @@ class PlaceIndex:
                                K.popcounts(self.bits).astype(np.float32) / S)
         return self._densities
 
+    def subset(self, rows: np.ndarray) -> "PlaceIndex":
+        """The places ``rows`` ((K,) indices or (P,) mask) alone, same parameters. A place's match
+        scores are its own (its bits and densities), so they equal those in the whole index."""
+        sub = PlaceIndex(self.params, self.gravity_map, self.xy_L[rows], self.source[rows], self.bits[rows],
+                         self.grown[rows], dict(self.stats))
+        if self._densities is not None:
+            sub._densities = (self._densities[0][rows], self._densities[1][rows])
+        return sub
+
     # -- serialization -------------------------------------------------------------------
 
     def to_bytes(self) -> bytes:

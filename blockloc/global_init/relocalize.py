@@ -2,8 +2,9 @@
 
 Steps (``GlobalLocalizer.localize``):
 1. level the scan with gravity and project it to 2D cells (``projection``);
-2. branch and bound over (x, y, yaw) in the window around the hint (``bnb``) on the map pyramid of
-   that region (``maps``), keeping the K best distinct candidates;
+2. with a hint, the place index's places inside the hint's window, then small windows around the
+   best of them (``hinted``); branch and bound over (x, y, yaw) in the whole window (``bnb``) on
+   the map pyramid of that region (``maps``) where no place answers, keeping the K best candidates;
 3. refine every candidate in 6-DoF with NDT and verify it by fitness (``refine``);
 4. the best verified candidate wins; another verified candidate nearly as good but more than
    ``ambiguity_distance_m`` away marks the result ambiguous (reported, never hidden).
@@ -26,6 +27,7 @@ import numpy as np
 from blockloc.errors import GlobalInitError
 from blockloc.geometry import transform_points
 from blockloc.global_init.bnb import Candidate2D, required_cells, search
+from blockloc.global_init.hinted import HintedSearch
 from blockloc.global_init.maps import ArrayMap, StoreMap
 from blockloc.global_init.no_hint import NoHintSearch
 from blockloc.global_init.params import InitParams
@@ -55,7 +57,7 @@ def _check_args(window_m: float, yaw_window_deg: float) -> None:
         raise GlobalInitError(f"yaw window {yaw_window_deg} deg: expected a positive angle (<= 360)")
 
 
-class GlobalLocalizer(NoHintSearch):
+class GlobalLocalizer(HintedSearch, NoHintSearch):
     """Global initialization against one map (ArrayMap or StoreMap), reusable across scans."""
 
     def __init__(self, map_source, params: InitParams | None = None, engine=None, place_index=None):
@@ -139,12 +141,14 @@ class GlobalLocalizer(NoHintSearch):
         else:
             theta_c = self._theta_from_yaw(float(hint_yaw), scan)
             yaw_win = min(math.radians(yaw_window_deg), 2 * math.pi)
-        if hint_xy is not None:
+        if hint_xy is not None:  # the place index in the hint's window, then branch and bound (``hinted``)
             center = self._hint_to_L(hint_xy)
+            if p.use_place_index:
+                t_idx = time.perf_counter()
+                _ = self.place_index  # first: the scan's cells take the index's parameters
+                t0 += time.perf_counter() - t_idx  # loading the index is opening the map, not searching
             cells = self._scan_cells(points_body, gravity_body)
-            cands, stats = self._search_region(scan, scan_ndt, center, window_m, theta_c, yaw_win, cells=cells)
-            stats["regions_searched"] = 1
-            return self._decide(cands, stats, time.perf_counter() - t0, scan_ndt)
+            return self._localize_hinted(scan, scan_ndt, cells, center, window_m, theta_c, yaw_win, t0)
         cands, stats = [], {}
         if p.use_place_index:
             t_idx = time.perf_counter()
@@ -255,6 +259,8 @@ class GlobalLocalizer(NoHintSearch):
                 if ordered:
                     continue
                 break
+            if not self._in_leaf_box(c.x, c.y):
+                continue  # outside the hint's window (``hinted``)
             if skip is not None and any(abs(c.x - o.x) < 0.5 and abs(c.y - o.y) < 0.5
                                         and abs((c.theta - o.theta + math.pi) % (2 * math.pi) - math.pi) < 0.02
                                         for o in skip):

@@ -64,6 +64,13 @@ def test_init_with_a_hint_prints_the_body_pose_as_json(setup):
     dt, dr = pose_error(T_est, T)
     assert dt < 0.1 and dr < 0.5, (dt, dr)
     assert out["verified"] and out["fitness"] >= 0.5 and out["time_s"] > 0
+    # through the place index in the hint's window (the store has none: built and cached once)
+    assert out["stats"]["hint_search"] == "places" and out["stats"]["places_in_window"] > 0
+    # the cold start, apart: opening the map, loading (here building) the index, the first search
+    cold = out["cold"]
+    assert cold["map_open_s"] > 0 and cold["index_load_s"] > 0 and cold["search_s"] > 0
+    assert cold["total_s"] == pytest.approx(cold["map_open_s"] + cold["index_load_s"] + cold["search_s"], abs=0.003)
+    assert cold["total_s"] >= out["time_s"]
     # the per-tile pyramids were cached under BLOCKLOC_CACHE
     assert list((root / "cache" / "global_init").rglob("*.npz"))
 

@@ -31,7 +31,11 @@ def test_recovers_a_z_down_pose_from_a_hint_15_m_off_with_unknown_yaw(zdown_map,
     dt, dr = pose_error(res.T_map_body, T_true)
     assert dt < 0.1 and dr < 0.5, (dt, dr)
     assert res.fitness >= InitParams().min_fitness
-    assert res.stats["num_angles"] > 360  # full circle at the range-derived step
+    # the fall-back, plain branch and bound over the window, finds it too
+    bnb = GlobalLocalizer(zdown_localizer.map, InitParams(use_place_index=False)).localize(
+        scan, gravity_body(T_true), hint_xy=(6.0 + 11.0, 4.0 - 13.0))
+    assert bnb.verified and pose_error(bnb.T_map_body, T_true)[0] < 0.1
+    assert bnb.stats["num_angles"] > 360  # full circle at the range-derived step
 
 
 def test_plain_bbs_finds_the_same_pose_as_bbs_with_s0(zdown_map):
@@ -40,7 +44,7 @@ def test_plain_bbs_finds_the_same_pose_as_bbs_with_s0(zdown_map):
     out = []
     for use_s0 in (True, False):
         res = localize_points(zdown_map, scan, gravity_body=gravity_body(T_true), gravity_map=GRAVITY_Z_DOWN,
-                              hint_xy=(-2.0, -12.0), params=InitParams(use_s0=use_s0))
+                              hint_xy=(-2.0, -12.0), params=InitParams(use_s0=use_s0, use_place_index=False))
         assert res.verified
         out.append(res)
     assert pose_error(out[0].T_map_body, T_true)[0] < 0.1
@@ -53,11 +57,13 @@ def test_z_up_map_with_roll_pitch_and_a_yaw_hint():
     m = world_up(seed=4)
     T_true = xyzrpy_to_T(-5.0, 8.0, 1.8 - 0.1, 0.02, 0.03, 0.5)
     scan = scan_from(m, T_true)
-    res = localize_points(m, scan, roll_pitch=(0.02, 0.03), gravity_map=(0, 0, -9.81),
-                          hint_xy=(0.0, 0.0), hint_yaw=0.5 + math.radians(10), yaw_window_deg=60)
-    assert res.verified
-    dt, dr = pose_error(res.T_map_body, T_true)
-    assert dt < 0.1 and dr < 0.5
+    for use_index in (True, False):  # the places in the window, and plain branch and bound
+        res = localize_points(m, scan, roll_pitch=(0.02, 0.03), gravity_map=(0, 0, -9.81),
+                              hint_xy=(0.0, 0.0), hint_yaw=0.5 + math.radians(10), yaw_window_deg=60,
+                              params=InitParams(use_place_index=use_index))
+        assert res.verified
+        dt, dr = pose_error(res.T_map_body, T_true)
+        assert dt < 0.1 and dr < 0.5
     assert res.stats["num_angles"] < 400  # only the 60 deg yaw window was searched
 
 
