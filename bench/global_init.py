@@ -483,6 +483,8 @@ def run(argv: list[str]) -> dict:
         lines.append(f"| {m} | {len(r)} | {100 * ok.mean():.1f}% | {np.median(r[:, 0]):.3f} | "
                      f"{np.median(r[:, 1]):.3f} | {np.median(r[:, 2]):.2f} | {np.percentile(r[:, 2], 90):.2f} | "
                      f"{np.percentile(r[:, 2], 95):.2f} | {cpu_txt} |")
+    if bbs_note:
+        lines.append("\n" + bbs_note)
     nodes = [f"{m} {np.median([x[4] for x in rows[m]]):,.0f}" for m in ("hinted", "bbs+s0", "bbs", "bbs+s0/all")
              if m in rows and rows[m]]
     if nodes:
