@@ -89,6 +89,14 @@ class InitParams(GlobalInitParams):
     consistency_tolerance_m: float = 0.75
     min_consistency_bits: int = 20
     min_static_points: int = 300  # fewer static-band points: the structure test uses the low band
+    # Scored on what overlaps (refine.Footprint): inlier ratios and the static-band coverage count
+    # only scan points / bins where the map holds data (levelled cells of footprint_cell_m with at
+    # least footprint_min_share of the median non-empty cell's map points: ground seen well, not a
+    # few returns from afar, where NDT's Gaussians are poor; 0 cell: every point counts), and at
+    # least min_overlap of the scan's points must fall there for a verified match.
+    footprint_cell_m: float = 1.0
+    footprint_min_share: float = 0.25
+    min_overlap: float = 0.3
 
     @property
     def projection_params(self):

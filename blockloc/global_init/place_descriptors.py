@@ -27,8 +27,10 @@ class PlaceIndexParams:
     still match it (m). spacing_m: grid of places over the drivable area (m); keyframe_spacing_m:
     places along the mapping keyframes (m); max_offset_m: grid places within this of a keyframe (maps
     with keyframes); clearance_m: no structure this close to a grid place; min_bits: fewer occupied
-    bins make a place too featureless to index. coverage, see_through: the matching model (module
-    docstring); free_min_range_m: closer bins are never counted as seen through (a scan sees the
+    bins make a place too featureless to index. open_band_m: the height band of *open* places,
+    where the static band holds fewer than ``min_bits`` bits (open stretches: fences, hedges, bushes,
+    kerbside posts and what little stands higher; None: no open places). coverage, see_through: the
+    matching model (module docstring); free_min_range_m: closer bins are never counted as seen through (a scan sees the
     band only beyond the range where its highest beams reach the band's top: that range, measured
     on each scan, raises this floor, see :func:`scan_cells`)."""
 
@@ -46,6 +48,7 @@ class PlaceIndexParams:
     max_offset_m: float = 20.0
     clearance_m: float = 0.75
     min_bits: int = 40
+    open_band_m: tuple[float, float] | None = (0.5, 4.0)
     coverage: float = 0.85
     see_through: float = 0.05
     free_min_range_m: float = 7.0
@@ -53,10 +56,12 @@ class PlaceIndexParams:
     def __post_init__(self):
         if not (0 < self.min_range_m < self.max_range_m and self.ring_width_m > 0 and self.num_sectors >= 8
                 and self.spacing_m > 0 and self.resolution_m > 0 and self.tolerance_m >= 0
-                and 0 < self.see_through < self.coverage < 1):
+                and 0 < self.see_through < self.coverage < 1
+                and (self.open_band_m is None or 0 <= self.open_band_m[0] < self.open_band_m[1])):
             raise GlobalInitError(f"place index parameters {self}: expected 0 < min_range_m < max_range_m, "
                                   "positive ring width, spacing and resolution, num_sectors >= 8, "
-                                  "tolerance >= 0 and 0 < see_through < coverage < 1")
+                                  "tolerance >= 0, 0 < see_through < coverage < 1 and open_band_m None or (lo, hi), "
+                                  "0 <= lo < hi")
 
     @property
     def num_rings(self) -> int:
@@ -71,6 +76,15 @@ class PlaceIndexParams:
         from blockloc.global_init.maps import ProjectionParams
 
         return ProjectionParams(self.resolution_m, self.num_levels, tuple(self.band_m), self.mode)
+
+    @property
+    def open_projection_params(self):
+        """The 2D projection in ``open_band_m`` (the open places'), or None."""
+        from blockloc.global_init.maps import ProjectionParams
+
+        if self.open_band_m is None:
+            return None
+        return ProjectionParams(self.resolution_m, self.num_levels, tuple(self.open_band_m), self.mode)
 
     @classmethod
     def from_config(cls, gi) -> "PlaceIndexParams":
@@ -160,13 +174,16 @@ class ScanCells:
     the scan sees the whole band (closer, structure high in the band is above its beams);
     static_body: up to STATIC_POINTS of the scan's points (K, 3), body frame, at or above the band's
     bottom (above people, cars and fences: what a map of another day still holds), fixed-seed
-    sample."""
+    sample; open_band: the cells in ``open_band_m`` (matched against the open places; None when the
+    parameters have no open band).
+    """
 
     band: np.ndarray
     obstacles: np.ndarray
     R_tilt: np.ndarray
     free_from_m: float = 0.0
     static_body: np.ndarray | None = None  # (K, 3) body-frame points at or above the band's bottom
+    open_band: np.ndarray | None = None  # (M', 2) cells in open_band_m
 
 
 @dataclass
@@ -202,7 +219,8 @@ def scan_cells(points_body: np.ndarray, gravity_body: np.ndarray, params: PlaceI
     lvl = lvl[(rng > 0.5) & (rng <= params.max_range_m + 5.0)]
     none = np.zeros((0, 2), np.int64)
     if len(lvl) == 0:
-        return ScanCells(none, none, R_tilt, BAND_TOP_UNSEEN_M, np.zeros((0, 3)))
+        return ScanCells(none, none, R_tilt, BAND_TOP_UNSEEN_M, np.zeros((0, 3)),
+                         None if params.open_band_m is None else none)
     g_origin, g_grid = ground_grid(lvl)
     h = lvl[:, 2] - lookup_ground(g_origin, g_grid, lvl[:, :2])
     lo, hi = params.band_m
@@ -214,23 +232,28 @@ def scan_cells(points_body: np.ndarray, gravity_body: np.ndarray, params: PlaceI
     top = np.hypot(lvl[:, 0], lvl[:, 1])[np.abs(h - hi) <= 0.5]
     top = top[top >= params.min_range_m]
     free_from = float(np.percentile(top, 2)) if len(top) >= 20 else BAND_TOP_UNSEEN_M
-    band = (h >= lo) & (h <= hi)
-    if params.mode == "vertical":
-        # As the map's raster (projection.select_structure): drop layers (the ceiling of a
-        # passage) and stray returns, where walls are hit by several beams; farther away one beam
-        # may be all a wall gets.
-        idx = np.flatnonzero(band)
-        near = np.hypot(lvl[idx, 0], lvl[idx, 1]) < SCAN_VERTICAL_RANGE_M
-        band[idx[near & ~tall_columns(lvl[idx, :2], h[idx], min_points=SCAN_COLUMN_POINTS)]] = False
+
+    def in_band(b_lo, b_hi):
+        band = (h >= b_lo) & (h <= b_hi)
+        if params.mode == "vertical":
+            # As the map's raster (projection.select_structure): drop layers (the ceiling of a
+            # passage) and stray returns, where walls are hit by several beams; farther away one
+            # beam may be all a wall gets.
+            idx = np.flatnonzero(band)
+            near = np.hypot(lvl[idx, 0], lvl[idx, 1]) < SCAN_VERTICAL_RANGE_M
+            band[idx[near & ~tall_columns(lvl[idx, :2], h[idx], min_points=SCAN_COLUMN_POINTS)]] = False
+        return band
+
     static = lvl[h >= lo]
     if len(static) > STATIC_POINTS:
         static = static[np.sort(np.random.default_rng(0).choice(len(static), STATIC_POINTS, replace=False))]
-    return ScanCells(cells(band), cells(h >= OBSTACLE_M), R_tilt,
-                     max(params.free_min_range_m, free_from), static @ R_tilt)
+    open_cells = None if params.open_band_m is None else cells(in_band(*params.open_band_m))
+    return ScanCells(cells(in_band(lo, hi)), cells(h >= OBSTACLE_M), R_tilt,
+                     max(params.free_min_range_m, free_from), static @ R_tilt, open_cells)
 
 
 def consistency_at(source, xy_L: np.ndarray, theta: float, cells: ScanCells, params: PlaceIndexParams,
-                   min_bits: int = 20, coverage_source=None) -> tuple[float, float]:
+                   min_bits: int = 20, coverage_source=None, known=None) -> tuple[float, float]:
     """How well the map's static band around a pose agrees with a scan: (coverage, see_through).
 
     The pose: the body at ``xy_L`` (2,) of the levelled frame, its levelled scan turned by
@@ -241,7 +264,9 @@ def consistency_at(source, xy_L: np.ndarray, theta: float, cells: ScanCells, par
     such sectors. A share, not a count of bins: a wall across a quarter of the view is a quarter.
     source: a global-init map source in ``params``' band (``base_raster``); coverage_source: one
     for the coverage when not ``source`` (the plain band: a scan's column that the "vertical"
-    projection would drop on the map's lattice is still covered).
+    projection would drop on the map's lattice is still covered). known: a function of levelled
+    points (N, 2) -> (N,) bool, where the map holds data; the coverage then counts only the bins
+    that lie wholly there (the scan's structure beyond the map's edge is no evidence either way).
     """
     from scipy.ndimage import binary_dilation
 
@@ -263,6 +288,12 @@ def consistency_at(source, xy_L: np.ndarray, theta: float, cells: ScanCells, par
     shift = int(round(theta / (2 * math.pi / S))) % S
     occ_s = np.roll(unpack(sd.occupied, S), shift, axis=-1)
     free_s = np.roll(unpack(sd.free, S), shift, axis=-1)
+    if known is not None:
+        # Bins touched by a cell outside the map's footprint are not judged.
+        ii, jj = np.meshgrid(np.arange(occ.shape[0]), np.arange(occ.shape[1]), indexing="ij")
+        centres = (np.stack([ii.ravel(), jj.ravel()], axis=1) + origin + 0.5) * res
+        unknown = ~np.asarray(known(centres), bool).reshape(occ.shape)
+        occ_s &= ~unpack(descriptors_on_raster(unknown, at, params)[0], S)
     n_occ = int(occ_s.sum())
     coverage = float((occ_s & grown).sum()) / n_occ if n_occ >= min_bits else float("nan")
     r0 = int(math.ceil((max(params.free_min_range_m, cells.free_from_m) - params.min_range_m)
@@ -325,18 +356,23 @@ def shifted(bits: np.ndarray, num_sectors: int) -> np.ndarray:
     return np.stack([pack(np.roll(occ, s, axis=-1)) for s in range(num_sectors)])
 
 
-def match_scores(scan: ScanDescriptor, index) -> np.ndarray:
+def match_scores(scan: ScanDescriptor, index, rows: np.ndarray | None = None) -> np.ndarray:
     """(P, S) log-likelihood ratio per observed scan bit of "the scan was taken at place p, turned by
-    shift s" against "taken anywhere" (see the module docstring)."""
+    shift s" against "taken anywhere" (see the module docstring); ``rows``: of these places only
+    ((len(rows), S))."""
     from blockloc.global_init import _kernels as K
 
     p = index.params
     S = p.num_sectors
+    n = len(index) if rows is None else len(rows)
     occ_ring, free_ring = scan.counts(S)
     total = float(occ_ring.sum() + free_ring.sum())
-    if total == 0 or len(index) == 0:
-        return np.zeros((len(index), S), np.float32)
+    if total == 0 or n == 0:
+        return np.zeros((n, S), np.float32)
     dens_grown, dens_raw = index.densities()
+    grown, bits = index.grown, index.bits
+    if rows is not None:
+        dens_grown, dens_raw, grown, bits = dens_grown[rows], dens_raw[rows], grown[rows], bits[rows]
 
     def weights(q, density):
         rho = np.clip(density, 0.01, 0.99)
@@ -345,7 +381,7 @@ def match_scores(scan: ScanDescriptor, index) -> np.ndarray:
 
     occ_hit, occ_miss = weights(p.coverage, dens_grown)
     free_hit, free_miss = weights(p.see_through, dens_raw)
-    hits = K.polar_llr(shifted(scan.occupied, S), index.grown, occ_hit, shifted(scan.free, S), index.bits, free_hit)
+    hits = K.polar_llr(shifted(scan.occupied, S), grown, occ_hit, shifted(scan.free, S), bits, free_hit)
     return (hits + (occ_miss @ occ_ring + free_miss @ free_ring)[:, None]) / total
 
 

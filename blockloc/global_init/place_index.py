@@ -21,6 +21,14 @@ prefilters the places: the match is asymmetric (a scan sees part of what the map
 KD-tree over keys cannot express, and bit counting over every place and shift is fast (numba).
 The best shift is the yaw estimate (sub-sector by a parabola through the maximum).
 
+Open places. Where the static band holds fewer than ``min_bits`` bits (open stretches: lawns,
+squares, a street between thinned trees), a place is described in ``open_band_m`` instead (default
+0.5-4 m: fences, hedges, bushes, posts and the little that stands higher), the same bits and the
+same matching; a scan's cells in that band are matched against these places, its static-band cells
+against the others, and both rank in one list (the score is per observed bit either way). Such a
+band holds what changes between sessions (parked cars), which the matching model's ``coverage``
+absorbs and verification, unchanged, still judges.
+
 Places. Along the mapping keyframes (block maps record them per entry) every
 ``keyframe_spacing_m``, and on a ``spacing_m`` grid over the drivable area: cells whose ground was
 seen, with no structure within ``clearance_m``, with at least ``min_bits`` bits, and, when the map
@@ -64,7 +72,8 @@ log = logging.getLogger(__name__)
 
 PLACE_INDEX_NAME = "place_index.npz"
 FORMAT = "blockloc-place-index"
-FORMAT_VERSION = 2  # 2: the "vertical" projection of the band
+FORMAT_VERSION = 3  # 2: the "vertical" projection of the band; 3: open places (``band``)
+READS_VERSIONS = (2, 3)  # a version-2 index loads as one without open places
 TILE_M = 256.0  # the index is built tile by tile: memory bounded by the tile, not the map
 @dataclass
 class PlaceCandidate:
@@ -94,7 +103,8 @@ class PlaceIndex:
     """Places and their descriptors. xy_L: (P, 2) float32 places in the levelled frame (m), on
     lattice corners; source: (P,) uint8 (0 keyframe, 1 grid); bits, grown: (P, rings, W) uint64
     polar occupancy of the raster and of the raster grown by the tolerance; gravity_map: (3,) the
-    map's gravity the levelled frame comes from; stats: build figures."""
+    map's gravity the levelled frame comes from; stats: build figures; band: (P,) uint8, 0 the
+    static band, 1 ``open_band_m`` (an open place; None: all static)."""
 
     params: PlaceIndexParams
     gravity_map: np.ndarray
@@ -103,12 +113,15 @@ class PlaceIndex:
     bits: np.ndarray
     grown: np.ndarray
     stats: dict = field(default_factory=dict)
+    band: np.ndarray | None = None
 
     def __post_init__(self):
         from blockloc.global_init.projection import R_level_from_gravity
 
         self.R_L_map = R_level_from_gravity(self.gravity_map)
         self._densities = None
+        if self.band is None:
+            self.band = np.zeros(len(self.xy_L), np.uint8)
 
     def __len__(self) -> int:
         return len(self.xy_L)
@@ -147,7 +160,8 @@ class PlaceIndex:
         arrays = {"meta": np.frombuffer(json.dumps(meta, sort_keys=True).encode(), np.uint8),
                   "xy_L": self.xy_L.astype(np.float32), "source": self.source.astype(np.uint8),
                   "bits": np.ascontiguousarray(self.bits, np.uint64).view(np.uint8),
-                  "grown": np.ascontiguousarray(self.grown, np.uint64).view(np.uint8)}
+                  "grown": np.ascontiguousarray(self.grown, np.uint64).view(np.uint8),
+                  "band": self.band.astype(np.uint8)}
         buf = io.BytesIO()
         with zipfile.ZipFile(buf, "w") as zf:
             for name, arr in arrays.items():
@@ -166,32 +180,44 @@ class PlaceIndex:
             with np.load(io.BytesIO(data), allow_pickle=False) as z:
                 meta = json.loads(bytes(z["meta"]).decode())
                 xy, src, raw, grown = z["xy_L"], z["source"], z["bits"], z["grown"]
+                band = z["band"] if "band" in z.files else None
         except (OSError, ValueError, KeyError, UnicodeDecodeError, EOFError) as exc:
             raise MapError(f"{where}: not a place index ({exc})") from None
         if not isinstance(meta, dict) or meta.get("format") != FORMAT:
             got = meta.get("format") if isinstance(meta, dict) else None
             raise MapError(f"{where}: not a place index (format {got!r})")
-        if meta.get("version") != FORMAT_VERSION:
-            raise MapError(f"{where}: place index version {meta.get('version')!r}, this blockloc reads "
-                           f"{FORMAT_VERSION}; rebuild it with 'blockloc map index'")
+        version = meta.get("version")
+        if version not in READS_VERSIONS:
+            raise MapError(f"{where}: place index version {version!r}, this blockloc reads "
+                           f"{', '.join(map(str, READS_VERSIONS))}; rebuild it with 'blockloc map index'")
+        if version == 3 and band is None:
+            raise MapError(f"{where}: place index version 3 without its 'band' array; "
+                           "rebuild it with 'blockloc map index'")
+        if version < 3:
+            log.info("%s: place index version %s has no open places (open stretches are not indexed); "
+                     "'blockloc map index' rebuilds it", where, version)
         try:
             p = dict(meta["params"])
             p["band_m"] = tuple(p["band_m"])
+            # version 2 knew no open band; a version-3 header says its own
+            p["open_band_m"] = tuple(p["open_band_m"]) if p.get("open_band_m") is not None else None
             params = PlaceIndexParams(**p)
             gravity = np.asarray(meta["gravity_map"], float).reshape(3)
         except (KeyError, TypeError, ValueError, GlobalInitError) as exc:
             raise MapError(f"{where}: bad place index header ({exc})") from None
         P, NR, W = len(xy), params.num_rings, params.words
         if xy.shape != (P, 2) or src.shape != (P,) or raw.dtype != np.uint8 or grown.dtype != np.uint8 \
-                or raw.shape != (P, NR, 8 * W) or grown.shape != raw.shape:
+                or raw.shape != (P, NR, 8 * W) or grown.shape != raw.shape \
+                or (band is not None and band.shape != (P,)):
             raise MapError(f"{where}: place index arrays disagree (xy {xy.shape}, source {src.shape}, "
-                           f"bits {raw.shape}, grown {grown.shape}; {NR} rings of {params.num_sectors} sectors)")
+                           f"bits {raw.shape}, grown {grown.shape}, band {None if band is None else band.shape}; "
+                           f"{NR} rings of {params.num_sectors} sectors)")
 
         def words(a):
             return np.ascontiguousarray(a).view(np.uint64).reshape(P, NR, W)
 
         return cls(params, gravity, xy.astype(np.float32), src.astype(np.uint8), words(raw), words(grown),
-                   meta.get("stats", {}))
+                   meta.get("stats", {}), None if band is None else band.astype(np.uint8))
 
     # -- queries ---------------------------------------------------------------------------
 
@@ -216,6 +242,25 @@ class PlaceIndex:
         R = self.R_L_map.T @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ R_tilt
         return float(math.atan2(R[1, 0], R[0, 0]))
 
+    def scores(self, cells: "ScanCells") -> np.ndarray:
+        """(P, S) :func:`match_scores` of a scan's cells at every place and shift: the static
+        band's cells against the static places, the open band's against the open places (module
+        docstring)."""
+        p = self.params
+        static = scan_descriptor(cells.band, p, cells.obstacles, cells.free_from_m)
+        open_rows = np.flatnonzero(self.band == 1)
+        if len(open_rows) == 0 or cells.open_band is None:
+            score = match_scores(static, self)
+            if len(open_rows):
+                score[open_rows] = -1e6  # a scan without open-band cells cannot match them (ranked last)
+            return score
+        score = np.empty((len(self), p.num_sectors), np.float32)
+        rows = np.flatnonzero(self.band != 1)
+        score[rows] = match_scores(static, self, rows)
+        score[open_rows] = match_scores(scan_descriptor(cells.open_band, p, cells.obstacles, cells.free_from_m),
+                                        self, open_rows)
+        return score
+
     def query_cells(self, cells: "ScanCells", k: int = 10, nms_m: float = 4.0,
                     theta_window: tuple[float, float] | None = None) -> list[PlaceCandidate]:
         """Top ``k`` places for a scan's cells (:meth:`scan_cells`), at least ``nms_m`` apart, best
@@ -224,7 +269,7 @@ class PlaceIndex:
             return []
         p = self.params
         S = p.num_sectors
-        score = match_scores(scan_descriptor(cells.band, p, cells.obstacles, cells.free_from_m), self)
+        score = self.scores(cells)
         allowed = None
         if theta_window is not None and theta_window[1] < 2 * math.pi:
             ang = np.arange(S) * 2 * math.pi / S - theta_window[0]
@@ -326,9 +371,11 @@ def build_place_index_from_source(source, gravity_map, params: PlaceIndexParams,
     margin = tab.radius + 2
     clear_cells = int(math.ceil(p.clearance_m / res))
     keep = np.zeros(len(xy), bool)
+    band = np.zeros(len(xy), np.uint8)
     bits = np.zeros((len(xy), p.num_rings, p.words), np.uint64)
     grown = np.zeros_like(bits)
     disk = _disk(p.tolerance_m / res)
+    open_source = None if p.open_band_m is None else source.with_params(p.open_projection_params)
     tile = int(TILE_M / res)
     c_lo = np.floor(lo_L / res).astype(np.int64)
     c_hi = np.floor(hi_L / res).astype(np.int64) + 1
@@ -356,16 +403,53 @@ def build_place_index_from_source(source, gravity_map, params: PlaceIndexParams,
             bits[inside[good]] = desc[good]
             grown[inside[good]] = descriptors_on_raster(binary_dilation(occ, disk), ci[good], p)
             keep[inside[good]] = True
-        if hasattr(source, "release"):
-            source.release()  # the pieces stay in the on-disk cache
+            if open_source is not None and not np.all(good):
+                _open_places(open_source, lo, hi, ci[~good], inside[~good], xy, p, clear_cells, disk,
+                             keep, band, bits, grown)
+        for src in (source, open_source):
+            if hasattr(src, "release"):
+                src.release()  # the pieces stay in the on-disk cache
     index = PlaceIndex(p, np.asarray(gravity_map, float).reshape(3), (corner[keep] * res).astype(np.float32),
-                       kind[keep], bits[keep], grown[keep])
+                       kind[keep], bits[keep], grown[keep], band=band[keep])
     index.stats = {"build_s": round(time.perf_counter() - t0, 3), "candidates": int(n_cand),
                    "places": int(keep.sum()), "keyframe_places": int(np.sum(kind[keep] == 0)),
-                   "grid_places": int(np.sum(kind[keep] == 1))}
-    log.info("place index: %d places (%d along keyframes) of %d candidates in %.1f s", keep.sum(),
-             index.stats["keyframe_places"], n_cand, index.stats["build_s"])
+                   "grid_places": int(np.sum(kind[keep] == 1)), "open_places": int(np.sum(band[keep] == 1))}
+    log.info("place index: %d places (%d along keyframes, %d open) of %d candidates in %.1f s", keep.sum(),
+             index.stats["keyframe_places"], index.stats["open_places"], n_cand, index.stats["build_s"])
     return index
+
+
+def _open_places(open_source, lo, hi, ci, rows, xy, p: PlaceIndexParams, clear_cells: int, disk,
+                 keep, band, bits, grown) -> None:
+    """Describe the places ``rows`` (raster corners ``ci`` (n, 2) of the tile [lo, hi)) that the
+    static band left featureless in ``open_band_m`` instead (module docstring): those with
+    ``min_bits`` bits there and no open-band structure within the clearance (not on a fence or in a
+    hedge). Fills ``keep``, ``band``, ``bits``, ``grown`` in place."""
+    from scipy.ndimage import binary_dilation, maximum_filter
+
+    from blockloc.global_init import _kernels as K
+
+    try:
+        origin, base = open_source.base_raster(lo, hi)
+    except GlobalInitError:
+        return
+    occ = base == 255
+    ci = ci + (np.asarray(lo, np.int64) - origin)  # the same tile: origin == lo
+    near = maximum_filter(occ, size=max(2 * clear_cells, 1), mode="constant", cval=False)
+    i = np.clip(ci[:, 0], 0, occ.shape[0] - 1)
+    j = np.clip(ci[:, 1], 0, occ.shape[1] - 1)
+    clear = ~near[i, j]
+    ci, rows = ci[clear], rows[clear]
+    if len(rows) == 0:
+        return
+    desc = descriptors_on_raster(occ, ci, p)
+    good = K.popcounts(desc).sum(axis=1) >= p.min_bits
+    if not np.any(good):
+        return
+    bits[rows[good]] = desc[good]
+    grown[rows[good]] = descriptors_on_raster(binary_dilation(occ, disk), ci[good], p)
+    keep[rows[good]] = True
+    band[rows[good]] = 1
 
 
 def _drivable(occ: np.ndarray, ci: np.ndarray, clear_cells: int, source, xy_L: np.ndarray,

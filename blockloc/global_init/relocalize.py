@@ -128,14 +128,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         t0 = time.perf_counter()
         p = self.params
         _check_args(window_m, yaw_window_deg)
-        self._structure_body = None
-        scan = project_scan(points_body, gravity_body, p.resolution_m, p.height_band_m, p.projection, p.max_range_m,
-                            p.max_scan_cells, p.min_scan_cells)
-        scan_ndt = points_body[voxel_select(points_body, p.scan_voxel_m)]
-        scan_ndt = scan_ndt[np.linalg.norm(scan_ndt, axis=1) <= p.max_range_m]
-        if len(scan_ndt) > p.max_ndt_points:
-            rng = np.random.default_rng(0)
-            scan_ndt = scan_ndt[np.sort(rng.choice(len(scan_ndt), p.max_ndt_points, replace=False))]
+        scan, scan_ndt = self.prepare_scan(points_body, gravity_body)
         if hint_yaw is None:
             theta_c, yaw_win = 0.0, 2 * math.pi
         else:
@@ -167,6 +160,20 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         stats.update({k: v + stats.get(k, 0) if k in ("bnb_time_s", "refine_time_s", "nodes_visited") else v
                       for k, v in st.items()})
         return self._decide(cands + more, stats, time.perf_counter() - t0, scan_ndt)
+
+    def prepare_scan(self, points_body: np.ndarray, gravity_body: np.ndarray) -> tuple[ScanProjection, np.ndarray]:
+        """A scan (N, 3), body frame, as the search and refinement use it: its levelled 2D projection
+        and the points NDT refines (voxel-selected, within ``max_range_m``, at most ``max_ndt_points``)."""
+        p = self.params
+        self._structure_body = None
+        scan = project_scan(points_body, gravity_body, p.resolution_m, p.height_band_m, p.projection, p.max_range_m,
+                            p.max_scan_cells, p.min_scan_cells)
+        scan_ndt = points_body[voxel_select(points_body, p.scan_voxel_m)]
+        scan_ndt = scan_ndt[np.linalg.norm(scan_ndt, axis=1) <= p.max_range_m]
+        if len(scan_ndt) > p.max_ndt_points:
+            rng = np.random.default_rng(0)
+            scan_ndt = scan_ndt[np.sort(rng.choice(len(scan_ndt), p.max_ndt_points, replace=False))]
+        return scan, scan_ndt
 
     # ------------------------------------------------------------------------- steps
 
@@ -246,7 +253,8 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
                 if np.all(np.abs(xy - centre) <= 0.5 * d):
                     return ref
             pts = self.map.points_in_box(xy - d, xy + d)
-            ref = Refiner(self.engine, pts) if len(pts) >= 100 else None
+            ref = Refiner(self.engine, pts, self.map.R_L_map, p.footprint_cell_m,
+                          p.footprint_min_share) if len(pts) >= 100 else None
             targets.append((xy, ref))
             return ref
 
@@ -279,11 +287,13 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             structures = structure_sets(scan.structure_body, static, p.min_static_points, p.structure_from_static)
             self._structure_body = structures  # a rival of the best must pass the same test (nearby_rival)
             sfit = structure_fit(refiner, structures, r.T_map_body, p.min_structure_fitness) if finite else 0.0
-            ok = fit_passes(r.converged, finite, r.fitness, sfit, th)
-            cov, see = self._consistency(r.T_map_body, scan, cells) if (ok and cells is not None) else (np.nan, np.nan)
+            # Only what overlaps the map is judged (refine.Footprint), and enough of the scan must.
+            ok = fit_passes(r.converged, finite, r.fitness, sfit, th) and r.overlap >= p.min_overlap
+            cov, see = (self._consistency(r.T_map_body, scan, cells, refiner.footprint) if (ok and cells is not None)
+                        else (np.nan, np.nan))
             ok = ok and consistency_passes(cov, see, th)
             out.append(InitCandidate(r.T_map_body, c.score, r.fitness, r.converged, ok, T0, r.ndt_score, sfit,
-                                     cov, see, refiner))
+                                     cov, see, refiner, r.overlap))
         return out
 
     def _scan_cells(self, points_body: np.ndarray, gravity_body: np.ndarray):
@@ -293,9 +303,11 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         ip = self._place_index.params if self._place_index is not None else self.params.place_index_params
         return scan_cells(points_body, gravity_body, ip)
 
-    def _consistency(self, T_map_body: np.ndarray, scan: ScanProjection, cells) -> tuple[float, float]:
+    def _consistency(self, T_map_body: np.ndarray, scan: ScanProjection, cells,
+                     footprint=None) -> tuple[float, float]:
         """(coverage, see_through) of the scan's static-band bins at a refined pose; NaN where
-        fewer than ``min_consistency_bits`` bins were observed (nothing to judge by)."""
+        fewer than ``min_consistency_bits`` bins were observed (nothing to judge by). With a
+        ``footprint`` (refine.Footprint), the coverage counts only bins where the map holds data."""
         from dataclasses import replace
 
         from blockloc.global_init.place_descriptors import consistency_at
@@ -310,7 +322,8 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         theta = math.atan2(R_heading[1, 0], R_heading[0, 0])
         try:
             return consistency_at(self.place_source, T_L_body[:2, 3], theta, cells, ip, p.min_consistency_bits,
-                                  coverage_source=self.coverage_source)
+                                  coverage_source=self.coverage_source,
+                                  known=None if footprint is None else footprint.contains_L)
         except GlobalInitError:
             return np.nan, np.nan
 

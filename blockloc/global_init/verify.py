@@ -106,6 +106,7 @@ class InitCandidate:
     coverage: float = float("nan")  # static-band scan bins the map covers (NaN: not tested)
     see_through: float = float("nan")  # static-band bins seen through that the map fills
     refiner: object = field(default=None, repr=False, compare=False)  # its NDT target, while deciding
+    overlap: float = 1.0  # share of the scan's points where the map holds data (refine.Footprint)
 
 
 @dataclass

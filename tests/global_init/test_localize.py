@@ -118,3 +118,56 @@ def test_no_match_is_not_verified(zdown_map, zdown_localizer):
     assert not res.verified
     assert res.candidates and all(not c.verified for c in res.candidates)
     assert res.score < 0.6
+
+
+def test_a_scan_half_outside_the_map_is_scored_on_what_overlaps_and_verified(zdown_map):
+    """The map holds only x < 0 (a map built from part of a drive); the robot stands at its edge,
+    half of its scan on ground the map never saw. Judged on what overlaps, the true pose is
+    verified; judged on the whole scan (footprint off) it is not (fitness about the overlap share);
+    and a pose hung off the edge with too little overlap is never verified."""
+    m = zdown_map[zdown_map[:, 0] < 0.0]
+    T_true = xyzrpy_to_T(1.0, 4.0, -(1.9 + 0.02 * 1.0), 0.0, 0.0, 0.8)
+    scan = scan_from(zdown_map, T_true)  # the world as it is, beyond the map too
+    res = localize_points(m, scan, gravity_body=gravity_body(T_true), gravity_map=GRAVITY_Z_DOWN, hint_xy=(-4.0, 0.0))
+    dt, dr = pose_error(res.T_map_body, T_true)
+    assert res.verified and dt < 0.1 and dr < 0.5, (res.verified, dt, dr)
+    assert 0.3 <= res.candidates[0].overlap <= 0.7, res.candidates[0].overlap
+    whole = localize_points(m, scan, gravity_body=gravity_body(T_true), gravity_map=GRAVITY_Z_DOWN, hint_xy=(-4.0, 0.0),
+                            params=InitParams(footprint_cell_m=0.0))
+    assert not whole.verified and whole.fitness < InitParams().min_fitness
+    # Farther out, too little of the scan overlaps the map: not verified, however well it fits.
+    T_far = xyzrpy_to_T(20.0, 4.0, -(1.9 + 0.02 * 20.0), 0.0, 0.0, 0.8)
+    far = localize_points(m, scan_from(zdown_map, T_far), gravity_body=gravity_body(T_far), gravity_map=GRAVITY_Z_DOWN,
+                          hint_xy=(-2.0, 0.0), window_m=50.0)
+    assert not far.verified
+    assert all(c.overlap < InitParams().min_overlap or not c.verified for c in far.candidates)
+
+
+def test_an_along_street_ambiguity_is_resolved_by_a_second_scan_and_the_motion():
+    """The first scan sees only the repeated boxes: ambiguous. 8 m on, the second scan sees a box
+    that stands nowhere else; each hypothesis moved by the motion is verified (or not) there, and
+    only the true one holds. A second scan of the same repeated stretch stays ambiguous."""
+    from blockloc.geometry import inv_T
+    from blockloc.global_init.second_scan import ambiguous_hypotheses, resolve_with_second_scan
+
+    from .synthetic import box_outline
+
+    rng = np.random.default_rng(3)
+    m = np.concatenate([periodic_world_up(), box_outline(rng, 34.0, 13.0, 6.0, 4.0, 3.0, 0.0, 0.0)])
+    T1 = xyzrpy_to_T(3.0, 0.0, 1.8, 0.0, 0.0, 0.0)
+    g = np.array([0, 0, -9.81])
+    params = InitParams(top_k=5)
+    loc = GlobalLocalizer.for_points(m, (0, 0, -9.81), params)
+    first = loc.localize(scan_from(m, T1, radius=25.0), g, hint_xy=(3.0, 0.0), window_m=40.0)
+    assert first.ambiguous and not first.verified
+    hyps = ambiguous_hypotheses(first, params)
+    assert len(hyps) >= 2 and any(pose_error(h, T1)[0] < 0.3 for h in hyps)
+    T2 = xyzrpy_to_T(11.0, 0.0, 1.8, 0.0, 0.0, 0.05)
+    res = resolve_with_second_scan(loc, hyps, inv_T(T1) @ T2, scan_from(m, T2, radius=25.0, seed=2), g)
+    assert res.verified and not res.ambiguous
+    dt, dr = pose_error(res.T_map_body, T2)
+    assert dt < 0.1 and dr < 0.5, (dt, dr)
+    # Without the unique box in view (4 m on, still the repeated stretch): still ambiguous, not verified.
+    T3 = xyzrpy_to_T(7.0, 0.0, 1.8, 0.0, 0.0, 0.0)
+    same = resolve_with_second_scan(loc, hyps, inv_T(T1) @ T3, scan_from(m, T3, radius=12.0, seed=4), g)
+    assert not same.verified

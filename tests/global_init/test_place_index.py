@@ -144,3 +144,73 @@ def test_retrieval_recall_on_the_small_world(small_world, tmp_path):
     ranks = np.array(ranks)
     assert np.mean(ranks < 5) >= 0.95, ranks  # recall@5
     assert np.mean(ranks < 1) >= 0.8, ranks  # recall@1
+
+
+def low_world_up(seed=5, size=120.0, n_boxes=70):
+    """(N, 3) z-up points: flat ground and box outlines 0.9-1.8 m tall (fences, hedges, cars: nothing
+    in the static band 2-4 m)."""
+    rng = np.random.default_rng(seed)
+    n_g = int(15.0 * size * size)
+    g = rng.uniform(-size / 2, size / 2, (n_g, 2))
+    parts = [np.c_[g, rng.normal(0, 0.02, n_g)]]
+    for _ in range(n_boxes):
+        cx, cy = rng.uniform(-size / 2, size / 2, 2)
+        if math.hypot(cx, cy) < 6.0:
+            continue  # keep the middle free to stand in
+        w, d = rng.uniform(1, 7, 2)
+        parts.append(box_outline(rng, cx, cy, w, d, rng.uniform(0.9, 1.8), rng.uniform(0, np.pi), 0.0, per_m=40))
+    return np.concatenate(parts)
+
+
+def test_an_open_stretch_gets_open_places_and_is_relocalized_without_a_hint():
+    """Where the static band is empty, the places are described in the open band, and a scan there
+    is found by them, verified at the right pose; without open places, the index holds none."""
+    from blockloc.global_init.relocalize import GlobalLocalizer, InitParams, pose_error
+
+    m = low_world_up() @ Z_DOWN.T
+    source = ArrayMap(m, GRAVITY_Z_DOWN, PARAMS.projection_params)
+    index = build_place_index_from_source(source, GRAVITY_Z_DOWN, PARAMS)
+    assert len(index) > 300 and np.all(index.band == 1), index.stats
+    assert index.stats["open_places"] == len(index)
+    static_only = build_place_index_from_source(
+        source, GRAVITY_Z_DOWN, PlaceIndexParams(spacing_m=2.0, open_band_m=None))
+    assert len(static_only) == 0  # the static band alone leaves the stretch unindexed
+    # round trip keeps the bands
+    again = PlaceIndex.from_bytes(index.to_bytes())
+    assert np.array_equal(again.band, index.band) and again.params == index.params
+    loc = GlobalLocalizer.for_points(m, GRAVITY_Z_DOWN, InitParams(whole_map_fallback=False))
+    loc._place_index = index
+    found = 0
+    for x, y, yaw in ((1.0, -1.0, 30.0), (20.0, 15.0, -120.0), (-25.0, 10.0, 80.0)):
+        T = xyzrpy_to_T(x, y, -1.8, 0.0, 0.0, math.radians(yaw))
+        scan = scan_from(m, T, radius=40.0)
+        cands = index.query(scan, gravity_body(T), k=8)
+        assert any(math.hypot(c.x - x, c.y - y) < 3.0 for c in cands), [(c.x, c.y) for c in cands]
+        res = loc.localize(scan, gravity_body(T))
+        e_t, e_r = pose_error(res.T_map_body, T) if res.T_map_body is not None else (math.inf, math.inf)
+        assert not res.verified or (e_t < 0.3 and e_r < 2.0), (e_t, e_r)  # never verified and wrong
+        found += bool(res.verified)
+    assert found == 3
+
+
+def test_a_version_2_index_still_loads_without_open_places(world):
+    import io
+    import json
+
+    _, index = world
+    with np.load(io.BytesIO(index.to_bytes())) as z:
+        arrays = {k: z[k] for k in z.files if k != "band"}
+    meta = json.loads(bytes(arrays["meta"]).decode())
+    meta["version"] = 2
+    del meta["params"]["open_band_m"]
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    old = PlaceIndex.from_bytes(buf.getvalue(), "old.npz")
+    assert len(old) == len(index) and np.all(old.band == 0) and old.params.open_band_m is None
+    meta["version"] = 1
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    with pytest.raises(MapError, match="old.npz: place index version 1.*rebuild it with 'blockloc map index'"):
+        PlaceIndex.from_bytes(buf.getvalue(), "old.npz")
