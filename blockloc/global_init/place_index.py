@@ -140,7 +140,7 @@ class PlaceIndex:
         """The places ``rows`` ((K,) indices or (P,) mask) alone, same parameters. A place's match
         scores are its own (its bits and densities), so they equal those in the whole index."""
         sub = PlaceIndex(self.params, self.gravity_map, self.xy_L[rows], self.source[rows], self.bits[rows],
-                         self.grown[rows], dict(self.stats))
+                         self.grown[rows], dict(self.stats), self.band[rows])
         if self._densities is not None:
             sub._densities = (self._densities[0][rows], self._densities[1][rows])
         return sub

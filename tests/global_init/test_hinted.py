@@ -94,3 +94,17 @@ def test_branch_and_bound_follows_places_that_give_nothing_verified(zdown):
     assert res.stats["places_in_window"] > 0
     assert res.stats["hint_search"] == "places, then branch and bound"
     assert res.verified and pose_error(res.T_map_body, T_true)[0] < 0.1
+
+
+def test_a_hint_windows_subset_keeps_which_places_are_open():
+    """The hint's window cuts the index; an open place (described in the open band) must stay open
+    in the cut, or a scan would be matched against it in the wrong band."""
+    from blockloc.global_init.place_descriptors import PlaceIndexParams
+    from blockloc.global_init.place_index import PlaceIndex
+
+    P = 6
+    idx = PlaceIndex(PlaceIndexParams(), np.array([0.0, 0.0, -9.81]), np.zeros((P, 2), np.float32),
+                     np.zeros(P, np.uint8), np.zeros((P, 2, 1), np.uint64), np.zeros((P, 2, 1), np.uint64),
+                     band=np.array([0, 1, 0, 1, 1, 0], np.uint8))
+    assert idx.subset(np.array([1, 2, 4])).band.tolist() == [1, 0, 1]
+    assert idx.subset(idx.band == 1).band.tolist() == [1, 1, 1]
