@@ -216,7 +216,7 @@ def build_map_from_specs(drives, kind: str, out: str | Path, map_cfg: MapConfig,
         voxel_size_m=map_cfg.voxel_size_m, keyframe_distance_m=map_cfg.keyframe_distance_m,
         keyframe_angle_deg=map_cfg.keyframe_angle_deg,
         calibrate_mounting=calibrate_mounting, executor=executor, progress=progress,
-        overwrite=overwrite)
+        overwrite=overwrite, mounting_translation_tolerance_m=map_cfg.mounting_translation_tolerance_m)
 
 
 @dataclass(frozen=True)
