@@ -47,25 +47,31 @@ RUNS = {  # name: (map suffix, extra track options)
 TARGETS = {"median ATE": 0.03, "worst ATE": 0.035, "rotation": 0.15, "along mean": 0.01}
 
 
-def _blockloc(args: list[str], log) -> float:
-    """Run ``blockloc ARGS`` (this checkout's, nice'd), its output appended to ``log``; seconds."""
+def _blockloc(args: list[str], log) -> tuple[float, float, float]:
+    """Run ``blockloc ARGS`` (this checkout's, nice'd), its output appended to ``log``; (wall
+    seconds, the child's CPU seconds, the 1-min load average at its end)."""
+    import resource
+
     cmd = ["nice", sys.executable, "-m", "blockloc.cli", *args]
     print("$ blockloc " + shlex.join(args), flush=True)
     t0 = time.time()
+    c0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     with open(log, "a") as fh:
         fh.write("$ blockloc " + shlex.join(args) + "\n")
         fh.flush()
         rc = subprocess.call(cmd, stdout=fh, stderr=subprocess.STDOUT, cwd=ROOT)
     if rc:
         raise SystemExit(f"blockloc {shlex.join(args)}: exit {rc} (see {log})")
-    return time.time() - t0
+    c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return (time.time() - t0, (c1.ru_utime - c0.ru_utime) + (c1.ru_stime - c0.ru_stime), os.getloadavg()[0])
 
 
-def run_seed(work: Path, preset: str, seed: int, runs: list[str]) -> dict:
-    """Every step of one seed (skipping those done before); {run name: its metrics + build seconds}."""
+def run_seed(work: Path, preset: str, seed: int, runs: list[str], report_only: bool = False) -> dict:
+    """Every step of one seed (skipping those done before); {run name: its metrics + build seconds}.
+    report_only: run nothing, report the runs the work directory holds."""
     log = work / f"s{seed}.log"
     world = work / f"s{seed}"
-    if not (world / "loc").is_dir():
+    if not (world / "loc").is_dir() and not report_only:
         _blockloc(["sim", "--preset", preset, "--seed", str(seed), "--out", str(world)], log)
     out = {}
     build_s = {}
@@ -73,14 +79,20 @@ def run_seed(work: Path, preset: str, seed: int, runs: list[str]) -> dict:
         suffix, extra = RUNS[name]
         m = work / f"s{seed}_map{suffix}"
         timing = work / f"s{seed}_map{suffix}.build_s"  # kept beside the map: a later report still has it
+        r = work / f"s{seed}_run_{name}"
+        if report_only and not (r / "metrics.json").exists():
+            continue
         if not (m / "manifest.json").exists():
             opts = ["--nominal-mounting"] if suffix == "_nominal" else []
-            seconds = _blockloc(["map", "build", "--seq", str(world / "map"), "--kind", "block", *opts,
-                                 "--out", str(m)], log)
-            timing.write_text(f"{seconds:.1f}\n")
+            wall, cpu, load = _blockloc(["map", "build", "--seq", str(world / "map"), "--kind", "block", *opts,
+                                         "--out", str(m)], log)
+            timing.write_text(f"{wall:.1f} {cpu:.1f} {load:.1f}\n")  # wall s, CPU s, load average
         if timing.exists():
-            build_s[suffix] = float(timing.read_text())
-        r = work / f"s{seed}_run_{name}"
+            build_s[suffix] = [float(x) for x in timing.read_text().split()]  # older files: wall only
+        mounting = {}
+        for est in (json.loads((m / "manifest.json").read_text())["parameters"].get("mounting") or {}).values():
+            # the body axes whose translation the map took from the estimate (before issue 41: all)
+            mounting = {"_translation": est.get("translation_estimated", "xyz") or "nominal"}
         if not (r / "metrics.json").exists():
             _blockloc(["track", "--seq", str(world / "loc"), "--map", str(m), "--init", "gt", *extra,
                        "--no-record", "--out", str(r)], log)
@@ -97,7 +109,7 @@ def run_seed(work: Path, preset: str, seed: int, runs: list[str]) -> dict:
             atomic_write_text(ev, res.stdout)
         evaluated = json.loads(ev.read_text())
         out[name] = {**metrics, **{k: v for k, v in evaluated.items() if k.startswith(("ate_", "err_"))},
-                     "_build_s": build_s.get(suffix)}
+                     "_build_s": build_s.get(suffix), "_track_s": metrics.get("track_s"), **mounting}
     return out
 
 
@@ -120,7 +132,7 @@ def _row(seed: int, name: str, m: dict) -> str:
             f"{100 * m['err_cross_rms_m']:.1f} | {100 * m['err_vertical_rms_m']:.1f} | "
             f"{'-' if shift is None else f'{1000 * shift:+.0f}'} | {_with_offset(m)} | {_body(m)} | "
             f"{m.get('failures', '-')} | "
-            f"{m.get('estimated', '-')}/{m.get('frames', '-')} |")
+            f"{m.get('estimated', '-')}/{m.get('frames', '-')} | {m.get('_translation', '-')} |")
 
 
 def report(results: dict, argv: list[str], started: str, load0: float, work: Path) -> str:
@@ -141,13 +153,18 @@ def report(results: dict, argv: list[str], started: str, load0: float, work: Pat
              "best explains the along-track error, + = the estimate lags).", "",
              "| seed | run | ATE RMSE [m] | ATE max [m] | rotation RMSE [deg] | along mean [cm] | along RMS [cm] | "
              "cross RMS [cm] | vertical RMS [cm] | time shift [ms] | shift [ms] / along offset [cm], fitted "
-             "together | body-frame offset x, y [cm] | failures | estimated/frames |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "together | body-frame offset x, y [cm] | failures | estimated/frames | mounting translation "
+             "(axes estimated) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for seed, runs in results.items():
         for name, m in runs.items():
             lines.append(_row(seed, name, m))
     lines.append("")
-    builds = [f"seed {seed}: " + ", ".join(f"{n} {runs[n]['_build_s']:.0f} s" for n in ("default", "nominal")
+    def _timing(t) -> str:  # wall [, CPU, load]
+        t = [t] if isinstance(t, (int, float)) else t
+        return f"{t[0]:.0f} s" + (f" (CPU {t[1]:.0f} s, load {t[2]:.1f})" if len(t) >= 3 else "")
+
+    builds = [f"seed {seed}: " + ", ".join(f"{n} {_timing(runs[n]['_build_s'])}" for n in ("default", "nominal")
                                           if n in runs and runs[n].get("_build_s") is not None)
               for seed, runs in results.items()]
     builds = [b for b in builds if not b.endswith(": ")]
@@ -185,6 +202,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", type=Path, default=None, help="where worlds, maps and runs are kept "
                     "(default: <blockloc cache>/bench-seeds)")
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--report-only", action="store_true",
+                    help="run nothing: report the runs --work holds (a seed's missing runs are left out)")
     args = ap.parse_args(argv)
     runs = [r for r in args.runs.split(",") if r]
     unknown = [r for r in runs if r not in RUNS]
@@ -198,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
     started, load0 = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), os.getloadavg()[0]
     results = {}
     for seed in [int(s) for s in args.seeds.split(",") if s]:
-        results[seed] = run_seed(args.work, args.preset, seed, runs)
+        results[seed] = run_seed(args.work, args.preset, seed, runs, args.report_only)
         atomic_write_text(args.out, report(results, argv, started, load0, args.work))  # after every seed
     print(args.out)
     return 0

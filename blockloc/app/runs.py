@@ -27,7 +27,7 @@ from blockloc.geometry import T_to_xyzrpy
 from blockloc.global_init.place_index import PLACE_INDEX_NAME, write_place_index
 from blockloc.global_init.relocalize import pose_error
 from blockloc.jit import CompileClock
-from blockloc.maps.build_plan import Drive, build_block_map_from_sequence, build_map_from_drives
+from blockloc.maps.build_plan import Drive, build_map_from_drives
 from blockloc.maps.files import open_map_files
 from blockloc.maps.mounting import with_map_mounting
 from blockloc.maps.store import MapStore, open_map
@@ -232,7 +232,7 @@ def build_map_from_specs(drives, kind: str, out: str | Path, map_cfg: MapConfig,
         voxel_size_m=map_cfg.voxel_size_m, keyframe_distance_m=map_cfg.keyframe_distance_m,
         keyframe_angle_deg=map_cfg.keyframe_angle_deg,
         calibrate_mounting=calibrate_mounting, executor=executor, progress=progress,
-        overwrite=overwrite)
+        overwrite=overwrite, mounting_translation_tolerance_m=map_cfg.mounting_translation_tolerance_m)
 
 
 @dataclass(frozen=True)
@@ -335,14 +335,12 @@ def ensure_block_map(world: SmallWorld, cfg: Config, say: Callable[[str], None] 
     except MapError:
         pass
     say(f"block map: simulating the keyframes of {world.mapping} and stitching blocks of "
-        f"{cfg.map.block_size_m:g} m ...")
+        f"{cfg.map.block_size_m:g} m" + (" (LiDAR mounting estimated first)" if cfg.map.calibrate_mounting else "")
+        + " ...")
     t0 = time.perf_counter()
     seq = open_sequence(world.mapping, dataset_cfg=cfg.dataset)
-    store = build_block_map_from_sequence(seq, block_size_m=cfg.map.block_size_m,
-                                          keyframe_distance_m=cfg.map.keyframe_distance_m,
-                                          keyframe_angle_deg=cfg.map.keyframe_angle_deg,
-                                          voxel_size_m=cfg.map.voxel_size_m, out=world.block_map,
-                                          overwrite=True, progress=progress)
+    # as `blockloc map build` does by default (map.calibrate_mounting), so the demo shows the defaults
+    store = build_map(seq, "block", world.block_map, cfg.map, overwrite=True, progress=progress)
     say(f"block map: {len(store)} blocks in {time.perf_counter() - t0:.0f} s")
     return world.block_map
 

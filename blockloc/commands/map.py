@@ -200,9 +200,16 @@ def mounting_lines(params: dict) -> list[tuple[str, str]]:
     for drive in dict.fromkeys([*sources, *estimates]):
         m = estimates.get(drive)
         if m is not None:
-            lines.append((drive, f"estimated from {m['used']} of {m['pairs']} keyframe pairs, rotation "
-                                 f"{m['rotation_deg']} deg, translation {m['translation_m']} m from "
-                                 "the nominal (body frame)"))
+            axes = m.get("translation_estimated", "xyz")  # a build before issue 41 took all three
+            what = (f"estimated from {m['used']} of {m['pairs']} keyframe pairs, rotation "
+                    f"{m['rotation_deg']} deg, translation {m['translation_m']} m from the nominal "
+                    "(body frame)")
+            if axes != "xyz":  # the drive did not determine every axis (blockloc.maps.mounting)
+                u = ", ".join("-" if v is None else f"{1000 * v:.0f}" for v in m["translation_uncertainty_m"])
+                kept = ", ".join(a for a in "xyz" if a not in axes)
+                what += (f"; translation nominal on body {kept} (the drive determines x, y, z to {u} mm, "
+                         f"not {1000 * m['translation_tolerance_m']:.0f} mm)")
+            lines.append((drive, what))
             continue
         src = sources[drive]
         if src.get("source") == "lidar poses":

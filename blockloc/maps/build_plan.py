@@ -202,7 +202,7 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
                           calibrate_mounting: bool | str = False, executor=None, progress=False,
                           overwrite: bool = False,
                           chunk_keyframes: int = CHUNK_KEYFRAMES, params: dict | None = None,
-                          stats: dict | None = None):
+                          stats: dict | None = None, mounting_translation_tolerance_m: float | None = None):
     """Build a block or grid store at ``out`` from mapping drives sharing one map frame.
 
     drives: :class:`Drive` list (any order: the plan sorts them). kind: 'block' (S =
@@ -216,6 +216,9 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
     drives the estimate fails on (a warning) keep their own; False: every drive's own. The
     manifest keeps each estimate under ``mounting`` and each drive's ``mounting_source``
     (``{"source": "estimated" | "nominal" | "lidar poses", "reason"?}``).
+    mounting_translation_tolerance_m: the estimated translation replaces the nominal one on the
+    body axes the drive determines to this (None: ``TRANSLATION_TOLERANCE_M`` of
+    :mod:`blockloc.maps.mounting`; 0: on every axis it observes).
     progress: None/False or a callback ``(done, total)`` over tasks (commands draw the bar). stats: a dict
     to fill with per-task-kind counts, seconds, bytes and raw points (:meth:`_Tasks.stats`).
     Returns the opened :class:`~blockloc.maps.store.MapStore`.
@@ -256,7 +259,8 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
         sources = {p.drive.name: {"source": "nominal", "reason": "not estimated"} for p in plans}
         if calibrate_mounting:
             plans, mounting, sources = _remount(tasks, plans, deskew, keyframe_distance_m,
-                                                keyframe_angle_deg, auto=calibrate_mounting == "auto")
+                                                keyframe_angle_deg, auto=calibrate_mounting == "auto",
+                                                translation_tolerance_m=mounting_translation_tolerance_m)
             drives = drives + [p.drive for p in plans]  # forgotten with the others at the end
         plans.sort(key=DrivePlan.order_key)
         frames = sorted({p.map_frame for p in plans})
@@ -331,7 +335,8 @@ def check_skipped(skipped: list[dict], keyframes: int) -> list[dict]:
 
 
 def _remount(tasks: _Tasks, plans: list[DrivePlan], deskew: bool, keyframe_distance_m: float,
-             keyframe_angle_deg: float, auto: bool = False) -> tuple[list[DrivePlan], dict, dict]:
+             keyframe_angle_deg: float, auto: bool = False,
+             translation_tolerance_m: float | None = None) -> tuple[list[DrivePlan], dict, dict]:
     """Each drive's mounting estimated (one task per drive), then each drive with an estimate
     planned again with it (keyframe poses are LiDAR poses). auto: see ``mounting_task``. Returns
     the new plans, ``{drive name: estimate}`` and ``{drive name: {"source": ..., "reason"?}}``."""
@@ -339,7 +344,8 @@ def _remount(tasks: _Tasks, plans: list[DrivePlan], deskew: bool, keyframe_dista
 
     tasks.expect(len(plans))
     found = [f.result() for f in [tasks.submit(mounting_task, p, deskew, MOUNTING_PAIRS, auto,
-                                               name=f"mounting-{n}") for n, p in enumerate(plans)]]
+                                               translation_tolerance_m, name=f"mounting-{n}")
+                                  for n, p in enumerate(plans)]]
     sources = {}
     for p, m in zip(plans, found):
         sources[p.drive.name] = {k: m[k] for k in ("source", "reason") if k in m}
@@ -352,6 +358,11 @@ def _remount(tasks: _Tasks, plans: list[DrivePlan], deskew: bool, keyframe_dista
         log.info("%s: LiDAR mounting from %d of %d keyframe pairs: rotation %s deg, translation "
                  "%s m (body frame; 1-sigma %s deg, %s m)", p.drive.name, e["used"], e["pairs"],
                  e["rotation_deg"], e["translation_m"], e["sigma_deg"], e["sigma_m"])
+        if e["translation_estimated"] != "xyz":
+            log.info("%s: LiDAR mounting translation nominal on body axes %s: the drive determines x, "
+                     "y, z to %s m (null: not observed), not %s m (the fit said %s m)", p.drive.name,
+                     "".join(a for a in "xyz" if a not in e["translation_estimated"]),
+                     e["translation_uncertainty_m"], e["translation_tolerance_m"], e["translation_solved_m"])
         for note in m["notes"]:
             log.warning("%s: %s", p.drive.name, note)
     todo = [(n, p, m) for n, (p, m) in enumerate(zip(plans, found)) if m["estimate"] is not None]

@@ -310,7 +310,7 @@ def remounted(drive: Drive, T_body_lidar: np.ndarray) -> Drive:
 
 @_timed
 def mounting_task(plan: DrivePlan, deskew: bool, max_pairs: int = MOUNTING_PAIRS,
-                  auto: bool = False) -> dict:
+                  auto: bool = False, translation_tolerance_m: float | None = None) -> dict:
     """Task: the drive's LiDAR mounting estimated from registered keyframe pairs
     (:mod:`blockloc.maps.mounting`). Reads the pairs' keyframes only. Returns ``T_body_lidar``
     (4, 4), ``estimate`` (its JSON summary), ``source`` (``"estimated"``) and the raw points read.
@@ -320,7 +320,8 @@ def mounting_task(plan: DrivePlan, deskew: bool, max_pairs: int = MOUNTING_PAIRS
     velodyne_sync scans are already in the body frame): nothing to estimate, ``source`` is
     ``"lidar poses"``. A drive the estimate fails on keeps its nominal mounting (``source``
     ``"nominal"``, ``reason`` why) instead of failing the build. Either way ``T_body_lidar`` and
-    ``estimate`` are None.
+    ``estimate`` are None. translation_tolerance_m: see :func:`~blockloc.maps.mounting.estimate_mounting`
+    (None: its default).
 
     NDT registers the pairs, whatever engine tracking uses: on the campus map drive's first
     6000 frames (200 pairs) it recovered the simulated mounting to 0.035 deg and 4 mm, VGICP
@@ -345,7 +346,8 @@ def mounting_task(plan: DrivePlan, deskew: bool, max_pairs: int = MOUNTING_PAIRS
             raw += len(pts_map)
             # back into the LiDAR frame at the scan stamp: deskewed points, as the pair sees them
             clouds[k] = voxel_downsample(transform_points(inv_T(plan.T_map_lidar[k]), pts_map), 0.2)[0]
-        est = estimate_mounting(clouds, T_map_body, pairs, X0, make_engine("ndt", num_threads=1))
+        tol = {} if translation_tolerance_m is None else {"translation_tolerance_m": float(translation_tolerance_m)}
+        est = estimate_mounting(clouds, T_map_body, pairs, X0, make_engine("ndt", num_threads=1), **tol)
     except BlocklocError as exc:  # too few pairs, a pair too sparse to register, ...
         if auto:
             return {"T_body_lidar": None, "estimate": None, "source": "nominal",

@@ -23,6 +23,10 @@ def test_the_targets_are_checked_on_the_default_run_over_every_seed(tmp_path):
     assert "worst ATE <= 0.035 m: **not met**" in missed and "rotation <= 0.15 deg (every seed): **not met**" in missed
     assert "no failures: **not met**" in missed and "within +-1 cm (every seed): **not met**" in missed
     assert "seed 1: default 30 s" in missed
+    # a build timed with its CPU time and load; the map's mounting translation axes in the row
+    timed = report({3: {"default": {**_m(0.03, 0.1, 0.0), "_build_s": [50.0, 41.0, 12.5], "_translation": "nominal"}}},
+                   [], "now", 1.0, tmp_path)
+    assert "seed 3: default 50 s (CPU 41 s, load 12.5)" in timed and "| 100/100 | nominal |" in timed
 
 
 def test_bench_passes_a_named_benchmarks_options_to_it(monkeypatch):
