@@ -79,9 +79,15 @@ def _source() -> Path:
 
 def ensure_built() -> Path:
     """The driver executable, built on first use; raises :class:`Unavailable` (one line) if it cannot be."""
-    build = _cache() / f"build-{COMMIT[:12]}"
+    import hashlib
+
+    # One build per driver source and checkout: CMake's cache remembers its source directory, so two
+    # checkouts of blockloc must not share a build directory.
+    key = hashlib.sha1(str(DRIVER_DIR).encode() + b"".join(
+        (DRIVER_DIR / f).read_bytes() for f in ("driver.cpp", "CMakeLists.txt"))).hexdigest()[:10]
+    build = _cache() / f"build-{COMMIT[:12]}-{key}"
     exe = build / "bbs3d_driver"
-    if exe.is_file() and exe.stat().st_mtime >= (DRIVER_DIR / "driver.cpp").stat().st_mtime:
+    if exe.is_file():
         return exe
     for tool in ("cmake", "make", "c++"):
         if shutil.which(tool) is None:
