@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from blockloc.maps.changes.detect import (Evidence, cluster_sizes, pack_keys, ray_free_keys, ray_margins,
-                                          unpack_keys)
+                                          unpack_keys, without_lowest)
 from blockloc.maps.changes.pipeline import detect_changes
 from blockloc.maps.changes.runs import read_run, trusted_mask
 from tests.maps import lifelong_world as W
@@ -49,6 +49,15 @@ def test_keys_round_trip_and_rays():
     m = ray_margins(np.zeros(3), np.array([[20.0, 0, -1.2], [5.0, 0, 3.0]]), np.array([0, 0, 1.0]), 1.0)
     assert m[0] == pytest.approx(0.3 / (1.2 / np.hypot(20, 1.2))) and m[1] == 1.0
     assert list(cluster_sizes(pack_keys(np.array([[0, 0, 0], [1, 1, 1], [5, 5, 5]])))) == [2, 2, 1]
+
+
+def test_the_ground_surface_is_never_carvable():
+    # two columns: cells 5, 6, 9 and 3, 4 along z; the map frame's up is -z (NCLT) or +z
+    k = np.sort(pack_keys(np.array([[0, 0, 5], [0, 0, 6], [0, 0, 9], [1, 0, 3], [1, 0, 4]])))
+    down = unpack_keys(without_lowest(k, np.array([0, 0, -1.0])))
+    assert sorted(map(tuple, down)) == [(0, 0, 5), (0, 0, 6), (1, 0, 3)]
+    up = unpack_keys(without_lowest(k, np.array([0, 0, 1.0])))
+    assert sorted(map(tuple, up)) == [(0, 0, 6), (0, 0, 9), (1, 0, 4)]
 
 
 def test_one_scan_never_decides():

@@ -147,6 +147,29 @@ def ray_free_keys(origin: np.ndarray, endpoints: np.ndarray, voxel_m: float, mar
     return np.unique(np.concatenate(out))
 
 
+def without_lowest(fine_keys: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """The sorted fine keys less the lowest occupied cell of each vertical column (``up``: (3,)
+    unit vector against gravity, along a map axis): the ground's surface, which rays may not
+    carve. Far from the sensor a scan's ground hits lie metres apart and a ray running low over
+    the ground between them, or over a slope rising ahead of it, would otherwise thin the ground
+    out of the map; a removed object's cells above the ground stay open to evidence."""
+    fine_keys = np.asarray(fine_keys, np.int64)
+    up = np.asarray(up, float).reshape(3)
+    axis = int(np.argmax(np.abs(up)))
+    if not len(fine_keys) or abs(up[axis]) < 0.9:  # gravity not along an axis: nothing spared
+        return fine_keys
+    ijk = unpack_keys(fine_keys)
+    h = ijk[:, axis] * np.sign(up[axis])  # height in cells
+    other = [a for a in range(3) if a != axis]
+    col = pack_keys(np.c_[ijk[:, other], np.zeros(len(ijk), np.int64)])
+    order = np.lexsort((h, col))
+    first = np.ones(len(order), bool)
+    first[1:] = col[order][1:] != col[order][:-1]
+    keep = np.ones(len(fine_keys), bool)
+    keep[order[first]] = False
+    return fine_keys[keep]
+
+
 def ray_margins(origin: np.ndarray, points: np.ndarray, up: np.ndarray, margin_m: float,
                 ground_drop_m: float = 0.7, ground_tol_m: float = 0.3) -> np.ndarray:
     """(N,) how far short of its endpoint each ray stops marking free space, metres.
@@ -177,6 +200,8 @@ class Evidence:
     voxel_m: float
     margin_m: float = 1.0
     fine: tuple | None = None  # (map_keys, fine_m, fine_keys): see :func:`ray_free_keys`
+    #: sorted fine keys rays may count through (None: all of ``fine``'s; :func:`without_lowest`)
+    carvable: np.ndarray | None = None
     keys: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     n_hit: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
     n_free: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
@@ -203,7 +228,10 @@ class Evidence:
             new = np.ones(len(points_map), bool)
             pf = voxel_keys(points_map, fine_m)
             hit_fine = None
-        free = ray_free_keys(origin, points_map, self.voxel_m, margin, fine=self.fine, hit_fine=hit_fine)
+        through = self.fine
+        if self.fine is not None and self.carvable is not None:
+            through = (map_keys, fine_m, self.carvable)
+        free = ray_free_keys(origin, points_map, self.voxel_m, margin, fine=through, hit_fine=hit_fine)
         # next to a hit: spared off the map at the voxel level; inside the map's voxels the fine
         # cells near the hits were spared already (ray_free_keys), so the metre above the ground
         # stays open to evidence

@@ -23,7 +23,7 @@ from typing import Callable
 import numpy as np
 
 from blockloc.maps.changes.detect import (Evidence, Thresholds, VoxelChanges, block_report, classify,
-                                          dilate_keys, map_free_keys, voxel_keys)
+                                          dilate_keys, map_free_keys, voxel_keys, without_lowest)
 from blockloc.maps.changes.runs import RunPoses
 
 log = logging.getLogger(__name__)
@@ -104,7 +104,9 @@ def detect_changes(store, sequence, run: RunPoses, *, voxel_m: float = 0.5, max_
     fine_m = voxel_m / 2.5
     fine_keys = (np.unique(np.concatenate([voxel_keys(p, fine_m) for p in blocks.values()]))
                  if blocks else np.zeros(0, np.int64))
-    ev = Evidence(voxel_m, margin_m, fine=(map_keys, fine_m, fine_keys))
+    # new points are judged against every map cell; free space may cross all but the ground's
+    ev = Evidence(voxel_m, margin_m, fine=(map_keys, fine_m, fine_keys),
+                  carvable=without_lowest(fine_keys, up))
     off_pts, off_int = [], []
     idx = np.arange(0, len(run), max(1, int(stride)))
     for done, k in enumerate(idx, 1):
