@@ -1,26 +1,48 @@
-"""Lifelong maps: change detection against the simulator's ground truth. Writes docs/bench/lifelong.md.
+"""Lifelong maps (issue 43): change detection against the simulator's truth, tracking months
+later on a stale, an updated and a fresh map, and what an update costs. Writes docs/bench/lifelong.md.
 
-    python -m bench.lifelong                              # tiny preset, seed 1, loc_m12
-    python -m bench.lifelong --preset small --session loc_m3 --stride 2
+    python -m bench.lifelong                                   # tiny preset, seed 1, every part
+    python -m bench.lifelong --preset small --frames 400       # the first 400 frames of each session
+    python -m bench.lifelong --parts detect --sessions loc_m12 # detection only
 
-Steps, as a user types them (the map and the run are kept in --work and reused when there):
-``blockloc map build --seq sim:P/map@S --kind block``, ``blockloc track --seq sim:P/SESSION@S
---init gt --no-record``; then the detection (``blockloc.maps.changes.detect_changes``, what
-``blockloc map changes`` runs, here through the API to score its voxels) is scored against the
-session's ``changes()``:
+Everything runs as a user types it (the maps and runs are kept in --work and reused when there):
 
-- per change of the truth (boxes in the map frame): found when 5 or more voxels of its class
-  (removed / added) lie in its box grown by 0.75 m; with the nearest distance of the run's
-  trajectory to the box (a change never in view cannot be found);
-- precision per class: the share of detected voxels inside some truth box of that class grown by
-  1 m. The simulator also changes the foliage of every crown between days (``foliage_change``),
-  which has no box: voxels carved there count against precision.
+- ``blockloc map build --seq sim:P/map@S --kind block`` (the stale map, month 0);
+- ``blockloc track --seq sim:P/SESSION@S --map MAP --init gt --no-record [--max-frames N]`` for
+  each session (``loc_m3``, ``loc_m12``) on the stale map;
+- **detect**: the detection of ``blockloc map changes`` (through the API, to score its voxels)
+  on each session's run, scored against the truth (below);
+- **loc**: ``blockloc map update MAP --run RUN_loc_m3 --out MAP_upd`` (updated from another day),
+  ``blockloc map build --seq sim:P/map_m12@S --kind block`` (fresh), then ``loc_m12`` tracked on
+  the stale, the updated and the fresh map: ATE, failures, rejected scans;
+- **cost**: the update's time per changed block (wall and CPU of the command), the unchanged
+  blocks' files hashed against the stale map's, the updated map's size against the fresh one's.
+- ``--dynamic``: the dynamic-points comparison with DUFOMap (``bench._dynamic``, another
+  module; called with this bench's work directory when present).
+
+Truth (voxels of ``voxel_m``, the detector's, in the map frame):
+
+- **removed**: map voxels with a map point inside the box of a removed change (grown 0.25 m) and
+  every map point in them more than 0.3 m above the terrain (a voxel that still holds ground is
+  not removed), which the run's rays crossed in ``min_scans`` scans or more (from the true poses,
+  no margin: what the run could see);
+- **added**: voxels holding points the simulator labels ``changed`` (true poses) in
+  ``min_scans`` scans or more.
+
+A detected voxel counts as right when a truth voxel of its class is within one voxel (26
+neighbours), a truth voxel as found when a detected one is: a tolerance of one voxel for the
+pose and the voxel grid. Per block: a block changed when its truth voxels (removed in its
+voxels, added by the nearest keyframe, as ``changes.json`` assigns them) number
+``min_block_voxels`` or more; detected when ``changes.json`` marks it confirmed.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
+import os
+import resource
 import subprocess
 import sys
 import time
@@ -30,106 +52,355 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "bench" / "lifelong.md"
+PARTS = ("detect", "loc", "cost")
 
 
-def _run(cmd: list[str]) -> float:
-    t0 = time.perf_counter()
+def _child_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _run(cmd: list[str]) -> tuple[float, float]:
+    """Run a command; (wall s, CPU s of it)."""
+    t0, c0 = time.perf_counter(), _child_cpu()
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
-    return time.perf_counter() - t0
+    return time.perf_counter() - t0, _child_cpu() - c0
 
 
-def _inside(c: np.ndarray, box, pad: float) -> np.ndarray:
-    x0, x1, y0, y1, z0, z1 = box
-    return ((c[:, 0] > x0 - pad) & (c[:, 0] < x1 + pad) & (c[:, 1] > y0 - pad) & (c[:, 1] < y1 + pad)
-            & (c[:, 2] > z0 - pad) & (c[:, 2] < z1 + pad))
+def _once(cmd: list[str], done: Path, log: list) -> None:
+    """Run ``cmd`` unless ``done`` exists; log (command, reused, wall, cpu)."""
+    if done.exists():
+        log.append((cmd, True, None, None))
+    else:
+        log.append((cmd, False, *_run(cmd)))
 
 
-def main(argv: list[str] | None = None) -> Path:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--preset", default="tiny")
-    ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--session", default="loc_m12")
-    ap.add_argument("--stride", type=int, default=2)
-    ap.add_argument("--work", type=Path, default=Path("/tmp/blockloc-bench-lifelong"))
-    args = ap.parse_args(argv)
-    from bench.__main__ import machine
+class _Recording:
+    """A changed session whose frames, as detection reads them, are scored too: each frame is cast
+    once, with its labels; its ``changed`` points' voxels and the voxels its rays cross (true pose,
+    no margin) are kept."""
+
+    def __init__(self, seq, voxel_m: float):
+        self.seq, self.info, self.voxel_m = seq, seq.info, voxel_m
+        gt = seq.ground_truth()
+        self._gt_stamps, self._gt_poses = np.asarray(gt.stamps), np.asarray(gt.poses)
+        self.changed, self.seen = [], []
+        self.seconds = 0.0
+
+    def __len__(self):
+        return len(self.seq)
+
+    def frame(self, i):
+        from blockloc.maps.changes.detect import ray_free_keys, voxel_keys
+        from blockloc.voxels import voxel_select
+
+        t0 = time.process_time()  # casting the frame and scoring it: not the detection's cost
+        frame, labels = self.seq.frame_labels(i)
+        j = int(np.argmin(np.abs(self._gt_stamps - frame.stamp)))
+        T = self._gt_poses[j] @ np.asarray(self.info.T_body_lidar, float)
+        p = np.asarray(frame.points, float)[:, :3]
+        ok = np.isfinite(p).all(1) & (np.linalg.norm(p, axis=1) <= 40.0)
+        pm = p[ok] @ T[:3, :3].T + T[:3, 3]
+        lab = np.asarray(labels)[ok]
+        self.changed.append(np.unique(voxel_keys(pm[lab == 1], self.voxel_m)))
+        sel = voxel_select(pm, self.voxel_m / 2)
+        self.seen.append(ray_free_keys(T[:3, 3], pm[sel], self.voxel_m, 0.0))
+        self.seconds += time.process_time() - t0
+        return frame
+
+
+def _count(per_scan: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    if not per_scan:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return np.unique(np.concatenate(per_scan), return_counts=True)
+
+
+def _prf(det: np.ndarray, truth: np.ndarray) -> dict:
+    """Precision / recall / F1 with a one-voxel tolerance (module docstring)."""
+    from blockloc.maps.changes.detect import near_sorted
+
+    det, truth = np.unique(det), np.unique(truth)
+    tp_d = int(near_sorted(det, truth).sum()) if len(det) else 0
+    tp_t = int(near_sorted(truth, det).sum()) if len(truth) else 0
+    p = tp_d / len(det) if len(det) else float("nan")
+    r = tp_t / len(truth) if len(truth) else float("nan")
+    f = 2 * p * r / (p + r) if len(det) and len(truth) and p + r > 0 else float("nan")
+    return {"detected": len(det), "truth": len(truth), "precision": p, "recall": r, "f1": f}
+
+
+def _truth_removed(seq, block_points: dict, voxel_m: float) -> np.ndarray:
+    """Removed truth voxels among the examined blocks' (module docstring), before observability.
+    block_points: block id -> (N, 3) map points."""
+    from blockloc.maps.changes.detect import voxel_keys
+
+    boxes = [c.box_map() for c in seq.changes() if c.action == "removed"]
+    H = seq.world.terrain.height
+    out = []
+    for pts in block_points.values():
+        inside = np.zeros(len(pts), bool)
+        for x0, x1, y0, y1, z0, z1 in boxes:
+            pad = 0.25
+            inside |= ((pts[:, 0] > x0 - pad) & (pts[:, 0] < x1 + pad) & (pts[:, 1] > y0 - pad)
+                       & (pts[:, 1] < y1 + pad) & (pts[:, 2] > z0 - pad) & (pts[:, 2] < z1 + pad))
+        k = voxel_keys(pts, voxel_m)
+        above = -pts[:, 2] - H(pts[:, 0], -pts[:, 1])  # map frame = world (x, -y, -z)
+        low = np.unique(k[above <= 0.3])
+        cand = np.unique(k[inside])
+        out.append(cand[~np.isin(cand, low)])
+    return np.unique(np.concatenate(out)) if out else np.zeros(0, np.int64)
+
+
+def _block_of(keys: np.ndarray, res, voxel_m: float, removed: bool) -> np.ndarray:
+    """(K,) block id of each voxel, as ``changes.json`` assigns it (removed: the block whose voxels
+    hold it, the first; added: the nearest keyframe's block)."""
+    from scipy.spatial import cKDTree
+
     from blockloc.maps.changes.detect import unpack_keys
+
+    out = np.full(len(keys), None, dtype=object)
+    if removed:
+        for b, bk in res.block_keys.items():
+            m = np.isin(keys, bk) & (out == None)  # noqa: E711
+            out[m] = b
+        return out
+    ids = list(res.block_keyframes)
+    kf = np.concatenate([np.asarray(res.block_keyframes[b]).reshape(-1, 3) for b in ids])
+    owner = np.concatenate([[b] * len(np.asarray(res.block_keyframes[b]).reshape(-1, 3)) for b in ids])
+    if len(keys):
+        out[:] = owner[cKDTree(kf).query((unpack_keys(keys) + 0.5) * voxel_m)[1]]
+    return out
+
+
+def score_detection(P: str, S: int, session: str, mp: Path, run_dir: Path, stride: int, min_scans: int = 5) -> dict:
+    """Detection on ``run_dir`` against ``session``'s truth (module docstring)."""
+    from blockloc.maps.changes.detect import Thresholds
     from blockloc.maps.changes.pipeline import detect_changes
     from blockloc.maps.changes.runs import read_run
     from blockloc.maps.store import open_map
     from blockloc.sim.changes import open_session
 
-    P, S, sess = args.preset, args.seed, args.session
-    work = args.work / f"{P}_{S}"
-    work.mkdir(parents=True, exist_ok=True)
-    mp, run_dir = work / "map", work / f"run_{sess}"
-    cmds = [["blockloc", "map", "build", "--seq", f"sim:{P}/map@{S}", "--kind", "block", "--out", str(mp)],
-            ["blockloc", "track", "--seq", f"sim:{P}/{sess}@{S}", "--map", str(mp), "--init", "gt",
-             "--no-record", "--out", str(run_dir)]]
-    reused = []
-    for cmd, done in zip(cmds, (mp / "manifest.json", run_dir / "metrics.json")):
-        if done.exists():
-            reused.append(True)
-        else:
-            _run(cmd)
-            reused.append(False)
+    th = Thresholds()
+    seq = open_session(P, session, S)
+    rec = _Recording(seq, 0.5)
     run = read_run(run_dir)
-    seq = open_session(P, sess, S)
-    t0 = time.perf_counter()
-    res = detect_changes(open_map(mp), seq, run, stride=args.stride)
-    t_detect = time.perf_counter() - t0
-    vc = res.voxels
-    cls = {"removed": (unpack_keys(vc.removed) + 0.5) * vc.voxel_m,
-           "added": (unpack_keys(vc.added) + 0.5) * vc.voxel_m}
-    truth = seq.changes()
-    traj = run.T_map_body[:, :3, 3]
-    rows, hits = [], {"removed": 0, "added": 0}
-    for c in truth:
-        box = c.box_map()
-        k = "removed" if c.action == "removed" else "added"
-        n = int(_inside(cls[k], box, 0.75).sum())
-        centre = np.array([(box[0] + box[1]) / 2, (box[2] + box[3]) / 2])
-        half = np.array([(box[1] - box[0]) / 2, (box[3] - box[2]) / 2])
-        d = np.maximum(np.abs(traj[:, :2] - centre) - half, 0.0)
-        dist = float(np.min(np.hypot(d[:, 0], d[:, 1]))) if len(traj) else float("nan")
-        rows.append((c.kind, c.action, dist, n, n >= 5))
-    prec = {}
-    for k, c in cls.items():
-        boxes = [t.box_map() for t in truth if (t.action == "removed") == (k == "removed")]
-        inside = np.zeros(len(c), bool)
-        for b in boxes:
-            inside |= _inside(c, b, 1.0)
-        prec[k] = (int(inside.sum()), len(c))
-    in_range = [r for r in rows if r[2] <= 25.0]
-    lines = ["## Lifelong maps: change detection against the simulator's truth", "",
-             f"Machine: {machine()}. Command: `python -m bench.lifelong --preset {P} --seed {S} --session {sess} "
-             f"--stride {args.stride}`, run {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}. "
-             f"One run (seed {S}); the map and the run come from "
-             + "; ".join(f"`{' '.join(c)}`" + (" (kept from an earlier run)" if r else "") for c, r in zip(cmds, reused))
-             + ".", "",
-             f"Detection: {res.frames_trusted} trusted frames, {res.scans_used} scans used (stride {args.stride}), "
-             f"{res.scans_rejected} dropped by the consistency gate, {t_detect:.0f} s wall on this (shared) machine.", "",
-             "| change | action | nearest approach of the run (m) | voxels of its class in its box | found |",
-             "|---|---|---|---|---|"]
-    for kind, action, dist, n, ok in rows:
-        lines.append(f"| {kind} | {action} | {dist:.1f} | {n} | {'yes' if ok else 'no'} |")
-    lines += ["", f"Changes within 25 m of the run found: {sum(r[4] for r in in_range)} of {len(in_range)}.", "",
-              "| class | detected voxels | inside a truth box of the class (+1 m) | precision |", "|---|---|---|---|"]
-    for k, (inside, total) in prec.items():
-        lines.append(f"| {k} | {total} | {inside} | {inside / total:.2f} |" if total else f"| {k} | 0 | 0 | - |")
-    lines += ["", "Per block (`changes.json`):", "", "| block | removed m3 | added m3 | dynamic voxels | confidence | confirmed |",
-              "|---|---|---|---|---|---|"]
+    t0, c0 = time.perf_counter(), time.process_time()
+    store = open_map(mp)
+    res = detect_changes(store, rec, run, stride=stride, thresholds=th)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0 - rec.seconds
+    vm = res.voxels.voxel_m
+    seen_k, seen_n = _count(rec.seen)
+    observed = seen_k[seen_n >= min_scans]
+    rm_all = _truth_removed(seq, {b: store.load(b)[0][:, :3].astype(float) for b in res.block_keys}, vm)
+    truth_rm = rm_all[np.isin(rm_all, observed)]
+    ch_k, ch_n = _count(rec.changed)
+    truth_ad = ch_k[ch_n >= min_scans]
+    out = {"session": session, "frames_trusted": res.frames_trusted, "scans_used": res.scans_used,
+           "scans_rejected": res.scans_rejected, "wall_s": wall, "cpu_s": cpu,
+           "cpu_per_scan_s": cpu / max(res.scans_used, 1), "load1": os.getloadavg()[0],
+           "removed": _prf(res.voxels.removed, truth_rm), "added": _prf(res.voxels.added, truth_ad),
+           "removed_truth_unobserved": int(len(rm_all) - len(truth_rm))}
+    # per block
+    tb_rm, tb_ad = _block_of(truth_rm, res, vm, True), _block_of(truth_ad, res, vm, False)
+    rows, tp, fp, fn = [], 0, 0, 0
     for b in res.blocks:
-        lines.append(f"| {b['block']} | {b['removed_m3']} | {b['added_m3']} | {b['dynamic_voxels']} | "
-                     f"{b['confidence']} | {b['confirmed']} |")
-    lines += ["", "Not yet measured: the DUFOMap comparison, several seeds, the small and campus presets."]
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    tmp = OUT.with_suffix(".md.tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(OUT)
-    (work / f"bench_{sess}.json").write_text(json.dumps({"rows": rows, "precision": prec}, default=str))
-    print("\n".join(lines))
-    return OUT
+        n_truth = int((tb_rm == b["block"]).sum() + (tb_ad == b["block"]).sum())
+        changed, det = n_truth >= th.min_block_voxels, bool(b["confirmed"])
+        tp += changed and det
+        fp += det and not changed
+        fn += changed and not det
+        rows.append({"block": b["block"], "truth_voxels": n_truth, "changed": changed,
+                     "removed_voxels": b["removed_voxels"], "added_voxels": b["added_voxels"], "confirmed": det})
+    out["blocks"] = rows
+    out["block_precision"] = tp / (tp + fp) if tp + fp else float("nan")
+    out["block_recall"] = tp / (tp + fn) if tp + fn else float("nan")
+    out["block_counts"] = {"tp": tp, "fp": fp, "fn": fn, "examined": len(rows)}
+    return out
+
+
+def _metrics(run_dir: Path) -> dict:
+    m = json.loads((run_dir / "metrics.json").read_text())
+    return {k: m.get(k) for k in ("ate_trans_rmse_m", "ate_rot_rmse_deg", "failures", "rejected", "frames",
+                                  "relocalizations")}
+
+
+def _sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def update_cost(mp: Path, upd: Path, fresh: Path | None, wall: float | None, cpu: float | None) -> dict:
+    """Hash check of the unchanged blocks, sizes, time per changed block."""
+    old = json.loads((mp / "manifest.json").read_text())
+    new = json.loads((upd / "manifest.json").read_text())
+    rec = new.get("lifelong") or {}
+    changed = set(rec.get("changed_blocks") or [])
+    files_old = {e["id"]: e["file"] for e in old["entries"]}
+    same, differ = 0, []
+    for e in new["entries"]:
+        if e["id"] in changed:
+            continue
+        if e["id"] in files_old and _sha(upd / e["file"]) == _sha(mp / files_old[e["id"]]):
+            same += 1
+        else:
+            differ.append(e["id"])
+    size = lambda man: sum(int(e["bytes"]) for e in man["entries"])  # noqa: E731
+    out = {"changed_blocks": sorted(changed), "unchanged_identical": same, "unchanged_differ": differ,
+           "bytes_stale": size(old), "bytes_updated": size(new), "held_back": len(rec.get("held_back") or [])}
+    if fresh is not None and (fresh / "manifest.json").is_file():
+        out["bytes_fresh"] = size(json.loads((fresh / "manifest.json").read_text()))
+    if wall is not None and changed:
+        out["wall_per_block_s"], out["cpu_per_block_s"] = wall / len(changed), cpu / len(changed)
+    out["update_wall_s"], out["update_cpu_s"] = wall, cpu
+    return out
+
+
+def dynamic_hook(work: Path, preset: str, seed: int) -> list[str]:
+    """``--dynamic``: the dynamic-points comparison with DUFOMap in the same run (``python -m
+    bench.dynamic``: the 12-month mapping day of this bench's preset and seed, exported in the
+    DynamicMap Benchmark's layout, scored for the raw map, ours and DUFOMap); its page's lines."""
+    from bench import dynamic
+
+    page = dynamic.main(["--preset", preset, "--seed", str(seed), "--work", str(work / "dynamic"),
+                         "--out", str(work / "dynamic.md")])
+    return Path(page).read_text().splitlines()
+
+
+def _f(v, nd=2) -> str:
+    return "-" if v is None or (isinstance(v, float) and not np.isfinite(v)) else f"{v:.{nd}f}"
+
+
+def main(argv: list[str] | None = None) -> Path:
+    ap = argparse.ArgumentParser(prog="python -m bench.lifelong")
+    ap.add_argument("--preset", default="tiny")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--sessions", default="loc_m3,loc_m12", help="sessions to detect on (comma separated)")
+    ap.add_argument("--frames", type=int, default=0, help="track only the first N frames of each session (0: all)")
+    ap.add_argument("--stride", type=int, default=2, help="detection uses every stride-th trusted frame")
+    ap.add_argument("--parts", default=",".join(PARTS), help=f"comma separated: {', '.join(PARTS)}")
+    ap.add_argument("--dynamic", action="store_true", help="also the DUFOMap comparison (bench/_dynamic.py)")
+    ap.add_argument("--work", type=Path, default=Path("/tmp/blockloc-bench-lifelong"))
+    ap.add_argument("--out", type=Path, default=OUT)
+    args = ap.parse_args(argv)
+    from bench.__main__ import machine
+
+    P, S, parts = args.preset, args.seed, set(args.parts.split(","))
+    sessions = [s for s in args.sessions.split(",") if s]
+    work = args.work / (f"{P}_{S}" + (f"_f{args.frames}" if args.frames else ""))
+    work.mkdir(parents=True, exist_ok=True)
+    lim = ["--max-frames", str(args.frames)] if args.frames else []
+    log: list = []
+    load0, t_all = os.getloadavg()[0], time.perf_counter()
+    mp = work / "map"
+    _once(["blockloc", "map", "build", "--seq", f"sim:{P}/map@{S}", "--kind", "block", "--out", str(mp)],
+          mp / "manifest.json", log)
+
+    def track(session: str, map_dir: Path, name: str) -> Path:
+        out = work / name
+        _once(["blockloc", "track", "--seq", f"sim:{P}/{session}@{S}", "--map", str(map_dir), "--init", "gt",
+               "--no-record", "--out", str(out), *lim], out / "metrics.json", log)
+        return out
+
+    need = set(sessions) | ({"loc_m3", "loc_m12"} if parts & {"loc", "cost"} else set())
+    runs = {s: track(s, mp, f"run_{s}_stale") for s in ("loc_m3", "loc_m12") if s in need}
+    result: dict = {"preset": P, "seed": S, "frames": args.frames, "stride": args.stride, "load1_start": load0}
+
+    def write() -> None:  # after every part: a long run stopped half-way keeps what it measured
+        result["load1_end"], result["wall_s"] = os.getloadavg()[0], time.perf_counter() - t_all
+        (work / f"bench_{args.out.stem}.json").write_text(json.dumps(result, indent=1, default=str))
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = args.out.with_suffix(".md.tmp")
+        tmp.write_text("\n".join(render(result, args, log, machine(), dyn)) + "\n")
+        tmp.replace(args.out)
+
+    dyn: list[str] = []
+    if "detect" in parts:
+        result["detect"] = []
+        for s in sessions:
+            result["detect"].append(score_detection(P, S, s, mp, runs[s], args.stride))
+            write()
+    upd, fresh, up_wall, up_cpu = work / "map_upd", work / "map_fresh", None, None
+    if parts & {"loc", "cost"}:
+        cmd = ["blockloc", "map", "update", str(mp), "--run", str(runs["loc_m3"]), "--out", str(upd),
+               "--stride", str(args.stride)]
+        if (upd / "manifest.json").exists():
+            log.append((cmd, True, None, None))
+        else:
+            up_wall, up_cpu = _run(cmd)
+            log.append((cmd, False, up_wall, up_cpu))
+        if "cost" in parts:
+            result["cost"] = update_cost(mp, upd, None, up_wall, up_cpu)
+            write()
+        _once(["blockloc", "map", "build", "--seq", f"sim:{P}/map_m12@{S}", "--kind", "block", "--out", str(fresh)],
+              fresh / "manifest.json", log)
+        if "cost" in parts:
+            result["cost"] = update_cost(mp, upd, fresh, up_wall, up_cpu)
+            write()
+    if "loc" in parts:
+        result["loc"] = {}
+        for name, m in (("stale", mp), ("updated", upd), ("fresh", fresh)):
+            result["loc"][name] = _metrics(track("loc_m12", m, f"run_loc_m12_{name}"))
+            write()
+    if args.dynamic:
+        dyn = dynamic_hook(work, P, S)
+    write()
+    print((args.out).read_text())
+    return args.out
+
+
+def render(r: dict, args, log: list, machine: str, dyn: list[str]) -> list[str]:
+    cmd = (f"python -m bench.lifelong --preset {r['preset']} --seed {r['seed']} --sessions {args.sessions} "
+           f"--stride {r['stride']} --parts {args.parts}" + (f" --frames {r['frames']}" if r["frames"] else "")
+           + (" --dynamic" if args.dynamic else ""))
+    L = ["## Lifelong maps: change detection, tracking months later, update cost", "",
+         f"Command: `{cmd}`, run {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {machine}; "
+         f"one run, seed {r['seed']}; 1-min load average {r['load1_start']:.1f} at the start, "
+         f"{r['load1_end']:.1f} at the end ({r['wall_s'] / 60:.0f} min wall in all; shared machine: wall times are "
+         "not speed figures). Steps as a user types them:", ""]
+    for c, reused, wall, cpu in log:
+        L.append(f"- `{' '.join(c)}`" + (" (kept from an earlier run)" if reused else f": {wall:.0f} s wall, {cpu:.0f} s CPU"))
+    if "detect" in r:
+        L += ["", "### Detection against the truth", "",
+              "Voxels of 0.5 m; right within one voxel (bench/lifelong.py's docstring has the truth).", "",
+              "| session | scans used (gated) | removed P / R / F1 (det, truth) | added P / R / F1 (det, truth) "
+              "| blocks P / R (tp, fp, fn of examined) | detection CPU per scan (frames' casting left out) |", "|---|---|---|---|---|---|"]
+        for d in r["detect"]:
+            rm, ad, bc = d["removed"], d["added"], d["block_counts"]
+            L.append(f"| {d['session']} | {d['scans_used']} ({d['scans_rejected']}) | {_f(rm['precision'])} / "
+                     f"{_f(rm['recall'])} / {_f(rm['f1'])} ({rm['detected']}, {rm['truth']}) | {_f(ad['precision'])} / "
+                     f"{_f(ad['recall'])} / {_f(ad['f1'])} ({ad['detected']}, {ad['truth']}) | "
+                     f"{_f(d['block_precision'])} / {_f(d['block_recall'])} ({bc['tp']}, {bc['fp']}, {bc['fn']} of "
+                     f"{bc['examined']}) | {d['cpu_per_scan_s']:.2f} s (load {d['load1']:.1f}) |")
+        L += ["", "Per block (truth voxels: observed removed + added truth voxels the block owns; changed at 8):", "",
+              "| session | block | truth voxels | changed | detected removed | detected added | confirmed |",
+              "|---|---|---|---|---|---|---|"]
+        for d in r["detect"]:
+            for b in d["blocks"]:
+                if b["truth_voxels"] or b["removed_voxels"] or b["added_voxels"]:
+                    L.append(f"| {d['session']} | {b['block']} | {b['truth_voxels']} | {b['changed']} | "
+                             f"{b['removed_voxels']} | {b['added_voxels']} | {b['confirmed']} |")
+    if "loc" in r:
+        L += ["", "### Tracking loc_m12 (12 months later) on each map", "",
+              "| map | ATE translation RMSE (m) | rotation RMSE (deg) | failures | rejected scans | frames |",
+              "|---|---|---|---|---|---|"]
+        for name, m in r["loc"].items():
+            L.append(f"| {name} | {_f(m['ate_trans_rmse_m'], 3)} | {_f(m['ate_rot_rmse_deg'], 2)} | {m['failures']} | "
+                     f"{m['rejected']} | {m['frames']} |")
+    if "cost" in r:
+        c = r["cost"]
+        L += ["", "### Update cost", "",
+              f"Changed blocks: {len(c['changed_blocks'])} ({', '.join(c['changed_blocks']) or '-'}); "
+              f"held back: {c['held_back']}. Unchanged blocks byte-identical (sha256 of the files): "
+              f"{c['unchanged_identical']} of {c['unchanged_identical'] + len(c['unchanged_differ'])}"
+              + (f" (differ: {', '.join(c['unchanged_differ'])})" if c["unchanged_differ"] else "") + ".",
+              f"Size: stale {c['bytes_stale'] / 1e6:.2f} MB, updated {c['bytes_updated'] / 1e6:.2f} MB"
+              + (f", fresh {c['bytes_fresh'] / 1e6:.2f} MB (updated / fresh = {c['bytes_updated'] / c['bytes_fresh']:.2f})"
+                 if c.get("bytes_fresh") else "") + "."]
+        if c.get("wall_per_block_s") is not None:
+            L.append(f"Update (the whole command, detection included): {c['update_wall_s']:.0f} s wall, "
+                     f"{c['update_cpu_s']:.0f} s CPU; per changed block {c['wall_per_block_s']:.1f} s wall, "
+                     f"{c['cpu_per_block_s']:.1f} s CPU.")
+    if dyn:
+        L += ["", "### Dynamic points", "", *dyn]
+    return L
 
 
 if __name__ == "__main__":

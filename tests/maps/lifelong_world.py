@@ -3,7 +3,8 @@
 World (map frame, z up, metres): flat ground; a street along x (y = 0) between two long building
 rows (y = +-11); a few pillars; on the mapping day a garden wall W at x 2..10, y 5.8..6.2.
 On the run day: the wall W is gone (removed), a box B stands at x -8..-5, y -7.5..-4.5 (added),
-and a pedestrian walks across the street at x = 12 (dynamic). Day "nowall": only W is gone.
+a parked car C at x 4..8.5, y -6..-4.2 (1.5 m tall) is gone (removed) and a pedestrian walks
+across the street at x = 12 (dynamic). Day "nowall": only W is gone.
 
 A drive goes along y = 0 from x = -24 to 24, sensor 1.2 m above the ground, a scan every 0.25 m:
 32 beams from -25 to +12 deg, 720 columns. Scans are cast with open3d's RaycastingScene.
@@ -22,6 +23,7 @@ import numpy as np
 
 WALL_W = (2.0, 10.0, 5.8, 6.2, 0.0, 3.5)  # reaches into the place index's 2-4 m band
 BOX_B = (-8.0, -5.0, -7.5, -4.5, 0.0, 2.0)
+CAR_C = (4.0, 8.5, -6.0, -4.2, 0.0, 1.5)  # a parked car on the mapping day, gone on the run day
 PED_X = 12.0
 SENSOR_Z = 1.2
 
@@ -47,9 +49,9 @@ def scene(day: str, t: float = 0.0):
     sc = o3d.t.geometry.RaycastingScene()
     boxes = list(static_boxes())
     if day == "map":
-        boxes.append(WALL_W)
+        boxes += [WALL_W, CAR_C]
     elif day == "nowall":  # only the wall gone: block 000 (x < 0) sees no change
-        pass
+        boxes.append(CAR_C)
     else:
         boxes.append(BOX_B)
         y = -8.0 + 1.4 * t  # walks +y at 1.4 m/s

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from blockloc.maps.changes.detect import (Evidence, cluster_sizes, pack_keys, ray_free_keys, ray_margins,
-                                          unpack_keys)
+                                          unpack_keys, without_lowest)
 from blockloc.maps.changes.pipeline import detect_changes
 from blockloc.maps.changes.runs import read_run, trusted_mask
 from tests.maps import lifelong_world as W
@@ -51,6 +51,15 @@ def test_keys_round_trip_and_rays():
     assert list(cluster_sizes(pack_keys(np.array([[0, 0, 0], [1, 1, 1], [5, 5, 5]])))) == [2, 2, 1]
 
 
+def test_the_ground_surface_is_never_carvable():
+    # two columns: cells 5, 6, 9 and 3, 4 along z; the map frame's up is -z (NCLT) or +z
+    k = np.sort(pack_keys(np.array([[0, 0, 5], [0, 0, 6], [0, 0, 9], [1, 0, 3], [1, 0, 4]])))
+    down = unpack_keys(without_lowest(k, np.array([0, 0, -1.0])))
+    assert sorted(map(tuple, down)) == [(0, 0, 5), (0, 0, 6), (1, 0, 3)]
+    up = unpack_keys(without_lowest(k, np.array([0, 0, 1.0])))
+    assert sorted(map(tuple, up)) == [(0, 0, 6), (0, 0, 9), (1, 0, 4)]
+
+
 def test_one_scan_never_decides():
     ev = Evidence(0.5, 1.0)
     wall = np.c_[np.full(50, 10.0), np.linspace(-2, 2, 50), np.zeros(50)]
@@ -65,17 +74,26 @@ def test_trusted_frames_skip_what_follows_a_loss():
     assert m.tolist() == [False, False, True, True, True, False, False, False, False, True, True, True]
 
 
-def test_detects_the_removed_wall_the_added_box_and_the_pedestrian(detected):
+def test_detects_the_removed_wall_and_car_the_added_box_and_the_pedestrian(detected):
     res = detected
     vc = res.voxels
     rm, ad, dy = (_centres(k, vc.voxel_m) for k in (vc.removed, vc.added, vc.dynamic))
     assert res.scans_used == len(W.drive(1.0)) and res.scans_rejected == 0
-    # removed: the wall and nothing else
-    assert len(rm) >= 40 and _inside(rm, W.WALL_W).all()
-    # added: the box and nothing else (its top part: the lowest 1 m touches the map's ground voxels)
+    # removed: the wall and the parked car, nothing else
+    in_wall, in_car = _inside(rm, W.WALL_W), _inside(rm, W.CAR_C)
+    assert in_wall.sum() >= 40 and in_car.sum() >= 10 and (in_wall | in_car).all()
+    # the car's lowest metre too (the ground's voxel and its neighbour above; half-metre voxels)
+    assert (rm[in_car, 2] < 1.0).sum() >= 4
+    # added: the box and nothing else, down to its lowest metre (which shares voxels with the
+    # map's ground, or touches them)
     assert len(ad) >= 20 and _inside(ad, W.BOX_B).all()
+    assert (ad[:, 2] < 1.0).sum() >= 6
     # the pedestrian is dynamic, never added; nothing of the static world is
-    assert len(dy) >= 10 and (np.abs(dy[:, 0] - W.PED_X) < 1.0).mean() > 0.9
+    ped = np.abs(dy[:, 0] - W.PED_X) < 1.0
+    assert ped.sum() >= 10
+    # the rest is the ground the car hid, seen in some scans and crossed by rays just above it in
+    # others (a voxel off the map has no fine cells to tell the two apart): only reported
+    assert (_inside(dy[~ped], W.CAR_C, 0.5) & (dy[~ped, 2] < 0.5)).all()
     ped_box = (W.PED_X - 0.3, W.PED_X + 0.3, -9, 9, 0, 1.7)
     assert not _inside(ad, ped_box).any()
     by = {b["block"]: b for b in res.blocks}

@@ -7,11 +7,14 @@ endpoint in it) and ``n_free`` (scans whose rays pass through it without ending 
 it). Its log-odds of being occupied is ``L = n_hit * l_occ + n_free * l_free``: one update per
 voxel per scan, so a single scan never decides (a voxel needs ``min_scans`` scans of evidence
 and ``|L|`` past a threshold). Free space is marked only by the part of each ray more than
-``ray_margin_m`` short of its endpoint, and never in a voxel next to one of that scan's hits (the
-26 neighbours): a slightly wrong pose, a grazing ray over the ground or a mixed pixel does not
-carve the map (the same idea as DUFOMap's localization-error dilation). And a ray counts through
-a map voxel only where it crosses the voxel's occupied fine cells (``voxel_m / 2.5``): a ray
-0.3 m above the ground passes through the ground's 0.5 m voxel without passing through the ground.
+``ray_margin_m`` short of its endpoint, and never next to one of that scan's hits: a slightly wrong
+pose, a grazing ray over the ground or a mixed pixel does not carve the map (the same idea as
+DUFOMap's localization-error dilation). Inside the map's voxels both tests are made on fine cells
+(``voxel_m / 2.5``): a ray counts through a map voxel only where it crosses one of the voxel's
+occupied fine cells, more than one fine cell from the scan's hits (a ray 0.3 m above the ground
+passes through the ground's 0.5 m voxel without passing through the ground, and a parked car's
+lowest metre, a voxel from the ground hits, stays open to evidence); off the map, a voxel next
+to (26 neighbours) a hit of the scan is spared.
 
 Rays that end on the ground stop marking free space further short of their endpoint, the more
 so the flatter they run (:func:`ray_margins`): over its last metres a grazing ray runs a few
@@ -21,11 +24,14 @@ Classes:
 
 - **removed**: a map voxel rays now pass through (``L <= -removed_logodds``, ``n_free >=
   min_scans``);
-- **added**: a voxel off the map hit in ``min_scans`` scans or more with ``L >= added_logodds``,
-  where the map's own rays (from its keyframes to its points) found free space: not merely a
-  place the mapping drive never saw;
-- **dynamic**: a voxel off the map hit in some scans and seen free in others, the free evidence
-  outweighing (``L < added_logodds``): a pedestrian, a passing car.
+- **added**: a voxel holding, in ``min_scans`` scans or more, **new** points (more than one fine
+  cell from every map point) in fine cells the map's own rays (from its keyframes to its points)
+  crossed, with ``n_new * l_occ + n_free * l_free >= added_logodds``: structure where the mapping
+  day saw free space, not merely a place it never saw; decided on points, not whole voxels, so
+  the part of a new object in the ground's voxel counts;
+- **dynamic**: a voxel off the map (and its neighbours) with new points in some scans and seen
+  free in others, the free evidence outweighing: a pedestrian, a passing car (also ground a
+  removed object had hidden, crossed just above it: dynamic voxels are only reported).
 
 Rays are walked by sampling every ``voxel_m / 2`` (numpy, a chunk of rays at a time): that can
 skip a voxel's corner, which only costs evidence, never adds it.
@@ -77,8 +83,25 @@ def _in_sorted(keys: np.ndarray, table: np.ndarray) -> np.ndarray:
     return table[j] == keys
 
 
+def near_sorted(keys: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """(N,) bool: the cell of each key or one of its 26 neighbours is in the sorted unique
+    ``table`` (the same cell size): within one cell of what the table holds."""
+    keys = np.asarray(keys, dtype=np.int64)
+    out = np.zeros(len(keys), bool)
+    if not len(keys) or not len(table):
+        return out
+    ijk = unpack_keys(keys)
+    for off in _NEIGHBOURS:
+        todo = np.flatnonzero(~out)
+        if not len(todo):
+            break
+        out[todo] = _in_sorted(pack_keys(ijk[todo] + off), table)
+    return out
+
+
 def ray_free_keys(origin: np.ndarray, endpoints: np.ndarray, voxel_m: float, margin_m,
-                  chunk: int = 4096, fine: tuple | None = None) -> np.ndarray:
+                  chunk: int = 4096, fine: tuple | None = None, hit_fine: np.ndarray | None = None,
+                  only: np.ndarray | None = None) -> np.ndarray:
     """Sorted unique keys of the voxels the rays ``origin`` -> each endpoint pass through, up to
     ``margin_m`` (a number or (N,) per ray) short of the endpoint. origin: (3,); endpoints:
     (N, 3); metres, one frame.
@@ -110,12 +133,41 @@ def ray_free_keys(origin: np.ndarray, endpoints: np.ndarray, voxel_m: float, mar
             map_keys, fine_m, fine_keys = fine
             on_map = _in_sorted(keys, map_keys)
             idx = np.flatnonzero(on_map)
-            through = _in_sorted(voxel_keys(pts[idx], fine_m), fine_keys)
+            fk = voxel_keys(pts[idx], fine_m)
+            through = _in_sorted(fk, fine_keys)
+            if hit_fine is not None and through.any():
+                t_idx = np.flatnonzero(through)
+                through[t_idx[near_sorted(fk[t_idx], hit_fine)]] = False
             keep = ~on_map
             keep[idx[through]] = True
             keys = keys[keep]
+        if only is not None:
+            keys = keys[_in_sorted(keys, only)]
         out.append(np.unique(keys))
     return np.unique(np.concatenate(out))
+
+
+def without_lowest(fine_keys: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """The sorted fine keys less the lowest occupied cell of each vertical column (``up``: (3,)
+    unit vector against gravity, along a map axis): the ground's surface, which rays may not
+    carve. Far from the sensor a scan's ground hits lie metres apart and a ray running low over
+    the ground between them, or over a slope rising ahead of it, would otherwise thin the ground
+    out of the map; a removed object's cells above the ground stay open to evidence."""
+    fine_keys = np.asarray(fine_keys, np.int64)
+    up = np.asarray(up, float).reshape(3)
+    axis = int(np.argmax(np.abs(up)))
+    if not len(fine_keys) or abs(up[axis]) < 0.9:  # gravity not along an axis: nothing spared
+        return fine_keys
+    ijk = unpack_keys(fine_keys)
+    h = ijk[:, axis] * np.sign(up[axis])  # height in cells
+    other = [a for a in range(3) if a != axis]
+    col = pack_keys(np.c_[ijk[:, other], np.zeros(len(ijk), np.int64)])
+    order = np.lexsort((h, col))
+    first = np.ones(len(order), bool)
+    first[1:] = col[order][1:] != col[order][:-1]
+    keep = np.ones(len(fine_keys), bool)
+    keep[order[first]] = False
+    return fine_keys[keep]
 
 
 def ray_margins(origin: np.ndarray, points: np.ndarray, up: np.ndarray, margin_m: float,
@@ -138,34 +190,60 @@ def ray_margins(origin: np.ndarray, points: np.ndarray, up: np.ndarray, margin_m
 class Evidence:
     """Per-voxel scan counts (see the module docstring), merged a batch of scans at a time.
 
-    keys: sorted (V,) int64; n_hit, n_free: (V,) int32. Only voxels inside ``region`` (a set of
-    sorted keys, or None: everywhere) are kept. ``scans``: scans added; ``rejected``: scans a
-    consistency gate dropped (see :meth:`add_scan`).
+    keys: sorted (V,) int64; n_hit, n_free: (V,) int32. ``scans``: scans added; ``rejected``:
+    scans a consistency gate dropped (see :meth:`add_scan`). With ``fine`` (the map's voxels and
+    fine cells, :func:`ray_free_keys`), each scan's **new** points (none of the map's fine cells
+    within one fine cell: 0.2-0.4 m off every map point at the default sizes) are kept as fine
+    keys per scan for :meth:`new_counts`; without it every point is new.
     """
 
     voxel_m: float
     margin_m: float = 1.0
     fine: tuple | None = None  # (map_keys, fine_m, fine_keys): see :func:`ray_free_keys`
+    #: sorted fine keys rays may count through (None: all of ``fine``'s; :func:`without_lowest`)
+    carvable: np.ndarray | None = None
     keys: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     n_hit: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
     n_free: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
     scans: int = 0
     rejected: int = 0
+    #: per scan: (sorted unique fine keys of its new points, (same length) the voxel of each)
+    new_fine: list = field(default_factory=list)
     _pending_hit: list = field(default_factory=list)
     _pending_free: list = field(default_factory=list)
 
-    def add_scan(self, origin: np.ndarray, points_map: np.ndarray, up: np.ndarray | None = None) -> None:
+    def add_scan(self, origin: np.ndarray, points_map: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:
         """One scan: sensor origin (3,) and its points (N, 3), both in the map frame; up: (3,)
-        unit vector against gravity, or None (no ground-ray margin, see :func:`ray_margins`)."""
+        unit vector against gravity, or None (no ground-ray margin, see :func:`ray_margins`).
+        Returns (N,) bool: the new points (class docstring)."""
         hits = np.unique(voxel_keys(points_map, self.voxel_m))
         margin = self.margin_m if up is None else ray_margins(origin, points_map, up, self.margin_m)
-        free = ray_free_keys(origin, points_map, self.voxel_m, margin, fine=self.fine)
-        free = free[~np.isin(free, dilate_keys(hits), assume_unique=True)]
+        if self.fine is not None:
+            map_keys, fine_m, fine_keys = self.fine
+            pf = voxel_keys(points_map, fine_m)
+            new = ~near_sorted(pf, fine_keys)
+            hit_fine = np.unique(pf)
+        else:
+            map_keys, fine_m = np.zeros(0, np.int64), self.voxel_m / 2.5
+            new = np.ones(len(points_map), bool)
+            pf = voxel_keys(points_map, fine_m)
+            hit_fine = None
+        through = self.fine
+        if self.fine is not None and self.carvable is not None:
+            through = (map_keys, fine_m, self.carvable)
+        free = ray_free_keys(origin, points_map, self.voxel_m, margin, fine=through, hit_fine=hit_fine)
+        # next to a hit: spared off the map at the voxel level; inside the map's voxels the fine
+        # cells near the hits were spared already (ray_free_keys), so the metre above the ground
+        # stays open to evidence
+        near_hit = np.isin(free, dilate_keys(hits), assume_unique=True) & ~_in_sorted(free, map_keys)
         self._pending_hit.append(hits)
-        self._pending_free.append(free)
+        self._pending_free.append(free[~near_hit])
+        cells, first = np.unique(pf[new], return_index=True)
+        self.new_fine.append((cells, voxel_keys(points_map[new][first], self.voxel_m)))
         self.scans += 1
         if len(self._pending_hit) >= 32:
             self.flush()
+        return new
 
     def flush(self) -> None:
         """Merge the pending scans into the counts."""
@@ -189,13 +267,42 @@ class Evidence:
         self.flush()
         return self.n_hit * l_occ + self.n_free * l_free
 
+    def fine_m(self) -> float:
+        return self.fine[1] if self.fine is not None else self.voxel_m / 2.5
+
+    def new_cells(self) -> np.ndarray:
+        """Sorted unique fine keys of every scan's new points."""
+        return (np.unique(np.concatenate([c for c, _ in self.new_fine])) if self.new_fine
+                else np.zeros(0, np.int64))
+
+    def new_counts(self, seen_free: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """(n_new, n_new_free): (V,) int64 in key order: scans with a new point in the voxel, and
+        scans with a new point in a fine cell of the sorted ``seen_free`` (where the map's own
+        rays crossed: :func:`map_free_keys` at the fine size; None: all)."""
+        self.flush()
+        n_any = np.zeros(len(self.keys), np.int64)
+        n_ok = np.zeros(len(self.keys), np.int64)
+        for cells, vk in self.new_fine:
+            if not len(cells):
+                continue
+            a = np.unique(vk)
+            n_any[np.searchsorted(self.keys, a)] += 1
+            if seen_free is None:
+                n_ok[np.searchsorted(self.keys, a)] += 1
+            else:
+                ok = _in_sorted(cells, seen_free)
+                b = np.unique(vk[ok])
+                n_ok[np.searchsorted(self.keys, b)] += 1
+        return n_any, n_ok
+
 
 def map_free_keys(map_points: np.ndarray, keyframes: np.ndarray, voxel_m: float, margin_m: float,
-                  max_range_m: float = 60.0) -> np.ndarray:
+                  max_range_m: float = 60.0, only: np.ndarray | None = None) -> np.ndarray:
     """Voxels the map's own rays crossed: from the nearest keyframe (K, 3) to each map point
     (M, 3) within ``max_range_m`` (a map stores no rays: the nearest keyframe stands in for the
     one that saw the point). Sorted unique int64 keys, the map's occupied voxels' neighbours left
-    out."""
+    out; with ``only`` (sorted keys), those of them the rays crossed (the caller has left the
+    map's surroundings out of them already)."""
     from scipy.spatial import cKDTree
 
     pts = np.asarray(map_points, dtype=np.float64)[:, :3]
@@ -207,8 +314,10 @@ def map_free_keys(map_points: np.ndarray, keyframes: np.ndarray, voxel_m: float,
     out = []
     for k in np.unique(near[ok]):
         sel = ok & (near == k)
-        out.append(ray_free_keys(kf[k], pts[sel], voxel_m, margin_m))
+        out.append(ray_free_keys(kf[k], pts[sel], voxel_m, margin_m, only=only))
     free = np.unique(np.concatenate(out)) if out else np.zeros(0, np.int64)
+    if only is not None:
+        return free
     return free[~np.isin(free, dilate_keys(voxel_keys(pts, voxel_m)))]
 
 
@@ -263,24 +372,33 @@ class VoxelChanges:
     removed_free: np.ndarray  # (len(removed),) scans that saw through each removed voxel
 
 
-def classify(ev: Evidence, map_keys: np.ndarray, map_free: np.ndarray, th: Thresholds) -> VoxelChanges:
+def classify(ev: Evidence, map_keys: np.ndarray, map_free_fine: np.ndarray | None, th: Thresholds) -> VoxelChanges:
     """Removed / added / dynamic voxels from the evidence. map_keys: sorted unique keys of the
-    map's occupied voxels; map_free: sorted keys the map's rays crossed (:func:`map_free_keys`)."""
+    map's occupied voxels; map_free_fine: sorted fine keys (``ev.fine_m()``) of the scans' new
+    points' cells that the map's own rays crossed (:func:`map_free_keys` with ``only``), or None
+    (no map rays: any new point counts).
+
+    Added is decided on the new points (:class:`Evidence`), not on whole voxels off the map: a
+    parked car's lowest half metre shares its voxel with the map's ground (and the next half
+    metre is that voxel's neighbour), yet its points are off the ground's fine cells, in cells
+    the map's rays crossed."""
     L = ev.logodds(th.l_occ, th.l_free)
     in_map = np.isin(ev.keys, map_keys)
     removed = in_map & (ev.n_free >= th.min_scans) & (L <= -th.removed_logodds)
-    seen_free_by_map = np.isin(ev.keys, map_free)
-    # a new voxel next to a map voxel may be the same surface a little off: not added
+    n_new, n_new_free = ev.new_counts(map_free_fine)
+    L_added = n_new_free * th.l_occ + ev.n_free * th.l_free
+    added = (n_new_free >= th.min_scans) & (L_added >= th.added_logodds)
+    L_new = n_new * th.l_occ + ev.n_free * th.l_free
+    # dynamic: off the map's voxels and their neighbours (there, new points seen free again are
+    # mostly ground the removed structure had hidden); dynamic voxels are only reported
     near_map = np.isin(ev.keys, dilate_keys(map_keys)) if len(map_keys) else np.zeros(len(ev.keys), bool)
-    off_map = ~near_map
-    added = off_map & seen_free_by_map & (ev.n_hit >= th.min_scans) & (L >= th.added_logodds)
-    dynamic = off_map & (ev.n_hit >= 1) & (ev.n_free >= 2) & (L < th.added_logodds) & ~added
+    dynamic = ~near_map & (n_new >= 1) & (ev.n_free >= 2) & (L_new < th.added_logodds) & ~added
     for m in (removed, added):  # scattered voxels are noise (a grazing ray, a mixed pixel)
         sel = np.flatnonzero(m)
         m[sel[cluster_sizes(ev.keys[sel]) < th.min_cluster_voxels]] = False
     return VoxelChanges(ev.voxel_m, ev.keys[removed], ev.keys[added], ev.keys[dynamic],
-                        {"removed": L[removed], "added": L[added], "dynamic": L[dynamic]},
-                        ev.n_hit[added].astype(np.int64), ev.n_free[removed].astype(np.int64))
+                        {"removed": L[removed], "added": L_added[added], "dynamic": L_new[dynamic]},
+                        n_new_free[added].astype(np.int64), ev.n_free[removed].astype(np.int64))
 
 
 def block_report(changes: VoxelChanges, block_keys: dict, block_keyframes: dict,

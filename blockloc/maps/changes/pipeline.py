@@ -23,7 +23,7 @@ from typing import Callable
 import numpy as np
 
 from blockloc.maps.changes.detect import (Evidence, Thresholds, VoxelChanges, block_report, classify,
-                                          dilate_keys, map_free_keys, voxel_keys)
+                                          dilate_keys, map_free_keys, voxel_keys, without_lowest)
 from blockloc.maps.changes.runs import RunPoses
 
 log = logging.getLogger(__name__)
@@ -101,16 +101,12 @@ def detect_changes(store, sequence, run: RunPoses, *, voxel_m: float = 0.5, max_
     block_keys = {b: np.unique(voxel_keys(p, voxel_m)) for b, p in blocks.items()}
     map_keys = np.unique(np.concatenate(list(block_keys.values()))) if blocks else np.zeros(0, np.int64)
     map_near = dilate_keys(map_keys) if len(map_keys) else map_keys
-    if blocks:
-        allp = np.concatenate(list(blocks.values()))
-        allp = allp[voxel_select(allp, voxel_m)]
-        map_free = map_free_keys(allp, np.concatenate(list(keyframes.values())), voxel_m, margin_m, max_range_m)
-    else:
-        map_free = np.zeros(0, np.int64)
     fine_m = voxel_m / 2.5
     fine_keys = (np.unique(np.concatenate([voxel_keys(p, fine_m) for p in blocks.values()]))
                  if blocks else np.zeros(0, np.int64))
-    ev = Evidence(voxel_m, margin_m, fine=(map_keys, fine_m, fine_keys))
+    # new points are judged against every map cell; free space may cross all but the ground's
+    ev = Evidence(voxel_m, margin_m, fine=(map_keys, fine_m, fine_keys),
+                  carvable=without_lowest(fine_keys, up))
     off_pts, off_int = [], []
     idx = np.arange(0, len(run), max(1, int(stride)))
     for done, k in enumerate(idx, 1):
@@ -129,13 +125,22 @@ def detect_changes(store, sequence, run: RunPoses, *, voxel_m: float = 0.5, max_
         if scan_agreement(pm, origin, up, map_near, voxel_m) < min_agreement:
             ev.rejected += 1
         else:
-            ev.add_scan(origin, pm, up)
-            off = ~np.isin(voxel_keys(pm, voxel_m), map_near)
+            off = ev.add_scan(origin, pm, up)  # the new points: off the map's fine cells
             off_pts.append(pm[off].astype(np.float32))
             off_int.append(inten[off])
         if progress is not None:
             progress(done, len(idx))
     ev.flush()
+    # where the map's own rays crossed the cells the scans' new points fell in: added structure
+    # stands where the mapping day saw free space, not merely where it never looked
+    cells = ev.new_cells()
+    if blocks and len(cells):
+        allp = np.concatenate(list(blocks.values()))
+        allp = allp[voxel_select(allp, voxel_m / 2)]
+        map_free = map_free_keys(allp, np.concatenate(list(keyframes.values())), fine_m, margin_m, max_range_m,
+                                 only=cells)
+    else:
+        map_free = np.zeros(0, np.int64)
     vc = classify(ev, map_keys, map_free, thresholds)
     report = block_report(vc, block_keys, keyframes, blocks, thresholds)
     params = {"voxel_m": voxel_m, "max_range_m": max_range_m, "margin_m": margin_m,
