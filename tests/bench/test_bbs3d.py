@@ -75,8 +75,9 @@ def _buildable() -> str | None:
                     reason="3D-BBS sources not given (BLOCKLOC_BBS3D_SRC): the baseline is built only for benchmarks")
 def test_the_driver_finds_a_known_pose(tmp_path):
     why = _buildable()
-    if why:
-        pytest.skip(f"3D-BBS cannot be built here: {why}")
+    if why and ("not installed" in why or "headers missing" in why):
+        pytest.skip(f"3D-BBS cannot be built here: {why}")  # an absent compiler or library, not our driver
+    assert why is None, f"the 3D-BBS driver did not build from the given sources: {why}"
     rng = np.random.default_rng(1)
     # A walled yard with a few posts: structure in every direction.
     walls = [rng.uniform([-20, -20, 0], [20, -19.8, 4], (6000, 3)), rng.uniform([-20, 19.8, 0], [20, 20, 4], (6000, 3)),
