@@ -39,3 +39,52 @@ def test_bench_passes_a_named_benchmarks_options_to_it(monkeypatch):
     assert calls == [["bench.seeds", "--preset", "small", "--seeds", "1,2,3,4,5"]]
     assert bm.main(["seeds", "ndt", "--seeds", "1"]) == 2 and bm.main(["all", "--seeds", "1"]) == 2
     assert len(calls) == 1
+
+
+def _drive(heading_deg: float, n: int = 201):
+    """(n, 4, 4) body poses along the map x axis, 0.5 m apart, all heading ``heading_deg``."""
+    import numpy as np
+
+    from blockloc.geometry import make_T, so3_exp
+
+    R = so3_exp(np.array([0.0, 0.0, np.deg2rad(heading_deg)]))
+    return np.stack([make_T(R, np.array([0.5 * k, 0.0, 0.0])) for k in range(n)])
+
+
+def test_a_mounting_translation_error_cancels_on_the_map_drives_heading_and_doubles_against_it():
+    import numpy as np
+
+    from bench.seeds import predicted_along_m
+
+    X_true = np.eye(4)
+    X_map = np.eye(4)
+    X_map[0, 3] = 0.01  # the map built with the LiDAR 1 cm too far forward
+    mapping = _drive(0.0)
+    same = predicted_along_m(mapping, mapping, _drive(0.0)[40:160], X_map, X_true)
+    back = predicted_along_m(mapping, mapping, _drive(180.0)[40:160], X_map, X_true)
+    assert abs(same["mounting"]) < 1e-9 and same["opposite"] == 0.0
+    # (R_map - R_loc) d = 2 cm along the map's +x, which is behind a body heading -x
+    assert np.isclose(back["mounting"], -0.02) and back["opposite"] == 1.0
+    assert np.isclose(back["both"], -0.02) and abs(back["slam"]) < 1e-9
+    # tracked with the true mounting, the map's own error is left: 1 cm along +x, behind
+    assert np.isclose(back["true_tracking"], -0.01) and np.isclose(same["true_tracking"], 0.01)
+    # a SLAM error that moved the whole map drive 3 cm along +x moves the map with it
+    slam = mapping.copy()
+    slam[:, 0, 3] += 0.03
+    moved = predicted_along_m(mapping, slam, _drive(180.0)[40:160], X_true, X_true)
+    assert np.isclose(moved["slam"], -0.03) and np.isclose(moved["both"], -0.03) and abs(moved["mounting"]) < 1e-9
+
+
+def test_the_explanation_table_sits_beside_the_measured_along_track_mean(tmp_path):
+    import json
+
+    e = {"predicted": {"both": 0.022, "mounting": 0.026, "slam": -0.004, "true_tracking": 0.011, "opposite": 1.0},
+         "map_translation_minus_true_m": [-0.0116, 0.0012, 0.0048]}
+    for name, t in (("slam_poses", -0.0176), ("true_poses", -0.0009)):
+        e[name] = {"translation_solved_minus_true_m": [t, 0.004, 0.0], "rotation_minus_true_deg": [0.0, 0.0, -0.142],
+                   "jackknife_m": [0.0097, 0.0065, None], "translation_estimated": ""}
+    (tmp_path / "s1_explain.json").write_text(json.dumps(e))
+    text = report({1: {"default": _m(0.037, 0.11, 0.028)}}, [], "now", 1.0, tmp_path)
+    assert "| 1 | +2.8 | +2.2 | +2.6 | -0.4 | +1.1 | 100% opposite | -11.6, +1.2 | -17.6, +4.0 (-0.142; 9.7, 6.5) |" in text
+    assert "| -0.9, +4.0 (-0.142; 9.7, 6.5) |" in text
+    assert "--explain" not in report({2: {"default": _m(0.03, 0.1, 0.0)}}, [], "now", 1.0, tmp_path)
