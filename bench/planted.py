@@ -173,8 +173,8 @@ def report(rows: dict, argv: list[str], started: str, load0: float, seed: int, f
              "on minus ATE with this one off (+: the error costs that much).", "",
              "| error switched off | what it is | " + " | ".join(
                  f"ATE {m} [m] | gain {m} [mm] | rotation {m} [deg] | along mean {m} [cm]" for m in modes)
-             + " | failures |",
-             "|---|---|" + "---|---|---|---|" * len(modes) + "---|"]
+             + " | failures | map's mounting translation (axes estimated) |",
+             "|---|---|" + "---|---|---|---|" * len(modes) + "---|---|"]
     for error, by_mode in rows.items():
         cells = []
         for m in modes:
@@ -188,7 +188,9 @@ def report(rows: dict, argv: list[str], started: str, load0: float, seed: int, f
             cells += [f"{r['ate_trans_rmse_m']:.4f}", gain, f"{r['ate_rot_rmse_deg']:.3f}",
                       f"{100 * r['err_along_mean_m']:+.1f}"]
         fails = ", ".join(str(by_mode[m].get("failures")) for m in modes if m in by_mode)
-        lines.append(f"| {error} | {ERRORS[error][0]} | " + " | ".join(cells) + f" | {fails} |")
+        axes = ", ".join((by_mode[m].get("translation_estimated") or "nominal") if "translation_estimated"
+                         in by_mode[m] else "-" for m in modes if m in by_mode)
+        lines.append(f"| {error} | {ERRORS[error][0]} | " + " | ".join(cells) + f" | {fails} | {axes} |")
     return "\n".join(lines) + "\n"
 
 

@@ -21,9 +21,11 @@ def test_the_report_gives_each_errors_gain_against_every_error_on():
     def m(ate):
         return {"ate_trans_rmse_m": ate, "ate_rot_rmse_deg": 0.1, "err_along_mean_m": -0.01, "failures": 0}
 
-    text = report({"none": {"default": m(0.023), "full": m(0.030)},
-                   "mounting": {"default": m(0.020), "full": m(0.021)}},
+    text = report({"none": {"default": m(0.023), "full": {**m(0.030), "translation_estimated": "xy"}},
+                   "mounting": {"default": {**m(0.020), "translation_estimated": ""}, "full": m(0.021)}},
                   ["--seed", "2"], "now", 1.0, 2, 400, ["default", "full"], 3.0)
     assert "`python -m bench.planted --seed 2`" in text and "the first 400 frames" in text
     assert "| mounting | LiDAR mounting" in text
     assert "| 0.0200 | +3.0 | 0.100 | -1.0 | 0.0210 | +9.0 |" in text
+    # which body axes of the mounting translation each map took from its estimate
+    assert "| 0, 0 | -, xy |" in text and "| 0, 0 | nominal, - |" in text
