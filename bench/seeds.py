@@ -357,8 +357,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--report-only", action="store_true",
                     help="run nothing: report the runs --work holds (a seed's missing runs are left out)")
     ap.add_argument("--explain", action="store_true",
-                    help="also explain each seed's along-track error with the simulator's knowledge (a few "
-                    "minutes a seed: the mounting pairs registered twice; cached in --work)")
+                    help="also explain each seed's along-track error with the simulator's knowledge (about a "
+                    "minute a seed on the shared machine: the mounting pairs registered twice; cached in --work)")
     args = ap.parse_args(argv)
     runs = [r for r in args.runs.split(",") if r]
     unknown = [r for r in runs if r not in RUNS]
