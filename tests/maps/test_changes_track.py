@@ -83,7 +83,7 @@ def tracked(world):
     """``track --detect-changes`` on the first 30 frames (one run shared by the tests: read-only)."""
     out = world["root"] / "run"
     r = _cli("track", "--seq", world["session"], "--map", world["map"], "--init", "gt", "--config", world["config"],
-             "--out", out, "--max-frames", "30", "--detect-changes")
+             "--out", out, "--max-frames", "30", "--detect-changes", "--changes-stride", "2")
     assert r.returncode == 0, r.stderr
     return out, r
 
@@ -92,11 +92,11 @@ def test_track_detect_changes_finds_the_phantom_and_draws_it(world, tracked):
     out, r = tracked
     doc = json.loads((out / "changes.json").read_text())
     assert doc["during"] == "track --detect-changes" and doc["frames_trusted"] >= 15
-    assert doc["scans_used"] == doc["frames_trusted"] and doc["scans_rejected"] == 0
+    assert doc["scans_used"] == (doc["frames_trusted"] + 1) // 2 and doc["scans_rejected"] == 0
     cost = doc["cost"]
     assert cost["cpu_s"] > 0 and cost["wall_s"] > 0 and cost["frames_tracked"] == 30
     blocks = {b["block"]: b for b in doc["blocks"]}
-    assert blocks[world["owner"]]["removed_voxels"] >= 5 and blocks[world["owner"]]["removed_points"] >= 50
+    assert blocks[world["owner"]]["removed_voxels"] >= 5 and blocks[world["owner"]]["removed_points"] >= 30
     clouds, counts = _mcap_changes(out / "run.mcap")
     assert clouds["/changes/removed"] == _per_block(doc, "removed_voxels") > 0
     assert clouds["/changes/added"] == _per_block(doc, "added_voxels")
@@ -119,10 +119,15 @@ def test_map_changes_run_redraws_the_layer_and_section(world, tracked, tmp_path)
     clouds, counts = _mcap_changes(out / "run.mcap")
     again = tmp_path / "again.json"
     # the run's metrics.json names the session nclt:sess, not its path: --seq gives it
-    r = _cli("map", "changes", "--map", world["map"], "--run", out, "--seq", world["session"], "--out", again)
+    r = _cli("map", "changes", "--map", world["map"], "--run", out, "--seq", world["session"], "--out", again,
+             "--stride", "3")
     assert r.returncode == 0, r.stderr
-    assert json.loads(again.read_text())["totals"] == doc["totals"]
-    assert _mcap_changes(out / "run.mcap") == (clouds, counts)
+    doc2 = json.loads(again.read_text())
+    assert doc2["scans_used"] == (doc["frames_trusted"] + 2) // 3 and doc2["scans_used"] != doc["scans_used"]
+    clouds2, counts2 = _mcap_changes(out / "run.mcap")
+    assert clouds2["/changes/removed"] == _per_block(doc2, "removed_voxels")
+    assert clouds2["/changes/added"] == _per_block(doc2, "added_voxels")
+    assert {t: n for t, n in counts2.items()} == counts  # one message per /changes/ topic, all others kept
     assert (out / "report.html").read_text().count('<section id="changes">') == 1
     assert "drew the changes into run.mcap" in r.stdout
 
@@ -137,7 +142,7 @@ def test_map_changes_leaves_a_folder_blockloc_did_not_make_alone(world, tracked,
     before = {n: (theirs / n).read_bytes() for n in ("run.mcap", "report.html")}
     from blockloc.commands.lifelong import changes_command  # in this process: the CLI is tested above
 
-    changes_command(str(world["map"]), theirs, None, None, None, 2)
+    changes_command(str(world["map"]), theirs, None, None, None, 4)
     assert (theirs / "changes.json").is_file() and "drew the changes" not in capsys.readouterr().out
     assert {n: (theirs / n).read_bytes() for n in before} == before
 
