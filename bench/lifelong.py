@@ -17,6 +17,10 @@ Everything runs as a user types it (the maps and runs are kept in --work and reu
   the stale, the updated and the fresh map: ATE, failures, rejected scans;
 - **cost**: the update's time per changed block (wall and CPU of the command), the unchanged
   blocks' files hashed against the stale map's, the updated map's size against the fresh one's.
+- **track**: ``blockloc track --seq sim:P/loc_m12@S --map MAP --init gt --no-record --max-frames N
+  --detect-changes --changes-stride STRIDE`` (``--detect-frames N``, default 200): the detection's
+  wall and CPU time (its ``changes.json`` ``cost``) per frame tracked and per scan used, beside
+  the tracking's own per-scan update time (median) and CPU per frame;
 - ``--dynamic``: the dynamic-points comparison with DUFOMap (``bench._dynamic``, another
   module; called with this bench's work directory when present).
 
@@ -52,7 +56,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "bench" / "lifelong.md"
-PARTS = ("detect", "loc", "cost")
+PARTS = ("detect", "loc", "cost", "track")
 
 
 def _child_cpu() -> float:
@@ -264,6 +268,22 @@ def dynamic_hook(work: Path, preset: str, seed: int) -> list[str]:
     return Path(page).read_text().splitlines()
 
 
+def detect_while_tracking(work: Path, mp: Path, P: str, S: int, frames: int, stride: int, log: list) -> dict:
+    """``track --detect-changes`` on the first ``frames`` frames of loc_m12 in the stale map: the
+    detection's cost (changes.json) beside the tracking's (metrics.json; the process's CPU)."""
+    out = work / f"run_loc_m12_detect_f{frames}_s{stride}"
+    cmd = ["blockloc", "track", "--seq", f"sim:{P}/loc_m12@{S}", "--map", str(mp), "--init", "gt", "--no-record",
+           "--max-frames", str(frames), "--detect-changes", "--changes-stride", str(stride), "--out", str(out)]
+    _once(cmd, out / "changes.json", log)
+    doc = json.loads((out / "changes.json").read_text())
+    m = json.loads((out / "metrics.json").read_text())
+    c = dict(doc["cost"])
+    c.update(frames=frames, stride=stride, scans_used=doc["scans_used"], scans_rejected=doc["scans_rejected"],
+             update_ms_median=m.get("update_ms_median"), update_ms_p99=m.get("update_ms_p99"),
+             process_wall_s=log[-1][2], process_cpu_s=log[-1][3])
+    return c
+
+
 def _f(v, nd=2) -> str:
     return "-" if v is None or (isinstance(v, float) and not np.isfinite(v)) else f"{v:.{nd}f}"
 
@@ -276,6 +296,8 @@ def main(argv: list[str] | None = None) -> Path:
     ap.add_argument("--frames", type=int, default=0, help="track only the first N frames of each session (0: all)")
     ap.add_argument("--stride", type=int, default=2, help="detection uses every stride-th trusted frame")
     ap.add_argument("--parts", default=",".join(PARTS), help=f"comma separated: {', '.join(PARTS)}")
+    ap.add_argument("--detect-frames", type=int, default=200,
+                    help="track: frames tracked with --detect-changes (loc_m12 on the stale map)")
     ap.add_argument("--dynamic", action="store_true", help="also the DUFOMap comparison (bench/_dynamic.py)")
     ap.add_argument("--work", type=Path, default=Path("/tmp/blockloc-bench-lifelong"))
     ap.add_argument("--out", type=Path, default=OUT)
@@ -339,6 +361,9 @@ def main(argv: list[str] | None = None) -> Path:
         for name, m in (("stale", mp), ("updated", upd), ("fresh", fresh)):
             result["loc"][name] = _metrics(track("loc_m12", m, f"run_loc_m12_{name}"))
             write()
+    if "track" in parts:
+        result["track"] = detect_while_tracking(work, mp, P, S, args.detect_frames, args.stride, log)
+        write()
     if args.dynamic:
         dyn = dynamic_hook(work, P, S)
     write()
@@ -398,6 +423,24 @@ def render(r: dict, args, log: list, machine: str, dyn: list[str]) -> list[str]:
             L.append(f"Update (the whole command, detection included): {c['update_wall_s']:.0f} s wall, "
                      f"{c['update_cpu_s']:.0f} s CPU; per changed block {c['wall_per_block_s']:.1f} s wall, "
                      f"{c['cpu_per_block_s']:.1f} s CPU.")
+    if "track" in r:
+        t = r["track"]
+        L += ["", "### Change detection in `track --detect-changes`", "",
+              f"loc_m12 on the stale map, first {t['frames']} frames, every {t['stride']}-th trusted frame used "
+              f"({t['scans_used']} scans used, {t['scans_rejected']} gated). The detection runs after the last frame "
+              "(the detector of `map changes` takes the whole run), so its cost is given per frame tracked (what "
+              "it adds to each scan's budget, amortized) and per scan used; 1-min load average "
+              f"{t['load_1min']} at its end.", "",
+              "| what | wall | CPU |", "|---|---|---|",
+              f"| detection, whole | {t['wall_s']:.1f} s | {t['cpu_s']:.1f} s |",
+              f"| detection per frame tracked | {t['wall_ms_per_frame_tracked']:.0f} ms | "
+              f"{t['cpu_ms_per_frame_tracked']:.0f} ms |",
+              f"| detection per scan used | {t['wall_ms_per_scan_used']:.0f} ms | {t['cpu_ms_per_scan_used']:.0f} ms |",
+              f"| tracking update per scan (median / p99, wall) | {_f(t['update_ms_median'], 1)} / "
+              f"{_f(t['update_ms_p99'], 1)} ms | - |"]
+        if t.get("process_cpu_s") is not None:
+            L.append(f"| the whole command (tracking + detection + writing) | {t['process_wall_s']:.0f} s | "
+                     f"{t['process_cpu_s']:.0f} s |")
     if dyn:
         L += ["", "### Dynamic points", "", *dyn]
     return L

@@ -342,6 +342,11 @@ def track_cmd(
     live: bool = typer.Option(False, "--live", help="Serve the run live to Foxglove over WebSocket."),
     host: str = typer.Option("127.0.0.1", "--host", metavar="ADDRESS", help="--live: address to bind (loopback)."),
     port: int = typer.Option(8765, "--port", metavar="PORT", help="--live: TCP port (0: any free port)."),
+    detect_changes: bool = typer.Option(False, "--detect-changes",
+                                        help="Then find what changed in the (block) map from the run's verified "
+                                             "frames: changes.json, drawn into run.mcap and report.html."),
+    changes_stride: int = typer.Option(1, "--changes-stride", metavar="N", min=1,
+                                       help="--detect-changes: use every N-th trusted frame."),
 ) -> None:
     """Track a sequence in a prior map (sliding-window IMU + scan-to-map factors); writes poses, metrics,
     plots, an MCAP recording and report.html."""
@@ -349,7 +354,8 @@ def track_cmd(
 
     track_command(seq, map_path, backend, init, init_pose, out, config, data_root, max_frames,
                   lidar_topic, imu_topic, poses=poses, sets=(sets or []) + (["tracking.use_imu=false"] if no_imu else []),
-                  record=not no_record, record_path=record, live=live, host=host, port=port)
+                  record=not no_record, record_path=record, live=live, host=host, port=port,
+                  detect_changes=detect_changes, changes_stride=changes_stride)
 
 
 @app.command("demo")

@@ -52,7 +52,8 @@ KINDS = (MAP_STORE, SIM_DATASET, RESULTS, SESSION, PLOTS, DYNAMIC_MAP)
 #: Files a results folder holds (a run writes them in place, so its marker lists no files).
 RESULT_NAMES = frozenset({"poses.tum", "diagnostics.csv", "config.yaml", "poses_kitti.txt",
                           "poses_kitti.times.txt", "metrics.json", "trajectories.png", "errors.png",
-                          "report.html", "run.mcap", "foxglove_layout.json", "live.json", ".reserve"})
+                          "report.html", "run.mcap", "foxglove_layout.json", "live.json", ".reserve",
+                          "changes.json"})
 #: Files ``eval --plot`` writes.
 PLOT_NAMES = frozenset({"trajectories.png", "errors.png"})
 _KIND_NAMES = {RESULTS: RESULT_NAMES, PLOTS: PLOT_NAMES}

@@ -128,6 +128,7 @@ def test_stores_written_before_markers_are_proven_by_their_format(tmp_path):
     res.mkdir()
     (res / "metrics.json").write_text(json.dumps({"frames": 3, "processed": 3, "estimated": 3}))
     (res / "poses.tum").write_text("")
+    (res / "changes.json").write_text("{}")  # map changes / track --detect-changes write it there
     check_replaceable(res, "--out", ("results folder",))
     with pytest.raises(BlocklocError, match="not a map store .it is blockloc's results folder"):
         check_replaceable(res, "--out", ("map store",), "a map store")

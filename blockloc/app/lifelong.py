@@ -5,14 +5,22 @@ the run's sequence opened by name and the config read here (the core, which read
 - :func:`detect_run_changes`: a map store + a run folder -> what changed (its sequence from
   ``--seq`` or the name the run's ``metrics.json`` records, the config that fits it);
 - :func:`update_map`: several runs' detections -> a new version of the store, its place index
-  rebuilt with the ``global_init`` settings of the first run's config and its sequence's gravity.
+  rebuilt with the ``global_init`` settings of the first run's config and its sequence's gravity;
+- :func:`detect_session_changes`: ``track --detect-changes``: a finished session's own trusted
+  frames (its results folder) through the same detector, timed;
+- :func:`write_changes`: ``changes.json``, and the changes drawn into the run folder's
+  ``run.mcap`` and ``report.html`` (:mod:`blockloc.viz.changes_view`) when that folder is
+  blockloc's results folder (a file blockloc did not make is never rewritten).
 
 No printing, no progress bars (the commands draw them): a long step takes ``progress``.
 """
 
 from __future__ import annotations
 
+import json
 import logging
+import os
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -94,3 +102,75 @@ def update_map(map_path: str | Path, detected: list[RunChanges], *, runs: list[s
     first = detected[0]
     return apply_update(map_path, plan, [d.result for d in detected], runs=list(runs), out=out,
                         place_index=place_index_builder(first.sequence.info.gravity_map, first.config))
+
+
+def check_detectable(store: MapStore, where: str) -> None:
+    """MapError naming the map ``where`` unless ``store`` is a block store with a manifest (the
+    detector needs blocks and their keyframes): ``track --detect-changes`` checks it before tracking."""
+    if store.kind != "block" or store.legacy:
+        raise MapError(f"--map {where}: --detect-changes "
+                       f"needs a block map store with a manifest (blockloc map build --kind block), got a "
+                       f"{'released-layout block' if store.legacy else store.kind} map")
+
+
+def detect_session_changes(session, run_dir: str | Path, *, stride: int = 1,
+                           progress: Callable[[int, int], None] | None = None) -> tuple[ChangeResult, dict]:
+    """What changed in a finished session's map by its own trusted frames (the results folder
+    ``run_dir`` it wrote: the same trusted-frame rule and detector as ``map changes``; the scans
+    read again from the session's sequence, placed with its mounting). Returns (result, cost):
+    cost holds ``wall_s`` and ``cpu_s`` (this process, every thread) of the detection, per scan
+    used and per frame tracked, and the 1-min load average at the end."""
+    run = read_run(run_dir)
+    if not len(run):
+        log.warning("%s: no trusted frame (status ok after 10 ok frames): nothing to learn from it", run_dir)
+    t0, c0 = time.perf_counter(), time.process_time()
+    res = detect_changes(session.store, session.seq, run, stride=stride, progress=progress)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    tracked = len(session.diagnostics)
+    cost = {"wall_s": round(wall, 3), "cpu_s": round(cpu, 3), "frames_tracked": tracked,
+            "wall_ms_per_scan_used": round(1e3 * wall / max(res.scans_used + res.scans_rejected, 1), 1),
+            "cpu_ms_per_scan_used": round(1e3 * cpu / max(res.scans_used + res.scans_rejected, 1), 1),
+            "wall_ms_per_frame_tracked": round(1e3 * wall / max(tracked, 1), 1),
+            "cpu_ms_per_frame_tracked": round(1e3 * cpu / max(tracked, 1), 1),
+            "load_1min": round(os.getloadavg()[0], 1)}
+    return res, cost
+
+
+def write_changes(result: ChangeResult, store: MapStore, out: str | Path, run_dir: str | Path | None,
+                  **facts) -> dict:
+    """Write ``changes.json`` to ``out`` (atomically), then draw the changes into ``run_dir``'s
+    ``run.mcap`` and ``report.html`` where they exist and the folder is blockloc's results
+    folder. Returns the document, with ``drawn``: {file name: what was added} (a file that could
+    not be drawn into is logged and left as it was: the changes.json stands)."""
+    from blockloc.fileio import atomic_write_text
+    from blockloc.maps.changes.layers import block_voxels
+    from blockloc.outdir import RESULTS, owner
+    from blockloc.viz.events import VizError
+
+    doc = result.to_json(**facts)
+    atomic_write_text(out, json.dumps(doc, indent=1) + "\n")
+    drawn: dict = {}
+    if run_dir is None:
+        return {**doc, "drawn": drawn}
+    run_dir = Path(run_dir)
+    mine = owner(run_dir)
+    if mine is None or mine[0] != RESULTS:
+        log.warning("%s: not a results folder blockloc made; its run.mcap and report.html are left as they are",
+                    run_dir)
+        return {**doc, "drawn": drawn}
+    from blockloc.viz.changes_view import add_changes_to_recording, add_changes_to_report
+    from blockloc.viz.layout import RECORDING_NAME, REPORT_NAME
+
+    by_block = block_voxels(result)
+    try:
+        if (run_dir / RECORDING_NAME).is_file():
+            drawn[RECORDING_NAME] = add_changes_to_recording(run_dir / RECORDING_NAME, by_block,
+                                                             result.voxels.voxel_m)
+        if (run_dir / REPORT_NAME).is_file():
+            from blockloc.maps.summary import map_points_xy
+
+            add_changes_to_report(run_dir / REPORT_NAME, doc, map_points_xy(store), by_block)
+            drawn[REPORT_NAME] = "changes section"
+    except VizError as exc:
+        log.error("%s", exc)
+    return {**doc, "drawn": drawn}

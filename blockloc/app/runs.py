@@ -124,6 +124,20 @@ def _write_run_report(session: Session, res: RunResult, out_dir: Path) -> Path:
                         title=f"{res.metrics.get('sequence')}")
 
 
+def detect_changes_after_run(session: Session, out_dir: Path, *, stride: int = 1,
+                             progress: Progress | None = None) -> dict:
+    """``track --detect-changes``: what changed in the session's block map by the trusted frames
+    of the run just written to ``out_dir`` (the detector of ``map changes``), written as
+    ``out_dir/changes.json`` and drawn into its ``run.mcap`` and ``report.html``. Returns the
+    changes document with its ``cost`` (detection wall and CPU time, per scan)."""
+    from blockloc.app.lifelong import detect_session_changes, write_changes
+
+    res, cost = detect_session_changes(session, out_dir, stride=stride, progress=progress)
+    return write_changes(res, session.store, Path(out_dir) / "changes.json", out_dir,
+                         map=str(session.facts.get("map")), run=str(out_dir), sequence=str(session.info.name),
+                         during="track --detect-changes", cost=cost)
+
+
 # ----------------------------------------------------------------------------- global init
 def run_init(seq_name: str, frame_index: int, map_path: str, *, cfg: Config, hint: tuple | None = None,
              window_m: float | None = None, yaw_window_deg: float | None = None, data_root: str | None = None,

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 import sys
 from pathlib import Path
@@ -25,27 +24,35 @@ def _detect(store, run_dir: Path, seq: str | None, data_root: str | None, stride
 
 def changes_command(map_path: str, run_dir: Path, seq: str | None, out: Path | None, data_root: str | None,
                     stride: int) -> None:
-    from blockloc.app.lifelong import open_block_store
-    from blockloc.fileio import atomic_write_text, check_output_parent
+    from blockloc.app.lifelong import open_block_store, write_changes
+    from blockloc.fileio import check_output_parent
 
     out = Path(out) if out is not None else Path(run_dir) / "changes.json"
     check_output_parent(out, "--out")  # before any work
     store = open_block_store(map_path, "--map")
     found = _detect(store, Path(run_dir), seq, data_root, stride)
-    res = found.result
-    doc = res.to_json(map=str(map_path), run=str(run_dir), sequence=found.sequence_name)
-    atomic_write_text(out, json.dumps(doc, indent=1) + "\n")
+    doc = write_changes(found.result, store, out, run_dir, map=str(map_path), run=str(run_dir),
+                        sequence=found.sequence_name)
+    print_changes(doc, out)
+
+
+def print_changes(doc: dict, out: Path) -> None:
+    """What a detection found (its ``changes.json`` document), one line per changed block, and
+    where it went."""
     t = doc["totals"]
-    print(f"{res.scans_used} scans used, {res.scans_rejected} dropped by the consistency gate "
-          f"({res.frames_trusted} trusted frames)", file=sys.stderr)
-    for b in res.blocks:
+    print(f"{doc['scans_used']} scans used, {doc['scans_rejected']} dropped by the consistency gate "
+          f"({doc['frames_trusted']} trusted frames)", file=sys.stderr)
+    for b in doc["blocks"]:
         if b["removed_voxels"] or b["added_voxels"]:
             print(f"block {b['block']}: removed {b['removed_m3']} m3 ({b['removed_points']} points), "
                   f"added {b['added_m3']} m3, dynamic {b['dynamic_voxels']} voxels, confidence "
                   f"{b['confidence']}{'' if b['confirmed'] else ' (below the block threshold)'}")
     print(f"removed {t['removed_voxels']}, added {t['added_voxels']}, dynamic {t['dynamic_voxels']} voxels "
-          f"of {res.voxels.voxel_m} m")
+          f"of {doc['params']['voxel_m']} m")
     print(f"wrote {out}")
+    for name, what in doc.get("drawn", {}).items():
+        print(f"drew the changes into {name}: "
+              f"{what if isinstance(what, str) else ', '.join(f'{k} {v}' for k, v in what.items())}")
 
 
 def update_command(map_path: str, runs: list[Path], seqs: list[str] | None, out: Path | None,

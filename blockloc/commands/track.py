@@ -100,8 +100,11 @@ def track_command(seq: str, map_path: str | None, backend: str | None, init: str
                   out: Path | None, config: str | None, data_root: str | None, max_frames: int | None,
                   lidar_topic: str | None = None, imu_topic: str | None = None, poses: Path | None = None,
                   sets: list[str] | None = None, record: bool = True, record_path: Path | None = None,
-                  live: bool = False, host: str = "127.0.0.1", port: int = 8765) -> None:
+                  live: bool = False, host: str = "127.0.0.1", port: int = 8765, detect_changes: bool = False,
+                  changes_stride: int = 1) -> None:
     mode, hint = init_mode(init, init_pose)
+    if changes_stride < 1:
+        raise TrackingError(f"--changes-stride {changes_stride}: expected a positive number of frames")
     if max_frames is not None and max_frames < 1:
         raise TrackingError(f"--max-frames {max_frames}: expected a positive number of frames")
     cfg = config_for(seq, config, sets)
@@ -113,6 +116,10 @@ def track_command(seq: str, map_path: str | None, backend: str | None, init: str
                            imu_topic=imu_topic, poses=poses)
     try:  # now that the frame count is known: room for all of them
         check_free_space(out_dir, track_bytes(min(max_frames or len(session.stamps), len(session.stamps)), record))
+        if detect_changes:  # before any work: the detector needs a block store
+            from blockloc.app.lifelong import check_detectable
+
+            check_detectable(session.store, str(session.facts.get("map")))
     except BaseException:
         session.close()  # the map provider's thread
         raise
@@ -124,7 +131,29 @@ def track_command(seq: str, map_path: str | None, backend: str | None, init: str
         if session.result is not None:  # whatever was computed, also when interrupted
             write_run_report(session, session.result, out_dir, quiet=not ok)
     print_track_summary(console(), res.metrics, res.out_dir)
+    if detect_changes:
+        run_change_detection(session, out_dir, changes_stride)
     print_where(console(), out_dir)
+
+
+def run_change_detection(session, out_dir: Path, stride: int) -> None:
+    """``--detect-changes``: the run's trusted frames through the change detector, with a progress
+    display; Ctrl-C stops it (the tracking results stay written, changes.json is not)."""
+    from blockloc.app.runs import detect_changes_after_run
+    from blockloc.commands.lifelong import print_changes
+
+    with interruptible() as stop, progress("changes") as cb:
+        def cb_stop(done, total):
+            cb(done, total)
+            if stop():
+                raise Interrupted(f"change detection interrupted by {stop.name}; the tracking results in "
+                                  f"{out_dir} are whole, no changes.json written", stop.exit_code)
+
+        doc = detect_changes_after_run(session, out_dir, stride=stride, progress=cb_stop)
+    print_changes(doc, out_dir / "changes.json")
+    c = doc["cost"]
+    console().print(f"change detection: {c['wall_s']:.1f} s wall, {c['cpu_s']:.1f} s CPU "
+                    f"({c['cpu_ms_per_frame_tracked']:.0f} ms CPU per frame tracked; load {c['load_1min']})")
 
 
 def print_where(console, out_dir: Path) -> None:

@@ -1,8 +1,10 @@
 """A world that changes between days, with ground truth of what changed (issue 43).
 
 The mapping day is month 0. Sessions ``loc_m3`` and ``loc_m12`` drive the ``loc`` route 3 and 12
-months later, ``map_m12`` drives the mapping route 12 months later (no offline-SLAM error: its
-poses are the ground truth). Over the year, deterministically from the seed:
+months later, ``map_m12`` drives the mapping route 12 months later; its mapping poses carry the
+same kind of offline-SLAM error as the mapping day's (``slam_error_m``, ``slam_error_rad``), from
+its own random stream, so a map built fresh from it is as good as the mapping day's map was, not
+better. Over the year, deterministically from the seed:
 
 =================  ======  ==================================================================
 change             month   what
@@ -341,6 +343,12 @@ class ChangedSimSequence(SimSequence):
                     lab[k] = LABEL_MOVING
             self._label_of_cat = lab
         return self._scene
+
+    def carries_slam_error(self) -> bool:
+        """``map_m12`` (a drive of the mapping route) is mapped as the mapping day was: its
+        mapping poses carry an offline-SLAM error of the same size, from its own random stream
+        (the session name seeds it); ``loc_m3`` and ``loc_m12`` give ground truth."""
+        return self.base_session == self.preset.sessions[0]
 
     def changes(self) -> list[Change]:
         """The changes against the mapping day that hold on this session's day."""

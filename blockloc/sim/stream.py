@@ -404,13 +404,18 @@ class SimSequence:
             self._mapping_poses = gt
         return self._mapping_poses
 
+    def carries_slam_error(self) -> bool:
+        """Whether :meth:`mapping_poses` carry the offline-SLAM error: a mapping drive's do (its
+        own random stream, seeded by the seed and the session name)."""
+        return self.preset.is_mapping(self.session)
+
     def compute_mapping_poses(self) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`mapping_poses` computed afresh: stamps (N,) float64 s, poses (N, 4, 4)."""
         t = self._rel_times(self.preset.gt_rate_hz)
         stamps = self.epoch_us * 1e-6 + t
         poses = np.empty((len(t), 4, 4))
         noise = None
-        if self.preset.is_mapping(self.session):
+        if self.carries_slam_error():
             rng = np.random.default_rng(np.random.SeedSequence([self.seed, stable_hash(self.session), 7]))
             rel = stamps - stamps[0]
             noise = smooth_noise_spline(rng, float(rel[0]), float(rel[-1]), 6)

@@ -120,3 +120,21 @@ def test_sim_names_open_the_changed_days():
     assert seq.info.name == "sim:tiny/loc_m12@3" and len(seq) > 0
     # their default map is the mapping day's
     assert SequenceRef.parse("sim:tiny/loc_m12@3").mapping_source() == "sim:tiny/map@3"
+
+
+def test_map_m12_carries_a_mapping_error_like_the_mapping_day():
+    """The fresh reference map's drive is mapped as the mapping day was: a smooth offline-SLAM
+    error of the preset's size, its own stream (not the mapping day's), the same for a seed."""
+    def err(session, seed=SEED):
+        seq = open_sim_sequence("tiny", session, seed)
+        mp, gt = seq.mapping_poses(), seq.ground_truth()
+        assert np.array_equal(mp.stamps, gt.stamps)
+        return np.linalg.norm(mp.poses[:, :3, 3] - gt.poses[:, :3, 3], axis=1)
+
+    e_map, e_m12, e_loc = err("map"), err("map_m12"), err("loc_m12")
+    assert np.all(e_loc == 0)  # a localization day: ground truth
+    # the same size of error (tiny preset: slam_error_m 0.03 per axis), not the same values
+    assert 0.3 < np.sqrt(np.mean(e_m12 ** 2)) / np.sqrt(np.mean(e_map ** 2)) < 3.0 and e_m12.max() > 0.01
+    n = min(len(e_map), len(e_m12))
+    assert not np.allclose(e_map[:n], e_m12[:n])
+    assert np.array_equal(err("map_m12"), e_m12)  # deterministic by seed
