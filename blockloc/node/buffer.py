@@ -29,7 +29,8 @@ from __future__ import annotations
 from typing import Any
 
 DENSE_HEAD = 3  # scans after the oldest a backlog keeps at the sensor's rate
-SLOW_RATIO = 0.9  # arrivals per pop during a catch-up from which the bound shrinks
+SLOW_RATIO = 0.75  # arrivals per pop during a catch-up from which the bound shrinks (a worker winning
+# more slowly than that would stay seconds behind for tens of seconds: dropping, evenly, is better)
 
 
 class ScanBuffer:
