@@ -150,7 +150,7 @@ class LocalizationNode:
         dds.reader(s.points_topic, m.PointCloud2, self._on_cloud, ("sensor", max(SENSOR_DATA[1], s.backlog_size)),
                    poll=True)
         dds.reader(s.imu_topic, m.Imu, self._on_imu, ("sensor", 2000), poll=True)
-        dds.reader("/tf", m.TFMessage, self._on_tf, SENSOR_DATA)
+        dds.reader("/tf", m.TFMessage, self._on_tf, SENSOR_DATA, ignore_own=True)  # not the node's own transforms
         dds.reader("/tf_static", m.TFMessage, self._on_tf_static, LATCHED)
         dds.reader("/initialpose", m.PoseWithCovarianceStamped, self._on_initialpose, RELIABLE)
         dds.reader("/blockloc/relocalize", m.Empty, self._on_relocalize, RELIABLE)
