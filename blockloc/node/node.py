@@ -57,6 +57,18 @@ _STATE_OF = {"ok": "ok", "recovered": "ok", "rejected": "degraded", "imu_only": 
 _PUBLISHED = ("ok", "recovered")
 
 
+def _freeze_heap() -> None:
+    """Move every object alive now (the map, the place index, the session, compiled kernels) out of
+    the garbage collector's reach: a full collection then walks only what tracking made since.
+    Measured in-process (small world's loc session, 0.5x, 300 scans, wall time of the collections,
+    1-min load 22-39): without it 3 full collections, 2.0 s in all, the longest 1.15 s; with it 2,
+    0.80 s in all, the longest 0.64 s. A pause like that makes the scans waiting behind it late,
+    or dropped."""
+    import gc
+
+    gc.freeze()
+
+
 @dataclass
 class NodeSettings:
     """points_topic, imu_topic: ROS topics in. frames: TF frame names. queue_size: scans that may
@@ -320,6 +332,7 @@ class LocalizationNode:
         self._last_stamp = frame.stamp
         if self.session is None:
             self._make_session(msg.header.frame_id)
+            _freeze_heap()
         self._feed_imu()
         self._watch_imu(frame)
         session = self.session
@@ -339,6 +352,7 @@ class LocalizationNode:
                 log.warning("t=%.2f: global init failed: %s", frame.stamp, exc)
             if ok:
                 self.stats.verified_inits += 1
+                _freeze_heap()
                 with self._lock:
                     waiting = len(self._scans)
                 log.info("t=%.2f: verified pose in %.2f s; catching up on %d scans that came meanwhile",
