@@ -367,7 +367,10 @@ class LocalizationNode:
         published: dict = {}
 
         def publish_first(est) -> None:  # the pose goes out before the run folder, MCAP, diagnostics
-            published["latency_ms"] = self._publish_pose(frame, est, arrived)
+            try:
+                published["latency_ms"] = self._publish_pose(frame, est, arrived)
+            except Exception as exc:  # noqa: BLE001 - the session still records the scan
+                log.error("the pose of scan %d could not be published: %s: %s", frame.index, type(exc).__name__, exc)
 
         est = session.step(frame, on_estimate=publish_first)
         if "latency_ms" not in published:  # no tracker estimate (not initialized): nothing published
