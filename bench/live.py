@@ -56,6 +56,8 @@ def _reap(proc: subprocess.Popen) -> tuple[int, float, float]:
 
 
 def _ate(poses_tum: Path, gt) -> tuple[float, int]:
+    if not poses_tum.exists():  # the run ended before a pose (e.g. no verified global init)
+        return float("nan"), 0
     d = np.loadtxt(poses_tum, ndmin=2)
     if not len(d):
         return float("nan"), 0
