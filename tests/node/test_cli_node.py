@@ -229,8 +229,11 @@ def test_a_wrong_initialpose_while_tracking_gives_a_verified_pose_within_3_s_and
     # "global", first 12 scans): zero velocity 0.27, 0.33, then 0.06-0.14 m for 8 scans; the same
     # global-init pose with the true velocity 0.015, 0.008, then <= 0.005 m; moving the pose from
     # mid-sweep to the stamp changes nothing. The fix is an initial velocity (the tracker's).
-    after = np.array([error(x) for t, x in got["pose"] if t > sent])
-    at = [round(time_to_stamp(x.header.stamp) - stamp, 2) for t, x in got["pose"] if t > sent]
+    # (from the scan it searched on: a scan already being tracked when the /initialpose came may
+    # publish after it, still converging from the cold start, seen 0.055 m under a load of 26)
+    later = [(t, x) for t, x in got["pose"] if t > sent and time_to_stamp(x.header.stamp) >= stamp - 1e-6]
+    after = np.array([error(x) for t, x in later])
+    at = [round(time_to_stamp(x.header.stamp) - stamp, 2) for t, x in later]
     assert len(after) >= 5 and after.max() < 0.05, list(zip(at, np.round(after, 3)))
     # the pace file: each ground-truth pose (published with its scan, at the sweep's end) came after it was due
     anchor = json.loads(pace.read_text())
