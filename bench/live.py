@@ -2,6 +2,7 @@
 
     python -m bench.live                          # 1x and 3x, the whole small loc session; docs/bench/live.md
     python -m bench.live --frames 300 --rates 1,3
+    python -m bench.live --preset campus --minutes 10 --rates 0.5 --data /work/data2/node   # its own section
 
 ``blockloc play`` publishes the cached small world's loc session (its first scans written once in
 NCLT layout: the simulator renders too slowly to play live) at each rate into ``blockloc
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -54,6 +56,8 @@ def _reap(proc: subprocess.Popen) -> tuple[int, float, float]:
 
 
 def _ate(poses_tum: Path, gt) -> tuple[float, int]:
+    if not poses_tum.exists():  # the run ended before a pose (e.g. no verified global init)
+        return float("nan"), 0
     d = np.loadtxt(poses_tum, ndmin=2)
     if not len(d):
         return float("nan"), 0
@@ -61,6 +65,17 @@ def _ate(poses_tum: Path, gt) -> tuple[float, int]:
     d = d[inside]
     e = np.linalg.norm(d[:, 1:4] - gt.interpolate(d[:, 0])[:, :3, 3], axis=1)
     return float(np.sqrt(np.mean(e ** 2))), len(d)
+
+
+def _counters(out: Path) -> dict:
+    """Failures (tracking lost), recoveries, block switches and rejected scans of a run folder's metrics."""
+    import json
+
+    try:
+        m = json.loads((out / "metrics.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return {k: m.get(k) for k in ("failures", "recoveries", "switches", "rejected")}
 
 
 def _due(anchor: dict, stamp: float, sweep_end_s: float) -> float:
@@ -157,7 +172,7 @@ def run_node(world, hint: str, rate: float, frames: int, work: Path, env: dict, 
     processed = int(last.get("scans_processed", 0))
     s0 = next(iter(sweep_end))  # the first scan's: from when it was due to the first pose
     first_pose_s = poses[0][0] - _due(anchor, s0, sweep_end[s0]) if poses else float("nan")
-    res = {"rate": rate, "play_exit": play_code, "node_exit": code, "play_s": play_s, "ate_m": ate,
+    res = {**_counters(out), "rate": rate, "play_exit": play_code, "node_exit": code, "play_s": play_s, "ate_m": ate,
            "poses": len(poses), "poses_file": n, "scans_received": int(last.get("scans_received", 0)),
            "processed": processed, "dropped": int(last.get("dropped_scans", 0)),
            "caught_up": int(last.get("caught_up_scans", 0)), "first_pose_s": first_pose_s,
@@ -206,19 +221,19 @@ def sweep_ends(session: Path, frames: int) -> dict:
     return {round(float(s), 6): float(e) for s, e in a[:frames]}
 
 
-def recorded_session(world, frames: int) -> Path:
-    """The first ``frames`` scans of the small loc session written once in NCLT layout (cached):
-    the simulator renders a scan in ~1-3 s, too slow to play at 10 Hz, and ``track`` then reads
-    the same files as the player."""
+def recorded_session(seq_name: str, frames: int, tag: str, root: Path | None = None) -> Path:
+    """The first ``frames`` scans of ``seq_name`` written once in NCLT layout (cached under
+    ``root``, default the cache's bench folder): the simulator renders a scan in ~0.05-3 s, too
+    slow to play at 10 Hz, and ``track`` then reads the same files as the player."""
     from blockloc.cache import cache_root
     from blockloc.app.catalog import open_sequence
     from blockloc.datasets.base import ImuData
     from blockloc.datasets.nclt import write_session
 
-    out = cache_root() / "bench" / f"live_small_loc1_{frames}"
+    out = (root or cache_root() / "bench") / f"live_{tag}_{frames}"
     if (out / "done").exists():
         return out
-    seq = open_sequence(world.loc)
+    seq = open_sequence(seq_name)
     stamps = np.asarray(seq.frame_stamps())[:frames]
     imu = seq.imu()
     keep = (imu.t >= stamps[0] - 1.0) & (imu.t <= stamps[-1] + 0.5)
@@ -244,7 +259,7 @@ def run_track(world, hint: str, frames: int, work: Path, env: dict) -> dict:
     code, cpu_s, rss_mb = _reap(proc)
     wall = time.monotonic() - t0
     ate, n = _ate(out / "poses.tum", world_gt(world))
-    return {"exit": code, "wall_s": wall, "ate_m": ate, "poses": n, "cpu_s": cpu_s,
+    return {**_counters(out), "exit": code, "wall_s": wall, "ate_m": ate, "poses": n, "cpu_s": cpu_s,
             "cpu_ms_per_scan": 1e3 * cpu_s / max(frames, 1), "peak_rss_mb": rss_mb}
 
 
@@ -254,14 +269,22 @@ def main(argv=None) -> int:
     ap.add_argument("--rates", default="1,3")
     ap.add_argument("--no-initialpose", action="store_true", help="skip the run with a wrong /initialpose")
     ap.add_argument("--no-fragment", action="store_true")
+    ap.add_argument("--preset", choices=("small", "campus"), default="small",
+                    help="campus: the campus world's loc session for --minutes of sensor time at --rates (one rate)")
+    ap.add_argument("--minutes", type=float, default=10.0, help="campus: minutes of sensor time played")
+    ap.add_argument("--seed", type=int, default=1, help="campus: the world's seed")
+    ap.add_argument("--map", default=None, help="campus: block map (default: built once with the defaults, cached)")
+    ap.add_argument("--data", default=None, help="campus: where the recorded session goes (default: the cache)")
     a = ap.parse_args(argv)
+    if a.preset == "campus":
+        return main_campus(a)
     from blockloc.app.runs import noisy_hint, prepare_small_world
     from blockloc.app.catalog import open_sequence
 
     world, cfg = prepare_small_world()
     seq = open_sequence(world.loc, dataset_cfg=cfg.dataset)
     frames = min(a.frames or len(seq), len(seq))
-    session = recorded_session(world, frames)
+    session = recorded_session(world.loc, frames, "small_loc1")
     world.session = str(session)
     sweep_end = sweep_ends(session, frames)
     x, y, _ = noisy_hint(seq)
@@ -284,8 +307,7 @@ def main(argv=None) -> int:
         print({"track": track}, flush=True)
     if a.no_fragment:
         return 0
-    from bench.__main__ import FRAGMENTS, machine
-    from blockloc.fileio import atomic_write_text
+    from bench.__main__ import machine
 
     cmd = "python -m bench.live" + (f" --frames {a.frames}" if a.frames else "") + \
         (f" --rates {a.rates}" if a.rates != "1,3" else "") + (" --no-initialpose" if a.no_initialpose else "")
@@ -331,8 +353,97 @@ def main(argv=None) -> int:
               "2000 IMU samples) while its process did not get the CPU; the node counts only the scans it dropped "
               "itself. With `play took` above the scans' 0.1 s x count / rate, the player itself ran late: the "
               "latency from the stamp then measures the machine, not the node."]
-    atomic_write_text(FRAGMENTS / "live.md", "\n".join(lines) + "\n\n")
-    print(FRAGMENTS / "live.md")
+    print(write_section(lines))
+    return 0
+
+
+CAMPUS_TITLE = "## The live node on the campus world against track"
+
+
+def write_section(lines: list[str]) -> Path:
+    """docs/bench/live.md with the section ``lines`` (its first line the title) in place of the
+    one with that title, the other section kept (the small world and the campus are run apart)."""
+    from bench.__main__ import FRAGMENTS
+    from blockloc.fileio import atomic_write_text
+
+    path = FRAGMENTS / "live.md"
+    old = path.read_text() if path.exists() else ""
+    sections = [x.rstrip() for x in re.split(r"(?m)^(?=## )", old) if x.strip()]
+    titles = [x.splitlines()[0] for x in sections]
+    text = "\n".join(lines).rstrip()
+    if lines[0] in titles:
+        sections[titles.index(lines[0])] = text
+    else:
+        sections.append(text)
+    sections.sort(key=lambda x: x.startswith(CAMPUS_TITLE))  # the small world's first
+    atomic_write_text(path, "\n\n".join(sections) + "\n\n")
+    return path
+
+
+def main_campus(a) -> int:
+    """The campus world's loc session for ``a.minutes`` of sensor time through the node at one rate,
+    against ``track`` on the same frames and map (issue 39: block switches included)."""
+    from types import SimpleNamespace
+
+    from bench.campus import default_map_dir, ensure_map
+    from bench.__main__ import machine
+    from blockloc.app.catalog import open_sequence
+    from blockloc.app.runs import noisy_hint
+    from blockloc.config import load_config
+    from blockloc.maps.store import open_map
+
+    rate = float(a.rates.split(",")[0]) if a.rates != "1,3" else 1.0
+    seq_name = f"sim:campus/loc@{a.seed}"
+    cfg = load_config("sim", overrides={"map": {"block_size_m": 100.0}})
+    map_path = Path(a.map) if a.map else default_map_dir("campus", a.seed, cfg.map)
+    built_s = ensure_map("campus", a.seed, map_path, cfg.map)
+    store = open_map(map_path)
+    seq = open_sequence(seq_name)
+    period = float(np.median(np.diff(np.asarray(seq.frame_stamps())[:50])))
+    frames = min(len(seq), a.frames or int(round(a.minutes * 60.0 / period)))
+    session = recorded_session(seq_name, frames, f"campus_loc{a.seed}", Path(a.data) if a.data else None)
+    world = SimpleNamespace(block_map=map_path, session=str(session))
+    sweep_end = sweep_ends(session, frames)
+    x, y, _ = noisy_hint(seq)
+    hint = f"{x:.2f},{y:.2f}"
+    env = _env()
+    started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    load_start = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory(prefix="bench-live-campus-") as tmp:
+        work = Path(tmp)
+        node = run_node(world, hint, rate, frames, work, env, sweep_end)
+        print(node, flush=True)
+        track = run_track(world, hint, frames, work, env)
+        print({"track": track}, flush=True)
+    if a.no_fragment:
+        return 0
+    cmd = f"python -m bench.live --preset campus --minutes {a.minutes:g}" + (f" --rates {a.rates}" if a.rates != "1,3"
+                                                                              else "") + \
+        (f" --seed {a.seed}" if a.seed != 1 else "") + (f" --map {a.map}" if a.map else "") + \
+        (f" --data {a.data}" if a.data else "")
+    sensor_min = frames * period / 60.0
+    lines = [CAMPUS_TITLE, "",
+             f"`{cmd}`, {started}, on {machine()} (1-min load average {load_start:.1f} at the start, "
+             f"{os.getloadavg()[0]:.1f} at the end; the machine is shared). `{seq_name}`: its first {frames} scans "
+             f"({sensor_min:.1f} minutes of sensor time) written once in NCLT layout, played by `blockloc play` at "
+             f"{rate:g}x into `blockloc node --config sim` over loopback DDS; `blockloc track` on the same frames. "
+             f"Map: `{map_path}` ({len(store.entries)} blocks of {store.params.get('block_size_m', 100):g} m, "
+             + (f"built in {built_s:.0f} s" if built_s else "built before with the defaults") + "). Both start from "
+             f"global init around `--init-pose {hint}`. ATE: position RMSE against ground truth, no alignment. "
+             "Failures, recoveries, block switches and rejected scans: each run folder's metrics.json.", "",
+             "| run | play took [s] | scans played / processed / dropped | poses | ATE [m] | failures | recoveries "
+             "| block switches | rejected | latency from stamp median / p99 [ms] | CPU per scan [ms] | peak RSS [MB] |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|",
+             f"| node at {rate:g}x | {node['play_s']:.0f} | {frames} / {node['processed']} / {node['dropped']} | "
+             f"{node['poses']} | {node['ate_m']:.3f} | {node.get('failures')} | {node.get('recoveries')} | "
+             f"{node.get('switches')} | {node.get('rejected')} | {node['stamp_latency_ms_median']:.0f} / "
+             f"{node['stamp_latency_ms_p99']:.0f} | {node['cpu_ms_per_scan']:.0f} | {node['peak_rss_mb']:.0f} |",
+             f"| track | - ({track['wall_s']:.0f} wall) | {frames} / {frames} / 0 | {track['poses']} | "
+             f"{track['ate_m']:.3f} | {track.get('failures')} | {track.get('recoveries')} | {track.get('switches')} | "
+             f"{track.get('rejected')} | - | {track['cpu_ms_per_scan']:.0f} | {track['peak_rss_mb']:.0f} |", "",
+             "One run (no repeats). Below 1x the node gets more time per scan than a robot would give it: say the "
+             "rate beside any figure taken from here."]
+    print(write_section(lines))
     return 0
 
 

@@ -254,9 +254,11 @@ class Session:
         self._started = True
         self.observers.start(self.run_info())
 
-    def step(self, frame):
+    def step(self, frame, on_estimate: Callable | None = None):
         """Process one scan: feed the IMU samples up to the end of its sweep, then the scan.
-        Returns the tracker's Estimate."""
+        Returns the tracker's Estimate. ``on_estimate(est)``, when given, is called with it as soon
+        as the tracker has it, before the bookkeeping and the observers (a live node publishes
+        the pose there: the run folder and recordings are not on its latency path)."""
         self.start()
         t0 = time.perf_counter()
         self.stream.lidar_frame(frame)  # gaps, points dropped for NaN/inf coordinates
@@ -270,6 +272,8 @@ class Session:
             est = self._uninitialized(frame, t0)
         else:
             est = self.tracker.insert_frame(frame)
+        if on_estimate is not None:
+            on_estimate(est)
         d = est.as_dict()
         d.update(index=int(frame.index), stamp=float(frame.stamp))
         self.stream.imu_gap(frame.index, d.get("imu_gap_s", 0.0))

@@ -14,10 +14,14 @@ Two regimes:
   from the verified pose to the present (the catch-up) instead of jumping from a pose verified
   seconds ago to the newest scan.
 
-A catch-up ends by itself: from :meth:`end_backlog` on, the bound shrinks by one scan at every
-:meth:`pop` (never below ``queue_size``), so a worker slower than the scans arrive drains the
-backlog in at most ``backlog_size`` scans (dropping more, evenly) and one faster than them drains
-it without dropping any. Not thread-safe: the node holds its lock around every call.
+A catch-up ends by itself. From :meth:`end_backlog` on, scans arriving and scans popped are
+counted: while the worker pops faster than scans arrive (fewer than ``SLOW_RATIO`` arrivals per
+pop so far) the waiting scans fall on their own and the bound stays (no scan is dropped: a
+bound that shrank at every pop whatever the worker's speed dropped scans at the end of a catch-up
+the worker was winning, seen at 1x with a worker taking ~0.4 of the scan period); once it is
+not, the bound shrinks by one scan at every :meth:`pop` (never below ``queue_size``), so a
+worker slower than the scans arrive drains the backlog within about ``backlog_size`` scans
+(dropping more, evenly). Not thread-safe: the node holds its lock around every call.
 """
 
 from __future__ import annotations
@@ -25,6 +29,8 @@ from __future__ import annotations
 from typing import Any
 
 DENSE_HEAD = 3  # scans after the oldest a backlog keeps at the sensor's rate
+SLOW_RATIO = 0.75  # arrivals per pop during a catch-up from which the bound shrinks (a worker winning
+# more slowly than that would stay seconds behind for tens of seconds: dropping, evenly, is better)
 
 
 class ScanBuffer:
@@ -40,6 +46,7 @@ class ScanBuffer:
         self._bound = self.backlog_size  # the node starts initializing
         self._catching_up = False
         self.backlog = True
+        self._arrived = self._popped = 0  # scans pushed and popped since the catch-up started
 
     def __len__(self) -> int:
         return len(self._items)
@@ -59,7 +66,8 @@ class ScanBuffer:
         if not self.backlog:
             return
         self.backlog = False
-        self._catching_up = len(self._items) > self.queue_size
+        self._catching_up = len(self._items) >= self.queue_size
+        self._arrived = self._popped = 0
         if not self._catching_up:
             self._bound = self.queue_size
 
@@ -71,6 +79,7 @@ class ScanBuffer:
     def push(self, stamp: float, item: Any) -> list[Any]:
         """Add a scan (stamp in s, arrival order); returns the items dropped to stay in bound."""
         self._items.append((float(stamp), item))
+        self._arrived += int(self._catching_up)
         dropped = []
         while len(self._items) > self._bound:
             dropped.append(self._items.pop(self._victim())[1])
@@ -82,8 +91,10 @@ class ScanBuffer:
             return None
         item = self._items.pop(0)[1]
         if self._catching_up:
-            self._bound = max(self.queue_size, self._bound - 1)
-            if len(self._items) <= self.queue_size:
+            self._popped += 1
+            if self._arrived >= SLOW_RATIO * self._popped:  # not winning: make it end
+                self._bound = max(self.queue_size, self._bound - 1)
+            if len(self._items) < self.queue_size:  # room for the scan arriving while this one is processed
                 self._catching_up = False
                 self._bound = self.queue_size
         return item

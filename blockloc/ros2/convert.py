@@ -60,8 +60,8 @@ def cloud_from_points(points: np.ndarray, stamp: float, frame_id: str, *, time_o
 class Cloud:
     """A PointCloud2's points (what a ``LidarFrame`` holds, made by the node).
 
-    stamp: the header stamp, s; points: (N, 3) float64 in the cloud's frame; intensity: (N,)
-    float32 or None; time_offsets: (N,) float32 s relative to ``stamp`` or None; dropped: the
+    stamp: the header stamp, s; points: (N, 3) in the cloud's frame, float32 when its x, y, z
+    fields are (as every common driver's), else float64; intensity: (N,) float32 or None; time_offsets: (N,) float32 s relative to ``stamp`` or None; dropped: the
     number of non-finite points left out."""
 
     stamp: float
@@ -109,33 +109,50 @@ def cloud_arrays(msg: m.PointCloud2) -> Cloud:
     else:  # padded rows
         rec = np.concatenate([np.frombuffer(data, dtype=dtype, count=int(msg.width), offset=r * row_step)
                               for r in range(rows)])
-    pts = np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float64)
+    unreadable = [k for k in ("x", "y", "z") if k not in names]
+    if unreadable:
+        raise CloudError(f"field {unreadable[0]!r} has datatype {fields[unreadable[0]].datatype} count "
+                         f"{fields[unreadable[0]].count}: expected one number of a PointField type 1-8")
+    # one strided copy per field, in the fields' own precision (float32 from every common driver:
+    # the tracker selects its points first and converts only those, as it does for a recording)
+    xyz_type = np.result_type(*(np.dtype(POINT_TYPES[fields[k].datatype]) for k in ("x", "y", "z")))
+    pts = np.empty((n, 3), np.float32 if xyz_type == np.float32 else np.float64)
+    for j, k in enumerate(("x", "y", "z")):
+        pts[:, j] = rec[k]
     times = None
     for name in TIME_FIELDS:
         if name in fields and name in names:
             times = _time_offsets(rec[name], fields[name].datatype, stamp)
             break
-    intensity = rec["intensity"].astype(np.float32) if "intensity" in names else None
-    ok = np.isfinite(pts).all(axis=1)
-    if times is not None:
-        ok &= np.isfinite(times)
-    dropped = int(n - ok.sum())
-    if not ok.any():
-        raise CloudError(f"no finite point among {n}")
-    return Cloud(stamp, pts[ok], None if intensity is None else intensity[ok],
-                 None if times is None else times[ok].astype(np.float32), dropped)
+    finite = np.isfinite(pts)
+    if finite.all() and (times is None or np.isfinite(times).all()):  # a dense cloud: no masked copies
+        ok, dropped = slice(None), 0
+    else:
+        ok = finite[:, 0] & finite[:, 1] & finite[:, 2]
+        if times is not None:
+            ok &= np.isfinite(times)
+        dropped = int(n - np.count_nonzero(ok))
+        if dropped == n:
+            raise CloudError(f"no finite point among {n}")
+    intensity = np.asarray(rec["intensity"], np.float32)[ok] if "intensity" in names else None
+    return Cloud(stamp, pts[ok], intensity, None if times is None else times[ok], dropped)
 
 
 def _time_offsets(values: np.ndarray, datatype: int, stamp: float) -> np.ndarray:
-    """Per-point times (see the module doc) -> (N,) float64 s relative to ``stamp``."""
-    v = values.astype(np.float64)
-    if datatype in (FLOAT32, FLOAT64):
-        if len(v) and np.nanmax(np.abs(v)) > DAY_S:  # absolute stamps
-            return (values.astype(np.float64) - stamp)
+    """Per-point times (see the module doc) -> (N,) float32 s relative to ``stamp``."""
+    if datatype == FLOAT32:
+        v = np.asarray(values, np.float32)  # the common case: relative seconds, one copy
+        if len(v) and np.nanmax(np.abs(v)) > DAY_S:  # absolute stamps (float32 cannot hold them well)
+            return (v.astype(np.float64) - stamp).astype(np.float32)
         return v
+    v = values.astype(np.float64)
+    if datatype == FLOAT64:
+        if len(v) and np.nanmax(np.abs(v)) > DAY_S:  # absolute stamps
+            v -= stamp
+        return v.astype(np.float32)
     if len(v) and np.max(np.abs(v)) > DAY_S * 1e9:  # absolute nanoseconds
-        return (values.astype(np.float64) * 1e-9) - stamp
-    return v * 1e-9
+        return ((values.astype(np.float64) * 1e-9) - stamp).astype(np.float32)
+    return (v * 1e-9).astype(np.float32)
 
 
 def imu_message(t: float, acc: np.ndarray, gyro: np.ndarray, frame_id: str) -> m.Imu:

@@ -83,18 +83,19 @@ def domain_id(environ=os.environ) -> int:
     return value
 
 
-def _qos(kind: str, depth: int):
+def _qos(kind: str, depth: int, *extra):
     from cyclonedds.qos import Policy, Qos
 
     xcdr1 = Policy.DataRepresentation(use_cdrv0_representation=True)  # plain CDR, as ROS 2 sends
     if kind == "sensor":
-        return Qos(Policy.Reliability.BestEffort, Policy.History.KeepLast(depth), Policy.Durability.Volatile, xcdr1)
+        return Qos(Policy.Reliability.BestEffort, Policy.History.KeepLast(depth), Policy.Durability.Volatile, xcdr1,
+                   *extra)
     if kind == "reliable":
         return Qos(Policy.Reliability.Reliable(max_blocking_time=100_000_000), Policy.History.KeepLast(depth),
-                   Policy.Durability.Volatile, xcdr1)
+                   Policy.Durability.Volatile, xcdr1, *extra)
     if kind == "latched":
         return Qos(Policy.Reliability.Reliable(max_blocking_time=100_000_000), Policy.History.KeepLast(depth),
-                   Policy.Durability.TransientLocal, xcdr1)
+                   Policy.Durability.TransientLocal, xcdr1, *extra)
     raise DdsError(f"QoS {kind!r}: expected sensor, reliable or latched")
 
 
@@ -157,7 +158,7 @@ class Dds:
         return w
 
     def reader(self, ros_topic: str, msg_type, on_message: Callable[[object], None], qos=SENSOR_DATA,
-               poll: bool = False):
+               poll: bool = False, ignore_own: bool = False):
         """A DataReader of ``msg_type`` on ``ros_topic``; ``on_message(msg)`` is called on
         Cyclone's receive thread for every sample (keep it short: queue and return). An
         exception in it is logged, never lost silently, and the reader goes on.
@@ -166,12 +167,19 @@ class Dds:
         them. A listener runs on Cyclone's delivery thread, which waits for the GIL while this
         process computes (a global init, a smoother update), and samples that come meanwhile
         are lost; polled, Cyclone keeps them in the reader's history (``qos``'s depth) until the
-        thread gets the GIL back."""
+        thread gets the GIL back.
+
+        ignore_own: samples this participant writes itself are not delivered to this reader
+        (Cyclone's IgnoreLocal, a local setting: nothing changes on the wire). Without it, a node
+        that both writes and reads /tf takes back every transform it writes, on its writing
+        thread, inside ``write``."""
         from cyclonedds.core import Listener
+        from cyclonedds.qos import Policy
         from cyclonedds.internal import InvalidSample
         from cyclonedds.sub import DataReader
 
         made: list = []
+        qos_made = _qos(*qos, *((Policy.IgnoreLocal.Participant,) if ignore_own else ()))
 
         def drain(reader) -> None:
             try:
@@ -189,11 +197,11 @@ class Dds:
                 drain(made[0])
 
         if poll:
-            r = DataReader(self.participant, self._topic(ros_topic, msg_type), qos=_qos(*qos))
+            r = DataReader(self.participant, self._topic(ros_topic, msg_type), qos=qos_made)
             self._entities.append(r)
             self._poll(ros_topic, r, drain)
             return r
-        r = DataReader(self.participant, self._topic(ros_topic, msg_type), qos=_qos(*qos),
+        r = DataReader(self.participant, self._topic(ros_topic, msg_type), qos=qos_made,
                        listener=Listener(on_data_available=on_data_available))
         made.append(r)
         drain(r)

@@ -63,7 +63,25 @@ def test_a_worker_slower_than_the_scans_still_ends_its_catch_up():
             buf.push(0.1 * k, k)
             k += 1
         assert len(buf) <= 40
-    assert pops <= 40 and buf.bound == 2 and len(buf) <= 2
+    assert pops <= 42 and buf.bound == 2 and len(buf) <= 2
+
+
+def test_a_worker_winning_slowly_drops_nothing_at_the_end_of_its_catch_up():
+    """29 scans waited through a global init; the worker then takes 0.6 of the scan period (two
+    scans come per three processed): it drains them without dropping one (a bound shrinking at
+    every pop dropped scans near the end)."""
+    buf = ScanBuffer(2, 40)
+    for k in range(29):
+        assert buf.push(0.1 * k, k) == []
+    buf.end_backlog()
+    got, dropped, k = [], [], 29
+    while buf.catching_up or len(buf):
+        got.append(buf.pop())
+        if len(got) % 3 != 0:
+            dropped += buf.push(0.1 * k, k)
+            k += 1
+        assert len(buf) <= 40
+    assert dropped == [] and got == list(range(k)) and buf.bound == 2
 
 
 def test_a_new_global_init_opens_the_backlog_again():

@@ -225,9 +225,15 @@ def test_a_wrong_initialpose_while_tracking_gives_a_verified_pose_within_3_s_and
     # Around and after the new initial pose, the robot's motion kept, the scan deskewed again and
     # registered: right from the first pose (measured: 0.004-0.006 m; before, 0.13-0.39 m). The
     # first poses after the node's start are 0.27-0.31 m off on this 5 m/s drive: the velocity is
-    # unknown there, taken as zero with a 1 m/s prior.
-    after = np.array([error(x) for t, x in got["pose"] if t > sent])
-    at = [round(time_to_stamp(x.header.stamp) - stamp, 2) for t, x in got["pose"] if t > sent]
+    # unknown there, taken as zero with a 1 m/s prior. Measured on this world (Session.initialize
+    # "global", first 12 scans): zero velocity 0.27, 0.33, then 0.06-0.14 m for 8 scans; the same
+    # global-init pose with the true velocity 0.015, 0.008, then <= 0.005 m; moving the pose from
+    # mid-sweep to the stamp changes nothing. The fix is an initial velocity (the tracker's).
+    # (from the scan it searched on: a scan already being tracked when the /initialpose came may
+    # publish after it, still converging from the cold start, seen 0.055 m under a load of 26)
+    later = [(t, x) for t, x in got["pose"] if t > sent and time_to_stamp(x.header.stamp) >= stamp - 1e-6]
+    after = np.array([error(x) for t, x in later])
+    at = [round(time_to_stamp(x.header.stamp) - stamp, 2) for t, x in later]
     assert len(after) >= 5 and after.max() < 0.05, list(zip(at, np.round(after, 3)))
     # the pace file: each ground-truth pose (published with its scan, at the sweep's end) came after it was due
     anchor = json.loads(pace.read_text())
@@ -236,3 +242,49 @@ def test_a_wrong_initialpose_while_tracking_gives_a_verified_pose_within_3_s_and
     lag = np.array([t - (anchor["monotonic"] + (s + frames[round(s, 6)] - anchor["stamp"]) / anchor["rate"])
                     for t, x in got["gt"] for s in [time_to_stamp(x.header.stamp)]])
     assert lag.min() > -0.005 and np.median(lag) < 0.2, np.round(np.percentile(lag, [0, 50, 100]), 3)
+
+
+def test_poses_the_tracker_rejects_are_withheld_from_pose_odom_and_tf(tiny_live_world, loopback_dds):
+    """A pose that is not verified never goes out as one: with an acceptance test no scan can pass
+    (``tracking.min_fitness=1``), the node still initializes (a verified global init) and says
+    "degraded" on /diagnostics for every scan, but publishes nothing on /blockloc/pose,
+    /blockloc/odom or /tf."""
+    from blockloc.ros2 import dds as d
+    from blockloc.ros2 import messages as m
+
+    w = tiny_live_world
+    p = d.Dds()
+    got = {"pose": [], "odom": [], "tf": [], "diag": []}
+    for topic, kind, key in (("/blockloc/pose", m.PoseWithCovarianceStamped, "pose"),
+                             ("/blockloc/odom", m.Odometry, "odom"), ("/tf", m.TFMessage, "tf"),
+                             ("/diagnostics", m.DiagnosticArray, "diag")):
+        p.reader(topic, kind, got[key].append, d.RELIABLE)
+    node = Proc("node", "--map", w["map"], "--config", w["config"], "--set", "tracking.min_fitness=1.0",
+                "--set", "tracking.max_bad_frames=1000")
+    play = None
+    try:
+        node.wait_for("listening on /points", 120)
+        play = Proc("play", "--seq", w["session"], "--config", w["config"], "--rate", "0.5", "--max-frames", "20")
+        assert play.finish(120) == 0, play.err
+
+        def values():
+            return [{kv.key: kv.value for kv in x.status[0].values} for x in list(got["diag"])]
+
+        try:
+            wait_until(lambda: sum(v.get("state") == "degraded" for v in values()) >= 5, 120, "degraded scans")
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}: {[x.get('status') for x in values()]}; {node.err[-1500:]}") from None
+        node.proc.send_signal(signal.SIGINT)
+        assert node.finish(60) == 130, node.err
+    finally:
+        node.kill()
+        if play is not None:
+            play.kill()
+        p.close()
+    v = values()
+    degraded = [x for x in v if x.get("state") == "degraded"]
+    assert int(v[-1]["verified_inits"]) >= 1  # it did initialize: those poses would have gone out before
+    assert all(x["status"] == "rejected" and x["pose_published"] == "False" for x in degraded)
+    assert int(v[-1]["poses_withheld"]) >= len(degraded) and int(v[-1]["poses_published"]) == 0
+    assert not got["pose"] and not got["odom"] and not got["tf"]
+    assert "0 poses published" in node.err
