@@ -245,7 +245,11 @@ class PlaceIndex:
     def scores(self, cells: "ScanCells") -> np.ndarray:
         """(P, S) :func:`match_scores` of a scan's cells at every place and shift: the static
         band's cells against the static places, the open band's against the open places (module
-        docstring)."""
+        docstring). A scan whose static band holds fewer than ``min_bits`` bits (what makes a place
+        open) is not scored against the static places at all (ranked last): a score per observed
+        bit from a score of bits is chance, and it outranked the open places where such scans are
+        taken (campus: 20 static bits scored 1.2 per bit at static places, the true open place 0.13,
+        rank 8342; without them rank 7)."""
         p = self.params
         static = scan_descriptor(cells.band, p, cells.obstacles, cells.free_from_m)
         open_rows = np.flatnonzero(self.band == 1)
@@ -256,7 +260,10 @@ class PlaceIndex:
             return score
         score = np.empty((len(self), p.num_sectors), np.float32)
         rows = np.flatnonzero(self.band != 1)
-        score[rows] = match_scores(static, self, rows)
+        if static.counts(p.num_sectors)[0].sum() >= p.min_bits:
+            score[rows] = match_scores(static, self, rows)
+        else:
+            score[rows] = -1e6
         score[open_rows] = match_scores(scan_descriptor(cells.open_band, p, cells.obstacles, cells.free_from_m),
                                         self, open_rows)
         return score
