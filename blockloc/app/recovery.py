@@ -30,6 +30,9 @@ log = logging.getLogger("blockloc.app.session")
 #: an ambiguity waits this long (s) for a later scan; after it, the motion between the two scans is
 #: too long to register scan to scan, and the full search runs again
 MAX_AMBIGUITY_AGE_S = 3.0
+#: hypotheses carried over at most this many scans; then the full search runs again (the true pose
+#: may be none of them: along a street the first scan's candidates can all be metres off)
+MAX_AMBIGUITY_SCANS = 10
 
 
 @dataclass(frozen=True)
@@ -114,7 +117,7 @@ class Recovery:
             log.info("t=%.2f: the ambiguity of t=%.2f settled by this scan (%d hypotheses, %d scans)", stamp,
                      amb.stamp, len(amb.hypotheses), amb.scans + 1)
             return res
-        if res.ambiguous:
+        if res.ambiguous and amb.scans + 1 < MAX_AMBIGUITY_SCANS:
             self._remember(res, pts_body, stamp, frame, amb.scans + 1)
             return res
         return None
