@@ -160,7 +160,8 @@ class Recovery:
             what: dict = {}
             res = self._follow_up(pts_body, g, stamp, -1, what)
             if "second_scan" in what:
-                self.log.append({"stamp": float(stamp), "hint": False, "verified": bool(res is not None and res.verified),
+                self.log.append({"stamp": float(stamp), "hint": False,
+                                 "verified": bool(res is not None and res.verified),
                                  "ambiguous": bool(res is not None and res.ambiguous),
                                  "fitness": float(res.fitness) if res is not None else 0.0,
                                  "time_s": time.perf_counter() - t0, "second_scan": what["second_scan"]})
