@@ -244,6 +244,9 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--reloc-frames", type=int, default=20)
     ap.add_argument("--reloc-regions", action="store_true",
                     help="no-hint also with the regions alone (no place index), side by side")
+    ap.add_argument("--follow-up", type=int, default=0, metavar="K",
+                    help="no hint: a frame the place index leaves unverified goes on with up to K next frames "
+                         "as a session's no-hint start does (app.recovery: an ambiguity tested by the next scan)")
     ap.add_argument("--kiss-matcher-frames", type=int, default=0,
                     help="the anchor KISS-Matcher on the first K no-hint frames (whole map and oracle local map)")
     ap.add_argument("--kiss-voxel", type=float, default=0.5, help="KISS-Matcher's voxel size (m)")
@@ -393,6 +396,7 @@ def run(argv: list[str]) -> dict:
             store, seq.info.gravity_map, InitParams(projection=args.projection, use_place_index=False,
                                                     max_search_s=0.0))  # the whole-map search, unbounded
     reloc = {name: [] for name in reloc_modes}
+    starts: list[dict] = []  # --follow-up: the session's no-hint start from each frame
     cpu_s = {name: [] for name in reloc_modes}  # CPU time per frame (a loaded machine stretches the wall clock)
     index_load_s = None
     rframes = np.sort(rng.choice(np.arange(20, len(seq)), size=min(args.reloc_frames, len(seq) - 20), replace=False))
@@ -441,6 +445,9 @@ def run(argv: list[str]) -> dict:
             print(f"[reloc {name}] frame {i}: {e_t:.2f} m {e_r:.2f} deg {dt:.2f} s verified {res.verified} "
                   f"ambiguous {res.ambiguous} place stage {res.stats.get('place_stage')} regions "
                   f"{res.stats.get('regions_searched')}/{res.stats.get('regions')}", flush=True)
+            if name == "place index" and args.follow_up > 0:
+                starts.append(session_start(rl, seq, imu, gt, int(i), res, scan, e_t, e_r, dt, cpu_s[name][-1],
+                                            args.follow_up))
 
     cmd = "python -m bench.global_init " + " ".join(shlex.quote(a) for a in argv)
     lines = [
@@ -563,6 +570,8 @@ def run(argv: list[str]) -> dict:
             if store.total_points > args.kiss_map_max_points:
                 lines.append(f"KISS-Matcher against the whole map was not run: {store.total_points:,} points > "
                              f"{args.kiss_map_max_points:,} (`--kiss-map-max-points`).")
+        if starts:
+            lines += start_lines(starts, args.follow_up, results)
         failed = results["reloc"]["place index"]["failed"]
         if failed:
             lines.append("\nNot found (place index): " + ", ".join(
@@ -579,6 +588,67 @@ def run(argv: list[str]) -> dict:
     tmp.replace(out)
     print(text)
     return results
+
+
+def session_start(loc, seq, imu, gt, i: int, res, scan, e_t: float, e_r: float, dt: float, cpu: float,
+                  k: int) -> dict:
+    """What a session's no-hint start from frame ``i`` meets (``blockloc track`` without a pose): the
+    result of frame ``i`` (``res``, its errors, wall and CPU seconds) and, when it is not verified, up
+    to ``k`` next frames through ``app.recovery.Recovery`` (an ambiguity is tested by the next scan,
+    ``global_init.second_scan``; otherwise the search runs again). Returns the frame verified (or
+    None), its errors, the frames used and the seconds summed over them."""
+    from blockloc.app.recovery import GlobalInitSettings, Recovery
+    from blockloc.global_init.relocalize import pose_error
+    from blockloc.global_init.second_scan import Ambiguity
+
+    out = {"frame": i, "found_at": i if res.verified else None, "err": (e_t, e_r), "frames": 1, "time_s": dt,
+           "cpu_s": cpu, "second_scan": False}
+    if res.verified:
+        return out
+    rec = Recovery(loc, GlobalInitSettings(), seq.info, imu, gt, {"map_faults": 0})
+    rec.ambiguity = Ambiguity.of(res, loc.params, scan.points_body, scan.stamp, i)
+    for j in range(i + 1, min(i + 1 + k, len(seq))):
+        info: dict = {}
+        c = time.process_time()
+        T, r, stamp = rec.global_init(seq.frame(j), None, None, info)
+        out["cpu_s"] += time.process_time() - c
+        out["time_s"] += info["time_s"]
+        out["frames"] += 1
+        if T is not None:
+            out["found_at"] = j
+            out["err"] = pose_error(T, gt.interpolate(np.array([stamp]))[0])
+            out["second_scan"] = bool(info.get("second_scan", {}).get("verified"))
+            break
+    print(f"[start] frame {i}: verified at {out['found_at']} ({out['frames']} frames, second scan "
+          f"{out['second_scan']}) {out['err'][0]:.2f} m {out['time_s']:.2f} s", flush=True)
+    return out
+
+
+def start_lines(starts: list[dict], k: int, results: dict) -> list[str]:
+    """The session-start row of ``--follow-up`` (:func:`session_start`)."""
+    found = [s for s in starts if s["found_at"] is not None]
+    ok = [s for s in found if s["err"][0] <= 0.3 and s["err"][1] <= 2.0]
+    wrong = [s for s in found if s["err"][0] > 1.0 or s["err"][1] > 5.0]
+    t = np.array([s["time_s"] for s in starts])
+    cpu = np.array([s["cpu_s"] for s in starts])
+    n = np.array([s["frames"] for s in starts])
+    results["session_start"] = {"frames": len(starts), "success": len(ok) / max(len(starts), 1),
+                                "wrong_verified": len(wrong), "time_s": float(np.median(t)),
+                                "p95_s": float(np.percentile(t, 95)), "follow_up": k,
+                                "failed": [s["frame"] for s in starts if s not in ok]}
+    return ["", f"Session start (`--follow-up {k}`): from each of these frames, what `blockloc track` without a pose "
+            f"meets: the frame's search, and while nothing is verified up to {k} next frames (an ambiguity tested by "
+            "the next scan, registered to it: `global_init/second_scan.py`; otherwise the search again). Success: the "
+            "first verified pose within 0.3 m / 2 deg; time: summed over the frames used.",
+            "",
+            "| start | frames | success | wrong verified | settled by a second scan | frames used (max) | median / p95 "
+            "time (s) | median CPU (s) |",
+            "|---|---|---|---|---|---|---|---|",
+            f"| place index + up to {k} next scans | {len(starts)} | {100 * len(ok) / max(len(starts), 1):.1f}% | "
+            f"{len(wrong)} | {sum(s['second_scan'] for s in starts)} | {int(n.max())} | {np.median(t):.2f} / "
+            f"{np.percentile(t, 95):.2f} | {np.median(cpu):.2f} |",
+            "",
+            "Not started: " + (", ".join(f"frame {s['frame']}" for s in starts if s not in ok) or "none") + "."]
 
 
 def cold_lines(cold: dict, seq_name: str, map_dir: Path, window_m: float) -> list[str]:

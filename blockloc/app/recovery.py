@@ -1,6 +1,13 @@
 """Global initialization and relocalization of a tracking session: a scan prepared as
 ``blockloc init`` prepares it (gyro deskew, gravity from the accelerometer), searched around a
-hint or over the whole map; only verified poses come back, and every attempt is logged."""
+hint or over the whole map; only verified poses come back, and every attempt is logged.
+
+An ambiguous result (one scan fits two places nearly equally: a street of repeated structure) is
+not dropped: its hypotheses wait for the next scan (:mod:`blockloc.global_init.second_scan`), which
+is registered to it for the motion between the two and tested at each hypothesis moved by it. One
+hypothesis verified there, and no other, is the answer; still ambiguous, the newer scan's
+hypotheses wait for the one after; none plausible, the full search runs again. Verification is
+the same as any candidate's."""
 
 from __future__ import annotations
 
@@ -16,8 +23,16 @@ from blockloc.geometry import transform_points
 from blockloc.global_init.relocalize import pose_error
 from blockloc.jit import CompileClock
 from blockloc.global_init.scan_prep import gravity_from_imu, prepare_for_init
+from blockloc.global_init.second_scan import Ambiguity, follow_up
 
 log = logging.getLogger("blockloc.app.session")
+
+#: an ambiguity waits this long (s) for a later scan; after it, the motion between the two scans is
+#: too long to register scan to scan, and the full search runs again
+MAX_AMBIGUITY_AGE_S = 3.0
+#: hypotheses carried over at most this many scans; then the full search runs again (the true pose
+#: may be none of them: along a street the first scan's candidates can all be metres off)
+MAX_AMBIGUITY_SCANS = 10
 
 
 @dataclass(frozen=True)
@@ -45,10 +60,13 @@ class Recovery:
         self.ground_truth = ground_truth
         self.counters = counters
         self.log: list[dict] = []
+        self.ambiguity: Ambiguity | None = None  # an ambiguous scan's hypotheses, waiting for the next
 
     def global_init(self, frame, hint_xy, hint_yaw, init_info: dict):
         """Global init of one frame (prepared as ``blockloc init`` does); records it in init_info.
-        Returns (T_map_body or None when not verified, InitResult, stamp of the pose)."""
+        An ambiguity left by an earlier frame is tested with this one first (module docstring;
+        ``init_info['second_scan']``). Returns (T_map_body or None when not verified, InitResult,
+        stamp of the pose)."""
         if self.localizer is None:
             raise TrackingError("no global localizer: cannot initialize without a pose")
         s = self.settings
@@ -56,30 +74,103 @@ class Recovery:
         yaw_window = s.yaw_window_deg if hint_yaw is not None else 360.0
         t0 = time.perf_counter()
         with CompileClock() as jit:
-            res = self.localizer.localize(scan.points_body, scan.gravity_body, hint_xy, hint_yaw, s.window_m,
-                                          yaw_window if hint_xy is not None else 360.0)
+            res = self._follow_up(scan.points_body, scan.gravity_body, scan.stamp, int(frame.index), init_info)
+            if res is None:
+                res = self.localizer.localize(scan.points_body, scan.gravity_body, hint_xy, hint_yaw, s.window_m,
+                                              yaw_window if hint_xy is not None else 360.0)
+                self._remember(res, scan.points_body, scan.stamp, int(frame.index))
         # a first run after install compiles the kernels inside the search: reported apart
         init_info.update(time_s=time.perf_counter() - t0 - jit.seconds, compile_s=jit.seconds,
                          verified=bool(res.verified),
                          fitness=float(res.fitness), score=float(res.score), ambiguous=bool(res.ambiguous),
                          frame=int(frame.index), stamp=scan.stamp)
+        init_info["ambiguous_frames"] = init_info.get("ambiguous_frames", 0) + int(bool(res.ambiguous))
         ok = res.T_map_body is not None and res.verified
         if ok and self.ground_truth is not None:
             Tg = self.ground_truth.interpolate(np.array([scan.stamp]))[0]
             init_info["error_m"], init_info["error_deg"] = pose_error(np.asarray(res.T_map_body), Tg)
         return (np.asarray(res.T_map_body) if ok else None), res, scan.stamp
 
+    def _follow_up(self, pts_body: np.ndarray, gravity_body: np.ndarray, stamp: float, frame: int,
+                   info: dict | None = None):
+        """The waiting ambiguity tested with this scan (module docstring): the InitResult when it
+        settled the question (verified) or kept it open (ambiguous: the newer scan's hypotheses
+        wait now); None when there was none, it was too old, the motion could not be registered
+        or no hypothesis held (the caller searches afresh). ``info``: gets ``second_scan``."""
+        amb, self.ambiguity = self.ambiguity, None
+        if amb is None or not 0.0 < stamp - amb.stamp <= MAX_AMBIGUITY_AGE_S:
+            return None
+        try:
+            res, what = follow_up(self.localizer, amb, pts_body, gravity_body, self._rotation_between(amb.stamp, stamp))
+        except (GlobalInitError, RegistrationError, MapError) as exc:
+            log.warning("the ambiguity of t=%.2f could not be tested at t=%.2f: %s", amb.stamp, stamp, exc)
+            return None
+        what.update(frame=frame, verified=bool(res is not None and res.verified),
+                    ambiguous=bool(res is not None and res.ambiguous))
+        if info is not None:
+            info["second_scan"] = what
+        if res is None:
+            log.info("t=%.2f: the motion since the ambiguous scan of t=%.2f could not be registered (fitness %.2f)",
+                     stamp, amb.stamp, what["motion_fitness"])
+            return None
+        if res.verified:
+            log.info("t=%.2f: the ambiguity of t=%.2f settled by this scan (%d hypotheses, %d scans)", stamp,
+                     amb.stamp, len(amb.hypotheses), amb.scans + 1)
+            return res
+        if res.ambiguous and amb.scans + 1 < MAX_AMBIGUITY_SCANS:
+            self._remember(res, pts_body, stamp, frame, amb.scans + 1)
+            return res
+        return None
+
+    def _remember(self, res, pts_body: np.ndarray, stamp: float, frame: int, scans: int = 1) -> None:
+        """Keep an ambiguous result's hypotheses for the next scan (None otherwise)."""
+        self.ambiguity = Ambiguity.of(res, self.localizer.params, pts_body, stamp, frame, scans) \
+            if getattr(res, "ambiguous", False) else None
+
+    def _rotation_between(self, t0: float, t1: float) -> Optional[np.ndarray]:
+        """R_first_second (3, 3): the body's turn from t0 to t1 integrated from the gyro (bias
+        neglected), or None without IMU samples over the interval."""
+        if self.imu is None or len(self.imu) < 2:
+            return None
+        near = self.imu.between(t0 - 0.01, t1 + 0.01)
+        if len(near) < 2:
+            return None
+        from blockloc.geometry import so3_exp
+
+        R_body_imu = np.asarray(self.info.T_body_imu, float)[:3, :3]
+        times = np.clip(near.t, t0, t1)
+        R = np.eye(3)
+        for k in range(len(times) - 1):  # zero-order hold of each sample's rate
+            R = R @ so3_exp(R_body_imu @ near.gyro[k] * (times[k + 1] - times[k]))
+        return R
+
     def relocalize(self, points_lidar: np.ndarray, hint: Optional[np.ndarray], gravity_body: np.ndarray,
                    stamp: float) -> Optional[np.ndarray]:
         """The tracker's recovery: global init of a scan (lidar frame) around ``hint``
         (T_map_body), and, when nothing there is verified, over the whole map (the place index:
-        a kidnapped robot is outside any window around its last pose). Only a verified pose is
+        a kidnapped robot is outside any window around its last pose). An ambiguity left by an
+        earlier attempt is tested with this scan first (module docstring). Only a verified pose is
         returned; a failed or impossible attempt returns None. Every attempt is in ``reloc_log``."""
         if self.localizer is None:
             return None
         pts_body = transform_points(self.info.T_body_lidar, points_lidar)
+        if self.ambiguity is not None:
+            g = self._gravity_at(stamp, gravity_body)
+            t0 = time.perf_counter()
+            what: dict = {}
+            res = self._follow_up(pts_body, g, stamp, -1, what)
+            if "second_scan" in what:
+                self.log.append({"stamp": float(stamp), "hint": False,
+                                 "verified": bool(res is not None and res.verified),
+                                 "ambiguous": bool(res is not None and res.ambiguous),
+                                 "fitness": float(res.fitness) if res is not None else 0.0,
+                                 "time_s": time.perf_counter() - t0, "second_scan": what["second_scan"]})
+            if res is not None and res.verified and res.T_map_body is not None:
+                return np.asarray(res.T_map_body)
+            if res is not None:
+                return None  # still ambiguous: the next scan's evidence decides
         T, searched = self._relocalize_once(pts_body, hint, gravity_body, stamp)
-        if T is None and searched and hint is not None:
+        if T is None and searched and hint is not None and self.ambiguity is None:
             # The hint's attitude comes from a state that has diverged: level the scan by the
             # accelerometer when there is one.
             T, _ = self._relocalize_once(pts_body, None, self._gravity_at(stamp, gravity_body), stamp)
@@ -117,6 +208,7 @@ class Recovery:
             return None, False
         self.log.append({**entry, "verified": bool(res.verified), "ambiguous": bool(res.ambiguous),
                                "fitness": float(res.fitness), "time_s": float(res.time_s)})
+        self._remember(res, pts_body, stamp, -1)
         if not res.verified or res.T_map_body is None:
             log.info("relocalization at t=%.2f%s: no verified match (best fitness %.2f)", stamp,
                      "" if hint is not None else " over the whole map", res.fitness)

@@ -16,7 +16,9 @@ Initialization: ``gt`` (the first ground-truth pose), ``pose`` (global init arou
 hint) or ``global`` (global init over the whole map on the first frames, until one is verified:
 the map's place index, see :mod:`blockloc.global_init.place_index`). A tracker that is lost
 relocalizes around its last good pose, then over the whole map (:mod:`blockloc.app.recovery`);
-only verified poses restart it, and the frames in between are reported lost, never ok.
+only verified poses restart it, and the frames in between are reported lost, never ok. A scan
+that fits several places (ambiguous) leaves its hypotheses to the next scan of either path, which
+is registered to it and tests them (``init['second_scan']``, ``relocalizations[i]['second_scan']``).
 Every path prepares its scan with :func:`blockloc.global_init.scan_prep.prepare_for_init`, as
 ``blockloc init`` does.
 
@@ -212,6 +214,7 @@ class Session:
         the IMU held is let go, the gap checks start over; the next verified
         :meth:`reinitialize` starts it again."""
         self.tracker.reset()
+        self.recovery.ambiguity = None  # scans before the restart are no motion away from the next
         self._hold_imu(ImuData(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3))))
         self._imu_next = 0
         self.stream.restart()

@@ -214,3 +214,43 @@ def test_a_version_2_index_still_loads_without_open_places(world):
     np.savez(buf, **arrays)
     with pytest.raises(MapError, match="old.npz: place index version 1.*rebuild it with 'blockloc map index'"):
         PlaceIndex.from_bytes(buf.getvalue(), "old.npz")
+
+
+def test_a_scan_with_too_few_static_bits_ranks_the_static_and_the_open_places_side_by_side():
+    """A scan whose static band holds fewer than ``min_bits`` bits (what makes a place open): its
+    static places' scores (chance, from a handful of bits: campus 20 bits scored 1.2 per bit and
+    buried the true open place at rank 8342) and its open places' alternate in the ranking; with
+    enough static bits the ranking is by score alone."""
+    from blockloc.global_init.place_descriptors import ScanCells
+    from blockloc.global_init.place_index import best_shift
+
+    p = PlaceIndexParams()
+    rng = np.random.default_rng(0)
+    S, R = p.num_sectors, p.num_rings
+
+    def ring_cells(n, r_m):
+        a = np.linspace(0, 2 * np.pi, n, endpoint=False)
+        return np.unique(np.floor(np.c_[r_m * np.cos(a), r_m * np.sin(a)] / p.resolution_m).astype(np.int64), axis=0)
+
+    few_band = ring_cells(6, 12.0)
+    open_cells = np.concatenate([ring_cells(200, r) for r in (8.0, 20.0, 35.0)])
+    # static places that hold the scan's few bits (and little else: they score high per bit), open
+    # places with dense random bits
+    hit = scan_descriptor(few_band, p).occupied
+    static_bits = [hit | pack(rng.random((R, S)) < 0.02) for _ in range(3)]
+    open_bits = [pack(rng.random((R, S)) < 0.4) for _ in range(3)]
+    xy = np.array([[0, 0], [30, 0], [60, 0], [0, 30], [30, 30], [60, 30]], np.float32)
+    index = PlaceIndex(p, np.array([0.0, 0.0, 9.81]), xy, np.ones(6, np.uint8), np.stack(static_bits + open_bits),
+                       np.stack(static_bits + open_bits), band=np.array([0, 0, 0, 1, 1, 1], np.uint8))
+    few = ScanCells(few_band, open_cells, np.eye(3), 7.0, None, open_cells)
+    assert scan_descriptor(few.band, p, few.obstacles, 7.0).counts(S)[0].sum() < p.min_bits
+    best, _ = best_shift(index.scores(few))
+    assert set(np.argsort(-best)[:3]) == {0, 1, 2}  # by score alone: the static places first
+    assert index.thin_static(few)
+    ranked = [index.band[c.index] for c in index.query_cells(few, k=6)]
+    assert ranked[:4] == [0, 1, 0, 1]
+    many_band = np.concatenate([ring_cells(200, r) for r in (10.0, 25.0, 40.0)])
+    many = ScanCells(many_band, open_cells, np.eye(3), 7.0, None, open_cells)
+    assert not index.thin_static(many)
+    best, _ = best_shift(index.scores(many))
+    assert [c.index for c in index.query_cells(many, k=6)] == list(np.argsort(-best, kind="stable"))
