@@ -240,7 +240,7 @@ def run_pytest(cwd: Path, tests: list[str]) -> subprocess.CompletedProcess:
     env["PYTHONPATH"] = str(cwd) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     # the copy is not beside ../shared/data: point it at the repository's
     env["BLOCKLOC_SHARED_DATA"] = shared_data_env()
-    cmd = [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", *tests]
+    cmd = [sys.executable, "-m", "pytest", "-q", "-x", "-n", "0", "-p", "no:cacheprovider", *tests]
     return subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=TIMEOUT_S)
 
 

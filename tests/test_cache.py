@@ -122,3 +122,29 @@ def test_disk_tiles_keep_arrays_and_drop_only_older_keys_of_their_name(tmp_path,
     tiles.put("0_0", a)
     assert np.array_equal(DiskTiles("material-city-1", "abcdefabcd").get("0_0"), a)
     assert not old.exists() and other.exists() and mine.exists()
+
+
+def test_a_second_process_asking_for_the_demo_map_waits_for_the_first_builder(tmp_path):
+    """ensure_block_map's lock: while one holder builds, another waits (and says so) instead of
+    building the same map at the same time; it goes on when the first lets go."""
+    import threading
+    import time
+
+    from blockloc.app.runs import _build_lock
+
+    path = tmp_path / "maps" / "small_1_block-abc"
+    said: list[str] = []
+    events: list[str] = []
+
+    def second():
+        with _build_lock(path, said.append):
+            events.append("second in")
+
+    with _build_lock(path, said.append):
+        t = threading.Thread(target=second)
+        t.start()
+        time.sleep(0.3)
+        events.append("first out")
+    t.join(5)
+    assert events == ["first out", "second in"]
+    assert len(said) == 1 and "another process is building" in said[0] and str(path) in said[0]

@@ -8,6 +8,7 @@ takes a ``progress(done, total)`` callback, a ``say(message)`` callback, or ``sh
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import re
@@ -341,13 +342,43 @@ class SmallWorld:
 
 def ensure_block_map(world: SmallWorld, cfg: Config, say: Callable[[str], None] = log.info,
                      progress: Progress | None = None) -> Path:
-    """The block map of the mapping session (built once, reused)."""
+    """The block map of the mapping session (built once, reused). Processes that ask for it at the
+    same time (two demos, parallel test workers) build it once: the others wait for the first."""
+    with _build_lock(world.block_map, say):
+        try:
+            store = open_map(world.block_map)
+            say(f"block map: cached at {world.block_map} ({len(store)} blocks)")
+            return world.block_map
+        except MapError:
+            pass
+        return _build_block_map(world, cfg, say, progress)
+
+
+@contextlib.contextmanager
+def _build_lock(path: Path, say: Callable[[str], None]):
+    """An exclusive lock on ``<path>.lock`` (flock: released by the kernel when a holder dies)."""
+    import fcntl
+
     try:
-        store = open_map(world.block_map)
-        say(f"block map: cached at {world.block_map} ({len(store)} blocks)")
-        return world.block_map
-    except MapError:
-        pass
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fh = open(path.with_name(path.name + ".lock"), "a")
+    except OSError:  # a read-only cache: nothing can be built there, so nothing to wait for
+        yield
+        return
+    with fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            say(f"block map: another process is building {path}; waiting for it ...")
+            fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def _build_block_map(world: SmallWorld, cfg: Config, say: Callable[[str], None],
+                     progress: Progress | None) -> Path:
     say(f"block map: simulating the keyframes of {world.mapping} and stitching blocks of "
         f"{cfg.map.block_size_m:g} m" + (" (LiDAR mounting estimated first)" if cfg.map.calibrate_mounting else "")
         + " ...")

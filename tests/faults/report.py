@@ -39,7 +39,7 @@ def run_suite(xml: Path, root: Path = REPO) -> float:
 
     t0 = time.monotonic()
     env = dict(os.environ, PYTHONPATH=str(root))
-    subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", f"--junitxml={xml}",
+    subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "0", "-p", "no:cacheprovider", f"--junitxml={xml}",
                     "tests/faults"], cwd=root, env=env, check=False)
     return time.monotonic() - t0
 

@@ -16,7 +16,7 @@ REAL_DATA_TEST = "tests/datasets/test_pointclouds.py::test_opencalib_fixture"
 def _pytest(tmp_path, **env) -> subprocess.CompletedProcess:
     environ = {k: v for k, v in os.environ.items() if k != "CI"}
     environ.update(BLOCKLOC_SHARED_DATA=str(tmp_path / "no-such-data"), **env)
-    return subprocess.run([sys.executable, "-m", "pytest", "-q", "-rs", "-p", "no:cacheprovider", REAL_DATA_TEST],
+    return subprocess.run([sys.executable, "-m", "pytest", "-q", "-rs", "-n", "0", "-p", "no:cacheprovider", REAL_DATA_TEST],
                           capture_output=True, text=True, cwd=REPO, env=environ, timeout=300)
 
 

@@ -9,7 +9,12 @@ import os
 
 import pytest
 
-_DOMAINS = itertools.count(100 + os.getpid() % 50)
+# Parallel test workers (pytest-xdist: PYTEST_XDIST_WORKER gw0, gw1, ...) draw from ranges of
+# their own, so two workers' tests never share a domain; the PID offset keeps a stale process of
+# an earlier run out of the way. Domain IDs stay within Cyclone's 0-232.
+_WORKER = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:] or 0) % 4
+_SPAN = 30
+_DOMAINS = itertools.count(os.getpid() % _SPAN)
 
 
 def loopback_env(domain: int) -> dict:
@@ -23,7 +28,7 @@ def loopback_env(domain: int) -> dict:
 @pytest.fixture
 def loopback_dds(monkeypatch) -> dict:
     """Sets the loopback DDS environment for this test (and the processes it starts); returns it."""
-    env = loopback_env(200 - next(_DOMAINS) % 100)
+    env = loopback_env(100 + _WORKER * _SPAN + next(_DOMAINS) % (_SPAN - 2))  # -2: a test may use its domain + 1
     for k, v in env.items():
         monkeypatch.setenv(k, v)
     return env
