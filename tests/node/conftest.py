@@ -72,6 +72,7 @@ class Harness:
         self.frames = list(self.seq.frames())
         self.all_imu = self.seq.imu()
         self._imu_next = 0
+        self._waited = False
         time.sleep(0.3)  # discovery on loopback
 
     def publish_static(self) -> None:
@@ -96,8 +97,13 @@ class Harness:
         self.points.write(convert.cloud_from_points(f.points, f.stamp + stamp_shift, "lidar",
                                                     time_offsets=f.time_offsets, intensity=f.intensity))
         if wait:
+            # the node's first scan in a process compiles its numba kernels (global init, NDT,
+            # deskew): on a fresh checkout with both cores busy that alone can take minutes
+            first = done == 0 and not self._waited
+            self._waited = True
             wait_until(lambda: self.node.stats.processed + self.node.stats.bad_scans
-                       + self.node.stats.failed_scans > done, timeout_s, f"scan {i} processed")
+                       + self.node.stats.failed_scans > done, max(timeout_s, 300.0) if first else timeout_s,
+                       f"scan {i} processed")
 
     def send_imu_until(self, t_end: float, stamp_shift: float = 0.0) -> None:
         from blockloc.ros2 import convert
