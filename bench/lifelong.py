@@ -32,8 +32,12 @@ Truth (voxels of ``voxel_m``, the detector's, in the map frame):
 A detected voxel counts as right when a truth voxel of its class is within one voxel (26
 neighbours), a truth voxel as found when a detected one is: a tolerance of one voxel for the
 pose and the voxel grid. Per block: a block changed when its truth voxels (removed in its
-voxels, added by the nearest keyframe, as ``changes.json`` assigns them) number
-``min_block_voxels`` or more; detected when ``changes.json`` marks it confirmed.
+voxels, added by the nearest keyframe, as ``changes.json`` assigns them) form one 26-connected
+cluster of ``min_block_voxels`` (8: 1 m^3 at 0.5 m) or more, i.e. an object the run observed
+changed, not scattered voxels; detected when ``changes.json`` marks it confirmed. Vegetation is
+static in the truth: crowns whose density differs between days (``foliage_change``) are not a
+change. Both the truth scans and the detection's are deskewed (true poses, run poses).
+``false_*_where`` sorts the false detections by place (:func:`where_voxels`).
 """
 
 from __future__ import annotations
