@@ -36,8 +36,12 @@ Truth (voxels of ``voxel_m``, the detector's, in the map frame):
 A detected voxel counts as right when a truth voxel of its class is within one voxel (26
 neighbours), a truth voxel as found when a detected one is: a tolerance of one voxel for the
 pose and the voxel grid. Per block: a block changed when its truth voxels (removed in its
-voxels, added by the nearest keyframe, as ``changes.json`` assigns them) number
-``min_block_voxels`` or more; detected when ``changes.json`` marks it confirmed.
+voxels, added by the nearest keyframe, as ``changes.json`` assigns them) form one 26-connected
+cluster of ``min_block_voxels`` (8: 1 m^3 at 0.5 m) or more, i.e. an object the run observed
+changed, not scattered voxels; detected when ``changes.json`` marks it confirmed. Vegetation is
+static in the truth: crowns whose density differs between days (``foliage_change``) are not a
+change. Both the truth scans and the detection's are deskewed (true poses, run poses).
+``false_*_where`` sorts the false detections by place (:func:`where_voxels`).
 """
 
 from __future__ import annotations
@@ -98,13 +102,20 @@ class _Recording:
         from blockloc.maps.changes.detect import ray_free_keys, voxel_keys
         from blockloc.voxels import voxel_select
 
+        from blockloc.geometry import Trajectory
+        from blockloc.maps.mapping import scan_to_map
+
         t0 = time.process_time()  # casting the frame and scoring it: not the detection's cost
         frame, labels = self.seq.frame_labels(i)
-        j = int(np.argmin(np.abs(self._gt_stamps - frame.stamp)))
-        T = self._gt_poses[j] @ np.asarray(self.info.T_body_lidar, float)
+        Tbl = np.asarray(self.info.T_body_lidar, float)
+        a = max(int(np.searchsorted(self._gt_stamps, frame.stamp - 0.2)) - 1, 0)
+        b = int(np.searchsorted(self._gt_stamps, frame.stamp + 0.4)) + 1  # the sweep's span
+        gt = Trajectory(self._gt_stamps[a:b], self._gt_poses[a:b])
+        T = gt.interpolate(np.array([frame.stamp]))[0] @ Tbl
         p = np.asarray(frame.points, float)[:, :3]
         ok = np.isfinite(p).all(1) & (np.linalg.norm(p, axis=1) <= 40.0)
-        pm = p[ok] @ T[:3, :3].T + T[:3, 3]
+        dt = None if frame.time_offsets is None else np.asarray(frame.time_offsets, float)[ok]
+        pm = scan_to_map(p[ok], dt, float(frame.stamp), gt, Tbl)  # the true poses, deskewed
         lab = np.asarray(labels)[ok]
         self.changed.append(np.unique(voxel_keys(pm[lab == 1], self.voxel_m)))
         sel = voxel_select(pm, self.voxel_m / 2)
@@ -154,6 +165,31 @@ def _truth_removed(seq, block_points: dict, voxel_m: float) -> np.ndarray:
     return np.unique(np.concatenate(out)) if out else np.zeros(0, np.int64)
 
 
+def where_voxels(seq, keys: np.ndarray, voxel_m: float) -> dict:
+    """Where voxels (map frame keys) lie in the simulated world: inside a vegetation volume (a
+    crown, bush or hedge ellipsoid grown by half a voxel), else within 0.5 m of the terrain
+    (ground), else elsewhere (walls, poles, cars...). Counts of each."""
+    from blockloc.maps.changes.detect import unpack_keys
+
+    c = (unpack_keys(keys) + 0.5) * voxel_m
+    w = np.c_[c[:, 0], -c[:, 1], -c[:, 2]]  # the world frame (x, -y, -z of the map's)
+    veg = np.zeros(len(w), bool)
+    vol = seq.world.volumes
+    if vol is not None and len(vol) and len(w):
+        from scipy.spatial import cKDTree
+
+        reach = float(vol.radii.max()) + voxel_m
+        tree = cKDTree(w)
+        for i in range(len(vol)):
+            j = np.asarray(tree.query_ball_point(vol.center[i], reach), dtype=np.int64)
+            if len(j):
+                d = (((w[j] - vol.center[i]) / (vol.radii[i] + voxel_m / 2)) ** 2).sum(1)
+                veg[j[d <= 1.0]] = True
+    above = w[:, 2] - seq.world.terrain.height(w[:, 0], w[:, 1]) if len(w) else np.zeros(0)
+    ground = ~veg & (above <= 0.5)
+    return {"vegetation": int(veg.sum()), "ground": int(ground.sum()), "other": int((~veg & ~ground).sum())}
+
+
 def _block_of(keys: np.ndarray, res, voxel_m: float, removed: bool) -> np.ndarray:
     """(K,) block id of each voxel, as ``changes.json`` assigns it (removed: the block whose voxels
     hold it, the first; added: the nearest keyframe's block)."""
@@ -177,7 +213,7 @@ def _block_of(keys: np.ndarray, res, voxel_m: float, removed: bool) -> np.ndarra
 
 def score_detection(P: str, S: int, session: str, mp: Path, run_dir: Path, stride: int, min_scans: int = 5) -> dict:
     """Detection on ``run_dir`` against ``session``'s truth (module docstring)."""
-    from blockloc.maps.changes.detect import Thresholds
+    from blockloc.maps.changes.detect import Thresholds, cluster_sizes, near_sorted
     from blockloc.maps.changes.pipeline import detect_changes
     from blockloc.maps.changes.runs import read_run
     from blockloc.maps.store import open_map
@@ -202,18 +238,23 @@ def score_detection(P: str, S: int, session: str, mp: Path, run_dir: Path, strid
            "scans_rejected": res.scans_rejected, "wall_s": wall, "cpu_s": cpu,
            "cpu_per_scan_s": cpu / max(res.scans_used, 1), "load1": os.getloadavg()[0],
            "removed": _prf(res.voxels.removed, truth_rm), "added": _prf(res.voxels.added, truth_ad),
-           "removed_truth_unobserved": int(len(rm_all) - len(truth_rm))}
+           "removed_truth_unobserved": int(len(rm_all) - len(truth_rm)),
+           "false_removed_where": where_voxels(seq, res.voxels.removed[~near_sorted(res.voxels.removed, truth_rm)], vm),
+           "false_added_where": where_voxels(seq, res.voxels.added[~near_sorted(res.voxels.added, truth_ad)], vm)}
     # per block
     tb_rm, tb_ad = _block_of(truth_rm, res, vm, True), _block_of(truth_ad, res, vm, False)
     rows, tp, fp, fn = [], 0, 0, 0
     for b in res.blocks:
-        n_truth = int((tb_rm == b["block"]).sum() + (tb_ad == b["block"]).sum())
-        changed, det = n_truth >= th.min_block_voxels, bool(b["confirmed"])
+        mine = np.unique(np.concatenate([truth_rm[tb_rm == b["block"]], truth_ad[tb_ad == b["block"]]]))
+        n_truth = len(mine)
+        largest = int(cluster_sizes(mine).max()) if n_truth else 0
+        changed, det = largest >= th.min_block_voxels, bool(b["confirmed"])
         tp += changed and det
         fp += det and not changed
         fn += changed and not det
-        rows.append({"block": b["block"], "truth_voxels": n_truth, "changed": changed,
-                     "removed_voxels": b["removed_voxels"], "added_voxels": b["added_voxels"], "confirmed": det})
+        rows.append({"block": b["block"], "truth_voxels": n_truth, "truth_largest_voxels": largest,
+                     "changed": changed, "removed_voxels": b["removed_voxels"], "added_voxels": b["added_voxels"],
+                     "largest_change_m3": b.get("largest_change_m3"), "confirmed": det})
     out["blocks"] = rows
     out["block_precision"] = tp / (tp + fp) if tp + fp else float("nan")
     out["block_recall"] = tp / (tp + fn) if tp + fn else float("nan")
@@ -323,7 +364,10 @@ def main(argv: list[str] | None = None) -> Path:
 
     need = set(sessions) | ({"loc_m3", "loc_m12"} if parts & {"loc", "cost"} else set())
     runs = {s: track(s, mp, f"run_{s}_stale") for s in ("loc_m3", "loc_m12") if s in need}
-    result: dict = {"preset": P, "seed": S, "frames": args.frames, "stride": args.stride, "load1_start": load0}
+    from blockloc.maps.changes.detect import Thresholds
+
+    result: dict = {"preset": P, "seed": S, "frames": args.frames, "stride": args.stride, "load1_start": load0,
+                    "min_block_m3": Thresholds().min_block_m3}
 
     def write() -> None:  # after every part: a long run stopped half-way keeps what it measured
         result["load1_end"], result["wall_s"] = os.getloadavg()[0], time.perf_counter() - t_all
@@ -394,14 +438,25 @@ def render(r: dict, args, log: list, machine: str, dyn: list[str]) -> list[str]:
                      f"{_f(ad['recall'])} / {_f(ad['f1'])} ({ad['detected']}, {ad['truth']}) | "
                      f"{_f(d['block_precision'])} / {_f(d['block_recall'])} ({bc['tp']}, {bc['fp']}, {bc['fn']} of "
                      f"{bc['examined']}) | {d['cpu_per_scan_s']:.2f} s (load {d['load1']:.1f}) |")
-        L += ["", "Per block (truth voxels: observed removed + added truth voxels the block owns; changed at 8):", "",
-              "| session | block | truth voxels | changed | detected removed | detected added | confirmed |",
-              "|---|---|---|---|---|---|---|"]
+        L += ["", "Where the false detections lie (vegetation volume / within 0.5 m of the terrain / elsewhere):", "",
+              "| session | false removed: vegetation, ground, other | false added: vegetation, ground, other |",
+              "|---|---|---|"]
+        for d in r["detect"]:
+            fr, fa = d.get("false_removed_where") or {}, d.get("false_added_where") or {}
+            L.append(f"| {d['session']} | {fr.get('vegetation', '-')}, {fr.get('ground', '-')}, {fr.get('other', '-')} | "
+                     f"{fa.get('vegetation', '-')}, {fa.get('ground', '-')}, {fa.get('other', '-')} |")
+        L += ["", "Per block (truth voxels: observed removed + added truth voxels the block owns; changed when "
+              "their largest 26-connected cluster has 8 voxels, 1 m^3; confirmed when the detected one spans "
+              f"min_block_m3 = {r.get('min_block_m3', '-')} m^3):", "",
+              "| session | block | truth voxels (largest cluster) | changed | detected removed | detected added "
+              "| largest detected cluster m^3 | confirmed |",
+              "|---|---|---|---|---|---|---|---|"]
         for d in r["detect"]:
             for b in d["blocks"]:
                 if b["truth_voxels"] or b["removed_voxels"] or b["added_voxels"]:
-                    L.append(f"| {d['session']} | {b['block']} | {b['truth_voxels']} | {b['changed']} | "
-                             f"{b['removed_voxels']} | {b['added_voxels']} | {b['confirmed']} |")
+                    L.append(f"| {d['session']} | {b['block']} | {b['truth_voxels']} ({b.get('truth_largest_voxels', '-')}) "
+                             f"| {b['changed']} | {b['removed_voxels']} | {b['added_voxels']} | "
+                             f"{_f(b.get('largest_change_m3'), 1)} | {b['confirmed']} |")
     if "loc" in r:
         L += ["", "### Tracking loc_m12 (12 months later) on each map", "",
               "| map | ATE translation RMSE (m) | rotation RMSE (deg) | failures | rejected scans | frames |",

@@ -46,3 +46,24 @@ def test_update_cost_hashes_the_unchanged_blocks(tmp_path):
     assert c["unchanged_identical"] == 1 and c["unchanged_differ"] == ["002"]
     assert c["bytes_updated"] == 290 and c["bytes_fresh"] == 290 and c["bytes_stale"] == 300
     assert c["wall_per_block_s"] == 10.0 and c["cpu_per_block_s"] == 4.0 and c["held_back"] == 1
+
+
+def test_where_the_false_detections_lie():
+    from types import SimpleNamespace
+
+    from blockloc.maps.changes.detect import voxel_keys
+
+    class Volumes:  # one crown: a ball of 2 m radius, its centre 5 m up (world frame, z up)
+        center, radii = np.array([[0.0, 0.0, 5.0]]), np.array([[2.0, 2.0, 2.0]])
+
+        def __len__(self):
+            return 1
+
+    vol = Volumes()
+    terrain = SimpleNamespace(height=lambda x, y: np.full(np.shape(x), 1.0))
+    seq = SimpleNamespace(world=SimpleNamespace(volumes=vol, terrain=terrain))
+    # map frame = world (x, -y, -z), terrain 1 m up: in the crown; 0.25 m above the terrain;
+    # 3.25 m and 0.75 m above it
+    pts = np.array([[0.2, 0.2, -5.2], [10.2, 0.2, -1.2], [10.2, 0.2, -4.2], [20.2, 5.2, -1.6]])
+    w = B.where_voxels(seq, voxel_keys(pts, 0.5), 0.5)
+    assert w == {"vegetation": 1, "ground": 1, "other": 2}

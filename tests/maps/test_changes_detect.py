@@ -126,3 +126,81 @@ def test_wrong_poses_are_gated_or_skipped(world):
     st = ["recovered"] * len(T)
     run = W.write_run(d / "bad_reloc", d / "seq", Tb, st)
     assert len(read_run(run)) == 0
+
+
+def _crown_scans(stop_share: float, seed: int = 0):
+    """A see-through 'crown' (a 1.2 m ball of map points 10 m ahead) and a wall behind it at
+    x = 16; scans from 12 places along y, each ray towards the wall stopping inside the ball with
+    ``stop_share`` (0: the crown is gone). Returns the evidence and the map's voxel keys."""
+    from blockloc.maps.changes.detect import voxel_keys
+
+    rng = np.random.default_rng(seed)
+    ball = rng.normal(size=(1500, 3))
+    ball = np.array([10.0, 0, 2.0]) + 1.2 * ball / np.linalg.norm(ball, axis=1)[:, None] * rng.uniform(0, 1, (1500, 1)) ** (1 / 3)
+    gy, gz = np.meshgrid(np.arange(-6, 6, 0.25), np.arange(0, 4, 0.25))
+    wall = np.c_[np.full(gy.size, 16.0), gy.ravel(), gz.ravel()]
+    map_pts = np.concatenate([ball, wall])
+    fine_m = 0.2
+    map_keys = np.unique(voxel_keys(map_pts, 0.5))
+    ev = Evidence(0.5, 1.0, fine=(map_keys, fine_m, np.unique(voxel_keys(map_pts, fine_m))))
+    for y in np.linspace(-3, 3, 12):
+        origin = np.array([0.0, y, 2.0])
+        d = wall - origin
+        d /= np.linalg.norm(d, axis=1)[:, None]
+        # where each ray meets the ball (if it does), it stops there with stop_share
+        oc = origin - np.array([10.0, 0, 2.0])
+        b = (d @ oc)
+        disc = b ** 2 - (oc @ oc - 1.2 ** 2)
+        t_in = -b - np.sqrt(np.maximum(disc, 0))
+        t_out = -b + np.sqrt(np.maximum(disc, 0))
+        stop = (disc > 0) & (rng.uniform(size=len(d)) < stop_share)
+        t_hit = np.where(stop, rng.uniform(t_in, t_out), np.linalg.norm(wall - origin, axis=1))
+        ev.add_scan(origin, origin + d * t_hit[:, None])
+    return ev, map_keys
+
+
+def test_a_see_through_crown_is_not_removed_but_a_gone_one_is():
+    from blockloc.maps.changes.detect import Thresholds, classify
+
+    def removed_in_ball(stop_share):
+        ev, map_keys = _crown_scans(stop_share)
+        vc = classify(ev, map_keys, None, Thresholds(min_cluster_voxels=1))
+        c = _centres(vc.removed, 0.5)
+        return int((np.linalg.norm(c - [10.0, 0, 2.0], axis=1) < 1.5).sum())
+
+    # a crown rays stop in by chance (a third of them): hit in every scan, never removed
+    assert removed_in_ball(0.3) == 0
+    # the crown gone (every ray passes): its voxels are removed
+    assert removed_in_ball(0.0) >= 10
+
+
+def test_a_block_is_confirmed_by_one_coherent_change_not_by_scattered_voxels():
+    from blockloc.maps.changes.detect import Thresholds, VoxelChanges, block_report
+
+    th = Thresholds(min_block_m3=2.0)
+    # block A: 40 isolated voxels (noise spread over the block); block B: a 4 x 4 x 2 object (4 m^3)
+    scattered = np.sort(pack_keys(np.array([[4 * i, 4 * (i % 5), 0] for i in range(40)])))
+    obj = np.sort(pack_keys(np.array([[300 + i, j, k] for i in range(4) for j in range(4) for k in range(2)])))
+    removed = np.sort(np.concatenate([scattered, obj]))
+    vc = VoxelChanges(0.5, removed, np.zeros(0, np.int64), np.zeros(0, np.int64),
+                      {"removed": np.full(len(removed), -3.0), "added": np.zeros(0), "dynamic": np.zeros(0)},
+                      np.zeros(0, np.int64), np.full(len(removed), 9))
+    rows = {r["block"]: r for r in block_report(vc, {"A": scattered, "B": obj}, {}, {}, th)}
+    assert rows["A"]["removed_voxels"] == 40 and not rows["A"]["confirmed"]
+    assert rows["A"]["largest_change_m3"] == pytest.approx(0.125)
+    assert rows["B"]["confirmed"] and rows["B"]["largest_change_m3"] == pytest.approx(4.0)
+
+
+def test_a_sweep_is_deskewed_with_the_neighbouring_poses_only():
+    from blockloc.maps.changes.pipeline import sweep_poses
+    from blockloc.maps.changes.runs import RunPoses
+
+    stamps = np.array([0.0, 0.1, 0.2, 5.0, 5.1])
+    T = np.tile(np.eye(4), (5, 1, 1))
+    T[:, 0, 3] = stamps * 2.0
+    run = RunPoses(None, np.arange(5), stamps, T, {}, None)
+    assert list(sweep_poses(run, 1).stamps) == [0.0, 0.1, 0.2]
+    # across the gap after 0.2 s the pose is held, not interpolated towards 5.0 s
+    tr = sweep_poses(run, 2)
+    assert list(tr.stamps) == [0.1, 0.2]
+    assert tr.interpolate(np.array([0.25]))[0, 0, 3] == pytest.approx(0.4)

@@ -355,8 +355,15 @@ class Thresholds:
     min_scans: int = 5
     removed_logodds: float = 2.0
     added_logodds: float = 2.0
-    min_block_voxels: int = 8  # a block's change counts only with this many changed voxels
+    min_block_voxels: int = 8  # the bench's truth: a block changed with this many truth voxels
     min_cluster_voxels: int = 8  # removed / added voxels in smaller 26-connected clusters are noise
+    #: removed needs the voxel (nearly) empty today: this session's scans hit it in at most this
+    #: share of the scans that saw it (rays pass through a tree crown and stop in it by chance),
+    #: and no map voxel next to it hit in more (a crown's edge next to its core)
+    max_hit_share: float = 0.1
+    #: a block is confirmed when one 26-connected cluster of its changed voxels (removed and
+    #: added together) spans this volume, m^3 (scattered noise never forms one that large)
+    min_block_m3: float = 3.0  # chosen on the small world seed 1, loc_m12 (docs/bench/lifelong.md)
 
 
 @dataclass
@@ -384,7 +391,15 @@ def classify(ev: Evidence, map_keys: np.ndarray, map_free_fine: np.ndarray | Non
     the map's rays crossed."""
     L = ev.logodds(th.l_occ, th.l_free)
     in_map = np.isin(ev.keys, map_keys)
-    removed = in_map & (ev.n_free >= th.min_scans) & (L <= -th.removed_logodds)
+    seen = np.maximum(ev.n_hit + ev.n_free, 1)
+    removed = (in_map & (ev.n_free >= th.min_scans) & (L <= -th.removed_logodds)
+               & (ev.n_hit <= th.max_hit_share * seen))
+    # ... and next to no map voxel this session still hits: the edge of a see-through crown,
+    # crossed by few rays, can go unhit in every scan while its core is hit
+    cand = np.flatnonzero(removed)
+    if len(cand):
+        solid = in_map & (ev.n_hit + ev.n_free >= th.min_scans) & (ev.n_hit > th.max_hit_share * seen)
+        removed[cand[near_sorted(ev.keys[cand], ev.keys[solid])]] = False
     n_new, n_new_free = ev.new_counts(map_free_fine)
     L_added = n_new_free * th.l_occ + ev.n_free * th.l_free
     added = (n_new_free >= th.min_scans) & (L_added >= th.added_logodds)
@@ -410,7 +425,10 @@ def block_report(changes: VoxelChanges, block_keys: dict, block_keyframes: dict,
     block_points: block id -> (N, 3) its points (removed points are counted from them).
     Each dict: block, removed_voxels, removed_m3, removed_points (map points in them),
     added_voxels, added_m3, added_hits (scan hits in them, summed), dynamic_voxels, confidence (mean occupancy probability of the changed voxels' verdict: 0.5
-    unsure, 1 certain), confirmed (enough changed voxels: ``min_block_voxels``).
+    unsure, 1 certain), largest_change_m3 (the volume of the largest 26-connected cluster of the
+    block's removed and added voxels together), confirmed (``largest_change_m3 >= min_block_m3``:
+    one coherent changed object, not a count of scattered voxels that noise over a large block
+    reaches).
     """
     from scipy.spatial import cKDTree
 
@@ -443,12 +461,14 @@ def block_report(changes: VoxelChanges, block_keys: dict, block_keyframes: dict,
         if pts is not None and rm.any():
             n_rm_pts = int(np.isin(voxel_keys(pts, changes.voxel_m), changes.removed[rm]).sum())
         Ls = np.concatenate([changes.logodds["removed"][rm], changes.logodds["added"][ad]])
-        n_changed = int(rm.sum() + ad.sum())
+        both = np.unique(np.concatenate([changes.removed[rm], changes.added[ad]]))
+        largest_m3 = float(cluster_sizes(both).max() * v3) if len(both) else 0.0
         out.append({"block": b, "removed_voxels": int(rm.sum()), "removed_m3": round(float(rm.sum() * v3), 3),
                     "removed_points": n_rm_pts, "added_voxels": int(ad.sum()),
                     "added_m3": round(float(ad.sum() * v3), 3),
                     "added_hits": int(changes.added_hits[ad].sum()),
                     "dynamic_voxels": int(dy.sum()),
                     "confidence": round(float(p_of(Ls).mean()), 3) if len(Ls) else 0.0,
-                    "confirmed": n_changed >= th.min_block_voxels})
+                    "largest_change_m3": round(largest_m3, 3),
+                    "confirmed": largest_m3 >= th.min_block_m3})
     return out
