@@ -5,6 +5,7 @@ it goes, and the accuracy it keeps (issue 39: median <= 6 ms).
     python -m bench.update --work /work/acc --seeds 2 --frames 300      # a quick re-run
     python -m bench.update ... --profile 300                            # + a cProfile split (300 scans)
     python -m bench.update ... --json after.json --before before.json   # a before/after table
+    python -m bench.update ... --no-imu                                 # the LiDAR-only tracker
 
 Each seed's world is the layout ``python -m bench.seeds`` writes: ``WORK/sS/loc`` (the localization
 session) and ``WORK/sS_map`` (its block map). The session runs in this process as ``blockloc
@@ -51,7 +52,7 @@ def _q(a, p) -> float:
 
 
 def run_seed(world: Path, map_path: Path, frames: int | None, skip: int, profile: bool,
-             threads: int | None = None) -> dict:
+             threads: int | None = None, no_imu: bool = False) -> dict:
     """One session through the tracker, timed per scan. Returns the figures (see module doc)."""
     import cProfile
 
@@ -62,6 +63,8 @@ def run_seed(world: Path, map_path: Path, frames: int | None, skip: int, profile
     overrides: dict = {"evaluation": {"plots": False}}
     if threads:
         overrides["registration"] = {"num_threads": threads}
+    if no_imu:  # the LiDAR-only tracker, as blockloc track --no-imu
+        overrides["tracking"] = {"use_imu": False}
     cfg = config_for_sequence(seq, overrides=overrides)
     session = open_session(seq, cfg=cfg, map_path=str(map_path))
     tracker = session.tracker
@@ -109,7 +112,7 @@ def run_seed(world: Path, map_path: Path, frames: int | None, skip: int, profile
     known = np.nansum(np.stack([stage[k] for k in STAGES]), axis=0)
     stage["rest_ms"] = stage["update_ms"] - known
     w, c, pc = (np.asarray(a[skip:]) for a in (wall, thread_cpu, proc_cpu))
-    out = {"world": str(world), "map": str(map_path), "frames": len(diags), "timed": len(w),
+    out = {"world": str(world), "map": str(map_path), "frames": len(diags), "timed": len(w), "no_imu": no_imu,
            "num_threads": cfg.registration.num_threads,
            "failures": int(tracker.counters["failures"]), "rejected": int(tracker.counters["rejected"]),
            "ate_trans_rmse_m": ev["ate_trans_rmse_m"], "ate_rot_rmse_deg": ev["ate_rot_rmse_deg"],
@@ -160,6 +163,10 @@ def profile_split(prof, scans: int) -> dict:
     return out
 
 
+def _seed_name(s: dict) -> str:
+    return Path(s["world"]).name + (" LiDAR-only" if s.get("no_imu") else "")
+
+
 def _f(x, fmt="{:.2f}") -> str:
     return "-" if x is None or (isinstance(x, float) and not np.isfinite(x)) else fmt.format(x)
 
@@ -186,7 +193,7 @@ def render(after: dict, before: dict | None, command: str) -> str:
             continue
         for s in res["seeds"]:
             w, c, p = s["wall_ms"], s["thread_cpu_ms"], s["process_cpu_ms"]
-            lines.append(f"| {Path(s['world']).name} | {label} | {s.get('num_threads')} | {s['timed']} | {_f(w['median'])} / {_f(w['p90'])} / "
+            lines.append(f"| {_seed_name(s)} | {label} | {s.get('num_threads')} | {s['timed']} | {_f(w['median'])} / {_f(w['p90'])} / "
                          f"{_f(w['p99'])} | {_f(c['median'])} / {_f(c['p90'])} / {_f(c['p99'])} | {_f(p['median'])} | "
                          f"{_f(s['load_avg']['start'], '{:.1f}')} / {_f(s['load_avg']['end'], '{:.1f}')} | "
                          f"{_f(s['ate_trans_rmse_m'], '{:.4f}')} | {_f(s['ate_rot_rmse_deg'], '{:.3f}')} | "
@@ -200,7 +207,7 @@ def render(after: dict, before: dict | None, command: str) -> str:
             continue
         for s in res["seeds"]:
             m = s["stage_median_ms"]
-            lines.append(f"| {Path(s['world']).name} | {label} | "
+            lines.append(f"| {_seed_name(s)} | {label} | "
                          + " | ".join(_f(m.get(k)) for k in STAGES + ("rest_ms",)) + " |")
     prof = [(label, s) for label, res in (("before", before), ("after", after)) if res
             for s in res["seeds"] if "profile" in s]
@@ -213,7 +220,7 @@ def render(after: dict, before: dict | None, command: str) -> str:
                   "time goes, finer than the diagnostics.", "",
                   "| seed | code | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
         for label, s in prof:
-            lines.append(f"| {Path(s['world']).name} | {label} | "
+            lines.append(f"| {_seed_name(s)} | {label} | "
                          + " | ".join(_f(s["profile"].get(n)) for n in names) + " |")
     return "\n".join(lines) + "\n"
 
@@ -232,6 +239,7 @@ def main(argv=None) -> int:
                     help="also a cProfile split by stage: a second run of N scans per seed (0: none)")
     ap.add_argument("--threads", type=int, default=None,
                     help="registration.num_threads (numba threads of the NDT passes; default: the preset's)")
+    ap.add_argument("--no-imu", action="store_true", help="the LiDAR-only tracker (as blockloc track --no-imu)")
     ap.add_argument("--json", type=Path, default=None, help="write the figures here too")
     ap.add_argument("--before", type=Path, default=None, help="an earlier run's --json, shown beside")
     ap.add_argument("--out", type=Path, default=OUT, help="the markdown section ('-': none)")
@@ -252,9 +260,9 @@ def main(argv=None) -> int:
             print(f"error: {world}/loc or {map_path} missing: make them with python -m bench.seeds --seeds {seed} "
                   f"--runs default --work {work}", file=sys.stderr)
             return 2
-        s = run_seed(world, map_path, a.frames, a.skip, False, a.threads)
+        s = run_seed(world, map_path, a.frames, a.skip, False, a.threads, a.no_imu)
         if a.profile:  # apart: the profiler's overhead stays out of the timed run
-            s["profile"] = run_seed(world, map_path, a.profile, a.skip, True, a.threads)["profile"]
+            s["profile"] = run_seed(world, map_path, a.profile, a.skip, True, a.threads, a.no_imu)["profile"]
             s["profile_scans"] = a.profile
         res["seeds"].append(s)
         print(f"seed {seed}: update wall median {s['wall_ms']['median']:.2f} ms, thread CPU median "
