@@ -64,3 +64,12 @@ def test_a_missing_world_names_the_command_that_makes_it(tmp_path):
                           "--out", "-"], cwd=root, capture_output=True, text=True)
     assert res.returncode == 2
     assert "python -m bench.seeds --seeds 9" in res.stderr and str(tmp_path / "s9") in res.stderr
+
+
+def test_render_marks_lidar_only_rows():
+    s = dict(_seed("/w/s2", 6.0), no_imu=True)
+    after = {"command": "python -m bench.update --seeds 2 --no-imu", "date": "d1", "machine": "m", "commit": "abc",
+             "skip": 5, "seeds": [s]}
+    rows = [line for line in update.render(after, None, after["command"]).splitlines()
+            if line.startswith("| s2 LiDAR-only | after |")]
+    assert len(rows) == 3  # times, stages, profile
