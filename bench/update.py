@@ -5,6 +5,8 @@ it goes, and the accuracy it keeps (issue 39: median <= 6 ms).
     python -m bench.update --work /work/acc --seeds 2 --frames 300      # a quick re-run
     python -m bench.update ... --profile 300                            # + a cProfile split (300 scans)
     python -m bench.update ... --json after.json --before before.json   # a before/after table
+    python -m bench.update ... --no-imu                                 # the LiDAR-only tracker
+    python -m bench.update --seeds 2 --frames 300 --ab registration     # A/B: this round's change off in A
 
 Each seed's world is the layout ``python -m bench.seeds`` writes: ``WORK/sS/loc`` (the localization
 session) and ``WORK/sS_map`` (its block map). The session runs in this process as ``blockloc
@@ -51,7 +53,7 @@ def _q(a, p) -> float:
 
 
 def run_seed(world: Path, map_path: Path, frames: int | None, skip: int, profile: bool,
-             threads: int | None = None) -> dict:
+             threads: int | None = None, no_imu: bool = False) -> dict:
     """One session through the tracker, timed per scan. Returns the figures (see module doc)."""
     import cProfile
 
@@ -62,6 +64,8 @@ def run_seed(world: Path, map_path: Path, frames: int | None, skip: int, profile
     overrides: dict = {"evaluation": {"plots": False}}
     if threads:
         overrides["registration"] = {"num_threads": threads}
+    if no_imu:  # the LiDAR-only tracker, as blockloc track --no-imu
+        overrides["tracking"] = {"use_imu": False}
     cfg = config_for_sequence(seq, overrides=overrides)
     session = open_session(seq, cfg=cfg, map_path=str(map_path))
     tracker = session.tracker
@@ -109,7 +113,7 @@ def run_seed(world: Path, map_path: Path, frames: int | None, skip: int, profile
     known = np.nansum(np.stack([stage[k] for k in STAGES]), axis=0)
     stage["rest_ms"] = stage["update_ms"] - known
     w, c, pc = (np.asarray(a[skip:]) for a in (wall, thread_cpu, proc_cpu))
-    out = {"world": str(world), "map": str(map_path), "frames": len(diags), "timed": len(w),
+    out = {"world": str(world), "map": str(map_path), "frames": len(diags), "timed": len(w), "no_imu": no_imu,
            "num_threads": cfg.registration.num_threads,
            "failures": int(tracker.counters["failures"]), "rejected": int(tracker.counters["rejected"]),
            "ate_trans_rmse_m": ev["ate_trans_rmse_m"], "ate_rot_rmse_deg": ev["ate_rot_rmse_deg"],
@@ -125,6 +129,91 @@ def run_seed(world: Path, map_path: Path, frames: int | None, skip: int, profile
            "load_avg": {"start": loads[0], "end": loads[-1], "mean": float(np.mean(loads))}}
     if prof is not None:
         out["profile"] = profile_split(prof, len(d))
+    return out
+
+
+class _WithoutFastPath:
+    """A registration engine without ``align_from_prediction``: the tracker then aligns with
+    ``align`` (the stages as before the fast path)."""
+
+    def __init__(self, engine) -> None:
+        self._engine = engine
+
+    def __getattr__(self, name):
+        if name == "align_from_prediction":
+            raise AttributeError(name)
+        return getattr(self._engine, name)
+
+
+def _without(change: str):
+    """A session edit that turns ``change`` off (A of an A/B run)."""
+    def edit(session) -> None:
+        if change == "smoother":  # LM's own stopping test only
+            session.tracker.window.one_step_m = session.tracker.window.one_step_rad = 0.0
+        elif change == "registration":
+            session.tracker.registration = _WithoutFastPath(session.tracker.registration)
+        else:
+            raise ValueError(f"--ab {change!r}: expected smoother or registration")
+    return edit
+
+
+def run_ab(world: Path, map_path: Path, frames: int | None, skip: int, change: str, no_imu: bool = False) -> dict:
+    """Two sessions of one world stepped alternately, scan by scan (the order swapped every scan),
+    A with ``change`` off, B as the code is: both see the same load. Per scan the thread CPU and
+    wall of each ``Session.step`` (``insert_frame`` and the scan's IMU samples fed to it); returns
+    medians, the paired median of B - A, each one's ATE over the scans run."""
+    from blockloc.app.catalog import config_for_sequence
+    from blockloc.app.runs import open_session
+    from blockloc.evaluation.report import evaluate_trajectories
+    from blockloc.geometry import Trajectory
+
+    seq = str(world / "loc")
+    overrides: dict = {"evaluation": {"plots": False}}
+    if no_imu:
+        overrides["tracking"] = {"use_imu": False}
+    runs = {}
+    for name in ("A", "B"):
+        session = open_session(seq, cfg=config_for_sequence(seq, overrides=overrides), map_path=str(map_path))
+        if name == "A":
+            _without(change)(session)
+        session.initialize("gt", 0)
+        runs[name] = {"session": session, "wall": [], "cpu": [], "stamps": [], "poses": [], "diags": []}
+    stop = len(runs["A"]["session"].seq) if frames is None else min(len(runs["A"]["session"].seq), frames)
+    streams = {n: r["session"].seq.frames(0, stop) for n, r in runs.items()}
+    loads = [os.getloadavg()[0]]
+    try:
+        for n in range(stop):
+            frames_now = {name: next(streams[name]) for name in runs}
+            for name in (("A", "B") if n % 2 == 0 else ("B", "A")):
+                r = runs[name]
+                c0, w0 = time.thread_time(), time.perf_counter()
+                est = r["session"].step(frames_now[name])
+                r["wall"].append((time.perf_counter() - w0) * 1e3)
+                r["cpu"].append((time.thread_time() - c0) * 1e3)
+                r["diags"].append(est.diagnostics)
+                if est.T_map_body is not None:
+                    r["stamps"].append(est.stamp)
+                    r["poses"].append(np.asarray(est.T_map_body))
+            if n % 100 == 0:
+                loads.append(os.getloadavg()[0])
+    finally:
+        for r in runs.values():
+            r["session"].close()
+    loads.append(os.getloadavg()[0])
+    out = {"world": str(world), "change": change, "no_imu": no_imu, "frames": stop,
+           "load_avg": {"min": min(loads), "max": max(loads)}}
+    for name, r in runs.items():
+        ev = evaluate_trajectories(r["session"].seq.ground_truth(),
+                                   Trajectory(np.asarray(r["stamps"]), np.asarray(r["poses"])),
+                                   align=False, max_time_diff_s=0.02, interpolate=True)
+        out[name] = {"wall_median_ms": float(np.median(r["wall"][skip:])),
+                     "thread_cpu_median_ms": float(np.median(r["cpu"][skip:])),
+                     "ate_trans_rmse_m": ev["ate_trans_rmse_m"],
+                     "failures": int(r["session"].tracker.counters["failures"]),
+                     "stage_median_ms": {k: float(np.nanmedian([getattr(x, k, np.nan) for x in r["diags"][skip:]]))
+                                         for k in STAGES}}
+    out["paired_thread_cpu_median_ms"] = float(np.median(np.subtract(runs["B"]["cpu"][skip:], runs["A"]["cpu"][skip:])))
+    out["paired_wall_median_ms"] = float(np.median(np.subtract(runs["B"]["wall"][skip:], runs["A"]["wall"][skip:])))
     return out
 
 
@@ -160,6 +249,10 @@ def profile_split(prof, scans: int) -> dict:
     return out
 
 
+def _seed_name(s: dict) -> str:
+    return Path(s["world"]).name + (" LiDAR-only" if s.get("no_imu") else "")
+
+
 def _f(x, fmt="{:.2f}") -> str:
     return "-" if x is None or (isinstance(x, float) and not np.isfinite(x)) else fmt.format(x)
 
@@ -186,7 +279,7 @@ def render(after: dict, before: dict | None, command: str) -> str:
             continue
         for s in res["seeds"]:
             w, c, p = s["wall_ms"], s["thread_cpu_ms"], s["process_cpu_ms"]
-            lines.append(f"| {Path(s['world']).name} | {label} | {s.get('num_threads')} | {s['timed']} | {_f(w['median'])} / {_f(w['p90'])} / "
+            lines.append(f"| {_seed_name(s)} | {label} | {s.get('num_threads')} | {s['timed']} | {_f(w['median'])} / {_f(w['p90'])} / "
                          f"{_f(w['p99'])} | {_f(c['median'])} / {_f(c['p90'])} / {_f(c['p99'])} | {_f(p['median'])} | "
                          f"{_f(s['load_avg']['start'], '{:.1f}')} / {_f(s['load_avg']['end'], '{:.1f}')} | "
                          f"{_f(s['ate_trans_rmse_m'], '{:.4f}')} | {_f(s['ate_rot_rmse_deg'], '{:.3f}')} | "
@@ -200,7 +293,7 @@ def render(after: dict, before: dict | None, command: str) -> str:
             continue
         for s in res["seeds"]:
             m = s["stage_median_ms"]
-            lines.append(f"| {Path(s['world']).name} | {label} | "
+            lines.append(f"| {_seed_name(s)} | {label} | "
                          + " | ".join(_f(m.get(k)) for k in STAGES + ("rest_ms",)) + " |")
     prof = [(label, s) for label, res in (("before", before), ("after", after)) if res
             for s in res["seeds"] if "profile" in s]
@@ -213,7 +306,7 @@ def render(after: dict, before: dict | None, command: str) -> str:
                   "time goes, finer than the diagnostics.", "",
                   "| seed | code | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
         for label, s in prof:
-            lines.append(f"| {Path(s['world']).name} | {label} | "
+            lines.append(f"| {_seed_name(s)} | {label} | "
                          + " | ".join(_f(s["profile"].get(n)) for n in names) + " |")
     return "\n".join(lines) + "\n"
 
@@ -232,6 +325,10 @@ def main(argv=None) -> int:
                     help="also a cProfile split by stage: a second run of N scans per seed (0: none)")
     ap.add_argument("--threads", type=int, default=None,
                     help="registration.num_threads (numba threads of the NDT passes; default: the preset's)")
+    ap.add_argument("--no-imu", action="store_true", help="the LiDAR-only tracker (as blockloc track --no-imu)")
+    ap.add_argument("--ab", choices=("smoother", "registration"), default=None,
+                    help="instead: an A/B run, two sessions stepped alternately, A with this round's "
+                         "smoother or registration change off (printed, and in --json)")
     ap.add_argument("--json", type=Path, default=None, help="write the figures here too")
     ap.add_argument("--before", type=Path, default=None, help="an earlier run's --json, shown beside")
     ap.add_argument("--out", type=Path, default=OUT, help="the markdown section ('-': none)")
@@ -252,9 +349,19 @@ def main(argv=None) -> int:
             print(f"error: {world}/loc or {map_path} missing: make them with python -m bench.seeds --seeds {seed} "
                   f"--runs default --work {work}", file=sys.stderr)
             return 2
-        s = run_seed(world, map_path, a.frames, a.skip, False, a.threads)
+        if a.ab:
+            s = run_ab(world, map_path, a.frames, a.skip, a.ab, a.no_imu)
+            res["seeds"].append(s)
+            print(f"seed {seed} --ab {a.ab}: thread CPU median A {s['A']['thread_cpu_median_ms']:.2f} -> B "
+                  f"{s['B']['thread_cpu_median_ms']:.2f} ms (paired B-A {s['paired_thread_cpu_median_ms']:+.2f}), "
+                  f"wall A {s['A']['wall_median_ms']:.2f} -> B {s['B']['wall_median_ms']:.2f} ms (paired "
+                  f"{s['paired_wall_median_ms']:+.2f}), ATE A {s['A']['ate_trans_rmse_m']:.4f} -> B "
+                  f"{s['B']['ate_trans_rmse_m']:.4f} m, load {s['load_avg']['min']:.1f}-{s['load_avg']['max']:.1f}",
+                  flush=True)
+            continue
+        s = run_seed(world, map_path, a.frames, a.skip, False, a.threads, a.no_imu)
         if a.profile:  # apart: the profiler's overhead stays out of the timed run
-            s["profile"] = run_seed(world, map_path, a.profile, a.skip, True, a.threads)["profile"]
+            s["profile"] = run_seed(world, map_path, a.profile, a.skip, True, a.threads, a.no_imu)["profile"]
             s["profile_scans"] = a.profile
         res["seeds"].append(s)
         print(f"seed {seed}: update wall median {s['wall_ms']['median']:.2f} ms, thread CPU median "
@@ -262,6 +369,8 @@ def main(argv=None) -> int:
               f"{s['load_avg']['mean']:.1f}", flush=True)
     if a.json:
         atomic_write_text(a.json, json.dumps(res, indent=1))
+    if a.ab:
+        return 0
     before = json.loads(a.before.read_text()) if a.before else None
     if str(a.out) != "-":
         atomic_write_text(a.out, render(res, before, command))

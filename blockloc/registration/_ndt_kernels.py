@@ -384,7 +384,8 @@ def _solve_clamped(H, b, floor_abs):
 
 @njit(cache=True, nogil=True)
 def ndt_level(points, stride, T_init, level, neighbors, d1, d2, inlier_q, key_cache, row_cache,
-              max_iterations, epsilon, max_step_m, max_step_rad, gauss_newton, first_mode):
+              max_iterations, epsilon, max_step_m, max_step_rad, gauss_newton, first_mode,
+              max_first_step=np.inf):
     """Newton iterations of one level, step and line search included (one call per level).
 
     Arguments as ``ndt_evaluate``; T_init (4, 4) the start. Per iteration: direction -H^-1 b
@@ -401,7 +402,9 @@ def ndt_level(points, stride, T_init, level, neighbors, d1, d2, inlier_q, key_ca
     and m together) < epsilon, without taking it: T then lies within about epsilon of the
     minimum of the local quadratic model that b and H at T describe, and the pass after the
     step is saved; or when the step just taken ``|alpha d|`` < epsilon; or (not converged)
-    after max_iterations (0: evaluate only).
+    after max_iterations (0: evaluate only). When the first step (after the cap) is at least
+    ``max_first_step`` long, nothing is taken: T_init returned, 0 iterations, not converged
+    (the start is not where this level alone converges fast).
 
     Returns (T (4, 4), acc (ACC_LEN,) at T, b (6,), H (6, 6) exact (Gauss-Newton with
     gauss_newton), iterations, converged, passes over the points).
@@ -444,6 +447,8 @@ def ndt_level(points, stride, T_init, level, neighbors, d1, d2, inlier_q, key_ca
             scale = min(scale, max_step_m / nt)
         d = d * scale
         dnorm = np.sqrt(nr * nr + nt * nt) * scale
+        if iterations == 0 and dnorm >= max_first_step:
+            break
         if dnorm < epsilon:
             converged = True
             break

@@ -134,5 +134,10 @@ class NdtEngine:
     def align(self, target, source_points, T_init=None):
         return self.registration.align(target, source_points, T_init)
 
+    def align_from_prediction(self, target, source_points, T_pred):
+        """:meth:`align` from a tracker's prediction: the fine level alone first
+        (:meth:`NdtRegistration.align_from_prediction`)."""
+        return self.registration.align_from_prediction(target, source_points, T_pred)
+
     def evaluate(self, target, source_points, T_target_source):
         return self.registration.evaluate(target, source_points, T_target_source, derivatives=False)

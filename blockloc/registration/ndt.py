@@ -593,7 +593,7 @@ class NdtRegistration:
 
     def _level(self, snap: _Snapshot, neighbors: str, src: np.ndarray, stride: int,
                T: np.ndarray, epsilon: float, max_iterations: int, memo: tuple,
-               first_both: bool):
+               first_both: bool, max_first_step: float = np.inf):
         """One ``ndt_level`` kernel call: (T, acc, b, H, iterations, converged, passes)."""
         k = _kernels()
         d1, d2 = ndt_constants(snap.resolution, self.outlier_ratio)
@@ -602,7 +602,7 @@ class NdtRegistration:
                           INLIER_MAHALANOBIS_SQ, memo[0], memo[1], max_iterations, epsilon,
                           max_step_m, self.max_step_rad,
                           self.step == "gauss_newton",
-                          k.MODE_BOTH if first_both else k.MODE_EXACT)
+                          k.MODE_BOTH if first_both else k.MODE_EXACT, max_first_step)
         if self.stage_observer is not None:
             self.stage_observer(neighbors, float(snap.resolution), int(stride), out[6])
         return out
@@ -652,6 +652,48 @@ class NdtRegistration:
                                                      False)
         iterations += it
         passes += p
+        return self._result(fine, src, T, acc, b, H, iterations, converged, coarse_iterations, passes, memo)
+
+    def align_from_prediction(self, target: NdtTarget, source_points: np.ndarray, T_pred: np.ndarray,
+                              max_first_step: float = 0.03, max_iterations: int = 6) -> NdtResult:
+        """Register from a prediction that is usually already close (a tracker's, from the IMU or
+        a motion model): when the fine level's (``neighbors``) first Newton step from ``T_pred``
+        is shorter than ``max_first_step`` (rad and m together, as ``step_epsilon``), the fine
+        level alone iterates from there (at most ``max_iterations``); when it does not converge
+        within them (or within a quarter of the resolution of ``T_pred``), or the first step is
+        longer, :meth:`align` runs its stages from ``T_pred`` (the passes spent are counted,
+        one when the first step decided).
+
+        Arguments and result as :meth:`align`. Why: from such a start the coarse and search
+        stages only repeat what the fine level does alone (measured on the small world, seed 2,
+        150 scans: 7.2 passes over the points with them, 3.1 without, the same optimum within
+        1.4 mm median); from a start 10 cm off (the real HDL-32E pair) the fine level alone
+        needs 4-7 iterations, and its first step there is 3-10 cm long.
+        """
+        levels = target.levels()
+        src = _as_points(source_points, "source points", MIN_SOURCE_POINTS)
+        T0 = _check_T(T_pred, "T_pred")
+        fine = levels[0]
+        if len(fine.keys) == 0:
+            return self.align(target, src, T0)
+        if self.num_threads:
+            import numba
+
+            numba.set_num_threads(min(int(self.num_threads), numba.config.NUMBA_NUM_THREADS))
+        memo = _new_memo(len(src))
+        T, acc, b, H, it, converged, passes = self._level(
+            fine, self.neighbors, src, 1, T0, self.step_epsilon, min(int(max_iterations), self.max_iterations),
+            memo, False, max_first_step)
+        moved_m = float(np.linalg.norm(T[:3, 3] - T0[:3, 3]))
+        if not (converged and acc[1] > 0 and moved_m <= 0.25 * fine.resolution):
+            res = self.align(target, src, T0)
+            res.passes += passes
+            return res
+        return self._result(fine, src, T, acc, b, H, it, converged, 0, passes, memo)
+
+    def _result(self, fine: _Snapshot, src: np.ndarray, T: np.ndarray, acc, b, H, iterations: int,
+                converged: bool, coarse_iterations: int, passes: int, memo: tuple) -> NdtResult:
+        """The NdtResult of a fine level's outcome (``ndt_level``'s T, acc, b, H)."""
         ev = NdtEvaluation(float(acc[0]), int(round(acc[1])), b, H)
         if self.step == "gauss_newton":  # exact H at the result
             ev = self._eval(fine, NEIGHBORS[self.neighbors], src, T, True, False, memo)

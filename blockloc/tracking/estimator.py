@@ -20,7 +20,10 @@ Collaborators are duck-typed so tests can hand in small fakes:
   and optionally ``.block_id`` / ``.region_id``; optionally ``map_provider.relocate(position,
   velocity, stamp)``, called after a relocalization (the map where the robot is now, waited for);
 - ``registration.align(target, source_points (N, 3), T_init (4, 4)) -> result`` with
-  ``T_target_source``, ``converged``, ``fitness``, ``H`` (6, 6, Pose3 tangent order);
+  ``T_target_source``, ``converged``, ``fitness``, ``H`` (6, 6, Pose3 tangent order); optionally
+  ``registration.align_from_prediction(target, source_points, T_pred)`` (the same result), used
+  from the variant's prediction: an engine may save work where the start is already close (NDT
+  skips its coarse stages when its fine level alone converges near the prediction);
 - ``relocalize(points_lidar (N, 3), hint_T_map_body (4, 4) | None, gravity_body (3,), stamp)
   -> T_map_body (4, 4) | None``.
 """
@@ -283,8 +286,12 @@ class Estimator(Restarts):
 
     def _align(self, target, scan_pts, T_guess, T_pred, gates):
         """One registration from ``T_guess``: (T_ndt, result, fitness, innovation m, deg, reject
-        reason: "" when healthy)."""
-        res = self.registration.align(target, scan_pts, T_guess @ self.T_body_lidar)
+        reason: "" when healthy). From the prediction itself (``T_guess is T_pred``) through the
+        engine's ``align_from_prediction`` when it has one."""
+        align = self.registration.align
+        if T_guess is T_pred:
+            align = getattr(self.registration, "align_from_prediction", align)
+        res = align(target, scan_pts, T_guess @ self.T_body_lidar)
         T_ndt = np.asarray(res.T_target_source) @ self.T_lidar_body
         fitness = float(res.fitness)
         inn_m = float(np.linalg.norm(T_ndt[:3, 3] - T_pred[:3, 3]))

@@ -50,7 +50,7 @@ class ImuTracker(Estimator):
         values = gtsam.Values()
         values.insert(kx, gtsam.Pose3(T))
         values.insert(kv, vel)
-        values.insert(kb, bias)
+        values.insert(kb, constant_bias=bias)
         self.window.add_keyframe(i, stamp, values)
         for factor in state_priors(keys_of(i), T, vel, bias, f.init_sigma_rot_rad, f.init_sigma_trans_m,
                                    sigma_vel_m_s, f.init_sigma_acc_bias, f.init_sigma_gyro_bias):
@@ -109,7 +109,8 @@ class ImuTracker(Estimator):
         pim = gtsam.PreintegratedCombinedMeasurements(self.imu_params, bias_prev)
         diag.imu_gap_s = integrate(pim, self.imu, t_prev, stamp)
         values.insert(kv, v_pred)
-        values.insert(kb, bias_prev)
+        # by keyword: positionally pybind tries 43 other overloads first (measured 160 us against 55)
+        values.insert(kb, constant_bias=bias_prev)
         self.window.add_keyframe(k, stamp, values)
         self.window.add_factor(gtsam.CombinedImuFactor(px, pv, kx, kv, pb, kb, pim))
 

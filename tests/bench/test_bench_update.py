@@ -64,3 +64,37 @@ def test_a_missing_world_names_the_command_that_makes_it(tmp_path):
                           "--out", "-"], cwd=root, capture_output=True, text=True)
     assert res.returncode == 2
     assert "python -m bench.seeds --seeds 9" in res.stderr and str(tmp_path / "s9") in res.stderr
+
+
+def test_render_marks_lidar_only_rows():
+    s = dict(_seed("/w/s2", 6.0), no_imu=True)
+    after = {"command": "python -m bench.update --seeds 2 --no-imu", "date": "d1", "machine": "m", "commit": "abc",
+             "skip": 5, "seeds": [s]}
+    rows = [line for line in update.render(after, None, after["command"]).splitlines()
+            if line.startswith("| s2 LiDAR-only | after |")]
+    assert len(rows) == 3  # times, stages, profile
+
+
+def test_ab_edits_turn_one_change_off():
+    """A of --ab smoother: LM's own stopping test (no one-iteration shortcut); A of --ab
+    registration: an engine without align_from_prediction (the tracker then calls align)."""
+    from types import SimpleNamespace
+
+    import pytest
+
+    class Engine:
+        def align(self, *a):
+            return "align"
+
+        def align_from_prediction(self, *a):
+            return "fast"
+
+    window = SimpleNamespace(one_step_m=0.01, one_step_rad=0.0035)
+    session = SimpleNamespace(tracker=SimpleNamespace(window=window, registration=Engine()))
+    update._without("smoother")(session)
+    assert window.one_step_m == 0.0 and window.one_step_rad == 0.0
+    update._without("registration")(session)
+    engine = session.tracker.registration
+    assert not hasattr(engine, "align_from_prediction") and engine.align() == "align"
+    with pytest.raises(ValueError):
+        update._without("other")(session)

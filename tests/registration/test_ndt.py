@@ -139,6 +139,54 @@ def test_align_makes_one_kernel_call_per_level_and_stage(hdl_pair, monkeypatch):
     assert [(c[0], c[2]) for c in calls] == [("ndt_level", 1), ("ndt_level", 7)]
 
 
+def test_align_from_prediction_near_start_fine_level_only(hdl_pair, monkeypatch):
+    """From starts within 1 cm / 0.1 deg of the optimum (an IMU prediction on the simulated
+    worlds): the DIRECT7 level alone (one kernel call), in fewer passes than align(), at DIRECT7's
+    optimum within the stopping tolerance (step_epsilon 1e-3; align() from these starts ends up
+    to 1 cm / 0.4 deg away from it: its coarse level moves the pose first)."""
+    from blockloc.registration import _ndt_kernels as k
+
+    target_pts, source, T_ref = hdl_pair
+    target = NdtTarget.build(target_pts, resolution=1.0)
+    reg = NdtRegistration()
+    T_opt = NdtRegistration(search_neighbors=None, coarse_to_fine=False, step_epsilon=1e-7).align(
+        target, source, T_ref).T_target_source
+    fitness_opt = reg.evaluate(target, source, T_opt).num_inliers / len(source)
+    rng = np.random.default_rng(11)
+    calls = []
+    real = k.ndt_level
+    monkeypatch.setattr(k, "ndt_level", lambda *a: calls.append(a[4]) or real(*a))
+    for _ in range(6):
+        T0 = T_opt @ xyzrpy_to_T(*rng.uniform(-0.01, 0.01, 3), *np.radians(rng.uniform(-0.1, 0.1, 3)))
+        calls.clear()
+        fast = reg.align_from_prediction(target, source, T0)
+        assert calls == [7] and fast.coarse_iterations == 0 and fast.converged
+        et, er = pose_error(fast.T_target_source, T_opt)
+        # the stop leaves the pose about step_epsilon (1e-3, rad and m together) from the optimum
+        assert np.hypot(et, np.radians(er)) < 2e-3, (et, er)
+        full = reg.align(target, source, T0)
+        assert fast.passes < full.passes
+        assert fast.fitness == pytest.approx(fitness_opt, abs=0.01)
+
+
+@pytest.mark.parametrize("offset", [(0.1, -0.08, 0.05, 0.5), (0.6, -0.4, 0.1, 4.0)])
+def test_align_from_prediction_far_start_falls_back_to_align(hdl_pair, offset):
+    """From starts 10 cm / 0.5 deg and 0.6 m / 4 deg off (the fine level alone does not converge
+    fast there): align()'s result from the same start, the passes spent first counted on top."""
+    target_pts, source, T_ref = hdl_pair
+    target = NdtTarget.build(target_pts, resolution=1.0)
+    reg = NdtRegistration()
+    x, y, z, yaw_deg = offset
+    T0 = T_ref @ xyzrpy_to_T(x, y, z, 0.0, 0.0, np.radians(yaw_deg))
+    fast = reg.align_from_prediction(target, source, T0)
+    full = reg.align(target, source, T0)
+    np.testing.assert_allclose(fast.T_target_source, full.T_target_source, atol=1e-12)
+    assert fast.coarse_iterations == full.coarse_iterations > 0
+    assert full.passes < fast.passes <= full.passes + 3
+    et, er = pose_error(fast.T_target_source, T_ref)
+    assert et < 0.05 and er < 0.5, (et, er)
+
+
 # ------------------------------------------------------------------------------------------
 # synthetic scene
 

@@ -103,3 +103,40 @@ def test_enforce_size_shrinks_on_switch_only():
 def test_bad_window_size():
     with pytest.raises(ValueError):
         SlidingWindow(max_size=0)
+
+
+def test_one_iteration_near_the_optimum_more_after_a_large_step():
+    """optimize stops after one LM iteration when no pose moved by one_step_m / one_step_rad (and
+    lands where converged iterations land), and iterates on from a start far from the optimum."""
+    import gtsam
+
+    factors, initial = _chain(12, seed=2)
+    win = SlidingWindow(max_size=100, max_iterations=50)
+    for i in range(12):
+        _add(win, i, factors, initial)
+    start = gtsam.Values(win.values)
+    win.optimize()  # from 5 cm / 3 deg off: more than one iteration
+    assert win.stats.iterations > 1
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-12)
+    params.setAbsoluteErrorTol(1e-12)
+    params.setMaxIterations(50)
+    converged = gtsam.LevenbergMarquardtOptimizer(win.graph(), start, params).optimize()
+    # every pose 1 mm / 0.3 mrad from the optimum, as a tracked scan's window starts
+    near = gtsam.Values()
+    for i in range(12):
+        k = keys_of(i)[0]
+        near.insert(k, converged.atPose3(k).retract(np.r_[np.full(3, 0.0002), np.full(3, 0.0006)]))
+    win.values = near
+    win.optimize()
+    assert win.stats.iterations == 1
+    for i in range(12):
+        k = keys_of(i)[0]
+        np.testing.assert_allclose(win.values.atPose3(k).matrix(), converged.atPose3(k).matrix(), atol=1e-5)
+    # the same start with the shortcut off: LM's own test, a second iteration
+    off = SlidingWindow(max_size=100, max_iterations=50, one_step_m=0.0, one_step_rad=0.0)
+    for i in range(12):
+        _add(off, i, factors, initial)
+    off.values = gtsam.Values(near)
+    off.optimize()
+    assert off.stats.iterations == 2
