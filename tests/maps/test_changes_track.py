@@ -3,7 +3,7 @@ looked at: the ``/changes/*`` layer of ``run.mcap`` and the changes section of `
 (also for ``blockloc map changes --run``).
 
 The world is the fault suite's tiny NCLT-layout session (40 scans along a circle, IMU, ground
-truth) tracked in its own block map, into which a phantom wall was put 2.5 m beside the path:
+truth) tracked in its own block map, into which a phantom wall was put 6 m beside the path:
 the run's rays pass through it, so it must come out as removed, in the block that holds it.
 """
 
@@ -19,15 +19,16 @@ import pytest
 from blockloc.maps.store import MapWriter, open_map
 from tests.faults import tiny
 
-#: The phantom wall (map frame, m): 3 m along the path's tangent at angle 0.7 rad, 2.5 m outside
-#: the 20 m circle, 0.6-2.6 m above the sloped ground.
-PHANTOM_ANGLE, PHANTOM_RADIUS = 0.7, 22.5
+#: The phantom wall (map frame, m): 3 m along the path's tangent at angle 0.7 rad, 6 m outside
+#: the 20 m circle, standing 3 m tall on the sloped ground. (Closer, the beams cross only its
+#: lowest 1.5 m, which the detector leaves alone next to the ground the scans hit.)
+PHANTOM_ANGLE, PHANTOM_RADIUS = 0.7, 26.0
 
 
 def phantom_points() -> np.ndarray:
     c = PHANTOM_RADIUS * np.array([np.cos(PHANTOM_ANGLE), np.sin(PHANTOM_ANGLE)])
     tangent = np.array([-np.sin(PHANTOM_ANGLE), np.cos(PHANTOM_ANGLE)])
-    s, h = np.meshgrid(np.arange(-1.5, 1.5, 0.2), np.arange(0.6, 2.6, 0.2))
+    s, h = np.meshgrid(np.arange(-1.5, 1.5, 0.2), np.arange(0.0, 3.0, 0.2))
     xy = c + s.reshape(-1, 1) * tangent
     ground = 0.02 * xy[:, 0] + 0.3 * np.sin(xy[:, 1] / 15.0)
     return np.c_[xy, ground + h.reshape(-1)]
