@@ -1,4 +1,5 @@
-"""Numba kernels of the branch-and-bound search (compiled once, cached on disk).
+"""Numba kernels of the branch-and-bound search, the place descriptors and the map points' 2D cells
+(compiled once, cached on disk).
 
 Conventions: ``levels`` (H+1, NX, NY) uint8 pyramid crop; ``dx, dy`` (A, N) int32 crop-relative cell
 offsets of the scan cells rotated by each of the A angles; a node is (angle a, translation tx, ty in
@@ -371,4 +372,51 @@ def visible_polar_bits(occ, ci, cj, res, num_rays, min_range, ring_width, num_ri
                     ring = int((r - min_range) / ring_width)
                     out[p, ring, sector >> 6] |= one << np.uint64(sector & 63)
                 r += step
+    return out
+
+
+# ----------------------------------------------------------------------------- map points in 2D cells
+# (refinement: the points of a box, ``refine.Footprint``). ``R2`` (2, 3) float64: the first two rows
+# of R_L_map (map frame -> levelled xy).
+
+
+@njit(cache=True)
+def cell_bounds(points, R2, cell_m):
+    """(min x, min y, max x, max y) int64 of the levelled cells floor(R2 @ p / cell_m) of points (N, 3)."""
+    lo0 = lo1 = np.int64(1) << 62
+    hi0 = hi1 = -(np.int64(1) << 62)
+    for k in range(points.shape[0]):
+        x = points[k, 0] * R2[0, 0] + points[k, 1] * R2[0, 1] + points[k, 2] * R2[0, 2]
+        y = points[k, 0] * R2[1, 0] + points[k, 1] * R2[1, 1] + points[k, 2] * R2[1, 2]
+        i = np.int64(np.floor(x / cell_m))
+        j = np.int64(np.floor(y / cell_m))
+        lo0 = min(lo0, i)
+        hi0 = max(hi0, i)
+        lo1 = min(lo1, j)
+        hi1 = max(hi1, j)
+    return lo0, lo1, hi0, hi1
+
+
+@njit(cache=True)
+def cell_counts(points, R2, cell_m, lo0, lo1, nx, ny):
+    """(nx, ny) int32 counts of points (N, 3) per levelled cell, cells [lo, lo + (nx, ny))."""
+    out = np.zeros((nx, ny), np.int32)
+    for k in range(points.shape[0]):
+        x = points[k, 0] * R2[0, 0] + points[k, 1] * R2[0, 1] + points[k, 2] * R2[0, 2]
+        y = points[k, 0] * R2[1, 0] + points[k, 1] * R2[1, 1] + points[k, 2] * R2[1, 2]
+        i = np.int64(np.floor(x / cell_m)) - lo0
+        j = np.int64(np.floor(y / cell_m)) - lo1
+        if i >= 0 and j >= 0 and i < nx and j < ny:
+            out[i, j] += 1
+    return out
+
+
+@njit(cache=True)
+def in_levelled_box(points, R2, x0, y0, x1, y1):
+    """(N,) bool: points (N, 3) whose levelled xy lies in [x0, x1] x [y0, y1] (m)."""
+    out = np.empty(points.shape[0], np.bool_)
+    for k in range(points.shape[0]):
+        x = points[k, 0] * R2[0, 0] + points[k, 1] * R2[0, 1] + points[k, 2] * R2[0, 2]
+        y = points[k, 0] * R2[1, 0] + points[k, 1] * R2[1, 1] + points[k, 2] * R2[1, 2]
+        out[k] = x >= x0 and x <= x1 and y >= y0 and y <= y1
     return out
