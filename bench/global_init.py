@@ -376,7 +376,9 @@ def run(argv: list[str]) -> dict:
                 raise SystemExit(f"unknown method {m}")
             e_t, e_r = pose_error(T, T_gt) if T is not None else (math.inf, math.inf)
             rows[m].append((int(i), e_t, e_r, dt, extra, cpu))
-        line = "  ".join(f"{m} {rows[m][-1][1]:.2f}m {rows[m][-1][3]:.2f}s" for m in methods if rows[m]
+        # error, wall and CPU per frame: a run stopped before its table still leaves its figures
+        line = "  ".join(f"{m} {rows[m][-1][1]:.2f}m {rows[m][-1][2]:.2f}deg {rows[m][-1][3]:.2f}s "
+                         f"cpu {rows[m][-1][5]:.2f}s" for m in methods if rows[m]
                          and rows[m][-1][0] == int(i))
         print(f"[{k + 1}/{len(frames)}] frame {i}: {line}", flush=True)
     bbs_note = bbs3d_rows(args, loc, frames, hints, seq, imu, gt, params, rows, methods) if args.bbs3d_frames else ""
@@ -440,7 +442,8 @@ def run(argv: list[str]) -> dict:
             reloc[name].append((int(i), e_t, e_r, dt, res.stats.get("regions_searched", 0),
                                 res.stats.get("regions", 0), bool(res.verified), bool(res.ambiguous),
                                 res.stats.get("place_stage", 0)))
-            print(f"[reloc {name}] frame {i}: {e_t:.2f} m {e_r:.2f} deg {dt:.2f} s verified {res.verified} "
+            print(f"[reloc {name}] frame {i}: {e_t:.2f} m {e_r:.2f} deg {dt:.2f} s cpu {cpu_s[name][-1]:.2f} s "
+                  f"load {os.getloadavg()[0]:.1f} verified {res.verified} "
                   f"ambiguous {res.ambiguous} place stage {res.stats.get('place_stage')} regions "
                   f"{res.stats.get('regions_searched')}/{res.stats.get('regions')}", flush=True)
 
