@@ -327,7 +327,9 @@ def run(argv: list[str]) -> dict:
             index_build_s = time.perf_counter() - t0
     loc = GlobalLocalizer.for_store(store, seq.info.gravity_map, params)
     t0 = time.perf_counter()
-    loc.map.precompute()
+    # the pyramids and the on-disk copy of the points refinement reads (warm figures; the cold
+    # first call of a fresh process is --cold's)
+    loc.map.precompute(points=True)
     t_pre = time.perf_counter() - t0
     loc_all = None
     if "bbs+s0/all" in args.methods:
@@ -377,7 +379,9 @@ def run(argv: list[str]) -> dict:
                 raise SystemExit(f"unknown method {m}")
             e_t, e_r = pose_error(T, T_gt) if T is not None else (math.inf, math.inf)
             rows[m].append((int(i), e_t, e_r, dt, extra, cpu))
-        line = "  ".join(f"{m} {rows[m][-1][1]:.2f}m {rows[m][-1][3]:.2f}s" for m in methods if rows[m]
+        # error, wall and CPU per frame: a run stopped before its table still leaves its figures
+        line = "  ".join(f"{m} {rows[m][-1][1]:.2f}m {rows[m][-1][2]:.2f}deg {rows[m][-1][3]:.2f}s "
+                         f"cpu {rows[m][-1][5]:.2f}s" for m in methods if rows[m]
                          and rows[m][-1][0] == int(i))
         print(f"[{k + 1}/{len(frames)}] frame {i}: {line}", flush=True)
     bbs_note = bbs3d_rows(args, loc, frames, hints, seq, imu, gt, params, rows, methods) if args.bbs3d_frames else ""
@@ -442,7 +446,8 @@ def run(argv: list[str]) -> dict:
             reloc[name].append((int(i), e_t, e_r, dt, res.stats.get("regions_searched", 0),
                                 res.stats.get("regions", 0), bool(res.verified), bool(res.ambiguous),
                                 res.stats.get("place_stage", 0)))
-            print(f"[reloc {name}] frame {i}: {e_t:.2f} m {e_r:.2f} deg {dt:.2f} s verified {res.verified} "
+            print(f"[reloc {name}] frame {i}: {e_t:.2f} m {e_r:.2f} deg {dt:.2f} s cpu {cpu_s[name][-1]:.2f} s "
+                  f"load {os.getloadavg()[0]:.1f} verified {res.verified} "
                   f"ambiguous {res.ambiguous} place stage {res.stats.get('place_stage')} regions "
                   f"{res.stats.get('regions_searched')}/{res.stats.get('regions')}", flush=True)
             if name == "place index" and args.follow_up > 0:
@@ -458,7 +463,7 @@ def run(argv: list[str]) -> dict:
          f"Data: simulated `{seq_name}` against the `{store.kind}` map ({args.map_source}) of `sim:{args.preset}/map@{args.seed}` ")
         +
         f"({len(store)} entries, {store.total_points:,} points); map build {t_map:.1f} s (0 if cached), "
-        f"pyramid precompute/cache load {t_pre:.2f} s.",
+        f"pyramids and points precompute/cache load {t_pre:.2f} s.",
         f"{len(frames)} random frames; hint = ground truth + uniform +-{args.hint_error:g} m in x and y "
         f"({args.window:g} x {args.window:g} m window), yaw unknown (360 deg). Success: verified and <= 0.3 m and "
         f"<= 2 deg after NDT refinement. Projection: `{args.projection}`. Load average (1 min) "

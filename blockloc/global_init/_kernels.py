@@ -1,4 +1,5 @@
-"""Numba kernels of the branch-and-bound search (compiled once, cached on disk).
+"""Numba kernels of the branch-and-bound search, the place descriptors and the map points' 2D cells
+(compiled once, cached on disk).
 
 Conventions: ``levels`` (H+1, NX, NY) uint8 pyramid crop; ``dx, dy`` (A, N) int32 crop-relative cell
 offsets of the scan cells rotated by each of the A angles; a node is (angle a, translation tx, ty in
@@ -372,3 +373,101 @@ def visible_polar_bits(occ, ci, cj, res, num_rays, min_range, ring_width, num_ri
                     out[p, ring, sector >> 6] |= one << np.uint64(sector & 63)
                 r += step
     return out
+
+
+# ----------------------------------------------------------------------------- map points in 2D cells
+# (refinement: the points of a box, ``refine.Footprint``). ``R2`` (2, 3) float64: the first two rows
+# of R_L_map (map frame -> levelled xy).
+
+
+@njit(cache=True)
+def cell_bounds(points, R2, cell_m):
+    """(min x, min y, max x, max y) int64 of the levelled cells floor(R2 @ p / cell_m) of points (N, 3)."""
+    lo0 = lo1 = np.int64(1) << 62
+    hi0 = hi1 = -(np.int64(1) << 62)
+    for k in range(points.shape[0]):
+        x = points[k, 0] * R2[0, 0] + points[k, 1] * R2[0, 1] + points[k, 2] * R2[0, 2]
+        y = points[k, 0] * R2[1, 0] + points[k, 1] * R2[1, 1] + points[k, 2] * R2[1, 2]
+        i = np.int64(np.floor(x / cell_m))
+        j = np.int64(np.floor(y / cell_m))
+        lo0 = min(lo0, i)
+        hi0 = max(hi0, i)
+        lo1 = min(lo1, j)
+        hi1 = max(hi1, j)
+    return lo0, lo1, hi0, hi1
+
+
+@njit(cache=True)
+def cell_counts(points, R2, cell_m, lo0, lo1, nx, ny):
+    """(nx, ny) int32 counts of points (N, 3) per levelled cell, cells [lo, lo + (nx, ny))."""
+    out = np.zeros((nx, ny), np.int32)
+    for k in range(points.shape[0]):
+        x = points[k, 0] * R2[0, 0] + points[k, 1] * R2[0, 1] + points[k, 2] * R2[0, 2]
+        y = points[k, 0] * R2[1, 0] + points[k, 1] * R2[1, 1] + points[k, 2] * R2[1, 2]
+        i = np.int64(np.floor(x / cell_m)) - lo0
+        j = np.int64(np.floor(y / cell_m)) - lo1
+        if i >= 0 and j >= 0 and i < nx and j < ny:
+            out[i, j] += 1
+    return out
+
+
+@njit(cache=True)
+def in_levelled_box(points, R2, x0, y0, x1, y1):
+    """(N,) bool: points (N, 3) whose levelled xy lies in [x0, x1] x [y0, y1] (m)."""
+    out = np.empty(points.shape[0], np.bool_)
+    for k in range(points.shape[0]):
+        x = points[k, 0] * R2[0, 0] + points[k, 1] * R2[0, 1] + points[k, 2] * R2[0, 2]
+        y = points[k, 0] * R2[1, 0] + points[k, 1] * R2[1, 1] + points[k, 2] * R2[1, 2]
+        out[k] = x >= x0 and x <= x1 and y >= y0 and y <= y1
+    return out
+
+
+@njit(cache=True, parallel=True)
+def search_each_window(levels, dx, dy, ra, rtx, rty, starts, top, threshold0, K, nms_cells, nms_angles,
+                       num_angles, rel_ratio, n_dives, s0_ratio, use_s0):
+    """:func:`branch_and_bound` of W windows at once, one thread per window (``bnb.search_windows``
+    with ``per_window_k``). Window w's roots at level ``top`` are ``ra, rtx, rty[starts[w]:starts[w+1]]``
+    (any order: sorted here by ascending bound, stably, as the serial search sorts them); its
+    threshold starts at ``threshold0``, raised to just below ``s0_ratio`` x its S0 (the best leaf of
+    greedy dives from its ``n_dives`` best roots) with ``use_s0``. Returns per window (W, K) scores
+    (-1: none), angles, tx, ty, and (W,) S0 and nodes visited."""
+    W = starts.shape[0] - 1
+    cs = np.full((W, K), -1, dtype=np.int64)
+    ca = np.zeros((W, K), dtype=np.int64)
+    cx = np.zeros((W, K), dtype=np.int64)
+    cy = np.zeros((W, K), dtype=np.int64)
+    s0 = np.zeros(W, dtype=np.int64)
+    visited = np.zeros(W, dtype=np.int64)
+    big = np.int64(1) << 60
+    for w in prange(W):
+        a0 = starts[w]
+        a1 = starts[w + 1]
+        if a1 <= a0:
+            continue
+        n = a1 - a0
+        b = np.empty(n, dtype=np.int64)
+        for r in range(n):
+            b[r] = _node_score(levels, top, dx, dy, ra[a0 + r], rtx[a0 + r], rty[a0 + r])
+        order = np.argsort(b, kind="mergesort")
+        wa = ra[a0:a1][order]
+        wx = rtx[a0:a1][order]
+        wy = rty[a0:a1][order]
+        wb = b[order]
+        threshold = threshold0
+        if use_s0:
+            best = -1
+            for i in range(1, min(n_dives, n) + 1):
+                s, _, _ = greedy_dive(levels, dx, dy, wa[n - i], wx[n - i], wy[n - i], top, big, big)
+                if s > best:
+                    best = s
+            s0[w] = best
+            threshold = max(threshold, np.int64(s0_ratio * best) - 1)
+        s_, a_, x_, y_, v = branch_and_bound(levels, dx, dy, wa, wx, wy, wb, top, big, big, threshold, K,
+                                             nms_cells, nms_angles, num_angles, True, rel_ratio)
+        for i in range(s_.shape[0]):
+            cs[w, i] = s_[i]
+            ca[w, i] = a_[i]
+            cx[w, i] = x_[i]
+            cy[w, i] = y_[i]
+        visited[w] = v
+    return cs, ca, cx, cy, s0, visited

@@ -60,3 +60,27 @@ def test_box_queries_return_exactly_the_points_in_the_box():
         assert len(got) == len(want)
         key = lambda a: a[np.lexsort(a.T)]
         np.testing.assert_array_equal(key(got), key(want))
+
+
+def test_entry_points_are_memory_mapped_from_the_cache_and_box_queries_match(tmp_path, monkeypatch):
+    # The first map object writes each entry's sorted points; a second maps them (no PCD decode,
+    # nothing held in memory) and its box queries return exactly the points of a fresh decode.
+    pts = (world_up(seed=22, size=80.0) @ Z_DOWN.T).astype(np.float32).astype(np.float64)
+    store = _store(tmp_path / "map", pts)
+    first = StoreMap(store, GRAVITY_Z_DOWN, ProjectionParams(), cache_dir=tmp_path / "cache")
+    first.precompute(points=True)
+    second = StoreMap(open_map(tmp_path / "map"), GRAVITY_Z_DOWN, ProjectionParams(), cache_dir=tmp_path / "cache")
+    monkeypatch.setattr(second.store, "load", lambda *a, **k: (_ for _ in ()).throw(AssertionError("loaded")))
+    lo, hi = np.array([-25.0, -12.0]), np.array([18.0, 30.0])
+    got = second.points_in_box(lo, hi)
+    assert all(isinstance(e.points, np.memmap) and e.resident == 0 for e in second._points.values())
+    xy = pts @ second.R_L_map[:2].T
+    want = pts[np.all((xy >= lo) & (xy <= hi), axis=1)]
+    assert len(got) == len(want) > 100
+    key = lambda a: a[np.lexsort(a.T)]
+    np.testing.assert_array_equal(key(got), key(want))
+    # a points file cut short is not trusted: the entry is decoded again
+    victim = next((tmp_path / "cache").rglob("*.points.npy"))
+    victim.write_bytes(victim.read_bytes()[:-120])
+    third = StoreMap(open_map(tmp_path / "map"), GRAVITY_Z_DOWN, ProjectionParams(), cache_dir=tmp_path / "cache")
+    np.testing.assert_array_equal(key(third.points_in_box(lo, hi)), key(want))
