@@ -91,6 +91,30 @@ def exact_sequence(preset: str, session: str, seed: int, parts: list[str]):
     return SimSequence(replace(p, **changes), session, seed)
 
 
+def frames_for_km(seq, start: int, km: float) -> int:
+    """How many frames from ``start`` the ground truth of ``seq`` takes to cover ``km`` of path
+    (the frame that reaches it included; the rest of the session if it never does)."""
+    gt = seq.ground_truth()
+    d = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(gt.positions, axis=0), axis=1))])
+    at = np.interp(seq.frame_stamps()[start:], gt.stamps, d)  # path length at each frame, m
+    return min(len(at), int(np.searchsorted(at - at[0], 1000.0 * km)) + 1)
+
+
+#: sections of the fragment that other tools write (``bench.campus_seeds``): a rewrite keeps them
+KEPT_SECTION_PREFIX = "## Campus over "
+
+
+def _kept_sections(text: str) -> str:
+    """The ``KEPT_SECTION_PREFIX`` sections of ``text`` (each up to the next ``## `` heading)."""
+    out, keep = [], False
+    for line in text.splitlines():
+        if line.startswith("## "):
+            keep = line.startswith(KEPT_SECTION_PREFIX)
+        if keep:
+            out.append(line)
+    return "\n".join(out).rstrip("\n") + "\n" if out else ""
+
+
 def _write_json(path: Path, obj) -> None:
     atomic_write_text(path, json.dumps(obj, indent=1))
 
@@ -120,11 +144,18 @@ def summarize(state: Path, backend: str, gt) -> dict:
          "window_min": int(z["window"][tracked].min()), "window_max": int(z["window"][tracked].max()),
          "map_stats": json.loads(str(z["map_stats"])),
          "reject_reasons": {k[len("rejected_"):]: v for k, v in counters.items() if k.startswith("rejected_") and v}}
+    for k in ("step_wall_ms", "step_cpu_ms"):  # runs before these columns existed have none
+        if k in z.files:
+            m[f"{k}_median"] = float(np.median(z[k][tracked]))
+            m[f"{k}_mean"] = float(np.mean(z[k][tracked]))
     if len(est) > 1:
         ev = evaluate_trajectories(gt, est, align=False, max_time_diff_s=0.02, rpe_deltas_m=(10.0, 100.0),
                                    interpolate=True)
         m.update({k: ev.get(k) for k in ("ate_trans_rmse_m", "ate_trans_max_m", "ate_full_rmse",
-                                         "ate_rot_rmse_deg", "path_length_m", "matched", "duration_s")})
+                                         "ate_rot_rmse_deg", "path_length_m", "matched", "duration_s",
+                                         "err_along_mean_m", "err_along_rms_m", "err_cross_mean_m",
+                                         "err_cross_rms_m", "err_vertical_mean_m", "err_vertical_rms_m",
+                                         "err_time_shift_s")})
     m["_stamps"], m["_positions"] = est.stamps, est.positions
     return m
 
@@ -212,6 +243,7 @@ def merge_states(parts: list[Path], state: Path) -> None:
                 updated=max(g["updated"] for g in progs), load_now=progs[-1]["load_now"],
                 load_mean=float(np.mean([g["load_mean"] for g in progs])),
                 finished=all(g["finished"] for g in progs),
+                cpu_s=sum(g["cpu_s"] for g in progs) if all("cpu_s" in g for g in progs) else None,
                 scan_wall_ms=max(1e3 * g["wall_s"] / max(g["frames_done"], 1) for g in progs),
                 segments=[{"start": g["start"], "frames": g["frames_done"], "command": g["command"]} for g in progs])
     _write_json(state / "progress.json", prog)
@@ -400,8 +432,9 @@ def write_fragment(state: Path, out: Path, before: Path | None = None) -> str:
         "backends": {b: {**{k: v for k, v in m.items() if not k.startswith("_") and k != "map_stats"},
                          "resident_mb": m["map_stats"].get("resident_mb")} for b, m in rows.items()}})
     text = "\n".join(lines) + "\n"
+    kept = _kept_sections(out.read_text()) if out.is_file() else ""
     out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out, text)
+    atomic_write_text(out, text + ("\n" + kept if kept else ""))
     return text
 
 
@@ -415,6 +448,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--minutes", type=float, default=50.0, help="wall-time budget of the tracking loop")
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--start", type=int, default=0)
+    ap.add_argument("--km", type=float, default=None,
+                    help="stop after this many km of ground-truth path from --start (with --max-frames: "
+                         "whichever comes first)")
     ap.add_argument("--map", default=None, help="block store (default: built once into the cache)")
     ap.add_argument("--grid-map", default=None, help="grid store for grid/srt (default: built once into the cache)")
     ap.add_argument("--block-size", type=float, default=100.0)
@@ -479,6 +515,8 @@ def main(argv: list[str] | None = None) -> int:
     loc_exact = [x for x in exact if x != "slam"]
     seq = open_sequence(seq_name) if not loc_exact else exact_sequence(args.preset, args.session, args.seed, loc_exact)
     stop = len(seq) if args.max_frames is None else min(len(seq), args.start + args.max_frames)
+    if args.km is not None:
+        stop = min(stop, args.start + frames_for_km(seq, args.start, args.km))
     backends = [b for b in args.backends.split(",") if b]
     grid_path = None
     if any(b.partition("@")[0] in ("grid", "srt") for b in backends):
@@ -502,14 +540,18 @@ def main(argv: list[str] | None = None) -> int:
     prog = {"command": cmd, "sequence": seq_name, "exact": exact, "backends": backends, "map": str(map_path),
             "map_desc": map_desc, "block_size_m": args.block_size, "start": args.start, "minutes": args.minutes,
             "max_frames": args.max_frames, "started": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "load_start": os.getloadavg()[0],
-            "frames_done": 0, "finished": False}
+            "km": args.km, "stop": stop, "frames_done": 0, "finished": False}
     loads = [os.getloadavg()[0]]
+    for r in runs:  # the whole step of each tracker, wall and this thread's CPU (core is wall only)
+        r.rows["step_wall_ms"], r.rows["step_cpu_ms"] = [], []
     t0 = last_ck = time.perf_counter()
+    cpu0 = time.process_time()
 
     def checkpoint(finished: bool) -> None:
         for r in runs:
             r.save(state / f"{r.backend}.npz")
         prog.update(updated=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), wall_s=time.perf_counter() - t0,
+                    cpu_s=time.process_time() - cpu0,
                     load_now=os.getloadavg()[0], load_mean=float(np.mean(loads)), finished=finished)
         _write_json(state / "progress.json", prog)
 
@@ -517,7 +559,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for frame in seq.frames(args.start, stop):
             for r in runs:
+                w0, c0 = time.perf_counter(), time.thread_time()
                 r.step(frame)
+                r.rows["step_cpu_ms"].append(1e3 * (time.thread_time() - c0))
+                r.rows["step_wall_ms"].append(1e3 * (time.perf_counter() - w0))
             n += 1
             prog["frames_done"] = n
             now = time.perf_counter()
