@@ -18,6 +18,24 @@ def pytest_configure(config):
 
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+    _numba_cache_of_this_worker()
+
+
+def _numba_cache_of_this_worker() -> None:
+    """Each pytest-xdist worker (and every blockloc it starts) keeps its numba kernels in a cache
+    of its own: two processes compiling the same cached kernel at once can leave a file the other
+    loads and crashes on (numba issue #4807; seen here as a segfault in the NDT kernel on a fresh
+    checkout). Kept between runs, so a second run compiles nothing."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    if not worker or "NUMBA_CACHE_DIR" in os.environ:
+        return
+    path = Path.home() / ".cache" / "blockloc-tests" / "numba" / worker
+    path.mkdir(parents=True, exist_ok=True)
+    os.environ["NUMBA_CACHE_DIR"] = str(path)
+    import sys
+
+    if "numba" in sys.modules:  # read when a cached function is first located, not at import
+        sys.modules["numba"].config.CACHE_DIR = str(path)
 
 # Machines here are shared and noisy: hypothesis checks properties, not speed.
 settings.register_profile("blockloc", deadline=None, derandomize=True)

@@ -15,6 +15,8 @@ import pytest
 _WORKER = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:] or 0) % 4
 _SPAN = 30
 _DOMAINS = itertools.count(os.getpid() % _SPAN)
+#: A domain of this worker's that no loopback_dds test takes (for a participant with another config).
+OWN_CONFIG_DOMAIN = 225 + _WORKER
 
 
 def loopback_env(domain: int) -> dict:
@@ -28,7 +30,7 @@ def loopback_env(domain: int) -> dict:
 @pytest.fixture
 def loopback_dds(monkeypatch) -> dict:
     """Sets the loopback DDS environment for this test (and the processes it starts); returns it."""
-    env = loopback_env(100 + _WORKER * _SPAN + next(_DOMAINS) % (_SPAN - 2))  # -2: a test may use its domain + 1
+    env = loopback_env(100 + _WORKER * _SPAN + next(_DOMAINS) % _SPAN)
     for k, v in env.items():
         monkeypatch.setenv(k, v)
     return env

@@ -50,7 +50,11 @@ def test_ros_topic_names():
 
 
 def test_without_cyclonedds_uri_the_participant_uses_its_own_localhost_config(loopback_dds):
-    env = {"ROS_DOMAIN_ID": str(int(loopback_dds["ROS_DOMAIN_ID"]) + 1)}  # no CYCLONEDDS_URI
+    from tests.ros2.conftest import OWN_CONFIG_DOMAIN
+
+    # no CYCLONEDDS_URI; a domain no loopback_dds test of this process uses (Cyclone refuses a
+    # second configuration for a domain this process has already joined)
+    env = {"ROS_DOMAIN_ID": str(OWN_CONFIG_DOMAIN)}
     p = d.Dds(environ=env)
     try:
         assert p.user_uri is None and p.config == d.cyclone_config("localhost")
