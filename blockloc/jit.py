@@ -17,13 +17,16 @@ import time
 class CompileClock:
     """Context manager: ``seconds`` = wall time numba spent compiling while it was open.
 
-    Nested compilations (a kernel compiling the kernels it calls) are counted once: only the
-    outermost compile of each thread adds to the total.
+    Counted as wall time during which at least one compilation runs: nested compilations (a kernel
+    compiling the kernels it calls) and compilations in several threads at once (the search's
+    windows run side by side) count once, so ``seconds`` never exceeds the time the block took.
     """
 
     def __init__(self) -> None:
         self.seconds = 0.0
-        self._local = threading.local()
+        self._lock = threading.Lock()
+        self._active = 0
+        self._t0 = 0.0
         self._listener = None
 
     def __enter__(self) -> "CompileClock":
@@ -35,16 +38,18 @@ class CompileClock:
 
         class _Listener(event.Listener):
             def on_start(self, ev) -> None:
-                depth = getattr(clock._local, "depth", 0)
-                if depth == 0:
-                    clock._local.t0 = time.perf_counter()
-                clock._local.depth = depth + 1
+                with clock._lock:
+                    if clock._active == 0:
+                        clock._t0 = time.perf_counter()
+                    clock._active += 1
 
             def on_end(self, ev) -> None:
-                depth = getattr(clock._local, "depth", 1) - 1
-                clock._local.depth = depth
-                if depth == 0:
-                    clock.seconds += time.perf_counter() - clock._local.t0
+                with clock._lock:
+                    if clock._active == 0:  # a compile that began before the clock was opened
+                        return
+                    clock._active -= 1
+                    if clock._active == 0:
+                        clock.seconds += time.perf_counter() - clock._t0
 
         self._listener = _Listener()
         event.register("numba:compile", self._listener)

@@ -70,3 +70,27 @@ def test_a_compiled_kernel_costs_nothing_and_the_listener_is_removed():
     other = _kernels()
     other(np.arange(3.0))  # compiles after the block closed: not counted
     assert jit.seconds == 0.0
+
+
+def test_compiles_in_two_threads_at_once_count_their_wall_time_once():
+    """init's searched windows run side by side: their compiles overlap in time, and the clock
+    must not count that time twice (seen: init --json's time_s came out negative)."""
+    import threading
+
+    from numba.core import event
+
+    def compiling(delay_s, hold_s):
+        time.sleep(delay_s)
+        event.start_event("numba:compile")
+        time.sleep(hold_s)
+        event.end_event("numba:compile")
+
+    t0 = time.perf_counter()
+    with CompileClock() as jit:
+        threads = [threading.Thread(target=compiling, args=a) for a in ((0.0, 0.3), (0.1, 0.3))]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    wall = time.perf_counter() - t0
+    assert 0.35 < jit.seconds <= wall  # the union of [0, 0.3] and [0.1, 0.4]; summed it is 0.6
