@@ -164,6 +164,13 @@ def track_bytes(frames: int, record: bool) -> int:
 HEARTBEAT_S = 30.0
 
 
+def _line_to_stderr(text: str) -> None:
+    """``text`` and its newline in one write: print() writes them apart, and a line another thread
+    writes between the two (the command's last message on Ctrl-C) would run into this one."""
+    sys.stderr.write(text + "\n")
+    sys.stderr.flush()
+
+
 @contextlib.contextmanager
 def progress(label: str, total: int | None = None, *, err_console=None,
              heartbeat_s: float | None = None) -> Iterator[Callable[[int, int | None], None]]:
@@ -214,7 +221,7 @@ def progress(label: str, total: int | None = None, *, err_console=None,
             if text != state["last_line"] and (
                     (tot and (pct - state["last_pct"] >= 10.0 or done == tot)) or now - state["last_t"] >= heartbeat_s):
                 state["last_t"], state["last_pct"], state["last_line"] = now, pct, text
-                print(text, file=sys.stderr, flush=True)
+                _line_to_stderr(text)
 
     stop = threading.Event()
 
@@ -224,8 +231,7 @@ def progress(label: str, total: int | None = None, *, err_console=None,
             with lock:
                 if now - state["last_t"] >= heartbeat_s:
                     state["last_t"] = now
-                    print(f"{line(state['done'], state['total'])}, working for {now - t0:.0f} s",
-                          file=sys.stderr, flush=True)
+                    _line_to_stderr(f"{line(state['done'], state['total'])}, working for {now - t0:.0f} s")
 
     beat = threading.Thread(target=heartbeat, name=f"progress {label}", daemon=True)
     beat.start()
