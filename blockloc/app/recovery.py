@@ -80,7 +80,7 @@ class Recovery:
                                               yaw_window if hint_xy is not None else 360.0)
                 self._remember(res, scan.points_body, scan.stamp, int(frame.index))
         # a first run after install compiles the kernels inside the search: reported apart
-        init_info.update(time_s=time.perf_counter() - t0 - jit.seconds, compile_s=jit.seconds,
+        init_info.update(time_s=max(0.0, time.perf_counter() - t0 - jit.seconds), compile_s=jit.seconds,
                          verified=bool(res.verified),
                          fitness=float(res.fitness), score=float(res.score), ambiguous=bool(res.ambiguous),
                          frame=int(frame.index), stamp=scan.stamp)

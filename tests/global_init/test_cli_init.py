@@ -154,3 +154,13 @@ def test_map_index_bad_input_is_one_line_and_non_zero(setup, args, message):
     assert p.returncode != 0
     assert message in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
     assert "extras" not in json.loads((root / "map" / "manifest.json").read_text())
+
+
+def test_search_time_never_goes_negative_when_the_compile_falls_outside_the_localizers_clock():
+    from blockloc.app.runs import search_seconds
+
+    # CI: the localizer timed 0.4 s of a 1.5 s call whose first 0.9 s compiled kernels
+    assert search_seconds(0.4, 1.5, 0.9) == pytest.approx(0.4)
+    # the compile inside the localizer's own clock comes off it
+    assert search_seconds(1.3, 1.5, 0.9) == pytest.approx(0.6)
+    assert search_seconds(0.4, 0.5, 0.9) == 0.0
