@@ -221,6 +221,16 @@ def sweep_ends(session: Path, frames: int) -> dict:
     return {round(float(s), 6): float(e) for s, e in a[:frames]}
 
 
+def run_setup(seq, session: Path, frames: int) -> tuple:
+    """What a node run and its track run share: the sweeps' end stamps of the recorded ``session``,
+    the noisy ``X,Y`` hint both start from, the loopback DDS environment, the start time and load."""
+    from blockloc.app.runs import noisy_hint
+
+    x, y, _ = noisy_hint(seq)
+    return (sweep_ends(session, frames), f"{x:.2f},{y:.2f}", _env(),
+            time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), os.getloadavg()[0])
+
+
 def recorded_session(seq_name: str, frames: int, tag: str, root: Path | None = None) -> Path:
     """The first ``frames`` scans of ``seq_name`` written once in NCLT layout (cached under
     ``root``, default the cache's bench folder): the simulator renders a scan in ~0.05-3 s, too
@@ -278,7 +288,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.preset == "campus":
         return main_campus(a)
-    from blockloc.app.runs import noisy_hint, prepare_small_world
+    from blockloc.app.runs import prepare_small_world
     from blockloc.app.catalog import open_sequence
 
     world, cfg = prepare_small_world()
@@ -286,12 +296,7 @@ def main(argv=None) -> int:
     frames = min(a.frames or len(seq), len(seq))
     session = recorded_session(world.loc, frames, "small_loc1")
     world.session = str(session)
-    sweep_end = sweep_ends(session, frames)
-    x, y, _ = noisy_hint(seq)
-    hint = f"{x:.2f},{y:.2f}"
-    env = _env()
-    started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
-    load_start = os.getloadavg()[0]
+    sweep_end, hint, env, started, load_start = run_setup(seq, session, frames)
     with tempfile.TemporaryDirectory(prefix="bench-live-") as tmp:
         work = Path(tmp)
         nodes = []
@@ -388,7 +393,6 @@ def main_campus(a) -> int:
     from bench.campus import default_map_dir, ensure_map
     from bench.__main__ import machine
     from blockloc.app.catalog import open_sequence
-    from blockloc.app.runs import noisy_hint
     from blockloc.config import load_config
     from blockloc.maps.store import open_map
 
@@ -403,12 +407,7 @@ def main_campus(a) -> int:
     frames = min(len(seq), a.frames or int(round(a.minutes * 60.0 / period)))
     session = recorded_session(seq_name, frames, f"campus_loc{a.seed}", Path(a.data) if a.data else None)
     world = SimpleNamespace(block_map=map_path, session=str(session))
-    sweep_end = sweep_ends(session, frames)
-    x, y, _ = noisy_hint(seq)
-    hint = f"{x:.2f},{y:.2f}"
-    env = _env()
-    started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
-    load_start = os.getloadavg()[0]
+    sweep_end, hint, env, started, load_start = run_setup(seq, session, frames)
     with tempfile.TemporaryDirectory(prefix="bench-live-campus-") as tmp:
         work = Path(tmp)
         node = run_node(world, hint, rate, frames, work, env, sweep_end)

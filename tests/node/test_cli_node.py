@@ -40,6 +40,30 @@ class Proc(Running):
             self.proc.wait(10)
 
 
+def position_error(msg, truth) -> float:
+    """Metres between a pose message's position and the ground truth at its stamp."""
+    from blockloc.ros2.messages import time_to_stamp
+
+    q = msg.pose.pose.position
+    return float(np.linalg.norm(np.array([q.x, q.y, q.z])
+                                - truth.interpolate(np.array([time_to_stamp(msg.header.stamp)]))[0][:3, 3]))
+
+
+def ctrl_c(node: Proc, timeout_s: float) -> None:
+    """Ctrl-C the node a second after its last pose: it must finish its run and exit with 130."""
+    time.sleep(1.0)
+    node.proc.send_signal(signal.SIGINT)
+    assert node.finish(timeout_s) == 130, node.err
+
+
+def reap(node: Proc, play: Proc | None, dds) -> None:
+    """Neither process outlives the test, nor the test's own DDS participant."""
+    node.kill()
+    if play is not None:
+        play.kill()
+    dds.close()
+
+
 def listen():
     """A participant of the test collecting the node's poses and the player's ground truth."""
     from blockloc.ros2 import dds as d
@@ -70,26 +94,13 @@ def test_play_into_node_end_to_end_and_ctrl_c_keeps_the_run(tiny_live_world, loo
             wait_until(lambda: len(got["pose"]) >= 40, 30, "poses")
         except AssertionError as exc:
             raise AssertionError(f"{exc} ({len(got['pose'])} so far); the node said: {node.err[-2000:]}") from None
-        time.sleep(1.0)
-        node.proc.send_signal(signal.SIGINT)
-        assert node.finish(120) == 130, node.err
+        ctrl_c(node, 120)
     finally:
-        node.kill()
-        if play is not None:
-            play.kill()
-        dds.close()
+        reap(node, play, dds)
     assert "node stopped:" in node.err and "Traceback" not in node.err
-    from blockloc.ros2.messages import time_to_stamp
-
     truth = w["seq"].ground_truth()
-
-    def error(msg) -> float:
-        p = msg.pose.pose.position
-        return float(np.linalg.norm(np.array([p.x, p.y, p.z])
-                                    - truth.interpolate(np.array([time_to_stamp(msg.header.stamp)]))[0][:3, 3]))
-
-    assert len(got["gt"]) >= 100 and max(error(g) for g in got["gt"]) < 1e-6  # the player's ground truth
-    errors = [error(p) for p in got["pose"]]
+    assert len(got["gt"]) >= 100 and max(position_error(g, truth) for g in got["gt"]) < 1e-6  # the player's truth
+    errors = [position_error(p, truth) for p in got["pose"]]
     assert len(errors) >= 40 and np.median(errors) < 0.3, (len(errors), np.round(errors, 2))
     # the run folder track writes, kept after Ctrl-C
     for name in ("poses.tum", "metrics.json", "diagnostics.csv", "run.mcap", "report.html"):
@@ -205,22 +216,11 @@ def test_a_wrong_initialpose_while_tracking_gives_a_verified_pose_within_3_s_and
                    "its pose")
         first = next(t for t, x in got["pose"] if abs(time_to_stamp(x.header.stamp) - stamp) < 1e-6)
         assert play.finish(120) == 0, play.err
-        time.sleep(1.0)
-        node.proc.send_signal(signal.SIGINT)
-        assert node.finish(60) == 130, node.err
+        ctrl_c(node, 60)
     finally:
-        node.kill()
-        if play is not None:
-            play.kill()
-        p.close()
+        reap(node, play, p)
     assert first - sent < 3.0, f"verified pose {first - sent:.2f} s after the /initialpose"
-
-    def error(msg) -> float:
-        q = msg.pose.pose.position
-        return float(np.linalg.norm(np.array([q.x, q.y, q.z])
-                                    - truth.interpolate(np.array([time_to_stamp(msg.header.stamp)]))[0][:3, 3]))
-
-    errors = np.array([error(x) for _, x in got["pose"]])
+    errors = np.array([position_error(x, truth) for _, x in got["pose"]])
     assert len(errors) >= 30 and errors.max() < 1.0, np.round(errors, 2)  # never the hint, 10 m off
     # Around and after the new initial pose, the robot's motion kept, the scan deskewed again and
     # registered: right from the first pose (measured: 0.004-0.006 m; before, 0.13-0.39 m). The
@@ -232,7 +232,7 @@ def test_a_wrong_initialpose_while_tracking_gives_a_verified_pose_within_3_s_and
     # (from the scan it searched on: a scan already being tracked when the /initialpose came may
     # publish after it, still converging from the cold start, seen 0.055 m under a load of 26)
     later = [(t, x) for t, x in got["pose"] if t > sent and time_to_stamp(x.header.stamp) >= stamp - 1e-6]
-    after = np.array([error(x) for t, x in later])
+    after = np.array([position_error(x, truth) for t, x in later])
     at = [round(time_to_stamp(x.header.stamp) - stamp, 2) for t, x in later]
     assert len(after) >= 5 and after.max() < 0.05, list(zip(at, np.round(after, 3)))
     # the pace file: each ground-truth pose (published with its scan, at the sweep's end) came after it was due
