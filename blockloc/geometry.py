@@ -217,11 +217,19 @@ class Trajectory:
         t = np.clip(np.atleast_1d(np.asarray(t, dtype=np.float64)), self.stamps[0], self.stamps[-1])
         if len(self) == 1:
             return np.repeat(self.poses[:1], len(t), axis=0)
-        slerp = Slerp(self.stamps, Rotation.from_matrix(self.poses[:, :3, :3]))
+        # only the poses around the times asked for: a whole drive's ground truth at 100 Hz has
+        # ~500k poses, and a Slerp over all of them cost seconds per call (a player publishing the
+        # truth with every scan fell minutes behind on a campus session)
+        lo = max(int(np.searchsorted(self.stamps, t.min(), side="right")) - 1, 0)
+        hi = min(int(np.searchsorted(self.stamps, t.max(), side="left")) + 1, len(self))
+        hi = min(max(hi, lo + 2), len(self))  # Slerp wants two poses at least
+        lo = max(min(lo, hi - 2), 0)
+        stamps, poses = self.stamps[lo:hi], self.poses[lo:hi]
+        slerp = Slerp(stamps, Rotation.from_matrix(poses[:, :3, :3]))
         out = np.zeros((len(t), 4, 4))
         out[:, :3, :3] = slerp(t).as_matrix()
         for k in range(3):
-            out[:, k, 3] = np.interp(t, self.stamps, self.poses[:, k, 3])
+            out[:, k, 3] = np.interp(t, stamps, poses[:, k, 3])
         out[:, 3, 3] = 1.0
         return out
 
