@@ -87,6 +87,12 @@ class LidarOnlyTracker(Estimator):
         self.window.add_factor(pose_prior(kx, T, f.init_sigma_rot_rad, f.init_sigma_trans_m))
         self.window.add_factor(motion.twist_prior(kv, twist, self.params.init_sigma_rate_rad_s, sigma_vel_m_s))
 
+    def _start_rate(self, i: int, rate_body: np.ndarray) -> None:
+        kv = keys_of(i)[1]
+        twist = np.array(self.window.values.atVector(kv), dtype=np.float64)
+        twist[:3] = rate_body
+        self.window.values.update(kv, twist)
+
     def _state(self, i: int):
         """(NavState with velocity R v of the twist, zero bias)."""
         import gtsam

@@ -161,15 +161,22 @@ class LocalMap:
 
 
 class ScriptedProvider:
-    """One target for the whole scene; reports a switch on the frames (by call count) listed."""
+    """One target for the whole scene; reports a switch on the frames (by call count) listed.
+
+    A call for a stamp not after the last one (the tracker registering the first scans again once
+    it knows the velocity) is not counted: it reports no switch."""
 
     def __init__(self, target, switch_calls=()) -> None:
         self.target = target
         self.switch_calls = set(switch_calls)
         self.calls = 0
         self.block = 0
+        self._last_stamp = -np.inf
 
     def update(self, position_map, velocity_map, stamp):
+        if stamp <= self._last_stamp:
+            return LocalMap(self.target, False, self.block)
+        self._last_stamp = stamp
         switched = self.calls in self.switch_calls
         self.calls += 1
         if switched:

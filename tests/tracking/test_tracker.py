@@ -178,3 +178,17 @@ def test_odometry_factor_option_tracks_too(world):
     ests = run(world, tr)
     assert np.sqrt(np.mean(errors(world, ests) ** 2)) < 0.03
     assert ests[-1].covariance is None
+
+
+def test_a_start_with_the_velocity_unknown_settles_it_from_the_second_scan(world):
+    """A global init gives a pose, not a velocity: the first scans are deskewed with zero velocity
+    and land about v x half a sweep off. From the second keyframe on the velocity is known, and the
+    window starts again with it (Estimator._settle): the second pose is right, not only after the
+    window has forgotten the misplaced scans."""
+    tr = make_tracker(world)
+    s0 = world["stamps"][0]
+    tr.initialize(world["traj"].pose(s0)[0], s0)  # no velocity
+    err = errors(world, run(world, tr))
+    counted = tr.counters["frames"]
+    assert counted == len(world["stamps"])  # the scans registered again are counted once
+    assert err[1] < 0.05 and err[2:12].max() < 0.05, np.round(err[:12], 3)
