@@ -242,7 +242,10 @@ def merge_states(parts: list[Path], state: Path) -> None:
     prog.update(backends=backends, frames_done=sum(g["frames_done"] for g in progs), wall_s=max(g["wall_s"] for g in progs),
                 updated=max(g["updated"] for g in progs), load_now=progs[-1]["load_now"],
                 load_mean=float(np.mean([g["load_mean"] for g in progs])),
-                finished=all(g["finished"] for g in progs),
+                # each segment continues the one before (checked above), so the joined run covers
+                # every frame up to the last one's stop when that one finished (an earlier segment may
+                # have been stopped where the next one took over)
+                finished=bool(progs[-1]["finished"]), stop=progs[-1].get("stop", progs[0].get("stop")),
                 cpu_s=sum(g["cpu_s"] for g in progs) if all("cpu_s" in g for g in progs) else None,
                 scan_wall_ms=max(1e3 * g["wall_s"] / max(g["frames_done"], 1) for g in progs),
                 segments=[{"start": g["start"], "frames": g["frames_done"], "command": g["command"]} for g in progs])

@@ -262,6 +262,23 @@ def test_merge_states_joins_consecutive_segments_and_refuses_a_gap(tmp_path):
         merge_states([a, gap], tmp_path / "m2")
 
 
+def test_a_joined_run_is_finished_when_its_last_segment_is(tmp_path):
+    """A first segment stopped where a second one took over (its own bound not reached) does not
+    leave the joined run 'not finished'; a last segment that is still running does."""
+    from bench.campus import _write_json, merge_states
+
+    a, b = _segment(tmp_path, "a", 0, 3, failures=0), _segment(tmp_path, "b", 3, 2, failures=0)
+    for d, finished, stop in ((a, False, 10), (b, True, 5)):
+        prog = json.loads((d / "progress.json").read_text())
+        _write_json(d / "progress.json", prog | {"finished": finished, "stop": stop})
+    merge_states([a, b], tmp_path / "m")
+    prog = json.loads((tmp_path / "m" / "progress.json").read_text())
+    assert prog["finished"] is True and prog["stop"] == 5
+    _write_json(b / "progress.json", json.loads((b / "progress.json").read_text()) | {"finished": False})
+    merge_states([a, b], tmp_path / "m2")
+    assert json.loads((tmp_path / "m2" / "progress.json").read_text())["finished"] is False
+
+
 def test_merge_states_keeps_the_backends_every_segment_ran(tmp_path):
     from bench.campus import merge_states
 
