@@ -350,3 +350,20 @@ def test_scene_cast_gives_the_numpy_ground_and_vegetation_bits(monkeypatch):
     for g, w in zip(got, want):
         for key in ("range", "normal", "reflect", "cat", "glass", "retro"):
             assert g[key].dtype == w[key].dtype and g[key].tobytes() == w[key].tobytes(), key
+
+
+def test_column_poses_at_once_are_the_rotation_and_position_evaluated_apart():
+    """``T_world_flu`` evaluates the planar splines, the terrain and the platform's vibration
+    once for both parts of a pose: its bits are those of ``rotation`` and ``position`` (each
+    evaluating them on its own, as every scan's column poses did), on a drive with the tilting
+    platform and at a single time."""
+    from blockloc.sim.stream import open_sim_sequence
+
+    tr = open_sim_sequence("tiny", "loc", 2).trajectory
+    assert tr._tilt is not None and tr.platform.vibration_z_m > 0
+    t = np.sort(np.random.default_rng(5).uniform(0.0, tr.duration, 3000))
+    T = tr.T_world_flu(t)
+    assert T[:, :3, :3].tobytes() == tr.rotation(t).tobytes()
+    assert T[:, :3, 3].tobytes() == np.ascontiguousarray(tr.position(t)).tobytes()
+    assert np.array_equal(T[:, 3], np.tile([0.0, 0.0, 0.0, 1.0], (len(t), 1)))
+    assert tr.T_world_flu(t[11]).tobytes() == T[11:12].tobytes()
