@@ -111,10 +111,12 @@ def speed_probe(args) -> None:
                 wall = time.perf_counter() - t0
                 r1 = resource.getrusage(resource.RUSAGE_CHILDREN)  # the command and its workers
                 cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+                scans = sum(1 for _ in (tmp / "sim_out").glob("*/velodyne_sync/*.bin"))
             finally:
                 shutil.rmtree(tmp, ignore_errors=True)
             first = f", first {args.max_frames} frames a session" if args.max_frames else ""
-            print(f"write-s {args.write_s} ({where}, seed 1{first}): {wall:.1f} s wall, {cpu:.1f} s CPU | "
+            print(f"write-s {args.write_s} ({where}, seed 1{first}): {scans} scans, {wall:.1f} s wall, "
+                  f"{cpu:.1f} s CPU ({1e3 * cpu / max(scans, 1):.1f} ms a scan, all in) | "
                   f"before: {load} | after: {_uptime()}", flush=True)
 
 

@@ -513,7 +513,11 @@ class SessionScene:
         u_g = rng.random(len(idx))
         lost = window & (u_g < 0.55)
         inside = window & (u_g >= 0.55) & (u_g < 0.85)
-        depth = _box_exit(origins[idx], d, f[:, 0:6]) - rng_[idx]  # the box behind the face, along the ray
+        # the box behind the face, along the ray: only a ray into a room needs it (the others'
+        # depth is never read: the where()s below take their other branch)
+        depth = np.zeros(len(idx))
+        into = np.flatnonzero(inside)
+        depth[into] = _box_exit(origins[idx[into]], d[into], f[into, 0:6]) - rng_[idx[into]]
         room = inside & (depth >= ROOM_MIN_M)
         r = np.where(room, r + np.minimum(rng.uniform(1.0, 6.0, len(idx)), depth - BACK_WALL_M), r)
         r = np.where(lost, np.inf, r)

@@ -75,7 +75,7 @@ def generate_dataset(preset: str, seed: int, out: Path, fmt: str = "nclt", *,
     later = changes.sessions_for_months(months)
     if later and fmt != "nclt":
         raise SimError(f"--months with --format {fmt}: the changed days are written in the nclt format only")
-    names = (tuple(sessions) if sessions else p.sessions) + later
+    names = tuple(dict.fromkeys((tuple(sessions) if sessions else p.sessions) + later))  # each once
     for s in names:
         if s not in p.sessions + later:
             raise SimError(f"sim session {s!r}: preset {p.name} has {', '.join(p.sessions)}")
@@ -89,6 +89,9 @@ def generate_dataset(preset: str, seed: int, out: Path, fmt: str = "nclt", *,
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
     pool = FramePool(workers) if workers > 0 else None
     try:
+        own = [s for s in names if s in p.sessions]
+        pooled = {} if pool is None else dict(zip(own, pool.runs(
+            p, int(seed), [(s, 0, counts[s]) for s in own], encode=fmt == "nclt")))
         meta = {"generator": "blockloc.sim", "format_version": 1, "preset": p.name, "seed": int(seed),
                 "format": fmt, "sessions": {}, "azimuth_steps": p.lidar.azimuth_steps,
                 "frames": {"map": "NCLT map, z down", "body": "x forward, y right, z down",
@@ -100,7 +103,7 @@ def generate_dataset(preset: str, seed: int, out: Path, fmt: str = "nclt", *,
             if s not in p.sessions:  # a changed day: labelled frames, rendered here
                 rendered = changes.labelled_frames(seq, n, tmp / f".{s}-labels")
             else:
-                rendered = seq.frames(0, n) if pool is None else pool.frames(p, s, int(seed), 0, n)
+                rendered = seq.frames(0, n) if pool is None else pooled[s]  # encoded there for nclt
             frames = _counting(rendered, seq, progress)
             imu = seq.imu()
             gt = seq.ground_truth()

@@ -319,6 +319,87 @@ def _ref_vegetation(self, origins, dirs, rays, rng_, normals, reflect, cat, rng)
         t_cur[active] = np.maximum(t_out[go], th[go]) + 1e-3
 
 
+def _ref_facades(self, idx, owner, origins, dirs, rng_, normals, reflect, glass, rng, cat, lost_at) -> None:
+    """``SessionScene._facades`` as 2af77ae had it: the box behind the face measured along every
+    ray that hits a facade (now only along the rays into a room)."""
+    from blockloc.sim.scene import ALBEDO, BACK_WALL_M, ROOM_MIN_M, _box_exit, dot3, value_noise
+
+    f = self.world.facades[owner]
+    n = normals[idx]
+    d = dirs[idx]
+    vertical = np.abs(n[:, 2]) < 0.5
+    p = origins[idx] + d * rng_[idx, None]
+    u = np.where(np.abs(n[:, 0]) > np.abs(n[:, 1]), p[:, 1], p[:, 0])
+    hz = p[:, 2] - (f[:, 4] + 0.5)
+    level = np.floor(hz / f[:, 7])
+    v = hz - level * f[:, 7]
+    uu = np.mod(u + f[:, 9], f[:, 8]) / f[:, 8]
+    cos_i = np.maximum(np.abs(dot3(n, d)), 0.25)
+    ledge = vertical & (level >= 1) & (v < 0.4)
+    window = vertical & ~ledge & (uu > 0.25) & (uu < 0.85) & (v > 0.9) & (v < f[:, 7] - 0.5) & (hz > 0.3)
+    pilaster = vertical & ~ledge & ~window & (uu < 0.12)
+    out = np.where(ledge, 0.2, np.where(pilaster, 0.15, np.where(window, -0.18, 0.0)))
+    r = rng_[idx] - out / cos_i
+    u_g = rng.random(len(idx))
+    lost = window & (u_g < 0.55)
+    inside = window & (u_g >= 0.55) & (u_g < 0.85)
+    depth = _box_exit(origins[idx], d, f[:, 0:6]) - rng_[idx]
+    room = inside & (depth >= ROOM_MIN_M)
+    r = np.where(room, r + np.minimum(rng.uniform(1.0, 6.0, len(idx)), depth - BACK_WALL_M), r)
+    r = np.where(lost, np.inf, r)
+    through = np.flatnonzero(inside & ~room)
+    if len(through):
+        self._through_pane(idx[through], origins, dirs, rng_[idx[through]] + depth[through], r, through,
+                           normals, reflect, cat)
+        inside[through] = False
+    refl = reflect[idx] * (1.0 + 0.25 * value_noise(u, p[:, 2], 0.8, self._seed + 2))
+    passed = np.zeros(len(idx), bool)
+    passed[through] = True
+    refl = np.where(window & ~inside & ~passed, ALBEDO["glass"], refl)
+    refl = np.where(passed, reflect[idx], refl)
+    lost_at[idx] = np.where(lost, rng_[idx], np.inf)
+    rng_[idx] = r
+    reflect[idx] = refl
+    glass[idx] = window & ~inside & ~passed
+
+
+def test_facades_measure_the_room_behind_a_window_only_for_rays_into_it(monkeypatch):
+    """A tiny-world scan's facades (windows lost, glass returns, rooms, panes passed)
+    with the box depth taken only for the rays into a window, and with it taken for every facade
+    ray (2af77ae): the same bits."""
+    from blockloc.sim.scene import SessionScene
+    from blockloc.sim.stream import open_sim_sequence
+
+    seq = open_sim_sequence("tiny", "loc", 3)
+    scene = seq.scene
+    A = 1000
+    col = np.arange(A) * (0.1 / A)
+    casts = []
+    for t0 in (4.0, 20.0, 33.0):
+        T = seq.trajectory.T_world_flu(t0 + col) @ seq.T_flu_lidar
+        d_true = _beams(A, 0.0, None)[1]
+        casts.append((np.repeat(T[:, :3, 3], 32, axis=0), np.matmul(d_true, T[:, :3, :3].transpose(0, 2, 1)).reshape(-1, 3)))
+    room_rays = []
+    real_facades = SessionScene._facades
+
+    def counting(self, idx, owner, origins, dirs, rng_, *rest):
+        before = rng_[idx].copy()
+        real_facades(self, idx, owner, origins, dirs, rng_, *rest)
+        room_rays.append(int((rng_[idx] - before > 0.9).sum()))  # returns from a room behind a pane
+
+    def run():
+        return [scene.cast_full(o, d, None, 100.0, np.random.default_rng(11 + k)) for k, (o, d) in enumerate(casts)]
+
+    monkeypatch.setattr(SessionScene, "_facades", counting)
+    got = run()
+    monkeypatch.setattr(SessionScene, "_facades", _ref_facades)
+    want = run()
+    assert sum(room_rays) > 20 and sum(int(w["glass"].sum()) for w in want) > 20
+    for g, w in zip(got, want):
+        for key in ("range", "normal", "reflect", "cat", "glass", "retro"):
+            assert g[key].dtype == w[key].dtype and g[key].tobytes() == w[key].tobytes(), key
+
+
 def test_scene_cast_gives_the_numpy_ground_and_vegetation_bits(monkeypatch):
     """A real scene's cast (tiny world, a localization day: grass, kerbs, crowns, walkers), with
     the kernels and with the numpy they replaced, from the same generator: the same bits."""
@@ -350,3 +431,20 @@ def test_scene_cast_gives_the_numpy_ground_and_vegetation_bits(monkeypatch):
     for g, w in zip(got, want):
         for key in ("range", "normal", "reflect", "cat", "glass", "retro"):
             assert g[key].dtype == w[key].dtype and g[key].tobytes() == w[key].tobytes(), key
+
+
+def test_column_poses_at_once_are_the_rotation_and_position_evaluated_apart():
+    """``T_world_flu`` evaluates the planar splines, the terrain and the platform's vibration
+    once for both parts of a pose: its bits are those of ``rotation`` and ``position`` (each
+    evaluating them on its own, as every scan's column poses did), on a drive with the tilting
+    platform and at a single time."""
+    from blockloc.sim.stream import open_sim_sequence
+
+    tr = open_sim_sequence("tiny", "loc", 2).trajectory
+    assert tr._tilt is not None and tr.platform.vibration_z_m > 0
+    t = np.sort(np.random.default_rng(5).uniform(0.0, tr.duration, 3000))
+    T = tr.T_world_flu(t)
+    assert T[:, :3, :3].tobytes() == tr.rotation(t).tobytes()
+    assert T[:, :3, 3].tobytes() == np.ascontiguousarray(tr.position(t)).tobytes()
+    assert np.array_equal(T[:, 3], np.tile([0.0, 0.0, 0.0, 1.0], (len(t), 1)))
+    assert tr.T_world_flu(t[11]).tobytes() == T[11:12].tobytes()
