@@ -309,10 +309,11 @@ def dynamic_hook(work: Path, preset: str, seed: int) -> list[str]:
     return Path(page).read_text().splitlines()
 
 
-def detect_while_tracking(work: Path, mp: Path, P: str, S: int, frames: int, stride: int, log: list) -> dict:
+def detect_while_tracking(work: Path, mp: Path, P: str, S: int, frames: int, stride: int, log: list,
+                          key: str) -> dict:
     """``track --detect-changes`` on the first ``frames`` frames of loc_m12 in the stale map: the
     detection's cost (changes.json) beside the tracking's (metrics.json; the process's CPU)."""
-    out = work / f"run_loc_m12_detect_f{frames}_s{stride}"
+    out = work / f"run_loc_m12_detect_f{frames}_s{stride}-{key}"  # key: the detector's and the map's (cache_keys)
     cmd = ["blockloc", "track", "--seq", f"sim:{P}/loc_m12@{S}", "--map", str(mp), "--init", "gt", "--no-record",
            "--max-frames", str(frames), "--detect-changes", "--changes-stride", str(stride), "--out", str(out)]
     _once(cmd, out / "changes.json", log)
@@ -323,6 +324,28 @@ def detect_while_tracking(work: Path, mp: Path, P: str, S: int, frames: int, str
              update_ms_median=m.get("update_ms_median"), update_ms_p99=m.get("update_ms_p99"),
              process_wall_s=log[-1][2], process_cpu_s=log[-1][3])
     return c
+
+
+#: The modules whose code makes a map of ``blockloc map build`` (the simulator's sessions, the
+#: loaders, the builder and its mounting estimate): a change to any of them is a new map.
+BUILDER_MODULES = ("blockloc.sim", "blockloc.datasets", "blockloc.maps.block_maps", "blockloc.maps.build_plan",
+                   "blockloc.maps.build_tasks", "blockloc.maps.mapping", "blockloc.maps.mounting",
+                   "blockloc.maps.store", "blockloc.maps.pcd", "blockloc.registration", "blockloc.voxels",
+                   "blockloc.geometry", "blockloc.config")
+#: ... and those of ``blockloc map update`` (detection and rebuild), on top of the builder's.
+UPDATE_MODULES = ("blockloc.maps.changes", "blockloc.app.lifelong", "blockloc.maps.dynamic_removal")
+
+
+def cache_keys(P: str, S: int, stride: int) -> dict:
+    """The keys the kept maps and runs are filed under in --work, so a map (and every run on it)
+    made by an older builder is never reused: ``builder`` over BUILDER_MODULES' code and the map
+    settings ``map build`` reads for the preset (the default config, e.g. ``calibrate_mounting``);
+    ``update`` over UPDATE_MODULES' code, the builder key and the detection stride."""
+    from blockloc.app.catalog import config_for_sequence
+    from blockloc.cache import fingerprint
+
+    builder = fingerprint(*BUILDER_MODULES, params=(P, S, repr(config_for_sequence(f"sim:{P}/map@{S}").map)))
+    return {"builder": builder, "update": fingerprint(*UPDATE_MODULES, params=(builder, stride))}
 
 
 def _f(v, nd=2) -> str:
@@ -352,7 +375,9 @@ def main(argv: list[str] | None = None) -> Path:
     lim = ["--max-frames", str(args.frames)] if args.frames else []
     log: list = []
     load0, t_all = os.getloadavg()[0], time.perf_counter()
-    mp = work / "map"
+    keys = cache_keys(P, S, args.stride)
+    bk, uk = keys["builder"], keys["update"]  # every kept map and run is filed under its maker's key
+    mp = work / f"map-{bk}"
     _once(["blockloc", "map", "build", "--seq", f"sim:{P}/map@{S}", "--kind", "block", "--out", str(mp)],
           mp / "manifest.json", log)
 
@@ -363,10 +388,11 @@ def main(argv: list[str] | None = None) -> Path:
         return out
 
     need = set(sessions) | ({"loc_m3", "loc_m12"} if parts & {"loc", "cost"} else set())
-    runs = {s: track(s, mp, f"run_{s}_stale") for s in ("loc_m3", "loc_m12") if s in need}
+    runs = {s: track(s, mp, f"run_{s}_stale-{bk}") for s in ("loc_m3", "loc_m12") if s in need}
     from blockloc.maps.changes.detect import Thresholds
 
     result: dict = {"preset": P, "seed": S, "frames": args.frames, "stride": args.stride, "load1_start": load0,
+                    "keys": keys,
                     "min_block_m3": Thresholds().min_block_m3}
 
     def write() -> None:  # after every part: a long run stopped half-way keeps what it measured
@@ -383,7 +409,7 @@ def main(argv: list[str] | None = None) -> Path:
         for s in sessions:
             result["detect"].append(score_detection(P, S, s, mp, runs[s], args.stride))
             write()
-    upd, fresh, up_wall, up_cpu = work / "map_upd", work / "map_fresh", None, None
+    upd, fresh, up_wall, up_cpu = work / f"map_upd-{uk}", work / f"map_fresh-{bk}", None, None
     if parts & {"loc", "cost"}:
         cmd = ["blockloc", "map", "update", str(mp), "--run", str(runs["loc_m3"]), "--out", str(upd),
                "--stride", str(args.stride)]
@@ -402,11 +428,11 @@ def main(argv: list[str] | None = None) -> Path:
             write()
     if "loc" in parts:
         result["loc"] = {}
-        for name, m in (("stale", mp), ("updated", upd), ("fresh", fresh)):
-            result["loc"][name] = _metrics(track("loc_m12", m, f"run_loc_m12_{name}"))
+        for name, m, key in (("stale", mp, bk), ("updated", upd, uk), ("fresh", fresh, bk)):
+            result["loc"][name] = _metrics(track("loc_m12", m, f"run_loc_m12_{name}-{key}"))
             write()
     if "track" in parts:
-        result["track"] = detect_while_tracking(work, mp, P, S, args.detect_frames, args.stride, log)
+        result["track"] = detect_while_tracking(work, mp, P, S, args.detect_frames, args.stride, log, uk)
         write()
     if args.dynamic:
         dyn = dynamic_hook(work, P, S)

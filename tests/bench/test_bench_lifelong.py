@@ -67,3 +67,31 @@ def test_where_the_false_detections_lie():
     pts = np.array([[0.2, 0.2, -5.2], [10.2, 0.2, -1.2], [10.2, 0.2, -4.2], [20.2, 5.2, -1.6]])
     w = B.where_voxels(seq, voxel_keys(pts, 0.5), 0.5)
     assert w == {"vegetation": 1, "ground": 1, "other": 2}
+
+
+def test_kept_maps_are_keyed_on_the_builder_that_made_them(monkeypatch):
+    """A map (and every run on it) kept in --work is filed under a key of the map builder's code and
+    the map settings ``map build`` reads: a map built with the nominal LiDAR mounting (an older
+    builder's default) is never reused once the builder estimates it."""
+    import dataclasses
+
+    import blockloc.app.catalog as catalog
+
+    k1 = B.cache_keys("tiny", 1, 4)
+    assert k1 == B.cache_keys("tiny", 1, 4)  # stable: the same code and settings, the same key
+    assert B.cache_keys("tiny", 2, 4)["builder"] != k1["builder"]
+    assert B.cache_keys("tiny", 1, 2)["builder"] == k1["builder"]  # the stride is not the builder's
+    assert B.cache_keys("tiny", 1, 2)["update"] != k1["update"]
+    real = catalog.config_for_sequence
+
+    def nominal(name):
+        cfg = real(name)
+        return dataclasses.replace(cfg, map=dataclasses.replace(cfg.map, calibrate_mounting=False))
+
+    monkeypatch.setattr(catalog, "config_for_sequence", nominal)
+    k2 = B.cache_keys("tiny", 1, 4)
+    assert k2["builder"] != k1["builder"] and k2["update"] != k1["update"]
+    # the builder's code: a change to the mounting estimate is a new key
+    monkeypatch.setattr(catalog, "config_for_sequence", real)
+    monkeypatch.setattr(B, "BUILDER_MODULES", tuple(m for m in B.BUILDER_MODULES if m != "blockloc.maps.mounting"))
+    assert B.cache_keys("tiny", 1, 4)["builder"] != k1["builder"]
