@@ -268,6 +268,38 @@ def _metrics(run_dir: Path) -> dict:
                                   "relocalizations")}
 
 
+def segment_errors(P: str, S: int, session: str, run_dir: Path, parts: int = 10) -> list[float]:
+    """RMS position error (m; against the session's truth, not aligned, as the run's ATE) of each
+    of ``parts`` equal stretches (by frame) of the run in ``run_dir``: where along the route a map
+    helps or hurts."""
+    from blockloc.app.catalog import open_sequence
+    from blockloc.trajectory_io import read_tum
+
+    est = read_tum(run_dir / "poses.tum")
+    gt = open_sequence(f"sim:{P}/{session}@{S}").ground_truth().interpolate(est.stamps)
+    e = np.linalg.norm(est.poses[:, :3, 3] - gt[:, :3, 3], axis=1)
+    return [float(np.sqrt(np.mean(c ** 2))) for c in np.array_split(e, parts) if len(c)]
+
+
+def mapping_error_along(P: str, S: int, session: str, mapping: str, frames: int = 0) -> float:
+    """RMS position error (m) of the ``mapping`` drive's mapping poses (the simulator's offline-SLAM
+    error a map built from it inherits), taken at the mapping pose nearest each ``session`` truth
+    pose (its first ``frames`` seconds x 10 when given): how good a map is where the session drives."""
+    from scipy.spatial import cKDTree
+
+    from blockloc.app.catalog import open_sequence
+
+    route = open_sequence(f"sim:{P}/{session}@{S}").ground_truth()
+    pos = route.poses[:, :3, 3]
+    if frames:
+        pos = pos[route.stamps <= route.stamps[0] + frames / 10.0]
+    q = open_sequence(f"sim:{P}/{mapping}@{S}")
+    mp = q.mapping_poses()
+    truth = q.ground_truth().interpolate(mp.stamps)
+    err = np.linalg.norm(mp.poses[:, :3, 3] - truth[:, :3, 3], axis=1)
+    return float(np.sqrt(np.mean(err[cKDTree(truth[:, :3, 3]).query(pos[::10])[1]] ** 2)))
+
+
 def _sha(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
@@ -428,9 +460,16 @@ def main(argv: list[str] | None = None) -> Path:
             write()
     if "loc" in parts:
         result["loc"] = {}
-        for name, m, key in (("stale", mp, bk), ("updated", upd, uk), ("fresh", fresh, bk)):
-            result["loc"][name] = _metrics(track("loc_m12", m, f"run_loc_m12_{name}-{key}"))
+        # the stale map on the mapping month's own loc drive (nothing changed): what the map gives
+        # without any change, so its mapping error is told apart from the year's changes
+        rows = (("stale", "loc_m12", mp, bk), ("updated", "loc_m12", upd, uk), ("fresh", "loc_m12", fresh, bk),
+                ("stale, month 0 (loc: no change)", "loc", mp, bk))
+        for name, session, m, key in rows:
+            run = track(session, m, f"run_{session}_{name.split(',')[0]}-{key}")
+            result["loc"][name] = {**_metrics(run), "segments": segment_errors(P, S, session, run)}
             write()
+        result["mapping_error"] = {m: mapping_error_along(P, S, "loc_m12", m, args.frames) for m in ("map", "map_m12")}
+        write()
     if "track" in parts:
         result["track"] = detect_while_tracking(work, mp, P, S, args.detect_frames, args.stride, log, uk)
         write()
@@ -485,11 +524,23 @@ def render(r: dict, args, log: list, machine: str, dyn: list[str]) -> list[str]:
                              f"{_f(b.get('largest_change_m3'), 1)} | {b['confirmed']} |")
     if "loc" in r:
         L += ["", "### Tracking loc_m12 (12 months later) on each map", "",
-              "| map | ATE translation RMSE (m) | rotation RMSE (deg) | failures | rejected scans | frames |",
-              "|---|---|---|---|---|---|"]
+              "Worst tenth: the route cut in ten stretches by frame, the largest RMS position error of a "
+              "stretch minus the stale map's on the same stretch (above 0: worse than the stale map there).", "",
+              "| map | ATE translation RMSE (m) | rotation RMSE (deg) | failures | rejected scans | frames "
+              "| worst tenth vs stale (m) |",
+              "|---|---|---|---|---|---|---|"]
+        base = (r["loc"].get("stale") or {}).get("segments")
         for name, m in r["loc"].items():
+            seg = m.get("segments")
+            worst = (max(a - b for a, b in zip(seg, base)) if seg and base and len(seg) == len(base)
+                     and name != "stale" and "month 0" not in name else None)
             L.append(f"| {name} | {_f(m['ate_trans_rmse_m'], 3)} | {_f(m['ate_rot_rmse_deg'], 2)} | {m['failures']} | "
-                     f"{m['rejected']} | {m['frames']} |")
+                     f"{m['rejected']} | {m['frames']} | {'-' if worst is None else f'{worst:+.3f}'} |")
+        if r.get("mapping_error"):
+            me = r["mapping_error"]
+            L += ["", f"The maps' own pose error where loc_m12 drives (the simulator's offline-SLAM error of the "
+                  f"mapping drive, RMS at the mapping pose nearest each loc_m12 pose): stale and updated "
+                  f"(`map`) {me['map']:.3f} m, fresh (`map_m12`) {me['map_m12']:.3f} m."]
     if "cost" in r:
         c = r["cost"]
         L += ["", "### Update cost", "",

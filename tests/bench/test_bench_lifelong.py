@@ -95,3 +95,35 @@ def test_kept_maps_are_keyed_on_the_builder_that_made_them(monkeypatch):
     monkeypatch.setattr(catalog, "config_for_sequence", real)
     monkeypatch.setattr(B, "BUILDER_MODULES", tuple(m for m in B.BUILDER_MODULES if m != "blockloc.maps.mounting"))
     assert B.cache_keys("tiny", 1, 4)["builder"] != k1["builder"]
+
+
+def test_segment_errors_and_the_worst_tenth_against_the_stale_map(tmp_path, monkeypatch):
+    """Per-stretch RMS position error of a run against its session's truth, and the table's
+    "worst tenth vs stale": the largest stretch-wise excess over the stale map's run."""
+    from types import SimpleNamespace
+
+    import blockloc.app.catalog as catalog
+    from blockloc.geometry import Trajectory
+    from blockloc.trajectory_io import write_tum
+
+    stamps = np.arange(20) * 0.1
+    truth = np.repeat(np.eye(4)[None], 20, axis=0)
+    truth[:, 0, 3] = stamps
+    monkeypatch.setattr(catalog, "open_sequence",
+                        lambda name, **kw: SimpleNamespace(ground_truth=lambda: Trajectory(stamps, truth)))
+    est = truth.copy()
+    est[10:, 1, 3] = 0.05  # the second half 5 cm off to the side
+    (tmp_path / "run").mkdir()
+    write_tum(tmp_path / "run" / "poses.tum", Trajectory(stamps, est))
+    seg = B.segment_errors("tiny", 1, "loc_m12", tmp_path / "run", parts=2)
+    assert seg == pytest.approx([0.0, 0.05])
+    r = {"preset": "tiny", "seed": 1, "stride": 4, "frames": 0, "load1_start": 1.0, "load1_end": 1.0, "wall_s": 60,
+         "loc": {name: {"ate_trans_rmse_m": 0.03, "ate_rot_rmse_deg": 0.1, "failures": 0, "rejected": 0,
+                        "frames": 20, "segments": s} for name, s in
+                 (("stale", [0.02, 0.03]), ("updated", [0.01, 0.05]), ("fresh", [0.02, 0.02]))},
+         "mapping_error": {"map": 0.06, "map_m12": 0.05}}
+    args = SimpleNamespace(sessions="loc_m12", parts="loc", dynamic=False)
+    text = "\n".join(B.render(r, args, [], "test machine", []))
+    assert "| updated | 0.030 | 0.10 | 0 | 0 | 20 | +0.020 |" in text
+    assert "| fresh | 0.030 | 0.10 | 0 | 0 | 20 | +0.000 |" in text and "| stale | 0.030 | 0.10 | 0 | 0 | 20 | - |" in text
+    assert "(`map`) 0.060 m, fresh (`map_m12`) 0.050 m" in text
