@@ -300,6 +300,25 @@ def mapping_error_along(P: str, S: int, session: str, mapping: str, frames: int 
     return float(np.sqrt(np.mean(err[cKDTree(truth[:, :3, 3]).query(pos[::10])[1]] ** 2)))
 
 
+def same_error_poses(P: str, S: int, out: Path) -> Path:
+    """A TUM file of ``map_m12``'s mapping poses carrying the mapping day's offline-SLAM error
+    instead of its own: the two drives follow the same route on the same clock (their truths agree
+    pose for pose; checked here), so the month-0 mapping poses, stamped on the 12-month day, are
+    ``map_m12``'s truth with the stale map's error. A map built from them (``map build --poses``)
+    differs from the stale map only by what changed in the world: the fresh reference with the
+    mapping error held equal."""
+    from blockloc.app.catalog import open_sequence
+    from blockloc.geometry import Trajectory
+    from blockloc.trajectory_io import write_tum
+
+    m0, m12 = open_sequence(f"sim:{P}/map@{S}"), open_sequence(f"sim:{P}/map_m12@{S}")
+    g0, g12 = m0.ground_truth(), m12.ground_truth()
+    if len(g0.stamps) != len(g12.stamps) or not np.allclose(g0.poses, g12.poses, atol=1e-9):
+        raise SystemExit(f"sim:{P}/map@{S} and map_m12 do not drive the same route on the same clock")
+    mp = m0.mapping_poses()
+    return write_tum(out, Trajectory(mp.stamps - g0.stamps[0] + g12.stamps[0], mp.poses))
+
+
 def _sha(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
@@ -442,6 +461,7 @@ def main(argv: list[str] | None = None) -> Path:
             result["detect"].append(score_detection(P, S, s, mp, runs[s], args.stride))
             write()
     upd, fresh, up_wall, up_cpu = work / f"map_upd-{uk}", work / f"map_fresh-{bk}", None, None
+    fresh_same = work / f"map_fresh_same_error-{bk}"
     if parts & {"loc", "cost"}:
         cmd = ["blockloc", "map", "update", str(mp), "--run", str(runs["loc_m3"]), "--out", str(upd),
                "--stride", str(args.stride)]
@@ -455,6 +475,10 @@ def main(argv: list[str] | None = None) -> Path:
             write()
         _once(["blockloc", "map", "build", "--seq", f"sim:{P}/map_m12@{S}", "--kind", "block", "--out", str(fresh)],
               fresh / "manifest.json", log)
+        if "loc" in parts:  # the fresh map again, with the stale map's mapping error (same_error_poses)
+            tum = same_error_poses(P, S, work / f"map_m12_poses_with_map_error-{bk}.tum")
+            _once(["blockloc", "map", "build", "--seq", f"sim:{P}/map_m12@{S}", "--poses", str(tum), "--kind",
+                   "block", "--out", str(fresh_same)], fresh_same / "manifest.json", log)
         if "cost" in parts:
             result["cost"] = update_cost(mp, upd, fresh, up_wall, up_cpu)
             write()
@@ -463,6 +487,7 @@ def main(argv: list[str] | None = None) -> Path:
         # the stale map on the mapping month's own loc drive (nothing changed): what the map gives
         # without any change, so its mapping error is told apart from the year's changes
         rows = (("stale", "loc_m12", mp, bk), ("updated", "loc_m12", upd, uk), ("fresh", "loc_m12", fresh, bk),
+                ("fresh_same_error, the stale map's mapping error", "loc_m12", fresh_same, bk),
                 ("stale, month 0 (loc: no change)", "loc", mp, bk))
         for name, session, m, key in rows:
             run = track(session, m, f"run_{session}_{name.split(',')[0]}-{key}")

@@ -127,3 +127,20 @@ def test_segment_errors_and_the_worst_tenth_against_the_stale_map(tmp_path, monk
     assert "| updated | 0.030 | 0.10 | 0 | 0 | 20 | +0.020 |" in text
     assert "| fresh | 0.030 | 0.10 | 0 | 0 | 20 | +0.000 |" in text and "| stale | 0.030 | 0.10 | 0 | 0 | 20 | - |" in text
     assert "(`map`) 0.060 m, fresh (`map_m12`) 0.050 m" in text
+
+
+def test_the_fresh_map_with_the_stale_maps_mapping_error(tmp_path):
+    """``map_m12`` drives the mapping route on the same clock as ``map``: its truth agrees pose for
+    pose, so the month-0 mapping poses stamped on the 12-month day are map_m12's truth carrying the
+    stale map's mapping error (and not map_m12's own, which differs)."""
+    from blockloc.app.catalog import open_sequence
+    from blockloc.trajectory_io import read_tum
+
+    m0, m12 = open_sequence("sim:tiny/map@1"), open_sequence("sim:tiny/map_m12@1")
+    got = read_tum(B.same_error_poses("tiny", 1, tmp_path / "p.tum"))
+    own = m12.mapping_poses()
+    np.testing.assert_allclose(got.stamps, own.stamps, atol=1e-5)
+    np.testing.assert_allclose(got.poses, m0.mapping_poses().poses, atol=1e-6)
+    err = lambda P: np.linalg.norm(P[:, :3, 3] - m12.ground_truth().interpolate(got.stamps)[:, :3, 3], axis=1)  # noqa: E731
+    e_same, e_own = err(got.poses), err(own.poses)
+    assert 0.01 < np.sqrt(np.mean(e_same ** 2)) and np.abs(e_same - e_own).max() > 0.01
