@@ -12,7 +12,8 @@ Everything runs as a user types it (the maps and runs are kept in --work and reu
   each session (``loc_m3``, ``loc_m12``) on the stale map;
 - **detect**: the detection of ``blockloc map changes`` (through the API, to score its voxels)
   on each session's run, scored against the truth (below);
-- **loc**: ``blockloc map update MAP --run RUN_loc_m3 --out MAP_upd`` (updated from another day),
+- **loc**: ``blockloc map update MAP --run RUN_loc_m3 --out MAP_upd`` (updated from another day;
+  ``--update-from map_m12``: from the stale-map run of the 12-month mapping drive instead),
   ``blockloc map build --seq sim:P/map_m12@S --kind block`` (fresh), then ``loc_m12`` tracked on
   the stale, the updated and the fresh map: ATE, failures, rejected scans;
 - **cost**: the update's time per changed block (wall and CPU of the command), the unchanged
@@ -408,6 +409,9 @@ def main(argv: list[str] | None = None) -> Path:
     ap.add_argument("--preset", default="tiny")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--sessions", default="loc_m3,loc_m12", help="sessions to detect on (comma separated)")
+    ap.add_argument("--update-from", default="loc_m3", choices=("loc_m3", "map_m12"),
+                    help="loc/cost: the session whose stale-map run updates the map (map_m12: another drive "
+                         "of the 12-month day, which carries the changes loc_m12 meets)")
     ap.add_argument("--frames", type=int, default=0, help="track only the first N frames of each session (0: all)")
     ap.add_argument("--stride", type=int, default=2, help="detection uses every stride-th trusted frame")
     ap.add_argument("--parts", default=",".join(PARTS), help=f"comma separated: {', '.join(PARTS)}")
@@ -438,8 +442,9 @@ def main(argv: list[str] | None = None) -> Path:
                "--no-record", "--out", str(out), *lim], out / "metrics.json", log)
         return out
 
-    need = set(sessions) | ({"loc_m3", "loc_m12"} if parts & {"loc", "cost"} else set())
-    runs = {s: track(s, mp, f"run_{s}_stale-{bk}") for s in ("loc_m3", "loc_m12") if s in need}
+    src = args.update_from
+    need = set(sessions) | ({src, "loc_m12"} if parts & {"loc", "cost"} else set())
+    runs = {s: track(s, mp, f"run_{s}_stale-{bk}") for s in ("loc_m3", "loc_m12", "map_m12") if s in need}
     from blockloc.maps.changes.detect import Thresholds
 
     result: dict = {"preset": P, "seed": S, "frames": args.frames, "stride": args.stride, "load1_start": load0,
@@ -460,10 +465,11 @@ def main(argv: list[str] | None = None) -> Path:
         for s in sessions:
             result["detect"].append(score_detection(P, S, s, mp, runs[s], args.stride))
             write()
-    upd, fresh, up_wall, up_cpu = work / f"map_upd-{uk}", work / f"map_fresh-{bk}", None, None
+    tag = "" if src == "loc_m3" else f"_{src}"  # the default's names as before
+    upd, fresh, up_wall, up_cpu = work / f"map_upd{tag}-{uk}", work / f"map_fresh-{bk}", None, None
     fresh_same = work / f"map_fresh_same_error-{bk}"
     if parts & {"loc", "cost"}:
-        cmd = ["blockloc", "map", "update", str(mp), "--run", str(runs["loc_m3"]), "--out", str(upd),
+        cmd = ["blockloc", "map", "update", str(mp), "--run", str(runs[src]), "--out", str(upd),
                "--stride", str(args.stride)]
         if (upd / "manifest.json").exists():
             log.append((cmd, True, None, None))
@@ -486,7 +492,7 @@ def main(argv: list[str] | None = None) -> Path:
         result["loc"] = {}
         # the stale map on the mapping month's own loc drive (nothing changed): what the map gives
         # without any change, so its mapping error is told apart from the year's changes
-        rows = (("stale", "loc_m12", mp, bk), ("updated", "loc_m12", upd, uk), ("fresh", "loc_m12", fresh, bk),
+        rows = (("stale", "loc_m12", mp, bk), (f"updated{tag}", "loc_m12", upd, uk), ("fresh", "loc_m12", fresh, bk),
                 ("fresh_same_error, the stale map's mapping error", "loc_m12", fresh_same, bk),
                 ("stale, month 0 (loc: no change)", "loc", mp, bk))
         for name, session, m, key in rows:
@@ -508,6 +514,7 @@ def main(argv: list[str] | None = None) -> Path:
 def render(r: dict, args, log: list, machine: str, dyn: list[str]) -> list[str]:
     cmd = (f"python -m bench.lifelong --preset {r['preset']} --seed {r['seed']} --sessions {args.sessions} "
            f"--stride {r['stride']} --parts {args.parts}" + (f" --frames {r['frames']}" if r["frames"] else "")
+           + (f" --update-from {args.update_from}" if getattr(args, "update_from", "loc_m3") != "loc_m3" else "")
            + (" --dynamic" if args.dynamic else ""))
     L = ["## Lifelong maps: change detection, tracking months later, update cost", "",
          f"Command: `{cmd}`, run {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {machine}; "
