@@ -14,8 +14,12 @@ Everything runs as a user types it (the maps and runs are kept in --work and reu
   on each session's run, scored against the truth (below);
 - **loc**: ``blockloc map update MAP --run RUN_loc_m3 --out MAP_upd`` (updated from another day;
   ``--update-from map_m12``: from the stale-map run of the 12-month mapping drive instead),
-  ``blockloc map build --seq sim:P/map_m12@S --kind block`` (fresh), then ``loc_m12`` tracked on
-  the stale, the updated and the fresh map: ATE, failures, rejected scans;
+  ``blockloc map build --seq sim:P/map_m12@S --kind block`` (fresh), the same with ``--poses`` of
+  the stale map's mapping error (:func:`same_error_poses`), then ``loc_m12`` tracked on the stale,
+  the updated and both fresh maps, and ``loc`` (month 0, nothing changed) on the stale map: ATE,
+  failures, rejected scans, the worst tenth of the route against the stale map; each map drive's
+  mapping-pose error where ``loc_m12`` drives. Maps and runs kept in ``--work`` carry their
+  maker's key (:func:`cache_keys`): a map of an older builder is never reused;
 - **cost**: the update's time per changed block (wall and CPU of the command), the unchanged
   blocks' files hashed against the stale map's, the updated map's size against the fresh one's.
 - **track**: ``blockloc track --seq sim:P/loc_m12@S --map MAP --init gt --no-record --max-frames N
