@@ -12,9 +12,14 @@ Everything runs as a user types it (the maps and runs are kept in --work and reu
   each session (``loc_m3``, ``loc_m12``) on the stale map;
 - **detect**: the detection of ``blockloc map changes`` (through the API, to score its voxels)
   on each session's run, scored against the truth (below);
-- **loc**: ``blockloc map update MAP --run RUN_loc_m3 --out MAP_upd`` (updated from another day),
-  ``blockloc map build --seq sim:P/map_m12@S --kind block`` (fresh), then ``loc_m12`` tracked on
-  the stale, the updated and the fresh map: ATE, failures, rejected scans;
+- **loc**: ``blockloc map update MAP --run RUN_loc_m3 --out MAP_upd`` (updated from another day;
+  ``--update-from map_m12``: from the stale-map run of the 12-month mapping drive instead),
+  ``blockloc map build --seq sim:P/map_m12@S --kind block`` (fresh), the same with ``--poses`` of
+  the stale map's mapping error (:func:`same_error_poses`), then ``loc_m12`` tracked on the stale,
+  the updated and both fresh maps, and ``loc`` (month 0, nothing changed) on the stale map: ATE,
+  failures, rejected scans, the worst tenth of the route against the stale map; each map drive's
+  mapping-pose error where ``loc_m12`` drives. Maps and runs kept in ``--work`` carry their
+  maker's key (:func:`cache_keys`): a map of an older builder is never reused;
 - **cost**: the update's time per changed block (wall and CPU of the command), the unchanged
   blocks' files hashed against the stale map's, the updated map's size against the fresh one's.
 - **track**: ``blockloc track --seq sim:P/loc_m12@S --map MAP --init gt --no-record --max-frames N
@@ -268,6 +273,57 @@ def _metrics(run_dir: Path) -> dict:
                                   "relocalizations")}
 
 
+def segment_errors(P: str, S: int, session: str, run_dir: Path, parts: int = 10) -> list[float]:
+    """RMS position error (m; against the session's truth, not aligned, as the run's ATE) of each
+    of ``parts`` equal stretches (by frame) of the run in ``run_dir``: where along the route a map
+    helps or hurts."""
+    from blockloc.app.catalog import open_sequence
+    from blockloc.trajectory_io import read_tum
+
+    est = read_tum(run_dir / "poses.tum")
+    gt = open_sequence(f"sim:{P}/{session}@{S}").ground_truth().interpolate(est.stamps)
+    e = np.linalg.norm(est.poses[:, :3, 3] - gt[:, :3, 3], axis=1)
+    return [float(np.sqrt(np.mean(c ** 2))) for c in np.array_split(e, parts) if len(c)]
+
+
+def mapping_error_along(P: str, S: int, session: str, mapping: str, frames: int = 0) -> float:
+    """RMS position error (m) of the ``mapping`` drive's mapping poses (the simulator's offline-SLAM
+    error a map built from it inherits), taken at the mapping pose nearest each ``session`` truth
+    pose (its first ``frames`` seconds x 10 when given): how good a map is where the session drives."""
+    from scipy.spatial import cKDTree
+
+    from blockloc.app.catalog import open_sequence
+
+    route = open_sequence(f"sim:{P}/{session}@{S}").ground_truth()
+    pos = route.poses[:, :3, 3]
+    if frames:
+        pos = pos[route.stamps <= route.stamps[0] + frames / 10.0]
+    q = open_sequence(f"sim:{P}/{mapping}@{S}")
+    mp = q.mapping_poses()
+    truth = q.ground_truth().interpolate(mp.stamps)
+    err = np.linalg.norm(mp.poses[:, :3, 3] - truth[:, :3, 3], axis=1)
+    return float(np.sqrt(np.mean(err[cKDTree(truth[:, :3, 3]).query(pos[::10])[1]] ** 2)))
+
+
+def same_error_poses(P: str, S: int, out: Path) -> Path:
+    """A TUM file of ``map_m12``'s mapping poses carrying the mapping day's offline-SLAM error
+    instead of its own: the two drives follow the same route on the same clock (their truths agree
+    pose for pose; checked here), so the month-0 mapping poses, stamped on the 12-month day, are
+    ``map_m12``'s truth with the stale map's error. A map built from them (``map build --poses``)
+    differs from the stale map only by what changed in the world: the fresh reference with the
+    mapping error held equal."""
+    from blockloc.app.catalog import open_sequence
+    from blockloc.geometry import Trajectory
+    from blockloc.trajectory_io import write_tum
+
+    m0, m12 = open_sequence(f"sim:{P}/map@{S}"), open_sequence(f"sim:{P}/map_m12@{S}")
+    g0, g12 = m0.ground_truth(), m12.ground_truth()
+    if len(g0.stamps) != len(g12.stamps) or not np.allclose(g0.poses, g12.poses, atol=1e-9):
+        raise SystemExit(f"sim:{P}/map@{S} and map_m12 do not drive the same route on the same clock")
+    mp = m0.mapping_poses()
+    return write_tum(out, Trajectory(mp.stamps - g0.stamps[0] + g12.stamps[0], mp.poses))
+
+
 def _sha(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
@@ -309,10 +365,11 @@ def dynamic_hook(work: Path, preset: str, seed: int) -> list[str]:
     return Path(page).read_text().splitlines()
 
 
-def detect_while_tracking(work: Path, mp: Path, P: str, S: int, frames: int, stride: int, log: list) -> dict:
+def detect_while_tracking(work: Path, mp: Path, P: str, S: int, frames: int, stride: int, log: list,
+                          key: str) -> dict:
     """``track --detect-changes`` on the first ``frames`` frames of loc_m12 in the stale map: the
     detection's cost (changes.json) beside the tracking's (metrics.json; the process's CPU)."""
-    out = work / f"run_loc_m12_detect_f{frames}_s{stride}"
+    out = work / f"run_loc_m12_detect_f{frames}_s{stride}-{key}"  # key: the detector's and the map's (cache_keys)
     cmd = ["blockloc", "track", "--seq", f"sim:{P}/loc_m12@{S}", "--map", str(mp), "--init", "gt", "--no-record",
            "--max-frames", str(frames), "--detect-changes", "--changes-stride", str(stride), "--out", str(out)]
     _once(cmd, out / "changes.json", log)
@@ -325,6 +382,28 @@ def detect_while_tracking(work: Path, mp: Path, P: str, S: int, frames: int, str
     return c
 
 
+#: The modules whose code makes a map of ``blockloc map build`` (the simulator's sessions, the
+#: loaders, the builder and its mounting estimate): a change to any of them is a new map.
+BUILDER_MODULES = ("blockloc.sim", "blockloc.datasets", "blockloc.maps.block_maps", "blockloc.maps.build_plan",
+                   "blockloc.maps.build_tasks", "blockloc.maps.mapping", "blockloc.maps.mounting",
+                   "blockloc.maps.store", "blockloc.maps.pcd", "blockloc.registration", "blockloc.voxels",
+                   "blockloc.geometry", "blockloc.config")
+#: ... and those of ``blockloc map update`` (detection and rebuild), on top of the builder's.
+UPDATE_MODULES = ("blockloc.maps.changes", "blockloc.app.lifelong", "blockloc.maps.dynamic_removal")
+
+
+def cache_keys(P: str, S: int, stride: int) -> dict:
+    """The keys the kept maps and runs are filed under in --work, so a map (and every run on it)
+    made by an older builder is never reused: ``builder`` over BUILDER_MODULES' code and the map
+    settings ``map build`` reads for the preset (the default config, e.g. ``calibrate_mounting``);
+    ``update`` over UPDATE_MODULES' code, the builder key and the detection stride."""
+    from blockloc.app.catalog import config_for_sequence
+    from blockloc.cache import fingerprint
+
+    builder = fingerprint(*BUILDER_MODULES, params=(P, S, repr(config_for_sequence(f"sim:{P}/map@{S}").map)))
+    return {"builder": builder, "update": fingerprint(*UPDATE_MODULES, params=(builder, stride))}
+
+
 def _f(v, nd=2) -> str:
     return "-" if v is None or (isinstance(v, float) and not np.isfinite(v)) else f"{v:.{nd}f}"
 
@@ -334,6 +413,9 @@ def main(argv: list[str] | None = None) -> Path:
     ap.add_argument("--preset", default="tiny")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--sessions", default="loc_m3,loc_m12", help="sessions to detect on (comma separated)")
+    ap.add_argument("--update-from", default="loc_m3", choices=("loc_m3", "map_m12"),
+                    help="loc/cost: the session whose stale-map run updates the map (map_m12: another drive "
+                         "of the 12-month day, which carries the changes loc_m12 meets)")
     ap.add_argument("--frames", type=int, default=0, help="track only the first N frames of each session (0: all)")
     ap.add_argument("--stride", type=int, default=2, help="detection uses every stride-th trusted frame")
     ap.add_argument("--parts", default=",".join(PARTS), help=f"comma separated: {', '.join(PARTS)}")
@@ -352,7 +434,9 @@ def main(argv: list[str] | None = None) -> Path:
     lim = ["--max-frames", str(args.frames)] if args.frames else []
     log: list = []
     load0, t_all = os.getloadavg()[0], time.perf_counter()
-    mp = work / "map"
+    keys = cache_keys(P, S, args.stride)
+    bk, uk = keys["builder"], keys["update"]  # every kept map and run is filed under its maker's key
+    mp = work / f"map-{bk}"
     _once(["blockloc", "map", "build", "--seq", f"sim:{P}/map@{S}", "--kind", "block", "--out", str(mp)],
           mp / "manifest.json", log)
 
@@ -362,11 +446,13 @@ def main(argv: list[str] | None = None) -> Path:
                "--no-record", "--out", str(out), *lim], out / "metrics.json", log)
         return out
 
-    need = set(sessions) | ({"loc_m3", "loc_m12"} if parts & {"loc", "cost"} else set())
-    runs = {s: track(s, mp, f"run_{s}_stale") for s in ("loc_m3", "loc_m12") if s in need}
+    src = args.update_from
+    need = set(sessions) | ({src, "loc_m12"} if parts & {"loc", "cost"} else set())
+    runs = {s: track(s, mp, f"run_{s}_stale-{bk}") for s in ("loc_m3", "loc_m12", "map_m12") if s in need}
     from blockloc.maps.changes.detect import Thresholds
 
     result: dict = {"preset": P, "seed": S, "frames": args.frames, "stride": args.stride, "load1_start": load0,
+                    "keys": keys,
                     "min_block_m3": Thresholds().min_block_m3}
 
     def write() -> None:  # after every part: a long run stopped half-way keeps what it measured
@@ -383,9 +469,11 @@ def main(argv: list[str] | None = None) -> Path:
         for s in sessions:
             result["detect"].append(score_detection(P, S, s, mp, runs[s], args.stride))
             write()
-    upd, fresh, up_wall, up_cpu = work / "map_upd", work / "map_fresh", None, None
+    tag = "" if src == "loc_m3" else f"_{src}"  # the default's names as before
+    upd, fresh, up_wall, up_cpu = work / f"map_upd{tag}-{uk}", work / f"map_fresh-{bk}", None, None
+    fresh_same = work / f"map_fresh_same_error-{bk}"
     if parts & {"loc", "cost"}:
-        cmd = ["blockloc", "map", "update", str(mp), "--run", str(runs["loc_m3"]), "--out", str(upd),
+        cmd = ["blockloc", "map", "update", str(mp), "--run", str(runs[src]), "--out", str(upd),
                "--stride", str(args.stride)]
         if (upd / "manifest.json").exists():
             log.append((cmd, True, None, None))
@@ -397,16 +485,28 @@ def main(argv: list[str] | None = None) -> Path:
             write()
         _once(["blockloc", "map", "build", "--seq", f"sim:{P}/map_m12@{S}", "--kind", "block", "--out", str(fresh)],
               fresh / "manifest.json", log)
+        if "loc" in parts:  # the fresh map again, with the stale map's mapping error (same_error_poses)
+            tum = same_error_poses(P, S, work / f"map_m12_poses_with_map_error-{bk}.tum")
+            _once(["blockloc", "map", "build", "--seq", f"sim:{P}/map_m12@{S}", "--poses", str(tum), "--kind",
+                   "block", "--out", str(fresh_same)], fresh_same / "manifest.json", log)
         if "cost" in parts:
             result["cost"] = update_cost(mp, upd, fresh, up_wall, up_cpu)
             write()
     if "loc" in parts:
         result["loc"] = {}
-        for name, m in (("stale", mp), ("updated", upd), ("fresh", fresh)):
-            result["loc"][name] = _metrics(track("loc_m12", m, f"run_loc_m12_{name}"))
+        # the stale map on the mapping month's own loc drive (nothing changed): what the map gives
+        # without any change, so its mapping error is told apart from the year's changes
+        rows = (("stale", "loc_m12", mp, bk), (f"updated{tag}", "loc_m12", upd, uk), ("fresh", "loc_m12", fresh, bk),
+                ("fresh_same_error, the stale map's mapping error", "loc_m12", fresh_same, bk),
+                ("stale, month 0 (loc: no change)", "loc", mp, bk))
+        for name, session, m, key in rows:
+            run = track(session, m, f"run_{session}_{name.split(',')[0]}-{key}")
+            result["loc"][name] = {**_metrics(run), "segments": segment_errors(P, S, session, run)}
             write()
+        result["mapping_error"] = {m: mapping_error_along(P, S, "loc_m12", m, args.frames) for m in ("map", "map_m12")}
+        write()
     if "track" in parts:
-        result["track"] = detect_while_tracking(work, mp, P, S, args.detect_frames, args.stride, log)
+        result["track"] = detect_while_tracking(work, mp, P, S, args.detect_frames, args.stride, log, uk)
         write()
     if args.dynamic:
         dyn = dynamic_hook(work, P, S)
@@ -418,6 +518,7 @@ def main(argv: list[str] | None = None) -> Path:
 def render(r: dict, args, log: list, machine: str, dyn: list[str]) -> list[str]:
     cmd = (f"python -m bench.lifelong --preset {r['preset']} --seed {r['seed']} --sessions {args.sessions} "
            f"--stride {r['stride']} --parts {args.parts}" + (f" --frames {r['frames']}" if r["frames"] else "")
+           + (f" --update-from {args.update_from}" if getattr(args, "update_from", "loc_m3") != "loc_m3" else "")
            + (" --dynamic" if args.dynamic else ""))
     L = ["## Lifelong maps: change detection, tracking months later, update cost", "",
          f"Command: `{cmd}`, run {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {machine}; "
@@ -459,11 +560,23 @@ def render(r: dict, args, log: list, machine: str, dyn: list[str]) -> list[str]:
                              f"{_f(b.get('largest_change_m3'), 1)} | {b['confirmed']} |")
     if "loc" in r:
         L += ["", "### Tracking loc_m12 (12 months later) on each map", "",
-              "| map | ATE translation RMSE (m) | rotation RMSE (deg) | failures | rejected scans | frames |",
-              "|---|---|---|---|---|---|"]
+              "Worst tenth: the route cut in ten stretches by frame, the largest RMS position error of a "
+              "stretch minus the stale map's on the same stretch (above 0: worse than the stale map there).", "",
+              "| map | ATE translation RMSE (m) | rotation RMSE (deg) | failures | rejected scans | frames "
+              "| worst tenth vs stale (m) |",
+              "|---|---|---|---|---|---|---|"]
+        base = (r["loc"].get("stale") or {}).get("segments")
         for name, m in r["loc"].items():
+            seg = m.get("segments")
+            worst = (max(a - b for a, b in zip(seg, base)) if seg and base and len(seg) == len(base)
+                     and name != "stale" and "month 0" not in name else None)
             L.append(f"| {name} | {_f(m['ate_trans_rmse_m'], 3)} | {_f(m['ate_rot_rmse_deg'], 2)} | {m['failures']} | "
-                     f"{m['rejected']} | {m['frames']} |")
+                     f"{m['rejected']} | {m['frames']} | {'-' if worst is None else f'{worst:+.3f}'} |")
+        if r.get("mapping_error"):
+            me = r["mapping_error"]
+            L += ["", f"The maps' own pose error where loc_m12 drives (the simulator's offline-SLAM error of the "
+                  f"mapping drive, RMS at the mapping pose nearest each loc_m12 pose): stale and updated "
+                  f"(`map`) {me['map']:.3f} m, fresh (`map_m12`) {me['map_m12']:.3f} m."]
     if "cost" in r:
         c = r["cost"]
         L += ["", "### Update cost", "",

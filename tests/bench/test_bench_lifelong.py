@@ -67,3 +67,80 @@ def test_where_the_false_detections_lie():
     pts = np.array([[0.2, 0.2, -5.2], [10.2, 0.2, -1.2], [10.2, 0.2, -4.2], [20.2, 5.2, -1.6]])
     w = B.where_voxels(seq, voxel_keys(pts, 0.5), 0.5)
     assert w == {"vegetation": 1, "ground": 1, "other": 2}
+
+
+def test_kept_maps_are_keyed_on_the_builder_that_made_them(monkeypatch):
+    """A map (and every run on it) kept in --work is filed under a key of the map builder's code and
+    the map settings ``map build`` reads: a map built with the nominal LiDAR mounting (an older
+    builder's default) is never reused once the builder estimates it."""
+    import dataclasses
+
+    import blockloc.app.catalog as catalog
+
+    k1 = B.cache_keys("tiny", 1, 4)
+    assert k1 == B.cache_keys("tiny", 1, 4)  # stable: the same code and settings, the same key
+    assert B.cache_keys("tiny", 2, 4)["builder"] != k1["builder"]
+    assert B.cache_keys("tiny", 1, 2)["builder"] == k1["builder"]  # the stride is not the builder's
+    assert B.cache_keys("tiny", 1, 2)["update"] != k1["update"]
+    real = catalog.config_for_sequence
+
+    def nominal(name):
+        cfg = real(name)
+        return dataclasses.replace(cfg, map=dataclasses.replace(cfg.map, calibrate_mounting=False))
+
+    monkeypatch.setattr(catalog, "config_for_sequence", nominal)
+    k2 = B.cache_keys("tiny", 1, 4)
+    assert k2["builder"] != k1["builder"] and k2["update"] != k1["update"]
+    # the builder's code: a change to the mounting estimate is a new key
+    monkeypatch.setattr(catalog, "config_for_sequence", real)
+    monkeypatch.setattr(B, "BUILDER_MODULES", tuple(m for m in B.BUILDER_MODULES if m != "blockloc.maps.mounting"))
+    assert B.cache_keys("tiny", 1, 4)["builder"] != k1["builder"]
+
+
+def test_segment_errors_and_the_worst_tenth_against_the_stale_map(tmp_path, monkeypatch):
+    """Per-stretch RMS position error of a run against its session's truth, and the table's
+    "worst tenth vs stale": the largest stretch-wise excess over the stale map's run."""
+    from types import SimpleNamespace
+
+    import blockloc.app.catalog as catalog
+    from blockloc.geometry import Trajectory
+    from blockloc.trajectory_io import write_tum
+
+    stamps = np.arange(20) * 0.1
+    truth = np.repeat(np.eye(4)[None], 20, axis=0)
+    truth[:, 0, 3] = stamps
+    monkeypatch.setattr(catalog, "open_sequence",
+                        lambda name, **kw: SimpleNamespace(ground_truth=lambda: Trajectory(stamps, truth)))
+    est = truth.copy()
+    est[10:, 1, 3] = 0.05  # the second half 5 cm off to the side
+    (tmp_path / "run").mkdir()
+    write_tum(tmp_path / "run" / "poses.tum", Trajectory(stamps, est))
+    seg = B.segment_errors("tiny", 1, "loc_m12", tmp_path / "run", parts=2)
+    assert seg == pytest.approx([0.0, 0.05])
+    r = {"preset": "tiny", "seed": 1, "stride": 4, "frames": 0, "load1_start": 1.0, "load1_end": 1.0, "wall_s": 60,
+         "loc": {name: {"ate_trans_rmse_m": 0.03, "ate_rot_rmse_deg": 0.1, "failures": 0, "rejected": 0,
+                        "frames": 20, "segments": s} for name, s in
+                 (("stale", [0.02, 0.03]), ("updated", [0.01, 0.05]), ("fresh", [0.02, 0.02]))},
+         "mapping_error": {"map": 0.06, "map_m12": 0.05}}
+    args = SimpleNamespace(sessions="loc_m12", parts="loc", dynamic=False)
+    text = "\n".join(B.render(r, args, [], "test machine", []))
+    assert "| updated | 0.030 | 0.10 | 0 | 0 | 20 | +0.020 |" in text
+    assert "| fresh | 0.030 | 0.10 | 0 | 0 | 20 | +0.000 |" in text and "| stale | 0.030 | 0.10 | 0 | 0 | 20 | - |" in text
+    assert "(`map`) 0.060 m, fresh (`map_m12`) 0.050 m" in text
+
+
+def test_the_fresh_map_with_the_stale_maps_mapping_error(tmp_path):
+    """``map_m12`` drives the mapping route on the same clock as ``map``: its truth agrees pose for
+    pose, so the month-0 mapping poses stamped on the 12-month day are map_m12's truth carrying the
+    stale map's mapping error (and not map_m12's own, which differs)."""
+    from blockloc.app.catalog import open_sequence
+    from blockloc.trajectory_io import read_tum
+
+    m0, m12 = open_sequence("sim:tiny/map@1"), open_sequence("sim:tiny/map_m12@1")
+    got = read_tum(B.same_error_poses("tiny", 1, tmp_path / "p.tum"))
+    own = m12.mapping_poses()
+    np.testing.assert_allclose(got.stamps, own.stamps, atol=1e-5)
+    np.testing.assert_allclose(got.poses, m0.mapping_poses().poses, atol=1e-6)
+    err = lambda P: np.linalg.norm(P[:, :3, 3] - m12.ground_truth().interpolate(got.stamps)[:, :3, 3], axis=1)  # noqa: E731
+    e_same, e_own = err(got.poses), err(own.poses)
+    assert 0.01 < np.sqrt(np.mean(e_same ** 2)) and np.abs(e_same - e_own).max() > 0.01

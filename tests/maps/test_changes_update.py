@@ -267,3 +267,36 @@ def test_the_app_recipe_places_scans_with_the_maps_mounting(base, tmp_path, monk
     found = lifelong.detect_run_changes(store, run)
     assert np.allclose(seen[-1].info.T_body_lidar, X) and not np.allclose(X, nominal)
     assert found.result.scans_used > 0
+
+
+def test_only_coherent_changes_are_applied_scattered_voxels_are_held_back():
+    """Strong voxels are applied only inside a 26-connected change of ``min_change_m3`` or more (one
+    changed object, the detector's rule for confirming a block); voxels scattered over the block
+    (each seen free in many scans: false removals along a facade) never carve it."""
+    from types import SimpleNamespace
+
+    from blockloc.maps.changes.detect import pack_keys
+    from blockloc.maps.changes.update import coherent
+
+    wall = pack_keys(np.array([[i, 0, k] for i in range(10) for k in range(4)]))  # 40 voxels: 5 m^3
+    lone = pack_keys(np.array([[30, 30, 0], [40, 0, 2], [50, 5, 1], [50, 7, 1]]))  # none touching another
+    removed = np.unique(np.concatenate([wall, lone]))
+    kept, _, scattered, _ = coherent(removed, removed[:0], 0.5, 3.0)
+    assert np.array_equal(kept, np.sort(wall)) and np.array_equal(scattered, np.sort(lone))
+    # removed and added voxels of one object count together (a car moved by half its length)
+    car_rm = pack_keys(np.array([[i, 10, k] for i in range(3) for k in range(4)]))  # 12 voxels, 1.5 m^3
+    car_ad = pack_keys(np.array([[i, 10, k] for i in range(3, 6) for k in range(4)]))
+    rk, ak, _, _ = coherent(np.sort(car_rm), np.sort(car_ad), 0.5, 3.0)
+    assert len(rk) == 12 and len(ak) == 12
+    voxels = SimpleNamespace(voxel_m=0.5, removed=removed, removed_free=np.full(len(removed), 50),
+                             added=np.zeros(0, np.int64), added_hits=np.zeros(0, np.int64))
+    res = SimpleNamespace(voxels=voxels, block_keys={"000": removed}, block_keyframes={"000": np.zeros((1, 3))})
+    plan = plan_update([res])
+    assert np.array_equal(plan.removed, np.sort(wall)) and plan.blocks["000"]["scattered_voxels"] == 4
+    assert any(h.get("scattered_voxels") == 4 and "coherent" in h["reason"] for h in plan.held_back)
+    only_lone = SimpleNamespace(voxels=SimpleNamespace(**{**vars(voxels), "removed": np.sort(lone),
+                                                          "removed_free": np.full(4, 50)}),
+                                block_keys={"000": np.sort(lone)}, block_keyframes={"000": np.zeros((1, 3))})
+    plan = plan_update([only_lone], min_block_voxels=1)
+    assert plan.blocks == {} and len(plan.removed) == 0 and plan.held_back[0]["scattered_voxels"] == 4
+    assert list(plan_update([only_lone], min_block_voxels=1, min_change_m3=0).blocks) == ["000"]  # rule off

@@ -6,12 +6,17 @@ scans only):
 1. **Strong evidence.** A removed or added voxel is applied when two runs or more found it, or one
    run saw it over ``strong_scans`` scans or more (removed: scans that saw through it; added:
    scans that hit it). Everything weaker is held back and reported.
-2. **Confirmed blocks.** A block is rebuilt when its applied voxels number ``min_block_voxels``
+2. **Coherent changes.** Of the strong voxels, removed and added together, only those in a
+   26-connected cluster of ``min_change_m3`` or more are applied (a wall, a building, a parked car:
+   one changed object), the rule by which the detector confirms a block (its ``min_block_m3``);
+   voxels scattered over a block (a grazing ray, a mixed pixel, a pose a few centimetres off
+   carving a facade's edge) are held back and reported, so they never carve the map.
+3. **Confirmed blocks.** A block is rebuilt when its applied voxels number ``min_block_voxels``
    or more; other blocks with detected changes are held back (reported with their counts).
-3. **Rebuild.** A confirmed block keeps its points outside the applied removed voxels and gains
+4. **Rebuild.** A confirmed block keeps its points outside the applied removed voxels and gains
    the runs' points inside the applied added voxels it owns (the nearest keyframe's block),
    voxel-filtered at the store's ``voxel_size_m``. Dynamic voxels are never added.
-4. **Write.** The new block files get new names (``<id>.v<N>.pcd``); every other entry is copied
+5. **Write.** The new block files get new names (``<id>.v<N>.pcd``); every other entry is copied
    from the parent manifest as it is (the same file, the same bytes). The place index is rebuilt
    by the ``place_index`` function the caller passes (the application layer builds it from the
    config: ``blockloc.app.lifelong``; global init's per-entry rasters are cached by content: only
@@ -62,8 +67,24 @@ def _strong(keys_per_run: list[np.ndarray], scans_per_run: list[np.ndarray], str
     return keys[(runs >= min_runs) | (best >= strong_scans)], keys[(runs < min_runs) & (best < strong_scans)]
 
 
-def plan_update(results: list, *, strong_scans: int = 15, min_runs: int = 2, min_block_voxels: int = 8) -> UpdatePlan:
-    """Decide what to apply from runs' ChangeResults (module docstring, steps 1-2)."""
+def coherent(removed: np.ndarray, added: np.ndarray, voxel_m: float, min_change_m3: float):
+    """Split strong voxels (sorted keys, edge ``voxel_m``) into those in a 26-connected cluster
+    (removed and added together) of ``min_change_m3`` or more and the scattered rest:
+    (removed kept, added kept, removed scattered, added scattered)."""
+    from blockloc.maps.changes.detect import cluster_sizes
+
+    both = np.union1d(removed, added)
+    if not len(both) or min_change_m3 <= 0:
+        return removed, added, removed[:0], added[:0]
+    big = both[cluster_sizes(both) * voxel_m ** 3 >= min_change_m3 - 1e-9]
+    rm_in, ad_in = np.isin(removed, big), np.isin(added, big)
+    return removed[rm_in], added[ad_in], removed[~rm_in], added[~ad_in]
+
+
+def plan_update(results: list, *, strong_scans: int = 15, min_runs: int = 2, min_block_voxels: int = 8,
+                min_change_m3: float = 3.0) -> UpdatePlan:
+    """Decide what to apply from runs' ChangeResults (module docstring, steps 1-3). min_change_m3:
+    the smallest coherent change applied (m^3; 0: every strong voxel)."""
     from scipy.spatial import cKDTree
 
     if not results:
@@ -75,6 +96,7 @@ def plan_update(results: list, *, strong_scans: int = 15, min_runs: int = 2, min
                           strong_scans, min_runs)
     ad, ad_weak = _strong([r.voxels.added for r in results], [r.voxels.added_hits for r in results],
                           strong_scans, min_runs)
+    rm, ad, rm_lone, ad_lone = coherent(rm, ad, voxel_m, min_change_m3)
     block_keys, block_kf = {}, {}
     for r in results:
         block_keys.update(r.block_keys)
@@ -89,26 +111,33 @@ def plan_update(results: list, *, strong_scans: int = 15, min_runs: int = 2, min
             return np.zeros(len(keys), object)
         return owner[cKDTree(kf).query((unpack_keys(keys) + 0.5) * voxel_m)[1]]
 
-    ad_owner, adw_owner = owners(ad), owners(ad_weak)
+    ad_owner, adw_owner, adl_owner = owners(ad), owners(ad_weak), owners(ad_lone)
     plan = UpdatePlan(voxel_m, np.zeros(0, np.int64), np.zeros(0, np.int64))
     applied_rm, applied_ad = [], []
     for b in ids:
         r_in = rm[np.isin(rm, block_keys[b])]
         a_in = ad[ad_owner == b]
         weak = int(np.isin(rm_weak, block_keys[b]).sum() + (adw_owner == b).sum())
+        lone = int(np.isin(rm_lone, block_keys[b]).sum() + (adl_owner == b).sum())
         n = len(r_in) + len(a_in)
         if n >= min_block_voxels:
-            plan.blocks[b] = {"removed_voxels": len(r_in), "added_voxels": len(a_in), "held_back_voxels": weak}
+            plan.blocks[b] = {"removed_voxels": len(r_in), "added_voxels": len(a_in), "held_back_voxels": weak,
+                              "scattered_voxels": lone}
             applied_rm.append(r_in)
             applied_ad.append(a_in)
-        elif n or weak:
+        elif n or weak or lone:
             plan.held_back.append({"block": b, "removed_voxels": len(r_in), "added_voxels": len(a_in),
-                                   "weak_voxels": weak,
+                                   "weak_voxels": weak, "scattered_voxels": lone,
                                    "reason": f"{n} strong changed voxels < {min_block_voxels}"
-                                   + (f"; {weak} voxels with too little evidence" if weak else "")})
+                                   + (f"; {weak} voxels with too little evidence" if weak else "")
+                                   + (f"; {lone} strong voxels in no change of {min_change_m3:g} m^3" if lone else "")})
         if weak and n >= min_block_voxels:
             plan.held_back.append({"block": b, "weak_voxels": weak,
                                    "reason": f"{weak} voxels seen by one run in fewer than {strong_scans} scans"})
+        if lone and n >= min_block_voxels:
+            plan.held_back.append({"block": b, "scattered_voxels": lone,
+                                   "reason": f"{lone} strong voxels in no coherent change of {min_change_m3:g} m^3 "
+                                             "or more"})
     plan.removed = np.unique(np.concatenate(applied_rm)) if applied_rm else plan.removed
     plan.added = np.unique(np.concatenate(applied_ad)) if applied_ad else plan.added
     plan.added_owner = dict(zip(ad.tolist(), ad_owner.tolist()))
