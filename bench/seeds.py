@@ -12,6 +12,8 @@ For every seed S (in ``--work``, kept between runs: a step whose output is there
     blockloc track --seq W/sS/loc --map W/sS_map --init gt --no-record --out W/sS_run_default
     blockloc track --seq W/sS/loc --map W/sS_map_nominal --init gt --no-record --out W/sS_run_nominal
     blockloc track --seq W/sS/loc --map W/sS_map --init gt --no-imu --no-record --out W/sS_run_no-imu
+    blockloc map build --seq W/sS/map --kind block --refine-poses --out W/sS_map_refined   (run `refined`)
+    blockloc track --seq W/sS/loc --map W/sS_map_refined --init gt --no-record --out W/sS_run_refined
 
     blockloc eval --gt W/sS/loc/groundtruth_*.csv --est W/sS_run_R/poses.tum --interpolate --json
 
@@ -43,7 +45,10 @@ RUNS = {  # name: (map suffix, extra track options)
     "default": ("", []),
     "nominal": ("_nominal", []),
     "no-imu": ("", ["--no-imu"]),
+    "refined": ("_refined", []),
 }
+#: map build options of each map suffix (the default map: none)
+MAP_OPTIONS = {"": [], "_nominal": ["--nominal-mounting"], "_refined": ["--refine-poses"]}
 TARGETS = {"median ATE": 0.03, "worst ATE": 0.035, "rotation": 0.15, "along mean": 0.01}
 
 
@@ -83,7 +88,7 @@ def run_seed(work: Path, preset: str, seed: int, runs: list[str], report_only: b
         if report_only and not (r / "metrics.json").exists():
             continue
         if not (m / "manifest.json").exists():
-            opts = ["--nominal-mounting"] if suffix == "_nominal" else []
+            opts = MAP_OPTIONS[suffix]
             wall, cpu, load = _blockloc(["map", "build", "--seq", str(world / "map"), "--kind", "block", *opts,
                                          "--out", str(m)], log)
             timing.write_text(f"{wall:.1f} {cpu:.1f} {load:.1f}\n")  # wall s, CPU s, load average

@@ -99,6 +99,12 @@ class MapConfig:
     # Track with the mounting the map's build estimated (the same robot recorded both drives);
     # false: the sequence's own T_body_lidar (a warning when the two differ).
     use_map_mounting: bool = True
+    # Refine each mapping drive's keyframe poses against its own scans before the blocks are
+    # written (blockloc.maps.pose_refine: scan-to-scan NDT between neighbours and revisits, a pose
+    # graph with the given poses as priors; the mounting's rotation estimated with them). Small
+    # world seeds 1-5 (docs/bench/accuracy_seeds.md): the body poses' error vs the truth 5.2-6.2 ->
+    # 2.4-3.2 cm RMSE. Off by default: see that page for what it does to tracking.
+    refine_poses: bool = False
     switch_hysteresis_m: float = bounded(5.0, NON_NEGATIVE)
     # Also serve the nearest other block with a keyframe this close (0: one block, as the paper).
     # 15 m: campus, first 1.1 km, ATE 0.063 -> 0.040 m (max 0.55 -> 0.11 m), resident map 59 -> 87 MB.
