@@ -213,6 +213,8 @@ def mounting_lines(params: dict) -> list[tuple[str, str]]:
                 kept = ", ".join(a for a in "xyz" if a not in axes)
                 what += (f"; translation nominal on body {kept} (the drive determines x, y, z to {u} mm, "
                          f"not {1000 * m['translation_tolerance_m']:.0f} mm)")
+            if m.get("refined_with_poses"):
+                what += "; then rotation and body x translation estimated again with the refined poses"
             lines.append((drive, what))
             continue
         src = sources[drive]

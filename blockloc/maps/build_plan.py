@@ -221,8 +221,8 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
     body axes the drive determines to this (None: ``TRANSLATION_TOLERANCE_M`` of
     :mod:`blockloc.maps.mounting`; 0: on every axis it observes).
     refine_poses: refine each drive's keyframe poses against its own scans after the mounting
-    step (:mod:`blockloc.maps.pose_refine`; the mounting's rotation is estimated with them where
-    the mounting step estimated one) and build from them; the manifest keeps each drive's summary
+    step (:mod:`blockloc.maps.pose_refine`; the mounting's rotation and forward translation are
+    estimated with them where the mounting step estimated one) and build from them; the manifest keeps each drive's summary
     under ``pose_refinement``. A drive without revisits is left as it came (logged).
     progress: None/False or a callback ``(done, total)`` over tasks (commands draw the bar). stats: a dict
     to fill with per-task-kind counts, seconds, bytes and raw points (:meth:`_Tasks.stats`).
@@ -413,11 +413,12 @@ def _refine(tasks: _Tasks, plans: list[DrivePlan], deskew: bool, keyframe_distan
                  r["summary"]["loop_pairs"], r["summary"]["shift_median_m"], r["summary"]["shift_max_m"])
         todo.append((n, p, r))
         e = mounting.get(p.drive.name)
-        if e is not None:  # its rotation estimated again with the poses (the translation is held)
+        if e is not None:  # rotation and forward translation estimated again with the poses
             X, X0 = r["T_body_lidar"], np.asarray(e["T_body_lidar_nominal"], np.float64)
             mounting[p.drive.name] = {**e, "T_body_lidar": np.round(X, 9).tolist(),
                                       "rotation_deg": np.round(np.rad2deg(so3_log(X[:3, :3] @ X0[:3, :3].T)), 4).tolist(),
-                                      "rotation_source": "pose refinement"}
+                                      "translation_m": np.round(X[:3, 3] - X0[:3, 3], 4).tolist(),
+                                      "refined_with_poses": True}
     tasks.expect(len(todo))
     new = {n: f.result() for n, f in [(n, tasks.submit(plan_drive_task, reposed(p.drive, r), keyframe_distance_m,
                                                        keyframe_angle_deg, name=f"plan-refined-{n}"))

@@ -374,7 +374,8 @@ def refine_task(plan: DrivePlan, deskew: bool, hold_mounting: bool) -> dict:
     """Task: the drive's keyframe poses refined against its own scans
     (:func:`blockloc.maps.pose_refine.refine_poses`, NDT scan-to-scan). Reads every keyframe.
     hold_mounting: keep the drive's ``T_body_lidar`` as it is (poses of the LiDAR itself, or a
-    mounting not estimated); otherwise its rotation is estimated with the poses. Returns the
+    mounting not estimated); otherwise its rotation and forward translation are estimated with
+    the poses. Returns the
     keyframe stamps (K,), body poses before and after (K, 4, 4), ``T_body_lidar`` (4, 4),
     ``summary`` (JSON-ready; ``skipped`` says why nothing changed) and the raw points read."""
     from blockloc.geometry import inv_T, transform_points
@@ -395,7 +396,7 @@ def refine_task(plan: DrivePlan, deskew: bool, hold_mounting: bool) -> dict:
         raw += len(pts_map)
         # back into the LiDAR frame at the scan stamp: deskewed points, as the pairs see them
         clouds.append(voxel_downsample(transform_points(inv_T(plan.T_map_lidar[k]), pts_map), 0.2)[0])
-    hold = {"mounting_sigma_rad": 1e-6} if hold_mounting else {}
+    hold = {"mounting_sigma_rad": 1e-6, "mounting_sigma_m": 1e-4} if hold_mounting else {}
     r = refine_poses(T_map_body, plan.stamps, clouds, X0, make_engine("ndt", num_threads=1), **hold)
     return {**base, "after": r.T_map_body, "T_body_lidar": r.T_body_lidar, "summary": r.as_dict(),
             "raw_points": raw}

@@ -11,14 +11,17 @@ tie distant parts of the drive together.
 
 - variables: each keyframe's LiDAR pose ``L_k = T_map_lidar_k`` and one mounting
   ``X = T_body_lidar`` (the scans register LiDAR to LiDAR; the input poses are of the body, and a
-  wrong mounting would make the two disagree on every turn, so it is estimated with them);
+  wrong mounting would make the two disagree on every turn, so it is estimated with them: the
+  forward translation the build's hand-eye estimate could not determine from the input poses,
+  :mod:`blockloc.maps.mounting`, is what costs the tracker its along-track error);
 - a prior on each body pose ``L_k X^-1`` at the input pose (``prior_sigma_*``, widened by the
   square root of the keyframes per ``correlation_s``: the input error is smooth, not independent
   from keyframe to keyframe);
 - registration factors ``L_i^-1 L_j = B_ij`` (Huber-robust) between keyframes 1..``odometry_span``
   apart and between revisits: keyframes within ``loop_radius_m`` whose stamps are at least
   ``loop_min_gap_s`` apart;
-- a weak prior holding ``X`` at the nominal mounting.
+- a prior holding ``X`` at the given mounting: weak on its rotation and its forward (body x)
+  translation, which the drive's turns observe; tight on y and z (see :func:`refine_poses`).
 
 Where the drive never sees a place twice, only the odometry chain averages the input error down,
 and a smooth error longer than the chain's drift is not observable at all: the result says how
@@ -153,7 +156,7 @@ def _body_prior_factor(key_l: int, key_x: int, T_map_body: np.ndarray, noise):
 def refine_poses(T_map_body: np.ndarray, stamps: np.ndarray, clouds_lidar, T_body_lidar: np.ndarray,
                  engine, *, prior_sigma_m: float = 0.03, prior_sigma_rad: float = 0.002,
                  correlation_s: float = 2.0, odometry_sigma_m: float = 0.02,
-                 odometry_sigma_rad: float = 0.0015, mounting_sigma_m: float = 1e-4,
+                 odometry_sigma_rad: float = 0.0015, mounting_sigma_m=(0.05, 1e-4, 1e-4),
                  mounting_sigma_rad: float = np.deg2rad(2.0), odometry_span: int = 2,
                  loop_radius_m: float = 6.0, loop_min_gap_s: float = 10.0,
                  min_fitness: float = 0.15) -> RefinedPoses:
@@ -165,11 +168,14 @@ def refine_poses(T_map_body: np.ndarray, stamps: np.ndarray, clouds_lidar, T_bod
 
     The defaults were chosen on the small world's seed 1 (docs/bench/accuracy_seeds.md): the
     registration sigmas are what scan-to-scan NDT achieved there against the truth (median 20 mm,
-    0.09 deg on neighbours; 10 mm on revisits); the mounting's translation is held
-    (``mounting_sigma_m``: 0.1 mm): freed, it drifted 17 mm in y on seed 1, since a ground drive
-    observes it only through its turns, where the input error is correlated. Its rotation is
-    estimated with the poses (``mounting_sigma_rad`` about the given one; 0-ish: held, e.g. for
-    poses of the LiDAR itself). A drive with no revisit registered is left as it came
+    0.09 deg on neighbours; 10 mm on revisits). ``mounting_sigma_m``: the prior's sigma on the
+    mounting's translation per body axis (x forward, y left, z up), or one for all: x is estimated
+    (5 cm), y and z held at the given values (0.1 mm). On seed 1, all three free (5 cm) put x 2.4 mm
+    from the truth but y 29 mm and z 13 mm off (a ground drive observes y only through its turns,
+    where the input error is correlated, and z not at all); x alone free: x 2.0 mm off (given:
+    11.6 mm), y and z as given; all held: x stays 11.6 mm off. Its rotation is estimated with the
+    poses (``mounting_sigma_rad`` about the given one; ~0: held, with ``mounting_sigma_m`` ~0, for
+    poses of the LiDAR itself or a mounting not estimated). A drive with no revisit registered is left as it came
     (``skipped``): the chain alone only averages the input error against its own drift.
     """
     import gtsam
@@ -203,8 +209,12 @@ def refine_poses(T_map_body: np.ndarray, stamps: np.ndarray, clouds_lidar, T_bod
     values = gtsam.Values()
     # M: the mounting T_body_lidar; L(k): keyframe k's LiDAR pose T_map_lidar
     values.insert(M_key(0), gtsam.Pose3(X0))
-    graph.add(gtsam.PriorFactorPose3(M_key(0), gtsam.Pose3(X0), gtsam.noiseModel.Diagonal.Sigmas(
-        np.r_[np.full(3, mounting_sigma_rad), np.full(3, mounting_sigma_m)])))
+    # the prior's translation sigmas are per body axis; Pose3's tangent moves the LiDAR along its own
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = np.eye(3) * mounting_sigma_rad ** 2
+    R = X0[:3, :3]
+    cov[3:, 3:] = R.T @ np.diag(np.broadcast_to(np.asarray(mounting_sigma_m, np.float64), (3,)) ** 2) @ R
+    graph.add(gtsam.PriorFactorPose3(M_key(0), gtsam.Pose3(X0), gtsam.noiseModel.Gaussian.Covariance(cov)))
     for k in range(K):
         values.insert(L_key(k), gtsam.Pose3(T[k] @ X0))
         graph.add(_body_prior_factor(L_key(k), M_key(0), T[k], prior_noise))

@@ -77,9 +77,9 @@ def _rmse(T, G):
 X_NOMINAL = make_T(so3_exp([0.0, 0.0, np.pi / 2]), [0.1, 0.0, 1.0])
 
 
-def test_refinement_shrinks_a_smooth_pose_error_where_the_drive_revisits_and_finds_the_mounting_rotation():
+def test_refinement_shrinks_a_smooth_pose_error_where_the_drive_revisits_and_finds_the_mounting():
     G, t = _square_drive(laps=2)
-    X_true = X_NOMINAL @ make_T(so3_exp(np.deg2rad([0.0, 0.0, 0.3])), np.zeros(3))  # translation as nominal
+    X_true = make_T(so3_exp(np.deg2rad([0.0, 0.0, 0.3])), [0.015, 0.0, 0.0]) @ X_NOMINAL  # 1.5 cm forward
     S = G @ _smooth_error(t, 0.03, 0.002, seed=1)
     engine = TruthEngine(G @ X_true)
     clouds = [np.array([[k, 0.0, 0.0]]) for k in range(len(G))]
@@ -89,17 +89,23 @@ def test_refinement_shrinks_a_smooth_pose_error_where_the_drive_revisits_and_fin
     assert before > 0.03 and after < 0.4 * before, (before, after)
     yaw_err = lambda X: np.rad2deg(abs(so3_log(X[:3, :3] @ X_true[:3, :3].T)[2]))  # noqa: E731
     assert yaw_err(X_NOMINAL) == pytest.approx(0.3) and yaw_err(r.T_body_lidar) < 0.1
-    np.testing.assert_allclose(r.T_body_lidar[:3, 3], X_NOMINAL[:3, 3], atol=1e-3)  # translation held
     assert r.as_dict()["loop_pairs"] == r.loop_pairs and r.shift_m.max() > 0.02
+    # the forward translation shows in the turns: from exact poses it is found (from these smooth
+    # 3 cm errors over only 8 corners it moved 6 of the 15 mm); y and z are held
+    r = refine_poses(G, t, clouds, X_NOMINAL, TruthEngine(G @ X_true))
+    assert abs(r.T_body_lidar[0, 3] - X_true[0, 3]) < 0.002, r.T_body_lidar[:3, 3] - X_true[:3, 3]
+    np.testing.assert_allclose(r.T_body_lidar[1:3, 3], X_NOMINAL[1:3, 3], atol=1e-3)
 
 
 def test_a_held_mounting_stays_and_a_drive_without_revisits_comes_back_untouched():
     G, t = _square_drive(laps=2)
     S = G @ _smooth_error(t, 0.03, 0.002, seed=2)
     clouds = [np.array([[k, 0.0, 0.0]]) for k in range(len(G))]
-    r = refine_poses(S, t, clouds, X_NOMINAL, TruthEngine(G @ X_NOMINAL), mounting_sigma_rad=1e-6)
+    r = refine_poses(S, t, clouds, X_NOMINAL, TruthEngine(G @ X_NOMINAL), mounting_sigma_rad=1e-6,
+                     mounting_sigma_m=1e-4)
     assert r.skipped is None and _rmse(r.T_map_body, G) < 0.5 * _rmse(S, G)
     assert np.rad2deg(np.linalg.norm(so3_log(r.T_body_lidar[:3, :3] @ X_NOMINAL[:3, :3].T))) < 1e-3
+    np.testing.assert_allclose(r.T_body_lidar[:3, 3], X_NOMINAL[:3, 3], atol=1e-4)
     # one lap without closing it (the last side stops short): no place is seen twice
     G1, t1 = G[:100], t[:100]
     S1 = S[:100]
