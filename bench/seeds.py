@@ -97,7 +97,8 @@ def run_seed(work: Path, preset: str, seed: int, runs: list[str], report_only: b
         mounting = {}
         for est in (json.loads((m / "manifest.json").read_text())["parameters"].get("mounting") or {}).values():
             # the body axes whose translation the map took from the estimate (before issue 41: all)
-            mounting = {"_translation": est.get("translation_estimated", "xyz") or "nominal"}
+            mounting = {"_translation": (est.get("translation_estimated", "xyz") or "nominal")
+                        + (", then x with the refined poses" if est.get("refined_with_poses") else "")}
         if not (r / "metrics.json").exists():
             _blockloc(["track", "--seq", str(world / "loc"), "--map", str(m), "--init", "gt", *extra,
                        "--no-record", "--out", str(r)], log)

@@ -215,3 +215,38 @@ def test_map_build_refine_poses_from_the_command_line(tmp_path):
     res = runner.invoke(app, ["map", "build", "--from-pcd", str(tmp_path / "g.pcd"), "--poses",
                               str(tmp_path / "p.tum"), "--refine-poses", "--out", str(tmp_path / "g")])
     assert "--refine-poses needs --seq" in str(res.exception) and not (tmp_path / "g").exists()
+
+
+def test_a_build_with_an_estimated_mounting_estimates_it_again_with_the_refined_poses(tmp_path):
+    """In the build (in process, the synthetic loop): the hand-eye step estimates the mounting, the
+    refinement estimates its rotation and forward translation again with the poses, and the
+    manifest's mounting (what `track` takes) is the refined one, marked so."""
+    from blockloc.datasets.base import RemountedSequence
+    from blockloc.datasets.nclt import NCLT_T_BODY_LIDAR
+    from blockloc.geometry import Trajectory
+    from blockloc.maps.build_plan import build_map_from_drives
+    from blockloc.maps.build_tasks import Drive
+    from blockloc.maps.mounting import map_mounting
+
+    from .synthetic import MemorySequence, route, world_points
+
+    X_nominal = np.asarray(NCLT_T_BODY_LIDAR, float)
+    X_true = make_T(so3_exp(np.deg2rad([0.0, 0.0, 0.3])), [0.02, 0.0, 0.0]) @ X_nominal
+    traj = route([[0, 0], [20, 0], [20, 20], [0, 20], [0, 0], [10, 0]], speed=4.0)
+    inner = MemorySequence(world_points(extent=(-20, 40), seed=3, density=0.4), traj, radius=20.0, T_body_lidar=X_true)
+    t = traj.stamps - traj.stamps[0]
+    wander = traj.poses.copy()
+    wander[:, 0, 3] += 0.02 * np.sin(2 * np.pi * t / 9.0)
+    inner.mapping_poses = lambda: Trajectory(traj.stamps, wander)
+    seq = RemountedSequence(inner, X_nominal)  # the drawing says nominal; the scans say otherwise
+    store = build_map_from_drives([Drive.of(seq)], "block", tmp_path / "m", block_size_m=20.0,
+                                  calibrate_mounting=True, refine_poses=True,
+                                  mounting_translation_tolerance_m=0.0005)
+    (m,) = store.params["mounting"].values()
+    (r,) = store.params["pose_refinement"].values()
+    assert m["refined_with_poses"] is True and r["loop_pairs"] > 5, (m, r)
+    X = map_mounting(store.params)
+    np.testing.assert_allclose(X, np.asarray(m["T_body_lidar"]), atol=1e-9)
+    assert abs(X[0, 3] - X_true[0, 3]) < abs(X_nominal[0, 3] - X_true[0, 3]) / 2, (X[:3, 3], X_true[:3, 3])
+    assert np.rad2deg(np.linalg.norm(so3_log(X[:3, :3] @ X_true[:3, :3].T))) < 0.1
+    np.testing.assert_allclose(m["translation_m"], (X[:3, 3] - X_nominal[:3, 3]).round(4), atol=1e-9)
