@@ -12,6 +12,8 @@ For every seed S (in ``--work``, kept between runs: a step whose output is there
     blockloc track --seq W/sS/loc --map W/sS_map --init gt --no-record --out W/sS_run_default
     blockloc track --seq W/sS/loc --map W/sS_map_nominal --init gt --no-record --out W/sS_run_nominal
     blockloc track --seq W/sS/loc --map W/sS_map --init gt --no-imu --no-record --out W/sS_run_no-imu
+    blockloc map build --seq W/sS/map --kind block --refine-poses --out W/sS_map_refined   (run `refined`)
+    blockloc track --seq W/sS/loc --map W/sS_map_refined --init gt --no-record --out W/sS_run_refined
 
     blockloc eval --gt W/sS/loc/groundtruth_*.csv --est W/sS_run_R/poses.tum --interpolate --json
 
@@ -43,7 +45,10 @@ RUNS = {  # name: (map suffix, extra track options)
     "default": ("", []),
     "nominal": ("_nominal", []),
     "no-imu": ("", ["--no-imu"]),
+    "refined": ("_refined", []),
 }
+#: map build options of each map suffix (the default map: none)
+MAP_OPTIONS = {"": [], "_nominal": ["--nominal-mounting"], "_refined": ["--refine-poses"]}
 TARGETS = {"median ATE": 0.03, "worst ATE": 0.035, "rotation": 0.15, "along mean": 0.01}
 
 
@@ -83,7 +88,7 @@ def run_seed(work: Path, preset: str, seed: int, runs: list[str], report_only: b
         if report_only and not (r / "metrics.json").exists():
             continue
         if not (m / "manifest.json").exists():
-            opts = ["--nominal-mounting"] if suffix == "_nominal" else []
+            opts = MAP_OPTIONS[suffix]
             wall, cpu, load = _blockloc(["map", "build", "--seq", str(world / "map"), "--kind", "block", *opts,
                                          "--out", str(m)], log)
             timing.write_text(f"{wall:.1f} {cpu:.1f} {load:.1f}\n")  # wall s, CPU s, load average
@@ -92,7 +97,8 @@ def run_seed(work: Path, preset: str, seed: int, runs: list[str], report_only: b
         mounting = {}
         for est in (json.loads((m / "manifest.json").read_text())["parameters"].get("mounting") or {}).values():
             # the body axes whose translation the map took from the estimate (before issue 41: all)
-            mounting = {"_translation": est.get("translation_estimated", "xyz") or "nominal"}
+            mounting = {"_translation": (est.get("translation_estimated", "xyz") or "nominal")
+                        + (", then x with the refined poses" if est.get("refined_with_poses") else "")}
         if not (r / "metrics.json").exists():
             _blockloc(["track", "--seq", str(world / "loc"), "--map", str(m), "--init", "gt", *extra,
                        "--no-record", "--out", str(r)], log)
@@ -230,6 +236,88 @@ def explain_seed(work: Path, preset: str, seed: int) -> dict:
     return out
 
 
+def _pose_errors(T: np.ndarray, G: np.ndarray) -> dict:
+    """Body poses T against the truth G (both (K, 4, 4), map frame): position RMSE, its along-track
+    (truth's body x) and cross-track (body y) RMS, m; rotation RMSE, deg."""
+    from blockloc.geometry import so3_log
+
+    d = T[:, :3, 3] - G[:, :3, 3]
+    body = np.einsum("kji,kj->ki", G[:, :3, :3], d)
+    rot = np.array([np.linalg.norm(so3_log(a[:3, :3] @ b[:3, :3].T)) for a, b in zip(T, G)])
+    return {"rmse_m": float(np.sqrt((d ** 2).sum(axis=1).mean())), "along_rms_m": float(np.sqrt((body[:, 0] ** 2).mean())),
+            "cross_rms_m": float(np.sqrt((body[:, 1] ** 2).mean())), "rot_rmse_deg": float(np.rad2deg(np.sqrt((rot ** 2).mean())))}
+
+
+def refine_seed(work: Path, preset: str, seed: int) -> dict:
+    """The mapping poses refined as ``map build --refine-poses`` refines them (the build's own
+    tasks: the drive planned with the mounting the default map's build estimated, then
+    ``refine_task``), against the simulator's truth (cached in ``W/sS_refine.json``): the body
+    poses' error before and after, the mounting's x translation before and after against the true
+    one, the along-track mean each predicts for the localization drive
+    (:func:`predicted_along_m`, keyframe rate), and how much of the drive sees a place twice."""
+    cache = work / f"s{seed}_refine.json"
+    if cache.exists():
+        return json.loads(cache.read_text())
+    from blockloc.app.catalog import open_sequence
+    from blockloc.config import load_config
+    from blockloc.geometry import inv_T
+    from blockloc.maps.build_tasks import Drive, plan_drive_task, refine_task, remounted
+    from blockloc.maps.mounting import map_mounting
+    from blockloc.maps.pose_refine import choose_refine_pairs
+    from blockloc.sim.presets import get_preset
+    from blockloc.sim.stream import true_T_body_lidar
+
+    cfg = load_config("sim")
+    X_true = true_T_body_lidar(get_preset(preset), seed)
+    mapseq, locseq = open_sequence(work / f"s{seed}" / "map"), open_sequence(work / f"s{seed}" / "loc")
+    X_map = map_mounting(json.loads((work / f"s{seed}_map" / "manifest.json").read_text())["parameters"])
+    X_map = np.asarray(mapseq.info.T_body_lidar, np.float64) if X_map is None else X_map
+    drive = remounted(Drive.of(mapseq), X_map)
+    plan = plan_drive_task(drive, cfg.map.keyframe_distance_m, cfg.map.keyframe_angle_deg)
+    t0, c0 = time.time(), time.process_time()
+    r = refine_task(plan, cfg.lidar.deskew, False)
+    wall, cpu = time.time() - t0, time.process_time() - c0
+    G = mapseq.ground_truth().interpolate(plan.stamps)
+    loc_gt = locseq.ground_truth()
+    L = loc_gt.interpolate(loc_gt.stamps[::10])
+    _, loops = choose_refine_pairs(r["before"], plan.stamps)
+    out = {"keyframes": len(plan.frames), "summary": r["summary"],
+           "revisited_share": float(len(np.unique(loops)) / max(len(plan.frames), 1)),
+           "before": _pose_errors(r["before"], G), "after": _pose_errors(r["after"], G),
+           "mounting_x_minus_true_m": [float(X_map[0, 3] - X_true[0, 3]), float(r["T_body_lidar"][0, 3] - X_true[0, 3])],
+           "predicted_along_m": [predicted_along_m(G, r["before"], L, X_map, X_true)["both"],
+                                 predicted_along_m(G, r["after"], L, r["T_body_lidar"], X_true)["both"]],
+           "lidar_rmse_m": [float(np.sqrt((((r["before"] @ X_map) - (G @ X_true))[:, :3, 3] ** 2).sum(axis=1).mean())),
+                            float(np.sqrt((((r["after"] @ r["T_body_lidar"]) - (G @ X_true))[:, :3, 3] ** 2).sum(axis=1).mean()))],
+           "refine_wall_s": wall, "refine_cpu_s": cpu, "load": os.getloadavg()[0]}
+    atomic_write_text(cache, json.dumps(out, indent=1) + "\n")
+    return out
+
+
+def refine_table(refined: dict, results: dict) -> list[str]:
+    """Markdown lines: per seed, the mapping poses and mounting before and after the refinement,
+    against the truth, beside the tracked along-track means of the default and refined runs."""
+    cm = lambda v: f"{100 * v:.1f}"  # noqa: E731
+    lines = ["| seed | keyframes (revisited) | pairs: neighbour / revisit | body RMSE [cm] | along RMS [cm] | "
+             "cross RMS [cm] | rotation RMSE [deg] | LiDAR-pose RMSE [cm] | mounting x - true [mm] | "
+             "predicted along mean [cm] | tracked along mean, default / refined [cm] | refinement wall / CPU [s] (load) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for seed, e in refined.items():
+        b, a, s = e["before"], e["after"], e["summary"]
+        pairs = s.get("skipped") or f"{s['odometry_pairs']} / {s['loop_pairs']}"
+        runs = results.get(seed, {})
+        tracked = " / ".join("-" if runs.get(n, {}).get("err_along_mean_m") is None
+                             else f"{100 * runs[n]['err_along_mean_m']:+.1f}" for n in ("default", "refined"))
+        lines.append(
+            f"| {seed} | {e['keyframes']} ({100 * e['revisited_share']:.0f}%) | {pairs} | {cm(b['rmse_m'])} -> {cm(a['rmse_m'])} | "
+            f"{cm(b['along_rms_m'])} -> {cm(a['along_rms_m'])} | {cm(b['cross_rms_m'])} -> {cm(a['cross_rms_m'])} | "
+            f"{b['rot_rmse_deg']:.3f} -> {a['rot_rmse_deg']:.3f} | {cm(e['lidar_rmse_m'][0])} -> {cm(e['lidar_rmse_m'][1])} | "
+            f"{1000 * e['mounting_x_minus_true_m'][0]:+.1f} -> {1000 * e['mounting_x_minus_true_m'][1]:+.1f} | "
+            f"{100 * e['predicted_along_m'][0]:+.1f} -> {100 * e['predicted_along_m'][1]:+.1f} | {tracked} | "
+            f"{e['refine_wall_s']:.0f} / {e['refine_cpu_s']:.0f} ({e['load']:.1f}) |")
+    return lines
+
+
 def explain_table(explained: dict, results: dict) -> list[str]:
     """Markdown lines: per seed, the along-track mean measured beside what the map's planted
     errors predict, and the mounting estimate from the build's and from the true poses."""
@@ -288,7 +376,9 @@ def report(results: dict, argv: list[str], started: str, load0: float, work: Pat
              "Every step is the CLI as a user types it (see `bench/seeds.py` for the commands); `default` "
              "tracks on the map `blockloc map build` makes by default (LiDAR mounting estimated from the "
              "mapping drive, tracking with it), `nominal` on the map built with `--nominal-mounting` (the "
-             "default before issue 41), `no-imu` on the default map with `--no-imu`. Errors from each run's "
+             "default before issue 41), `no-imu` on the default map with `--no-imu`, `refined` on the map built "
+             "with `--refine-poses` (the mapping poses refined against the drive's scans, the mounting's rotation "
+             "and x translation estimated with them). Errors from each run's "
              "`blockloc eval --interpolate` of its `poses.tum` (failures and frames from its `metrics.json`; "
              "along-track + = ahead; the time shift that "
              "best explains the along-track error, + = the estimate lags).", "",
@@ -305,12 +395,12 @@ def report(results: dict, argv: list[str], started: str, load0: float, work: Pat
         t = [t] if isinstance(t, (int, float)) else t
         return f"{t[0]:.0f} s" + (f" (CPU {t[1]:.0f} s, load {t[2]:.1f})" if len(t) >= 3 else "")
 
-    builds = [f"seed {seed}: " + ", ".join(f"{n} {_timing(runs[n]['_build_s'])}" for n in ("default", "nominal")
+    builds = [f"seed {seed}: " + ", ".join(f"{n} {_timing(runs[n]['_build_s'])}" for n in ("default", "nominal", "refined")
                                           if n in runs and runs[n].get("_build_s") is not None)
               for seed, runs in results.items()]
     builds = [b for b in builds if not b.endswith(": ")]
     if builds:
-        lines += ["Map build wall time (`map build`, with its place index; estimated vs nominal mounting; "
+        lines += ["Map build wall time (`map build`, with its place index; estimated mounting, nominal, refined poses; "
                   "one build each, nice'd, on the shared machine): " + "; ".join(builds) + ".", ""]
     for name in RUNS:
         ms = [runs[name] for runs in results.values() if name in runs]
@@ -342,6 +432,18 @@ def report(results: dict, argv: list[str], started: str, load0: float, work: Pat
                   "(`blockloc.maps.mounting.estimate_mounting`, the build's NDT pairs) finds from the SLAM "
                   "poses the build uses and from the true poses, against the true mounting.", "",
                   *explain_table(explained, results)]
+    refined = {seed: json.loads((work / f"s{seed}_refine.json").read_text()) for seed in results
+               if (work / f"s{seed}_refine.json").exists()}
+    if refined:
+        lines += ["", "### The mapping poses refined (`--refine-table`)", "",
+                  "With the simulator's truth (`refine_seed` in `bench/seeds.py`, the build's own tasks: the drive "
+                  "planned with the mounting the default build estimated, then `refine_task` as `map build "
+                  "--refine-poses` runs it): the keyframes' body poses before (the offline-SLAM poses) -> after, "
+                  "against the true ones; the LiDAR poses (body pose x mounting, what places the map's points) "
+                  "against the true ones; the mounting's x translation against the true one; the along-track mean "
+                  "that predicts for the localization drive (`predicted_along_m`, no tracking) beside the tracked "
+                  "ones. Revisited: the share of keyframes in a revisit pair (within 6 m, >= 10 s apart).", "",
+                  *refine_table(refined, results)]
     return "\n".join(lines) + "\n"
 
 
@@ -356,6 +458,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--report-only", action="store_true",
                     help="run nothing: report the runs --work holds (a seed's missing runs are left out)")
+    ap.add_argument("--refine-table", action="store_true",
+                    help="also refine each seed's mapping poses as `map build --refine-poses` does and compare "
+                    "them with the truth (a minute or two a seed: every keyframe read; cached in --work)")
     ap.add_argument("--explain", action="store_true",
                     help="also explain each seed's along-track error with the simulator's knowledge (about a "
                     "minute a seed on the shared machine: the mounting pairs registered twice; cached in --work)")
@@ -375,6 +480,8 @@ def main(argv: list[str] | None = None) -> int:
         results[seed] = run_seed(args.work, args.preset, seed, runs, args.report_only)
         if args.explain and (args.work / f"s{seed}_map" / "manifest.json").exists():
             explain_seed(args.work, args.preset, seed)
+        if args.refine_table and (args.work / f"s{seed}_map" / "manifest.json").exists():
+            refine_seed(args.work, args.preset, seed)
         atomic_write_text(args.out, report(results, argv, started, load0, args.work))  # after every seed
     print(args.out)
     return 0

@@ -169,6 +169,11 @@ def map_build_cmd(
              "with it; the estimate is logged and kept in the manifest. Default (map.calibrate_mounting: "
              "true): drives whose poses are the body's, a failed estimate keeps the nominal mounting; "
              "--calibrate-mounting: every drive, a failed estimate is an error; --nominal-mounting: none."),
+    refine_poses: Optional[bool] = typer.Option(
+        None, "--refine-poses/--no-refine-poses",
+        help="Refine each drive's keyframe poses against its own scans (neighbours and revisits, "
+             "a pose graph) before the map is built; a drive without revisits is left as it came. "
+             "Default: map.refine_poses (false)."),
 ) -> None:
     """Build a block map or grid tiles from mapping sequences and their poses (or a global PCD),
     serial or on a Dask cluster."""
@@ -176,7 +181,7 @@ def map_build_cmd(
 
     build_command(seq, kind, out, config, data_root, block_size, tile_size, voxel, max_frames, overwrite,
                   poses=poses, from_pcd=from_pcd, sensor_range_m=sensor_range, cluster=cluster,
-                  gravity=gravity, calibrate_mounting=calibrate_mounting)
+                  gravity=gravity, calibrate_mounting=calibrate_mounting, refine_poses=refine_poses)
 
 
 @map_app.command("tile")

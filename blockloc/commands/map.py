@@ -15,10 +15,12 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
                   voxel: float | None, max_frames: int | None, overwrite: bool, *,
                   poses: list[str] | None = None, from_pcd: Path | None = None,
                   sensor_range_m: float = 60.0, cluster: str | None = None,
-                  gravity: str | None = None, calibrate_mounting: bool | None = None) -> None:
+                  gravity: str | None = None, calibrate_mounting: bool | None = None,
+                  refine_poses: bool | None = None) -> None:
     """``blockloc map build``: the store, then its place index (a local store). gravity: with
     ``from_pcd``, the global map's gravity (``down|up|X,Y,Z``, default up: z up); a ``--seq``
-    build takes its first sequence's. calibrate_mounting: None keeps ``map.calibrate_mounting``."""
+    build takes its first sequence's. calibrate_mounting: None keeps ``map.calibrate_mounting``;
+    refine_poses: None keeps ``map.refine_poses``."""
     import dataclasses
     import sys
 
@@ -38,6 +40,8 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
                    ("--sensor-range", "sensor range", sensor_range_m))
     if from_pcd is not None and calibrate_mounting:
         raise MapError("--calibrate-mounting needs --seq drives (a global PCD has no scans to register)")
+    if from_pcd is not None and refine_poses:
+        raise MapError("--refine-poses needs --seq drives (a global PCD has no scans to register)")
     if from_pcd is not None:
         if len(poses) != 1 or poses[0] in ("", "-"):
             raise MapError("--from-pcd needs one --poses TRAJ (the mapping trajectory)")
@@ -84,7 +88,7 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
         with progress(f"{kind} map build tasks") as report:
             store = build_map_from_specs(drives, kind, out, map_cfg, overwrite=overwrite,
                                          progress=report, executor=ex,
-                                         calibrate_mounting=calibrate_mounting)
+                                         calibrate_mounting=calibrate_mounting, refine_poses=refine_poses)
     if not is_url(str(out)):  # the place index (no-hint relocalization) goes with a local map
         store = add_place_index(out, drives[0].open().info.gravity_map, cfg)
     print_summary(map_summary(store), console())
@@ -209,6 +213,8 @@ def mounting_lines(params: dict) -> list[tuple[str, str]]:
                 kept = ", ".join(a for a in "xyz" if a not in axes)
                 what += (f"; translation nominal on body {kept} (the drive determines x, y, z to {u} mm, "
                          f"not {1000 * m['translation_tolerance_m']:.0f} mm)")
+            if m.get("refined_with_poses"):
+                what += "; then rotation and body x translation estimated again with the refined poses"
             lines.append((drive, what))
             continue
         src = sources[drive]
@@ -241,6 +247,11 @@ def print_summary(summary: dict[str, Any], console) -> None:
     t.add_row("parameters", ", ".join(f"{k}={v}" for k, v in params.items()))
     for drive, text in mounting_lines(summary["parameters"]):
         t.add_row("LiDAR mounting", f"{drive}: {text}")
+    for drive, r in (summary["parameters"].get("pose_refinement") or {}).items():
+        t.add_row("mapping poses", f"{drive}: " + (
+            f"as given ({r['skipped']})" if "skipped" in r else
+            f"refined against the drive's scans ({r['odometry_pairs']} neighbour and {r['loop_pairs']} "
+            f"revisit pairs), moved {r['shift_median_m']} m median, {r['shift_max_m']} m at most"))
     skipped = summary["parameters"].get("skipped_keyframes") or []
     if skipped:  # scans a build could not read: counted and named (also in the manifest)
         t.add_row("skipped keyframes", f"{len(skipped)}: " + "; ".join(

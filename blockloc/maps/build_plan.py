@@ -202,7 +202,8 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
                           calibrate_mounting: bool | str = False, executor=None, progress=False,
                           overwrite: bool = False,
                           chunk_keyframes: int = CHUNK_KEYFRAMES, params: dict | None = None,
-                          stats: dict | None = None, mounting_translation_tolerance_m: float | None = None):
+                          stats: dict | None = None, mounting_translation_tolerance_m: float | None = None,
+                          refine_poses: bool = False):
     """Build a block or grid store at ``out`` from mapping drives sharing one map frame.
 
     drives: :class:`Drive` list (any order: the plan sorts them). kind: 'block' (S =
@@ -219,6 +220,10 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
     mounting_translation_tolerance_m: the estimated translation replaces the nominal one on the
     body axes the drive determines to this (None: ``TRANSLATION_TOLERANCE_M`` of
     :mod:`blockloc.maps.mounting`; 0: on every axis it observes).
+    refine_poses: refine each drive's keyframe poses against its own scans after the mounting
+    step (:mod:`blockloc.maps.pose_refine`; the mounting's rotation and forward translation are
+    estimated with them where the mounting step estimated one) and build from them; the manifest keeps each drive's summary
+    under ``pose_refinement``. A drive without revisits is left as it came (logged).
     progress: None/False or a callback ``(done, total)`` over tasks (commands draw the bar). stats: a dict
     to fill with per-task-kind counts, seconds, bytes and raw points (:meth:`_Tasks.stats`).
     Returns the opened :class:`~blockloc.maps.store.MapStore`.
@@ -262,6 +267,11 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
                                                 keyframe_angle_deg, auto=calibrate_mounting == "auto",
                                                 translation_tolerance_m=mounting_translation_tolerance_m)
             drives = drives + [p.drive for p in plans]  # forgotten with the others at the end
+        refined = {}
+        if refine_poses:
+            plans, refined = _refine(tasks, plans, deskew, keyframe_distance_m, keyframe_angle_deg,
+                                     mounting, sources)
+            drives = drives + [p.drive for p in plans]
         plans.sort(key=DrivePlan.order_key)
         frames = sorted({p.map_frame for p in plans})
         if len(frames) > 1:
@@ -276,6 +286,8 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
         if mounting:  # in the plan's order, as every other per-drive field (the same bytes)
             common["mounting"] = {p.drive.name: mounting[p.drive.name] for p in plans if p.drive.name in mounting}
         common["mounting_source"] = {p.drive.name: sources[p.drive.name] for p in plans}
+        if refined:
+            common["pose_refinement"] = {p.drive.name: refined[p.drive.name] for p in plans}
         common.update(params or {})
         try:
             if kind == "block":
@@ -373,6 +385,45 @@ def _remount(tasks: _Tasks, plans: list[DrivePlan], deskew: bool, keyframe_dista
                                       for n, p, m in todo]}
     return ([new.get(n, p) for n, p in enumerate(plans)],
             {p.drive.name: m["estimate"] for _, p, m in todo}, sources)
+
+
+def _refine(tasks: _Tasks, plans: list[DrivePlan], deskew: bool, keyframe_distance_m: float,
+            keyframe_angle_deg: float, mounting: dict, sources: dict) -> tuple[list[DrivePlan], dict]:
+    """Each drive's keyframe poses refined (one task per drive), then each refined drive planned
+    again with them. ``mounting`` ({drive name: estimate}) is updated in place where the
+    refinement moved an estimated mounting's rotation. Returns the new plans and
+    ``{drive name: refinement summary}``."""
+    from blockloc.geometry import so3_log
+    from blockloc.maps.build_tasks import refine_task, reposed
+
+    tasks.expect(len(plans))
+    found = [f.result() for f in [tasks.submit(refine_task, p, deskew,
+                                               sources[p.drive.name]["source"] != "estimated",
+                                               name=f"refine-{n}")
+                                  for n, p in enumerate(plans)]]
+    summaries, todo = {}, []
+    for n, (p, r) in enumerate(zip(plans, found)):
+        summaries[p.drive.name] = r["summary"]
+        if "skipped" in r["summary"]:
+            log.warning("%s: mapping poses not refined, kept as they came (%s)", p.drive.name,
+                        r["summary"]["skipped"])
+            continue
+        log.info("%s: mapping poses refined against the drive's scans: %d neighbour and %d revisit "
+                 "pairs, moved by %.3f m median (at most %.3f m)", p.drive.name, r["summary"]["odometry_pairs"],
+                 r["summary"]["loop_pairs"], r["summary"]["shift_median_m"], r["summary"]["shift_max_m"])
+        todo.append((n, p, r))
+        e = mounting.get(p.drive.name)
+        if e is not None:  # rotation and forward translation estimated again with the poses
+            X, X0 = r["T_body_lidar"], np.asarray(e["T_body_lidar_nominal"], np.float64)
+            mounting[p.drive.name] = {**e, "T_body_lidar": np.round(X, 9).tolist(),
+                                      "rotation_deg": np.round(np.rad2deg(so3_log(X[:3, :3] @ X0[:3, :3].T)), 4).tolist(),
+                                      "translation_m": np.round(X[:3, 3] - X0[:3, 3], 4).tolist(),
+                                      "refined_with_poses": True}
+    tasks.expect(len(todo))
+    new = {n: f.result() for n, f in [(n, tasks.submit(plan_drive_task, reposed(p.drive, r), keyframe_distance_m,
+                                                       keyframe_angle_deg, name=f"plan-refined-{n}"))
+                                      for n, p, r in todo]}
+    return [new.get(n, p) for n, p in enumerate(plans)], summaries
 
 
 def build_block_map_from_sequence(seq, *, out: str | Path, max_frames: int | None = None,
