@@ -70,6 +70,11 @@ class InitParams(GlobalInitParams):
     nms_deg: float = 5.0
     probe_m: tuple[float, ...] = (1.0, 2.0)  # NDT restarts from the best moved this far look for rivals
     ambiguity_fitness_margin: float = 0.05
+    # the final decision climbs (``GlobalLocalizer._climb``): rounds, rivals climbed besides the best,
+    # and the NDT score per point an optimum nearby must gain to count as better
+    climb_rounds: int = 3
+    climb_rivals: int = 3
+    climb_min_gain: float = 0.01
     scan_voxel_m: float = 0.5
     max_ndt_points: int = 3000
     ambiguity_score_ratio: float = 0.8  # once one is verified, refine others only above this x best
