@@ -82,7 +82,7 @@ class InitParams(GlobalInitParams):
     max_regions: int = 0  # 0: every region of the map
     num_threads: int = 2  # the registration section's
     # no-hint relocalization through the place index
-    place_all_yaw_candidates: int = 0  # then this many of them at every yaw (0: none)
+    place_all_yaw_candidates: int = 2  # the second stage: this many first places at every yaw (0: none)
     place_top_k: int = 6  # leaves refined per stage
     # the best leaves of each window (0: one top place_top_k over all windows, by 2D score)
     place_leaves_per_window: int = 1

@@ -84,3 +84,26 @@ def test_a_later_stage_also_takes_the_best_leaves_by_2d_score(setup):
     more, _ = loc1._search_windows(scan, [wrong, true], by_score=1)
     assert [c.window for c in more] == [0, 1]
     assert np.hypot(more[1].x - xy[0], more[1].y - xy[1]) < 1.0 and more[1].score > more[0].score
+
+
+def test_the_second_stage_searches_the_first_places_at_every_yaw(setup, monkeypatch):
+    """A yaw guess can be far off (small world seed 2, frame 847: 40 deg, the place ranked first):
+    right after the first stage, the first ``place_all_yaw_candidates`` places at every yaw."""
+    loc, T_true, scan, _, _ = setup
+    params = InitParams(min_fitness=0.999, place_candidates=(3, 6), place_all_yaw_candidates=2,
+                        whole_map_fallback=False, max_search_s=0.0)
+    nohint = GlobalLocalizer(loc.map, params)
+    seen = []
+    real = GlobalLocalizer._search_windows
+
+    def record(self, scan, windows, by_score=0):
+        seen.append([(tuple(np.round(w.center, 3)), w.yaw_window) for w in windows])
+        return real(self, scan, windows, by_score)
+
+    monkeypatch.setattr(GlobalLocalizer, "_search_windows", record)
+    res = nohint.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true))
+    assert not res.verified and len(seen) == 3
+    guess = math.radians(params.place_yaw_window_deg)
+    assert [len(s) for s in seen] == [3, 2, 3]  # 3 places, the first 2 at every yaw, the next 3
+    assert all(y == guess for _, y in seen[0] + seen[2]) and all(y == 2 * math.pi for _, y in seen[1])
+    assert [c for c, _ in seen[1]] == [c for c, _ in seen[0][:2]]
