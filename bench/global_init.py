@@ -312,7 +312,11 @@ def run(argv: list[str]) -> dict:
     ensure_map(f"sim:{args.preset}/map@{args.seed}", map_dir, args.map_kind, args.map_source)
     t_map = time.perf_counter() - t0
     store = open_map(map_dir)
-    seq = open_sequence(seq_name)
+    from blockloc.maps.mounting import with_map_mounting
+
+    # as `blockloc init` and `track` see it (map.use_map_mounting): a map built with an estimated
+    # LiDAR mounting localizes the same robot's scans with that mounting (none recorded: as is)
+    seq = with_map_mounting(open_sequence(seq_name), store, True)
     gt = seq.ground_truth()
     imu = seq.imu()
     params = InitParams(projection=args.projection)

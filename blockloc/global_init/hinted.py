@@ -62,12 +62,12 @@ class HintedSearch:
             stats["hint_search"] = "places"
             res = self._decide(list(cands), stats, 0.0, scan_ndt, final=False)
             if res.verified or res.ambiguous:
-                return self._decide(cands, stats, time.perf_counter() - t0, scan_ndt)
+                return self._decide(cands, stats, time.perf_counter() - t0, scan_ndt, scan=scan, cells=cells)
         more, st = self._search_region(scan, scan_ndt, center, window_m, theta_c, yaw_win, cells=cells)
         stats.update({k: v + stats.get(k, 0) if k in _SUMMED else v for k, v in st.items()})
         stats["hint_search"] = "places, then branch and bound" if len(rows) else "branch and bound"
         stats["regions_searched"] = 1
-        return self._decide(cands + more, stats, time.perf_counter() - t0, scan_ndt)
+        return self._decide(cands + more, stats, time.perf_counter() - t0, scan_ndt, scan=scan, cells=cells)
 
     def _in_leaf_box(self, x: float, y: float) -> bool:
         """Whether a 2D leaf (levelled frame, m) may be refined: inside the hint's window, if any."""

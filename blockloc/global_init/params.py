@@ -70,6 +70,11 @@ class InitParams(GlobalInitParams):
     nms_deg: float = 5.0
     probe_m: tuple[float, ...] = (1.0, 2.0)  # NDT restarts from the best moved this far look for rivals
     ambiguity_fitness_margin: float = 0.05
+    # the final decision climbs (``GlobalLocalizer._climb``): rounds, rivals climbed besides the best,
+    # and the NDT score per point an optimum nearby must gain to count as better
+    climb_rounds: int = 3
+    climb_rivals: int = 3
+    climb_min_gain: float = 0.01
     scan_voxel_m: float = 0.5
     max_ndt_points: int = 3000
     ambiguity_score_ratio: float = 0.8  # once one is verified, refine others only above this x best
@@ -77,7 +82,7 @@ class InitParams(GlobalInitParams):
     max_regions: int = 0  # 0: every region of the map
     num_threads: int = 2  # the registration section's
     # no-hint relocalization through the place index
-    place_all_yaw_candidates: int = 0  # then this many of them at every yaw (0: none)
+    place_all_yaw_candidates: int = 2  # the second stage: this many first places at every yaw (0: none)
     place_top_k: int = 6  # leaves refined per stage
     # the best leaves of each window (0: one top place_top_k over all windows, by 2D score)
     place_leaves_per_window: int = 1

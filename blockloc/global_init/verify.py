@@ -107,6 +107,8 @@ class InitCandidate:
     see_through: float = float("nan")  # static-band bins seen through that the map fills
     refiner: object = field(default=None, repr=False, compare=False)  # its NDT target, while deciding
     overlap: float = 1.0  # share of the scan's points where the map holds data (refine.Footprint)
+    # (T_start, RefineResult) of the NDT restarts around it (:func:`probe_optima`), once made
+    probes: list | None = field(default=None, repr=False, compare=False)
 
 
 @dataclass
@@ -146,32 +148,45 @@ def nearby_rival(best: InitCandidate, scan_ndt: np.ndarray, structures: list[np.
     (seen on the real walk: optima 4.7 m off with fitness 0.55 whose structure did not fit, 0.50,
     kept two correct poses unverified). ``p``: the localizer's ``InitParams``.
     """
-    for d in p.probe_m:
-        for dx, dy in ((d, 0.0), (-d, 0.0), (0.0, d), (0.0, -d)):
-            T0 = best.T_map_body.copy()
-            T0[:2, 3] += (dx, dy)
-            r = best.refiner.align(scan_ndt, T0)
-            if not r.converged and np.all(np.isfinite(r.T_map_body)):
-                # out of iterations on its way (back to the best, or on to another optimum): an
-                # optimum is where it stops; one still sliding after this counts as a rival
-                r = best.refiner.align(scan_ndt, r.T_map_body)
-            if not (np.all(np.isfinite(r.T_map_body)) and r.fitness >= p.min_fitness):
-                continue
-            dist = float(np.linalg.norm(r.T_map_body[:3, 3] - best.T_map_body[:3, 3]))
-            if dist <= p.ambiguity_distance_m or r.fitness < best.fitness - p.ambiguity_fitness_margin:
-                continue
-            sfit = (structure_fit(best.refiner, structures, r.T_map_body, p.min_structure_fitness)
-                    if structures is not None else 1.0)
-            if sfit < p.min_structure_fitness:
-                log.debug("an NDT optimum %.2f m from the best (fitness %.2f) whose structure does not fit "
-                          "(%.2f): no rival", dist, r.fitness, sfit)
-                continue
-            rival = InitCandidate(r.T_map_body, 0.0, r.fitness, r.converged, False, T0, r.ndt_score, sfit,
-                                  refiner=best.refiner)
-            if better_fit(scan_ndt, best, rival) < p.ambiguity_z:
-                log.info("a rival NDT optimum %.2f m from the best fits about as well", dist)
-                return rival
+    probes = best.probes if best.probes is not None else probe_optima(best, scan_ndt, p.probe_m, lazy=True)
+    for T0, r in probes:
+        if not (np.all(np.isfinite(r.T_map_body)) and r.fitness >= p.min_fitness):
+            continue
+        dist = float(np.linalg.norm(r.T_map_body[:3, 3] - best.T_map_body[:3, 3]))
+        if dist <= p.ambiguity_distance_m or r.fitness < best.fitness - p.ambiguity_fitness_margin:
+            continue
+        sfit = (structure_fit(best.refiner, structures, r.T_map_body, p.min_structure_fitness)
+                if structures is not None else 1.0)
+        if sfit < p.min_structure_fitness:
+            log.debug("an NDT optimum %.2f m from the best (fitness %.2f) whose structure does not fit "
+                      "(%.2f): no rival", dist, r.fitness, sfit)
+            continue
+        rival = InitCandidate(r.T_map_body, 0.0, r.fitness, r.converged, False, T0, r.ndt_score, sfit,
+                              refiner=best.refiner)
+        if better_fit(scan_ndt, best, rival) < p.ambiguity_z:
+            log.info("a rival NDT optimum %.2f m from the best fits about as well", dist)
+            return rival
     return None
+
+
+def probe_optima(cand: InitCandidate, scan_ndt: np.ndarray, probe_m, lazy: bool = False):
+    """The NDT optima reached from ``cand`` (its ``refiner``) moved by each of ``probe_m`` (m)
+    along +-x and +-y of the map: (T_start (4, 4), ``Refiner.align``'s result) each, in that
+    order; ``lazy``: a generator (the caller may stop early)."""
+
+    def gen():
+        for d in probe_m:
+            for dx, dy in ((d, 0.0), (-d, 0.0), (0.0, d), (0.0, -d)):
+                T0 = cand.T_map_body.copy()
+                T0[:2, 3] += (dx, dy)
+                r = cand.refiner.align(scan_ndt, T0)
+                if not r.converged and np.all(np.isfinite(r.T_map_body)):
+                    # out of iterations on its way (back to the best, or on to another optimum): an
+                    # optimum is where it stops; one still sliding after this counts as a rival
+                    r = cand.refiner.align(scan_ndt, r.T_map_body)
+                yield T0, r
+
+    return gen() if lazy else list(gen())
 
 
 def decide(cands: list[InitCandidate], stats: dict, elapsed: float, p, scan_ndt: np.ndarray | None = None,

@@ -1,0 +1,109 @@
+"""The final decision's climb (``GlobalLocalizer._climb``) and the later stages' leaves by 2D score."""
+
+import math
+
+import numpy as np
+import pytest
+
+from blockloc.geometry import xyzrpy_to_T
+from blockloc.global_init.bnb import Window
+from blockloc.global_init.refine import Refiner
+from blockloc.global_init.relocalize import GlobalLocalizer, InitParams, pose_error
+from blockloc.global_init.verify import InitCandidate, nearby_rival
+
+from .synthetic import GRAVITY_Z_DOWN, Z_DOWN, gravity_body, scan_from, world_up
+
+
+@pytest.fixture(scope="module")
+def setup():
+    world = world_up(seed=3) @ Z_DOWN.T
+    loc = GlobalLocalizer.for_points(world, GRAVITY_Z_DOWN, InitParams())
+    T_true = xyzrpy_to_T(6.0, 4.0, -(1.9 + 0.02 * 6.0), 0.03, -0.02, 2.4)
+    scan_body = scan_from(world, T_true)
+    scan, scan_ndt = loc.prepare_scan(scan_body, gravity_body(T_true))
+    refiner = Refiner(loc.engine, world, loc.map.R_L_map, 1.0, 0.25)
+    return loc, T_true, scan, scan_ndt, refiner
+
+
+def _stalled(refiner, scan_ndt, T):
+    """A candidate where NDT stopped short (as along a street): verified there, not an optimum."""
+    score = refiner.engine.evaluate(refiner._target, scan_ndt, T).score / len(scan_ndt)
+    return InitCandidate(T, 1.0, 0.9, True, True, T, score, 0.9, refiner=refiner)
+
+
+def test_a_stalled_candidate_climbs_to_the_optimum_and_stays_a_candidate(setup):
+    loc, T_true, scan, scan_ndt, refiner = setup
+    T_off = T_true.copy()
+    T_off[:2, 3] += (1.2, -0.6)
+    stalled = _stalled(refiner, scan_ndt, T_off)
+    out = loc._climb([stalled], scan, scan_ndt, None)
+    assert out[0] is stalled and len(out) == 2  # nothing removed, the optimum added
+    up = out[1]
+    assert up.verified and up.ndt_score >= stalled.ndt_score + loc.params.climb_min_gain
+    dt, dr = pose_error(up.T_map_body, T_true)
+    assert dt < 0.1 and dr < 0.5, (dt, dr)
+    # the restarts are kept on the candidate; the climbed one was probed in the next round and
+    # went nowhere better, so the rival check reuses its probes instead of aligning again
+    assert stalled.probes is not None and len(stalled.probes) == 4 * len(loc.params.probe_m)
+    assert up.probes is not None
+
+
+def test_an_optimum_does_not_climb_and_the_rival_check_reuses_its_probes(setup):
+    loc, T_true, scan, scan_ndt, refiner = setup
+    r = refiner.align(scan_ndt, T_true)
+    best = InitCandidate(r.T_map_body, 1.0, r.fitness, True, True, T_true, r.ndt_score, 0.95, refiner=refiner)
+    out = loc._climb([best], scan, scan_ndt, None)
+    assert out == [best] and best.probes is not None
+
+    calls = []
+
+    class Counting:
+        def align(self, *a):
+            calls.append(1)
+            return refiner.align(*a)
+
+    best.refiner = Counting()
+    nearby_rival(best, scan_ndt, None, loc.params)
+    assert calls == []  # the probes of the climb were reused
+    # without the climb, climb_rounds 0: the decision is as before (no candidate added, no climb time)
+    plain = GlobalLocalizer(loc.map, InitParams(climb_rounds=0))
+    res = plain._decide([_stalled(refiner, scan_ndt, T_true)], {}, 0.0, scan_ndt, scan=scan)
+    assert "climb_s" not in res.stats and len(res.candidates) >= 1
+
+
+def test_a_later_stage_also_takes_the_best_leaves_by_2d_score(setup):
+    loc, T_true, scan, _, _ = setup
+    xy = (loc.map.R_L_map @ T_true[:3, 3])[:2]
+    theta = loc._theta_from_yaw(math.atan2(T_true[1, 0], T_true[0, 0]), scan)
+    wrong = Window(xy + np.array([-30.0, 25.0]), 12.0, theta + 1.0, math.radians(16.0))
+    true = Window(xy, 12.0, theta, math.radians(16.0))
+    # (every leaf kept, however poor: ambiguity_score_ratio 0)
+    loc1 = GlobalLocalizer(loc.map, InitParams(place_top_k=1, ambiguity_score_ratio=0.0))
+    ranked, _ = loc1._search_windows(scan, [wrong, true])
+    assert len(ranked) == 1 and ranked[0].window == 0  # the first place's leaf only
+    more, _ = loc1._search_windows(scan, [wrong, true], by_score=1)
+    assert [c.window for c in more] == [0, 1]
+    assert np.hypot(more[1].x - xy[0], more[1].y - xy[1]) < 1.0 and more[1].score > more[0].score
+
+
+def test_the_second_stage_searches_the_first_places_at_every_yaw(setup, monkeypatch):
+    """A yaw guess can be far off (small world seed 2, frame 847: 40 deg, the place ranked first):
+    right after the first stage, the first ``place_all_yaw_candidates`` places at every yaw."""
+    loc, T_true, scan, _, _ = setup
+    params = InitParams(min_fitness=0.999, place_candidates=(3, 6), place_all_yaw_candidates=2,
+                        whole_map_fallback=False, max_search_s=0.0)
+    nohint = GlobalLocalizer(loc.map, params)
+    seen = []
+    real = GlobalLocalizer._search_windows
+
+    def record(self, scan, windows, by_score=0):
+        seen.append([(tuple(np.round(w.center, 3)), w.yaw_window) for w in windows])
+        return real(self, scan, windows, by_score)
+
+    monkeypatch.setattr(GlobalLocalizer, "_search_windows", record)
+    res = nohint.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true))
+    assert not res.verified and len(seen) == 3
+    guess = math.radians(params.place_yaw_window_deg)
+    assert [len(s) for s in seen] == [3, 2, 3]  # 3 places, the first 2 at every yaw, the next 3
+    assert all(y == guess for _, y in seen[0] + seen[2]) and all(y == 2 * math.pi for _, y in seen[1])
+    assert [c for c, _ in seen[1]] == [c for c, _ in seen[0][:2]]
