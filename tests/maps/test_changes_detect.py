@@ -244,16 +244,17 @@ def test_the_ground_is_not_removed_and_spares_no_neighbour():
     g = np.arange(0.05, 3.0, 0.1)
     ground = np.array([[x, y, 0.03] for x in g for y in g])  # map frame z down: the ground at z ~ 0
     car = np.array([[x, y, -z] for x in np.arange(1.05, 2.0, 0.1) for y in np.arange(1.05, 2.0, 0.1)
-                    for z in (0.55, 1.05, 1.45)])  # a car's body from 0.5 to 1.5 m above the ground
+                    for z in (0.35, 0.75, 1.25, 1.45)])  # a car's body from 0.35 to 1.5 m above the ground
     pts = np.concatenate([ground, car])
     up = np.array([0, 0, -1.0])
-    band = ground_band(np.unique(voxel_keys(pts, 0.2)), up, 2)
+    band = ground_band(np.unique(voxel_keys(pts, 0.2)), up, 1)
     ev, _ = _evidence(0.5, pts, seen_free=10, ground=band, hits=ground)  # ground hit, the car gone
     rm = _centres(classify(ev, ev.fine[0], None, Thresholds(min_cluster_voxels=1)).removed, 0.5)
-    assert len(rm) and (rm[:, 2] < -0.5).all()  # the car's body above the ground's voxels, down to its lowest
-    assert (rm[:, 2] > -1.0).any()  # voxel (0.5-1.0 m), next to the hit ground voxel: not spared
+    assert len(rm) and (rm[:, 2] < 0).all()  # the car's voxels only: the ground's stay
+    # its lowest voxel (0-0.5 m up), next to the hit ground voxel, is not spared as a crown's edge is
+    assert (rm[:, 2] == -0.25).sum() == 4
     # the ground's voxels themselves are never removed, even when rays cross them
-    ev2, _ = _evidence(0.5, ground, seen_free=10, ground=ground_band(np.unique(voxel_keys(ground, 0.2)), up, 2))
+    ev2, _ = _evidence(0.5, ground, seen_free=10, ground=ground_band(np.unique(voxel_keys(ground, 0.2)), up, 1))
     assert len(classify(ev2, ev2.fine[0], None, Thresholds(min_cluster_voxels=1)).removed) == 0
 
 
