@@ -112,7 +112,9 @@ class _Recording:
 
         t0 = time.process_time()  # casting the frame and scoring it: not the detection's cost
         frame, labels = self.seq.frame_labels(i)
-        Tbl = np.asarray(self.info.T_body_lidar, float)
+        # the truth places the points with the true poses and the robot's true mounting (the
+        # sequence's info carries the nominal one, 0.3-0.6 deg off on the small world)
+        Tbl = np.asarray(getattr(self.seq, "T_body_lidar_true", self.info.T_body_lidar), float)
         a = max(int(np.searchsorted(self._gt_stamps, frame.stamp - 0.2)) - 1, 0)
         b = int(np.searchsorted(self._gt_stamps, frame.stamp + 0.4)) + 1  # the sweep's span
         gt = Trajectory(self._gt_stamps[a:b], self._gt_poses[a:b])
@@ -221,6 +223,7 @@ def score_detection(P: str, S: int, session: str, mp: Path, run_dir: Path, strid
     from blockloc.maps.changes.detect import Thresholds, cluster_sizes, near_sorted
     from blockloc.maps.changes.pipeline import detect_changes
     from blockloc.maps.changes.runs import read_run
+    from blockloc.maps.mounting import with_map_mounting
     from blockloc.maps.store import open_map
     from blockloc.sim.changes import open_session
 
@@ -230,7 +233,8 @@ def score_detection(P: str, S: int, session: str, mp: Path, run_dir: Path, strid
     run = read_run(run_dir)
     t0, c0 = time.perf_counter(), time.process_time()
     store = open_map(mp)
-    res = detect_changes(store, rec, run, stride=stride, thresholds=th)
+    # the scans placed with the mounting the run tracked with, as `map changes` places them
+    res = detect_changes(store, with_map_mounting(rec, store, True), run, stride=stride, thresholds=th)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0 - rec.seconds
     vm = res.voxels.voxel_m
     seen_k, seen_n = _count(rec.seen)

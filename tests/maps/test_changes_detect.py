@@ -204,3 +204,82 @@ def test_a_sweep_is_deskewed_with_the_neighbouring_poses_only():
     tr = sweep_poses(run, 2)
     assert list(tr.stamps) == [0.1, 0.2]
     assert tr.interpolate(np.array([0.25]))[0, 0, 3] == pytest.approx(0.4)
+
+
+def _evidence(voxel_m, fine_pts, seen_free, ground=None, hits=()):
+    """An Evidence whose map holds the points ``fine_pts`` (N, 3), with every map voxel seen
+    through in ``seen_free`` scans and never hit (but the voxels of the points ``hits``)."""
+    from blockloc.maps.changes.detect import voxel_keys
+
+    fine_m = voxel_m / 2.5
+    map_keys = np.unique(voxel_keys(fine_pts, voxel_m))
+    fine_keys = np.unique(voxel_keys(fine_pts, fine_m))
+    ev = Evidence(voxel_m, fine=(map_keys, fine_m, fine_keys), ground=ground)
+    ev.keys = map_keys
+    ev.n_free = np.full(len(map_keys), seen_free, np.int32)
+    ev.n_hit = np.isin(map_keys, voxel_keys(np.asarray(hits, float).reshape(-1, 3), voxel_m)).astype(np.int32) * seen_free
+    return ev, map_keys
+
+
+def test_a_removed_voxel_needs_map_structure_not_a_stray_point():
+    from blockloc.maps.changes.detect import Thresholds, classify
+
+    g = np.arange(0.05, 2.0, 0.1)
+    wall = np.array([[5.05, y, z] for y in g for z in g])  # a 2 x 2 m wall: 4 x 4 dense voxels
+    strays = np.array([[10.0 + 1.5 * i, 8.1, 2.2] for i in range(12)]) + 0.05  # one point a voxel
+    halo = np.array([[5.3, 2.1, 1.0]])  # one point next to the wall: an edge of it
+    ev, _ = _evidence(0.5, np.concatenate([wall, strays, halo]), seen_free=10)
+    th = Thresholds(min_cluster_voxels=1)
+    rm = _centres(classify(ev, ev.fine[0], None, th).removed, 0.5)
+    assert (rm[:, 0] < 6).sum() == 17  # the wall's 16 voxels and its edge's
+    assert not (rm[:, 0] > 9).any()  # a row of stray points (mixed pixels) never counts
+    # without the rule the strays (1 map cell each) are removed like the wall
+    rm1 = _centres(classify(ev, ev.fine[0], None, Thresholds(min_cluster_voxels=1, min_map_cells=1)).removed, 0.5)
+    assert (rm1[:, 0] > 9).sum() == 12
+
+
+def test_the_ground_is_not_removed_and_spares_no_neighbour():
+    from blockloc.maps.changes.detect import Thresholds, classify, ground_band, voxel_keys
+
+    g = np.arange(0.05, 3.0, 0.1)
+    ground = np.array([[x, y, 0.03] for x in g for y in g])  # map frame z down: the ground at z ~ 0
+    car = np.array([[x, y, -z] for x in np.arange(1.05, 2.0, 0.1) for y in np.arange(1.05, 2.0, 0.1)
+                    for z in (0.35, 0.75, 1.25, 1.45)])  # a car's body from 0.35 to 1.5 m above the ground
+    pts = np.concatenate([ground, car])
+    up = np.array([0, 0, -1.0])
+    band = ground_band(np.unique(voxel_keys(pts, 0.2)), up, 1)
+    ev, _ = _evidence(0.5, pts, seen_free=10, ground=band, hits=ground)  # ground hit, the car gone
+    rm = _centres(classify(ev, ev.fine[0], None, Thresholds(min_cluster_voxels=1)).removed, 0.5)
+    assert len(rm) and (rm[:, 2] < 0).all()  # the car's voxels only: the ground's stay
+    # its lowest voxel (0-0.5 m up), next to the hit ground voxel, is not spared as a crown's edge is
+    assert (rm[:, 2] == -0.25).sum() == 4
+    # the ground's voxels themselves are never removed, even when rays cross them
+    ev2, _ = _evidence(0.5, ground, seen_free=10, ground=ground_band(np.unique(voxel_keys(ground, 0.2)), up, 1))
+    assert len(classify(ev2, ev2.fine[0], None, Thresholds(min_cluster_voxels=1)).removed) == 0
+
+
+def test_ground_band_keeps_the_lowest_cells_of_each_column():
+    from blockloc.maps.changes.detect import ground_band
+
+    k = np.sort(pack_keys(np.array([[0, 0, 1], [0, 0, 2], [0, 0, 3], [0, 0, 4], [1, 0, 7]])))
+    got = sorted(map(tuple, unpack_keys(ground_band(k, np.array([0, 0, 1.0]), 2))))
+    assert got == [(0, 0, 1), (0, 0, 2), (0, 0, 3), (1, 0, 7)]
+    got = sorted(map(tuple, unpack_keys(ground_band(k, np.array([0, 0, -1.0]), 1))))  # z down
+    assert got == [(0, 0, 3), (0, 0, 4), (1, 0, 7)]
+
+
+def test_added_needs_a_place_the_mapping_day_had_in_sight():
+    from blockloc.maps.changes.detect import seen_by_keyframes, voxel_keys
+
+    fine_m = 0.2
+    wall = np.array([[5.05, y, z] for y in np.arange(-2, 2, 0.1) for z in np.arange(-1, 2, 0.1)])
+    fine_keys = np.unique(voxel_keys(wall, fine_m))
+    cells = np.unique(voxel_keys(np.array([[8.0, 0.0, 0.5], [8.0, 6.0, 0.5], [3.0, 0.0, 0.5]]), fine_m))
+    seen = _centres(seen_by_keyframes(cells, fine_m, np.zeros((1, 3)), fine_keys, 0.4, 40.0, k=1), fine_m)
+    # behind the wall: hidden; beside it and before it: in sight
+    assert sorted(np.round(seen[:, :2], 1).tolist()) == [[3.1, 0.1], [8.1, 6.1]]
+    # a second keyframe that looks past the wall sees behind it
+    kf = np.array([[0.0, 0.0, 0.0], [8.0, 3.0, 0.0]])
+    assert len(seen_by_keyframes(cells, fine_m, kf, fine_keys, 0.4, 40.0, k=2)) == 3
+    # out of range of every keyframe: not seen
+    assert len(seen_by_keyframes(cells, fine_m, kf, fine_keys, 0.4, 1.0, k=2)) == 0

@@ -25,8 +25,8 @@ Classes:
 - **removed**: a map voxel rays now pass through (``L <= -removed_logodds``, ``n_free >=
   min_scans``);
 - **added**: a voxel holding, in ``min_scans`` scans or more, **new** points (more than one fine
-  cell from every map point) in fine cells the map's own rays (from its keyframes to its points)
-  crossed, with ``n_new * l_occ + n_free * l_free >= added_logodds``: structure where the mapping
+  cell from every map point) in fine cells the mapping day had in clear sight (a straight line
+  from one of the nearest mapping keyframes crosses no map cell: :func:`seen_by_keyframes`), with ``n_new * l_occ + n_free * l_free >= added_logodds``: structure where the mapping
   day saw free space, not merely a place it never saw; decided on points, not whole voxels, so
   the part of a new object in the ground's voxel counts;
 - **dynamic**: a voxel off the map (and its neighbours) with new points in some scans and seen
@@ -170,6 +170,25 @@ def without_lowest(fine_keys: np.ndarray, up: np.ndarray) -> np.ndarray:
     return fine_keys[keep]
 
 
+def ground_band(fine_keys: np.ndarray, up: np.ndarray, band_cells: int) -> np.ndarray:
+    """The sorted fine keys at most ``band_cells`` cells above the lowest occupied cell of their
+    vertical column (``up``: (3,) unit vector against gravity, along a map axis): the ground's
+    surface with its noise (a laser's angle error puts a stray cell below the surface, and the
+    surface itself one or two cells higher). Empty when gravity is not along an axis."""
+    fine_keys = np.asarray(fine_keys, np.int64)
+    up = np.asarray(up, float).reshape(3)
+    axis = int(np.argmax(np.abs(up)))
+    if not len(fine_keys) or abs(up[axis]) < 0.9:
+        return np.zeros(0, np.int64)
+    ijk = unpack_keys(fine_keys)
+    h = ijk[:, axis] * int(np.sign(up[axis]))
+    other = [a for a in range(3) if a != axis]
+    col, inv = np.unique(pack_keys(np.c_[ijk[:, other], np.zeros(len(ijk), np.int64)]), return_inverse=True)
+    low = np.full(len(col), np.iinfo(np.int64).max)
+    np.minimum.at(low, inv, h)
+    return fine_keys[h - low[inv] <= band_cells]
+
+
 def ray_margins(origin: np.ndarray, points: np.ndarray, up: np.ndarray, margin_m: float,
                 ground_drop_m: float = 0.7, ground_tol_m: float = 0.3) -> np.ndarray:
     """(N,) how far short of its endpoint each ray stops marking free space, metres.
@@ -202,6 +221,8 @@ class Evidence:
     fine: tuple | None = None  # (map_keys, fine_m, fine_keys): see :func:`ray_free_keys`
     #: sorted fine keys rays may count through (None: all of ``fine``'s; :func:`without_lowest`)
     carvable: np.ndarray | None = None
+    #: sorted fine keys of the ground's surface (:func:`ground_band`), or None (not known)
+    ground: np.ndarray | None = None
     keys: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     n_hit: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
     n_free: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
@@ -277,8 +298,8 @@ class Evidence:
 
     def new_counts(self, seen_free: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """(n_new, n_new_free): (V,) int64 in key order: scans with a new point in the voxel, and
-        scans with a new point in a fine cell of the sorted ``seen_free`` (where the map's own
-        rays crossed: :func:`map_free_keys` at the fine size; None: all)."""
+        scans with a new point in a fine cell of the sorted ``seen_free`` (where the mapping
+        day had in sight: :func:`seen_by_keyframes`; None: all)."""
         self.flush()
         n_any = np.zeros(len(self.keys), np.int64)
         n_ok = np.zeros(len(self.keys), np.int64)
@@ -296,29 +317,55 @@ class Evidence:
         return n_any, n_ok
 
 
-def map_free_keys(map_points: np.ndarray, keyframes: np.ndarray, voxel_m: float, margin_m: float,
-                  max_range_m: float = 60.0, only: np.ndarray | None = None) -> np.ndarray:
-    """Voxels the map's own rays crossed: from the nearest keyframe (K, 3) to each map point
-    (M, 3) within ``max_range_m`` (a map stores no rays: the nearest keyframe stands in for the
-    one that saw the point). Sorted unique int64 keys, the map's occupied voxels' neighbours left
-    out; with ``only`` (sorted keys), those of them the rays crossed (the caller has left the
-    map's surroundings out of them already)."""
+def segments_clear(origins: np.ndarray, targets: np.ndarray, fine_keys: np.ndarray, fine_m: float,
+                   margin_m: float, chunk: int = 2048) -> np.ndarray:
+    """(N,) bool: the segment from each of ``origins`` (N, 3) to its target (N, 3), up to
+    ``margin_m`` short of the target, crosses none of the sorted occupied ``fine_keys`` (cells of
+    edge ``fine_m``): the target was in sight from the origin. Sampled every ``fine_m / 2``."""
+    origins = np.asarray(origins, np.float64).reshape(-1, 3)
+    targets = np.asarray(targets, np.float64).reshape(-1, 3)
+    d = targets - origins
+    length = np.linalg.norm(d, axis=1)
+    usable = length - margin_m
+    u = d / np.maximum(length, 1e-9)[:, None]
+    step = fine_m / 2.0
+    clear = np.ones(len(d), bool)
+    for s in range(0, len(d), chunk):
+        sl = slice(s, s + chunk)
+        top = float(usable[sl].max()) if len(usable[sl]) else 0.0
+        if top <= 0:
+            continue
+        t = (np.arange(int(np.ceil(top / step))) + 0.5) * step
+        ray, j = np.nonzero(t[None, :] < usable[sl, None])
+        pts = origins[sl][ray] + u[sl][ray] * t[j, None]
+        blocked = np.unique(ray[_in_sorted(voxel_keys(pts, fine_m), fine_keys)])
+        clear[s + blocked] = False
+    return clear
+
+
+def seen_by_keyframes(cells: np.ndarray, fine_m: float, keyframes: np.ndarray, fine_keys: np.ndarray,
+                      margin_m: float, max_range_m: float = 40.0, k: int = 3) -> np.ndarray:
+    """The sorted fine ``cells`` (edge ``fine_m``) the mapping day could see: in clear sight
+    (:func:`segments_clear` through the map's occupied ``fine_keys``) from one of the ``k``
+    keyframes (K, 3 sensor positions) nearest to it within ``max_range_m``. Where the mapping
+    day saw through a cell and the map holds nothing there, it saw free space; where the map's
+    structure hid the cell, a point there today is merely new to the map, not added."""
     from scipy.spatial import cKDTree
 
-    pts = np.asarray(map_points, dtype=np.float64)[:, :3]
-    kf = np.asarray(keyframes, dtype=np.float64).reshape(-1, 3)
-    if not len(pts) or not len(kf):
+    cells = np.asarray(cells, np.int64)
+    kf = np.asarray(keyframes, np.float64).reshape(-1, 3)
+    if not len(cells) or not len(kf):
         return np.zeros(0, np.int64)
-    dist, near = cKDTree(kf).query(pts)
-    ok = dist <= max_range_m
-    out = []
-    for k in np.unique(near[ok]):
-        sel = ok & (near == k)
-        out.append(ray_free_keys(kf[k], pts[sel], voxel_m, margin_m, only=only))
-    free = np.unique(np.concatenate(out)) if out else np.zeros(0, np.int64)
-    if only is not None:
-        return free
-    return free[~np.isin(free, dilate_keys(voxel_keys(pts, voxel_m)))]
+    centres = (unpack_keys(cells) + 0.5) * fine_m
+    k = min(int(k), len(kf))
+    dist, idx = cKDTree(kf).query(centres, k=k)
+    dist, idx = dist.reshape(len(cells), k), idx.reshape(len(cells), k)
+    seen = np.zeros(len(cells), bool)
+    for j in range(k):  # the nearest keyframe first; the next ones only for cells still hidden
+        todo = np.flatnonzero(~seen & (dist[:, j] <= max_range_m))
+        if len(todo):
+            seen[todo] = segments_clear(kf[idx[todo, j]], centres[todo], fine_keys, fine_m, margin_m)
+    return cells[seen]
 
 
 def cluster_sizes(keys: np.ndarray) -> np.ndarray:
@@ -364,6 +411,20 @@ class Thresholds:
     #: a block is confirmed when one 26-connected cluster of its changed voxels (removed and
     #: added together) spans this volume, m^3 (scattered noise never forms one that large)
     min_block_m3: float = 3.0  # chosen on the small world seed 1, loc_m12 (docs/bench/lifelong.md)
+    #: removed needs map structure: a voxel holding at least this many of the map's occupied fine
+    #: cells, or one next to such a removed voxel (an object's edge). A voxel with one or two map
+    #: points is the mapping day's sensor noise (mixed pixels at depth edges, a laser's angle
+    #: error over far ground, a range tail) as often as structure; today's rays cross it.
+    min_map_cells: int = 4  # chosen on the small world seed 1, loc_m12
+    #: a voxel holding the ground's surface (:func:`ground_voxels`) is no see-through neighbour
+    #: that spares the voxels next to it (``max_hit_share``'s second rule)
+    ground_spares_none: bool = True
+    #: a voxel holding the ground's surface can be removed
+    ground_removable: bool = False
+    #: the ground's surface: fine cells this many cells above the lowest of their column or less
+    ground_band_cells: int = 1  # chosen on the small world seed 1, loc_m12
+    #: added needs the new point's cell in sight from one of this many nearest mapping keyframes
+    seen_keyframes: int = 3
 
 
 @dataclass
@@ -379,11 +440,42 @@ class VoxelChanges:
     removed_free: np.ndarray  # (len(removed),) scans that saw through each removed voxel
 
 
+def ground_voxels(voxel_m: float, fine_m: float, ground_fine: np.ndarray) -> np.ndarray:
+    """Sorted keys (edge ``voxel_m``) of the voxels holding one of the ground's fine cells
+    (``ground_fine``: sorted keys of edge ``fine_m``, :func:`ground_band`)."""
+    return np.unique(voxel_keys((unpack_keys(ground_fine) + 0.5) * fine_m, voxel_m))
+
+
+def map_cells_per_voxel(keys: np.ndarray, voxel_m: float, fine_m: float, fine_keys: np.ndarray) -> np.ndarray:
+    """(K,) how many of the sorted fine keys (edge ``fine_m``: the map's occupied fine cells) lie
+    in each voxel of ``keys`` (edge ``voxel_m``)."""
+    if not len(fine_keys) or not len(keys):
+        return np.zeros(len(keys), np.int64)
+    owner = voxel_keys((unpack_keys(fine_keys) + 0.5) * fine_m, voxel_m)
+    uk, cnt = np.unique(owner, return_counts=True)
+    j = np.minimum(np.searchsorted(uk, keys), len(uk) - 1)
+    return np.where(uk[j] == keys, cnt[j], 0)
+
+
+def _solid_or_next_to_solid(keys: np.ndarray, removed: np.ndarray, voxel_m: float, fine: tuple,
+                            min_cells: int) -> np.ndarray:
+    """(K,) bool over ``keys``: a removed voxel holding ``min_cells`` map fine cells or more, or
+    26-next to one that does (``removed``: (K,) bool candidates; ``fine``: :class:`Evidence`'s)."""
+    out = np.zeros(len(keys), bool)
+    cand = np.flatnonzero(removed)
+    solid = cand[map_cells_per_voxel(keys[cand], voxel_m, fine[1], fine[2]) >= min_cells]
+    out[solid] = True
+    rest = np.setdiff1d(cand, solid)
+    if len(rest) and len(solid):
+        out[rest[near_sorted(keys[rest], keys[solid])]] = True
+    return out
+
+
 def classify(ev: Evidence, map_keys: np.ndarray, map_free_fine: np.ndarray | None, th: Thresholds) -> VoxelChanges:
     """Removed / added / dynamic voxels from the evidence. map_keys: sorted unique keys of the
     map's occupied voxels; map_free_fine: sorted fine keys (``ev.fine_m()``) of the scans' new
-    points' cells that the map's own rays crossed (:func:`map_free_keys` with ``only``), or None
-    (no map rays: any new point counts).
+    points' cells the mapping day had in sight (:func:`seen_by_keyframes`), or None (any new
+    point counts).
 
     Added is decided on the new points (:class:`Evidence`), not on whole voxels off the map: a
     parked car's lowest half metre shares its voxel with the map's ground (and the next half
@@ -395,11 +487,20 @@ def classify(ev: Evidence, map_keys: np.ndarray, map_free_fine: np.ndarray | Non
     removed = (in_map & (ev.n_free >= th.min_scans) & (L <= -th.removed_logodds)
                & (ev.n_hit <= th.max_hit_share * seen))
     # ... and next to no map voxel this session still hits: the edge of a see-through crown,
-    # crossed by few rays, can go unhit in every scan while its core is hit
+    # crossed by few rays, can go unhit in every scan while its core is hit. The ground is no
+    # porous object: a voxel holding the ground's surface does not spare its neighbours (else a
+    # removed car's lower metre, next to the ground, could never be removed)
     cand = np.flatnonzero(removed)
     if len(cand):
         solid = in_map & (ev.n_hit + ev.n_free >= th.min_scans) & (ev.n_hit > th.max_hit_share * seen)
+        ground = ground_voxels(ev.voxel_m, ev.fine[1], ev.ground) if ev.fine is not None and ev.ground is not None else None
+        if th.ground_spares_none and ground is not None:
+            solid &= ~_in_sorted(ev.keys, ground)
         removed[cand[near_sorted(ev.keys[cand], ev.keys[solid])]] = False
+        if not th.ground_removable and ground is not None:
+            removed &= ~_in_sorted(ev.keys, ground)
+    if th.min_map_cells > 1 and ev.fine is not None and removed.any():
+        removed &= _solid_or_next_to_solid(ev.keys, removed, ev.voxel_m, ev.fine, th.min_map_cells)
     n_new, n_new_free = ev.new_counts(map_free_fine)
     L_added = n_new_free * th.l_occ + ev.n_free * th.l_free
     added = (n_new_free >= th.min_scans) & (L_added >= th.added_logodds)

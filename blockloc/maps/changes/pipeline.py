@@ -1,10 +1,11 @@
 """A map store + a run's trusted scans -> what changed, per block (``changes.json``).
 
-Steps: pick the blocks the run came near; voxelize their points (the map's occupied voxels) and
-cast the map's own rays (:func:`.detect.map_free_keys`); for every trusted frame of the run (a
+Steps: pick the blocks the run came near; voxelize their points (the map's occupied voxels and
+fine cells); for every trusted frame of the run (a
 ``ok`` pose after ``settle_frames`` ``ok`` ones, :mod:`.runs`), check the scan agrees with the
-map (the consistency gate below), then add its hits and free rays to the evidence; classify the
-voxels; report per block. Each scan is deskewed with the run's poses around it (points moved with
+map (the consistency gate below), then add its hits and free rays to the evidence; keep the
+scans' new points in cells the mapping day had in sight from its keyframes
+(:func:`.detect.seen_by_keyframes`); classify the voxels; report per block. Each scan is deskewed with the run's poses around it (points moved with
 the pose at their own time, :func:`sweep_poses`): a sweep taken while turning is otherwise smeared
 sideways by up to ``yaw rate x 0.1 s x range`` (0.1 rad/s: 0.4 m at 40 m), and its rays cut past
 the edges of the structure they hit.
@@ -26,7 +27,8 @@ from typing import Callable
 import numpy as np
 
 from blockloc.maps.changes.detect import (Evidence, Thresholds, VoxelChanges, block_report, classify,
-                                          dilate_keys, map_free_keys, voxel_keys, without_lowest)
+                                          dilate_keys, ground_band, seen_by_keyframes, voxel_keys,
+                                          without_lowest)
 from blockloc.maps.changes.runs import RunPoses
 
 log = logging.getLogger(__name__)
@@ -126,7 +128,8 @@ def detect_changes(store, sequence, run: RunPoses, *, voxel_m: float = 0.5, max_
                  if blocks else np.zeros(0, np.int64))
     # new points are judged against every map cell; free space may cross all but the ground's
     ev = Evidence(voxel_m, margin_m, fine=(map_keys, fine_m, fine_keys),
-                  carvable=without_lowest(fine_keys, up))
+                  carvable=without_lowest(fine_keys, up),
+                  ground=ground_band(fine_keys, up, thresholds.ground_band_cells))
     off_pts, off_int = [], []
     idx = np.arange(0, len(run), max(1, int(stride)))
     for done, k in enumerate(idx, 1):
@@ -156,14 +159,14 @@ def detect_changes(store, sequence, run: RunPoses, *, voxel_m: float = 0.5, max_
         if progress is not None:
             progress(done, len(idx))
     ev.flush()
-    # where the map's own rays crossed the cells the scans' new points fell in: added structure
-    # stands where the mapping day saw free space, not merely where it never looked
+    # the cells of the scans' new points the mapping day had in clear sight from its keyframes:
+    # added structure stands where the mapping day saw free space, not merely where it never looked
     cells = ev.new_cells()
     if blocks and len(cells):
-        allp = np.concatenate(list(blocks.values()))
-        allp = allp[voxel_select(allp, voxel_m / 2)]
-        map_free = map_free_keys(allp, np.concatenate(list(keyframes.values())), fine_m, margin_m, max_range_m,
-                                 only=cells)
+        # in sight up to two fine cells short of the cell (a new point has no map cell within one):
+        # a wall that hid the ground right behind it hides it (a metre's margin would look past it)
+        map_free = seen_by_keyframes(cells, fine_m, np.concatenate(list(keyframes.values())), fine_keys,
+                                     2 * fine_m, max_range_m, k=thresholds.seen_keyframes)
     else:
         map_free = np.zeros(0, np.int64)
     vc = classify(ev, map_keys, map_free, thresholds)
