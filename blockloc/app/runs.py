@@ -205,9 +205,10 @@ def cold_start(open_s: float, first_call_s: float, stats: dict, compile_s: float
     place index, the rest the search, which reads the blocks' pyramids and points from disk or the
     on-disk cache), without numba's one-off compilation (``compile_s``, first run after an install).
     Wall clock: on a loaded machine ``first_call_cpu_s`` (set by the caller) says more."""
-    return {"total_s": round(open_s + first_call_s - compile_s, 3), "map_open_s": round(open_s, 3),
+    return {"total_s": round(max(0.0, open_s + first_call_s - compile_s), 3), "map_open_s": round(open_s, 3),
             "index_load_s": round(float(stats.get("index_load_s", 0.0)), 3),
-            "search_s": round(first_call_s - compile_s - float(stats.get("index_load_s", 0.0)), 3)}
+            # (index_load_s is without its compile, which compile_s holds: never below 0 when they overlap)
+            "search_s": round(max(0.0, first_call_s - compile_s - float(stats.get("index_load_s", 0.0))), 3)}
 
 
 def init_summary(res, stamp: float | None = None) -> dict:
