@@ -33,10 +33,11 @@ class NoHintSearch:
 
     def _relocalize_places(self, scan: ScanProjection, scan_ndt: np.ndarray, cells, index, theta_c: float,
                            yaw_win: float, stats: dict, deadline: float = math.inf,
-                           candidates: tuple[int, ...] | None = None):
+                           candidates: tuple[int, ...] | None = None, flip_open: bool = False):
         """No-hint search through the place index, widening stage by stage (module docstring) while
         ``time.perf_counter()`` is before ``deadline``; ``candidates``: the stages' place counts
-        (default ``place_candidates``)."""
+        (default ``place_candidates``); ``flip_open``: an open place's window is searched at its yaw
+        guess reversed too (every yaw allowed)."""
         p = self.params
         candidates = p.place_candidates if candidates is None else candidates
         t = time.perf_counter()
@@ -66,6 +67,16 @@ class NoHintSearch:
             first = k_done if yaw == yaw_guess else 0
             windows = [Window(c.xy_L, p.place_window_m, c.theta if yaw < 2 * math.pi else theta_c, yaw)
                        for c in places[first:k]]
+            if flip_open and yaw < 2 * math.pi and yaw_win >= 2 * math.pi:
+                # An open place's yaw guess may be the reverse one: its low band along an open street
+                # looks alike both ways (campus, estimated-mounting map, frame 27961: the three true
+                # places' guesses 180 deg off). Its window reversed follows it.
+                both = []
+                for c, w in zip(places[first:k], windows):
+                    both.append(w)
+                    if index.band[c.index] == 1:
+                        both.append(Window(w.center, w.size_m, w.theta + math.pi, w.yaw_window))
+                windows = both
             k_done = max(k_done, k) if yaw == yaw_guess else k_done
             if not windows:
                 continue

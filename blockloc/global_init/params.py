@@ -83,6 +83,7 @@ class InitParams(GlobalInitParams):
     num_threads: int = 2  # the registration section's
     # no-hint relocalization through the place index
     place_all_yaw_candidates: int = 2  # the second stage: this many first places at every yaw (0: none)
+    place_flip_open: bool = True  # no hint: an open place's window also at its yaw guess reversed
     place_top_k: int = 6  # leaves refined per stage
     # the best leaves of each window (0: one top place_top_k over all windows, by 2D score)
     place_leaves_per_window: int = 1

@@ -156,7 +156,8 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         cells = self._scan_cells(points_body, gravity_body)
         deadline = t0 + p.max_search_s if p.max_search_s > 0 else math.inf
         if p.use_place_index:
-            cands, stats = self._relocalize_places(scan, scan_ndt, cells, index, theta_c, yaw_win, stats, deadline)
+            cands, stats = self._relocalize_places(scan, scan_ndt, cells, index, theta_c, yaw_win, stats, deadline,
+                                                   flip_open=p.place_flip_open)
             res = self._decide(cands, stats, time.perf_counter() - t0, scan_ndt, final=False)
             # An ambiguous result stays ambiguous however much more is searched.
             if res.verified or res.ambiguous or not p.whole_map_fallback or stats.get("timed_out"):
