@@ -107,3 +107,33 @@ def test_the_second_stage_searches_the_first_places_at_every_yaw(setup, monkeypa
     assert [len(s) for s in seen] == [3, 2, 3]  # 3 places, the first 2 at every yaw, the next 3
     assert all(y == guess for _, y in seen[0] + seen[2]) and all(y == 2 * math.pi for _, y in seen[1])
     assert [c for c, _ in seen[1]] == [c for c, _ in seen[0][:2]]
+
+
+def test_open_places_are_also_searched_at_their_yaw_guess_reversed(setup, monkeypatch):
+    """An open street's low band looks alike both ways (campus, defaults' map, frame 27961: the true
+    places' yaw guesses 180 deg off): with no hint, an open place's window comes twice, at its yaw
+    guess and reversed; without ``place_flip_open`` once. Every place is made open here."""
+    loc, T_true, scan, _, _ = setup
+    real = GlobalLocalizer._search_windows
+    seen = {}
+    for flip in (False, True):
+        params = InitParams(min_fitness=0.999, place_candidates=(3,), place_all_yaw_candidates=0,
+                            whole_map_fallback=False, max_search_s=0.0, place_flip_open=flip)
+        nohint = GlobalLocalizer(loc.map, params)
+        index = nohint.place_index
+        monkeypatch.setattr(index, "band", np.ones_like(np.asarray(index.band)))
+        stages = []
+
+        def record(self, scan, windows, by_score=0, stages=stages):
+            stages.append(list(windows))
+            return real(self, scan, windows, by_score)
+
+        monkeypatch.setattr(GlobalLocalizer, "_search_windows", record)
+        nohint.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true))
+        seen[flip] = stages[0]
+    once, twice = seen[False], seen[True]
+    assert len(once) == 3 and len(twice) == 6
+    for w, (a, b) in zip(once, zip(twice[::2], twice[1::2])):
+        assert np.allclose(a.center, w.center) and np.allclose(b.center, w.center)
+        assert a.theta == w.theta and b.theta == pytest.approx(w.theta + math.pi)
+        assert a.yaw_window == b.yaw_window == w.yaw_window
