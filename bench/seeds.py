@@ -260,7 +260,6 @@ def refine_seed(work: Path, preset: str, seed: int) -> dict:
         return json.loads(cache.read_text())
     from blockloc.app.catalog import open_sequence
     from blockloc.config import load_config
-    from blockloc.geometry import inv_T
     from blockloc.maps.build_tasks import Drive, plan_drive_task, refine_task, remounted
     from blockloc.maps.mounting import map_mounting
     from blockloc.maps.pose_refine import choose_refine_pairs
@@ -364,6 +363,12 @@ def _row(seed: int, name: str, m: dict) -> str:
             f"{m.get('estimated', '-')}/{m.get('frames', '-')} | {m.get('_translation', '-')} |")
 
 
+
+def _per_seed(work: Path, seeds, kind: str) -> dict:
+    """{seed: the ``s<seed>_<kind>.json`` kept in ``work``} for the seeds that have one."""
+    return {seed: json.loads((work / f"s{seed}_{kind}.json").read_text()) for seed in seeds
+            if (work / f"s{seed}_{kind}.json").exists()}
+
 def report(results: dict, argv: list[str], started: str, load0: float, work: Path) -> str:
     from bench.__main__ import machine
 
@@ -421,8 +426,7 @@ def report(results: dict, argv: list[str], started: str, load0: float, work: Pat
                    "along-track mean within +-1 cm (every seed)": np.all(np.abs(along) <= TARGETS["along mean"])}
             lines.append("  Issue targets on `default`: " + "; ".join(
                 f"{k}: {'met' if v else '**not met**'}" for k, v in met.items()) + ".")
-    explained = {seed: json.loads((work / f"s{seed}_explain.json").read_text()) for seed in results
-                 if (work / f"s{seed}_explain.json").exists()}
+    explained = _per_seed(work, results, "explain")
     if explained:
         lines += ["", "### Where the along-track error comes from (`--explain`)", "",
                   "With the simulator's knowledge (`explain_seed` in `bench/seeds.py`): the along-track mean the "
@@ -432,8 +436,7 @@ def report(results: dict, argv: list[str], started: str, load0: float, work: Pat
                   "(`blockloc.maps.mounting.estimate_mounting`, the build's NDT pairs) finds from the SLAM "
                   "poses the build uses and from the true poses, against the true mounting.", "",
                   *explain_table(explained, results)]
-    refined = {seed: json.loads((work / f"s{seed}_refine.json").read_text()) for seed in results
-               if (work / f"s{seed}_refine.json").exists()}
+    refined = _per_seed(work, results, "refine")
     if refined:
         lines += ["", "### The mapping poses refined (`--refine-table`)", "",
                   "With the simulator's truth (`refine_seed` in `bench/seeds.py`, the build's own tasks: the drive "

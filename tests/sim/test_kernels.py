@@ -8,7 +8,6 @@ the simulator's output, and the realism bands were measured on it).
 
 from __future__ import annotations
 
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -363,22 +362,29 @@ def _ref_facades(self, idx, owner, origins, dirs, rng_, normals, reflect, glass,
     glass[idx] = window & ~inside & ~passed
 
 
-def test_facades_measure_the_room_behind_a_window_only_for_rays_into_it(monkeypatch):
-    """A tiny-world scan's facades (windows lost, glass returns, rooms, panes passed)
-    with the box depth taken only for the rays into a window, and with it taken for every facade
-    ray (2af77ae): the same bits."""
-    from blockloc.sim.scene import SessionScene
+def _tiny_sweeps(A: int):
+    """The tiny world's localization day (seed 3) and three sweeps of ``A`` columns x 32 beams from
+    it: (scene, [(origins (A*32, 3), directions (A*32, 3), mid-sweep time s)])."""
     from blockloc.sim.stream import open_sim_sequence
 
     seq = open_sim_sequence("tiny", "loc", 3)
-    scene = seq.scene
-    A = 1000
     col = np.arange(A) * (0.1 / A)
     casts = []
     for t0 in (4.0, 20.0, 33.0):
         T = seq.trajectory.T_world_flu(t0 + col) @ seq.T_flu_lidar
         d_true = _beams(A, 0.0, None)[1]
-        casts.append((np.repeat(T[:, :3, 3], 32, axis=0), np.matmul(d_true, T[:, :3, :3].transpose(0, 2, 1)).reshape(-1, 3)))
+        casts.append((np.repeat(T[:, :3, 3], 32, axis=0),
+                      np.matmul(d_true, T[:, :3, :3].transpose(0, 2, 1)).reshape(-1, 3), t0 + 0.05))
+    return seq.scene, casts
+
+
+def test_facades_measure_the_room_behind_a_window_only_for_rays_into_it(monkeypatch):
+    """A tiny-world scan's facades (windows lost, glass returns, rooms, panes passed)
+    with the box depth taken only for the rays into a window, and with it taken for every facade
+    ray (2af77ae): the same bits."""
+    from blockloc.sim.scene import SessionScene
+
+    scene, casts = _tiny_sweeps(1000)
     room_rays = []
     real_facades = SessionScene._facades
 
@@ -388,7 +394,7 @@ def test_facades_measure_the_room_behind_a_window_only_for_rays_into_it(monkeypa
         room_rays.append(int((rng_[idx] - before > 0.9).sum()))  # returns from a room behind a pane
 
     def run():
-        return [scene.cast_full(o, d, None, 100.0, np.random.default_rng(11 + k)) for k, (o, d) in enumerate(casts)]
+        return [scene.cast_full(o, d, None, 100.0, np.random.default_rng(11 + k)) for k, (o, d, _) in enumerate(casts)]
 
     monkeypatch.setattr(SessionScene, "_facades", counting)
     got = run()
@@ -404,19 +410,8 @@ def test_scene_cast_gives_the_numpy_ground_and_vegetation_bits(monkeypatch):
     """A real scene's cast (tiny world, a localization day: grass, kerbs, crowns, walkers), with
     the kernels and with the numpy they replaced, from the same generator: the same bits."""
     from blockloc.sim.scene import SessionScene
-    from blockloc.sim.stream import open_sim_sequence
 
-    seq = open_sim_sequence("tiny", "loc", 3)
-    scene = seq.scene
-    A = 720
-    col = np.arange(A) * (0.1 / A)
-    casts = []
-    for t0 in (4.0, 20.0, 33.0):
-        T = seq.trajectory.T_world_flu(t0 + col) @ seq.T_flu_lidar
-        d_nom, d_true, _ = _beams(A, 0.0, None)
-        dirs = np.matmul(d_true, T[:, :3, :3].transpose(0, 2, 1)).reshape(-1, 3)
-        origins = np.repeat(T[:, :3, 3], 32, axis=0)
-        casts.append((origins, dirs, t0 + 0.05))
+    scene, casts = _tiny_sweeps(720)
 
     def run():
         return [scene.cast_full(o, d, t, 100.0, np.random.default_rng(7 + k)) for k, (o, d, t) in enumerate(casts)]
