@@ -174,6 +174,10 @@ def map_build_cmd(
         help="Refine each drive's keyframe poses against its own scans (neighbours and revisits, "
              "a pose graph) before the map is built; a drive without revisits is left as it came. "
              "Default: map.refine_poses (false)."),
+    remove_dynamic: Optional[bool] = typer.Option(
+        None, "--remove-dynamic/--keep-dynamic",
+        help="Leave moving objects (pedestrians, passing cars: space the drive's own scans see "
+             "through around each keyframe) out of the map. Default: map.remove_dynamic (false)."),
 ) -> None:
     """Build a block map or grid tiles from mapping sequences and their poses (or a global PCD),
     serial or on a Dask cluster."""
@@ -181,7 +185,8 @@ def map_build_cmd(
 
     build_command(seq, kind, out, config, data_root, block_size, tile_size, voxel, max_frames, overwrite,
                   poses=poses, from_pcd=from_pcd, sensor_range_m=sensor_range, cluster=cluster,
-                  gravity=gravity, calibrate_mounting=calibrate_mounting, refine_poses=refine_poses)
+                  gravity=gravity, calibrate_mounting=calibrate_mounting, refine_poses=refine_poses,
+                  remove_dynamic=remove_dynamic)
 
 
 @map_app.command("tile")

@@ -106,6 +106,11 @@ class MapConfig:
     # error vs the truth 5.2-6.2 -> 2.4-3.2 cm RMSE; tracked ATE seed 1 0.037 -> 0.019 m, but seeds
     # 2 and 3 worse (0.030 -> 0.035, 0.027 -> 0.032 m); the real walk 0.0153 -> 0.0168 m. Off.
     refine_poses: bool = False
+    # Leave moving objects out of the map built from a drive (blockloc.maps.dynamic_removal: voxels
+    # the drive's own scans see through around each keyframe). Off: a drive without pedestrians or
+    # traffic loses a few percent of its static points to it (SA 96.7-97.6% on the DynamicMap
+    # stretches of docs/bench/dynamic.md) for nothing.
+    remove_dynamic: bool = False
     switch_hysteresis_m: float = bounded(5.0, NON_NEGATIVE)
     # Also serve the nearest other block with a keyframe this close (0: one block, as the paper).
     # 15 m: campus, first 1.1 km, ATE 0.063 -> 0.040 m (max 0.55 -> 0.11 m), resident map 59 -> 87 MB.

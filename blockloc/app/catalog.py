@@ -302,4 +302,4 @@ def map_params(map_cfg, kind: str) -> tuple:
     size = map_cfg.block_size_m if kind == "block" else map_cfg.tile_size_m
     return (size, map_cfg.keyframe_distance_m, map_cfg.keyframe_angle_deg, map_cfg.voxel_size_m,
             bool(map_cfg.calibrate_mounting), float(map_cfg.mounting_translation_tolerance_m),
-            bool(map_cfg.refine_poses))
+            bool(map_cfg.refine_poses)) + (("remove_dynamic",) if map_cfg.remove_dynamic else ())  # off: keys as before

@@ -234,24 +234,29 @@ def init_summary(res, stamp: float | None = None) -> dict:
 # ----------------------------------------------------------------------------- maps
 def build_map(seq, kind: str, out: str | Path, map_cfg: MapConfig, *, overwrite: bool = False,
               progress: Progress | None = None, max_frames: int | None = None, executor=None,
-              calibrate_mounting: bool | None = None, refine_poses: bool | None = None) -> MapStore:
+              calibrate_mounting: bool | None = None, refine_poses: bool | None = None,
+              remove_dynamic: bool | None = None) -> MapStore:
     """Build a block or grid store from a mapping sequence with the ``MapConfig`` settings.
     progress: a ``(done, total)`` callback or None. executor: None (serial) or a Dask executor
     (:func:`blockloc.maps.distributed.open_executor`). calibrate_mounting: as
     :func:`build_map_from_specs`."""
     return build_map_from_specs([Drive.of(seq, stop=max_frames)], kind, out, map_cfg,
                                 overwrite=overwrite, progress=progress, executor=executor,
-                                calibrate_mounting=calibrate_mounting, refine_poses=refine_poses)
+                                calibrate_mounting=calibrate_mounting, refine_poses=refine_poses,
+                                remove_dynamic=remove_dynamic)
 
 
 def build_map_from_specs(drives, kind: str, out: str | Path, map_cfg: MapConfig, *, overwrite: bool = False,
                          progress: Progress | None = None, executor=None,
-                         calibrate_mounting: bool | None = None, refine_poses: bool | None = None) -> MapStore:
+                         calibrate_mounting: bool | None = None, refine_poses: bool | None = None,
+                         remove_dynamic: bool | None = None) -> MapStore:
     """:func:`blockloc.maps.build_plan.build_map_from_drives` with the ``MapConfig`` settings.
     calibrate_mounting: None: ``map.calibrate_mounting`` (true: ``"auto"``, body-pose drives
     only, a failed estimate keeps the nominal mounting); True (``--calibrate-mounting``): every
     drive, a failed estimate is an error; False (``--nominal-mounting``): none. refine_poses: None:
-    ``map.refine_poses``; True / False (``--refine-poses`` / ``--no-refine-poses``)."""
+    ``map.refine_poses``; True / False (``--refine-poses`` / ``--no-refine-poses``).
+    remove_dynamic: None: ``map.remove_dynamic``; True / False (``--remove-dynamic`` /
+    ``--keep-dynamic``)."""
     if calibrate_mounting is None:
         calibrate_mounting = "auto" if map_cfg.calibrate_mounting else False
     return build_map_from_drives(
@@ -260,7 +265,8 @@ def build_map_from_specs(drives, kind: str, out: str | Path, map_cfg: MapConfig,
         keyframe_angle_deg=map_cfg.keyframe_angle_deg,
         calibrate_mounting=calibrate_mounting, executor=executor, progress=progress,
         overwrite=overwrite, mounting_translation_tolerance_m=map_cfg.mounting_translation_tolerance_m,
-        refine_poses=bool(map_cfg.refine_poses if refine_poses is None else refine_poses))
+        refine_poses=bool(map_cfg.refine_poses if refine_poses is None else refine_poses),
+        remove_dynamic=bool(map_cfg.remove_dynamic if remove_dynamic is None else remove_dynamic))
 
 
 @dataclass(frozen=True)

@@ -16,11 +16,11 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
                   poses: list[str] | None = None, from_pcd: Path | None = None,
                   sensor_range_m: float = 60.0, cluster: str | None = None,
                   gravity: str | None = None, calibrate_mounting: bool | None = None,
-                  refine_poses: bool | None = None) -> None:
+                  refine_poses: bool | None = None, remove_dynamic: bool | None = None) -> None:
     """``blockloc map build``: the store, then its place index (a local store). gravity: with
     ``from_pcd``, the global map's gravity (``down|up|X,Y,Z``, default up: z up); a ``--seq``
     build takes its first sequence's. calibrate_mounting: None keeps ``map.calibrate_mounting``;
-    refine_poses: None keeps ``map.refine_poses``."""
+    refine_poses: None keeps ``map.refine_poses``; remove_dynamic: None keeps ``map.remove_dynamic``."""
     import dataclasses
     import sys
 
@@ -42,6 +42,8 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
         raise MapError("--calibrate-mounting needs --seq drives (a global PCD has no scans to register)")
     if from_pcd is not None and refine_poses:
         raise MapError("--refine-poses needs --seq drives (a global PCD has no scans to register)")
+    if from_pcd is not None and remove_dynamic:
+        raise MapError("--remove-dynamic needs --seq drives (a global PCD has no scans to see through)")
     if from_pcd is not None:
         if len(poses) != 1 or poses[0] in ("", "-"):
             raise MapError("--from-pcd needs one --poses TRAJ (the mapping trajectory)")
@@ -88,7 +90,8 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
         with progress(f"{kind} map build tasks") as report:
             store = build_map_from_specs(drives, kind, out, map_cfg, overwrite=overwrite,
                                          progress=report, executor=ex,
-                                         calibrate_mounting=calibrate_mounting, refine_poses=refine_poses)
+                                         calibrate_mounting=calibrate_mounting, refine_poses=refine_poses,
+                                         remove_dynamic=remove_dynamic)
     if not is_url(str(out)):  # the place index (no-hint relocalization) goes with a local map
         store = add_place_index(out, drives[0].open().info.gravity_map, cfg)
     print_summary(map_summary(store), console())
@@ -252,6 +255,12 @@ def print_summary(summary: dict[str, Any], console) -> None:
             f"as given ({r['skipped']})" if "skipped" in r else
             f"refined against the drive's scans ({r['odometry_pairs']} neighbour and {r['loop_pairs']} "
             f"revisit pairs), moved {r['shift_median_m']} m median, {r['shift_max_m']} m at most"))
+    rd = summary["parameters"].get("remove_dynamic")
+    if rd:
+        raw = max(int(rd.get("raw_points", 0)), 1)
+        t.add_row("moving objects", f"left out: {rd['moving_points']:,} of {rd.get('raw_points', 0):,} keyframe "
+                                    f"points ({100 * rd['moving_points'] / raw:.1f}%; voxel {rd['voxel_m']} m, "
+                                    f"{rd['context_keyframes']} keyframes each side as evidence)")
     skipped = summary["parameters"].get("skipped_keyframes") or []
     if skipped:  # scans a build could not read: counted and named (also in the manifest)
         t.add_row("skipped keyframes", f"{len(skipped)}: " + "; ".join(

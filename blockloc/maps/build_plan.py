@@ -47,8 +47,9 @@ import numpy as np
 from blockloc.errors import MapError
 from blockloc.maps.build_tasks import (SCRATCH, BuildTarget, Drive, DrivePlan,
                                        block_candidate_task, block_merge_task, block_run_task,
-                                       block_write_task, forget_drives, grid_chunk_task,
-                                       grid_tile_task, open_drive_task, plan_drive_task)
+                                       block_write_task, dynamic_filter, forget_drives,
+                                       grid_chunk_task, grid_tile_task, open_drive_task,
+                                       plan_drive_task)
 
 log = logging.getLogger(__name__)
 
@@ -203,7 +204,7 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
                           overwrite: bool = False,
                           chunk_keyframes: int = CHUNK_KEYFRAMES, params: dict | None = None,
                           stats: dict | None = None, mounting_translation_tolerance_m: float | None = None,
-                          refine_poses: bool = False):
+                          refine_poses: bool = False, remove_dynamic: bool = False):
     """Build a block or grid store at ``out`` from mapping drives sharing one map frame.
 
     drives: :class:`Drive` list (any order: the plan sorts them). kind: 'block' (S =
@@ -224,6 +225,11 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
     step (:mod:`blockloc.maps.pose_refine`; the mounting's rotation and forward translation are
     estimated with them where the mounting step estimated one) and build from them; the manifest keeps each drive's summary
     under ``pose_refinement``. A drive without revisits is left as it came (logged).
+    remove_dynamic: leave moving objects (pedestrians, passing cars: voxels their own drive's
+    later scans see through) out of the map (:mod:`blockloc.maps.dynamic_removal`, evidence over
+    each task's keyframes and the drive's keyframes around them,
+    :class:`~blockloc.maps.build_tasks.DynamicFilter`); the manifest's ``remove_dynamic`` keeps
+    the settings and the points left out.
     progress: None/False or a callback ``(done, total)`` over tasks (commands draw the bar). stats: a dict
     to fill with per-task-kind counts, seconds, bytes and raw points (:meth:`_Tasks.stats`).
     Returns the opened :class:`~blockloc.maps.store.MapStore`.
@@ -242,6 +248,11 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
     if int(chunk_keyframes) < 1:
         raise MapError(f"chunk_keyframes {chunk_keyframes!r}: expected an integer >= 1")
     executor = executor or InlineExecutor()
+    dynamic = None
+    if remove_dynamic:
+        from blockloc.maps.dynamic_removal import DynamicParams
+
+        dynamic = DynamicParams()
     writer = _open_writer(out, kind, overwrite)
     target = BuildTarget(writer.tmp if isinstance(writer.tmp, str) else str(Path(writer.tmp).resolve()))
     tasks = _Tasks(executor, progress)
@@ -291,10 +302,10 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
         common.update(params or {})
         try:
             if kind == "block":
-                entries, p = _blocks(tasks, target, plans, block_size_m, voxel_size_m, deskew)
+                entries, p = _blocks(tasks, target, plans, block_size_m, voxel_size_m, deskew, dynamic)
             else:
                 entries, p = _tiles(tasks, target, plans, tile_size_m, voxel_size_m, deskew,
-                                    int(chunk_keyframes))
+                                    int(chunk_keyframes), dynamic)
                 common["chunk_keyframes"] = int(chunk_keyframes)
         except MapError:  # e.g. no points left: because the scans could not be read, say so
             if tasks.skipped():
@@ -525,9 +536,10 @@ def _entry(r: dict, entry_id: str, keyframes: np.ndarray | None = None):
 
 
 def _blocks(tasks: _Tasks, target: BuildTarget, plans: list[DrivePlan], block_size_m: float,
-            voxel_size_m: float, deskew: bool):
+            voxel_size_m: float, deskew: bool, dynamic=None):
     """Algorithm 1 over the drives' keyframes: candidate tasks, decisions here, merge and write
-    tasks. Returns (entries, parameters)."""
+    tasks. dynamic: None, or the ``DynamicParams`` moving objects are left out with. Returns
+    (entries, parameters)."""
     from blockloc.maps.block_maps import KEYFRAMES_PER_RUN, BlockLedger, CandidateSegmenter
 
     positions = np.concatenate([p.positions for p in plans])
@@ -550,9 +562,14 @@ def _blocks(tasks: _Tasks, target: BuildTarget, plans: list[DrivePlan], block_si
             for _, c in candidates]
     tasks.expect(sum(len(r) for r in runs) + 2 * len(candidates))
     n_keys = max(1, base)
+    starts = np.cumsum([0] + [len(p.frames) for p in plans])  # each drive's first key
+
+    def moving(d: int, keys):
+        return None if dynamic is None else dynamic_filter(plans[d], np.asarray(keys) - starts[d], dynamic)
+
     run_futures = [[tasks.submit(block_run_task, plans[d].drive, frames[keys].tolist(), voxel_size_m,
-                                 deskew, target, f"{SCRATCH}/run-{n}-{i}.bin", name=f"run-{n}-{i}",
-                                 locality=float(keys[0]) / n_keys)
+                                 deskew, target, f"{SCRATCH}/run-{n}-{i}.bin", moving(d, keys),
+                                 name=f"run-{n}-{i}", locality=float(keys[0]) / n_keys)
                     for i, keys in enumerate(runs[n])]
                    for n, (d, _) in enumerate(candidates)]
     futures = [tasks.submit(block_candidate_task, target, voxel_size_m,
@@ -606,21 +623,36 @@ def _blocks(tasks: _Tasks, target: BuildTarget, plans: list[DrivePlan], block_si
         entries.append(_entry(f.result(), f"{j:03d}", positions[keys].reshape(-1, 3)))
     p = {"block_size_m": float(block_size_m), "voxel_size_m": float(voxel_size_m),
          "num_keyframes": int(len(positions)), "events": ledger.event_counts()}
+    if dynamic is not None:
+        p["remove_dynamic"] = _dynamic_record(dynamic, [f.result() for fs in run_futures for f in fs])
     return entries, p
 
 
+def _dynamic_record(dynamic, results: list[dict]) -> dict:
+    """The manifest's ``remove_dynamic``: the evidence settings and the points left out."""
+    import dataclasses
+
+    from blockloc.maps.build_tasks import DYNAMIC_CONTEXT_KEYFRAMES
+
+    return {**dataclasses.asdict(dynamic), "context_keyframes": DYNAMIC_CONTEXT_KEYFRAMES,
+            "moving_points": int(sum(r.get("moving_points", 0) for r in results)),
+            "raw_points": int(sum(r.get("raw_points", 0) for r in results))}
+
+
 def _tiles(tasks: _Tasks, target: BuildTarget, plans: list[DrivePlan], tile_size_m: float,
-           voxel_size_m: float, deskew: bool, chunk: int):
-    """Grid tiles: chunk tasks (read, deskew, bin, sum by voxel), then one task per tile.
-    Returns (entries, parameters)."""
+           voxel_size_m: float, deskew: bool, chunk: int, dynamic=None):
+    """Grid tiles: chunk tasks (read, deskew, with ``dynamic`` (``DynamicParams``) moving objects
+    left out, bin, sum by voxel), then one task per tile. Returns (entries, parameters)."""
     from blockloc.maps.grid_tiles import name_decimals, tile_name
 
-    chunks = [(d, plan.frames[i:i + chunk].tolist()) for d, plan in enumerate(plans)
+    chunks = [(d, i, plan.frames[i:i + chunk].tolist()) for d, plan in enumerate(plans)
               for i in range(0, len(plan.frames), chunk)]
     tasks.expect(len(chunks))
     futures = [tasks.submit(grid_chunk_task, plans[d].drive, fr, tile_size_m, voxel_size_m, deskew,
-                            target, f"{SCRATCH}/chunk-{n}.bin", name=f"chunk-{n}")
-               for n, (d, fr) in enumerate(chunks)]
+                            target, f"{SCRATCH}/chunk-{n}.bin",
+                            None if dynamic is None else dynamic_filter(plans[d], np.arange(i, i + len(fr)), dynamic),
+                            name=f"chunk-{n}")
+               for n, (d, i, fr) in enumerate(chunks)]
     parts: dict[tuple[int, int], list[tuple[str, int, int]]] = {}
     for f in futures:  # in plan order: a tile's parts are merged in the same order every time
         r = f.result()
@@ -643,4 +675,6 @@ def _tiles(tasks: _Tasks, target: BuildTarget, plans: list[DrivePlan], tile_size
              len(entries), tile_size_m)
     p = {"tile_size_m": tile_size_m, "origin": [0.0, 0.0], "name_decimals": dec,
          "voxel_size_m": float(voxel_size_m), "num_keyframes": int(sum(len(p.frames) for p in plans))}
+    if dynamic is not None:
+        p["remove_dynamic"] = _dynamic_record(dynamic, [f.result() for f in futures])
     return entries, p

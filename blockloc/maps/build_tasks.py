@@ -465,21 +465,85 @@ def _keyframe_clouds(drive: Drive, frames: list[int], deskew: bool, skipped: lis
             skipped.append({"sequence": drive.name, "frame": int(i), "error": str(exc)})
 
 
+@dataclass(frozen=True)
+class DynamicFilter:
+    """Moving objects left out of a task's keyframes (``map build --remove-dynamic``): the voxel
+    scan evidence of :mod:`blockloc.maps.dynamic_removal` over ``frames``, the task's own
+    keyframes and up to :data:`DYNAMIC_CONTEXT_KEYFRAMES` of the drive's keyframes on each side
+    of them (read only as evidence, so a pedestrian the run saw once is seen through by the scans
+    around it). origins: (E, 3) float64, the LiDAR's position in the map frame (m) at each of
+    ``frames`` (the drive plan's ``T_map_lidar``). params: a
+    :class:`~blockloc.maps.dynamic_removal.DynamicParams`."""
+
+    params: Any
+    frames: tuple[int, ...]
+    origins: np.ndarray
+
+
+#: Keyframes of the drive read on each side of a task's own as evidence only (a fixed plan
+#: parameter: the bytes do not depend on the workers). At the default 1 m keyframe spacing the
+#: evidence spans the task's keyframes plus 2 x 8 m of the drive.
+DYNAMIC_CONTEXT_KEYFRAMES = 8
+
+
+def dynamic_filter(plan: DrivePlan, keys: np.ndarray, params) -> DynamicFilter:
+    """The :class:`DynamicFilter` of a task over ``keys`` (sorted indices into ``plan``'s
+    keyframes): those keyframes and up to :data:`DYNAMIC_CONTEXT_KEYFRAMES` on each side."""
+    keys = np.asarray(keys, np.int64)
+    lo = max(0, int(keys.min()) - DYNAMIC_CONTEXT_KEYFRAMES)
+    hi = min(len(plan.frames), int(keys.max()) + 1 + DYNAMIC_CONTEXT_KEYFRAMES)
+    sel = np.union1d(keys, np.arange(lo, hi))
+    return DynamicFilter(params, tuple(int(f) for f in plan.frames[sel]),
+                         np.ascontiguousarray(plan.T_map_lidar[sel, :3, 3], np.float64))
+
+
+def _task_clouds(drive: Drive, frames: list[int], deskew: bool, skipped: list,
+                 dynamic: DynamicFilter | None) -> tuple[list, int]:
+    """The task's keyframe clouds (as :func:`_keyframe_clouds`) and the number of points left out
+    as moving (0 without ``dynamic``). A context keyframe that cannot be read only weakens the
+    evidence (it is not counted as skipped: the task that owns it counts it)."""
+    if dynamic is None:
+        return list(_keyframe_clouds(drive, frames, deskew, skipped)), 0
+    from blockloc.maps.dynamic_removal import static_masks
+
+    own = set(int(f) for f in frames)
+    seq = _opened(drive)[0]
+    g = np.asarray(getattr(seq.info, "gravity_map", (0.0, 0.0, -9.81)), np.float64)
+    up = -g / np.linalg.norm(g) if np.linalg.norm(g) > 0 else None
+    evidence, read = [], {}  # read: own frame -> (index in evidence, intensity)
+    for f, origin in zip(dynamic.frames, dynamic.origins):
+        got = list(_keyframe_clouds(drive, [f], deskew, skipped if f in own else []))
+        if got:
+            if f in own:
+                read[f] = (len(evidence), got[0][1])
+            evidence.append((origin, got[0][0]))
+    order = [f for f in frames if f in read]  # dynamic_filter puts every own frame in the evidence
+    masks = static_masks(evidence, [read[f][0] for f in order], dynamic.params, up)
+    out, removed = [], 0
+    for f, keep in zip(order, masks):
+        i, inten = read[f]
+        removed += int(len(keep) - keep.sum())
+        out.append((evidence[i][1][keep], None if inten is None else np.asarray(inten)[keep]))
+    return out, removed
+
+
 @_timed
 def block_run_task(drive: Drive, frames: list[int], voxel_size_m: float, deskew: bool,
-                   target: BuildTarget, name: str) -> dict:
+                   target: BuildTarget, name: str, dynamic: DynamicFilter | None = None) -> dict:
     """Task: a run of a candidate block's keyframes read, deskewed and summed by voxel
-    (:func:`~blockloc.maps.block_maps.keyframe_run_sums`), the records saved as ``name``.
-    Returns the record count, whether every keyframe had intensity, the raw point count."""
+    (:func:`~blockloc.maps.block_maps.keyframe_run_sums`), the records saved as ``name``; with
+    ``dynamic``, moving objects left out first. Returns the record count, whether every keyframe
+    had intensity, the raw point count and the points left out as moving."""
     from blockloc.maps.block_maps import keyframe_run_sums
 
     skipped: list = []
-    clouds = list(_keyframe_clouds(drive, frames, deskew, skipped))
+    clouds, moving = _task_clouds(drive, frames, deskew, skipped, dynamic)
     rec, has_intensity = keyframe_run_sums(clouds, voxel_size_m)
     data = rec.tobytes()
     target.write(name, data)
     return {"name": name, "records": int(len(rec)), "has_intensity": has_intensity,
-            "raw_points": int(sum(len(p) for p, _ in clouds)), "bytes": len(data), "skipped": skipped}
+            "raw_points": int(sum(len(p) for p, _ in clouds) + moving), "moving_points": moving,
+            "bytes": len(data), "skipped": skipped}
 
 
 @_timed
@@ -526,14 +590,16 @@ def block_write_task(target: BuildTarget, version_name: str, file: str, *after) 
 
 @_timed
 def grid_chunk_task(drive: Drive, frames: list[int], tile_size_m: float, voxel_size_m: float,
-                    deskew: bool, target: BuildTarget, name: str) -> dict:
-    """Task: a run of keyframes read, deskewed, binned into tiles and summed by voxel; the
-    records of every tile saved one after another as ``name``. Returns ``tiles``: [(ix, iy,
-    first record, end record)] and the raw point count."""
+                    deskew: bool, target: BuildTarget, name: str, dynamic: DynamicFilter | None = None) -> dict:
+    """Task: a run of keyframes read, deskewed (with ``dynamic``: moving objects left out),
+    binned into tiles and summed by voxel; the records of every tile saved one after another as
+    ``name``. Returns ``tiles``: [(ix, iy, first record, end record)], the raw point count and the
+    points left out as moving."""
     from blockloc.maps.grid_tiles import tile_voxel_sums
 
     pts, inten, skipped = [], [], []
-    for p, i in _keyframe_clouds(drive, frames, deskew, skipped):
+    clouds, moving = _task_clouds(drive, frames, deskew, skipped, dynamic)
+    for p, i in clouds:
         pts.append(p)
         inten.append(np.zeros(len(p), np.float32) if i is None else np.asarray(i, np.float32))
     pts = np.concatenate(pts) if pts else np.zeros((0, 3))
@@ -546,7 +612,8 @@ def grid_chunk_task(drive: Drive, frames: list[int], tile_size_m: float, voxel_s
         row += len(rec)
     data = b"".join(r.tobytes() for r in parts)
     target.write(name, data)
-    return {"name": name, "tiles": tiles, "raw_points": int(len(pts)), "bytes": len(data), "skipped": skipped}
+    return {"name": name, "tiles": tiles, "raw_points": int(len(pts)) + moving, "moving_points": moving,
+            "bytes": len(data), "skipped": skipped}
 
 
 @_timed

@@ -105,3 +105,14 @@ def static_mask(points: np.ndarray, dynamic_keys: np.ndarray, voxel_m: float) ->
         return np.ones(len(keys), bool)
     j = np.minimum(np.searchsorted(dynamic_keys, keys), len(dynamic_keys) - 1)
     return dynamic_keys[j] != keys
+
+
+def static_masks(evidence: list[tuple[np.ndarray, np.ndarray]], own: Iterable[int],
+                 params: DynamicParams = DynamicParams(), up: np.ndarray | None = None) -> list[np.ndarray]:
+    """(N_i,) bool keep-masks of the scans ``evidence[i]`` for i in ``own``: the evidence of every
+    scan in ``evidence`` ((origin (3,), points (N, 3)), world frame, m), points in its dynamic
+    voxels left out. How ``map build --remove-dynamic`` filters a task's keyframes, with the
+    keyframes around them as ``evidence`` too."""
+    ev = scan_evidence(evidence, params, up=up)
+    keys = dynamic_voxels(ev, params, up)
+    return [static_mask(evidence[i][1], keys, params.voxel_m) for i in own]

@@ -263,3 +263,44 @@ def test_a_drive_too_short_to_estimate_its_mounting_builds_nominal_unless_the_es
     assert res.returncode != 0 and not (tmp_path / "m2").exists()
     (line,) = [ln for ln in res.stderr.splitlines() if ln.startswith("error: ")]
     assert "--calibrate-mounting needs keyframes" in line and "Traceback" not in res.stderr
+
+
+def test_map_build_remove_dynamic_from_the_command_line(tmp_path):
+    """`map build --remove-dynamic` on a day with pedestrians and traffic (the tiny world's
+    12-month mapping drive): moving points are left out (counted in the manifest and in `map
+    info`), the block map holds fewer points than the build that keeps them; a grid build takes
+    the option too; a global PCD is refused naming it."""
+    import json
+    import subprocess
+
+    from blockloc.maps.store import open_map
+
+    from blockloc.sim.writer import generate_dataset
+
+    # 100 frames of the 12-month day at 128 columns a sweep: pedestrians and cars in sight, seconds to write
+    day = generate_dataset("tiny", 1, tmp_path / "d", sessions=("map",), max_frames=100, months=(12,),
+                           workers=0, azimuth_steps=128) / "map_m12"
+
+    def build(*extra, out):
+        res = subprocess.run(["blockloc", "map", "build", "--seq", str(day),
+                              "--nominal-mounting", *extra, "--out", str(tmp_path / out)],
+                             capture_output=True, text=True)
+        assert res.returncode == 0, res.stderr
+        return open_map(tmp_path / out), res.stdout
+
+    kept, _ = build("--kind", "block", "--keep-dynamic", out="kept")
+    left, text = build("--kind", "block", "--remove-dynamic", out="left")
+    rd = left.params["remove_dynamic"]
+    assert rd["moving_points"] > 0 and rd["raw_points"] > 10 * rd["moving_points"], rd
+    assert "remove_dynamic" not in kept.params
+    assert sum(e.num_points for e in left.entries) < sum(e.num_points for e in kept.entries)
+    assert f"left out: {rd['moving_points']:,} of" in " ".join(text.split())
+    grid, _ = build("--kind", "grid", "--remove-dynamic", out="grid")
+    assert grid.params["remove_dynamic"]["moving_points"] > 0
+    manifest = json.loads((tmp_path / "left" / "manifest.json").read_text())
+    assert manifest["parameters"]["remove_dynamic"]["context_keyframes"] == 8
+    res = subprocess.run(["blockloc", "map", "build", "--from-pcd", str(tmp_path / "g.pcd"), "--poses",
+                          str(tmp_path / "p.tum"), "--remove-dynamic", "--out", str(tmp_path / "g")],
+                         capture_output=True, text=True)
+    assert res.returncode != 0 and "--remove-dynamic needs --seq" in res.stderr
+    assert "Traceback" not in res.stderr and not (tmp_path / "g").exists()

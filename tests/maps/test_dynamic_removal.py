@@ -56,3 +56,35 @@ def test_one_scan_never_decides():
     p = DynamicParams(min_free=2)
     ev = scan_evidence(((o, pts) for o, pts, _ in scans), p)
     assert not len(dynamic_voxels(ev, p))
+
+
+def test_static_masks_filter_only_the_own_scans_with_the_others_as_evidence():
+    """What `map build --remove-dynamic` does per task: the walker is seen in scan 0 only; the
+    scans after it (evidence, not filtered) see through where it stood, so scan 0 loses the
+    walker and keeps the wall; asked for scan 0 alone as evidence, nothing can decide."""
+    from blockloc.maps.dynamic_removal import static_masks
+
+    scans = _scene(n_scans=8, walker_scans=1)
+    up = np.array([0.0, 0.0, 1.0])
+    (keep,) = static_masks([(o, p) for o, p, _ in scans], [0], DynamicParams(), up)
+    dyn = scans[0][2]
+    assert len(keep) == len(scans[0][1])
+    assert keep[~dyn].mean() > 0.99 and (~keep[dyn]).mean() > 0.7
+    (alone,) = static_masks([(scans[0][0], scans[0][1])], [0], DynamicParams(), up)
+    assert alone.all()
+
+
+def test_dynamic_filter_takes_the_context_inside_the_drive():
+    """A task's evidence: its keyframes and up to 8 on each side, never past the drive's ends."""
+    from types import SimpleNamespace
+
+    from blockloc.maps.build_tasks import DYNAMIC_CONTEXT_KEYFRAMES, dynamic_filter
+
+    T = np.tile(np.eye(4), (30, 1, 1))
+    T[:, 0, 3] = np.arange(30.0)
+    plan = SimpleNamespace(frames=np.arange(100, 130), T_map_lidar=T)
+    f = dynamic_filter(plan, np.arange(3, 11), DynamicParams())
+    assert f.frames == tuple(range(100, 111 + DYNAMIC_CONTEXT_KEYFRAMES))
+    assert np.allclose(f.origins[:, 0], np.arange(0, 11 + DYNAMIC_CONTEXT_KEYFRAMES))
+    f = dynamic_filter(plan, np.arange(24, 30), DynamicParams())
+    assert f.frames == tuple(range(124 - DYNAMIC_CONTEXT_KEYFRAMES, 130))
