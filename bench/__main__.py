@@ -26,7 +26,7 @@ FRAGMENTS = ROOT / "docs" / "bench"
 ORDER = ["run", "datasets", "evaluation", "sim", "realism", "ndt", "maps", "global_init", "reloc", "real", "tracking",
          "tracking_engines", "scan_errors", "recording",
          "scaling", "campus", "campus_nominal", "campus_mounted", "campus_plants", "campus_budget", "campus_earlier", "campus_backends", "campus_engines", "cores", "city_full", "city_recorded", "city_4k", "city", "city-runs",
-         "lifelong", "dynamic", "server", "summary"]  # summary last: it compares the fragments before it with the papers
+         "lifelong", "dynamic", "dynamic_build", "server", "summary"]  # summary last: it compares the fragments before it with the papers
 #: Fragments made from other runs' outputs (their commands take those runs): not run by ``all``.
 FROM_RUNS = {"campus_budget"}
 

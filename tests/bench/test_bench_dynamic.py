@@ -59,3 +59,23 @@ def test_bench_dynamic_command(tmp_path):
     assert "sim:tiny/map_m12@3" in text and "| raw map | 100.00 | 0.00 |" in text
     assert "| DUFOMap |" in text and "| blockloc (voxel evidence) |" in text
     assert (tmp_path / "w" / "tiny_map_m12_s3_5_2x1" / "gt_cloud.pcd").is_file()
+
+
+def test_bench_dynamic_build_command(tmp_path):
+    """`python -m bench.dynamic_build`: the build's filter scored against the simulator's labels
+    on the tiny world's 12-month mapping drive (its first 100 frames; no tracking part)."""
+    import re
+    import subprocess
+
+    root = Path(__file__).resolve().parent.parent.parent
+    out = tmp_path / "dynamic_build.md"
+    r = subprocess.run([sys.executable, "-m", "bench.dynamic_build", "--preset", "tiny", "--seed", "1", "--frames",
+                        "100", "--track-frames", "0", "--work", str(tmp_path / "w"), "--out", str(out)],
+                       cwd=root, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    text = out.read_text()
+    assert "sim:tiny/map_m12@1" in text
+    row = next(line for line in text.splitlines() if re.match(r"\| [\d,]+ \| [\d,]+ \|", line))
+    static, moving, sa, da = (float(c.replace(",", "")) for c in row.strip("|").split("|")[:4])
+    assert moving > 1000 and static > 10 * moving
+    assert sa > 90.0 and da > 50.0  # most moving points out, nearly every static point kept
