@@ -109,7 +109,17 @@ def ray_free_keys(origin: np.ndarray, endpoints: np.ndarray, voxel_m: float, mar
     fine: (map_keys, fine_m, fine_keys) or None. With it, a ray counts through a map voxel (its
     key in the sorted ``map_keys``) only where it crosses one of the voxel's occupied fine cells
     (edge ``fine_m``, sorted ``fine_keys``): a ray over the ground a few centimetres below it in
-    the same voxel did not pass through what the map holds there."""
+    the same voxel did not pass through what the map holds there.
+
+    The compiled :func:`blockloc.maps.raycast.free_voxels` gives the same voxels (the same
+    samples and float operations) in a twentieth of the time; the sorting below runs only where
+    its grid would be too big (a stray far endpoint)."""
+    from blockloc.maps.raycast import free_voxels
+
+    ijk = free_voxels(origin, endpoints, voxel_m, margin_m, fine=fine, hit_fine=hit_fine)
+    if ijk is not None:
+        keys = np.sort(pack_keys(ijk))
+        return keys[_in_sorted(keys, only)] if only is not None else keys
     origin = np.asarray(origin, dtype=np.float64).reshape(3)
     d = np.asarray(endpoints, dtype=np.float64)[:, :3] - origin
     length = np.linalg.norm(d, axis=1)
@@ -273,15 +283,14 @@ class Evidence:
         hit = np.concatenate(self._pending_hit)
         free = np.concatenate(self._pending_free)
         self._pending_hit, self._pending_free = [], []
-        allk = np.concatenate([self.keys, hit, free])
-        keys, inv = np.unique(allk, return_inverse=True)
-        nv = len(self.keys)
-        n_hit = np.zeros(len(keys), np.int64)
-        n_free = np.zeros(len(keys), np.int64)
-        n_hit[inv[:nv]] += self.n_hit
-        n_free[inv[:nv]] += self.n_free
-        n_hit += np.bincount(inv[nv:nv + len(hit)], minlength=len(keys))
-        n_free += np.bincount(inv[nv + len(hit):], minlength=len(keys))
+        # sorted unique keys, then each array's counts by position (cheaper than return_inverse)
+        keys = np.unique(np.concatenate([self.keys, hit, free]))
+        n_hit = np.bincount(np.searchsorted(keys, hit), minlength=len(keys))
+        n_free = np.bincount(np.searchsorted(keys, free), minlength=len(keys))
+        if len(self.keys):
+            j = np.searchsorted(keys, self.keys)
+            n_hit[j] += self.n_hit
+            n_free[j] += self.n_free
         self.keys, self.n_hit, self.n_free = keys, n_hit.astype(np.int32), n_free.astype(np.int32)
 
     def logodds(self, l_occ: float, l_free: float) -> np.ndarray:
