@@ -20,71 +20,6 @@ import numpy as np
 #: worth its memory: the caller's sorting path runs instead (returns None)
 MAX_GRID_CELLS = 64_000_000
 
-_kernel = None
-
-
-def _compiled():
-    global _kernel
-    if _kernel is None:
-        import numba
-
-        off = np.int64(1 << 20)  # detect.pack_keys' layout: 21 bits per axis, offset 2^20 (tests check)
-        b21 = np.int64(21)
-
-        @numba.njit(cache=True, nogil=True, inline="always")
-        def pack(i, j, k):
-            return ((i + off) << (2 * b21)) | ((j + off) << b21) | (k + off)
-
-        @numba.njit(cache=True, nogil=True, inline="always")
-        def found(table, key):
-            n = table.shape[0]
-            if n == 0:
-                return False
-            j = np.searchsorted(table, key)
-            return j < n and table[j] == key
-
-        @numba.njit(cache=True, nogil=True)
-        def mark(origin, u, usable, step, voxel_m, lo, grid, use_map, map_keys, fine_m, fine_keys,
-                 use_hits, hit_fine):
-            nx, ny, nz = grid.shape
-            for r in range(u.shape[0]):
-                ll = usable[r]
-                k = 0
-                while True:
-                    t = (k + 0.5) * step
-                    if not t < ll:
-                        break
-                    k += 1
-                    px = origin[0] + u[r, 0] * t
-                    py = origin[1] + u[r, 1] * t
-                    pz = origin[2] + u[r, 2] * t
-                    vx = np.int64(np.floor(px / voxel_m))
-                    vy = np.int64(np.floor(py / voxel_m))
-                    vz = np.int64(np.floor(pz / voxel_m))
-                    if use_map and found(map_keys, pack(vx, vy, vz)):
-                        # inside a map voxel: through only where it crosses an occupied fine cell
-                        # that is not next to one of this scan's own hits
-                        fx = np.int64(np.floor(px / fine_m))
-                        fy = np.int64(np.floor(py / fine_m))
-                        fz = np.int64(np.floor(pz / fine_m))
-                        if not found(fine_keys, pack(fx, fy, fz)):
-                            continue
-                        if use_hits:
-                            near = False
-                            for a in range(-1, 2):
-                                for b in range(-1, 2):
-                                    for c in range(-1, 2):
-                                        if not near and found(hit_fine, pack(fx + a, fy + b, fz + c)):
-                                            near = True
-                            if near:
-                                continue
-                    ix, iy, iz = vx - lo[0], vy - lo[1], vz - lo[2]
-                    if 0 <= ix < nx and 0 <= iy < ny and 0 <= iz < nz:
-                        grid[ix, iy, iz] = 1
-
-        _kernel = mark
-    return _kernel
-
 
 def free_voxels(origin: np.ndarray, endpoints: np.ndarray, voxel_m: float, margin_m,
                 fine: tuple | None = None, hit_fine: np.ndarray | None = None) -> np.ndarray | None:
@@ -112,7 +47,9 @@ def free_voxels(origin: np.ndarray, endpoints: np.ndarray, voxel_m: float, margi
     grid = np.zeros(tuple(int(s) for s in shape), np.uint8)
     empty = np.zeros(0, np.int64)
     map_keys, fine_m, fine_keys = fine if fine is not None else (empty, 1.0, empty)
-    _compiled()(origin, np.ascontiguousarray(u), np.ascontiguousarray(usable, np.float64),
+    from blockloc.maps._raycast_kernels import mark_free
+
+    mark_free(origin, np.ascontiguousarray(u), np.ascontiguousarray(usable, np.float64),
                 voxel_m / 2.0, float(voxel_m), lo, grid, fine is not None,
                 np.ascontiguousarray(map_keys, np.int64), float(fine_m),
                 np.ascontiguousarray(fine_keys, np.int64), hit_fine is not None,
