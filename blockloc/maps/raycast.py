@@ -21,6 +21,19 @@ import numpy as np
 MAX_GRID_CELLS = 64_000_000
 
 
+def unit_rays(origin: np.ndarray, endpoints: np.ndarray, margin_m) -> tuple:
+    """The rays that mark free space: (origin (3,), d (R, 3) origin -> endpoint, u (R, 3) unit
+    directions, usable (R,) metres each marks, its length less ``margin_m``), rays no longer than
+    their margin left out. Metres, one frame."""
+    origin = np.asarray(origin, dtype=np.float64).reshape(3)
+    d = np.asarray(endpoints, dtype=np.float64)[:, :3] - origin
+    length = np.linalg.norm(d, axis=1)
+    usable = length - margin_m
+    keep = usable > 0
+    d, length, usable = d[keep], length[keep], usable[keep]
+    return origin, d, d / length[:, None], usable
+
+
 def free_voxels(origin: np.ndarray, endpoints: np.ndarray, voxel_m: float, margin_m,
                 fine: tuple | None = None, hit_fine: np.ndarray | None = None) -> np.ndarray | None:
     """(M, 3) int64 indices (``floor(p / voxel_m)``), in row-major order, of the voxels the rays
@@ -29,15 +42,9 @@ def free_voxels(origin: np.ndarray, endpoints: np.ndarray, voxel_m: float, margi
     :func:`~blockloc.maps.changes.detect.ray_free_keys` takes them (keys packed as its
     ``pack_keys`` packs them). None when the scan's bounding box would need more than
     :data:`MAX_GRID_CELLS` cells."""
-    origin = np.asarray(origin, dtype=np.float64).reshape(3)
-    d = np.asarray(endpoints, dtype=np.float64)[:, :3] - origin
-    length = np.linalg.norm(d, axis=1)
-    usable = length - margin_m
-    keep = usable > 0
-    d, length, usable = d[keep], length[keep], usable[keep]
+    origin, d, u, usable = unit_rays(origin, endpoints, margin_m)
     if not len(d):
         return np.zeros((0, 3), dtype=np.int64)
-    u = d / length[:, None]
     ends = np.vstack([origin[None], origin + d])
     lo = np.floor(ends.min(axis=0) / voxel_m).astype(np.int64) - 1
     hi = np.floor(ends.max(axis=0) / voxel_m).astype(np.int64) + 1

@@ -114,21 +114,15 @@ def ray_free_keys(origin: np.ndarray, endpoints: np.ndarray, voxel_m: float, mar
     The compiled :func:`blockloc.maps.raycast.free_voxels` gives the same voxels (the same
     samples and float operations) in a twentieth of the time; the sorting below runs only where
     its grid would be too big (a stray far endpoint)."""
-    from blockloc.maps.raycast import free_voxels
+    from blockloc.maps.raycast import free_voxels, unit_rays
 
     ijk = free_voxels(origin, endpoints, voxel_m, margin_m, fine=fine, hit_fine=hit_fine)
     if ijk is not None:
         keys = np.sort(pack_keys(ijk))
         return keys[_in_sorted(keys, only)] if only is not None else keys
-    origin = np.asarray(origin, dtype=np.float64).reshape(3)
-    d = np.asarray(endpoints, dtype=np.float64)[:, :3] - origin
-    length = np.linalg.norm(d, axis=1)
-    usable = length - margin_m
-    keep = usable > 0
-    d, length, usable = d[keep], length[keep], usable[keep]
+    origin, d, u, usable = unit_rays(origin, endpoints, margin_m)
     if not len(d):
         return np.zeros(0, dtype=np.int64)
-    u = d / length[:, None]
     step = voxel_m / 2.0
     out = []
     for s in range(0, len(u), chunk):
