@@ -100,11 +100,12 @@ class MapConfig:
     # false: the sequence's own T_body_lidar (a warning when the two differ).
     use_map_mounting: bool = True
     # Refine each mapping drive's keyframe poses against its own scans before the blocks are
-    # written (blockloc.maps.pose_refine: scan-to-scan NDT between neighbours and revisits, a pose
-    # graph with the given poses as priors; the mounting's rotation and forward translation
-    # estimated with them). Small world seeds 1-5 (docs/bench/accuracy_seeds.md): the body poses'
-    # error vs the truth 5.2-6.2 -> 2.4-3.2 cm RMSE; tracked ATE seed 1 0.037 -> 0.019 m, but seeds
-    # 2 and 3 worse (0.030 -> 0.035, 0.027 -> 0.032 m); the real walk 0.0153 -> 0.0168 m. Off.
+    # written (blockloc.maps.pose_refine: NDT scan to scan, then against local maps of neighbouring
+    # keyframes and of the other pass at revisits, a pose graph with the given poses as priors; the
+    # mounting's rotation and forward translation estimated with them). Small world seeds 1-5
+    # (docs/bench/accuracy_seeds.md): the body poses' error vs the truth 5.2-6.2 -> 2.4-2.8 cm RMSE;
+    # tracked ATE 0.037/0.030/0.027/0.028/0.035 -> 0.020/0.028/0.028/0.023/0.028 m (seed 3 1 mm
+    # worse); the real walk 0.0153 -> 0.0167 m; the build 1.6-2.0x the CPU. Off.
     refine_poses: bool = False
     # Leave moving objects out of the map built from a drive (blockloc.maps.dynamic_removal: voxels
     # the drive's own scans see through around each keyframe). Off: a drive without pedestrians or

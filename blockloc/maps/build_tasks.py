@@ -372,7 +372,8 @@ REFINE_MAX_KEYFRAMES = 4000
 @_timed
 def refine_task(plan: DrivePlan, deskew: bool, hold_mounting: bool) -> dict:
     """Task: the drive's keyframe poses refined against its own scans
-    (:func:`blockloc.maps.pose_refine.refine_poses`, NDT scan-to-scan). Reads every keyframe.
+    (:func:`blockloc.maps.pose_refine.refine_poses`, NDT scan to scan, then against local maps of
+    neighbouring keyframes). Reads every keyframe.
     hold_mounting: keep the drive's ``T_body_lidar`` as it is (poses of the LiDAR itself, or a
     mounting not estimated); otherwise its rotation and forward translation are estimated with
     the poses. Returns the
