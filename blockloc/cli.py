@@ -173,7 +173,8 @@ def map_build_cmd(
         None, "--refine-poses/--no-refine-poses",
         help="Refine each drive's keyframe poses against its own scans (neighbours and revisits, "
              "a pose graph) before the map is built; a drive without revisits is left as it came. "
-             "Default: map.refine_poses (false)."),
+             "Default (map.refine_poses: true): the drives whose mounting the build estimated (poses "
+             "of the body); --refine-poses: every drive; --no-refine-poses: none."),
     remove_dynamic: Optional[bool] = typer.Option(
         None, "--remove-dynamic/--keep-dynamic",
         help="Leave moving objects (pedestrians, passing cars: space the drive's own scans see "

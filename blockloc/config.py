@@ -105,8 +105,11 @@ class MapConfig:
     # mounting's rotation and forward translation estimated with them). Small world seeds 1-5
     # (docs/bench/accuracy_seeds.md): the body poses' error vs the truth 5.2-6.2 -> 2.4-2.8 cm RMSE;
     # tracked ATE 0.037/0.030/0.027/0.028/0.035 -> 0.020/0.028/0.028/0.023/0.028 m (seed 3 1 mm
-    # worse); the real walk 0.0153 -> 0.0167 m; the build 1.6-2.0x the CPU. Off.
-    refine_poses: bool = False
+    # worse); the real walk 0.0153 -> 0.0167 m; the build 1.6-2.0x the CPU. On (true) it refines the
+    # drives whose mounting the build estimated (poses of the body: the simulator, NCLT's ground
+    # truth), where it buys the mounting's forward translation; drives with LiDAR poses (most SLAM
+    # outputs, the real walk) are left as they came. --refine-poses: every drive.
+    refine_poses: bool = True
     # Leave moving objects out of the map built from a drive (blockloc.maps.dynamic_removal: voxels
     # the drive's own scans see through around each keyframe). Off: a drive without pedestrians or
     # traffic loses a few percent of its static points to it (SA 96.7-97.6% on the DynamicMap

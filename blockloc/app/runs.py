@@ -254,7 +254,8 @@ def build_map_from_specs(drives, kind: str, out: str | Path, map_cfg: MapConfig,
     calibrate_mounting: None: ``map.calibrate_mounting`` (true: ``"auto"``, body-pose drives
     only, a failed estimate keeps the nominal mounting); True (``--calibrate-mounting``): every
     drive, a failed estimate is an error; False (``--nominal-mounting``): none. refine_poses: None:
-    ``map.refine_poses``; True / False (``--refine-poses`` / ``--no-refine-poses``).
+    ``map.refine_poses`` (true: ``"auto"``, the drives whose mounting the build estimated); True /
+    False (``--refine-poses``: every drive / ``--no-refine-poses``: none).
     remove_dynamic: None: ``map.remove_dynamic``; True / False (``--remove-dynamic`` /
     ``--keep-dynamic``)."""
     if calibrate_mounting is None:
@@ -265,7 +266,7 @@ def build_map_from_specs(drives, kind: str, out: str | Path, map_cfg: MapConfig,
         keyframe_angle_deg=map_cfg.keyframe_angle_deg,
         calibrate_mounting=calibrate_mounting, executor=executor, progress=progress,
         overwrite=overwrite, mounting_translation_tolerance_m=map_cfg.mounting_translation_tolerance_m,
-        refine_poses=bool(map_cfg.refine_poses if refine_poses is None else refine_poses),
+        refine_poses=("auto" if map_cfg.refine_poses else False) if refine_poses is None else bool(refine_poses),
         remove_dynamic=bool(map_cfg.remove_dynamic if remove_dynamic is None else remove_dynamic))
 
 

@@ -204,7 +204,7 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
                           overwrite: bool = False,
                           chunk_keyframes: int = CHUNK_KEYFRAMES, params: dict | None = None,
                           stats: dict | None = None, mounting_translation_tolerance_m: float | None = None,
-                          refine_poses: bool = False, remove_dynamic: bool = False):
+                          refine_poses: bool | str = False, remove_dynamic: bool = False):
     """Build a block or grid store at ``out`` from mapping drives sharing one map frame.
 
     drives: :class:`Drive` list (any order: the plan sorts them). kind: 'block' (S =
@@ -225,6 +225,8 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
     step (:mod:`blockloc.maps.pose_refine`; the mounting's rotation and forward translation are
     estimated with them where the mounting step estimated one) and build from them; the manifest keeps each drive's summary
     under ``pose_refinement``. A drive without revisits is left as it came (logged).
+    ``"auto"`` (the command's default): only the drives whose mounting the build estimated
+    (poses of the body, the estimate kept); the others are left as they came, marked so.
     remove_dynamic: leave moving objects (pedestrians, passing cars: voxels their own drive's
     later scans see through) out of the map (:mod:`blockloc.maps.dynamic_removal`, evidence over
     each task's keyframes and the drive's keyframes around them,
@@ -279,9 +281,11 @@ def build_map_from_drives(drives: list[Drive], kind: str, out: str | Path, *,
                                                 translation_tolerance_m=mounting_translation_tolerance_m)
             drives = drives + [p.drive for p in plans]  # forgotten with the others at the end
         refined = {}
+        if refine_poses not in (True, False, "auto"):
+            raise MapError(f"refine_poses {refine_poses!r}: expected True, False or 'auto'")
         if refine_poses:
             plans, refined = _refine(tasks, plans, deskew, keyframe_distance_m, keyframe_angle_deg,
-                                     mounting, sources)
+                                     mounting, sources, auto=refine_poses == "auto")
             drives = drives + [p.drive for p in plans]
         plans.sort(key=DrivePlan.order_key)
         frames = sorted({p.map_frame for p in plans})
@@ -399,25 +403,35 @@ def _remount(tasks: _Tasks, plans: list[DrivePlan], deskew: bool, keyframe_dista
 
 
 def _refine(tasks: _Tasks, plans: list[DrivePlan], deskew: bool, keyframe_distance_m: float,
-            keyframe_angle_deg: float, mounting: dict, sources: dict) -> tuple[list[DrivePlan], dict]:
+            keyframe_angle_deg: float, mounting: dict, sources: dict,
+            auto: bool = False) -> tuple[list[DrivePlan], dict]:
     """Each drive's keyframe poses refined (one task per drive), then each refined drive planned
     again with them. ``mounting`` ({drive name: estimate}) is updated in place where the
-    refinement moved an estimated mounting's rotation. Returns the new plans and
-    ``{drive name: refinement summary}``."""
+    refinement moved an estimated mounting's rotation. auto: only the drives whose mounting was
+    estimated (the others' summary says why not). Returns the new plans and ``{drive name:
+    refinement summary}``."""
     from blockloc.geometry import so3_log
     from blockloc.maps.build_tasks import refine_task, reposed
 
-    tasks.expect(len(plans))
-    found = [f.result() for f in [tasks.submit(refine_task, p, deskew,
-                                               sources[p.drive.name]["source"] != "estimated",
-                                               name=f"refine-{n}")
-                                  for n, p in enumerate(plans)]]
+    # auto: the mapping drives with body poses whose mounting the build estimated; the
+    # refinement's gain is mostly that mounting's forward translation (docs/bench/accuracy_seeds.md),
+    # and a drive with LiDAR poses (a SLAM output such as the real walk's BALM poses) was no better
+    def wanted(p: DrivePlan) -> bool:
+        return not auto or sources[p.drive.name]["source"] == "estimated"
+
+    chosen = [p for p in plans if wanted(p)]
+    tasks.expect(len(chosen))
+    futures = {p.drive.name: tasks.submit(refine_task, p, deskew, sources[p.drive.name]["source"] != "estimated",
+                                          name=f"refine-{n}") for n, p in enumerate(chosen)}
+    not_chosen = {"summary": {"skipped": "poses of the LiDAR or mounting not estimated (map.refine_poses auto: "
+                                         "only drives whose mounting the build estimated; --refine-poses: every drive)"}}
+    found = [futures[p.drive.name].result() if p.drive.name in futures else not_chosen for p in plans]
     summaries, todo = {}, []
     for n, (p, r) in enumerate(zip(plans, found)):
         summaries[p.drive.name] = r["summary"]
         if "skipped" in r["summary"]:
-            log.warning("%s: mapping poses not refined, kept as they came (%s)", p.drive.name,
-                        r["summary"]["skipped"])
+            (log.info if r is not_chosen else log.warning)("%s: mapping poses not refined, kept as they came (%s)",
+                                                          p.drive.name, r["summary"]["skipped"])
             continue
         log.info("%s: mapping poses refined against the drive's scans: %d neighbour and %d revisit "
                  "pairs, moved by %.3f m median (at most %.3f m)", p.drive.name, r["summary"]["odometry_pairs"],

@@ -308,3 +308,25 @@ def test_a_build_with_an_estimated_mounting_estimates_it_again_with_the_refined_
     assert abs(X[0, 3] - X_true[0, 3]) < abs(X_nominal[0, 3] - X_true[0, 3]) / 2, (X[:3, 3], X_true[:3, 3])
     assert np.rad2deg(np.linalg.norm(so3_log(X[:3, :3] @ X_true[:3, :3].T))) < 0.1
     np.testing.assert_allclose(m["translation_m"], (X[:3, 3] - X_nominal[:3, 3]).round(4), atol=1e-9)
+
+
+def test_the_default_refines_the_drives_whose_mounting_the_build_estimated(tmp_path):
+    """`map.refine_poses` true (the default) is auto: a body-pose drive whose mounting the build
+    estimated is refined; with the mounting left nominal (`--nominal-mounting`, as for a drive with
+    LiDAR poses) the poses are left as they came and the manifest says why."""
+    from blockloc.maps.store import open_map
+
+    _session(tmp_path / "loop", [[0, 0], [20, 0], [20, 20], [0, 20], [0, 0], [10, 0]], wander_m=0.04)
+    res = _blockloc("map", "build", "--seq", tmp_path / "loop", "--kind", "block", "--block-size", "20",
+                    "--out", tmp_path / "m")
+    assert res.returncode == 0, res.stderr
+    store = open_map(tmp_path / "m")
+    (src,) = store.params["mounting_source"].values()
+    (r,) = store.params["pose_refinement"].values()
+    assert src["source"] == "estimated", src
+    assert "skipped" not in r and r["loop_pairs"] > 5, r
+    res = _blockloc("map", "build", "--seq", tmp_path / "loop", "--kind", "block", "--block-size", "20",
+                    "--nominal-mounting", "--out", tmp_path / "n")
+    assert res.returncode == 0, res.stderr
+    (r,) = open_map(tmp_path / "n").params["pose_refinement"].values()
+    assert r["skipped"].startswith("poses of the LiDAR or mounting not estimated"), r
