@@ -75,12 +75,16 @@ def dilate_keys(keys: np.ndarray) -> np.ndarray:
     return np.unique(pack_keys((ijk[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 3)))
 
 
-def _in_sorted(keys: np.ndarray, table: np.ndarray) -> np.ndarray:
-    """(N,) bool: keys found in the sorted unique ``table``."""
+def in_sorted(keys: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """(N,) bool: keys found in the sorted unique ``table`` (a binary search: ``np.isin`` sorts the
+    table again on every call)."""
     if not len(table):
         return np.zeros(len(keys), bool)
     j = np.minimum(np.searchsorted(table, keys), len(table) - 1)
     return table[j] == keys
+
+
+_in_sorted = in_sorted
 
 
 def near_sorted(keys: np.ndarray, table: np.ndarray) -> np.ndarray:
