@@ -40,8 +40,9 @@ Truth (voxels of ``voxel_m``, the detector's, in the map frame):
 
 A detected voxel counts as right when a truth voxel of its class is within one voxel (26
 neighbours), a truth voxel as found when a detected one is: a tolerance of one voxel for the
-pose and the voxel grid. Per block: a block changed when its truth voxels (removed in its
-voxels, added by the nearest keyframe, as ``changes.json`` assigns them) form one 26-connected
+pose and the voxel grid. Per block: a block changed when its truth voxels (removed: in its
+voxels, every block that holds them, since blocks overlap; added: by the nearest keyframe; as
+``changes.json`` assigns them, :func:`block_truth`) form one 26-connected
 cluster of ``min_block_voxels`` (8: 1 m^3 at 0.5 m) or more, i.e. an object the run observed
 changed, not scattered voxels; detected when ``changes.json`` marks it confirmed. Vegetation is
 static in the truth: crowns whose density differs between days (``foliage_change``) are not a
@@ -197,25 +198,23 @@ def where_voxels(seq, keys: np.ndarray, voxel_m: float) -> dict:
     return {"vegetation": int(veg.sum()), "ground": int(ground.sum()), "other": int((~veg & ~ground).sum())}
 
 
-def _block_of(keys: np.ndarray, res, voxel_m: float, removed: bool) -> np.ndarray:
-    """(K,) block id of each voxel, as ``changes.json`` assigns it (removed: the block whose voxels
-    hold it, the first; added: the nearest keyframe's block)."""
+def block_truth(truth_rm: np.ndarray, truth_ad: np.ndarray, res, voxel_m: float) -> dict:
+    """Block id -> sorted truth voxels it owns, as ``changes.json`` assigns detected ones: a
+    removed voxel to **every** block whose voxels hold it (the blocks overlap: each keeps the scans
+    of its keyframes out to the sensor's range, so a removed hedge sits in the files of every
+    block that saw it, and each of them must be rebuilt), an added voxel to the block of the
+    nearest keyframe."""
     from scipy.spatial import cKDTree
 
     from blockloc.maps.changes.detect import unpack_keys
 
-    out = np.full(len(keys), None, dtype=object)
-    if removed:
-        for b, bk in res.block_keys.items():
-            m = np.isin(keys, bk) & (out == None)  # noqa: E711
-            out[m] = b
-        return out
     ids = list(res.block_keyframes)
     kf = np.concatenate([np.asarray(res.block_keyframes[b]).reshape(-1, 3) for b in ids])
     owner = np.concatenate([[b] * len(np.asarray(res.block_keyframes[b]).reshape(-1, 3)) for b in ids])
-    if len(keys):
-        out[:] = owner[cKDTree(kf).query((unpack_keys(keys) + 0.5) * voxel_m)[1]]
-    return out
+    ad_owner = (owner[cKDTree(kf).query((unpack_keys(truth_ad) + 0.5) * voxel_m)[1]] if len(truth_ad)
+                else np.zeros(0, dtype=object))
+    return {b: np.unique(np.concatenate([truth_rm[np.isin(truth_rm, res.block_keys[b])], truth_ad[ad_owner == b]]))
+            for b in res.block_keys}
 
 
 def score_detection(P: str, S: int, session: str, mp: Path, run_dir: Path, stride: int, min_scans: int = 5) -> dict:
@@ -251,10 +250,10 @@ def score_detection(P: str, S: int, session: str, mp: Path, run_dir: Path, strid
            "false_removed_where": where_voxels(seq, res.voxels.removed[~near_sorted(res.voxels.removed, truth_rm)], vm),
            "false_added_where": where_voxels(seq, res.voxels.added[~near_sorted(res.voxels.added, truth_ad)], vm)}
     # per block
-    tb_rm, tb_ad = _block_of(truth_rm, res, vm, True), _block_of(truth_ad, res, vm, False)
+    owned = block_truth(truth_rm, truth_ad, res, vm)
     rows, tp, fp, fn = [], 0, 0, 0
     for b in res.blocks:
-        mine = np.unique(np.concatenate([truth_rm[tb_rm == b["block"]], truth_ad[tb_ad == b["block"]]]))
+        mine = owned[b["block"]]
         n_truth = len(mine)
         largest = int(cluster_sizes(mine).max()) if n_truth else 0
         changed, det = largest >= th.min_block_voxels, bool(b["confirmed"])
@@ -426,9 +425,14 @@ def main(argv: list[str] | None = None) -> Path:
     ap.add_argument("--detect-frames", type=int, default=200,
                     help="track: frames tracked with --detect-changes (loc_m12 on the stale map)")
     ap.add_argument("--dynamic", action="store_true", help="also the DUFOMap comparison (bench/_dynamic.py)")
+    ap.add_argument("--map", type=Path, help="with --run: the stale map of the run (nothing is built)")
+    ap.add_argument("--run", type=Path, help="detect only: score this tracking run (on --map) of the one session "
+                    "in --sessions; nothing is built or tracked (the campus: a run of thousands of frames)")
     ap.add_argument("--work", type=Path, default=Path("/tmp/blockloc-bench-lifelong"))
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args(argv)
+    if args.run is not None and (args.map is None or args.parts != "detect" or "," in args.sessions):
+        ap.error("--run needs --map, one session in --sessions and --parts detect")
     from bench.__main__ import machine
 
     P, S, parts = args.preset, args.seed, set(args.parts.split(","))
@@ -440,9 +444,10 @@ def main(argv: list[str] | None = None) -> Path:
     load0, t_all = os.getloadavg()[0], time.perf_counter()
     keys = cache_keys(P, S, args.stride)
     bk, uk = keys["builder"], keys["update"]  # every kept map and run is filed under its maker's key
-    mp = work / f"map-{bk}"
-    _once(["blockloc", "map", "build", "--seq", f"sim:{P}/map@{S}", "--kind", "block", "--out", str(mp)],
-          mp / "manifest.json", log)
+    mp = work / f"map-{bk}" if args.map is None else args.map
+    if args.run is None:
+        _once(["blockloc", "map", "build", "--seq", f"sim:{P}/map@{S}", "--kind", "block", "--out", str(mp)],
+              mp / "manifest.json", log)
 
     def track(session: str, map_dir: Path, name: str) -> Path:
         out = work / name
@@ -452,7 +457,10 @@ def main(argv: list[str] | None = None) -> Path:
 
     src = args.update_from
     need = set(sessions) | ({src, "loc_m12"} if parts & {"loc", "cost"} else set())
-    runs = {s: track(s, mp, f"run_{s}_stale-{bk}") for s in ("loc_m3", "loc_m12", "map_m12") if s in need}
+    if args.run is None:
+        runs = {s: track(s, mp, f"run_{s}_stale-{bk}") for s in ("loc_m3", "loc_m12", "map_m12") if s in need}
+    else:  # given: scored as it is
+        runs = {sessions[0]: args.run}
     from blockloc.maps.changes.detect import Thresholds
 
     result: dict = {"preset": P, "seed": S, "frames": args.frames, "stride": args.stride, "load1_start": load0,
@@ -523,12 +531,16 @@ def render(r: dict, args, log: list, machine: str, dyn: list[str]) -> list[str]:
     cmd = (f"python -m bench.lifelong --preset {r['preset']} --seed {r['seed']} --sessions {args.sessions} "
            f"--stride {r['stride']} --parts {args.parts}" + (f" --frames {r['frames']}" if r["frames"] else "")
            + (f" --update-from {args.update_from}" if getattr(args, "update_from", "loc_m3") != "loc_m3" else "")
-           + (" --dynamic" if args.dynamic else ""))
+           + (" --dynamic" if args.dynamic else "")
+           + (f" --map {args.map} --run {args.run}" if getattr(args, "run", None) is not None else ""))
     L = ["## Lifelong maps: change detection, tracking months later, update cost", "",
          f"Command: `{cmd}`, run {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {machine}; "
          f"one run, seed {r['seed']}; 1-min load average {r['load1_start']:.1f} at the start, "
          f"{r['load1_end']:.1f} at the end ({r['wall_s'] / 60:.0f} min wall in all; shared machine: wall times are "
          "not speed figures). Steps as a user types them:", ""]
+    if getattr(args, "run", None) is not None:
+        L.append(f"- the map `{args.map}` and the run `{args.run}` given (not built or tracked here); the detection is "
+                 f"`blockloc map changes --map {args.map} --run {args.run} --stride {r['stride']}`'s, through the API")
     for c, reused, wall, cpu in log:
         L.append(f"- `{' '.join(c)}`" + (" (kept from an earlier run)" if reused else f": {wall:.0f} s wall, {cpu:.0f} s CPU"))
     if "detect" in r:

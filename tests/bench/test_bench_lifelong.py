@@ -22,6 +22,18 @@ def test_precision_recall_with_one_voxel_tolerance():
     assert np.isnan(empty["precision"]) and empty["recall"] == 0.0
 
 
+
+def test_a_removed_truth_voxel_belongs_to_every_block_that_holds_it():
+    from types import SimpleNamespace
+
+    # blocks A and B overlap (both hold voxel 5); an added voxel goes to the nearest keyframe's block
+    keys = lambda *xs: np.sort(pack_keys(np.array([[x, 0, 0] for x in xs])))  # noqa: E731
+    res = SimpleNamespace(block_keys={"A": keys(1, 5), "B": keys(5, 9)},
+                          block_keyframes={"A": np.array([[0.0, 0, 0]]), "B": np.array([[10.0, 0, 0]])})
+    owned = B.block_truth(keys(5, 9), keys(18), res, 0.5)  # removed 5 and 9; added at x = 9.25 m
+    assert list(owned["A"]) == list(keys(5))  # the removed voxel in both blocks' files: both changed
+    assert list(owned["B"]) == list(keys(5, 9, 18))
+
 def _store(root, files: dict, lifelong=None):
     root.mkdir()
     entries = []
@@ -144,3 +156,12 @@ def test_the_fresh_map_with_the_stale_maps_mapping_error(tmp_path):
     err = lambda P: np.linalg.norm(P[:, :3, 3] - m12.ground_truth().interpolate(got.stamps)[:, :3, 3], axis=1)  # noqa: E731
     e_same, e_own = err(got.poses), err(own.poses)
     assert 0.01 < np.sqrt(np.mean(e_same ** 2)) and np.abs(e_same - e_own).max() > 0.01
+
+
+def test_a_given_run_is_scored_alone(tmp_path):
+    # --run scores one given run on its --map: nothing built or tracked, so detect only
+    for bad in (["--run", "r"], ["--run", "r", "--map", "m"], ["--run", "r", "--map", "m", "--parts", "detect",
+                                                                "--sessions", "loc_m3,loc_m12"]):
+        with pytest.raises(SystemExit) as e:
+            B.main([*bad, "--work", str(tmp_path)])
+        assert e.value.code == 2

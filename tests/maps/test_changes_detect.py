@@ -283,3 +283,26 @@ def test_added_needs_a_place_the_mapping_day_had_in_sight():
     assert len(seen_by_keyframes(cells, fine_m, kf, fine_keys, 0.4, 40.0, k=2)) == 3
     # out of range of every keyframe: not seen
     assert len(seen_by_keyframes(cells, fine_m, kf, fine_keys, 0.4, 1.0, k=2)) == 0
+
+
+def test_a_cloud_of_the_mapping_days_noise_is_not_removed_even_where_a_few_voxels_are_dense():
+    from blockloc.maps.changes.detect import Thresholds, classify, map_cells_per_voxel, voxel_keys
+
+    g = np.arange(0.05, 2.0, 0.1)
+    wall = np.array([[5.05, y, z] for y in g for z in g])  # a 2 x 2 m wall: 4 x 4 dense voxels
+    # behind a crown's edge: a 4 x 4 x 3 cloud of voxels holding one mixed pixel each, 6 of them
+    # (where the pixels piled up) dense enough to pass min_map_cells and carry their neighbours
+    cloud = np.array([[10.25 + 0.5 * i, 4.25 + 0.5 * j, 2.25 + 0.5 * k] for i in range(4) for j in range(4)
+                      for k in range(3)])
+    pile = np.array([c + [dx, dy, dz] for c in cloud[::8] for dx in (-0.1, 0.1) for dy in (-0.1, 0.1)
+                     for dz in (-0.1, 0.1)])
+    pts = np.concatenate([wall, cloud, pile])
+    ev, _ = _evidence(0.5, pts, seen_free=10)
+    dense = map_cells_per_voxel(np.unique(voxel_keys(pile, 0.5)), 0.5, ev.fine[1], ev.fine[2])
+    assert len(dense) == 6 and (dense >= 4).all()
+    rm = _centres(classify(ev, ev.fine[0], None, Thresholds()).removed, 0.5)
+    assert (rm[:, 0] < 6).sum() == 16  # the wall: a dense surface, removed
+    assert not (rm[:, 0] > 9).any()  # the cloud: mostly single points, kept
+    # without the rule the dense voxels and their neighbours form a removed cluster
+    rm0 = _centres(classify(ev, ev.fine[0], None, Thresholds(min_solid_share=0.0)).removed, 0.5)
+    assert (rm0[:, 0] > 9).sum() >= 20 and (rm0[:, 0] < 6).sum() == 16

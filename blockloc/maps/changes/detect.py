@@ -75,12 +75,16 @@ def dilate_keys(keys: np.ndarray) -> np.ndarray:
     return np.unique(pack_keys((ijk[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 3)))
 
 
-def _in_sorted(keys: np.ndarray, table: np.ndarray) -> np.ndarray:
-    """(N,) bool: keys found in the sorted unique ``table``."""
+def in_sorted(keys: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """(N,) bool: keys found in the sorted unique ``table`` (a binary search: ``np.isin`` sorts the
+    table again on every call)."""
     if not len(table):
         return np.zeros(len(keys), bool)
     j = np.minimum(np.searchsorted(table, keys), len(table) - 1)
     return table[j] == keys
+
+
+_in_sorted = in_sorted
 
 
 def near_sorted(keys: np.ndarray, table: np.ndarray) -> np.ndarray:
@@ -371,8 +375,9 @@ def seen_by_keyframes(cells: np.ndarray, fine_m: float, keyframes: np.ndarray, f
     return cells[seen]
 
 
-def cluster_sizes(keys: np.ndarray) -> np.ndarray:
-    """(K,) size of the 26-connected cluster each of the sorted unique ``keys`` belongs to."""
+def cluster_labels(keys: np.ndarray) -> np.ndarray:
+    """(K,) int label of the 26-connected cluster each of the sorted unique ``keys`` belongs to
+    (labels 0..C-1)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -392,8 +397,13 @@ def cluster_sizes(keys: np.ndarray) -> np.ndarray:
         cols.append(j[hit])
     r, c = np.concatenate(rows), np.concatenate(cols)
     g = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(len(keys), len(keys)))
-    _, label = connected_components(g, directed=False)
-    return np.bincount(label)[label]
+    return connected_components(g, directed=False)[1].astype(np.int64)
+
+
+def cluster_sizes(keys: np.ndarray) -> np.ndarray:
+    """(K,) size of the 26-connected cluster each of the sorted unique ``keys`` belongs to."""
+    label = cluster_labels(keys)
+    return np.bincount(label)[label] if len(label) else np.zeros(0, np.int64)
 
 
 @dataclass(frozen=True)
@@ -413,12 +423,18 @@ class Thresholds:
     max_hit_share: float = 0.1
     #: a block is confirmed when one 26-connected cluster of its changed voxels (removed and
     #: added together) spans this volume, m^3 (scattered noise never forms one that large)
-    min_block_m3: float = 3.0  # chosen on the small world seed 1, loc_m12 (docs/bench/lifelong.md)
+    min_block_m3: float = 1.0  # chosen on the small world seed 1, loc_m12 (docs/bench/lifelong.md)
     #: removed needs map structure: a voxel holding at least this many of the map's occupied fine
     #: cells, or one next to such a removed voxel (an object's edge). A voxel with one or two map
     #: points is the mapping day's sensor noise (mixed pixels at depth edges, a laser's angle
     #: error over far ground, a range tail) as often as structure; today's rays cross it.
     min_map_cells: int = 4  # chosen on the small world seed 1, loc_m12
+    #: a removed cluster is kept only when at least this share of its voxels hold
+    #: ``min_map_cells`` map fine cells: a removed object is a surface the map held densely
+    #: (median 6-8 fine cells a voxel on the small world), while the mapping day's mixed pixels
+    #: behind crown edges pile up, over a drive, into clouds of voxels holding one to three
+    #: cells, a few of them dense enough to pass ``min_map_cells`` and carry their neighbours
+    min_solid_share: float = 0.5
     #: a voxel holding the ground's surface (:func:`ground_voxels`) is no see-through neighbour
     #: that spares the voxels next to it (``max_hit_share``'s second rule)
     ground_spares_none: bool = True
@@ -515,6 +531,13 @@ def classify(ev: Evidence, map_keys: np.ndarray, map_free_fine: np.ndarray | Non
     for m in (removed, added):  # scattered voxels are noise (a grazing ray, a mixed pixel)
         sel = np.flatnonzero(m)
         m[sel[cluster_sizes(ev.keys[sel]) < th.min_cluster_voxels]] = False
+    if th.min_solid_share > 0 and ev.fine is not None and removed.any():
+        # a removed cluster must be mostly map structure, not a cloud of the mapping day's noise
+        sel = np.flatnonzero(removed)
+        label = cluster_labels(ev.keys[sel])
+        solid = map_cells_per_voxel(ev.keys[sel], ev.voxel_m, ev.fine[1], ev.fine[2]) >= th.min_map_cells
+        share = np.bincount(label, weights=solid) / np.bincount(label)
+        removed[sel[share[label] < th.min_solid_share]] = False
     return VoxelChanges(ev.voxel_m, ev.keys[removed], ev.keys[added], ev.keys[dynamic],
                         {"removed": L[removed], "added": L_added[added], "dynamic": L_new[dynamic]},
                         n_new_free[added].astype(np.int64), ev.n_free[removed].astype(np.int64))

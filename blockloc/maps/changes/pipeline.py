@@ -26,8 +26,8 @@ from typing import Callable
 
 import numpy as np
 
-from blockloc.maps.changes.detect import (Evidence, Thresholds, VoxelChanges, _in_sorted, block_report,
-                                          classify, dilate_keys, ground_band, seen_by_keyframes, voxel_keys,
+from blockloc.maps.changes.detect import (Evidence, Thresholds, VoxelChanges, block_report, classify,
+                                          dilate_keys, ground_band, in_sorted, seen_by_keyframes, voxel_keys,
                                           without_lowest)
 from blockloc.maps.changes.runs import RunPoses
 
@@ -74,7 +74,9 @@ def scan_agreement(points_map: np.ndarray, origin: np.ndarray, up: np.ndarray, m
         sel = points_map
     if not len(sel):
         return 0.0
-    return float(_in_sorted(voxel_keys(sel, voxel_m), map_near).mean())
+    # a binary search in the sorted table: np.isin sorts the whole table again on every call (the
+    # campus's 34 blocks, dilated: 95 % of the detection's CPU went there)
+    return float(in_sorted(voxel_keys(sel, voxel_m), map_near).mean())
 
 
 def sweep_poses(run: RunPoses, k: int, max_gap_s: float = 0.3):
