@@ -126,10 +126,8 @@ class RunWriter:
         from blockloc.trajectory_io import tum_lines
 
         try:
-            if event.T_map_body is not None and self._poses is not None:
-                self._poses.write(tum_lines([event.stamp], event.T_map_body[None])[0] + "\n")
-                self._stamps.append(float(event.stamp))
-                self._T.append(np.asarray(event.T_map_body))
+            # the frame's diagnostics row first, then its pose: a run killed between the two writes
+            # leaves a diagnostics row without its pose, never a pose without its row
             if self._diag is not None:
                 row = {"index": event.index, "stamp": f"{event.stamp:.9f}", "status": event.status,
                        **{k: v for k, v in event.diagnostics.items() if k != "status"}}
@@ -139,6 +137,10 @@ class RunWriter:
                     text = _csv_row(self._diag_fields)
                 text += _csv_row([row.get(k, "") for k in self._diag_fields])
                 self._diag.write(text)
+            if event.T_map_body is not None and self._poses is not None:
+                self._poses.write(tum_lines([event.stamp], event.T_map_body[None])[0] + "\n")
+                self._stamps.append(float(event.stamp))
+                self._T.append(np.asarray(event.T_map_body))
         except BaseException:
             from blockloc.fileio import release_space
 

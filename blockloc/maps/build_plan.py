@@ -430,8 +430,10 @@ def _refine(tasks: _Tasks, plans: list[DrivePlan], deskew: bool, keyframe_distan
     for n, (p, r) in enumerate(zip(plans, found)):
         summaries[p.drive.name] = r["summary"]
         if "skipped" in r["summary"]:
-            (log.info if r is not_chosen else log.warning)("%s: mapping poses not refined, kept as they came (%s)",
-                                                          p.drive.name, r["summary"]["skipped"])
+            # a warning only where every drive was asked for (--refine-poses); by default a drive
+            # without revisits is common and map info says why
+            (log.warning if not auto else log.info)("%s: mapping poses not refined, kept as they came (%s)",
+                                                    p.drive.name, r["summary"]["skipped"])
             continue
         log.info("%s: mapping poses refined against the drive's scans: %d neighbour and %d revisit "
                  "pairs, moved by %.3f m median (at most %.3f m)", p.drive.name, r["summary"]["odometry_pairs"],
