@@ -8,7 +8,8 @@ scans only):
    scans that hit it). Everything weaker is held back and reported.
 2. **Coherent changes.** Of the strong voxels, removed and added together, only those in a
    26-connected cluster of ``min_change_m3`` or more are applied (a wall, a building, a parked car:
-   one changed object), the rule by which the detector confirms a block (its ``min_block_m3``);
+   one changed object; 3 m³ by default, stricter than the 1 m³ by which the detector confirms a
+   block, its ``min_block_m3``: an update writes the map, a report only points at it);
    voxels scattered over a block (a grazing ray, a mixed pixel, a pose a few centimetres off
    carving a facade's edge) are held back and reported, so they never carve the map.
 3. **Confirmed blocks.** A block is rebuilt when its applied voxels number ``min_block_voxels``
