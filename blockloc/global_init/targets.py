@@ -48,7 +48,7 @@ def axis_aligned(R_L_map: np.ndarray) -> bool:
 class _Entry:
     """One entry's points (N, 3) float32 sorted by finest voxel column, rows of ``span[1]`` columns
     from ``lo`` (``starts``: (span0 * span1 + 1,) offsets), its voxel statistics (``stats``), and its
-    points counted per (column code, footprint cell): ``pair_code`` (P,), ``pair_cell`` (P, 2),
+    points counted per (voxel column, footprint cell): ``pair_col`` (P, 2), ``pair_cell`` (P, 2),
     ``pair_count`` (P,)."""
 
     points: np.ndarray
