@@ -149,6 +149,8 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         t0 = time.perf_counter()
         p = self.params
         _check_args(window_m, yaw_window_deg)
+        if self.target_cache is not None:
+            self.target_cache.begin_search()
         scan, scan_ndt = self.prepare_scan(points_body, gravity_body)
         if hint_yaw is None:
             theta_c, yaw_win = 0.0, 2 * math.pi
@@ -275,7 +277,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
                 if np.all(np.abs(xy - centre) <= 0.5 * d):
                     return ref
             cache = self.target_cache
-            if cache is not None and cache.covers(self.map, xy - d, xy + d):
+            if cache is not None and cache.ready(self.map, xy - d, xy + d):
                 ref = cache.refiner(self.map, xy - d, xy + d, min_points=100)
             else:
                 pts = self.map.points_in_box(xy - d, xy + d)

@@ -15,6 +15,9 @@ is then assembled from them:
   by index ranges of the column-sorted points, tested against the box as ``points_in_box`` tests
   them, and voxelized as one more tile.
 
+An entry's statistics are built the first time a search needs an entry an earlier search asked for
+(:meth:`TargetCache.ready`): a one-shot search builds its targets from the points as before.
+
 The target and the footprint are those of the same points as before (every voxel's statistics the
 same sums, added in another order: equal to rounding), so verification judges the same thing.
 Used where the engine can build a target from statistics (NDT), the map is a store, and the
@@ -114,6 +117,8 @@ class TargetCache:
         self.step = 1 << int(opts["coarse_levels"])  # the core's columns: whole coarsest voxels
         self._entries: OrderedDict[str, _Entry] = OrderedDict()
         self.hits = self.misses = 0
+        self._search = 0  # searches begun (begin_search)
+        self._first_seen: dict[str, int] = {}  # entry key -> the search that first asked for it
 
     @staticmethod
     def usable(engine, map_source, R_L_map) -> bool:
@@ -129,11 +134,26 @@ class TargetCache:
         """Entries kept."""
         return len(self._entries)
 
-    def covers(self, map_source, lo_L: np.ndarray, hi_L: np.ndarray) -> bool:
-        """Whether every entry the box meets is small enough to keep (a quarter of the budget at
-        ~40 bytes a point; a map stored as one big entry is refined from its points)."""
-        return all(len(map_source.entry_points(i)) * _BYTES_PER_POINT <= self.max_bytes / 4
-                   for i in map_source.entries_in(lo_L, hi_L))
+    def begin_search(self) -> None:
+        """A new search (one ``localize``) begins: entries an earlier search asked for may now be kept."""
+        self._search += 1
+
+    def ready(self, map_source, lo_L: np.ndarray, hi_L: np.ndarray) -> bool:
+        """Whether the box's target is assembled here: every entry it meets is kept, or was asked for
+        by an earlier search (then it is built now) and is small enough to keep (a quarter of the
+        budget at ~40 bytes a point; a map stored as one big entry is refined from its points).
+        Otherwise the caller builds the target from the points, as a one-shot search (``blockloc
+        init``) always does: building an entry's statistics costs more than one target from its
+        points, and pays only in a process that searches again (the node, a session, the bench)."""
+        ok = True
+        for i in map_source.entries_in(lo_L, hi_L):
+            key = map_source.entry_key(i)
+            if key in self._entries:
+                continue
+            first = self._first_seen.setdefault(key, self._search)
+            if first == self._search or len(map_source.entry_points(i)) * _BYTES_PER_POINT > self.max_bytes / 4:
+                ok = False
+        return ok
 
     def _entry(self, map_source, i: int) -> _Entry:
         key = map_source.entry_key(i)

@@ -89,8 +89,12 @@ def test_the_cache_stays_within_its_budget_and_rebuilds_what_it_dropped(maps):
     again = small.refiner(smap, lo, hi)
     assert small.nbytes <= budget and small.misses > n  # dropped entries were built again
     np.testing.assert_array_equal(_sorted_level(again._target, 0)[1], _sorted_level(first._target, 0)[1])
-    # an entry larger than a quarter of the budget is refined from its points instead
-    assert not TargetCache(engine, smap.R_L_map, 1.0, 0.25, max_bytes=one).covers(smap, lo, hi)
+    # an entry larger than a quarter of the budget is refined from its points instead, even when
+    # an earlier search asked for it
+    big = TargetCache(engine, smap.R_L_map, 1.0, 0.25, max_bytes=one)
+    for _ in range(2):
+        big.begin_search()
+        assert not big.ready(smap, lo, hi)
 
 
 def test_a_tilted_levelled_frame_or_another_engine_is_not_assembled(maps):
@@ -103,8 +107,9 @@ def test_a_tilted_levelled_frame_or_another_engine_is_not_assembled(maps):
 
 
 def test_the_localizer_refines_on_assembled_targets_and_finds_the_same_pose(maps):
-    # The store localizer assembles its refinement targets (nothing built from points), and the
-    # result is the one of targets built from the points: same verdict, same pose to rounding.
+    # A first search builds its targets from the points (a one-shot `blockloc init` pays no
+    # statistics); the next search keeps the entries the first asked for and assembles its targets:
+    # the same verdict, the same pose to rounding, as targets built from the points.
     from blockloc.geometry import xyzrpy_to_T
     from blockloc.global_init.relocalize import GlobalLocalizer, InitParams
 
@@ -114,14 +119,15 @@ def test_the_localizer_refines_on_assembled_targets_and_finds_the_same_pose(maps
     world = smap.points_in_box(*smap.bounds_L())
     T_true = xyzrpy_to_T(6.0, 4.0, -(1.9 + 0.02 * 6.0), 0.03, -0.02, 2.4)
     scan, g = scan_from(world, T_true), gravity_body(T_true)
-    results = {}
-    for mb in (64.0, 0.0):
-        loc = GlobalLocalizer(smap, InitParams(use_place_index=False, target_cache_mb=mb))
-        results[mb] = loc.localize(scan, g, hint_xy=(8.0, 2.0), window_m=10.0)
-        assert (loc.target_cache is not None) == (mb > 0)
-        if mb > 0:
-            assert loc.target_cache.misses > 0 and len(loc.target_cache) > 0
-    a, b = results[64.0], results[0.0]
-    assert a.verified and b.verified and a.ambiguous == b.ambiguous
-    np.testing.assert_allclose(a.T_map_body, b.T_map_body, atol=1e-6)
-    assert a.fitness == pytest.approx(b.fitness, abs=1e-9)
+    loc = GlobalLocalizer(smap, InitParams(use_place_index=False, target_cache_mb=64.0))
+    first = loc.localize(scan, g, hint_xy=(8.0, 2.0), window_m=10.0)
+    assert loc.target_cache.misses == 0 and len(loc.target_cache) == 0  # one-shot: nothing kept
+    second = loc.localize(scan, g, hint_xy=(8.0, 2.0), window_m=10.0)
+    assert loc.target_cache.misses > 0 and len(loc.target_cache) > 0
+    off = GlobalLocalizer(smap, InitParams(use_place_index=False, target_cache_mb=0.0))
+    assert off.target_cache is None
+    base = off.localize(scan, g, hint_xy=(8.0, 2.0), window_m=10.0)
+    for res in (first, second):
+        assert res.verified and base.verified and res.ambiguous == base.ambiguous
+        np.testing.assert_allclose(res.T_map_body, base.T_map_body, atol=1e-6)
+        assert res.fitness == pytest.approx(base.fitness, abs=1e-9)
