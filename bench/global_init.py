@@ -270,6 +270,9 @@ def parser() -> argparse.ArgumentParser:
                          "frames, and one with an empty cache")
     ap.add_argument("--fpfh-frames", type=int, default=None, help="FPFH on the first K frames only")
     ap.add_argument("--projection", default="band", help="band | all (the scan/map 2D projection)")
+    ap.add_argument("--target-cache-mb", type=float, default=None,
+                    help="refinement targets' per-entry statistics kept in memory, MB (InitParams.target_cache_mb; "
+                         "0: every target built from its points, as before)")
     ap.add_argument("--out", default=str(REPO / "docs" / "bench" / "global_init.md"))
     ap.add_argument("--rng", type=int, default=0)
     ap.add_argument("--append", action="store_true", help="append to --out instead of replacing it")
@@ -320,6 +323,8 @@ def run(argv: list[str]) -> dict:
     gt = seq.ground_truth()
     imu = seq.imu()
     params = InitParams(projection=args.projection)
+    if args.target_cache_mb is not None:
+        params.target_cache_mb = args.target_cache_mb
     index_build_s = None
     methods = [m for m in args.methods.split(",") if m]
     if (args.reloc_frames > 0 or "hinted" in methods) and not store.files.is_remote:
@@ -407,6 +412,8 @@ def run(argv: list[str]) -> dict:
     starts: list[dict] = []  # --follow-up: the session's no-hint start from each frame
     cpu_s = {name: [] for name in reloc_modes}  # CPU time per frame (a loaded machine stretches the wall clock)
     index_load_s = None
+    tcache = loc.target_cache  # its entries at the start of the no-hint frames (filled by the hinted ones)
+    cache_before = (len(tcache), tcache.misses) if tcache is not None else None
     rframes = np.sort(rng.choice(np.arange(20, len(seq)), size=min(args.reloc_frames, len(seq) - 20), replace=False))
     # The anchor: KISS-Matcher against the whole map (when it fits) and, as its best case, against the
     # local map around the ground truth (what a perfect candidate generator would hand it); each result
@@ -581,6 +588,17 @@ def run(argv: list[str]) -> dict:
                              f"{args.kiss_map_max_points:,} (`--kiss-map-max-points`).")
         if starts:
             lines += start_lines(starts, args.follow_up, results)
+        if tcache is not None:
+            results["target_cache"] = {"entries": len(tcache), "mb": tcache.nbytes / 1e6,
+                                       "built_in_reloc": tcache.misses - cache_before[1]}
+            lines.append(f"\nRefinement targets assembled from per-entry voxel statistics kept in memory "
+                         f"(`global_init/targets.py`, at most {params.target_cache_mb:g} MB): warm figures. At the "
+                         f"first no-hint frame {cache_before[0]} of the map's {len(store)} entries were kept (the "
+                         f"frames before built them); during the no-hint frames {tcache.misses - cache_before[1]} "
+                         f"entries were built (their cost is in those frames' times); at the end "
+                         f"{len(tcache)} entries, {tcache.nbytes / 1e6:.0f} MB.")
+        elif params.target_cache_mb <= 0:
+            lines.append("\nRefinement targets built from the map points for each search (`--target-cache-mb 0`).")
         failed = results["reloc"]["place index"]["failed"]
         if failed:
             lines.append("\nNot found (place index): " + ", ".join(

@@ -412,6 +412,19 @@ def cell_counts(points, R2, cell_m, lo0, lo1, nx, ny):
 
 
 @njit(cache=True)
+def levelled_cells(points, R2, cell_m):
+    """(N, 2) int64 levelled cells floor(R2 @ p / cell_m) of points (N, 3), computed as
+    ``cell_counts`` computes them (the same cell for the same point, to the last bit)."""
+    out = np.empty((points.shape[0], 2), np.int64)
+    for k in range(points.shape[0]):
+        x = points[k, 0] * R2[0, 0] + points[k, 1] * R2[0, 1] + points[k, 2] * R2[0, 2]
+        y = points[k, 0] * R2[1, 0] + points[k, 1] * R2[1, 1] + points[k, 2] * R2[1, 2]
+        out[k, 0] = np.int64(np.floor(x / cell_m))
+        out[k, 1] = np.int64(np.floor(y / cell_m))
+    return out
+
+
+@njit(cache=True)
 def in_levelled_box(points, R2, x0, y0, x1, y1):
     """(N,) bool: points (N, 3) whose levelled xy lies in [x0, x1] x [y0, y1] (m)."""
     out = np.empty(points.shape[0], np.bool_)

@@ -238,6 +238,20 @@ class StoreMap:
         parts = [self._entry_points(i).in_box(lo_L, hi_L) for i in ids]
         return np.concatenate(parts).astype(np.float64) if parts else np.zeros((0, 3))
 
+    def entries_in(self, lo_L: np.ndarray, hi_L: np.ndarray) -> list[int]:
+        """Indices of the entries whose levelled xy box meets [lo_L, hi_L] (those ``points_in_box``
+        reads)."""
+        return self._entries_in(lo_L, hi_L)
+
+    def entry_key(self, i: int) -> str:
+        """What identifies entry i's content: its sha256 (its id and size without one)."""
+        e = self.store.entries[i]
+        return e.sha256 or f"{self.store.path}:{e.id}:{e.num_points}"
+
+    def entry_points(self, i: int) -> np.ndarray:
+        """All of entry i's points (N, 3) float32, map frame (memory-mapped where cached)."""
+        return self._entry_points(i).points
+
     def _entry_points(self, i: int) -> "_BucketedPoints":
         """Entry i's points bucketed by levelled cell. An entry with a sha256 is written once to the
         on-disk cache and memory-mapped from there: a box query reads only its buckets' pages, and

@@ -79,6 +79,9 @@ class InitParams(GlobalInitParams):
     max_ndt_points: int = 3000
     ambiguity_score_ratio: float = 0.8  # once one is verified, refine others only above this x best
     refine_range_m: float = 50.0
+    # refinement targets assembled from per-entry voxel statistics kept between searches, at most
+    # this many MB (``targets.TargetCache``; 0: every target built from its points)
+    target_cache_mb: float = 1024.0
     max_regions: int = 0  # 0: every region of the map
     num_threads: int = 2  # the registration section's
     # no-hint relocalization through the place index

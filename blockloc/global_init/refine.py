@@ -80,6 +80,18 @@ class Footprint:
             floor = max(3.0, min_share * float(np.median(counts)))
             self.keys = keys[counts >= floor]
 
+    @classmethod
+    def from_counts(cls, R_L_map: np.ndarray, cell_m: float, min_share: float, lo: np.ndarray,
+                    counts: np.ndarray) -> "Footprint":
+        """The footprint of map points counted per levelled cell: ``counts`` (NX, NY) over cells
+        [lo, lo + (NX, NY)) (``lo`` (2,) int): the same as built from the points themselves."""
+        fp = cls(np.zeros((0, 3)), R_L_map, cell_m, min_share)
+        counts = np.asarray(counts)
+        if counts.size and counts.any():
+            floor = max(3.0, min_share * float(np.median(counts[counts > 0])))
+            fp._lo, fp._grid = np.asarray(lo, np.int64).reshape(2), counts >= floor
+        return fp
+
     def _cells(self, xy_L: np.ndarray) -> np.ndarray:
         return np.floor(np.asarray(xy_L, float).reshape(-1, 2) / self.cell_m).astype(np.int64)
 
@@ -117,6 +129,14 @@ class Refiner:
         self._target = engine.build_target(pts)
         self.footprint = (Footprint(pts, np.eye(3) if R_L_map is None else R_L_map, footprint_cell_m,
                                     footprint_min_share) if footprint_cell_m > 0 else None)
+
+    @classmethod
+    def from_target(cls, engine, target, footprint: Footprint | None) -> "Refiner":
+        """A refiner of a target ``engine`` built already (``targets.TargetCache``), with its
+        footprint (None: every point counts)."""
+        ref = cls.__new__(cls)
+        ref.engine, ref._target, ref.footprint = engine, target, footprint
+        return ref
 
     def overlapping(self, points_body: np.ndarray, T_map_body: np.ndarray) -> np.ndarray:
         """(N,) bool: the points (N, 3), body frame, that fall inside the footprint at ``T_map_body``

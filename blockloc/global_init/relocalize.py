@@ -75,6 +75,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         self._coverage_source = None
         self._index_load_s = 0.0
         self._structure_body = None  # the scan's points the structure test uses (set by _refine)
+        self._target_cache = None  # built on first use (target_cache); False: not usable
 
     @property
     def place_index(self):
@@ -90,6 +91,21 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             # without the compile: the caller's own clock counts it (once) as compile time
             self._index_load_s = max(0.0, time.perf_counter() - t - jit.seconds)
         return self._place_index
+
+    @property
+    def target_cache(self):
+        """Refinement targets from per-entry statistics kept between searches (``targets``), or
+        None where they cannot be (another engine, an array map, a tilted levelled frame) or
+        ``target_cache_mb`` is 0."""
+        if self._target_cache is None:
+            from blockloc.global_init.targets import TargetCache
+
+            p = self.params
+            self._target_cache = (TargetCache(self.engine, self.map.R_L_map, p.footprint_cell_m, p.footprint_min_share,
+                                              int(p.target_cache_mb * 1e6))
+                                  if p.target_cache_mb > 0 and TargetCache.usable(self.engine, self.map,
+                                                                                  self.map.R_L_map) else False)
+        return None if self._target_cache is False else self._target_cache
 
     @property
     def place_source(self):
@@ -133,6 +149,8 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         t0 = time.perf_counter()
         p = self.params
         _check_args(window_m, yaw_window_deg)
+        if self.target_cache is not None:
+            self.target_cache.begin_search()
         scan, scan_ndt = self.prepare_scan(points_body, gravity_body)
         if hint_yaw is None:
             theta_c, yaw_win = 0.0, 2 * math.pi
@@ -258,9 +276,13 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             for centre, ref in targets:
                 if np.all(np.abs(xy - centre) <= 0.5 * d):
                     return ref
-            pts = self.map.points_in_box(xy - d, xy + d)
-            ref = Refiner(self.engine, pts, self.map.R_L_map, p.footprint_cell_m,
-                          p.footprint_min_share) if len(pts) >= 100 else None
+            cache = self.target_cache
+            if cache is not None and cache.ready(self.map, xy - d, xy + d):
+                ref = cache.refiner(self.map, xy - d, xy + d, min_points=100)
+            else:
+                pts = self.map.points_in_box(xy - d, xy + d)
+                ref = Refiner(self.engine, pts, self.map.R_L_map, p.footprint_cell_m,
+                              p.footprint_min_share) if len(pts) >= 100 else None
             targets.append((xy, ref))
             return ref
 

@@ -124,6 +124,20 @@ class NdtEngine:
 
         return NdtTarget.from_tiles(tiles, **self.target_options)
 
+    def tile_stats(self, points):
+        """Voxel statistics of points (N, 3) at this engine's target settings, reusable across
+        targets (``target_from_tile_stats``; global init keeps them per map entry)."""
+        from blockloc.registration.ndt import NdtTarget
+
+        return NdtTarget(**self.target_options).tile_stats(points)
+
+    def target_from_tile_stats(self, tiles):
+        """The target of ``{key: tile_stats}`` (``NdtTarget.from_tile_stats``): the same target as
+        ``build_tiled_target`` of the points they were computed from."""
+        from blockloc.registration.ndt import NdtTarget
+
+        return NdtTarget.from_tile_stats(tiles, **self.target_options)
+
     def update_tiles(self, target, add, remove):
         for key in remove:
             target.remove_tile(key)

@@ -179,6 +179,33 @@ class _TileStats:
     levels: tuple[_LevelStats, ...]  # finest first, resolution doubling per level
     num_points: int
 
+    def select_columns(self, lo: np.ndarray, hi: np.ndarray) -> _TileStats:
+        """The voxels whose finest-level column (ix, iy) lies in [lo, hi) ((2,) int each, finest
+        voxel indices, multiples of 2**coarse_levels so that every coarse voxel is kept whole or
+        dropped whole): statistics and Gaussians as they are, ``num_points`` their points."""
+        lo = np.asarray(lo, np.int64).reshape(2)
+        hi = np.asarray(hi, np.int64).reshape(2)
+        if np.any(lo % (1 << (len(self.levels) - 1))) or np.any(hi % (1 << (len(self.levels) - 1))):
+            raise RegistrationError(f"voxel columns [{lo}, {hi}): expected multiples of "
+                                    f"{1 << (len(self.levels) - 1)} (whole coarse voxels)")
+        levels = []
+        for level, lv in enumerate(self.levels):
+            ijk = _kernels().unpack_keys(lv.keys)
+            a, b = lo >> level, hi >> level
+            keep = (ijk[:, 0] >= a[0]) & (ijk[:, 0] < b[0]) & (ijk[:, 1] >= a[1]) & (ijk[:, 1] < b[1])
+            levels.append(_LevelStats(*(getattr(lv, f)[keep] for f in ("keys", "count", "sums", "outer",
+                                                                        "means", "icov", "valid"))))
+        return _TileStats(tuple(levels), int(levels[0].count.sum()) if levels else 0)
+
+    @property
+    def nbytes(self) -> int:
+        return sum(getattr(lv, f).nbytes for lv in self.levels
+                   for f in ("keys", "count", "sums", "outer", "means", "icov", "valid"))
+
+
+#: The voxel statistics of one tile at every level (``NdtTarget.tile_stats``).
+TileStats = _TileStats
+
 
 @dataclass(frozen=True)
 class _Snapshot:
@@ -272,6 +299,27 @@ class NdtTarget:
             target._tiles[key] = target._tile_stats(xyz)
         target._rebuild()
         return target
+
+    @classmethod
+    def from_tile_stats(cls, tiles: Mapping[Hashable, _TileStats], resolution: float = 1.0,
+                        min_points_per_voxel: int = 6, eigenvalue_ratio: float = 0.01,
+                        coarse_levels: int = 1) -> NdtTarget:
+        """Target from tiles' statistics (``tile_stats`` of a target with the same settings, or
+        ``TileStats.select`` of them): the voxels that several tiles share get the Gaussian of their
+        summed statistics, as ``from_tiles`` does; nothing is voxelized again."""
+        target = cls(resolution, min_points_per_voxel, eigenvalue_ratio, coarse_levels)
+        for key, stats in tiles.items():
+            if len(stats.levels) != target.coarse_levels + 1:
+                raise RegistrationError(f"tile {key!r}: {len(stats.levels)} levels, expected "
+                                        f"{target.coarse_levels + 1}")
+            target._tiles[key] = stats
+        target._rebuild()
+        return target
+
+    def tile_stats(self, points: np.ndarray) -> _TileStats:
+        """The voxel statistics of points (N, 3), map frame, metres, at this target's settings
+        (every level), for ``from_tile_stats``."""
+        return self._tile_stats(_as_points(points, "tile points", 1))
 
     def add_tile(self, key: Hashable, points: np.ndarray) -> None:
         """Add (or replace) a tile: voxelizes only its points, then swaps in a new search

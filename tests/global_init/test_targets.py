@@ -1,0 +1,133 @@
+"""Refinement targets assembled from per-entry statistics equal those built from the box's points."""
+
+import numpy as np
+import pytest
+
+from blockloc.global_init.maps import StoreMap
+from blockloc.global_init.refine import Refiner
+from blockloc.global_init.targets import TargetCache, axis_aligned
+from blockloc.maps.store import MapWriter, open_map
+from blockloc.registration.engines import make_engine
+
+from .synthetic import GRAVITY_Z_DOWN, Z_DOWN, world_up
+
+
+def _store(path, pts, tile=30.0):
+    keys = np.floor(pts[:, :2] / tile).astype(int)
+    with MapWriter(path, "grid", params={"tile_size_m": tile}) as w:
+        for k in np.unique(keys, axis=0):
+            w.add(f"{k[0]}_{k[1]}", pts[np.all(keys == k, axis=1)].astype(np.float32))
+        w.commit()
+    return open_map(path)
+
+
+def _sorted_level(target, level):
+    snap = target.snapshot(level)
+    order = np.argsort(snap.keys)
+    return snap.keys[order], snap.counts[order], snap.gauss[order]
+
+
+def _footprint_cells(fp):
+    return {tuple(c) for c in np.argwhere(fp._grid) + fp._lo} if fp._grid is not None else set()
+
+
+@pytest.fixture(scope="module")
+def maps(tmp_path_factory):
+    """The same world stored in 30 m tiles, z-down (levelled y reversed) and z-up."""
+    root = tmp_path_factory.mktemp("targets")
+    pts_up = world_up(seed=3, size=90.0).astype(np.float32).astype(np.float64)
+    down = _store(root / "down", pts_up @ Z_DOWN.T)
+    up = _store(root / "up", pts_up)
+    return {"down": StoreMap(down, GRAVITY_Z_DOWN, cache_dir=root / "cache"),
+            "up": StoreMap(up, -GRAVITY_Z_DOWN, cache_dir=root / "cache")}
+
+
+# boxes (levelled frame): across tile edges, half off the map, smaller than a coarse voxel (no core),
+# and edges on voxel boundaries
+BOXES = [((-20.3, -31.7), (29.9, 18.4)), ((10.0, 10.0), (80.0, 80.0)), ((3.2, -4.1), (4.9, -2.6)),
+         ((-30.0, -30.0), (30.0, 30.0)), ((-50.0, -50.0), (50.0, 50.0))]
+
+
+@pytest.mark.parametrize("frame", ["down", "up"])
+def test_assembled_targets_equal_targets_built_from_the_points(maps, frame):
+    smap = maps[frame]
+    assert axis_aligned(smap.R_L_map)
+    engine = make_engine("ndt", resolution_m=1.0)
+    cache = TargetCache(engine, smap.R_L_map, 1.0, 0.25, max_bytes=10**9)
+    assert cache.usable(engine, smap, smap.R_L_map)
+    for lo, hi in BOXES:
+        lo, hi = np.array(lo), np.array(hi)
+        pts = smap.points_in_box(lo, hi)
+        want = Refiner(engine, pts, smap.R_L_map, 1.0, 0.25)
+        got = cache.refiner(smap, lo, hi, min_points=1)
+        for level in (0, 1):
+            k0, c0, g0 = _sorted_level(want._target, level)
+            k1, c1, g1 = _sorted_level(got._target, level)
+            np.testing.assert_array_equal(k1, k0)  # the same voxels, the same points in each
+            np.testing.assert_array_equal(c1, c0)
+            np.testing.assert_allclose(g1, g0, rtol=1e-9, atol=1e-9)  # the same sums, another order
+        assert _footprint_cells(got.footprint) == _footprint_cells(want.footprint) != set()
+        # the same verdict inputs: inlier ratio of the map's own points at identity
+        probe = pts[:: max(1, len(pts) // 2000)]
+        assert got.inlier_ratio(probe, np.eye(4)) == want.inlier_ratio(probe, np.eye(4))
+    assert cache.misses == len(smap.store.entries) and cache.hits > 0  # each entry built once
+
+
+def test_the_cache_stays_within_its_budget_and_rebuilds_what_it_dropped(maps):
+    smap = maps["down"]
+    engine = make_engine("ndt", resolution_m=1.0)
+    full = TargetCache(engine, smap.R_L_map, 1.0, 0.25, max_bytes=10**9)
+    full.refiner(smap, np.array([-50.0, -50.0]), np.array([50.0, 50.0]))
+    one = max(e.nbytes for e in full._entries.values())
+    budget = int(1.5 * one)
+    assert full.nbytes > budget  # the box's entries do not all fit
+    small = TargetCache(engine, smap.R_L_map, 1.0, 0.25, max_bytes=budget)
+    lo, hi = np.array([-50.0, -50.0]), np.array([50.0, 50.0])
+    first = small.refiner(smap, lo, hi)
+    assert 0 < small.nbytes <= budget
+    n = len(smap.entries_in(lo, hi))
+    again = small.refiner(smap, lo, hi)
+    assert small.nbytes <= budget and small.misses > n  # dropped entries were built again
+    np.testing.assert_array_equal(_sorted_level(again._target, 0)[1], _sorted_level(first._target, 0)[1])
+    # an entry larger than a quarter of the budget is refined from its points instead, even when
+    # an earlier search asked for it
+    big = TargetCache(engine, smap.R_L_map, 1.0, 0.25, max_bytes=one)
+    for _ in range(2):
+        big.begin_search()
+        assert not big.ready(smap, lo, hi)
+
+
+def test_a_tilted_levelled_frame_or_another_engine_is_not_assembled(maps):
+    smap = maps["down"]
+    c, s = np.cos(0.01), np.sin(0.01)
+    tilted = np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    assert not axis_aligned(tilted)
+    assert not TargetCache.usable(make_engine("ndt"), smap, tilted)
+    assert not TargetCache.usable(object(), smap, smap.R_L_map)
+
+
+def test_the_localizer_refines_on_assembled_targets_and_finds_the_same_pose(maps):
+    # A first search builds its targets from the points (a one-shot `blockloc init` pays no
+    # statistics); the next search keeps the entries the first asked for and assembles its targets:
+    # the same verdict, the same pose to rounding, as targets built from the points.
+    from blockloc.geometry import xyzrpy_to_T
+    from blockloc.global_init.relocalize import GlobalLocalizer, InitParams
+
+    from .synthetic import gravity_body, scan_from
+
+    smap = maps["down"]
+    world = smap.points_in_box(*smap.bounds_L())
+    T_true = xyzrpy_to_T(6.0, 4.0, -(1.9 + 0.02 * 6.0), 0.03, -0.02, 2.4)
+    scan, g = scan_from(world, T_true), gravity_body(T_true)
+    loc = GlobalLocalizer(smap, InitParams(use_place_index=False, target_cache_mb=64.0))
+    first = loc.localize(scan, g, hint_xy=(8.0, 2.0), window_m=10.0)
+    assert loc.target_cache.misses == 0 and len(loc.target_cache) == 0  # one-shot: nothing kept
+    second = loc.localize(scan, g, hint_xy=(8.0, 2.0), window_m=10.0)
+    assert loc.target_cache.misses > 0 and len(loc.target_cache) > 0
+    off = GlobalLocalizer(smap, InitParams(use_place_index=False, target_cache_mb=0.0))
+    assert off.target_cache is None
+    base = off.localize(scan, g, hint_xy=(8.0, 2.0), window_m=10.0)
+    for res in (first, second):
+        assert res.verified and base.verified and res.ambiguous == base.ambiguous
+        np.testing.assert_allclose(res.T_map_body, base.T_map_body, atol=1e-6)
+        assert res.fitness == pytest.approx(base.fitness, abs=1e-9)
