@@ -507,3 +507,19 @@ def test_sector_reach_keeps_every_ray_whose_range_meets_a_disc():
     assert meets.sum() > 300 and kept[meets].all()
     assert kept[:80].all()
     assert (~kept).sum() > 0.2 * n
+
+
+def test_gauss_markov_recursion_gives_lfilters_bits():
+    """The IMU's bias instability is filtered without scipy.signal: the bits of
+    ``lfilter([1], [1, -phi], w, axis=0)`` it replaced (empty, one sample, a long run)."""
+    from scipy.signal import lfilter
+
+    from blockloc.sim.stream import _ar1
+
+    g = np.random.default_rng(4)
+    phi = float(np.exp(-0.01 / 300.0))
+    for n in (0, 1, 2, 5000):
+        w = g.normal(0.0, 0.02, (n, 3))
+        want = lfilter([1.0], [1.0, -phi], w, axis=0)
+        got = _ar1(w, phi)
+        assert got.dtype == want.dtype and got.shape == want.shape and got.tobytes() == want.tobytes()
