@@ -446,3 +446,93 @@ def hit_categories(rng_, tri, tri_cat, reflect_by_cat):
         cat[i] = c
         refl[i] = reflect_by_cat[c]
     return cat, refl
+
+
+@njit(cache=True, nogil=True)
+def _pseudo_angle(x, y):
+    """A number in [0, 4) growing with the angle atan2(y, x) in [0, 2 pi) (NaN at x = y = 0):
+    the sector lookups below need the order of angles, not their values (no atan2 a ray)."""
+    s = abs(x) + abs(y)
+    if not s > 0:  # numba raises on a division by zero
+        return np.nan
+    p = x / s
+    return 1.0 - p if y >= 0 else 3.0 + p
+
+
+@njit(cache=True, nogil=True)
+def sector_reach(c0, spread, centers, radii, n_bins):
+    """Per sector (n_bins (B,) equal steps of :func:`_pseudo_angle` round ``c0`` (2,), xy
+    metres), a horizontal distance no ray from within ``spread`` metres of ``c0`` pointing into
+    that sector travels before it can meet one of the discs ``centers`` (K, 2) / ``radii`` (K,)
+    (inf: no disc lies that way). A disc at distance D is met only by directions within
+    asin(r' / D) of its bearing (r' = radius + spread: a ray from anywhere within ``spread`` is
+    a ray from ``c0`` shifted by at most that), and not before D - r'. The sectors a disc
+    touches are widened by one each side (rounding)."""
+    out = np.full(n_bins, np.inf)
+    scale = n_bins / 4.0
+    for k in range(len(centers)):
+        dx = centers[k, 0] - c0[0]
+        dy = centers[k, 1] - c0[1]
+        D = np.hypot(dx, dy)
+        rr = radii[k] + spread
+        near = D - rr
+        if rr >= 0.99 * D:  # c0 inside (or next to) the disc: every direction
+            for b in range(n_bins):
+                out[b] = min(out[b], near)
+            continue
+        beta = np.arcsin(rr / D)
+        alpha = np.arctan2(dy, dx)
+        lo = int(np.floor(_pseudo_angle(np.cos(alpha - beta), np.sin(alpha - beta)) * scale)) - 1
+        hi = int(np.floor(_pseudo_angle(np.cos(alpha + beta), np.sin(alpha + beta)) * scale)) + 1
+        if lo <= hi:
+            for b in range(lo, hi + 1):
+                out[b % n_bins] = min(out[b % n_bins], near)
+        else:  # the sector wraps through angle 0
+            for b in range(lo, n_bins):
+                out[b] = min(out[b], near)
+            for b in range(0, hi + 1):
+                out[b] = min(out[b], near)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def rays_reaching(dirs, rng_, reach, margin):
+    """Indices (M,) of the rays (directions ``dirs`` (N, 3), ranges ``rng_`` (N,) in their
+    lengths) whose range takes them in xy as far as the :func:`sector_reach` distance ``reach``
+    (B,) of the sector their xy direction points into, less ``margin`` metres. Kept too: rays
+    with no xy direction, or an infinite range."""
+    n = len(rng_)
+    scale = len(reach) / 4.0
+    keep = np.empty(n, np.bool_)
+    m = 0
+    for i in range(n):
+        pa = _pseudo_angle(dirs[i, 0], dirs[i, 1])
+        if np.isfinite(pa) and np.isfinite(rng_[i]):
+            b = min(max(int(pa * scale), 0), len(reach) - 1)
+            lim = reach[b] - margin
+            # range * |xy of dir| < lim, squared (no square root a ray)
+            keep[i] = not (lim > 0 and rng_[i] * rng_[i] * (dirs[i, 0] * dirs[i, 0] + dirs[i, 1] * dirs[i, 1])
+                           < lim * lim)
+        else:
+            keep[i] = True
+        if keep[i]:
+            m += 1
+    out = np.empty(m, np.int64)
+    j = 0
+    for i in range(n):
+        if keep[i]:
+            out[j] = i
+            j += 1
+    return out
+
+
+@njit(cache=True, nogil=True)
+def xy_spread(origins, c0):
+    """The largest xy distance (m) of any of ``origins`` (N, 3) from ``c0`` (2,) (a bound:
+    the hypot of the largest distances per axis)."""
+    mx = 0.0
+    my = 0.0
+    for i in range(len(origins)):
+        mx = max(mx, abs(origins[i, 0] - c0[0]))
+        my = max(my, abs(origins[i, 1] - c0[1]))
+    return np.hypot(mx, my)

@@ -87,17 +87,48 @@ def _render(preset: Preset, session: str, seed: int, start: int, stop: int, enco
     return [encode_frame(f) for f in frames]
 
 
+#: Modules the workers' fork server imports once, before it forks them (~1.2 s of CPU a worker
+#: when each imported them itself).
+PRELOAD = ("numpy", "scipy.interpolate", "open3d", "numba", "blockloc.sim._kernels", "blockloc.sim.stream",
+           "blockloc.sim.scene", "blockloc.datasets.nclt")
+
+
+def _context():
+    """The workers' start method: forked from a fork server that has imported ``PRELOAD`` (and
+    started no thread pool: open3d's and the casts' threads start in each worker), not from
+    this process (its open3d and BLAS threads would not survive a fork); spawned where there is
+    no fork server (not on Linux)."""
+    import multiprocessing
+
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("spawn")
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(list(PRELOAD))
+    return ctx
+
+
+def _stop_fork_server() -> None:
+    """Stop the fork server and wait for it (it has reaped the workers): its CPU, the
+    workers' included, is then this process's children's, as spawned workers' was
+    (``resource.getrusage(RUSAGE_CHILDREN)``: what bench.sim reports); it would otherwise
+    linger until this process exits and be nobody's. The next pool starts another."""
+    try:
+        from multiprocessing import forkserver
+
+        forkserver._forkserver._stop()  # the standard library's own stop (used by its tests)
+    except (AttributeError, OSError, ChildProcessError):
+        pass
+
+
 class FramePool:
-    """Worker processes rendering frames of simulated sessions (``workers`` of them; spawned,
-    not forked: open3d and BLAS threads do not survive a fork). Use as a context manager."""
+    """Worker processes rendering frames of simulated sessions (``workers`` of them, forked from
+    a fork server: :func:`_context`). Use as a context manager."""
 
     def __init__(self, workers: int):
-        import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
         self.workers = int(workers)
-        self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                         initializer=_init_worker)
+        self._pool = ProcessPoolExecutor(self.workers, mp_context=_context(), initializer=_init_worker)
 
     def frames(self, preset: Preset, session: str, seed: int, start: int, stop: int,
                encode: bool = False) -> Iterator[LidarFrame]:
@@ -140,6 +171,7 @@ class FramePool:
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
+        _stop_fork_server()
 
     def __enter__(self) -> "FramePool":
         return self

@@ -33,6 +33,9 @@ KERB_M = 0.12  # sidewalks stand this far above the road
 #: whichever process runs its task). The sensor is within 0.35 h of that centre per axis: rays
 #: see 0.65 h of the world around it (as the window re-centred at 0.35 h did).
 WINDOW_STEP = 0.7
+#: Sectors of bearing round a scan's origin in which the nearest vegetation hull is looked up
+#: (:meth:`SessionScene._rays_near_hulls`).
+SECTORS = 2048
 #: Built windows kept per scene: a drive along a cell border, or through a corner, switches
 #: between up to four without building them again.
 WINDOW_CACHE = 4
@@ -324,6 +327,7 @@ class SessionScene:
                                      o3d.core.Tensor(inv.reshape(-1, 3).astype(np.uint32)))
         self._sel = sel
         self._vol_scene = None
+        self._vol_discs = None
         self._vsel = vsel
         if len(vsel):
             vol = self.world.volumes
@@ -334,6 +338,11 @@ class SessionScene:
             self._vol_scene = o3d.t.geometry.RaycastingScene(nthreads=raycast_threads())
             self._vol_scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)),
                                           o3d.core.Tensor(F.astype(np.uint32)))
+            # each hull's disc in xy: its centre and the farthest vertex (+ 1 cm for the float32
+            # vertices), which the first vegetation pass uses to leave out rays that end short
+            xy = V.reshape(len(vsel), k, 3)[:, :, :2] - vol.center[vsel, None, :2]
+            self._vol_discs = (np.ascontiguousarray(vol.center[vsel, :2]),
+                               np.sqrt((xy * xy).sum(axis=2)).max(axis=1) + 0.01)
 
     def _ensure_window(self, center: np.ndarray) -> None:
         half = self.world.preset.scene_window_m
@@ -346,8 +355,8 @@ class SessionScene:
         built = self._windows.pop(cell, None)
         if built is None:
             self._build((np.asarray(cell, float) + 0.5) * step)
-            built = (self.scene, self._sel, self._vol_scene, self._vsel)
-        self.scene, self._sel, self._vol_scene, self._vsel = built
+            built = (self.scene, self._sel, self._vol_scene, self._vsel, self._vol_discs)
+        self.scene, self._sel, self._vol_scene, self._vsel, self._vol_discs = built
         self._windows[cell] = built  # the newest last
         while len(self._windows) > WINDOW_CACHE:
             self._windows.pop(next(iter(self._windows)))
@@ -564,7 +573,11 @@ class SessionScene:
 
         o3d = self._o3d
         vol = self.world.volumes
-        active = np.arange(len(rng_))
+        # the first pass casts only the rays that could meet a hull before their range: a hull
+        # met at or beyond it is not taken (vegetation_hits), so the others' answers are not read
+        active = self._rays_near_hulls(origins, dirs, rng_)
+        if len(active) < len(rng_):
+            rays = rays[active]
         t_cur = np.zeros(len(rng_))
         fol = self._cat_index["foliage"]
         for k in range(4):
@@ -583,6 +596,20 @@ class SessionScene:
             normals[j] = _random_unit(rng, len(j))
             reflect[j] = ALBEDO["foliage"] * rng.uniform(0.4, 1.4, len(j))
             cat[j] = fol
+
+    def _rays_near_hulls(self, origins, dirs, rng_) -> np.ndarray:
+        """Indices (M,) of the rays (origins, dirs (N, 3), ranges rng_ (N,)) that might meet a
+        vegetation hull before their range: the others point, in xy, into a sector (``SECTORS``
+        round the scan's middle origin) whose nearest hull disc lies farther than their range
+        takes them in xy. Conservative by 5 cm and a sector each side."""
+        from blockloc.sim import _kernels
+
+        if self._vol_discs is None or not len(rng_):
+            return np.arange(len(rng_))
+        c0 = np.ascontiguousarray(origins[len(origins) // 2, :2])
+        reach = _kernels.sector_reach(c0, _kernels.xy_spread(origins, c0), self._vol_discs[0], self._vol_discs[1],
+                                      SECTORS)
+        return _kernels.rays_reaching(dirs, rng_, reach, 0.05)
 
     def actor_mesh(self, t: float, center: np.ndarray, radius: float):
         """Actors within ``radius`` of ``center`` (2,) at time t: (V, F, category per triangle)."""

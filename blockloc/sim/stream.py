@@ -440,12 +440,23 @@ class SimSequence:
 
 def _gauss_markov(rng: np.random.Generator, n: int, dt: float, tau: float, sigma: float) -> np.ndarray:
     """(n, 3) first-order Gauss-Markov process (stationary std ``sigma``, correlation time tau)."""
-    from scipy.signal import lfilter
-
     phi = np.exp(-dt / tau)
     w = rng.normal(0.0, sigma * np.sqrt(1 - phi * phi), (n, 3))
     w[0] = rng.normal(0.0, sigma, 3)
-    return lfilter([1.0], [1.0, -phi], w, axis=0)
+    return _ar1(w, phi)
+
+
+def _ar1(w: np.ndarray, phi: float) -> np.ndarray:
+    """y[k] = w[k] + phi * y[k - 1] along axis 0 of ``w`` (n, d), y[0] = w[0]: the bits of
+    ``scipy.signal.lfilter([1.0], [1.0, -phi], w, axis=0)`` (its recursion adds the same two
+    terms), without importing scipy.signal (~0.3 s of CPU in the writing process)."""
+    y = np.empty_like(w)
+    if len(w):
+        y[0] = w[0]
+    prev = y[0] if len(w) else None
+    for k in range(1, len(w)):
+        prev = y[k] = w[k] + phi * prev
+    return y
 
 
 def open_sim_sequence(preset: str, session: str, seed: int, **overrides) -> SimSequence:

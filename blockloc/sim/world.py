@@ -51,6 +51,8 @@ __all__ = ["ALBEDO", "GROUND_ALBEDO", "MATERIAL_TILES", "MOVABLE_HALF_EXTENT_M",
 #: drives across a world kept every tile it touched, 256 KiB each (a tile is a pure function
 #: of the world: rebuilding one gives the same codes).
 MATERIAL_TILES = 1024
+#: Stacks of tiles :meth:`World.ground_material` keeps (a scan's few sets of tiles).
+MATERIAL_STACKS = 8
 
 
 @dataclass
@@ -73,6 +75,9 @@ class World:
     owners: dict = field(default_factory=dict)
     passages: list[dict] = field(default_factory=list)
     _material: dict = field(default_factory=dict, repr=False)  # (ti, tj) -> tile, LRU order
+    #: tile ids (tuple) -> their tiles stacked (T, n, n / 4), the MATERIAL_STACKS used last: a
+    #: scan looks up the same few tiles ~7 times (hits, kerbs), each time stacking them again
+    _material_stacks: dict = field(default_factory=dict, repr=False, compare=False)
     #: where built raster tiles are shared between processes (get / put by tile id; None: not
     #: shared): set by whoever opens the world (``blockloc.sim.stream.cached_world``)
     material_tiles: Any = field(default=None, repr=False, compare=False)
@@ -112,8 +117,14 @@ class World:
             ids = [(int(i0) + int(k) // int(nj), int(j0) + int(k) % int(nj)) for k in used]
             slot = np.zeros(ni * nj, dtype=np.int64)
             slot[used] = np.arange(len(used))
-        tiles = [self._material_tile(a, b, n, res, tile) for a, b in ids]  # in (ti, tj) order
-        R = tiles[0][None] if len(tiles) == 1 else np.stack(tiles)
+        key = tuple(ids)
+        R = self._material_stacks.pop(key, None)
+        if R is None:
+            tiles = [self._material_tile(a, b, n, res, tile) for a, b in ids]  # in (ti, tj) order
+            R = tiles[0][None] if len(tiles) == 1 else np.stack(tiles)
+        self._material_stacks[key] = R  # re-inserted: the newest last
+        while len(self._material_stacks) > MATERIAL_STACKS:
+            del self._material_stacks[next(iter(self._material_stacks))]
         out[...] = _kernels.material_lookup(R, slot, local.reshape(-1), ti, tj, x, y, tile, res)
         return out
 

@@ -443,3 +443,83 @@ def test_column_poses_at_once_are_the_rotation_and_position_evaluated_apart():
     assert T[:, :3, 3].tobytes() == np.ascontiguousarray(tr.position(t)).tobytes()
     assert np.array_equal(T[:, 3], np.tile([0.0, 0.0, 0.0, 1.0], (len(t), 1)))
     assert tr.T_world_flu(t[11]).tobytes() == T[11:12].tobytes()
+
+
+def test_first_vegetation_pass_leaves_out_only_rays_that_end_short_of_every_hull(monkeypatch):
+    """The first vegetation pass casts only the rays whose range reaches, in xy, the nearest hull
+    disc of their bearing's sector: on the tiny world's sweeps it leaves out most rays, and the
+    cast is bit for bit the one casting every ray (a hull met at or past a ray's range is not
+    taken, so the answers left out were never read)."""
+    from blockloc.sim.scene import SessionScene
+
+    scene, casts = _tiny_sweeps(720)
+    kept = []
+    real = SessionScene._rays_near_hulls
+
+    def counting(self, origins, dirs, rng_):
+        out = real(self, origins, dirs, rng_)
+        kept.append((len(out), len(rng_)))
+        return out
+
+    def run():
+        return [scene.cast_full(o, d, t, 100.0, np.random.default_rng(5 + k)) for k, (o, d, t) in enumerate(casts)]
+
+    monkeypatch.setattr(SessionScene, "_rays_near_hulls", counting)
+    got = run()
+    assert sum(k for k, _ in kept) < 0.6 * sum(n for _, n in kept)  # most rays left out
+    monkeypatch.setattr(SessionScene, "_rays_near_hulls", lambda self, o, d, r: np.arange(len(r)))
+    want = run()
+    assert sum(int((w["cat"] == scene.categories.index("foliage")).sum()) for w in want) > 50
+    for g, w in zip(got, want):
+        for key in ("range", "normal", "reflect", "cat", "glass", "retro"):
+            assert g[key].dtype == w[key].dtype and g[key].tobytes() == w[key].tobytes(), key
+
+
+def test_sector_reach_keeps_every_ray_whose_range_meets_a_disc():
+    """Brute force over random discs and rays from near a point (any direction length, infinite
+    and zero ranges, vertical rays): every ray whose xy segment meets a disc is kept by
+    ``rays_reaching``, and rays far short of every disc are left out."""
+    from blockloc.sim import _kernels
+
+    g = np.random.default_rng(3)
+    centers = g.uniform(-60, 60, (300, 2))
+    radii = g.uniform(0.2, 4.0, 300)
+    c0 = np.array([1.5, -2.0])
+    n = 6000
+    origins = np.c_[c0 + g.uniform(-0.3, 0.3, (n, 2)), g.uniform(0, 2, n)]
+    dirs = g.normal(size=(n, 3)) * g.uniform(0.5, 2.0, (n, 1))
+    dirs[:50, :2] = 0.0  # straight up or down
+    rng_ = g.uniform(0.0, 40.0, n)
+    rng_[50:80] = np.inf
+    spread = _kernels.xy_spread(origins, c0)
+    assert spread <= np.hypot(0.3, 0.3) + 1e-12
+    reach = _kernels.sector_reach(c0, spread, centers, radii, 2048)
+    kept = np.zeros(n, bool)
+    kept[_kernels.rays_reaching(dirs, rng_, reach, 0.05)] = True
+    # the xy segment origin .. origin + range * dir against each disc
+    o, d = origins[:, None, :2], dirs[:, None, :2]
+    s_end = np.where(np.isfinite(rng_), rng_, 1e6)[:, None]
+    rel = centers[None] - o
+    dd = (d * d).sum(axis=2)
+    s = np.clip(np.where(dd > 0, (rel * d).sum(axis=2) / np.where(dd > 0, dd, 1.0), 0.0), 0.0, s_end)
+    gap = np.linalg.norm(rel - d * s[..., None], axis=2)
+    meets = (gap <= radii[None]).any(axis=1)
+    assert meets.sum() > 300 and kept[meets].all()
+    assert kept[:80].all()
+    assert (~kept).sum() > 0.2 * n
+
+
+def test_gauss_markov_recursion_gives_lfilters_bits():
+    """The IMU's bias instability is filtered without scipy.signal: the bits of
+    ``lfilter([1], [1, -phi], w, axis=0)`` it replaced (empty, one sample, a long run)."""
+    from scipy.signal import lfilter
+
+    from blockloc.sim.stream import _ar1
+
+    g = np.random.default_rng(4)
+    phi = float(np.exp(-0.01 / 300.0))
+    for n in (0, 1, 2, 5000):
+        w = g.normal(0.0, 0.02, (n, 3))
+        want = lfilter([1.0], [1.0, -phi], w, axis=0)
+        got = _ar1(w, phi)
+        assert got.dtype == want.dtype and got.shape == want.shape and got.tobytes() == want.tobytes()

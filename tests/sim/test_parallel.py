@@ -29,9 +29,13 @@ def test_a_dataset_written_by_workers_has_the_bytes_of_one_written_in_process(tm
 def test_the_pool_hands_frames_back_in_order_across_chunks_and_runs():
     from blockloc.datasets.nclt import encode_frame
 
+    import resource
+    from multiprocessing import forkserver
+
     p = get_preset("tiny", azimuth_steps=64)
     seq = open_sim_sequence("tiny", "loc", 2, azimuth_steps=64)
     ref_map = open_sim_sequence("tiny", "map", 2, azimuth_steps=64)
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     with FramePool(2) as pool:
         # 21 frames: three chunks, the last short
         got = list(pool.frames(p, "loc", 2, 3, 3 + 21))
@@ -39,6 +43,11 @@ def test_the_pool_hands_frames_back_in_order_across_chunks_and_runs():
         # encoded there
         loc, mapped = pool.runs(p, 2, [("loc", 20, 30), ("map", 5, 5 + 11)], encode=True)
         enc_loc, enc_map = list(loc), list(mapped)
+    # the workers' fork server is stopped and reaped with the pool: its CPU and its workers' (the
+    # imports, 42 frames) count as this process's children's, as spawned workers' did
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    assert forkserver._forkserver._forkserver_pid is None
+    assert after.ru_utime - before.ru_utime > 0.5
     assert [f.index for f in got] == list(range(3, 24))
     for f in (got[0], got[9], got[-1]):
         ref = seq.frame(f.index)
