@@ -263,21 +263,26 @@ def test_ground_raster_tiles_are_shared_between_processes_on_disk(tmp_path, monk
         files = sorted(world.material_tiles.dir.glob("*.npy"))
         assert len(files) >= 2 and all(f.stat().st_size > 512 * 128 for f in files)
         calls = []
+
+        def forget():  # as in another process: no tile nor stack of tiles in memory
+            world._material.clear()
+            world._material_stacks.clear()
+
         monkeypatch.setattr(W.World, "_ground_material_exact",
                             lambda self, *a, **k: calls.append(1) or np.full(len(a[0]), 2))
-        world._material.clear()  # as in another process: nothing in memory
+        forget()
         assert np.array_equal(world.ground_material(x, y), first) and not calls
         files[0].write_bytes(b"not a tile")
-        world._material.clear()
+        forget()
         world.ground_material(x, y)
         assert len(calls) == 1  # the damaged tile only, computed again
         files[1].write_bytes(b"")  # cut short by a crash: np.load raises EOFError
-        world._material.clear()
+        forget()
         world.ground_material(x, y)
         assert len(calls) == 2
         good = np.load(files[-1])
         np.save(files[-1], good.astype(np.int16))  # right shape, wrong type: not a tile of ours
-        world._material.clear()
+        forget()
         world.ground_material(x, y)
         assert len(calls) == 3
     finally:

@@ -44,7 +44,7 @@ def test_windows_hold_no_terrain_and_share_the_worlds_terrain_scene():
         seq.frame(i)
     scene = seq.scene
     assert 2 <= len(scene._windows) <= WINDOW_CACHE
-    for _, sel, _, _ in scene._windows.values():
+    for _, sel, *_ in scene._windows.values():
         assert len(sel) and not np.any(scene._tri_cat[sel] == scene.terrain_cat)
     loc = SessionScene(seq.world, session_movables(seq.world, "loc", False), make_actors(seq.world, "loc"), "loc")
     loc.distance(np.zeros((1, 3)))  # builds its first window
