@@ -405,8 +405,9 @@ def _build_block_map(world: SmallWorld, cfg: Config, say: Callable[[str], None],
     t0 = time.perf_counter()
     seq = open_sequence(world.mapping, dataset_cfg=cfg.dataset)
     # as `blockloc map build` does by default (map.calibrate_mounting), so the demo shows the defaults
-    store = build_map(seq, "block", world.block_map, cfg.map, overwrite=True, progress=progress)
-    say(f"block map: {len(store)} blocks in {time.perf_counter() - t0:.0f} s")
+    build_map(seq, "block", world.block_map, cfg.map, overwrite=True, progress=progress)
+    store = add_place_index(world.block_map, seq.info.gravity_map, cfg)  # `map build` stores one too
+    say(f"block map: {len(store)} blocks and a place index in {time.perf_counter() - t0:.0f} s")
     return world.block_map
 
 
