@@ -56,3 +56,16 @@ def scan_from(world_map, T_map_body, radius=40.0, noise=0.02, seed=1):
 
 def gravity_body(T_map_body, gravity_map=GRAVITY_Z_DOWN):
     return T_map_body[:3, :3].T @ gravity_map
+
+
+def grid_store(path, pts, tile=30.0):
+    """``pts`` (N, 3) written as a grid store of ``tile`` m tiles at ``path``; the opened store."""
+    from blockloc.maps.store import MapWriter, open_map
+
+    keys = np.floor(pts[:, :2] / tile).astype(int)
+    with MapWriter(path, "grid", params={"tile_size_m": tile}) as w:
+        for k in np.unique(keys, axis=0):
+            w.add(f"{k[0]}_{k[1]}", pts[np.all(keys == k, axis=1)].astype(np.float32))
+        w.commit()
+    return open_map(path)
+

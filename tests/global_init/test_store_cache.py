@@ -3,23 +3,14 @@
 import numpy as np
 
 from blockloc.global_init.maps import ArrayMap, ProjectionParams, StoreMap
-from blockloc.maps.store import MapWriter, open_map
+from blockloc.maps.store import open_map
 
-from .synthetic import GRAVITY_Z_DOWN, Z_DOWN, world_up
-
-
-def _store(path, pts, tile=30.0):
-    keys = np.floor(pts[:, :2] / tile).astype(int)
-    with MapWriter(path, "grid", params={"tile_size_m": tile}) as w:
-        for k in np.unique(keys, axis=0):
-            w.add(f"{k[0]}_{k[1]}", pts[np.all(keys == k, axis=1)].astype(np.float32))
-        w.commit()
-    return open_map(path)
+from .synthetic import GRAVITY_Z_DOWN, Z_DOWN, grid_store, world_up
 
 
 def test_cached_pyramids_are_reused_and_match_the_whole_map(tmp_path, monkeypatch):
     pts = (world_up(seed=21, size=80.0) @ Z_DOWN.T).astype(np.float32).astype(np.float64)
-    store = _store(tmp_path / "map", pts)
+    store = grid_store(tmp_path / "map", pts)
     params = ProjectionParams()
     first = StoreMap(store, GRAVITY_Z_DOWN, params, cache_dir=tmp_path / "cache")
     assert first.precompute() == len(store.entries) > 1
@@ -66,7 +57,7 @@ def test_entry_points_are_memory_mapped_from_the_cache_and_box_queries_match(tmp
     # The first map object writes each entry's sorted points; a second maps them (no PCD decode,
     # nothing held in memory) and its box queries return exactly the points of a fresh decode.
     pts = (world_up(seed=22, size=80.0) @ Z_DOWN.T).astype(np.float32).astype(np.float64)
-    store = _store(tmp_path / "map", pts)
+    store = grid_store(tmp_path / "map", pts)
     first = StoreMap(store, GRAVITY_Z_DOWN, ProjectionParams(), cache_dir=tmp_path / "cache")
     first.precompute(points=True)
     second = StoreMap(open_map(tmp_path / "map"), GRAVITY_Z_DOWN, ProjectionParams(), cache_dir=tmp_path / "cache")

@@ -6,19 +6,9 @@ import pytest
 from blockloc.global_init.maps import StoreMap
 from blockloc.global_init.refine import Refiner
 from blockloc.global_init.targets import TargetCache, axis_aligned
-from blockloc.maps.store import MapWriter, open_map
 from blockloc.registration.engines import make_engine
 
-from .synthetic import GRAVITY_Z_DOWN, Z_DOWN, world_up
-
-
-def _store(path, pts, tile=30.0):
-    keys = np.floor(pts[:, :2] / tile).astype(int)
-    with MapWriter(path, "grid", params={"tile_size_m": tile}) as w:
-        for k in np.unique(keys, axis=0):
-            w.add(f"{k[0]}_{k[1]}", pts[np.all(keys == k, axis=1)].astype(np.float32))
-        w.commit()
-    return open_map(path)
+from .synthetic import GRAVITY_Z_DOWN, Z_DOWN, grid_store, world_up
 
 
 def _sorted_level(target, level):
@@ -36,8 +26,8 @@ def maps(tmp_path_factory):
     """The same world stored in 30 m tiles, z-down (levelled y reversed) and z-up."""
     root = tmp_path_factory.mktemp("targets")
     pts_up = world_up(seed=3, size=90.0).astype(np.float32).astype(np.float64)
-    down = _store(root / "down", pts_up @ Z_DOWN.T)
-    up = _store(root / "up", pts_up)
+    down = grid_store(root / "down", pts_up @ Z_DOWN.T)
+    up = grid_store(root / "up", pts_up)
     return {"down": StoreMap(down, GRAVITY_Z_DOWN, cache_dir=root / "cache"),
             "up": StoreMap(up, -GRAVITY_Z_DOWN, cache_dir=root / "cache")}
 
