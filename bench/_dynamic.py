@@ -31,12 +31,9 @@ def _raw(scans, up):
 
 
 def _ours(scans, up, params=None):
-    from blockloc.maps.dynamic_removal import DynamicParams, dynamic_voxels, scan_evidence, static_mask
+    from blockloc.maps.dynamic_removal import DynamicParams, static_masks
 
-    params = params or DynamicParams()
-    ev = scan_evidence(((T[:3, 3], p) for p, T in scans), params, up=up)
-    keys = dynamic_voxels(ev, params, up)
-    return [static_mask(p, keys, params.voxel_m) for p, _ in scans]
+    return static_masks([(T[:3, 3], p) for p, T in scans], range(len(scans)), params or DynamicParams(), up)
 
 
 def _dufomap(scans, up, d_p=DUFOMAP_PARAMS["d_p"]):

@@ -35,6 +35,7 @@ def filter_scores(seq_name: str, frames: int) -> dict:
     """SA / DA / AA (%) of the build's filter on the keyframes of ``seq_name``'s first ``frames``
     frames, with point counts and the filter's CPU seconds."""
     from blockloc.app.catalog import open_sequence
+    from blockloc.geometry import up_from_gravity
     from blockloc.maps.block_maps import KEYFRAMES_PER_RUN
     from blockloc.maps.build_tasks import dynamic_filter
     from blockloc.maps.dynamic_removal import DynamicParams, static_masks
@@ -47,8 +48,7 @@ def filter_scores(seq_name: str, frames: int) -> dict:
     plan = plan_keyframes(seq, keyframe_distance_m=1.0, keyframe_angle_deg=15.0, stop=frames)
     traj = mapping_poses_or_fail(seq)
     T_body_lidar = np.asarray(seq.info.T_body_lidar, np.float64)
-    g = np.asarray(seq.info.gravity_map, np.float64)
-    up = -g / np.linalg.norm(g)
+    up = up_from_gravity(seq.info.gravity_map)
     params = DynamicParams()
     cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # frame -> (map points, moving labels)
 

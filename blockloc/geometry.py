@@ -13,6 +13,12 @@ from dataclasses import dataclass
 import numpy as np
 
 
+def up_from_gravity(gravity: np.ndarray) -> np.ndarray:
+    """(3,) unit vector against ``gravity`` (3,), in its frame (a z-down map's: -z)."""
+    g = np.asarray(gravity, np.float64).reshape(3)
+    return -g / np.linalg.norm(g)
+
+
 def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """(3, 3) rotation and (3,) translation -> (4, 4) transform."""
     T = np.eye(4)

@@ -75,8 +75,9 @@ class GravityEstimate:
 def up_hint_from_gravity_map(gravity_map: np.ndarray) -> np.ndarray:
     """(3,) the up direction of a level body whose axes match the map's: -gravity_map / |g|
     (z-up maps: +z; NCLT-style z-down maps: -z)."""
-    g = np.asarray(gravity_map, np.float64).reshape(3)
-    return -g / np.linalg.norm(g)
+    from blockloc.geometry import up_from_gravity
+
+    return up_from_gravity(gravity_map)
 
 
 def _planar_cells(points: np.ndarray, cell_m: float, planarity: float, min_points: int = 6):

@@ -505,12 +505,12 @@ def _task_clouds(drive: Drive, frames: list[int], deskew: bool, skipped: list,
     evidence (it is not counted as skipped: the task that owns it counts it)."""
     if dynamic is None:
         return list(_keyframe_clouds(drive, frames, deskew, skipped)), 0
+    from blockloc.geometry import up_from_gravity
     from blockloc.maps.dynamic_removal import static_masks
 
     own = set(int(f) for f in frames)
     seq = _opened(drive)[0]
-    g = np.asarray(getattr(seq.info, "gravity_map", (0.0, 0.0, -9.81)), np.float64)
-    up = -g / np.linalg.norm(g) if np.linalg.norm(g) > 0 else None
+    up = up_from_gravity(getattr(seq.info, "gravity_map", (0.0, 0.0, -9.81)))
     evidence, read = [], {}  # read: own frame -> (index in evidence, intensity)
     for f, origin in zip(dynamic.frames, dynamic.origins):
         got = list(_keyframe_clouds(drive, [f], deskew, skipped if f in own else []))

@@ -21,7 +21,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from blockloc.maps.changes.detect import Evidence, voxel_keys
+from blockloc.maps.changes.detect import Evidence, in_sorted, voxel_keys
 
 
 @dataclass(frozen=True)
@@ -100,11 +100,7 @@ def dynamic_voxels(ev: Evidence, params: DynamicParams = DynamicParams(), up: np
 
 def static_mask(points: np.ndarray, dynamic_keys: np.ndarray, voxel_m: float) -> np.ndarray:
     """(N,) bool: points (N, 3) outside every dynamic voxel (sorted keys of edge ``voxel_m``)."""
-    keys = voxel_keys(points, voxel_m)
-    if not len(dynamic_keys):
-        return np.ones(len(keys), bool)
-    j = np.minimum(np.searchsorted(dynamic_keys, keys), len(dynamic_keys) - 1)
-    return dynamic_keys[j] != keys
+    return ~in_sorted(voxel_keys(points, voxel_m), dynamic_keys)
 
 
 def static_masks(evidence: list[tuple[np.ndarray, np.ndarray]], own: Iterable[int],

@@ -26,6 +26,7 @@ from typing import Callable
 
 import numpy as np
 
+from blockloc.geometry import up_from_gravity
 from blockloc.maps.changes.detect import (Evidence, Thresholds, VoxelChanges, block_report, classify,
                                           dilate_keys, ground_band, in_sorted, seen_by_keyframes, voxel_keys,
                                           without_lowest)
@@ -107,8 +108,7 @@ def detect_changes(store, sequence, run: RunPoses, *, voxel_m: float = 0.5, max_
 
     info = sequence.info
     T_body_lidar = np.asarray(info.T_body_lidar, float)
-    g = np.asarray(getattr(info, "gravity_map", (0.0, 0.0, -9.81)), float)
-    up = -g / np.linalg.norm(g)
+    up = up_from_gravity(getattr(info, "gravity_map", (0.0, 0.0, -9.81)))
     # the blocks the run came near
     pos = run.T_map_body[:, :3, 3] if len(run) else np.zeros((0, 3))
     blocks, keyframes = {}, {}
