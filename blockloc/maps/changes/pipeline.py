@@ -21,6 +21,7 @@ test because a flat ground agrees with any horizontally shifted pose.
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -30,7 +31,7 @@ from blockloc.geometry import up_from_gravity
 from blockloc.maps.changes.detect import (Evidence, Thresholds, VoxelChanges, block_report, classify,
                                           dilate_keys, ground_band, in_sorted, seen_by_keyframes, voxel_keys,
                                           without_lowest)
-from blockloc.maps.changes.runs import RunPoses
+from blockloc.maps.changes.runs import TRUSTED_STATUS, RunPoses
 
 log = logging.getLogger(__name__)
 
@@ -80,18 +81,243 @@ def scan_agreement(points_map: np.ndarray, origin: np.ndarray, up: np.ndarray, m
     return float(in_sorted(voxel_keys(sel, voxel_m), map_near).mean())
 
 
+def _sweep(before, at, after, max_gap_s: float):
+    """The poses to deskew the sweep ``at`` with: ``before`` and ``after`` (stamp, T_map_body) or
+    None, each kept only within ``max_gap_s`` of ``at`` (a :class:`~blockloc.geometry.Trajectory`)."""
+    from blockloc.geometry import Trajectory
+
+    near = [p for p in (before,) if p is not None and at[0] - p[0] <= max_gap_s] + [at]
+    near += [p for p in (after,) if p is not None and p[0] - at[0] <= max_gap_s]
+    return Trajectory(np.array([p[0] for p in near], float), np.stack([p[1] for p in near]))
+
+
 def sweep_poses(run: RunPoses, k: int, max_gap_s: float = 0.3):
     """The run's trusted poses around its ``k``-th (a :class:`~blockloc.geometry.Trajectory`)
     to deskew that frame's sweep with: its neighbours within ``max_gap_s`` of it (across a gap in
     the trusted frames the pose is held, never interpolated over the gap)."""
-    from blockloc.geometry import Trajectory
+    pose = lambda j: (float(run.stamps[j]), run.T_map_body[j])  # noqa: E731
+    return _sweep(pose(k - 1) if k > 0 else None, pose(k), pose(k + 1) if k + 1 < len(run) else None, max_gap_s)
 
-    lo, hi = k, k + 1
-    if k > 0 and run.stamps[k] - run.stamps[k - 1] <= max_gap_s:
-        lo = k - 1
-    if k + 1 < len(run) and run.stamps[k + 1] - run.stamps[k] <= max_gap_s:
-        hi = k + 2
-    return Trajectory(run.stamps[lo:hi], run.T_map_body[lo:hi])
+
+class TrustedFrames:
+    """The rule of :func:`.runs.trusted_mask` one frame at a time: ``trusted(status)`` is True for
+    an ``ok`` frame that follows at least ``settle_frames`` ``ok`` frames (call it with every
+    frame's status in order, skipped and lost frames included)."""
+
+    def __init__(self, settle_frames: int = 10) -> None:
+        self.settle_frames = int(settle_frames)
+        self._ok_before = 0  # consecutive ok frames right before the next one
+
+    def __call__(self, status: str) -> bool:
+        ok = status == TRUSTED_STATUS
+        trusted = ok and self._ok_before >= self.settle_frames
+        self._ok_before = self._ok_before + 1 if ok else 0
+        return trusted
+
+
+class ChangeDetector:
+    """What changed in a block map store, fed a tracking run one frame at a time (what
+    :func:`detect_changes` does with a finished run, and ``track --detect-changes`` while tracking).
+
+    ``add(stamp, T_map_body, trusted, frame)`` with every frame of the run in order (``trusted``:
+    :class:`TrustedFrames`, the rule a run folder is read with); every ``stride``-th trusted frame
+    is used. A used frame is processed one trusted frame later, when the pose after it is known
+    (its sweep is deskewed with the poses on both sides, :func:`sweep_poses`), or as soon as a
+    frame comes more than ``max_gap_s`` after it (then no later pose can be its neighbour), or in
+    :meth:`result`. So a frame waits one frame period (0.1 s at 10 Hz) in the normal case.
+
+    Blocks are loaded when they are needed, never the whole map: a block joins when a trusted
+    pose comes within ``max_range_m`` of one of its keyframes (the blocks the run came near), or
+    when a used scan's footprint (its points and origin, 1 m around, in the horizontal plane
+    along the map's axes) overlaps the block's bounds (so every map cell a scan's points and rays
+    can meet is there when it is judged). The map's voxels, fine cells, carvable cells and
+    ground band grow as blocks join. What one scan adds depends only on the map cells in its
+    footprint, so the result does not depend on when a block came: fed the same frames and poses,
+    it is the after-the-fact result.
+
+    store: a block :class:`~blockloc.maps.store.MapStore` with keyframes. T_body_lidar: (4, 4);
+    gravity_map: (3,) m/s^2 in the map frame (the sequence's). The other arguments:
+    :func:`detect_changes`. ``costs``: per :meth:`add` call, (wall s, this thread's CPU s,
+    scans processed, blocks loaded)."""
+
+    def __init__(self, store, T_body_lidar: np.ndarray, gravity_map, *, voxel_m: float = 0.5,
+                 max_range_m: float = 40.0, margin_m: float = 1.0, min_agreement: float = 0.6, stride: int = 1,
+                 thresholds: Thresholds = Thresholds(), deskew: bool = True, max_gap_s: float = 0.3) -> None:
+        from scipy.spatial import cKDTree
+
+        self.store = store
+        self.T_body_lidar = np.asarray(T_body_lidar, float)
+        self.up = up_from_gravity(gravity_map)
+        self.voxel_m, self.fine_m = float(voxel_m), float(voxel_m) / 2.5
+        self.max_range_m, self.margin_m, self.min_agreement = float(max_range_m), float(margin_m), float(min_agreement)
+        self.stride, self.thresholds, self.deskew, self.max_gap_s = max(1, int(stride)), thresholds, bool(deskew), max_gap_s
+        # every block's keyframes (the manifest's: no points read) and bounds, to see which come in range
+        self._ids = list(store.ids)
+        kf, owner = [], []
+        for i, bid in enumerate(self._ids):
+            e = store.entry(bid)
+            k = np.asarray(e.keyframes if e.keyframes is not None else e.centroid[None], float).reshape(-1, 3)
+            kf.append(k)
+            owner += [i] * len(k)
+        self._kf_tree = cKDTree(np.concatenate(kf)) if kf else None
+        self._kf_owner = np.asarray(owner, np.int64)
+        self._lo = np.array([store.entry(b).bounds_min for b in self._ids], float).reshape(-1, 3)
+        self._hi = np.array([store.entry(b).bounds_max for b in self._ids], float).reshape(-1, 3)
+        self._loaded = np.zeros(len(self._ids), bool)
+        self.blocks: dict = {}  # block id -> (N, 3) float64 its points
+        self.keyframes: dict = {}
+        self.block_keys: dict = {}
+        self.map_keys = self.map_near = self.fine_keys = np.zeros(0, np.int64)
+        self.ev = Evidence(self.voxel_m, self.margin_m, fine=(self.map_keys, self.fine_m, self.fine_keys),
+                           carvable=self.fine_keys, ground=self.fine_keys)
+        self.frames_trusted = 0
+        self.costs: list[tuple[float, float, int, int]] = []
+        self._off_pts: list = []
+        self._off_int: list = []
+        self._prev = None  # (stamp, T_map_body) of the trusted frame before the pending one
+        self._pending = None  # (stamp, T_map_body, frame or a callable giving it, trusted index)
+        self._last = None  # (stamp, T_map_body) of the last trusted frame
+
+    # ------------------------------------------------------------------ blocks
+    def _load(self, which: np.ndarray) -> int:
+        """Load the blocks of the indices ``which`` not loaded yet; the map's sets grow."""
+        new = [int(i) for i in np.unique(which) if not self._loaded[i]]
+        if not new:
+            return 0
+        fine = [self.fine_keys]
+        for i in new:
+            self._loaded[i] = True
+            bid = self._ids[i]
+            e = self.store.entry(bid)
+            pts = self.store.load(bid)[0][:, :3].astype(np.float64)
+            self.blocks[bid] = pts
+            self.keyframes[bid] = np.asarray(e.keyframes if e.keyframes is not None else e.centroid[None], float)
+            keys = np.unique(voxel_keys(pts, self.voxel_m))
+            self.block_keys[bid] = keys
+            self.map_keys = np.union1d(self.map_keys, keys)
+            if len(keys):  # the dilation of a union is the union of the dilations
+                self.map_near = np.union1d(self.map_near, dilate_keys(keys))
+            fine.append(np.unique(voxel_keys(pts, self.fine_m)))
+        self.fine_keys = np.unique(np.concatenate(fine))
+        # new points are judged against every map cell; free space may cross all but the ground's
+        # (the lowest cell of a column can change when a block joins: recomputed over all)
+        self.ev.fine = (self.map_keys, self.fine_m, self.fine_keys)
+        self.ev.carvable = without_lowest(self.fine_keys, self.up)
+        self.ev.ground = ground_band(self.fine_keys, self.up, self.thresholds.ground_band_cells)
+        return len(new)
+
+    def _near_pose(self, position: np.ndarray) -> np.ndarray:
+        if self._kf_tree is None:
+            return np.zeros(0, np.int64)
+        return self._kf_owner[self._kf_tree.query_ball_point(position, self.max_range_m)]
+
+    def _under(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Indices of the blocks whose bounds overlap the box lo..hi (3,) in the horizontal plane
+        (every axis but the one along gravity: a column's lowest cell may lie far below a scan)."""
+        axes = [a for a in range(3) if a != int(np.argmax(np.abs(self.up)))]
+        ok = np.all((self._lo[:, axes] <= hi[axes]) & (self._hi[:, axes] >= lo[axes]), axis=1)
+        return np.flatnonzero(ok)
+
+    # ------------------------------------------------------------------ frames
+    def add(self, stamp: float, T_map_body: np.ndarray | None, trusted: bool, frame=None) -> int:
+        """One frame of the run, in order. T_map_body: (4, 4) or None (not localized); trusted:
+        the frame passes :class:`TrustedFrames`; frame: its ``LidarFrame`` (lidar frame points,
+        per-point times), or a callable returning it (read only when the frame is used), or None
+        for a frame that is not trusted. Returns the number of scans processed by this call."""
+        t0, c0 = time.perf_counter(), time.thread_time()
+        stamp = float(stamp)
+        done = loaded = 0
+        if self._pending is not None and (trusted or stamp - self._pending[0] > self.max_gap_s):
+            after = (stamp, np.asarray(T_map_body, float)) if trusted else None
+            loaded += self._process(after)
+            done += 1
+        if trusted:
+            T = np.asarray(T_map_body, float)
+            loaded += self._load(self._near_pose(T[:3, 3]))
+            if self.frames_trusted % self.stride == 0:
+                if frame is None:
+                    raise ValueError("a used trusted frame needs its frame")
+                self._prev = self._last
+                self._pending = (stamp, T, frame)
+            self._last = (stamp, T)
+            self.frames_trusted += 1
+        self.costs.append((time.perf_counter() - t0, time.thread_time() - c0, done, loaded))
+        return done
+
+    def _process(self, after) -> int:
+        """Use the pending frame (``after``: the next trusted pose or None). Returns blocks loaded."""
+        from blockloc.maps.mapping import scan_to_map
+        from blockloc.voxels import voxel_select
+
+        stamp, T_map_body, frame = self._pending
+        self._pending = None
+        if callable(frame):
+            frame = frame()
+        T_map_lidar = T_map_body @ self.T_body_lidar
+        pts = np.asarray(frame.points, float)[:, :3]
+        inten = (np.asarray(frame.intensity, np.float32) if frame.intensity is not None
+                 else np.zeros(len(pts), np.float32))
+        times = frame.time_offsets
+        r = np.linalg.norm(pts, axis=1)
+        near = np.isfinite(r) & (r <= self.max_range_m)
+        pts, inten = pts[near], inten[near]
+        sel = voxel_select(pts, self.voxel_m / 2)
+        pts, inten = pts[sel], inten[sel]
+        # the previous trusted frame is the neighbour before only when it is the frame just before
+        # this one among the trusted (with a stride it is, as the run's list of trusted frames has it)
+        before = self._prev
+        if self.deskew and times is not None:
+            pm = scan_to_map(pts, np.asarray(times, np.float64)[near][sel], float(frame.stamp),
+                             _sweep(before, (stamp, T_map_body), after, self.max_gap_s), self.T_body_lidar)
+        else:
+            pm = pts @ T_map_lidar[:3, :3].T + T_map_lidar[:3, 3]
+        origin = T_map_lidar[:3, 3]
+        box = np.vstack([pm, origin[None]]) if len(pm) else origin[None]
+        loaded = self._load(self._under(box.min(axis=0) - 1.0, box.max(axis=0) + 1.0))
+        if scan_agreement(pm, origin, self.up, self.map_near, self.voxel_m) < self.min_agreement:
+            self.ev.rejected += 1
+        else:
+            off = self.ev.add_scan(origin, pm, self.up)  # the new points: off the map's fine cells
+            self._off_pts.append(pm[off].astype(np.float32))
+            self._off_int.append(inten[off])
+        return loaded
+
+    @property
+    def scans(self) -> int:
+        """Scans processed so far (used + rejected by the consistency gate)."""
+        return self.ev.scans + self.ev.rejected
+
+    def result(self, **notes) -> ChangeResult:
+        """What changed by the frames added so far (the pending frame processed first, with the
+        poses it has). notes: extra entries of ``params`` (e.g. that the run was interrupted)."""
+        if self._pending is not None:
+            self._process(None)
+        ev, th = self.ev, self.thresholds
+        ev.flush()
+        # the cells of the scans' new points the mapping day had in clear sight from its keyframes:
+        # added structure stands where the mapping day saw free space, not merely where it never looked
+        # in the store's order, whatever order the blocks came in (the nearest keyframe's ties)
+        order = [b for b in self._ids if b in self.blocks]
+        block_keys = {b: self.block_keys[b] for b in order}
+        keyframes = {b: self.keyframes[b] for b in order}
+        cells = ev.new_cells()
+        if self.blocks and len(cells):
+            # in sight up to two fine cells short of the cell (a new point has no map cell within one):
+            # a wall that hid the ground right behind it hides it (a metre's margin would look past it)
+            map_free = seen_by_keyframes(cells, self.fine_m, np.concatenate(list(keyframes.values())),
+                                         self.fine_keys, 2 * self.fine_m, self.max_range_m, k=th.seen_keyframes)
+        else:
+            map_free = np.zeros(0, np.int64)
+        vc = classify(ev, self.map_keys, map_free, th)
+        report = block_report(vc, block_keys, keyframes, {b: self.blocks[b] for b in order}, th)
+        params = {"voxel_m": self.voxel_m, "max_range_m": self.max_range_m, "margin_m": self.margin_m,
+                  "min_agreement": self.min_agreement, "stride": self.stride, "deskew": self.deskew,
+                  **vars(th), **notes}
+        log.info("changes: %d trusted frames, %d scans used, %d rejected by the consistency gate",
+                 self.frames_trusted, ev.scans, ev.rejected)
+        return ChangeResult(report, vc, self.frames_trusted, ev.scans, ev.rejected, params, block_keys, keyframes,
+                            np.concatenate(self._off_pts) if self._off_pts else np.zeros((0, 3), np.float32),
+                            np.concatenate(self._off_int) if self._off_int else np.zeros(0, np.float32))
 
 
 def detect_changes(store, sequence, run: RunPoses, *, voxel_m: float = 0.5, max_range_m: float = 40.0,
@@ -102,81 +328,18 @@ def detect_changes(store, sequence, run: RunPoses, *, voxel_m: float = 0.5, max_
     keyframes) from ``run``'s trusted frames of ``sequence`` (a ``Sequence`` whose frame indices
     are the run's). stride: use every stride-th trusted frame. deskew: move each point with the
     run's pose at its own time (:func:`sweep_poses`) when the frames carry per-point times.
-    progress: (done, total) scans."""
-    from blockloc.maps.mapping import scan_to_map
-    from blockloc.voxels import voxel_select
-
+    progress: (done, total) scans. A loop of :class:`ChangeDetector` over the run's trusted
+    frames (only the used ones are read)."""
     info = sequence.info
-    T_body_lidar = np.asarray(info.T_body_lidar, float)
-    up = up_from_gravity(getattr(info, "gravity_map", (0.0, 0.0, -9.81)))
-    # the blocks the run came near
-    pos = run.T_map_body[:, :3, 3] if len(run) else np.zeros((0, 3))
-    blocks, keyframes = {}, {}
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(pos) if len(pos) else None
-    for bid in store.ids:
-        e = store.entry(bid)
-        kf = e.keyframes if e.keyframes is not None else e.centroid[None]
-        if tree is None or not np.isfinite(tree.query(kf, distance_upper_bound=max_range_m)[0]).any():
-            continue
-        blocks[bid] = store.load(bid)[0][:, :3].astype(np.float64)
-        keyframes[bid] = np.asarray(kf, float)
-    block_keys = {b: np.unique(voxel_keys(p, voxel_m)) for b, p in blocks.items()}
-    map_keys = np.unique(np.concatenate(list(block_keys.values()))) if blocks else np.zeros(0, np.int64)
-    map_near = dilate_keys(map_keys) if len(map_keys) else map_keys
-    fine_m = voxel_m / 2.5
-    fine_keys = (np.unique(np.concatenate([voxel_keys(p, fine_m) for p in blocks.values()]))
-                 if blocks else np.zeros(0, np.int64))
-    # new points are judged against every map cell; free space may cross all but the ground's
-    ev = Evidence(voxel_m, margin_m, fine=(map_keys, fine_m, fine_keys),
-                  carvable=without_lowest(fine_keys, up),
-                  ground=ground_band(fine_keys, up, thresholds.ground_band_cells))
-    off_pts, off_int = [], []
-    idx = np.arange(0, len(run), max(1, int(stride)))
-    for done, k in enumerate(idx, 1):
-        frame = sequence.frame(int(run.index[k]))
-        T_map_lidar = run.T_map_body[k] @ T_body_lidar
-        pts = np.asarray(frame.points, float)[:, :3]
-        inten = (np.asarray(frame.intensity, np.float32) if frame.intensity is not None
-                 else np.zeros(len(pts), np.float32))
-        times = frame.time_offsets
-        r = np.linalg.norm(pts, axis=1)
-        near = np.isfinite(r) & (r <= max_range_m)
-        pts, inten = pts[near], inten[near]
-        sel = voxel_select(pts, voxel_m / 2)
-        pts, inten = pts[sel], inten[sel]
-        if deskew and times is not None:
-            pm = scan_to_map(pts, np.asarray(times, np.float64)[near][sel], float(frame.stamp),
-                             sweep_poses(run, k), T_body_lidar)
-        else:
-            pm = pts @ T_map_lidar[:3, :3].T + T_map_lidar[:3, 3]
-        origin = T_map_lidar[:3, 3]
-        if scan_agreement(pm, origin, up, map_near, voxel_m) < min_agreement:
-            ev.rejected += 1
-        else:
-            off = ev.add_scan(origin, pm, up)  # the new points: off the map's fine cells
-            off_pts.append(pm[off].astype(np.float32))
-            off_int.append(inten[off])
-        if progress is not None:
-            progress(done, len(idx))
-    ev.flush()
-    # the cells of the scans' new points the mapping day had in clear sight from its keyframes:
-    # added structure stands where the mapping day saw free space, not merely where it never looked
-    cells = ev.new_cells()
-    if blocks and len(cells):
-        # in sight up to two fine cells short of the cell (a new point has no map cell within one):
-        # a wall that hid the ground right behind it hides it (a metre's margin would look past it)
-        map_free = seen_by_keyframes(cells, fine_m, np.concatenate(list(keyframes.values())), fine_keys,
-                                     2 * fine_m, max_range_m, k=thresholds.seen_keyframes)
-    else:
-        map_free = np.zeros(0, np.int64)
-    vc = classify(ev, map_keys, map_free, thresholds)
-    report = block_report(vc, block_keys, keyframes, blocks, thresholds)
-    params = {"voxel_m": voxel_m, "max_range_m": max_range_m, "margin_m": margin_m,
-              "min_agreement": min_agreement, "stride": int(stride), "deskew": bool(deskew), **vars(thresholds)}
-    log.info("changes: %d trusted frames, %d scans used, %d rejected by the consistency gate",
-             len(run), ev.scans, ev.rejected)
-    return ChangeResult(report, vc, len(run), ev.scans, ev.rejected, params, block_keys, keyframes,
-                        np.concatenate(off_pts) if off_pts else np.zeros((0, 3), np.float32),
-                        np.concatenate(off_int) if off_int else np.zeros(0, np.float32))
+    det = ChangeDetector(store, info.T_body_lidar, getattr(info, "gravity_map", (0.0, 0.0, -9.81)),
+                         voxel_m=voxel_m, max_range_m=max_range_m, margin_m=margin_m,
+                         min_agreement=min_agreement, stride=stride, thresholds=thresholds, deskew=deskew)
+    total = len(range(0, len(run), det.stride))
+    for k in range(len(run)):
+        index = int(run.index[k])
+        if det.add(run.stamps[k], run.T_map_body[k], True, lambda i=index: sequence.frame(i)) and progress:
+            progress(det.scans, total)
+    res = det.result()
+    if progress is not None and total:
+        progress(total, total)
+    return res
