@@ -6,8 +6,6 @@ the run's sequence opened by name and the config read here (the core, which read
   ``--seq`` or the name the run's ``metrics.json`` records, the config that fits it);
 - :func:`update_map`: several runs' detections -> a new version of the store, its place index
   rebuilt with the ``global_init`` settings of the first run's config and its sequence's gravity;
-- :func:`detect_session_changes`: ``track --detect-changes``: a finished session's own trusted
-  frames (its results folder) through the same detector, timed;
 - :func:`write_changes`: ``changes.json``, and the changes drawn into the run folder's
   ``run.mcap`` and ``report.html`` (:mod:`blockloc.viz.changes_view`) when that folder is
   blockloc's results folder (a file blockloc did not make is never rewritten).
@@ -19,8 +17,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -111,29 +107,6 @@ def check_detectable(store: MapStore, where: str) -> None:
         raise MapError(f"--map {where}: --detect-changes "
                        f"needs a block map store with a manifest (blockloc map build --kind block), got a "
                        f"{'released-layout block' if store.legacy else store.kind} map")
-
-
-def detect_session_changes(session, run_dir: str | Path, *, stride: int = 1,
-                           progress: Callable[[int, int], None] | None = None) -> tuple[ChangeResult, dict]:
-    """What changed in a finished session's map by its own trusted frames (the results folder
-    ``run_dir`` it wrote: the same trusted-frame rule and detector as ``map changes``; the scans
-    read again from the session's sequence, placed with its mounting). Returns (result, cost):
-    cost holds ``wall_s`` and ``cpu_s`` (this process, every thread) of the detection, per scan
-    used and per frame tracked, and the 1-min load average at the end."""
-    run = read_run(run_dir)
-    if not len(run):
-        log.warning("%s: no trusted frame (status ok after 10 ok frames): nothing to learn from it", run_dir)
-    t0, c0 = time.perf_counter(), time.process_time()
-    res = detect_changes(session.store, session.seq, run, stride=stride, progress=progress)
-    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    tracked = len(session.diagnostics)
-    cost = {"wall_s": round(wall, 3), "cpu_s": round(cpu, 3), "frames_tracked": tracked,
-            "wall_ms_per_scan_used": round(1e3 * wall / max(res.scans_used + res.scans_rejected, 1), 1),
-            "cpu_ms_per_scan_used": round(1e3 * cpu / max(res.scans_used + res.scans_rejected, 1), 1),
-            "wall_ms_per_frame_tracked": round(1e3 * wall / max(tracked, 1), 1),
-            "cpu_ms_per_frame_tracked": round(1e3 * cpu / max(tracked, 1), 1),
-            "load_1min": round(os.getloadavg()[0], 1)}
-    return res, cost
 
 
 def write_changes(result: ChangeResult, store: MapStore, out: str | Path, run_dir: str | Path | None,

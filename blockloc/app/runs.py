@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
 import re
 import time
 from dataclasses import dataclass
@@ -23,6 +24,7 @@ from blockloc.app.assemble import build_engine, build_session, make_localizer, o
 from blockloc.app.catalog import SequenceRef, map_kind_for_backend, map_params, open_sequence
 from blockloc.app.session import RunResult, Session
 from blockloc.config import Config, MapConfig, load_config
+from blockloc.datasets.base import SequenceView
 from blockloc.errors import BlocklocError, DatasetError, GlobalInitError, MapError, OutputWriteError
 from blockloc.geometry import T_to_xyzrpy
 from blockloc.global_init.place_index import PLACE_INDEX_NAME, write_place_index
@@ -125,15 +127,116 @@ def _write_run_report(session: Session, res: RunResult, out_dir: Path) -> Path:
                         title=f"{res.metrics.get('sequence')}")
 
 
-def detect_changes_after_run(session: Session, out_dir: Path, *, stride: int = 1,
-                             progress: Progress | None = None) -> dict:
-    """``track --detect-changes``: what changed in the session's block map by the trusted frames
-    of the run just written to ``out_dir`` (the detector of ``map changes``), written as
-    ``out_dir/changes.json`` and drawn into its ``run.mcap`` and ``report.html``. Returns the
-    changes document with its ``cost`` (detection wall and CPU time, per scan)."""
-    from blockloc.app.lifelong import detect_session_changes, write_changes
+class _FrameTap(SequenceView):
+    """A sequence that remembers the last frame it handed out (``last``): the frame the session is
+    stepping, for an observer that needs its raw points (the observers' events carry none)."""
 
-    res, cost = detect_session_changes(session, out_dir, stride=stride, progress=progress)
+    def __init__(self, seq) -> None:
+        super().__init__(seq)
+        self.last = None
+
+    def frames(self, start: int = 0, stop: int | None = None):
+        for frame in self.inner.frames(start, stop):
+            self.last = frame
+            yield frame
+
+
+class LiveChanges:
+    """``track --detect-changes``: a run observer feeding the change detector
+    (:class:`~blockloc.maps.changes.pipeline.ChangeDetector`) every frame as the session emits it:
+    the frame's pose and status (trusted by the rule ``map changes`` reads a run folder with,
+    :class:`~blockloc.maps.changes.pipeline.TrustedFrames`) and its raw scan, taken from the
+    sequence as the session steps it (nothing read twice). A used frame waits one trusted frame
+    for the pose after it (deskewing). Statuses and poses are final when emitted (``poses.tum``
+    and ``diagnostics.csv`` write them as they come), so no other lag is needed.
+
+    ``attach(session)`` before the run (it wraps ``session.seq``); :meth:`result` at any time
+    after (the frames fed so far); ``error``: what stopped it, or None."""
+
+    def __init__(self, stride: int = 1, settle_frames: int = 10) -> None:
+        self.stride, self.settle_frames = int(stride), int(settle_frames)
+        self.detector = None
+        self.error: BaseException | None = None
+        self.frames_tracked = 0
+        self._tap: _FrameTap | None = None
+
+    def attach(self, session: Session) -> None:
+        from blockloc.maps.changes.pipeline import ChangeDetector, TrustedFrames
+
+        info = session.seq.info
+        self.detector = ChangeDetector(session.store, info.T_body_lidar, info.gravity_map, stride=self.stride)
+        self._trusted = TrustedFrames(self.settle_frames)
+        self._tap = _FrameTap(session.seq)
+        session.seq = self._tap
+
+    def start(self, info) -> None:
+        pass
+
+    def frame(self, event) -> None:
+        if self.detector is None or self.error is not None:
+            return
+        self.frames_tracked += 1
+        trusted = self._trusted(event.status) and event.T_map_body is not None
+        frame = self._tap.last if self._tap is not None else None
+        if trusted and (frame is None or int(frame.index) != int(event.index)):
+            self.error = RuntimeError(f"frame {event.index}: its scan is not the one the session stepped")
+            raise self.error
+        try:
+            self.detector.add(event.stamp, event.T_map_body, trusted, frame if trusted else None)
+        except Exception as exc:
+            self.error = exc
+            raise
+
+    def finish(self, metrics: dict) -> None:
+        pass
+
+    def result(self, interrupted: bool = False):
+        """(ChangeResult, cost): what the frames fed so far show (``interrupted``: noted in its
+        params), and the detector's cost: wall and CPU time (the detector's thread) per frame
+        tracked and per scan processed (p50 / p99 / max, ms), the classification at the end, the
+        blocks loaded, and the 1-min load average."""
+        det = self.detector
+        t0, c0 = time.perf_counter(), time.thread_time()
+        notes = {"live": True, "lag_frames": 1}
+        if interrupted:
+            notes["interrupted"] = True
+            notes["note"] = "the run was interrupted: changes from the frames tracked before it"
+        res = det.result(**notes)
+        final_wall, final_cpu = time.perf_counter() - t0, time.thread_time() - c0
+        costs = np.asarray(det.costs, float).reshape(-1, 4)
+        wall, cpu = costs[:, 0], costs[:, 1]
+        used = costs[:, 2] > 0
+
+        def stats(v):
+            if not len(v):
+                return {"p50": 0.0, "p99": 0.0, "max": 0.0}
+            return {"p50": round(1e3 * float(np.median(v)), 2), "p99": round(1e3 * float(np.percentile(v, 99)), 2),
+                    "max": round(1e3 * float(v.max()), 2)}
+
+        tracked = max(self.frames_tracked, 1)
+        scans = max(res.scans_used + res.scans_rejected, 1)
+        total_wall, total_cpu = float(wall.sum()) + final_wall, float(cpu.sum()) + final_cpu
+        cost = {"wall_s": round(total_wall, 3), "cpu_s": round(total_cpu, 3), "frames_tracked": self.frames_tracked,
+                "wall_ms_per_scan_used": round(1e3 * total_wall / scans, 1),
+                "cpu_ms_per_scan_used": round(1e3 * total_cpu / scans, 1),
+                "wall_ms_per_frame_tracked": round(1e3 * total_wall / tracked, 1),
+                "cpu_ms_per_frame_tracked": round(1e3 * total_cpu / tracked, 1),
+                "per_frame_cpu_ms": stats(cpu), "per_frame_wall_ms": stats(wall),
+                "per_scan_cpu_ms": stats(cpu[used]), "per_scan_wall_ms": stats(wall[used]),
+                "final_wall_s": round(final_wall, 3), "final_cpu_s": round(final_cpu, 3),
+                "blocks_loaded": len(res.block_keys), "blocks_in_map": len(det.store.ids),
+                "cpu_clock": "thread_time (the detector's own thread)",
+                "load_1min": round(os.getloadavg()[0], 1)}
+        return res, cost
+
+
+def write_live_changes(live: LiveChanges, session: Session, out_dir: Path, interrupted: bool = False) -> dict:
+    """``track --detect-changes``: what :class:`LiveChanges` accumulated, written as
+    ``out_dir/changes.json`` (atomically) and drawn into its ``run.mcap`` and ``report.html``.
+    Returns the changes document with its ``cost``."""
+    from blockloc.app.lifelong import write_changes
+
+    res, cost = live.result(interrupted=interrupted)
     return write_changes(res, session.store, Path(out_dir) / "changes.json", out_dir,
                          map=str(session.facts.get("map")), run=str(out_dir), sequence=str(session.info.name),
                          during="track --detect-changes", cost=cost)

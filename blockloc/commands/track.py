@@ -4,13 +4,14 @@ and the run: :mod:`blockloc.app.runs`; here: options, progress, Ctrl-C, printing
 from __future__ import annotations
 
 import logging
+import sys
 from pathlib import Path
 from typing import Optional
 
 from blockloc.app.runs import open_session, track, write_run_report
 from blockloc.commands.common import (Interrupted, check_results_dir, config_for, console, interruptible,
                                       parse_pose_hint, progress, results_dir, track_bytes)
-from blockloc.errors import TrackingError
+from blockloc.errors import BlocklocError, TrackingError
 from blockloc.outdir import check_free_space
 
 log = logging.getLogger("blockloc")
@@ -111,15 +112,22 @@ def track_command(seq: str, map_path: str | None, backend: str | None, init: str
     out_dir = results_dir(out, seq)
     check_results_dir(out_dir, track_bytes(max_frames or 1, record))  # before any work
     observers = run_observers(out_dir, record=record, record_path=record_path, live=live, host=host, port=port)
+    changes = None
+    if detect_changes:  # the change detector, fed frame by frame as the session emits them
+        from blockloc.app.runs import LiveChanges
+
+        changes = LiveChanges(stride=changes_stride)
+        observers.append(changes)
     session = open_session(seq, cfg=cfg, map_path=map_path, backend=backend, data_root=data_root,
                            observers=observers, out_dir=out_dir, lidar_topic=lidar_topic,
                            imu_topic=imu_topic, poses=poses)
     try:  # now that the frame count is known: room for all of them
         check_free_space(out_dir, track_bytes(min(max_frames or len(session.stamps), len(session.stamps)), record))
-        if detect_changes:  # before any work: the detector needs a block store
+        if changes is not None:  # before any work: the detector needs a block store
             from blockloc.app.lifelong import check_detectable
 
             check_detectable(session.store, str(session.facts.get("map")))
+            changes.attach(session)
     except BaseException:
         session.close()  # the map provider's thread
         raise
@@ -130,30 +138,45 @@ def track_command(seq: str, map_path: str | None, backend: str | None, init: str
     finally:
         if session.result is not None:  # whatever was computed, also when interrupted
             write_run_report(session, session.result, out_dir, quiet=not ok)
+            if changes is not None and not ok:  # what the frames before the stop showed
+                write_detected_changes(changes, session, out_dir, interrupted=True)
     print_track_summary(console(), res.metrics, res.out_dir)
-    if detect_changes:
-        run_change_detection(session, out_dir, changes_stride)
+    if changes is not None:
+        write_detected_changes(changes, session, out_dir)
     print_where(console(), out_dir)
 
 
-def run_change_detection(session, out_dir: Path, stride: int) -> None:
-    """``--detect-changes``: the run's trusted frames through the change detector, with a progress
-    display; Ctrl-C stops it (the tracking results stay written, changes.json is not)."""
-    from blockloc.app.runs import detect_changes_after_run
+def write_detected_changes(changes, session, out_dir: Path, interrupted: bool = False) -> None:
+    """``--detect-changes``: ``changes.json`` from what the detector accumulated while tracking,
+    drawn into the run's recording and report; after an interruption (or a failed run) from the
+    frames before it, said in its params, and a detector that failed only logs why (the tracking
+    results stand)."""
+    from blockloc.app.runs import write_live_changes
     from blockloc.commands.lifelong import print_changes
 
-    with interruptible() as stop, progress("changes") as cb:
-        def cb_stop(done, total):
-            cb(done, total)
-            if stop():
-                raise Interrupted(f"change detection interrupted by {stop.name}; the tracking results in "
-                                  f"{out_dir} are whole, no changes.json written", stop.exit_code)
-
-        doc = detect_changes_after_run(session, out_dir, stride=stride, progress=cb_stop)
+    if changes.error is not None:
+        msg = f"change detection stopped on an error ({changes.error}); no changes.json written"
+        if interrupted:
+            log.error("%s", msg)
+            return
+        raise TrackingError(f"--detect-changes: {msg}")
+    try:
+        doc = write_live_changes(changes, session, out_dir, interrupted=interrupted)
+    except (OSError, BlocklocError) as exc:
+        if not interrupted:
+            raise
+        log.error("changes.json not written: %s", exc)
+        return
+    if interrupted:
+        print(f"changes.json written from the {doc['frames_trusted']} trusted frames before the stop: "
+              f"{out_dir / 'changes.json'}", file=sys.stderr, flush=True)
+        return
     print_changes(doc, out_dir / "changes.json")
     c = doc["cost"]
-    console().print(f"change detection: {c['wall_s']:.1f} s wall, {c['cpu_s']:.1f} s CPU "
-                    f"({c['cpu_ms_per_frame_tracked']:.0f} ms CPU per frame tracked; load {c['load_1min']})")
+    console().print(f"change detection while tracking: {c['cpu_ms_per_frame_tracked']:.1f} ms CPU per frame "
+                    f"tracked (p50 {c['per_frame_cpu_ms']['p50']:.1f}, p99 {c['per_frame_cpu_ms']['p99']:.1f} ms), "
+                    f"{c['per_scan_cpu_ms']['p50']:.1f} ms per scan used (p99 {c['per_scan_cpu_ms']['p99']:.1f}); "
+                    f"{c['final_cpu_s']:.1f} s CPU at the end; load {c['load_1min']}")
 
 
 def print_where(console, out_dir: Path) -> None:

@@ -110,7 +110,26 @@ def test_track_detect_changes_finds_the_phantom_and_draws_it(world, tracked):
     section = page.split('<section id="changes">')[1].split("</section>")[0]
     assert page.count('<section id="changes">') == 1 and 'src="data:image/png;base64,' in section
     assert f"<td>{world['owner']}</td>" in section
-    assert "change detection:" in r.stdout and "CPU" in r.stdout
+    assert "change detection while tracking:" in r.stdout and "per scan used" in r.stdout
+    # detected frame by frame: a used frame waits for the pose after it; the cost per frame
+    assert doc["params"]["live"] is True and doc["params"]["lag_frames"] == 1 and "interrupted" not in doc["params"]
+    assert 0 < cost["per_frame_cpu_ms"]["p50"] <= cost["per_frame_cpu_ms"]["p99"] <= cost["per_frame_cpu_ms"]["max"]
+    assert cost["per_scan_cpu_ms"]["p50"] >= cost["per_frame_cpu_ms"]["p50"]
+    assert 0 < cost["blocks_loaded"] <= cost["blocks_in_map"]
+
+
+def test_track_detect_changes_equals_map_changes_on_its_run(world, tracked, tmp_path):
+    """What was detected while tracking is what ``map changes`` finds after the fact in the same
+    run folder with the same stride (the same trusted frames, poses and detector)."""
+    out = shutil.copytree(tracked[0], tmp_path / "run")
+    live = json.loads((out / "changes.json").read_text())
+    r = _cli("map", "changes", "--map", world["map"], "--run", out, "--seq", world["session"],
+             "--out", tmp_path / "after.json", "--stride", "2")
+    assert r.returncode == 0, r.stderr
+    after = json.loads((tmp_path / "after.json").read_text())
+    for k in ("frames_trusted", "scans_used", "scans_rejected", "totals", "blocks"):
+        assert live[k] == after[k], k
+    assert live["totals"]["removed_voxels"] > 0
 
 
 def test_map_changes_run_redraws_the_layer_and_section(world, tracked, tmp_path):

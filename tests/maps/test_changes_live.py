@@ -1,0 +1,103 @@
+"""Change detection fed a frame at a time (:class:`ChangeDetector`, what ``track --detect-changes``
+runs while tracking) against the after-the-fact :func:`detect_changes` on the same frames and
+poses, on the synthetic street of ``tests/maps/lifelong_world.py`` (a wall and a car removed, a
+box added, a pedestrian)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from blockloc.maps.changes.pipeline import ChangeDetector, TrustedFrames, detect_changes
+from blockloc.maps.changes.runs import read_run, trusted_mask
+from tests.maps import lifelong_world as W
+
+
+def test_trusted_frames_one_at_a_time_is_the_run_folders_rule():
+    rng = np.random.default_rng(3)
+    for settle in (0, 1, 3, 10):
+        for _ in range(20):
+            statuses = list(rng.choice(["ok", "ok", "ok", "ok", "lost", "rejected", "recovered", "skipped"], 60))
+            rule = TrustedFrames(settle)
+            assert [rule(s) for s in statuses] == trusted_mask(statuses, settle).tolist()
+
+
+class _Cached:
+    """The run day's frames cast once (both detectors read the same frames)."""
+
+    def __init__(self, seq):
+        self.inner, self.info, self.cache, self.reads = seq, seq.info, {}, []
+
+    def __len__(self):
+        return len(self.inner)
+
+    def frame(self, i):
+        self.reads.append(i)
+        if i not in self.cache:
+            self.cache[i] = self.inner.frame(i)
+        return self.cache[i]
+
+
+@pytest.fixture(scope="module")
+def street(tmp_path_factory):
+    d = tmp_path_factory.mktemp("live")
+    T = W.drive(1.0)
+    store = W.build_map(d / "map", T)
+    # a loss half-way: the frames after it are not trusted until 2 ok frames came again
+    statuses = ["ok"] * len(T)
+    statuses[20:23] = ["rejected", "lost", "recovered"]
+    run = W.write_run(d / "run", d / "seq", T, statuses)
+    return store, T, statuses, run, _Cached(W.ArraySequence("run", T))
+
+
+def test_fed_frame_by_frame_it_finds_what_the_finished_run_shows(street):
+    store, T, statuses, run, seq = street
+    opts = dict(max_range_m=12.0, stride=2)
+    reads = len(seq.reads)
+    after = detect_changes(store, seq, read_run(run, settle_frames=2), **opts)
+    # the after-the-fact loop reads only the frames it uses
+    assert len(seq.reads) - reads == after.scans_used + after.scans_rejected == (after.frames_trusted + 1) // 2
+    det = ChangeDetector(store, np.eye(4), seq.info.gravity_map, **opts)
+    rule = TrustedFrames(2)
+    loaded = []
+    stamps = 1000.0 + 0.1 * np.arange(len(T))
+    for i, (T_i, status) in enumerate(zip(T, statuses)):
+        trusted = rule(status)
+        det.add(stamps[i], T_i, trusted, seq.frame(i) if trusted else None)
+        loaded.append(sorted(det.blocks))
+    live = det.result()
+    # the same document and the same voxels, new points and all
+    assert json.dumps(live.to_json(), sort_keys=True) == json.dumps(after.to_json(), sort_keys=True)
+    for k in ("removed", "added", "dynamic"):
+        np.testing.assert_array_equal(getattr(live.voxels, k), getattr(after.voxels, k))
+    np.testing.assert_array_equal(live.offmap_points, after.offmap_points)
+    assert len(live.voxels.removed) > 0 and len(live.voxels.added) > 0
+    assert live.frames_trusted == int(trusted_mask(statuses, 2).sum()) and live.scans_used == (live.frames_trusted + 1) // 2
+    # blocks joined as the drive came within range (x from -24 m: the x >= 0 block 22 m away at
+    # the first trusted frame, x = -22 m)
+    assert loaded[1] == [] and loaded[2] == ["000"] and loaded[-1] == ["000", "001"]
+    assert loaded.index(["000", "001"]) > 10
+    # a used frame waits for the pose after it: processed by the next add, the last one possibly by result()
+    last_used_last = (live.frames_trusted - 1) % 2 == 0
+    assert sum(c[2] for c in det.costs) == live.scans_used + live.scans_rejected - last_used_last
+    assert all(c[1] >= 0 and c[0] >= 0 for c in det.costs) and len(det.costs) == len(T)
+
+
+def test_an_interrupted_feed_gives_what_its_frames_show(street):
+    """result() at any time: the frames fed so far, the pending one processed with the poses it has."""
+    store, T, statuses, run, seq = street
+    opts = dict(max_range_m=12.0, stride=1)
+    n = 10  # x up to -15 m: the x >= 0 block stays out of range
+    det = ChangeDetector(store, np.eye(4), seq.info.gravity_map, **opts)
+    for i in range(n):
+        det.add(1000.0 + 0.1 * i, T[i], True, seq.frame(i))
+    part = det.result(interrupted=True)
+    rp = read_run(run, settle_frames=0)
+    keep = rp.index < n
+    rp.index, rp.stamps, rp.T_map_body = rp.index[keep], rp.stamps[keep], rp.T_map_body[keep]
+    after = detect_changes(store, seq, rp, **opts)
+    assert part.params["interrupted"] is True and part.scans_used == n
+    assert part.blocks == after.blocks and part.to_json()["totals"] == after.to_json()["totals"]
+    assert [b["block"] for b in part.blocks] == ["000"]  # the far side never came within range
