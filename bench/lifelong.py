@@ -462,7 +462,7 @@ def main(argv: list[str] | None = None) -> Path:
         return out
 
     src = args.update_from
-    need = set(sessions) | ({src, "loc_m12"} if parts & {"loc", "cost"} else set())
+    need = (set(sessions) if "detect" in parts else set()) | ({src, "loc_m12"} if parts & {"loc", "cost"} else set())
     if args.run is None:
         runs = {s: track(s, mp, f"run_{s}_stale-{bk}") for s in ("loc_m3", "loc_m12", "map_m12") if s in need}
     else:  # given: scored as it is
@@ -534,8 +534,10 @@ def main(argv: list[str] | None = None) -> Path:
 
 
 def render(r: dict, args, log: list, machine: str, dyn: list[str]) -> list[str]:
-    cmd = (f"python -m bench.lifelong --preset {r['preset']} --seed {r['seed']} --sessions {args.sessions} "
+    sessions = f" --sessions {args.sessions}" if "detect" in args.parts.split(",") else ""  # detect's alone
+    cmd = (f"python -m bench.lifelong --preset {r['preset']} --seed {r['seed']}{sessions} "
            f"--stride {r['stride']} --parts {args.parts}" + (f" --frames {r['frames']}" if r["frames"] else "")
+           + (f" --detect-frames {args.detect_frames}" if "track" in args.parts.split(",") else "")
            + (f" --update-from {args.update_from}" if getattr(args, "update_from", "loc_m3") != "loc_m3" else "")
            + (" --dynamic" if args.dynamic else "")
            + (f" --map {args.map} --run {args.run}" if getattr(args, "run", None) is not None else ""))
@@ -636,6 +638,11 @@ def render(r: dict, args, log: list, machine: str, dyn: list[str]) -> list[str]:
                   f"{wf['p50']:.1f} / {wf['p99']:.1f} ms |",
                   f"| detection CPU per scan used | {ps['p50']:.1f} ms | {ps['p99']:.1f} ms | {ps['max']:.0f} ms | "
                   f"{ws['p50']:.1f} / {ws['p99']:.1f} ms |",
+                  *([f"| ... per scan used, no block joining | {t['per_scan_no_join_cpu_ms']['p50']:.1f} ms | "
+                     f"{t['per_scan_no_join_cpu_ms']['p99']:.1f} ms | {t['per_scan_no_join_cpu_ms']['max']:.0f} ms | - |",
+                     f"| ... the {t['join_frames']} frames blocks joined on | {t['join_cpu_ms']['p50']:.1f} ms | "
+                     f"{t['join_cpu_ms']['p99']:.1f} ms | {t['join_cpu_ms']['max']:.0f} ms | - |"]
+                    if "join_cpu_ms" in t else []),
                   f"| tracking update per scan (wall) | {_f(t['update_ms_median'], 1)} ms | "
                   f"{_f(t['update_ms_p99'], 1)} ms | - | - |", "",
                   "| what | wall | CPU |", "|---|---|---|",

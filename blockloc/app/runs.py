@@ -194,7 +194,8 @@ class LiveChanges:
         """(ChangeResult, cost): what the frames fed so far show (``interrupted``: noted in its
         params), and the detector's cost: wall and CPU time (the detector's thread) per frame
         tracked and per scan processed (p50 / p99 / max, ms), the classification at the end, the
-        blocks loaded, and the 1-min load average."""
+        blocks loaded (``join_*``: the frames blocks joined on; ``per_scan_no_join``: the others), and
+        the 1-min load average."""
         det = self.detector
         t0, c0 = time.perf_counter(), time.thread_time()
         notes = {"live": True, "lag_frames": 1}
@@ -205,7 +206,7 @@ class LiveChanges:
         final_wall, final_cpu = time.perf_counter() - t0, time.thread_time() - c0
         costs = np.asarray(det.costs, float).reshape(-1, 4)
         wall, cpu = costs[:, 0], costs[:, 1]
-        used = costs[:, 2] > 0
+        used, joins = costs[:, 2] > 0, costs[:, 3] > 0
 
         def stats(v):
             if not len(v):
@@ -223,6 +224,9 @@ class LiveChanges:
                 "cpu_ms_per_frame_tracked": round(1e3 * total_cpu / tracked, 1),
                 "per_frame_cpu_ms": stats(cpu), "per_frame_wall_ms": stats(wall),
                 "per_scan_cpu_ms": stats(cpu[used]), "per_scan_wall_ms": stats(wall[used]),
+                # the steady state, and the frames on which blocks joined (loaded, voxelized)
+                "per_scan_no_join_cpu_ms": stats(cpu[used & ~joins]),
+                "join_frames": int(joins.sum()), "join_cpu_ms": stats(cpu[joins]),
                 "final_wall_s": round(final_wall, 3), "final_cpu_s": round(final_cpu, 3),
                 "blocks_loaded": len(res.block_keys), "blocks_in_map": len(det.store.ids),
                 "cpu_clock": "thread_time (the detector's own thread)",

@@ -165,3 +165,27 @@ def test_a_given_run_is_scored_alone(tmp_path):
         with pytest.raises(SystemExit) as e:
             B.main([*bad, "--work", str(tmp_path)])
         assert e.value.code == 2
+
+
+def test_the_track_part_gives_the_detectors_cost_per_frame_and_per_scan():
+    """``--parts track``: the cost changes.json records while tracking (p50 / p99 / max per frame
+    tracked and per scan used, the frames blocks joined on, the classification at the end)."""
+    from types import SimpleNamespace
+
+    st = lambda a, b, c: {"p50": a, "p99": b, "max": c}  # noqa: E731
+    t = {"frames": 200, "stride": 4, "scans_used": 41, "scans_rejected": 0, "load_1min": 2.0,
+         "per_frame_cpu_ms": st(0.3, 31.6, 204), "per_frame_wall_ms": st(0.4, 40.0, 250),
+         "per_scan_cpu_ms": st(24.3, 110.0, 163), "per_scan_wall_ms": st(30.0, 120.0, 170),
+         "per_scan_no_join_cpu_ms": st(24.0, 60.0, 70), "join_frames": 2, "join_cpu_ms": st(150.0, 200.0, 204),
+         "update_ms_median": 4.3, "update_ms_p99": 8.9, "wall_s": 4.0, "cpu_s": 2.9, "final_wall_s": 1.6,
+         "final_cpu_s": 1.58, "wall_ms_per_frame_tracked": 20.0, "cpu_ms_per_frame_tracked": 14.7,
+         "process_wall_s": 30.0, "process_cpu_s": 11.0, "blocks_loaded": 2, "blocks_in_map": 2}
+    r = {"preset": "tiny", "seed": 1, "stride": 4, "frames": 0, "load1_start": 1.0, "load1_end": 1.0, "wall_s": 60,
+         "track": t}
+    args = SimpleNamespace(sessions="loc_m12", parts="track", dynamic=False, detect_frames=200)
+    text = "\n".join(B.render(r, args, [], "test machine", []))
+    assert "`python -m bench.lifelong --preset tiny --seed 1 --stride 4 --parts track --detect-frames 200`" in text
+    assert "| detection CPU per frame tracked | 0.3 ms | 31.6 ms | 204 ms | 0.4 / 40.0 ms |" in text
+    assert "| detection CPU per scan used | 24.3 ms | 110.0 ms | 163 ms | 30.0 / 120.0 ms |" in text
+    assert "| ... the 2 frames blocks joined on | 150.0 ms | 200.0 ms | 204 ms | - |" in text
+    assert "| the classification at the end | 1.60 s | 1.58 s |" in text and "2 of the map's 2" in text

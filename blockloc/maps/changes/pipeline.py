@@ -38,6 +38,13 @@ from blockloc.maps.changes.runs import TRUSTED_STATUS, RunPoses
 log = logging.getLogger(__name__)
 
 
+def _unique(keys: np.ndarray) -> np.ndarray:
+    """Sorted unique int64 ``keys``: ``np.unique``'s result, by a sort (numpy 2.4's ``np.unique``
+    hashes first: 30x slower on 400k voxel keys, and a block's join to the map was mostly that)."""
+    keys = np.sort(np.asarray(keys, np.int64).ravel())
+    return keys[np.r_[True, keys[1:] != keys[:-1]]] if len(keys) else keys
+
+
 @dataclass
 class ChangeResult:
     """What :func:`detect_changes` found. blocks: one dict per examined block
@@ -81,7 +88,9 @@ def scan_agreement(points_map: np.ndarray, origin: np.ndarray, up: np.ndarray, m
     # binary searches in the sorted table, once per distinct voxel (np.isin sorts the whole table
     # again on every call: on the campus's 34 blocks 95 % of the detection's CPU went there), the
     # 26 neighbours only for the voxels not on the map: no dilated table to build as blocks join
-    keys, inverse = np.unique(voxel_keys(sel, voxel_m), return_inverse=True)
+    every = voxel_keys(sel, voxel_m)
+    keys = _unique(every)
+    inverse = np.searchsorted(keys, every)
     near = in_sorted(keys, map_keys)
     if not near.all():
         rest = np.flatnonzero(~near)
@@ -200,11 +209,11 @@ class ChangeDetector:
             pts = self.store.load(bid)[0][:, :3].astype(np.float64)
             self.blocks[bid] = pts
             self.keyframes[bid] = np.asarray(e.keyframes if e.keyframes is not None else e.centroid[None], float)
-            keys = np.unique(voxel_keys(pts, self.voxel_m))
+            keys = _unique(voxel_keys(pts, self.voxel_m))
             self.block_keys[bid] = keys
-            self.map_keys = np.union1d(self.map_keys, keys)
-            fine.append(np.unique(voxel_keys(pts, self.fine_m)))
-        self.fine_keys = np.unique(np.concatenate(fine))
+            self.map_keys = _unique(np.concatenate([self.map_keys, keys]))
+            fine.append(_unique(voxel_keys(pts, self.fine_m)))
+        self.fine_keys = _unique(np.concatenate(fine))
         # new points are judged against every map cell; free space may cross all but the ground's
         # (the lowest cell of a column can change when a block joins: recomputed over all)
         self.ev.fine = (self.map_keys, self.fine_m, self.fine_keys)
