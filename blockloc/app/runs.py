@@ -151,7 +151,8 @@ class LiveChanges:
     and ``diagnostics.csv`` write them as they come), so no other lag is needed.
 
     ``attach(session)`` before the run (it wraps ``session.seq``); :meth:`result` at any time
-    after (the frames fed so far); ``error``: what stopped it, or None."""
+    after (the frames fed so far); ``error``: what stopped it (logged in one line; the frames after
+    it are not fed, tracking goes on), or None."""
 
     def __init__(self, stride: int = 1, settle_frames: int = 10) -> None:
         self.stride, self.settle_frames = int(stride), int(settle_frames)
@@ -178,14 +179,13 @@ class LiveChanges:
         self.frames_tracked += 1
         trusted = self._trusted(event.status) and event.T_map_body is not None
         frame = self._tap.last if self._tap is not None else None
-        if trusted and (frame is None or int(frame.index) != int(event.index)):
-            self.error = RuntimeError(f"frame {event.index}: its scan is not the one the session stepped")
-            raise self.error
         try:
+            if trusted and (frame is None or int(frame.index) != int(event.index)):
+                raise RuntimeError(f"frame {event.index}: its scan is not the one the session stepped")
             self.detector.add(event.stamp, event.T_map_body, trusted, frame if trusted else None)
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - tracking goes on; the command reports it at the end
             self.error = exc
-            raise
+            log.error("change detection stopped on frame %d: %s (tracking goes on)", event.index, exc)
 
     def finish(self, metrics: dict) -> None:
         pass

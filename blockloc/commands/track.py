@@ -149,8 +149,9 @@ def track_command(seq: str, map_path: str | None, backend: str | None, init: str
 def write_detected_changes(changes, session, out_dir: Path, interrupted: bool = False) -> None:
     """``--detect-changes``: ``changes.json`` from what the detector accumulated while tracking,
     drawn into the run's recording and report; after an interruption (or a failed run) from the
-    frames before it, said in its params, and a detector that failed only logs why (the tracking
-    results stand)."""
+    frames before it, said in its params. A detector that stopped on an error writes no
+    changes.json: TrackingError naming why (only logged after an interruption, whose message
+    stands); the tracking results are whole either way."""
     from blockloc.app.runs import write_live_changes
     from blockloc.commands.lifelong import print_changes
 

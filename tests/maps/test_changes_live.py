@@ -101,3 +101,33 @@ def test_an_interrupted_feed_gives_what_its_frames_show(street):
     assert part.params["interrupted"] is True and part.scans_used == n
     assert part.blocks == after.blocks and part.to_json()["totals"] == after.to_json()["totals"]
     assert [b["block"] for b in part.blocks] == ["000"]  # the far side never came within range
+
+
+def test_a_detector_that_fails_stops_alone_and_the_command_says_why(tmp_path, caplog):
+    """A failure inside the detector (a block file it cannot read, ...) never stops tracking: it is
+    logged in one line, later frames are not fed, and ``track`` ends with an error naming it and
+    writes no changes.json."""
+    from types import SimpleNamespace
+
+    from blockloc.app.runs import LiveChanges
+    from blockloc.commands.track import write_detected_changes
+    from blockloc.errors import MapError, TrackingError
+    from blockloc.viz.events import FrameEvent
+
+    class Broken:
+        calls = 0
+
+        def add(self, *a):
+            Broken.calls += 1
+            raise MapError("block 003: cannot read 003.pcd")
+
+    live = LiveChanges(stride=1, settle_frames=0)
+    live.detector, live._trusted = Broken(), TrustedFrames(0)
+    live._tap = SimpleNamespace(last=SimpleNamespace(index=3))
+    for i in (3, 4):
+        live.frame(FrameEvent(i, 1.0 + 0.1 * i, np.eye(4), None, np.zeros(3), "ok", {}))  # no exception
+    assert isinstance(live.error, MapError) and Broken.calls == 1
+    assert "change detection stopped on frame 3: block 003: cannot read 003.pcd" in caplog.text
+    with pytest.raises(TrackingError, match=r"--detect-changes: change detection stopped on an error \(block 003"):
+        write_detected_changes(live, None, tmp_path)
+    assert not (tmp_path / "changes.json").exists()
