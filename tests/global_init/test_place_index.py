@@ -254,3 +254,27 @@ def test_a_scan_with_too_few_static_bits_ranks_the_static_and_the_open_places_si
     assert not index.thin_static(many)
     best, _ = best_shift(index.scores(many))
     assert [c.index for c in index.query_cells(many, k=6)] == list(np.argsort(-best, kind="stable"))
+
+
+def test_the_compiled_greedy_suppression_keeps_what_the_cell_lookup_kept():
+    # query_cells keeps the best places at least nms_m apart (global_init._kernels.greedy_nms); the
+    # reference is the dictionary of accepted places by nms_m cell it replaced.
+    from blockloc.global_init import _kernels as K
+
+    rng = np.random.default_rng(3)
+    xy = np.round(rng.uniform(-40, 40, (3000, 2)) / 0.5) * 0.5  # lattice corners: exact ties at nms_m
+    order = rng.permutation(len(xy)).astype(np.int64)
+    for nms_m, k in ((4.0, 256), (4.0, 10), (2.5, 5000)):
+        kept_ref, cells = [], {}
+        for o in order:
+            ci, cj = (int(v) for v in np.floor(xy[o] / nms_m))
+            if any(np.hypot(*(q - xy[o])) < nms_m for di in (-1, 0, 1) for dj in (-1, 0, 1)
+                   for q in cells.get((ci + di, cj + dj), ())):
+                continue
+            cells.setdefault((ci, cj), []).append(xy[o])
+            kept_ref.append(o)
+            if len(kept_ref) >= k:
+                break
+        kept = K.greedy_nms(xy, order, nms_m, k)
+        assert kept.tolist() == kept_ref
+        assert len(kept) == min(k, len(kept_ref))
