@@ -156,6 +156,8 @@ class PlaceIndex:
                          self.grown[rows], dict(self.stats), self.band[rows])
         if self._densities is not None:
             sub._densities = (self._densities[0][rows], self._densities[1][rows])
+        if self._llr_weights is not None:  # elementwise of the densities: the rows' own
+            sub._llr_weights = tuple(w[rows] for w in self._llr_weights)
         return sub
 
     # -- serialization -------------------------------------------------------------------

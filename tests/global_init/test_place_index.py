@@ -278,3 +278,23 @@ def test_the_compiled_greedy_suppression_keeps_what_the_cell_lookup_kept():
         kept = K.greedy_nms(xy, order, nms_m, k)
         assert kept.tolist() == kept_ref
         assert len(kept) == min(k, len(kept_ref))
+
+
+def test_a_subsets_scores_are_its_rows_of_the_whole_index_with_the_weights_kept_or_not(world):
+    # The hinted search scores the places of its window (PlaceIndex.subset); the log-likelihood
+    # weights are kept per index (llr_weights) and a subset takes its rows of them.
+    m, whole_index = world
+    index = PlaceIndex(whole_index.params, whole_index.gravity_map, whole_index.xy_L, whole_index.source,
+                       whole_index.bits, whole_index.grown, {}, whole_index.band)  # nothing kept yet
+    T = xyzrpy_to_T(1.0, -1.0, -1.8, 0.0, 0.0, 0.7)
+    cells = index.scan_cells(scan_from(m, T, radius=60.0), gravity_body(T))
+    rows = np.arange(0, len(index), 3)
+    before = index.subset(rows).scores(cells)  # weights not kept yet: the subset computes its own
+    assert index._llr_weights is None
+    whole = index.scores(cells)
+    assert index._llr_weights is not None
+    after = index.subset(rows).scores(cells)  # the whole index's weights, its rows
+    assert np.isfinite(whole).all() and whole.std() > 0
+    np.testing.assert_array_equal(after, before)  # kept weights change nothing
+    # the whole index's rows, to float32 rounding (the ring sums' matrix product by another shape)
+    np.testing.assert_allclose(after, whole[rows], rtol=1e-6, atol=1e-6)
