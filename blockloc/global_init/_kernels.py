@@ -442,8 +442,11 @@ def search_each_window(levels, dx, dy, ra, rtx, rty, starts, top, threshold0, K,
     with ``per_window_k``). Window w's roots at level ``top`` are ``ra, rtx, rty[starts[w]:starts[w+1]]``
     (any order: sorted here by ascending bound, stably, as the serial search sorts them); its
     threshold starts at ``threshold0``, raised to just below ``s0_ratio`` x its S0 (the best leaf of
-    greedy dives from its ``n_dives`` best roots) with ``use_s0``. Returns per window (W, K) scores
-    (-1: none), angles, tx, ty, and (W,) S0 and nodes visited."""
+    greedy dives from its ``n_dives`` best roots) with ``use_s0``, and to just below ``rel_ratio``
+    x the best S0 of all windows: S0 is a leaf's score, so the best leaf of all is at least that,
+    and a window's leaves below ``rel_ratio`` x the best of all are dropped by the caller anyway
+    (a window whose best leaf falls below returns none instead of one dropped later). Returns per
+    window (W, K) scores (-1: none), angles, tx, ty, and (W,) S0 and nodes visited."""
     W = starts.shape[0] - 1
     cs = np.full((W, K), -1, dtype=np.int64)
     ca = np.zeros((W, K), dtype=np.int64)
@@ -452,6 +455,12 @@ def search_each_window(levels, dx, dy, ra, rtx, rty, starts, top, threshold0, K,
     s0 = np.zeros(W, dtype=np.int64)
     visited = np.zeros(W, dtype=np.int64)
     big = np.int64(1) << 60
+    R = ra.shape[0]
+    sa = np.empty(R, dtype=np.int64)  # each window's roots, sorted by ascending bound
+    sx = np.empty(R, dtype=np.int64)
+    sy = np.empty(R, dtype=np.int64)
+    sb = np.empty(R, dtype=np.int64)
+    # Phase 1: root bounds and S0 of every window.
     for w in prange(W):
         a0 = starts[w]
         a1 = starts[w + 1]
@@ -462,21 +471,32 @@ def search_each_window(levels, dx, dy, ra, rtx, rty, starts, top, threshold0, K,
         for r in range(n):
             b[r] = _node_score(levels, top, dx, dy, ra[a0 + r], rtx[a0 + r], rty[a0 + r])
         order = np.argsort(b, kind="mergesort")
-        wa = ra[a0:a1][order]
-        wx = rtx[a0:a1][order]
-        wy = rty[a0:a1][order]
-        wb = b[order]
-        threshold = threshold0
+        for r in range(n):
+            sa[a0 + r] = ra[a0 + order[r]]
+            sx[a0 + r] = rtx[a0 + order[r]]
+            sy[a0 + r] = rty[a0 + order[r]]
+            sb[a0 + r] = b[order[r]]
         if use_s0:
             best = -1
             for i in range(1, min(n_dives, n) + 1):
-                s, _, _ = greedy_dive(levels, dx, dy, wa[n - i], wx[n - i], wy[n - i], top, big, big)
+                s, _, _ = greedy_dive(levels, dx, dy, sa[a1 - i], sx[a1 - i], sy[a1 - i], top, big, big)
                 if s > best:
                     best = s
             s0[w] = best
-            threshold = max(threshold, np.int64(s0_ratio * best) - 1)
-        s_, a_, x_, y_, v = branch_and_bound(levels, dx, dy, wa, wx, wy, wb, top, big, big, threshold, K,
-                                             nms_cells, nms_angles, num_angles, True, rel_ratio)
+    floor = threshold0
+    if use_s0 and rel_ratio > 0.0 and W > 0:
+        floor = max(floor, np.int64(rel_ratio * s0.max()) - 1)
+    # Phase 2: each window's branch and bound.
+    for w in prange(W):
+        a0 = starts[w]
+        a1 = starts[w + 1]
+        if a1 <= a0:
+            continue
+        threshold = floor
+        if use_s0:
+            threshold = max(threshold, np.int64(s0_ratio * s0[w]) - 1)
+        s_, a_, x_, y_, v = branch_and_bound(levels, dx, dy, sa[a0:a1], sx[a0:a1], sy[a0:a1], sb[a0:a1], top, big,
+                                             big, threshold, K, nms_cells, nms_angles, num_angles, True, rel_ratio)
         for i in range(s_.shape[0]):
             cs[w, i] = s_[i]
             ca[w, i] = a_[i]
@@ -484,3 +504,29 @@ def search_each_window(levels, dx, dy, ra, rtx, rty, starts, top, threshold0, K,
             cy[w, i] = y_[i]
         visited[w] = v
     return cs, ca, cx, cy, s0, visited
+
+
+@njit(cache=True)
+def greedy_nms(xy, order, min_dist, k):
+    """Greedy non-maximum suppression of points ``xy`` (P, 2) float64 taken in ``order`` (N,) int64:
+    a point is kept unless one kept before lies closer than ``min_dist`` (hypot); stops at ``k``
+    kept. Returns the kept indices (into ``xy``), in the order kept."""
+    out = np.empty(min(k, order.shape[0]), dtype=np.int64)
+    n = 0
+    for i in range(order.shape[0]):
+        if n >= k:
+            break
+        o = order[i]
+        x = xy[o, 0]
+        y = xy[o, 1]
+        near = False
+        for j in range(n):
+            dx = xy[out[j], 0] - x
+            dy = xy[out[j], 1] - y
+            if abs(dx) < min_dist and abs(dy) < min_dist and np.hypot(dx, dy) < min_dist:
+                near = True
+                break
+        if not near:
+            out[n] = o
+            n += 1
+    return out[:n]

@@ -171,7 +171,9 @@ def _search_each_window(pyramid: Pyramid, scan_xy: np.ndarray, windows: list["Wi
     each, ``_kernels.search_each_window``), the scan cells rotated only by the angles some window
     takes (a place window spans ~16 deg: 5% of the circle).
 
-    Each window starts at ``max(min_score, keep_ratio x min_leaf_score)``; a leaf below ``keep_ratio`` x the
+    ``min_leaf_score``: the best leaf of an earlier search (0: none). Each window starts at
+    ``max(min_score, keep_ratio x min_leaf_score)``, and at ``keep_ratio`` x the best S0 of all
+    windows (``_kernels.search_each_window``); a leaf below ``keep_ratio`` x the
     best of all windows is dropped at the end. The serial search raised each window's threshold
     to ``keep_ratio`` x the best leaf of the windows before it: that pruned only leaves this final
     filter drops, so the leaves kept are the same; the windows need not wait for each other.
@@ -196,7 +198,8 @@ def _search_each_window(pyramid: Pyramid, scan_xy: np.ndarray, windows: list["Wi
         dy[used] = (cy - pyramid.origin[1]).astype(np.int32)
     nms_cells = int(math.ceil(nms_m / r))
     nms_angles = int(math.ceil(math.radians(nms_deg) / step))
-    threshold0 = int(max(min_score, keep_ratio * min_leaf_score) * full)
+    # just below keep_ratio x min_leaf_score: a leaf scoring that much exactly is kept at the end
+    threshold0 = max(int(min_score * full), int(keep_ratio * min_leaf_score * full) - 1)
     cs, ca, cx_, cy_, s0, visited = K.search_each_window(
         pyramid.levels, dx, dy, ra, rtx, rty, starts, top, threshold0, k, nms_cells, nms_angles, A,
         float(keep_ratio), n_dives, float(s0_ratio), bool(use_s0))
@@ -254,7 +257,8 @@ def search_windows(pyramid: Pyramid, scan_xy: np.ndarray, windows: list[Window],
     leaves would crowd out every other window's, the right one's too.
 
     keep_ratio: leaves below this fraction of the best leaf are pruned (they matter neither as the
-    answer nor as its runner-up); min_leaf_score: prune below this score from the start (the best
+    answer nor as its runner-up); min_leaf_score: prune below this score from the start (with
+    ``per_window_k``: below ``keep_ratio`` x it, the best leaf of an earlier search itself; else the best
     leaf of an earlier search times keep_ratio). top_level: the level roots start at (default the
     pyramid's top); small windows prune better from a lower level, whose bounds are tighter.
 

@@ -136,9 +136,11 @@ class NoHintSearch:
                 continue
             # Leaves below ambiguity_score_ratio x the best matter neither as the answer nor as its
             # runner-up (_refine would not refine them): prune them, across groups too.
+            # (search_windows: per window, min_leaf_score is the best leaf itself; else the floor.)
+            floor = best if p.place_leaves_per_window > 0 else p.ambiguity_score_ratio * best
             c2d, st = search_windows(pyr, scan.xy, ws, p.place_top_k, p.use_s0, p.s0_ratio, p.min_score, p.nms_m,
                                      p.nms_deg, max_range=scan.max_range, keep_ratio=p.ambiguity_score_ratio,
-                                     min_leaf_score=p.ambiguity_score_ratio * best, top_level=p.place_top_level,
+                                     min_leaf_score=floor, top_level=p.place_top_level,
                                      per_window_k=p.place_leaves_per_window)
             for c in c2d:
                 c.window = rank[id(ws[c.window])] if c.window >= 0 else -1

@@ -369,20 +369,22 @@ def match_scores(scan: ScanDescriptor, index, rows: np.ndarray | None = None) ->
     total = float(occ_ring.sum() + free_ring.sum())
     if total == 0 or n == 0:
         return np.zeros((n, S), np.float32)
-    dens_grown, dens_raw = index.densities()
+    occ_hit, occ_miss, free_hit, free_miss = index.llr_weights()
     grown, bits = index.grown, index.bits
     if rows is not None:
-        dens_grown, dens_raw, grown, bits = dens_grown[rows], dens_raw[rows], grown[rows], bits[rows]
-
-    def weights(q, density):
-        rho = np.clip(density, 0.01, 0.99)
-        miss = np.log((1 - q) / (1 - rho))
-        return (np.log(q / rho) - miss).astype(np.float32), miss.astype(np.float32)
-
-    occ_hit, occ_miss = weights(p.coverage, dens_grown)
-    free_hit, free_miss = weights(p.see_through, dens_raw)
+        occ_hit, occ_miss, free_hit, free_miss, grown, bits = (a[rows] for a in (occ_hit, occ_miss, free_hit,
+                                                                                 free_miss, grown, bits))
     hits = K.polar_llr(shifted(scan.occupied, S), grown, occ_hit, shifted(scan.free, S), bits, free_hit)
     return (hits + (occ_miss @ occ_ring + free_miss @ free_ring)[:, None]) / total
+
+
+def llr_weights(q: float, density: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(hit weight, miss weight), float32 like ``density`` (P, rings): log(q / rho) - miss and
+    miss = log((1 - q) / (1 - rho)) of each ring's share of set bits rho (clipped to [0.01, 0.99]),
+    for a bit the model sets with probability ``q`` (:func:`match_scores`)."""
+    rho = np.clip(density, 0.01, 0.99)
+    miss = np.log((1 - q) / (1 - rho))
+    return (np.log(q / rho) - miss).astype(np.float32), miss.astype(np.float32)
 
 
 def best_shift(score: np.ndarray, allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

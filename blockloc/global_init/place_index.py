@@ -120,6 +120,7 @@ class PlaceIndex:
 
         self.R_L_map = R_level_from_gravity(self.gravity_map)
         self._densities = None
+        self._llr_weights = None
         if self.band is None:
             self.band = np.zeros(len(self.xy_L), np.uint8)
 
@@ -136,6 +137,18 @@ class PlaceIndex:
                                K.popcounts(self.bits).astype(np.float32) / S)
         return self._densities
 
+    def llr_weights(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(occ_hit, occ_miss, free_hit, free_miss), each (P, rings) float32: the log-likelihood
+        ratio's weights of every place (:func:`match_scores`), computed once (they depend on the
+        index alone, not on the scan)."""
+        if self._llr_weights is None:
+            from blockloc.global_init.place_descriptors import llr_weights
+
+            dens_grown, dens_raw = self.densities()
+            self._llr_weights = (llr_weights(self.params.coverage, dens_grown)
+                                 + llr_weights(self.params.see_through, dens_raw))
+        return self._llr_weights
+
     def subset(self, rows: np.ndarray) -> "PlaceIndex":
         """The places ``rows`` ((K,) indices or (P,) mask) alone, same parameters. A place's match
         scores are its own (its bits and densities), so they equal those in the whole index."""
@@ -143,6 +156,8 @@ class PlaceIndex:
                          self.grown[rows], dict(self.stats), self.band[rows])
         if self._densities is not None:
             sub._densities = (self._densities[0][rows], self._densities[1][rows])
+        if self._llr_weights is not None:  # elementwise of the densities: the rows' own
+            sub._llr_weights = tuple(w[rows] for w in self._llr_weights)
         return sub
 
     # -- serialization -------------------------------------------------------------------
@@ -242,12 +257,13 @@ class PlaceIndex:
         R = self.R_L_map.T @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ R_tilt
         return float(math.atan2(R[1, 0], R[0, 0]))
 
-    def scores(self, cells: "ScanCells") -> np.ndarray:
+    def scores(self, cells: "ScanCells", static=None) -> np.ndarray:
         """(P, S) :func:`match_scores` of a scan's cells at every place and shift: the static
         band's cells against the static places, the open band's against the open places (module
-        docstring)."""
+        docstring); ``static``: the static band's :func:`scan_descriptor` when made already."""
         p = self.params
-        static = scan_descriptor(cells.band, p, cells.obstacles, cells.free_from_m)
+        if static is None:
+            static = scan_descriptor(cells.band, p, cells.obstacles, cells.free_from_m)
         open_rows = np.flatnonzero(self.band == 1)
         if len(open_rows) == 0 or cells.open_band is None:
             score = match_scores(static, self)
@@ -261,14 +277,16 @@ class PlaceIndex:
                                         self, open_rows)
         return score
 
-    def thin_static(self, cells: "ScanCells") -> bool:
+    def thin_static(self, cells: "ScanCells", static=None) -> bool:
         """Whether a scan's static band holds fewer than ``min_bits`` bits (what makes a place open)
         while the index holds open places: its static and open scores are then ranked side by side
-        (:meth:`query_cells`), neither trusted over the other."""
+        (:meth:`query_cells`), neither trusted over the other. ``static``: as in :meth:`scores`."""
         if cells.open_band is None or not np.any(self.band == 1) or not np.any(self.band == 0):
             return False
         p = self.params
-        occupied = scan_descriptor(cells.band, p, cells.obstacles, cells.free_from_m).counts(p.num_sectors)[0]
+        if static is None:
+            static = scan_descriptor(cells.band, p, cells.obstacles, cells.free_from_m)
+        occupied = static.counts(p.num_sectors)[0]
         return bool(occupied.sum() < p.min_bits)
 
     def query_cells(self, cells: "ScanCells", k: int = 10, nms_m: float = 4.0,
@@ -279,32 +297,29 @@ class PlaceIndex:
             return []
         p = self.params
         S = p.num_sectors
-        score = self.scores(cells)
+        static = scan_descriptor(cells.band, p, cells.obstacles, cells.free_from_m)  # made once, used twice
+        score = self.scores(cells, static)
         allowed = None
         if theta_window is not None and theta_window[1] < 2 * math.pi:
             ang = np.arange(S) * 2 * math.pi / S - theta_window[0]
             allowed = np.abs((ang + math.pi) % (2 * math.pi) - math.pi) <= 0.5 * theta_window[1] + math.pi / S
         best, shift = best_shift(score, allowed)
         order = np.argsort(-best, kind="stable")
-        if self.thin_static(cells):
+        if self.thin_static(cells, static):
             # A handful of static bits scores high per bit at sparse static places by chance (campus:
             # 20 bits, 1.2 per bit, the true open place at rank 8342), yet 12 bits found the true
             # static place first on another frame: the two rankings alternate.
             order = _alternate(order[self.band[order] == 0], order[self.band[order] == 1])
+        from blockloc.global_init import _kernels as K
+
+        # the best places at least nms_m apart, best first
+        kept = K.greedy_nms(self.xy_L.astype(np.float64), order.astype(np.int64), float(nms_m), int(k))
         out: list[PlaceCandidate] = []
-        kept: dict[tuple[int, int], list[np.ndarray]] = {}  # accepted places by nms_m cell
-        for o in order:
+        for o in kept:
             xy = self.xy_L[o].astype(np.float64)
-            ci, cj = (int(v) for v in np.floor(xy / nms_m))
-            if any(np.hypot(*(q - xy)) < nms_m for di in (-1, 0, 1) for dj in (-1, 0, 1)
-                   for q in kept.get((ci + di, cj + dj), ())):
-                continue
-            kept.setdefault((ci, cj), []).append(xy)
             m = self.R_L_map.T @ np.r_[xy, 0.0]
             out.append(PlaceCandidate(float(m[0]), float(m[1]), float("nan"), float(best[o]), xy,
                                       float(shift[o] * 2 * math.pi / S), int(o)))
-            if len(out) >= k:
-                break
         return out
 
 

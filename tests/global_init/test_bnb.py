@@ -146,3 +146,29 @@ def test_a_saturated_window_cannot_crowd_out_the_others_with_per_window_leaves()
     assert abs(mine[0].x - x_true) <= RES and abs(mine[0].y - y_true) <= RES
     alone, _ = search_windows(pyramid, scan_xy, [true_w], top_k=1, top_level=3)
     assert mine[0].score == pytest.approx(alone[0].score, abs=1e-12)
+
+
+def test_windows_below_the_keep_ratio_of_the_best_s0_are_pruned_and_the_kept_leaves_stay_the_same():
+    # Per-window leaves: a window whose leaves all fall below keep_ratio x the best leaf of all is
+    # dropped at the end; each window's threshold starts just below keep_ratio x the best S0 of all
+    # windows (an S0 is a leaf's score), so such a window is hardly expanded, and the leaves kept
+    # are those of each window searched alone.
+    from blockloc.global_init.bnb import Window, search_windows
+
+    world = _world()
+    raster = Raster(world.origin, world.grid, RES, np.zeros(2, np.int64), np.zeros((1, 1), np.float32))
+    x_true, y_true, th_true = 3.2, -1.7, 0.8
+    scan_xy = _scan_of(world, x_true, y_true, th_true)
+    true_w = Window(np.array([x_true + 1.1, y_true - 0.9]), 6.0, th_true, math.radians(20))
+    wrong_w = Window(np.array([-12.0, 9.0]), 6.0, th_true + 2.0, math.radians(20))
+    lo, hi = required_cells(scan_xy, np.zeros(2), 40.0, RES)
+    pyramid = assemble([build_pyramid(raster, 4)], lo, hi)
+    kw = dict(top_k=1, top_level=3, per_window_k=1, keep_ratio=0.8)
+    alone_true, st_true = search_windows(pyramid, scan_xy, [true_w], **kw)
+    alone_wrong, st_wrong = search_windows(pyramid, scan_xy, [wrong_w], **kw)
+    assert alone_true and alone_wrong
+    assert alone_wrong[0].score < 0.8 * alone_true[0].score  # the wrong window cannot be kept
+    both, st = search_windows(pyramid, scan_xy, [wrong_w, true_w], **kw)
+    assert [(c.x, c.y, c.theta, c.score, c.window) for c in both] == \
+        [(c.x, c.y, c.theta, c.score, 1) for c in alone_true]
+    assert st.nodes_visited < st_true.nodes_visited + st_wrong.nodes_visited

@@ -254,3 +254,47 @@ def test_a_scan_with_too_few_static_bits_ranks_the_static_and_the_open_places_si
     assert not index.thin_static(many)
     best, _ = best_shift(index.scores(many))
     assert [c.index for c in index.query_cells(many, k=6)] == list(np.argsort(-best, kind="stable"))
+
+
+def test_the_compiled_greedy_suppression_keeps_what_the_cell_lookup_kept():
+    # query_cells keeps the best places at least nms_m apart (global_init._kernels.greedy_nms); the
+    # reference is the dictionary of accepted places by nms_m cell it replaced.
+    from blockloc.global_init import _kernels as K
+
+    rng = np.random.default_rng(3)
+    xy = np.round(rng.uniform(-40, 40, (3000, 2)) / 0.5) * 0.5  # lattice corners: exact ties at nms_m
+    order = rng.permutation(len(xy)).astype(np.int64)
+    for nms_m, k in ((4.0, 256), (4.0, 10), (2.5, 5000)):
+        kept_ref, cells = [], {}
+        for o in order:
+            ci, cj = (int(v) for v in np.floor(xy[o] / nms_m))
+            if any(np.hypot(*(q - xy[o])) < nms_m for di in (-1, 0, 1) for dj in (-1, 0, 1)
+                   for q in cells.get((ci + di, cj + dj), ())):
+                continue
+            cells.setdefault((ci, cj), []).append(xy[o])
+            kept_ref.append(o)
+            if len(kept_ref) >= k:
+                break
+        kept = K.greedy_nms(xy, order, nms_m, k)
+        assert kept.tolist() == kept_ref
+        assert len(kept) == min(k, len(kept_ref))
+
+
+def test_a_subsets_scores_are_its_rows_of_the_whole_index_with_the_weights_kept_or_not(world):
+    # The hinted search scores the places of its window (PlaceIndex.subset); the log-likelihood
+    # weights are kept per index (llr_weights) and a subset takes its rows of them.
+    m, whole_index = world
+    index = PlaceIndex(whole_index.params, whole_index.gravity_map, whole_index.xy_L, whole_index.source,
+                       whole_index.bits, whole_index.grown, {}, whole_index.band)  # nothing kept yet
+    T = xyzrpy_to_T(1.0, -1.0, -1.8, 0.0, 0.0, 0.7)
+    cells = index.scan_cells(scan_from(m, T, radius=60.0), gravity_body(T))
+    rows = np.arange(0, len(index), 3)
+    before = index.subset(rows).scores(cells)  # weights not kept yet: the subset computes its own
+    assert index._llr_weights is None
+    whole = index.scores(cells)
+    assert index._llr_weights is not None
+    after = index.subset(rows).scores(cells)  # the whole index's weights, its rows
+    assert np.isfinite(whole).all() and whole.std() > 0
+    np.testing.assert_array_equal(after, before)  # kept weights change nothing
+    # the whole index's rows, to float32 rounding (the ring sums' matrix product by another shape)
+    np.testing.assert_allclose(after, whole[rows], rtol=1e-6, atol=1e-6)
