@@ -13,12 +13,16 @@ Everything runs as a user types it (the maps and runs are kept in --work and reu
 - **detect**: the detection of ``blockloc map changes`` (through the API, to score its voxels)
   on each session's run, scored against the truth (below);
 - **loc**: ``blockloc map update MAP --run RUN_loc_m3 --out MAP_upd`` (updated from another day;
-  ``--update-from map_m12``: from the stale-map run of the 12-month mapping drive instead),
+  ``--update-from map_m12``: from the stale-map run of the 12-month mapping drive instead;
+  ``--update-from loc_m3+map_m12``: from both runs in one update; repeat ``--update-from`` for
+  several updated maps in one bench),
   ``blockloc map build --seq sim:P/map_m12@S --kind block`` (fresh), the same with ``--poses`` of
   the stale map's mapping error (:func:`same_error_poses`), then ``loc_m12`` tracked on the stale,
   the updated and both fresh maps, and ``loc`` (month 0, nothing changed) on the stale map: ATE,
   failures, rejected scans, the worst tenth of the route against the stale map; each map drive's
-  mapping-pose error where ``loc_m12`` drives. Maps and runs kept in ``--work`` carry their
+  mapping-pose error where ``loc_m12`` drives; per tenth of ``loc_m12``, each updated map against
+  the fresh map with the stale map's mapping error, beside what the update did to the blocks
+  driven there and the true changes in reach (:func:`where_worse`). Maps and runs kept in ``--work`` carry their
   maker's key (:func:`cache_keys`): a map of an older builder is never reused;
 - **cost**: the update's time per changed block (wall and CPU of the command), the unchanged
   blocks' files hashed against the stale map's, the updated map's size against the fresh one's.
@@ -328,6 +332,69 @@ def same_error_poses(P: str, S: int, out: Path) -> Path:
     return write_tum(out, Trajectory(mp.stamps - g0.stamps[0] + g12.stamps[0], mp.poses))
 
 
+def _update_group(text: str) -> str:
+    """``--update-from``'s value: sessions joined by '+' (the runs of one ``map update``)."""
+    parts = [t for t in text.split("+") if t]
+    bad = [t for t in parts if t not in ("loc_m3", "map_m12")]
+    if not parts or bad:
+        raise argparse.ArgumentTypeError(f"expected loc_m3, map_m12 or loc_m3+map_m12, got {text!r}")
+    return "+".join(dict.fromkeys(parts))
+
+
+def _group_tag(group: str) -> str:
+    """The name suffix of an update group's map and run (the default's, loc_m3, has none: the names
+    kept in --work stay those of earlier runs)."""
+    return "" if group == "loc_m3" else "_" + group.replace("+", "_")
+
+
+def where_worse(P: str, S: int, mp: Path, upd: Path, run_dir: Path, parts: int = 10,
+                reach_m: float = 40.0) -> list[dict]:
+    """Where along loc_m12 (the ``parts`` stretches of :func:`segment_errors`, by frame of the run
+    ``run_dir``) the update
+    touched the map: per stretch, the stale map's blocks loc_m12 drives in (the block of the
+    keyframe nearest each true pose) with what the update in ``upd`` did to each (``changed``:
+    rebuilt; ``held back``: changes detected, not applied; ``-``: nothing detected), and the
+    simulator's true changes (``changes()`` of loc_m12) within ``reach_m`` (the sensor's range) of
+    the stretch. A stretch where the updated map trails the fresh one with no true change in reach
+    owes it to the map's own mapping error, not to the update."""
+    from scipy.spatial import cKDTree
+
+    from blockloc.app.catalog import open_sequence
+    from blockloc.maps.store import open_map
+    from blockloc.sim.changes import open_session
+
+    store = open_map(mp)
+    ids, kf = [], []
+    for b in store.ids:
+        e = store.entry(b)
+        k = np.asarray(e.keyframes if e.keyframes is not None else e.centroid[None], float).reshape(-1, 3)
+        ids += [b] * len(k)
+        kf.append(k)
+    tree, ids = cKDTree(np.concatenate(kf)), np.asarray(ids, object)
+    rec = json.loads((upd / "manifest.json").read_text()).get("lifelong") or {}
+    changed = set(rec.get("changed_blocks") or [])
+    held = {h["block"] for h in rec.get("held_back") or [] if "block" in h and h["block"] not in changed}
+    seq = open_session(P, "loc_m12", S)
+    boxes = np.array([c.box_map() for c in seq.changes()], float).reshape(-1, 6)
+    lo, hi = boxes[:, [0, 2, 4]], boxes[:, [1, 3, 5]]
+    from blockloc.trajectory_io import read_tum
+
+    stamps = read_tum(run_dir / "poses.tum").stamps  # cut by frame as segment_errors cuts the runs
+    truth = open_sequence(f"sim:{P}/loc_m12@{S}").ground_truth().interpolate(stamps)
+    out = []
+    for pos in np.array_split(truth[:, :3, 3], parts):
+        blocks, n = np.unique(ids[tree.query(pos)[1]], return_counts=True)
+        # distance from each pose to each change's box (0 inside)
+        d = np.linalg.norm(np.maximum(np.maximum(lo[None] - pos[:, None], pos[:, None] - hi[None]), 0), axis=2) \
+            if len(boxes) else np.zeros((len(pos), 0))
+        near = np.flatnonzero((d <= reach_m).any(0)) if len(boxes) else []
+        out.append({"blocks": {str(b): ("changed" if b in changed else "held back" if b in held else "-")
+                               for b in blocks[np.argsort(-n)]},
+                    "changes_in_reach": len(near),
+                    "change_kinds": sorted({seq.changes()[i].kind for i in near})})
+    return out
+
+
 def _sha(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
@@ -422,9 +489,11 @@ def main(argv: list[str] | None = None) -> Path:
     ap.add_argument("--preset", default="tiny")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--sessions", default="loc_m3,loc_m12", help="sessions to detect on (comma separated)")
-    ap.add_argument("--update-from", default="loc_m3", choices=("loc_m3", "map_m12"),
-                    help="loc/cost: the session whose stale-map run updates the map (map_m12: another drive "
-                         "of the 12-month day, which carries the changes loc_m12 meets)")
+    ap.add_argument("--update-from", action="append", type=_update_group,
+                    help="loc/cost: the session(s) whose stale-map runs update the map, '+' joining runs of one "
+                         "update (loc_m3, map_m12: another drive of the 12-month day, which carries the changes "
+                         "loc_m12 meets, loc_m3+map_m12: both runs in one `map update`); repeat for several "
+                         "updated maps (default: loc_m3)")
     ap.add_argument("--frames", type=int, default=0, help="track only the first N frames of each session (0: all)")
     ap.add_argument("--stride", type=int, default=2, help="detection uses every stride-th trusted frame")
     ap.add_argument("--parts", default=",".join(PARTS), help=f"comma separated: {', '.join(PARTS)}")
@@ -437,6 +506,7 @@ def main(argv: list[str] | None = None) -> Path:
     ap.add_argument("--work", type=Path, default=Path("/tmp/blockloc-bench-lifelong"))
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args(argv)
+    args.update_from = list(dict.fromkeys(args.update_from or ["loc_m3"]))
     if args.run is not None and (args.map is None or args.parts != "detect" or "," in args.sessions):
         ap.error("--run needs --map, one session in --sessions and --parts detect")
     from bench.__main__ import machine
@@ -461,8 +531,9 @@ def main(argv: list[str] | None = None) -> Path:
                "--no-record", "--out", str(out), *lim], out / "metrics.json", log)
         return out
 
-    src = args.update_from
-    need = (set(sessions) if "detect" in parts else set()) | ({src, "loc_m12"} if parts & {"loc", "cost"} else set())
+    groups = args.update_from
+    srcs = {s for g in groups for s in g.split("+")}
+    need = (set(sessions) if "detect" in parts else set()) | (srcs | {"loc_m12"} if parts & {"loc", "cost"} else set())
     if args.run is None:
         runs = {s: track(s, mp, f"run_{s}_stale-{bk}") for s in ("loc_m3", "loc_m12", "map_m12") if s in need}
     else:  # given: scored as it is
@@ -487,19 +558,23 @@ def main(argv: list[str] | None = None) -> Path:
         for s in sessions:
             result["detect"].append(score_detection(P, S, s, mp, runs[s], args.stride))
             write()
-    tag = "" if src == "loc_m3" else f"_{src}"  # the default's names as before
-    upd, fresh, up_wall, up_cpu = work / f"map_upd{tag}-{uk}", work / f"map_fresh-{bk}", None, None
-    fresh_same = work / f"map_fresh_same_error-{bk}"
+    upds: dict = {}  # update group -> (its map, wall, cpu)
+    fresh, fresh_same = work / f"map_fresh-{bk}", work / f"map_fresh_same_error-{bk}"
     if parts & {"loc", "cost"}:
-        cmd = ["blockloc", "map", "update", str(mp), "--run", str(runs[src]), "--out", str(upd),
-               "--stride", str(args.stride)]
-        if (upd / "manifest.json").exists():
-            log.append((cmd, True, None, None))
-        else:
-            up_wall, up_cpu = _run(cmd)
-            log.append((cmd, False, up_wall, up_cpu))
+        for g in groups:
+            upd, wall, cpu = work / f"map_upd{_group_tag(g)}-{uk}", None, None
+            cmd = ["blockloc", "map", "update", str(mp)]
+            for s in g.split("+"):
+                cmd += ["--run", str(runs[s])]
+            cmd += ["--out", str(upd), "--stride", str(args.stride)]
+            if (upd / "manifest.json").exists():
+                log.append((cmd, True, None, None))
+            else:
+                wall, cpu = _run(cmd)
+                log.append((cmd, False, wall, cpu))
+            upds[g] = (upd, wall, cpu)
         if "cost" in parts:
-            result["cost"] = update_cost(mp, upd, None, up_wall, up_cpu)
+            result["costs"] = {g: update_cost(mp, u, None, w, c) for g, (u, w, c) in upds.items()}
             write()
         _once(["blockloc", "map", "build", "--seq", f"sim:{P}/map_m12@{S}", "--kind", "block", "--out", str(fresh)],
               fresh / "manifest.json", log)
@@ -508,19 +583,24 @@ def main(argv: list[str] | None = None) -> Path:
             _once(["blockloc", "map", "build", "--seq", f"sim:{P}/map_m12@{S}", "--poses", str(tum), "--kind",
                    "block", "--out", str(fresh_same)], fresh_same / "manifest.json", log)
         if "cost" in parts:
-            result["cost"] = update_cost(mp, upd, fresh, up_wall, up_cpu)
+            result["costs"] = {g: update_cost(mp, u, fresh, w, c) for g, (u, w, c) in upds.items()}
             write()
     if "loc" in parts:
         result["loc"] = {}
         # the stale map on the mapping month's own loc drive (nothing changed): what the map gives
         # without any change, so its mapping error is told apart from the year's changes
-        rows = (("stale", "loc_m12", mp, bk), (f"updated{tag}", "loc_m12", upd, uk), ("fresh", "loc_m12", fresh, bk),
+        rows = (("stale", "loc_m12", mp, bk),
+                *((f"updated{_group_tag(g)}", "loc_m12", upds[g][0], uk) for g in groups),
+                ("fresh", "loc_m12", fresh, bk),
                 ("fresh_same_error, the stale map's mapping error", "loc_m12", fresh_same, bk),
                 ("stale, month 0 (loc: no change)", "loc", mp, bk))
         for name, session, m, key in rows:
             run = track(session, m, f"run_{session}_{name.split(',')[0]}-{key}")
             result["loc"][name] = {**_metrics(run), "segments": segment_errors(P, S, session, run)}
             write()
+        stale_run = work / f"run_loc_m12_stale-{bk}"
+        result["where"] = {g: where_worse(P, S, mp, upds[g][0], stale_run) for g in groups}
+        write()
         result["mapping_error"] = {m: mapping_error_along(P, S, "loc_m12", m, args.frames) for m in ("map", "map_m12")}
         write()
     if "track" in parts:
@@ -533,12 +613,37 @@ def main(argv: list[str] | None = None) -> Path:
     return args.out
 
 
+def _where_lines(r: dict) -> list[str]:
+    """The per-tenth table of each updated map against the fair fresh map (:func:`where_worse`)."""
+    loc = r["loc"]
+    fair = (loc.get("fresh_same_error, the stale map's mapping error") or {}).get("segments")
+    fresh, stale = (loc.get("fresh") or {}).get("segments"), (loc.get("stale") or {}).get("segments")
+    L = []
+    for g, where in r["where"].items():
+        seg = (loc.get(f"updated{_group_tag(g)}") or {}).get("segments")
+        if not seg or not fair or len(seg) != len(where):
+            continue
+        L += ["", f"#### Where the map updated from {g} trails the fresh maps (loc_m12 by tenths)", "",
+              "RMS position error of each tenth of the run (m); blocks: the stale map's blocks of the keyframes "
+              "nearest the true poses, most frames first, with what the update did (changed / held back / -); "
+              "true changes: the simulator's changes of the 12-month day within 40 m of the stretch.", "",
+              "| tenth | stale | updated | fresh | fresh, stale map's error | updated - fair fresh | blocks | "
+              "true changes in reach |", "|---|---|---|---|---|---|---|---|"]
+        for k, w in enumerate(where):
+            blocks = ", ".join(f"{b} ({s})" for b, s in w["blocks"].items())
+            L.append(f"| {k + 1} | {_f(stale[k], 3) if stale else '-'} | {seg[k]:.3f} | "
+                     f"{_f(fresh[k], 3) if fresh else '-'} | {fair[k]:.3f} | {seg[k] - fair[k]:+.3f} | {blocks} | "
+                     f"{w['changes_in_reach']} ({', '.join(w['change_kinds']) or '-'}) |")
+    return L
+
+
 def render(r: dict, args, log: list, machine: str, dyn: list[str]) -> list[str]:
     sessions = f" --sessions {args.sessions}" if "detect" in args.parts.split(",") else ""  # detect's alone
+    ups = getattr(args, "update_from", None) or ["loc_m3"]
     cmd = (f"python -m bench.lifelong --preset {r['preset']} --seed {r['seed']}{sessions} "
            f"--stride {r['stride']} --parts {args.parts}" + (f" --frames {r['frames']}" if r["frames"] else "")
            + (f" --detect-frames {args.detect_frames}" if "track" in args.parts.split(",") else "")
-           + (f" --update-from {args.update_from}" if getattr(args, "update_from", "loc_m3") != "loc_m3" else "")
+           + "".join(f" --update-from {g}" for g in ups if ups != ["loc_m3"])
            + (" --dynamic" if args.dynamic else "")
            + (f" --map {args.map} --run {args.run}" if getattr(args, "run", None) is not None else ""))
     L = ["## Lifelong maps: change detection, tracking months later, update cost", "",
@@ -601,20 +706,22 @@ def render(r: dict, args, log: list, machine: str, dyn: list[str]) -> list[str]:
             L += ["", f"The maps' own pose error where loc_m12 drives (the simulator's offline-SLAM error of the "
                   f"mapping drive, RMS at the mapping pose nearest each loc_m12 pose): stale and updated "
                   f"(`map`) {me['map']:.3f} m, fresh (`map_m12`) {me['map_m12']:.3f} m."]
-    if "cost" in r:
-        c = r["cost"]
-        L += ["", "### Update cost", "",
-              f"Changed blocks: {len(c['changed_blocks'])} ({', '.join(c['changed_blocks']) or '-'}); "
+    if r.get("where") and r.get("loc"):
+        L += _where_lines(r)
+    costs = r.get("costs") or ({"loc_m3": r["cost"]} if "cost" in r else {})
+    if costs:
+        L += ["", "### Update cost", ""]
+    for g, c in costs.items():
+        L += [f"Updated from {g}: changed blocks {len(c['changed_blocks'])} ({', '.join(c['changed_blocks']) or '-'}); "
               f"held back: {c['held_back']}. Unchanged blocks byte-identical (sha256 of the files): "
               f"{c['unchanged_identical']} of {c['unchanged_identical'] + len(c['unchanged_differ'])}"
-              + (f" (differ: {', '.join(c['unchanged_differ'])})" if c["unchanged_differ"] else "") + ".",
+              + (f" (differ: {', '.join(c['unchanged_differ'])})" if c["unchanged_differ"] else "") + ". "
               f"Size: stale {c['bytes_stale'] / 1e6:.2f} MB, updated {c['bytes_updated'] / 1e6:.2f} MB"
               + (f", fresh {c['bytes_fresh'] / 1e6:.2f} MB (updated / fresh = {c['bytes_updated'] / c['bytes_fresh']:.2f})"
-                 if c.get("bytes_fresh") else "") + "."]
-        if c.get("wall_per_block_s") is not None:
-            L.append(f"Update (the whole command, detection included): {c['update_wall_s']:.0f} s wall, "
-                     f"{c['update_cpu_s']:.0f} s CPU; per changed block {c['wall_per_block_s']:.1f} s wall, "
-                     f"{c['cpu_per_block_s']:.1f} s CPU.")
+                 if c.get("bytes_fresh") else "") + "."
+              + (f" Update (the whole command, detection included): {c['update_wall_s']:.0f} s wall, "
+                 f"{c['update_cpu_s']:.0f} s CPU; per changed block {c['wall_per_block_s']:.1f} s wall, "
+                 f"{c['cpu_per_block_s']:.1f} s CPU." if c.get("wall_per_block_s") is not None else ""), ""]
     if "track" in r:
         t = r["track"]
         L += ["", "### Change detection in `track --detect-changes`", "",

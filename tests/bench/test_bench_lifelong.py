@@ -189,3 +189,56 @@ def test_the_track_part_gives_the_detectors_cost_per_frame_and_per_scan():
     assert "| detection CPU per scan used | 24.3 ms | 110.0 ms | 163 ms | 30.0 / 120.0 ms |" in text
     assert "| ... the 2 frames blocks joined on | 150.0 ms | 200.0 ms | 204 ms | - |" in text
     assert "| the classification at the end | 1.60 s | 1.58 s |" in text and "2 of the map's 2" in text
+
+
+def test_update_groups_and_their_names():
+    """``--update-from`` repeats, '+' joins the runs of one update; the default keeps its old names."""
+    import argparse
+
+    assert B._update_group("loc_m3+map_m12") == "loc_m3+map_m12" and B._update_group("map_m12+map_m12") == "map_m12"
+    with pytest.raises(argparse.ArgumentTypeError, match="loc_m4"):
+        B._update_group("loc_m4")
+    assert B._group_tag("loc_m3") == "" and B._group_tag("loc_m3+map_m12") == "_loc_m3_map_m12"
+
+
+def test_where_the_updated_map_trails_the_fresh_one(tmp_path, monkeypatch):
+    """Per tenth of loc_m12: the stale map's blocks it drives in, what the update did to each, and
+    the true changes in the sensor's reach; rendered beside each tenth's error against the fair fresh map."""
+    from types import SimpleNamespace
+
+    import blockloc.app.catalog as catalog
+    import blockloc.maps.store as store_mod
+    import blockloc.sim.changes as sim_changes
+    from blockloc.geometry import Trajectory
+    from blockloc.trajectory_io import write_tum
+
+    stamps = np.arange(20) * 0.1
+    truth = np.repeat(np.eye(4)[None], 20, axis=0)
+    truth[:, 0, 3] = stamps * 100  # 0 .. 190 m along x
+    monkeypatch.setattr(catalog, "open_sequence",
+                        lambda name, **kw: SimpleNamespace(ground_truth=lambda: Trajectory(stamps, truth)))
+    entries = {"A": np.array([[0.0, 0, 0]]), "B": np.array([[100.0, 0, 0]]), "C": np.array([[180.0, 0, 0]])}
+    monkeypatch.setattr(store_mod, "open_map", lambda p: SimpleNamespace(
+        ids=list(entries), entry=lambda b: SimpleNamespace(keyframes=entries[b], centroid=entries[b][0])))
+    # one change: a wall 150-151 m along, 5 m aside (map frame): within 40 m of 120 m and on, not of 110 m
+    change = SimpleNamespace(kind="wall_added", box_map=lambda: [150.0, 151.0, 5.0, 6.0, -3.0, 0.0])
+    monkeypatch.setattr(sim_changes, "open_session", lambda P, s, S: SimpleNamespace(changes=lambda: [change]))
+    upd = tmp_path / "upd"
+    upd.mkdir()
+    (upd / "manifest.json").write_text(json.dumps({"lifelong": {"changed_blocks": ["B"], "held_back": [
+        {"block": "B", "weak_voxels": 3}, {"block": "C", "weak_voxels": 9}]}}))
+    (tmp_path / "run").mkdir()
+    write_tum(tmp_path / "run" / "poses.tum", Trajectory(stamps, truth))
+    w = B.where_worse("small", 1, tmp_path / "map", upd, tmp_path / "run", parts=10)
+    assert w[0] == {"blocks": {"A": "-"}, "changes_in_reach": 0, "change_kinds": []}
+    assert w[5]["blocks"] == {"B": "changed"}  # 100 and 110 m: B's, which the update rebuilt
+    assert w[9]["blocks"] == {"C": "held back"}  # held back, never rebuilt
+    near = [k for k, x in enumerate(w) if x["changes_in_reach"]]
+    assert near == [6, 7, 8, 9] and w[7]["change_kinds"] == ["wall_added"]
+    seg = lambda v: {"ate_trans_rmse_m": 0.03, "ate_rot_rmse_deg": 0.1, "failures": 0, "rejected": 0,  # noqa: E731
+                     "frames": 20, "segments": [v] * 10}
+    r = {"loc": {"stale": seg(0.05), "updated": seg(0.04), "fresh": seg(0.02),
+                 "fresh_same_error, the stale map's mapping error": seg(0.03)}, "where": {"loc_m3": w}}
+    text = "\n".join(B._where_lines(r))
+    assert "| 7 | 0.050 | 0.040 | 0.020 | 0.030 | +0.010 | B (changed) | 1 (wall_added) |" in text
+    assert "| 1 | 0.050 | 0.040 | 0.020 | 0.030 | +0.010 | A (-) | 0 (-) |" in text

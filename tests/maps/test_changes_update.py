@@ -69,6 +69,17 @@ def test_update_rebuilds_only_the_changed_block(base, tmp_path):
     # all but a few points of voxels held back (seen by fewer than 10 scans: the wall's far corners)
     assert in_wall(old).sum() > 200 and in_wall(new).sum() <= 0.02 * in_wall(old).sum()
     assert len(new) > 0.95 * (len(old) - in_wall(old).sum())
+
+    def behind(p):  # the ground the wall hid from the street on the mapping day
+        return (p[:, 0] > 3) & (p[:, 0] < 9) & (p[:, 1] > 6.6) & (p[:, 1] < 10.5) & (p[:, 2] < 0.3)
+
+    # the removal revealed it: the update takes the run's points there (a fresh map holds them)
+    gained = behind(new).sum() - behind(old).sum()
+    assert gained >= 0.2 * behind(old).sum() and rec["blocks"]["001"]["new_points"] > 0
+    # without the revealed points (reveal_m 0) the block gains nothing there
+    plan0 = plan_update([res], strong_scans=10, reveal_m=0.0)
+    apply_update(d / "map", plan0, [res], runs=[str(run)], out=tmp_path / "map0")
+    assert behind(open_map(tmp_path / "map0").load("001")[0]).sum() == behind(old).sum()
     # the source map is untouched (no --out: in place)
     assert _entries(d / "map") == before and not (d / "map" / "versions").exists()
     # detection against the updated map finds the day unchanged
@@ -300,3 +311,29 @@ def test_only_coherent_changes_are_applied_scattered_voxels_are_held_back():
     plan = plan_update([only_lone], min_block_voxels=1)
     assert plan.blocks == {} and len(plan.removed) == 0 and plan.held_back[0]["scattered_voxels"] == 4
     assert list(plan_update([only_lone], min_block_voxels=1, min_change_m3=0).blocks) == ["000"]  # rule off
+
+
+def test_weak_voxels_joined_to_an_applied_change_are_applied_with_it():
+    """Hysteresis: a removed wall's far end, seen through by too few scans alone, is applied with
+    the wall it belongs to; weak voxels touching no applied change stay held back."""
+    from types import SimpleNamespace
+
+    from blockloc.maps.changes.detect import pack_keys
+    from blockloc.maps.changes.update import grow
+
+    wall = np.sort(pack_keys(np.array([[i, 0, k] for i in range(10) for k in range(4)])))  # strong: 5 m^3
+    end = np.sort(pack_keys(np.array([[i, 0, k] for i in range(10, 13) for k in range(4)])))  # weak, touching
+    apart = np.sort(pack_keys(np.array([[i, 20, k] for i in range(10) for k in range(4)])))  # weak, alone
+    weak = np.union1d(end, apart)
+    rm, ad, rm_left, ad_left = grow(wall, wall[:0], weak, wall[:0])
+    assert np.array_equal(rm, np.union1d(wall, end)) and np.array_equal(rm_left, apart) and not len(ad)
+    # through plan_update: one run, the wall's middle seen through in 30 scans, the rest in 6
+    removed = np.unique(np.concatenate([wall, weak]))
+    free = np.where(np.isin(removed, wall), 30, 6)
+    voxels = SimpleNamespace(voxel_m=0.5, removed=removed, removed_free=free, added=np.zeros(0, np.int64),
+                             added_hits=np.zeros(0, np.int64), dynamic=np.zeros(0, np.int64))
+    res = SimpleNamespace(voxels=voxels, block_keys={"000": removed}, block_keyframes={"000": np.zeros((1, 3))})
+    plan = plan_update([res])
+    assert np.array_equal(plan.removed, np.union1d(wall, end)) and plan.grown == len(end)
+    assert plan.blocks["000"]["held_back_voxels"] == len(apart)
+    assert np.array_equal(plan_update([res], grow_weak=False).removed, wall)

@@ -14,9 +14,18 @@ scans only):
    carving a facade's edge) are held back and reported, so they never carve the map.
 3. **Confirmed blocks.** A block is rebuilt when its applied voxels number ``min_block_voxels``
    or more; other blocks with detected changes are held back (reported with their counts).
+   **Grown.** A weak voxel (too little evidence alone) joined by 26-connection to an applied
+   change is applied with it (hysteresis, as an edge detector grows strong edges through weak
+   ones): the far corners of a removed wall, seen through by fewer scans than its middle, are the
+   same object; weak voxels touching no applied change stay held back.
 4. **Rebuild.** A confirmed block keeps its points outside the applied removed voxels and gains
    the runs' points inside the applied added voxels it owns (the nearest keyframe's block),
-   voxel-filtered at the store's ``voxel_size_m``. Dynamic voxels are never added.
+   voxel-filtered at the store's ``voxel_size_m``. It also gains what the change **revealed**:
+   the runs' new points (off the map) within ``reveal_m`` of an applied change that are
+   persistent (their ``voxel_m / 2`` cell hit by ``reveal_hits`` scan points or more, the runs
+   together) and outside dynamic voxels: the ground and facades a removed building hid from the
+   mapping day, which the detector cannot call "added" (the mapping day never had them in
+   sight) yet a map built fresh holds. Dynamic voxels are never added.
 5. **Write.** The new block files get new names (``<id>.v<N>.pcd``); every other entry is copied
    from the parent manifest as it is (the same file, the same bytes). The place index is rebuilt
    by the ``place_index`` function the caller passes (the application layer builds it from the
@@ -54,6 +63,11 @@ class UpdatePlan:
     blocks: dict = field(default_factory=dict)
     held_back: list = field(default_factory=list)
     added_owner: dict = field(default_factory=dict)  # added voxel key -> block id that gains it
+    #: revealed points (module docstring, step 4): their reach from an applied change (m; 0: none)
+    #: and the fewest scan points per ``voxel_m / 2`` cell
+    reveal_m: float = 0.0
+    reveal_hits: int = 3
+    grown: int = 0  # weak voxels applied with the change they touch
 
 
 def _strong(keys_per_run: list[np.ndarray], scans_per_run: list[np.ndarray], strong_scans: int, min_runs: int):
@@ -82,10 +96,29 @@ def coherent(removed: np.ndarray, added: np.ndarray, voxel_m: float, min_change_
     return removed[rm_in], added[ad_in], removed[~rm_in], added[~ad_in]
 
 
+def grow(removed: np.ndarray, added: np.ndarray, rm_weak: np.ndarray, ad_weak: np.ndarray):
+    """Weak voxels (sorted keys) 26-connected, through weak ones, to an applied one (``removed`` /
+    ``added``, sorted keys): (removed grown, added grown, removed weak left, added weak left)."""
+    from blockloc.maps.changes.detect import cluster_labels
+
+    applied = np.union1d(removed, added)
+    if not len(applied) or not (len(rm_weak) or len(ad_weak)):
+        return removed, added, rm_weak, ad_weak
+    both = np.union1d(applied, np.union1d(rm_weak, ad_weak))
+    label = cluster_labels(both)
+    keep = np.isin(label, label[np.searchsorted(both, applied)])
+    joined = both[keep]
+    rj, aj = np.isin(rm_weak, joined), np.isin(ad_weak, joined)
+    return (np.union1d(removed, rm_weak[rj]), np.union1d(added, ad_weak[aj]), rm_weak[~rj], ad_weak[~aj])
+
+
 def plan_update(results: list, *, strong_scans: int = 15, min_runs: int = 2, min_block_voxels: int = 8,
-                min_change_m3: float = 3.0) -> UpdatePlan:
+                min_change_m3: float = 3.0, grow_weak: bool = True, reveal_m: float = 10.0,
+                reveal_hits: int = 3) -> UpdatePlan:
     """Decide what to apply from runs' ChangeResults (module docstring, steps 1-3). min_change_m3:
-    the smallest coherent change applied (m^3; 0: every strong voxel)."""
+    the smallest coherent change applied (m^3; 0: every strong voxel). grow_weak: apply the weak
+    voxels joined to an applied change. reveal_m, reveal_hits: the revealed points' reach (m; 0:
+    none) and persistence (step 4)."""
     from scipy.spatial import cKDTree
 
     if not results:
@@ -98,6 +131,11 @@ def plan_update(results: list, *, strong_scans: int = 15, min_runs: int = 2, min
     ad, ad_weak = _strong([r.voxels.added for r in results], [r.voxels.added_hits for r in results],
                           strong_scans, min_runs)
     rm, ad, rm_lone, ad_lone = coherent(rm, ad, voxel_m, min_change_m3)
+    grown = 0
+    if grow_weak:
+        n0 = len(rm) + len(ad)
+        rm, ad, rm_weak, ad_weak = grow(rm, ad, rm_weak, ad_weak)
+        grown = len(rm) + len(ad) - n0
     block_keys, block_kf = {}, {}
     for r in results:
         block_keys.update(r.block_keys)
@@ -113,7 +151,8 @@ def plan_update(results: list, *, strong_scans: int = 15, min_runs: int = 2, min
         return owner[cKDTree(kf).query((unpack_keys(keys) + 0.5) * voxel_m)[1]]
 
     ad_owner, adw_owner, adl_owner = owners(ad), owners(ad_weak), owners(ad_lone)
-    plan = UpdatePlan(voxel_m, np.zeros(0, np.int64), np.zeros(0, np.int64))
+    plan = UpdatePlan(voxel_m, np.zeros(0, np.int64), np.zeros(0, np.int64), reveal_m=float(reveal_m),
+                      reveal_hits=int(reveal_hits), grown=int(grown))
     applied_rm, applied_ad = [], []
     for b in ids:
         r_in = rm[np.isin(rm, block_keys[b])]
@@ -143,6 +182,56 @@ def plan_update(results: list, *, strong_scans: int = 15, min_runs: int = 2, min
     plan.added = np.unique(np.concatenate(applied_ad)) if applied_ad else plan.added
     plan.added_owner = dict(zip(ad.tolist(), ad_owner.tolist()))
     return plan
+
+
+def new_points_by_block(plan: UpdatePlan, results: list) -> dict:
+    """block id -> ((M, 3) float64 map-frame points, (M,) float32 intensity) each confirmed block of
+    ``plan`` gains from the runs' new points (``offmap_points``): those in the applied added
+    voxels, and the revealed ones (module docstring, step 4), each given to the block of its
+    nearest keyframe (``plan.added_owner`` for added voxels)."""
+    from scipy.spatial import cKDTree
+
+    from blockloc.maps.changes.detect import in_sorted
+
+    out = {b: (np.zeros((0, 3)), np.zeros(0, np.float32)) for b in plan.blocks}
+    have = [r for r in results if len(r.offmap_points)]
+    if not plan.blocks or not have:
+        return out
+    pts = np.concatenate([np.asarray(r.offmap_points, np.float64) for r in have])
+    inten = np.concatenate([np.asarray(r.offmap_intensity, np.float32) for r in have])
+    k = voxel_keys(pts, plan.voxel_m)
+    added = np.asarray(plan.added, np.int64)
+    owner = np.full(len(pts), None, dtype=object)
+    sel = in_sorted(k, added) if len(added) else np.zeros(len(pts), bool)
+    owner[sel] = [plan.added_owner.get(int(x)) for x in k[sel]]
+    applied = np.union1d(plan.removed, added)
+    if plan.reveal_m > 0 and len(applied):
+        dynamic = np.unique(np.concatenate([np.asarray(r.voxels.dynamic, np.int64) for r in results]))
+        cand = ~sel & ~in_sorted(k, dynamic) & ~in_sorted(k, np.asarray(plan.removed, np.int64))
+        # persistent: the cell hit by reveal_hits scan points or more (the detector thins each scan
+        # to about a point per voxel_m / 2 cell, so about as many scans); a walker's cells are hit
+        # once or twice
+        cell = voxel_keys(pts, plan.voxel_m / 2)
+        cells, inv, n = np.unique(cell, return_inverse=True, return_counts=True)
+        cand &= n[inv] >= plan.reveal_hits
+        centres = (unpack_keys(applied) + 0.5) * plan.voxel_m
+        j = np.flatnonzero(cand)
+        near = np.isfinite(cKDTree(centres).query(pts[j], distance_upper_bound=plan.reveal_m)[0])
+        j = j[near]
+        ids, kf = [], []
+        for r in results:
+            for b, f in r.block_keyframes.items():
+                f = np.asarray(f, float).reshape(-1, 3)
+                ids += [b] * len(f)
+                kf.append(f)
+        if len(j) and ids:
+            owner[j] = np.asarray(ids, object)[cKDTree(np.concatenate(kf)).query(pts[j])[1]]
+    for b in plan.blocks:
+        m = owner == b
+        if m.any():
+            out[b] = (pts[m], inten[m])
+            plan.blocks[b]["new_points"] = int(m.sum())
+    return out
 
 
 def rebuild_block(points: np.ndarray, intensity: np.ndarray | None, removed: np.ndarray,
@@ -199,21 +288,7 @@ def apply_update(map_root: str | Path, plan: UpdatePlan, results: list, *, runs:
         number = versions.next_version(target)
         doc = json.loads((target / MANIFEST_NAME).read_text())
         store_voxel = float(store.params.get("voxel_size_m", 0.2))
-        added_keys = np.asarray(plan.added, np.int64)
-        by_block_new = {b: (np.zeros((0, 3)), np.zeros(0, np.float32)) for b in plan.blocks}
-        owner = plan.added_owner
-        for r in results:
-            if not len(r.offmap_points) or not len(added_keys):
-                continue
-            k = voxel_keys(r.offmap_points, plan.voxel_m)
-            sel = np.isin(k, added_keys)
-            ob = np.array([owner.get(int(x)) for x in k[sel]], dtype=object)
-            for b in plan.blocks:
-                m = ob == b
-                if m.any():
-                    P, I = by_block_new[b]
-                    by_block_new[b] = (np.concatenate([P, r.offmap_points[sel][m]]),
-                                       np.concatenate([I, r.offmap_intensity[sel][m]]))
+        by_block_new = new_points_by_block(plan, results)
         changed = []
         for e in doc["entries"]:
             b = e["id"]
@@ -253,6 +328,7 @@ def apply_update(map_root: str | Path, plan: UpdatePlan, results: list, *, runs:
             doc["extras"] = extras
         record = {"runs": list(runs), "changed_blocks": changed,
                   "blocks": {b: plan.blocks[b] for b in changed}, "held_back": plan.held_back,
+                  "grown_voxels": int(plan.grown), "reveal_m": float(plan.reveal_m),
                   "note": "update" if changed else "update (no confirmed change)"}
         number = versions.commit_version(target, doc, record)
         if tmp is not None:
