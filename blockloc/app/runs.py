@@ -192,12 +192,13 @@ class LiveChanges:
     def add(self, index: int, stamp: float, T_map_body, trusted: bool, frame) -> None:
         """One emitted frame, in order: its pose (map frame, (4, 4) or None), whether it is
         trusted (:meth:`trusted`) and its raw scan (the ``LidarFrame`` the session stepped; only
-        read when trusted). A failure stops detection (``error``), never the caller."""
+        read when trusted; None for a trusted frame the stride skips is allowed, the detector
+        refuses it for a used one). A failure stops detection (``error``), never the caller."""
         if self.detector is None or self.error is not None:
             return
         self.frames_tracked += 1
         try:
-            if trusted and (frame is None or int(frame.index) != int(index)):
+            if trusted and frame is not None and int(frame.index) != int(index):
                 raise RuntimeError(f"frame {index}: its scan is not the one the session stepped")
             self.detector.add(stamp, T_map_body, trusted, frame if trusted else None)
         except Exception as exc:  # noqa: BLE001 - tracking goes on; the command reports it at the end

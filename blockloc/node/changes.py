@@ -7,9 +7,12 @@ thread, in order, which frames are trusted (the run folder's rule,
 :meth:`blockloc.app.runs.LiveChanges.trusted`: never lost, rejected, uninitialized or
 just-relocalized frames) and passes them to the same :class:`~blockloc.app.runs.LiveChanges`
 ``track --detect-changes`` uses, on a worker thread of its own behind a bounded queue: a pose is
-never delayed by detection. When the detector falls behind and ``queue_scans`` trusted scans
-already wait, the next trusted scan is dropped for detection (its pose is still fed, as a frame
-that is not trusted) and counted; the changes then miss what that scan alone would have shown.
+never made to wait for detection. Only the scans the detector will use (every ``stride``-th
+trusted frame, counted here as the detector counts them) travel with their frame; the other
+frames pass as poses. When the detector falls behind and ``queue_scans`` such scans already wait,
+the next one is dropped for detection (its pose is still fed, as a frame that is not trusted, and
+the next trusted frame is used in its place) and counted; the changes then miss what that scan
+alone would have shown.
 """
 
 from __future__ import annotations
@@ -42,8 +45,9 @@ class NodeChanges:
         self.live = live
         self.threaded = bool(threaded)
         self.queue_scans = int(queue_scans)
-        self.scans_dropped = 0  # trusted scans not detected on: the detector was behind
-        self.max_waiting = 0  # the most trusted scans ever waiting at once
+        self.scans_dropped = 0  # scans the detector would have used, not detected on: it was behind
+        self.max_waiting = 0  # the most scans to use ever waiting at once
+        self._trusted_fed = 0  # trusted frames handed to the detector (its frames_trusted)
         self._hook_cpu: list[float] = []  # the node thread's CPU seconds per call
         self._items: deque = deque()
         self._scans_waiting = 0
@@ -64,22 +68,25 @@ class NodeChanges:
         c0 = time.thread_time()
         T = est.T_map_body
         trusted = self.live.trusted(est.diagnostics.status, T)
+        # the detector uses every stride-th trusted frame it is fed (ChangeDetector.add)
+        used = trusted and self._trusted_fed % max(int(self.live.stride), 1) == 0
         item = (int(frame.index), float(frame.stamp), None if T is None else np.asarray(T, float), trusted,
-                frame if trusted else None)
+                frame if used else None)
         if not self.threaded:
             self.live.add(*item)
         else:
             with self._cond:
-                if trusted and self._scans_waiting >= self.queue_scans:
+                if used and self._scans_waiting >= self.queue_scans:
                     self.scans_dropped += 1
-                    item = item[:3] + (False, None)
+                    used, item = False, item[:3] + (False, None)
                     if self.scans_dropped == 1:
                         log.warning("change detection is behind: scan %d dropped for detection (counted in "
                                     "changes.json; poses are not delayed)", frame.index)
                 self._items.append(item)
-                self._scans_waiting += int(item[3])
+                self._scans_waiting += int(used)
                 self.max_waiting = max(self.max_waiting, self._scans_waiting)
                 self._cond.notify()
+        self._trusted_fed += int(item[3])
         self._hook_cpu.append(time.thread_time() - c0)
 
     def _work(self) -> None:
@@ -92,7 +99,7 @@ class NodeChanges:
                 item = self._items.popleft()
             self.live.add(*item)  # a failure stops detection (live.error), never this thread's loop
             with self._cond:
-                self._scans_waiting -= int(item[3])
+                self._scans_waiting -= int(item[4] is not None)
 
     def close(self) -> None:
         """Detect what waits (at most ``queue_scans`` scans), then stop the worker. Idempotent."""

@@ -30,8 +30,8 @@ class Recorder:
         return 0
 
 
-def hook(settle: int, **kw) -> tuple[NodeChanges, Recorder]:
-    live = LiveChanges(settle_frames=settle)
+def hook(settle: int, stride: int = 1, **kw) -> tuple[NodeChanges, Recorder]:
+    live = LiveChanges(stride=stride, settle_frames=settle)
     live.detector, live._trusted = Recorder(), TrustedFrames(settle)  # what begin(session) sets up
     changes = NodeChanges(live, **kw)
     if changes.threaded:
@@ -57,6 +57,14 @@ def test_the_node_hook_trusts_by_the_run_folders_rule_a_relocalization_included(
         assert [t for _, t, _ in det.fed] == trusted_mask(statuses, 2).tolist()
         assert [has for _, _, has in det.fed] == [t for _, t, _ in det.fed]  # a scan only with a trusted frame
         assert changes.scans_dropped == 0 and changes.live.frames_tracked == len(statuses)
+    # with a stride only the frames the detector uses carry their scan (every 3rd trusted one)
+    changes, det = hook(2, stride=3)
+    for i, s in enumerate(statuses):
+        emit(changes, i, s)
+    changes.close()
+    trusted = [t for _, t, _ in det.fed]
+    k = np.cumsum(trusted) - 1
+    assert [has for _, _, has in det.fed] == [t and k[i] % 3 == 0 for i, t in enumerate(trusted)]
 
 
 def test_a_slow_detector_drops_scans_for_detection_never_the_nodes_time():
@@ -74,3 +82,19 @@ def test_a_slow_detector_drops_scans_for_detection_never_the_nodes_time():
     cost = changes.cost()
     assert cost["scans_dropped"] == changes.scans_dropped and cost["queue_scans"] == 2
     assert cost["node_thread"].startswith("worker")
+
+
+def test_with_a_stride_only_scans_to_use_wait_and_a_dropped_one_passes_its_turn_on():
+    changes, det = hook(0, stride=2, threaded=True, queue_scans=1)
+    det.gate.clear()
+    for i in range(12):
+        emit(changes, i, "ok")
+    det.gate.set()
+    changes.close()
+    fed = det.fed
+    assert len(fed) == 12 and all(has <= t for _, t, has in fed)
+    # the detector's own count: every 2nd trusted frame it is fed carries its scan
+    trusted = [t for _, t, _ in fed]
+    k = np.cumsum(trusted) - 1
+    assert [has for _, _, has in fed] == [t and k[i] % 2 == 0 for i, t in enumerate(trusted)]
+    assert changes.scans_dropped == trusted.count(False) >= 1 and changes.max_waiting <= 2
