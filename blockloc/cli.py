@@ -403,13 +403,19 @@ def node_cmd(
     odom_frame: str = typer.Option("odom", "--odom-frame", metavar="FRAME", help="TF name of the odometry frame."),
     base_frame: str = typer.Option("base_link", "--base-frame", metavar="FRAME", help="TF name of the body frame."),
     sets: Optional[list[str]] = typer.Option(None, "--set", metavar="SECTION.KEY=VALUE", help=SET_HELP),
+    detect_changes: bool = typer.Option(False, "--detect-changes",
+                                        help="Find what changed in the (block) map from the verified scans as they "
+                                             "come (needs --out): changes.json written at shutdown."),
+    changes_stride: int = typer.Option(1, "--changes-stride", metavar="N", min=1,
+                                       help="--detect-changes: use every N-th trusted frame."),
 ) -> None:
     """Localize live: a ROS 2 node over DDS (PointCloud2 + Imu in; pose, odometry, /tf, diagnostics
     and the local map out) until Ctrl-C."""
     from blockloc.commands.node import node_command
 
     node_command(map_path, config, init_pose, points_topic, imu_topic, out, discovery, gravity, sets or [],
-                 no_data_timeout_s=no_data_timeout, frames={"map": map_frame, "odom": odom_frame, "base": base_frame})
+                 no_data_timeout_s=no_data_timeout, frames={"map": map_frame, "odom": odom_frame, "base": base_frame},
+                 detect_changes=detect_changes, changes_stride=changes_stride)
 
 
 @app.command("play")

@@ -162,13 +162,18 @@ class LiveChanges:
         self._tap: _FrameTap | None = None
 
     def attach(self, session: Session) -> None:
+        self.begin(session)
+        self._tap = _FrameTap(session.seq)
+        session.seq = self._tap
+
+    def begin(self, session: Session) -> None:
+        """The detector for ``session``'s map and sensor, without wrapping its sequence: for a
+        caller that steps the session itself (the live node) and feeds :meth:`add` the frames."""
         from blockloc.maps.changes.pipeline import ChangeDetector, TrustedFrames
 
         info = session.seq.info
         self.detector = ChangeDetector(session.store, info.T_body_lidar, info.gravity_map, stride=self.stride)
         self._trusted = TrustedFrames(self.settle_frames)
-        self._tap = _FrameTap(session.seq)
-        session.seq = self._tap
 
     def start(self, info) -> None:
         pass
@@ -176,16 +181,29 @@ class LiveChanges:
     def frame(self, event) -> None:
         if self.detector is None or self.error is not None:
             return
+        trusted = self.trusted(event.status, event.T_map_body)
+        self.add(event.index, event.stamp, event.T_map_body, trusted, self._tap.last if self._tap is not None else None)
+
+    def trusted(self, status: str, T_map_body) -> bool:
+        """The run folder's rule (:class:`~blockloc.maps.changes.pipeline.TrustedFrames`) on the
+        next emitted frame's status, in order: call it once per frame, before :meth:`add`."""
+        return self._trusted(status) and T_map_body is not None
+
+    def add(self, index: int, stamp: float, T_map_body, trusted: bool, frame) -> None:
+        """One emitted frame, in order: its pose (map frame, (4, 4) or None), whether it is
+        trusted (:meth:`trusted`) and its raw scan (the ``LidarFrame`` the session stepped; only
+        read when trusted; None for a trusted frame the stride skips is allowed, the detector
+        refuses it for a used one). A failure stops detection (``error``), never the caller."""
+        if self.detector is None or self.error is not None:
+            return
         self.frames_tracked += 1
-        trusted = self._trusted(event.status) and event.T_map_body is not None
-        frame = self._tap.last if self._tap is not None else None
         try:
-            if trusted and (frame is None or int(frame.index) != int(event.index)):
-                raise RuntimeError(f"frame {event.index}: its scan is not the one the session stepped")
-            self.detector.add(event.stamp, event.T_map_body, trusted, frame if trusted else None)
+            if trusted and frame is not None and int(frame.index) != int(index):
+                raise RuntimeError(f"frame {index}: its scan is not the one the session stepped")
+            self.detector.add(stamp, T_map_body, trusted, frame if trusted else None)
         except Exception as exc:  # noqa: BLE001 - tracking goes on; the command reports it at the end
             self.error = exc
-            log.error("change detection stopped on frame %d: %s (tracking goes on)", event.index, exc)
+            log.error("change detection stopped on frame %d: %s (tracking goes on)", index, exc)
 
     def finish(self, metrics: dict) -> None:
         pass
@@ -234,16 +252,17 @@ class LiveChanges:
         return res, cost
 
 
-def write_live_changes(live: LiveChanges, session: Session, out_dir: Path, interrupted: bool = False) -> dict:
+def write_live_changes(live: LiveChanges, session: Session, out_dir: Path, interrupted: bool = False,
+                       during: str = "track --detect-changes", cost: dict | None = None) -> dict:
     """``track --detect-changes``: what :class:`LiveChanges` accumulated, written as
     ``out_dir/changes.json`` (atomically) and drawn into its ``run.mcap`` and ``report.html``.
     Returns the changes document with its ``cost``."""
     from blockloc.app.lifelong import write_changes
 
-    res, cost = live.result(interrupted=interrupted)
+    res, measured = live.result(interrupted=interrupted)
     return write_changes(res, session.store, Path(out_dir) / "changes.json", out_dir,
                          map=str(session.facts.get("map")), run=str(out_dir), sequence=str(session.info.name),
-                         during="track --detect-changes", cost=cost)
+                         during=during, cost={**measured, **(cost or {})})
 
 
 # ----------------------------------------------------------------------------- global init

@@ -118,6 +118,7 @@ class Session:
         self._imu_next = 0
         self._mode = "gt"
         self._started = False
+        self._reinitialized = False  # a verified reinitialize: the next step says "recovered"
         self._finished: RunResult | None = None
         self._last_map_version = None
         self.init_info: dict = {}
@@ -228,7 +229,11 @@ class Session:
         """A live source: global init of ``frame`` (a LidarFrame) around ``pose_hint`` = (x, y,
         yaw or None), map frame, m and rad (None: over the whole map). A verified pose restarts
         the tracker there (True; while tracking, with the velocity and biases it had); otherwise
-        the tracker is left as it was (False)."""
+        the tracker is left as it was (False). The next :meth:`step`'s estimate then says
+        ``recovered`` (when its registration passed), as the tracker's own relocalization does:
+        the frames after it are not trusted for change detection until tracking settles again
+        (the rule of :func:`blockloc.maps.changes.runs.trusted_mask`), also when no lost or
+        uninitialized frame came between (an /initialpose, a source that restarted)."""
         self.start()
         # (the mode of ``step`` stays: it does not search again on the same frame)
         self.init_info.setdefault("mode", "global" if pose_hint is None else "pose")
@@ -242,6 +247,7 @@ class Session:
         else:
             self.tracker.initialize(T, float(frame.stamp))
         self.init_info["first_frame"] = int(frame.index)
+        self._reinitialized = True
         return True
 
     def _hold_imu(self, imu: ImuData) -> None:
@@ -275,6 +281,10 @@ class Session:
             est = self._uninitialized(frame, t0)
         else:
             est = self.tracker.insert_frame(frame)
+        if self._reinitialized and est.T_map_body is not None:
+            self._reinitialized = False
+            if est.diagnostics.status == "ok":
+                est.diagnostics.status = "recovered"
         if on_estimate is not None:
             on_estimate(est)
         d = est.as_dict()

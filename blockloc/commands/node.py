@@ -30,7 +30,8 @@ def map_gravity(store, option: str | None) -> np.ndarray:
 
 def node_command(map_path: str, config: str | None, init_pose: str | None, points_topic: str, imu_topic: str,
                  out: Path | None, discovery: str | None, gravity: str | None = None, sets: list[str] | None = None,
-                 no_data_timeout_s: float = 5.0, queue_size: int = 2, frames: dict | None = None) -> None:
+                 no_data_timeout_s: float = 5.0, queue_size: int = 2, frames: dict | None = None,
+                 detect_changes: bool = False, changes_stride: int = 1) -> None:
     from blockloc.app.runs import write_run_report
     from blockloc.commands.common import Interrupted, check_results_dir, config_for, interruptible, parse_pose_hint
     from blockloc.commands.track import run_observers
@@ -39,6 +40,12 @@ def node_command(map_path: str, config: str | None, init_pose: str | None, point
     from blockloc.node.player import FrameNames
     from blockloc.ros2.dds import Dds
 
+    from blockloc.errors import TrackingError
+
+    if detect_changes and out is None:
+        raise TrackingError("--detect-changes: needs --out DIR (changes.json is written there at shutdown)")
+    if changes_stride < 1:
+        raise TrackingError(f"--changes-stride {changes_stride}: expected a positive number of frames")
     hint = parse_pose_hint(init_pose, "--init-pose") if init_pose else None
     cfg = config_for(None, config, sets)
     store = _assemble.open_store(map_path, cfg)
@@ -48,15 +55,26 @@ def node_command(map_path: str, config: str | None, init_pose: str | None, point
     if out is not None:
         check_results_dir(out)
     observers = run_observers(out) if out is not None else []
+    changes = None
+    if detect_changes:  # the change detector, fed each processed scan on a worker thread of its own
+        from blockloc.app.lifelong import check_detectable
+        from blockloc.app.runs import LiveChanges
+        from blockloc.node.changes import NodeChanges
+
+        check_detectable(store, map_path)  # before listening
+        changes = NodeChanges(LiveChanges(stride=changes_stride))
 
     def make_session(info, imu):
-        return _assemble.build_session(cfg, store, map_path, info, imu, observers=observers, out_dir=out)
+        session = _assemble.build_session(cfg, store, map_path, info, imu, observers=observers, out_dir=out)
+        if changes is not None:
+            changes.begin(session)
+        return session
 
     dds = Dds(discovery)
     settings = NodeSettings(points_topic=points_topic, imu_topic=imu_topic, frames=FrameNames(**(frames or {})),
                             queue_size=queue_size, no_data_timeout_s=no_data_timeout_s)
     node = LocalizationNode(dds, make_session, settings=settings, gravity_map=gravity_map,
-                            map_bounds=(tuple(lo), tuple(hi)), init_pose=hint)
+                            map_bounds=(tuple(lo), tuple(hi)), init_pose=hint, on_frame=changes)
     where = "CYCLONEDDS_URI" if dds.user_uri else f"{dds.discovery} discovery"
     print(f"blockloc node: map {map_path}; listening on {points_topic} and {imu_topic} "
           f"(DDS domain {dds.domain}, {where}); Ctrl-C stops", file=sys.stderr, flush=True)
@@ -71,9 +89,13 @@ def node_command(map_path: str, config: str | None, init_pose: str | None, point
                 interrupted = stop()
                 res = node.close(interrupted=True)
     finally:
-        if res is not None and out is not None:
-            write_run_report(node.session, res, out)
-        dds.close()
+        try:
+            if res is not None and out is not None:
+                write_run_report(node.session, res, out)
+        finally:
+            if changes is not None:
+                write_node_changes(changes, node.session, out)
+            dds.close()
     s = node.stats
     summary = (f"{s.processed} scans processed, {s.published} poses published, {s.dropped} dropped, "
                f"{s.bad_scans} bad, {s.restarts} restarts")
@@ -81,3 +103,31 @@ def node_command(map_path: str, config: str | None, init_pose: str | None, point
         raise Interrupted(f"node stopped: {summary}" + (f"; results in {out}" if out is not None else ""),
                           stop.exit_code)
     print(summary, file=sys.stderr)
+
+
+def write_node_changes(changes, session, out: Path) -> None:
+    """``--detect-changes`` at shutdown: the scans still waiting are detected on, then
+    ``out/changes.json`` (temp then rename) with the detector's cost and what it cost the node.
+    Nothing to write (no scan came, or the detector stopped on an error) is one log line: the
+    node's own exit code stands."""
+    from blockloc.app.runs import write_live_changes
+    from blockloc.errors import BlocklocError
+
+    changes.close()
+    live = changes.live
+    if session is None or live.detector is None:
+        log.warning("--detect-changes: no scan was processed; no changes.json written")
+        return
+    if live.error is not None:
+        log.error("change detection stopped on an error (%s); no changes.json written", live.error)
+        return
+    try:
+        doc = write_live_changes(live, session, out, during="node --detect-changes", cost=changes.cost())
+    except (OSError, BlocklocError) as exc:
+        log.error("changes.json not written: %s", exc)
+        return
+    c = doc["cost"]
+    print(f"changes.json written: {out / 'changes.json'} ({doc['scans_used']} scans used of "
+          f"{doc['frames_trusted']} trusted frames, {c['scans_dropped']} dropped for detection; "
+          f"{c['per_scan_cpu_ms']['p50']:.1f} ms CPU per scan used, p99 {c['per_scan_cpu_ms']['p99']:.1f}; "
+          f"load {c['load_1min']})", file=sys.stderr, flush=True)

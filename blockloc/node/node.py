@@ -117,15 +117,20 @@ class LocalizationNode:
     (SequenceInfo: extrinsics from /tf_static, gravity) and the IMU samples received so far
     (ImuData; none: LiDAR-only). map_bounds: ((xmin, ymin), (xmax, ymax)) of the map, metres, for
     refusing an /initialpose outside it. gravity_map: (3,) m/s^2. init_pose: (x, y, yaw or None).
+    on_frame(frame, est): called on the worker with each processed scan (LidarFrame) and the
+    tracker's Estimate of it, in order, after its pose and diagnostics are published (e.g.
+    :class:`blockloc.node.changes.NodeChanges`); it should return quickly (the next scan waits).
     """
 
     def __init__(self, dds, make_session: Callable, *, settings: NodeSettings = NodeSettings(),
-                 gravity_map=(0.0, 0.0, -9.81), map_bounds=None, init_pose: tuple | None = None) -> None:
+                 gravity_map=(0.0, 0.0, -9.81), map_bounds=None, init_pose: tuple | None = None,
+                 on_frame: Callable | None = None) -> None:
         from blockloc.ros2 import messages as m
         from blockloc.ros2.dds import LATCHED, RELIABLE, SENSOR_DATA
 
         self.settings = s = settings
         self.make_session = make_session
+        self.on_frame = on_frame
         self.gravity_map = np.asarray(gravity_map, float)
         self.map_bounds = map_bounds
         self.stats = NodeStats()
@@ -381,6 +386,8 @@ class LocalizationNode:
             with self._lock:
                 self._scans.end_backlog()
         self._publish_after(frame, est, published["latency_ms"], catching_up)
+        if self.on_frame is not None:
+            self.on_frame(frame, est)
 
     def _restart(self) -> None:
         if self.session is not None:

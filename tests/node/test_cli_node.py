@@ -287,3 +287,55 @@ def test_poses_the_tracker_rejects_are_withheld_from_pose_odom_and_tf(tiny_live_
     assert int(v[-1]["poses_withheld"]) >= len(degraded) and int(v[-1]["poses_published"]) == 0
     assert not got["pose"] and not got["odom"] and not got["tf"]
     assert "0 poses published" in node.err
+
+
+def test_node_detect_changes_writes_what_map_changes_finds_in_its_run(tiny_live_world, loopback_dds, tmp_path):
+    """``blockloc node --detect-changes --out DIR`` as a user types it, fed by ``blockloc play``:
+    at Ctrl-C it writes DIR/changes.json (exit 130 as always) from the scans it tracked, with the
+    detector's cost and what it cost the node; its blocks are what ``blockloc map changes`` finds
+    after the fact in the run folder the node wrote (same trusted frames, same stride)."""
+    import json
+    import shutil
+
+    w = tiny_live_world
+    out = tmp_path / "run"
+    dds, got = listen()
+    node = Proc("node", "--map", w["map"], "--config", w["config"], "--out", out, "--detect-changes",
+                "--changes-stride", "2")
+    play = None
+
+    def processed() -> int:
+        return max([int(kv.value) for x in list(got["diag"]) for kv in x.status[0].values
+                    if kv.key == "scans_processed"], default=0)
+
+    try:
+        node.wait_for("listening on /points", 120)
+        play = Proc("play", "--seq", w["session"], "--config", w["config"], "--rate", "0.5", "--max-frames", "36")
+        assert play.finish(120) == 0, play.err
+        wait_until(lambda: processed() >= 36, 120, f"36 scans processed ({processed()}): {node.err[-1500:]}")
+        ctrl_c(node, 60)
+    finally:
+        reap(node, play, dds)
+    assert "changes.json written:" in node.err and "Traceback" not in node.err, node.err[-2000:]
+    assert "36 scans processed" in node.err and ", 0 dropped" in node.err, node.err[-800:]  # same frames as the session
+    live = json.loads((out / "changes.json").read_text())
+    assert live["during"] == "node --detect-changes" and live["frames_trusted"] >= 15
+    cost = live["cost"]
+    assert cost["frames_tracked"] == 36 and cost["scans_dropped"] == 0 and cost["node_thread"].startswith("worker")
+    assert 0 < cost["per_scan_cpu_ms"]["p50"] <= cost["per_scan_cpu_ms"]["max"]
+    copy = shutil.copytree(out, tmp_path / "copy")
+    r = subprocess.run(["blockloc", "map", "changes", "--map", str(w["map"]), "--run", str(copy), "--seq",
+                        str(w["session"]), "--out", str(tmp_path / "after.json"), "--stride", "2"],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    after = json.loads((tmp_path / "after.json").read_text())
+    for k in ("frames_trusted", "scans_used", "scans_rejected", "totals", "blocks"):
+        assert live[k] == after[k], k
+    assert live["scans_used"] == (live["frames_trusted"] + 1) // 2 and live["blocks"]
+
+
+def test_node_detect_changes_needs_out(tiny_live_world, loopback_dds):
+    p = Proc("node", "--map", tiny_live_world["map"], "--detect-changes")
+    assert p.finish(60) == 2
+    lines = p.err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: --detect-changes") and "--out" in lines[0], p.err

@@ -90,7 +90,7 @@ def test_a_new_initial_pose_while_tracking_restarts_on_the_spot_with_the_robots_
     def error(est) -> float:
         return float(np.linalg.norm(est.T_map_body[:3, 3] - gt.interpolate(np.array([est.stamp]))[0][:3, 3]))
 
-    errors = {}
+    errors, statuses = {}, {}
     for f in frames:
         if not session.tracker.initialized:
             session.reinitialize(f, None)
@@ -98,7 +98,13 @@ def test_a_new_initial_pose_while_tracking_restarts_on_the_spot_with_the_robots_
             assert session.tracker.initialized
             T = gt.interpolate(np.array([f.stamp]))[0]
             assert session.reinitialize(f, (T[0, 3] - 5.0, T[1, 3] - 7.5, None))
-        errors[f.index] = error(session.step(f)) if session.tracker.initialized else None
+        est = session.step(f)
+        errors[f.index] = error(est) if session.tracker.initialized else None
+        statuses[f.index] = est.diagnostics.status
     session.close()
+    # the scan of a verified global init says so (the change detector's trust starts over there)
+    first = min(k for k, v in statuses.items() if v != "uninitialized")
+    assert statuses[first] == "recovered" and statuses[30] == "recovered", statuses
+    assert {statuses[k] for k in range(first + 1, 34) if k != 30} == {"ok"}, statuses
     assert errors[29] < 0.05
     assert errors[30] < 0.03 and errors[31] < 0.03 and max(errors[k] for k in range(30, 34)) < 0.05, errors
