@@ -451,13 +451,15 @@ class Thresholds:
     seen_keyframes: int = 3
     #: a removed cluster lying as a sheet over the ground (:func:`ground_sheets`: at most this many
     #: voxels per occupied vertical column on average, 0: rule off) ...
-    sheet_voxels_per_column: float = 1.25
+    sheet_voxels_per_column: float = 1.2  # with sheet_height_m: the largest pair leaving campus loc_m12's blocks as they were
     #: ... with its voxels' median height above the map's local ground at most this, m, is not
     #: removed structure: it is the mapping day's mixed pixels between the ground and a crown or a
     #: trunk standing behind it (the range drawn part of the way to the nearer return), piled up
     #: over the drive's passes into a layer 0.1-1 m over the ground that today's rays cross.
     #: Removed structure stands up: a wall, a car's sides, a hedge fill two or more voxels a column
-    sheet_height_m: float = 1.0
+    #: (seed 2's sheets: 1.0-1.14 voxels a column, median 0.1-0.3 m; a removed car on the campus
+    #: loc_m12 run can look as flat: 1.25 / 1.0 m lost one of its changed blocks)
+    sheet_height_m: float = 0.5
 
 
 @dataclass
