@@ -258,6 +258,38 @@ def test_the_ground_is_not_removed_and_spares_no_neighbour():
     assert len(classify(ev2, ev2.fine[0], None, Thresholds(min_cluster_voxels=1)).removed) == 0
 
 
+def test_a_sheet_of_mixed_pixels_over_the_ground_is_not_removed_but_a_car_is():
+    from blockloc.maps.changes.detect import Thresholds, classify, ground_band, voxel_keys
+
+    g = np.arange(0.05, 6.0, 0.1)
+    ground = np.array([[x, y, 0.03] for x in g for y in g])  # map frame z down: the ground at z ~ 0
+    # the mapping day's mixed pixels between the ground and a crown behind: a layer 0.3-0.5 m over
+    # 3 x 3 m of ground, dense (a drive's passes pile it up), one voxel thick
+    sheet = np.array([[x, y, -z] for x in np.arange(0.05, 3.0, 0.1) for y in np.arange(0.05, 3.0, 0.1)
+                      for z in (0.35, 0.45)])
+    car = np.array([[x, y, -z] for x in np.arange(4.05, 5.5, 0.1) for y in np.arange(4.05, 5.5, 0.1)
+                    for z in (0.35, 0.75, 1.25, 1.45)])  # a car from 0.35 to 1.5 m above the ground
+    pts = np.concatenate([ground, sheet, car])
+    up = np.array([0, 0, -1.0])
+    ev, _ = _evidence(0.5, pts, seen_free=10, ground=ground_band(np.unique(voxel_keys(pts, 0.2)), up, 1),
+                      hits=ground)  # today: the ground hit, rays through the sheet and the car's place
+    ev.up = up
+    th = Thresholds(min_cluster_voxels=1)
+    rm = _centres(classify(ev, ev.fine[0], None, th).removed, 0.5)
+    assert not (rm[:, 0] < 3.5).any()  # the sheet stays
+    assert (rm[:, 0] > 3.5).sum() >= 27  # the car's 3 x 3 columns, three voxels high
+    # without the rule the sheet is read as removed structure
+    off = _centres(classify(ev, ev.fine[0], None, Thresholds(min_cluster_voxels=1, sheet_voxels_per_column=0)).removed, 0.5)
+    assert (off[:, 0] < 3.5).sum() >= 36
+    # a layer as thin but high above the ground (a canopy, 2.3-2.5 m up) is no ground sheet
+    high = sheet - np.array([0, 0, 2.0])
+    pts2 = np.concatenate([ground, high])
+    ev2, _ = _evidence(0.5, pts2, seen_free=10, ground=ground_band(np.unique(voxel_keys(pts2, 0.2)), up, 1),
+                       hits=ground)
+    ev2.up = up
+    assert len(classify(ev2, ev2.fine[0], None, th).removed) >= 36
+
+
 def test_ground_band_keeps_the_lowest_cells_of_each_column():
     from blockloc.maps.changes.detect import ground_band
 

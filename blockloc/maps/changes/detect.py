@@ -231,6 +231,9 @@ class Evidence:
     carvable: np.ndarray | None = None
     #: sorted fine keys of the ground's surface (:func:`ground_band`), or None (not known)
     ground: np.ndarray | None = None
+    #: (3,) unit vector against gravity in the map frame, or None (not known): the first
+    #: :meth:`add_scan` given one sets it (the ground-sheet rule of :func:`classify` needs it)
+    up: np.ndarray | None = None
     keys: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     n_hit: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
     n_free: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
@@ -245,6 +248,8 @@ class Evidence:
         """One scan: sensor origin (3,) and its points (N, 3), both in the map frame; up: (3,)
         unit vector against gravity, or None (no ground-ray margin, see :func:`ray_margins`).
         Returns (N,) bool: the new points (class docstring)."""
+        if up is not None and self.up is None:
+            self.up = np.asarray(up, np.float64).reshape(3)
         hits = np.unique(voxel_keys(points_map, self.voxel_m))
         margin = self.margin_m if up is None else ray_margins(origin, points_map, up, self.margin_m)
         if self.fine is not None:
@@ -444,6 +449,17 @@ class Thresholds:
     ground_band_cells: int = 1  # chosen on the small world seed 1, loc_m12
     #: added needs the new point's cell in sight from one of this many nearest mapping keyframes
     seen_keyframes: int = 3
+    #: a removed cluster lying as a sheet over the ground (:func:`ground_sheets`: at most this many
+    #: voxels per occupied vertical column on average, 0: rule off) ...
+    sheet_voxels_per_column: float = 1.2  # with sheet_height_m: the largest pair leaving campus loc_m12's blocks as they were
+    #: ... with its voxels' median height above the map's local ground at most this, m, is not
+    #: removed structure: it is the mapping day's mixed pixels between the ground and a crown or a
+    #: trunk standing behind it (the range drawn part of the way to the nearer return), piled up
+    #: over the drive's passes into a layer 0.1-1 m over the ground that today's rays cross.
+    #: Removed structure stands up: a wall, a car's sides, a hedge fill two or more voxels a column
+    #: (seed 2's sheets: 1.0-1.14 voxels a column, median 0.1-0.3 m; a removed car on the campus
+    #: loc_m12 run can look as flat: 1.25 / 1.0 m lost one of its changed blocks)
+    sheet_height_m: float = 0.5
 
 
 @dataclass
@@ -474,6 +490,45 @@ def map_cells_per_voxel(keys: np.ndarray, voxel_m: float, fine_m: float, fine_ke
     uk, cnt = np.unique(owner, return_counts=True)
     j = np.minimum(np.searchsorted(uk, keys), len(uk) - 1)
     return np.where(uk[j] == keys, cnt[j], 0)
+
+
+def ground_sheets(keys: np.ndarray, label: np.ndarray, voxel_m: float, ground_fine: np.ndarray,
+                  fine_m: float, up: np.ndarray, max_per_column: float, max_height_m: float) -> np.ndarray:
+    """(C,) bool per cluster label (``label``: (K,) labels 0..C-1 of the sorted ``keys``, voxels
+    of edge ``voxel_m``): the cluster lies as a sheet over the ground. Its voxels fill at most
+    ``max_per_column`` of its vertical columns' voxels on average, and their median height (the
+    voxel's bottom) above the map's local ground (the lowest of ``ground_fine``, the ground band's
+    fine cells of edge ``fine_m``, in the voxel's column) is at most ``max_height_m``. A voxel over
+    no ground cell has no height and counts as high. False for every cluster when gravity is not
+    along a map axis. up: (3,) unit vector against gravity."""
+    keys = np.asarray(keys, np.int64)
+    n_c = int(label.max()) + 1 if len(label) else 0
+    up = np.asarray(up, float).reshape(3)
+    axis = int(np.argmax(np.abs(up)))
+    if not n_c or not len(ground_fine) or abs(up[axis]) < 0.9:
+        return np.zeros(n_c, bool)
+    sign = int(np.sign(up[axis]))
+    other = [a for a in range(3) if a != axis]
+    # the local ground: the lowest ground cell (its bottom, metres up) under each voxel column
+    g = unpack_keys(ground_fine)
+    g_lo = g[:, axis] * sign * fine_m if sign > 0 else (g[:, axis] * sign - 1) * fine_m
+    g_col = pack_keys(np.c_[np.floor((g[:, other] + 0.5) * fine_m / voxel_m).astype(np.int64),
+                            np.zeros(len(g), np.int64)])
+    col_u, inv = np.unique(g_col, return_inverse=True)
+    low = np.full(len(col_u), np.inf)
+    np.minimum.at(low, inv, g_lo)
+    v = unpack_keys(keys)
+    v_lo = v[:, axis] * sign * voxel_m if sign > 0 else (v[:, axis] * sign - 1) * voxel_m
+    v_col = pack_keys(np.c_[v[:, other], np.zeros(len(v), np.int64)])
+    j = np.minimum(np.searchsorted(col_u, v_col), max(len(col_u) - 1, 0))
+    height = np.where(col_u[j] == v_col, v_lo - low[j], np.inf)
+    out = np.zeros(n_c, bool)
+    cols = np.unique(np.c_[label, v_col], axis=0)
+    n_cols = np.bincount(cols[:, 0], minlength=n_c)
+    per_col = np.bincount(label, minlength=n_c) / np.maximum(n_cols, 1)
+    for c in np.flatnonzero(per_col <= max_per_column):
+        out[c] = np.median(height[label == c]) <= max_height_m
+    return out
 
 
 def _solid_or_next_to_solid(keys: np.ndarray, removed: np.ndarray, voxel_m: float, fine: tuple,
@@ -538,6 +593,13 @@ def classify(ev: Evidence, map_keys: np.ndarray, map_free_fine: np.ndarray | Non
         solid = map_cells_per_voxel(ev.keys[sel], ev.voxel_m, ev.fine[1], ev.fine[2]) >= th.min_map_cells
         share = np.bincount(label, weights=solid) / np.bincount(label)
         removed[sel[share[label] < th.min_solid_share]] = False
+    if (th.sheet_voxels_per_column > 0 and ev.fine is not None and ev.ground is not None
+            and ev.up is not None and removed.any()):
+        sel = np.flatnonzero(removed)
+        label = cluster_labels(ev.keys[sel])
+        flat = ground_sheets(ev.keys[sel], label, ev.voxel_m, ev.ground, ev.fine[1], ev.up,
+                             th.sheet_voxels_per_column, th.sheet_height_m)
+        removed[sel[flat[label]]] = False
     return VoxelChanges(ev.voxel_m, ev.keys[removed], ev.keys[added], ev.keys[dynamic],
                         {"removed": L[removed], "added": L_added[added], "dynamic": L_new[dynamic]},
                         n_new_free[added].astype(np.int64), ev.n_free[removed].astype(np.int64))
