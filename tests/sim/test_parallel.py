@@ -26,7 +26,7 @@ def test_a_dataset_written_by_workers_has_the_bytes_of_one_written_in_process(tm
     assert len(a) > 20 and a == b
 
 
-def test_the_pool_hands_frames_back_in_order_across_chunks_and_runs():
+def test_the_pool_hands_frames_back_in_order_across_chunks_and_runs(tmp_path):
     from blockloc.datasets.nclt import encode_frame
 
     import resource
@@ -43,6 +43,9 @@ def test_the_pool_hands_frames_back_in_order_across_chunks_and_runs():
         # encoded there
         loc, mapped = pool.runs(p, 2, [("loc", 20, 30), ("map", 5, 5 + 11)], encode=True)
         enc_loc, enc_map = list(loc), list(mapped)
+        # the same frames written by the workers into a directory: where they are comes back
+        (written,) = pool.runs(p, 2, [("loc", 20, 30)], encode=True, write_to=[tmp_path])
+        written = list(written)
     # the workers' fork server is stopped and reaped with the pool: its CPU and its workers' (the
     # imports, 42 frames) count as this process's children's, as spawned workers' did
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -58,6 +61,14 @@ def test_the_pool_hands_frames_back_in_order_across_chunks_and_runs():
     assert [f.index for f in enc_loc] == list(range(20, 30)) and [f.index for f in enc_map] == list(range(5, 16))
     assert enc_loc[3] == encode_frame(got[-1]) and enc_map[-1] == encode_frame(ref_map.frame(15))
     assert len(enc_map[-1].hits) > len(enc_map[-1].sync) > 0
+    # written there: each frame's sync file holds its bytes, the hits come back as bytes (the
+    # chunks' hits files read and removed), nothing else is left
+    assert [(w.index, w.stamp, w.utime, w.dropped) for w in written] == [
+        (e.index, e.stamp, e.utime, e.dropped) for e in enc_loc]
+    for w, e in zip(written, enc_loc):
+        assert w.sync == tmp_path / f"{e.utime}.bin" and w.sync.read_bytes() == e.sync
+        assert bytes(w.hits) == e.hits
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(f"{e.utime}.bin" for e in enc_loc)
 
 
 def _encode_before(frame):
