@@ -178,12 +178,13 @@ class EncodedFrame:
     dropped: int
 
 
-def encode_frame(frame: LidarFrame, hits: bool = True) -> EncodedFrame:
+def encode_frame(frame: LidarFrame, hits: bool = True, encode_words=None) -> EncodedFrame:
     """``frame`` encoded as ``write_session`` writes it: points quantised (:func:`encode_points`)
     and sorted by time (stable), the hits packets (``hits``) of their times (per-point
-    ``time_offsets``, else the stamp)."""
+    ``time_offsets``, else the stamp). encode_words: a function giving :func:`_encode_words`'s
+    words and mask, its bits (the simulator's workers pass a one-pass kernel); None: that one."""
     utime = int(round(frame.stamp * 1e6))
-    words, keep = _encode_words(frame.points, frame.intensity, frame.ring)
+    words, keep = (encode_words or _encode_words)(frame.points, frame.intensity, frame.ring)
     if frame.time_offsets is not None:
         off = np.asarray(frame.time_offsets, np.float64)
         t_us = utime + np.rint((off if keep.all() else off[keep]) * 1e6).astype(np.int64)

@@ -13,6 +13,8 @@ import os
 from collections import deque
 from typing import Iterator
 
+import numpy as np
+
 from blockloc.datasets.base import LidarFrame
 from blockloc.sim.presets import Preset
 
@@ -87,8 +89,24 @@ def _render(preset: Preset, session: str, seed: int, start: int, stop: int, enco
         return list(frames)
     from blockloc.datasets.nclt import encode_frame
 
-    encoded = (encode_frame(f) for f in frames)
+    encoded = (encode_frame(f, encode_words=_encode_words) for f in frames)
     return list(encoded) if write_to is None else _write_chunk(encoded, write_to, start, stop)
+
+
+def _encode_words(points, intensity, ring):
+    """``blockloc.datasets.nclt._encode_words`` (words, keep mask) of a rendered scan by the
+    one-pass kernel ``nclt_words`` (its bits; ~1.5 ms a scan of numpy passes, ~4% of a scan's
+    CPU), for the dtypes the lidar model gives; anything else by ``_encode_words`` itself."""
+    from blockloc.datasets import nclt
+
+    pts = np.asarray(points)
+    if (intensity is None or ring is None or pts.dtype != np.float64 or pts.ndim != 2 or pts.shape[1] != 3
+            or np.asarray(intensity).dtype != np.float32 or np.asarray(ring).dtype != np.uint16):
+        return nclt._encode_words(points, intensity, ring)
+    from blockloc.sim._kernels import nclt_words
+
+    return nclt_words(np.ascontiguousarray(pts), np.asarray(intensity), np.asarray(ring),
+                      float(nclt.NCLT_POINT_OFFSET), float(nclt.NCLT_POINT_SCALE))
 
 
 def _write_chunk(encoded, write_to: str, start: int, stop: int) -> tuple[str, list]:
