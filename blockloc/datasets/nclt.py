@@ -164,24 +164,27 @@ def _encode_words(points, intensity, ring) -> tuple[np.ndarray, np.ndarray]:
 @dataclass
 class EncodedFrame:
     """A frame in the bytes ``write_session`` writes: ``index``, ``stamp`` (s) and ``utime`` (us,
-    its file name) of the frame, ``sync`` (the velodyne_sync file's bytes), ``hits`` (its
-    velodyne_hits.bin packets; b"" when not asked), ``dropped`` (points not representable).
-    Small to send between processes: 16 bytes a point, where a LidarFrame pickles to ~36."""
+    its file name) of the frame, ``sync`` (the velodyne_sync file's bytes, or the path of a file
+    holding them that the encoding process wrote on the session's filesystem: ``write_session``
+    moves it in), ``hits`` (its velodyne_hits.bin packets, bytes-like; b"" when not asked),
+    ``dropped`` (points not representable). Small to send between processes: 16 bytes a point,
+    where a LidarFrame pickles to ~36; nothing of the sync bytes when they are a file."""
 
     index: int
     stamp: float
     utime: int
-    sync: bytes
+    sync: bytes | Path
     hits: bytes
     dropped: int
 
 
-def encode_frame(frame: LidarFrame, hits: bool = True) -> EncodedFrame:
+def encode_frame(frame: LidarFrame, hits: bool = True, encode_words=None) -> EncodedFrame:
     """``frame`` encoded as ``write_session`` writes it: points quantised (:func:`encode_points`)
     and sorted by time (stable), the hits packets (``hits``) of their times (per-point
-    ``time_offsets``, else the stamp)."""
+    ``time_offsets``, else the stamp). encode_words: a function giving :func:`_encode_words`'s
+    words and mask, its bits (the simulator's workers pass a one-pass kernel); None: that one."""
     utime = int(round(frame.stamp * 1e6))
-    words, keep = _encode_words(frame.points, frame.intensity, frame.ring)
+    words, keep = (encode_words or _encode_words)(frame.points, frame.intensity, frame.ring)
     if frame.time_offsets is not None:
         off = np.asarray(frame.time_offsets, np.float64)
         t_us = utime + np.rint((off if keep.all() else off[keep]) * 1e6).astype(np.int64)
@@ -569,7 +572,7 @@ def write_session(out_dir: str | Path, *, date: str, frames: Iterable[LidarFrame
     frames: iterable of LidarFrame in the velodyne frame (stamps in s, ``time_offsets`` in s
       relative to the stamp, ``ring`` = laser id, ``intensity`` 0..255), consumed one at a time;
       or of :class:`EncodedFrame` (:func:`encode_frame`, e.g. encoded in the processes that made
-      the frames), written as they are.
+      the frames), written as they are (a sync file they wrote already is moved in).
       Points are quantised to 5 mm and written in time order; non-finite or unrepresentable
       points are dropped (one warning with the total count).
     imu: samples in the MS25 frame -> ``ms25.csv``. ground_truth, slam_poses: T_map_body ->
@@ -601,8 +604,11 @@ def write_session(out_dir: str | Path, *, date: str, frames: Iterable[LidarFrame
                                        f"the previous frame's ({last_utime * 1e-6!r} s)")
                 last_utime = utime
                 dropped += enc.dropped
-                with open(sync_dir / f"{utime}.bin", "wb") as fh:
-                    fh.write(enc.sync)
+                if isinstance(enc.sync, (str, os.PathLike)):  # written already: moved in
+                    os.replace(enc.sync, sync_dir / f"{utime}.bin")
+                else:
+                    with open(sync_dir / f"{utime}.bin", "wb") as fh:
+                        fh.write(enc.sync)
                 if hits_fh is not None:
                     hits_fh.write(enc.hits)
                 n_frames += 1

@@ -13,6 +13,8 @@ import os
 from collections import deque
 from typing import Iterator
 
+import numpy as np
+
 from blockloc.datasets.base import LidarFrame
 from blockloc.sim.presets import Preset
 
@@ -66,10 +68,13 @@ def _init_worker() -> None:
     _keep_freed_memory()
 
 
-def _render(preset: Preset, session: str, seed: int, start: int, stop: int, encode: bool = False) -> list:
+def _render(preset: Preset, session: str, seed: int, start: int, stop: int, encode: bool = False,
+            write_to: str | None = None):
     """Frames ``start .. stop - 1`` of the session: LidarFrames, or with ``encode`` the NCLT
     bytes ``write_session`` writes (``blockloc.datasets.nclt.EncodedFrame``: the encoding is
-    done here, beside the rendering, and half the bytes go back)."""
+    done here, beside the rendering, and half the bytes go back). With ``encode`` and
+    ``write_to`` (a directory) the bytes are written there instead (:func:`_write_chunk`) and
+    only where they are goes back."""
     from blockloc.sim.stream import SimSequence
 
     key = (preset, session, seed)
@@ -84,13 +89,70 @@ def _render(preset: Preset, session: str, seed: int, start: int, stop: int, enco
         return list(frames)
     from blockloc.datasets.nclt import encode_frame
 
-    return [encode_frame(f) for f in frames]
+    encoded = (encode_frame(f, encode_words=_encode_words) for f in frames)
+    return list(encoded) if write_to is None else _write_chunk(encoded, write_to, start, stop)
+
+
+def _encode_words(points, intensity, ring):
+    """``blockloc.datasets.nclt._encode_words`` (words, keep mask) of a rendered scan by the
+    one-pass kernel ``nclt_words`` (its bits; ~1.5 ms a scan of numpy passes, ~4% of a scan's
+    CPU), for the dtypes the lidar model gives; anything else by ``_encode_words`` itself."""
+    from blockloc.datasets import nclt
+
+    pts = np.asarray(points)
+    if (intensity is None or ring is None or pts.dtype != np.float64 or pts.ndim != 2 or pts.shape[1] != 3
+            or np.asarray(intensity).dtype != np.float32 or np.asarray(ring).dtype != np.uint16):
+        return nclt._encode_words(points, intensity, ring)
+    from blockloc.sim._kernels import nclt_words
+
+    return nclt_words(np.ascontiguousarray(pts), np.asarray(intensity), np.asarray(ring),
+                      float(nclt.NCLT_POINT_OFFSET), float(nclt.NCLT_POINT_SCALE))
+
+
+def _write_chunk(encoded, write_to: str, start: int, stop: int) -> tuple[str, list]:
+    """Write a chunk's encoded frames into ``write_to``: each frame's velodyne_sync bytes as
+    ``<utime>.bin``, the chunk's hits packets one after the other in ``<start>-<stop>.hits``.
+    Returns (that hits file, [(index, stamp, utime, bytes of hits, dropped) a frame]).
+
+    ~1 MB a frame crossed the pipe to the writing process (pickled, then 64 kB a read, then
+    unpickled: ~1.2 ms of CPU a frame between the two processes); written here, the writing
+    process moves the sync files in and reads the hits back in one read a chunk."""
+    hits_path = os.path.join(write_to, f"{start}-{stop}.hits")
+    meta = []
+    with open(hits_path, "wb") as hits:
+        for enc in encoded:
+            with open(os.path.join(write_to, f"{enc.utime}.bin"), "wb") as fh:
+                fh.write(enc.sync)
+            hits.write(enc.hits)
+            meta.append((enc.index, enc.stamp, enc.utime, len(enc.hits), enc.dropped))
+    return hits_path, meta
+
+
+def _written_frames(result) -> list:
+    """The ``EncodedFrame`` list of a chunk :func:`_write_chunk` wrote: ``sync`` the path of each
+    frame's file (``write_session`` moves it in), ``hits`` its bytes (the chunk's file is read
+    once, then removed)."""
+    from pathlib import Path
+
+    from blockloc.datasets.nclt import EncodedFrame
+
+    hits_path, meta = result
+    with open(hits_path, "rb") as fh:
+        hits = memoryview(fh.read())
+    os.unlink(hits_path)
+    folder = Path(hits_path).parent
+    out, at = [], 0
+    for index, stamp, utime, n_hits, dropped in meta:
+        out.append(EncodedFrame(index, stamp, utime, folder / f"{utime}.bin", hits[at:at + n_hits], dropped))
+        at += n_hits
+    return out
 
 
 #: Modules the workers' fork server imports once, before it forks them (~1.2 s of CPU a worker
-#: when each imported them itself).
-PRELOAD = ("numpy", "scipy.interpolate", "open3d", "numba", "blockloc.sim._kernels", "blockloc.sim.stream",
-           "blockloc.sim.scene", "blockloc.datasets.nclt")
+#: when each imported them itself). open3d without its plotly viewer (``_lean_open3d``: dash and
+#: IPython were half of open3d's import, paid before the first worker started).
+PRELOAD = ("numpy", "scipy.interpolate", "blockloc.sim._lean_open3d", "numba", "blockloc.sim._kernels",
+           "blockloc.sim.stream", "blockloc.sim.scene", "blockloc.datasets.nclt")
 
 
 def _context():
@@ -137,13 +199,20 @@ class FramePool:
         long the session)."""
         return self.runs(preset, seed, [(session, start, stop)], encode)[0]
 
-    def runs(self, preset: Preset, seed: int, runs: list[tuple[str, int, int]], encode: bool = False
-             ) -> list[Iterator]:
+    def runs(self, preset: Preset, seed: int, runs: list[tuple[str, int, int]], encode: bool = False,
+             write_to: list | None = None) -> list[Iterator]:
         """One iterator per run ``(session, start, stop)``, each giving that run's frames in
         order (as :meth:`frames`); read them one after the other, each to its end. The chunks of all runs are
         queued in one line, so while the last chunks of a run are rendered the workers go on
         with the next run's (one queue per run drained at each run's end left a worker idle
-        and paid its start again)."""
+        and paid its start again).
+
+        write_to: with ``encode``, one existing directory per run (or None) on the filesystem
+        the frames will be written to: the workers write each frame's bytes there and the
+        ``EncodedFrame`` handed back has the path of its sync file (``write_session`` moves it
+        in; whatever is not moved in stays there for the caller to remove)."""
+        dirs = [None] * len(runs) if write_to is None or not encode else [
+            None if d is None else os.fspath(d) for d in write_to]
         chunks = deque((k, a, min(stop, a + CHUNK_FRAMES)) for k, (_, start, stop) in enumerate(runs)
                        for a in range(start, stop, CHUNK_FRAMES))
         pending: deque = deque()  # (run, future), in the order of the chunks
@@ -151,7 +220,7 @@ class FramePool:
         def top_up() -> None:
             while chunks and len(pending) < 2 * self.workers:
                 k, a, b = chunks.popleft()
-                pending.append((k, self._pool.submit(_render, preset, runs[k][0], seed, a, b, encode)))
+                pending.append((k, self._pool.submit(_render, preset, runs[k][0], seed, a, b, encode, dirs[k])))
 
         def run(k: int) -> Iterator:
             try:
@@ -159,7 +228,7 @@ class FramePool:
                 while pending and pending[0][0] == k:
                     _, fut = pending.popleft()
                     top_up()  # before waiting: the workers stay busy
-                    yield from fut.result()
+                    yield from fut.result() if dirs[k] is None else _written_frames(fut.result())
             except GeneratorExit:  # the reader stopped early: nothing more is rendered
                 chunks.clear()
                 for _, fut in pending:

@@ -635,7 +635,9 @@ class SessionScene:
         near = np.linalg.norm(xy - center[:2], axis=1) < max_range + 10.0
         # select per column when rays come in columns sharing an origin (the lidar model casts
         # 32 a column); the bounding circle is 3.5 m, wider than any actor, for the tilt margin
-        step = 32 if len(rays) % 32 == 0 and np.allclose(origins[::32], origins[31::32]) else 1
+        # (the lidar model's columns are exactly equal: that check first, ~40x cheaper than allclose)
+        first, last = origins[::32], origins[31::32]
+        step = 32 if len(rays) % 32 == 0 and (np.array_equal(first, last) or np.allclose(first, last)) else 1
         from blockloc.sim import _kernels
 
         sel_c = _kernels.actor_columns(np.ascontiguousarray(xy[near]), origins[::step, :2], dirs[::step, :2])

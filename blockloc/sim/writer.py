@@ -90,8 +90,13 @@ def generate_dataset(preset: str, seed: int, out: Path, fmt: str = "nclt", *,
     pool = FramePool(workers) if workers > 0 else None
     try:
         own = [s for s in names if s in p.sessions]
+        # nclt: the workers write the frames' bytes beside the sessions' files-to-be (the same
+        # filesystem: write_session moves them in), none of them crosses the pipe
+        scratch = [tmp / f".{s}-frames" for s in own] if fmt == "nclt" and pool is not None else None
+        for d in scratch or ():
+            d.mkdir()
         pooled = {} if pool is None else dict(zip(own, pool.runs(
-            p, int(seed), [(s, 0, counts[s]) for s in own], encode=fmt == "nclt")))
+            p, int(seed), [(s, 0, counts[s]) for s in own], encode=fmt == "nclt", write_to=scratch)))
         meta = {"generator": "blockloc.sim", "format_version": 1, "preset": p.name, "seed": int(seed),
                 "format": fmt, "sessions": {}, "azimuth_steps": p.lidar.azimuth_steps,
                 "frames": {"map": "NCLT map, z down", "body": "x forward, y right, z down",
@@ -121,6 +126,8 @@ def generate_dataset(preset: str, seed: int, out: Path, fmt: str = "nclt", *,
                               slam_poses=slam, write_hits=True)
                 if s not in p.sessions:
                     changes.finish_session(tmp / s, tmp / f".{s}-labels", seq)
+                else:
+                    shutil.rmtree(tmp / f".{s}-frames", ignore_errors=True)  # moved in: empty
             else:
                 from blockloc.datasets.nclt import write_groundtruth_csv
                 from blockloc.datasets.rosbag import write_rosbag, write_sidecar

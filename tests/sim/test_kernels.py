@@ -523,3 +523,34 @@ def test_gauss_markov_recursion_gives_lfilters_bits():
         want = lfilter([1.0], [1.0, -phi], w, axis=0)
         got = _ar1(w, phi)
         assert got.dtype == want.dtype and got.shape == want.shape and got.tobytes() == want.tobytes()
+
+
+def test_the_workers_point_words_are_write_sessions_bits():
+    """blockloc.sim.parallel._encode_words (the kernel nclt_words) against nclt._encode_words:
+    points on and around the 5 mm grid's ties and the format's range, NaN and inf, intensities
+    rounded, clipped and NaN, rings over 255; other dtypes go to nclt's own."""
+    from blockloc.datasets import nclt
+    from blockloc.sim.parallel import _encode_words
+
+    rng = np.random.default_rng(7)
+    n = 5000
+    pts = rng.uniform(-120.0, 240.0, (n, 3))
+    pts[:500] = np.round(pts[:500] / 0.0025) * 0.0025  # half-way between grid points (ties)
+    pts[500:520] = [-100.0, 227.675, 0.0]  # the range's ends
+    pts[520:530] = [-100.0025, 227.6775, 1.0]
+    pts[530, 1], pts[531, 2], pts[532, 0] = np.nan, np.inf, -np.inf
+    inten = rng.uniform(-20.0, 300.0, n).astype(np.float32)
+    inten[:40] = np.round(inten[:40]) + 0.5  # ties
+    inten[40:45] = [np.nan, -0.4, 254.5, 255.5, 0.5]
+    ring = rng.integers(0, 300, n).astype(np.uint16)
+    want_w, want_k = nclt._encode_words(pts, inten, ring)
+    got_w, got_k = _encode_words(pts, inten, ring)
+    assert got_w.dtype == want_w.dtype and np.array_equal(got_k, want_k) and not want_k.all()
+    assert got_w.tobytes() == want_w.tobytes()
+    # a scan as the lidar model gives it (every point kept), and another dtype (nclt's own path)
+    ok = want_k
+    w2, k2 = _encode_words(pts[ok], inten[ok], ring[ok])
+    assert k2.all() and w2.tobytes() == want_w.tobytes()
+    w3, k3 = _encode_words(pts.astype(np.float32), inten, ring.astype(np.int64))
+    r3 = nclt._encode_words(pts.astype(np.float32), inten, ring.astype(np.int64))
+    assert w3.tobytes() == r3[0].tobytes() and np.array_equal(k3, r3[1])

@@ -26,7 +26,7 @@ def test_a_dataset_written_by_workers_has_the_bytes_of_one_written_in_process(tm
     assert len(a) > 20 and a == b
 
 
-def test_the_pool_hands_frames_back_in_order_across_chunks_and_runs():
+def test_the_pool_hands_frames_back_in_order_across_chunks_and_runs(tmp_path):
     from blockloc.datasets.nclt import encode_frame
 
     import resource
@@ -43,6 +43,9 @@ def test_the_pool_hands_frames_back_in_order_across_chunks_and_runs():
         # encoded there
         loc, mapped = pool.runs(p, 2, [("loc", 20, 30), ("map", 5, 5 + 11)], encode=True)
         enc_loc, enc_map = list(loc), list(mapped)
+        # the same frames written by the workers into a directory: where they are comes back
+        (written,) = pool.runs(p, 2, [("loc", 20, 30)], encode=True, write_to=[tmp_path])
+        written = list(written)
     # the workers' fork server is stopped and reaped with the pool: its CPU and its workers' (the
     # imports, 42 frames) count as this process's children's, as spawned workers' did
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -58,6 +61,14 @@ def test_the_pool_hands_frames_back_in_order_across_chunks_and_runs():
     assert [f.index for f in enc_loc] == list(range(20, 30)) and [f.index for f in enc_map] == list(range(5, 16))
     assert enc_loc[3] == encode_frame(got[-1]) and enc_map[-1] == encode_frame(ref_map.frame(15))
     assert len(enc_map[-1].hits) > len(enc_map[-1].sync) > 0
+    # written there: each frame's sync file holds its bytes, the hits come back as bytes (the
+    # chunks' hits files read and removed), nothing else is left
+    assert [(w.index, w.stamp, w.utime, w.dropped) for w in written] == [
+        (e.index, e.stamp, e.utime, e.dropped) for e in enc_loc]
+    for w, e in zip(written, enc_loc):
+        assert w.sync == tmp_path / f"{e.utime}.bin" and w.sync.read_bytes() == e.sync
+        assert bytes(w.hits) == e.hits
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(f"{e.utime}.bin" for e in enc_loc)
 
 
 def _encode_before(frame):
@@ -154,3 +165,32 @@ def test_actor_meshes_at_once_are_the_meshes_built_one_actor_at_a_time():
         V1, F1, own1 = actor_meshes(kind, xy[:, 0], xy[:, 1], yaw, gait, scene.world.terrain)
         assert V0.tobytes() == V1.tobytes() and np.array_equal(F0, F1)
         assert np.array_equal(np.concatenate(owner), own1)
+
+
+def test_the_workers_open3d_leaves_its_plotly_viewer_for_later():
+    """The fork server imports open3d without dash (blockloc.sim._lean_open3d); the viewer's
+    functions are there and import it when called, bound as open3d binds them."""
+    import subprocess
+    import sys
+
+    code = """
+import sys
+import numpy as np
+import blockloc.sim._lean_open3d as lean
+import open3d as o3d
+assert "dash" not in sys.modules and "plotly" not in sys.modules, "viewer imported"
+scene = o3d.t.geometry.RaycastingScene()
+scene.add_triangles(o3d.core.Tensor(np.array([[0, -1, -1], [0, 1, -1], [0, 0, 2]], np.float32)),
+                    o3d.core.Tensor(np.array([[0, 1, 2]], np.uint32)))
+t = scene.cast_rays(o3d.core.Tensor(np.array([[-2, 0, 0, 1, 0, 0]], np.float32)))["t_hit"].numpy()
+assert abs(t[0] - 2.0) < 1e-6, t
+fn = o3d.visualization.draw_plotly
+assert fn.__module__ == "blockloc.sim._lean_open3d"
+real = lean._real("draw_plotly")
+assert "dash" in sys.modules and real.__module__ == "open3d.visualization.draw_plotly"
+assert o3d.visualization.draw_plotly is real and callable(o3d.visualization.get_plotly_fig)
+assert o3d.visualization.get_plotly_fig.__module__ == "open3d.visualization.draw_plotly"
+print("ok")
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
