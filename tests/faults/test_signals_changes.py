@@ -6,9 +6,13 @@ from __future__ import annotations
 import json
 import signal
 
+from .cases import case
 from .conftest import Running
 
 
+@case(2, "SIGINT to `track --detect-changes` while it tracks and detects",
+      "exit 130; the run is written, and changes.json from the frames tracked before the stop, its params "
+      "saying so")
 def test_track_detect_changes_stopped_writes_changes_of_the_frames_before(tiny_world, tmp_path):
     out = tmp_path / "res"
     run = Running("track", "--seq", tiny_world["long"], "--map", tiny_world["map"], "--init", "gt",

@@ -31,18 +31,11 @@ import numpy as np
 
 from blockloc.geometry import up_from_gravity
 from blockloc.maps.changes.detect import (Evidence, Thresholds, VoxelChanges, block_report, classify,
-                                          ground_band, in_sorted, near_sorted, seen_by_keyframes, voxel_keys,
-                                          without_lowest)
+                                          ground_band, in_sorted, near_sorted, seen_by_keyframes, unique_keys,
+                                          voxel_keys, without_lowest)
 from blockloc.maps.changes.runs import TRUSTED_STATUS, RunPoses
 
 log = logging.getLogger(__name__)
-
-
-def _unique(keys: np.ndarray) -> np.ndarray:
-    """Sorted unique int64 ``keys``: ``np.unique``'s result, by a sort (numpy 2.4's ``np.unique``
-    hashes first: 30x slower on 400k voxel keys, and a block's join to the map was mostly that)."""
-    keys = np.sort(np.asarray(keys, np.int64).ravel())
-    return keys[np.r_[True, keys[1:] != keys[:-1]]] if len(keys) else keys
 
 
 @dataclass
@@ -89,7 +82,7 @@ def scan_agreement(points_map: np.ndarray, origin: np.ndarray, up: np.ndarray, m
     # again on every call: on the campus's 34 blocks 95 % of the detection's CPU went there), the
     # 26 neighbours only for the voxels not on the map: no dilated table to build as blocks join
     every = voxel_keys(sel, voxel_m)
-    keys = _unique(every)
+    keys = unique_keys(every)
     inverse = np.searchsorted(keys, every)
     near = in_sorted(keys, map_keys)
     if not near.all():
@@ -209,11 +202,11 @@ class ChangeDetector:
             pts = self.store.load(bid)[0][:, :3].astype(np.float64)
             self.blocks[bid] = pts
             self.keyframes[bid] = np.asarray(e.keyframes if e.keyframes is not None else e.centroid[None], float)
-            keys = _unique(voxel_keys(pts, self.voxel_m))
+            keys = unique_keys(voxel_keys(pts, self.voxel_m))
             self.block_keys[bid] = keys
-            self.map_keys = _unique(np.concatenate([self.map_keys, keys]))
-            fine.append(_unique(voxel_keys(pts, self.fine_m)))
-        self.fine_keys = _unique(np.concatenate(fine))
+            self.map_keys = unique_keys(np.concatenate([self.map_keys, keys]))
+            fine.append(unique_keys(voxel_keys(pts, self.fine_m)))
+        self.fine_keys = unique_keys(np.concatenate(fine))
         # new points are judged against every map cell; free space may cross all but the ground's
         # (the lowest cell of a column can change when a block joins: recomputed over all)
         self.ev.fine = (self.map_keys, self.fine_m, self.fine_keys)

@@ -47,7 +47,7 @@ from typing import Callable
 import numpy as np
 
 from blockloc.errors import MapError
-from blockloc.maps.changes.detect import unpack_keys, voxel_keys
+from blockloc.maps.changes.detect import unique_keys, unpack_keys, voxel_keys
 
 log = logging.getLogger(__name__)
 
@@ -178,8 +178,8 @@ def plan_update(results: list, *, strong_scans: int = 15, min_runs: int = 2, min
             plan.held_back.append({"block": b, "scattered_voxels": lone,
                                    "reason": f"{lone} strong voxels in no coherent change of {min_change_m3:g} m^3 "
                                              "or more"})
-    plan.removed = np.unique(np.concatenate(applied_rm)) if applied_rm else plan.removed
-    plan.added = np.unique(np.concatenate(applied_ad)) if applied_ad else plan.added
+    plan.removed = unique_keys(np.concatenate(applied_rm)) if applied_rm else plan.removed
+    plan.added = unique_keys(np.concatenate(applied_ad)) if applied_ad else plan.added
     plan.added_owner = dict(zip(ad.tolist(), ad_owner.tolist()))
     return plan
 
@@ -206,7 +206,7 @@ def new_points_by_block(plan: UpdatePlan, results: list) -> dict:
     owner[sel] = [plan.added_owner.get(int(x)) for x in k[sel]]
     applied = np.union1d(plan.removed, added)
     if plan.reveal_m > 0 and len(applied):
-        dynamic = np.unique(np.concatenate([np.asarray(r.voxels.dynamic, np.int64) for r in results]))
+        dynamic = unique_keys(np.concatenate([np.asarray(r.voxels.dynamic, np.int64) for r in results]))
         cand = ~sel & ~in_sorted(k, dynamic) & ~in_sorted(k, np.asarray(plan.removed, np.int64))
         # persistent: the cell hit by reveal_hits scan points or more (the detector thins each scan
         # to about a point per voxel_m / 2 cell, so about as many scans); a walker's cells are hit
