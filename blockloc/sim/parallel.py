@@ -149,10 +149,9 @@ def _written_frames(result) -> list:
 
 
 #: Modules the workers' fork server imports once, before it forks them (~1.2 s of CPU a worker
-#: when each imported them itself). open3d without its plotly viewer (``_lean_open3d``: dash and
-#: IPython were half of open3d's import, paid before the first worker started).
-PRELOAD = ("numpy", "scipy.interpolate", "blockloc.sim._lean_open3d", "numba", "blockloc.sim._kernels",
-           "blockloc.sim.stream", "blockloc.sim.scene", "blockloc.datasets.nclt")
+#: when each imported them itself).
+PRELOAD = ("numpy", "scipy.interpolate", "open3d", "numba", "blockloc.sim._kernels", "blockloc.sim.stream",
+           "blockloc.sim.scene", "blockloc.datasets.nclt")
 
 
 def _context():

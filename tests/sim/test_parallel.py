@@ -165,32 +165,3 @@ def test_actor_meshes_at_once_are_the_meshes_built_one_actor_at_a_time():
         V1, F1, own1 = actor_meshes(kind, xy[:, 0], xy[:, 1], yaw, gait, scene.world.terrain)
         assert V0.tobytes() == V1.tobytes() and np.array_equal(F0, F1)
         assert np.array_equal(np.concatenate(owner), own1)
-
-
-def test_the_workers_open3d_leaves_its_plotly_viewer_for_later():
-    """The fork server imports open3d without dash (blockloc.sim._lean_open3d); the viewer's
-    functions are there and import it when called, bound as open3d binds them."""
-    import subprocess
-    import sys
-
-    code = """
-import sys
-import numpy as np
-import blockloc.sim._lean_open3d as lean
-import open3d as o3d
-assert "dash" not in sys.modules and "plotly" not in sys.modules, "viewer imported"
-scene = o3d.t.geometry.RaycastingScene()
-scene.add_triangles(o3d.core.Tensor(np.array([[0, -1, -1], [0, 1, -1], [0, 0, 2]], np.float32)),
-                    o3d.core.Tensor(np.array([[0, 1, 2]], np.uint32)))
-t = scene.cast_rays(o3d.core.Tensor(np.array([[-2, 0, 0, 1, 0, 0]], np.float32)))["t_hit"].numpy()
-assert abs(t[0] - 2.0) < 1e-6, t
-fn = o3d.visualization.draw_plotly
-assert fn.__module__ == "blockloc.sim._lean_open3d"
-real = lean._real("draw_plotly")
-assert "dash" in sys.modules and real.__module__ == "open3d.visualization.draw_plotly"
-assert o3d.visualization.draw_plotly is real and callable(o3d.visualization.get_plotly_fig)
-assert o3d.visualization.get_plotly_fig.__module__ == "open3d.visualization.draw_plotly"
-print("ok")
-"""
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
-    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
