@@ -145,7 +145,7 @@ class LiveChanges:
     """``track --detect-changes``: a run observer feeding the change detector
     (:class:`~blockloc.maps.changes.pipeline.ChangeDetector`) every frame as the session emits it:
     the frame's pose and status (trusted by the rule ``map changes`` reads a run folder with,
-    :class:`~blockloc.maps.changes.pipeline.TrustedFrames`) and its raw scan, taken from the
+    :class:`~blockloc.maps.changes.runs.TrustedFrames`) and its raw scan, taken from the
     sequence as the session steps it (nothing read twice). A used frame waits one trusted frame
     for the pose after it (deskewing). Statuses and poses are final when emitted (``poses.tum``
     and ``diagnostics.csv`` write them as they come), so no other lag is needed.
@@ -169,7 +169,8 @@ class LiveChanges:
     def begin(self, session: Session) -> None:
         """The detector for ``session``'s map and sensor, without wrapping its sequence: for a
         caller that steps the session itself (the live node) and feeds :meth:`add` the frames."""
-        from blockloc.maps.changes.pipeline import ChangeDetector, TrustedFrames
+        from blockloc.maps.changes.pipeline import ChangeDetector
+        from blockloc.maps.changes.runs import TrustedFrames
 
         info = session.seq.info
         self.detector = ChangeDetector(session.store, info.T_body_lidar, info.gravity_map, stride=self.stride)
@@ -185,7 +186,7 @@ class LiveChanges:
         self.add(event.index, event.stamp, event.T_map_body, trusted, self._tap.last if self._tap is not None else None)
 
     def trusted(self, status: str, T_map_body) -> bool:
-        """The run folder's rule (:class:`~blockloc.maps.changes.pipeline.TrustedFrames`) on the
+        """The run folder's rule (:class:`~blockloc.maps.changes.runs.TrustedFrames`) on the
         next emitted frame's status, in order: call it once per frame, before :meth:`add`."""
         return self._trusted(status) and T_map_body is not None
 

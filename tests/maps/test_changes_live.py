@@ -10,18 +10,23 @@ import json
 import numpy as np
 import pytest
 
-from blockloc.maps.changes.pipeline import ChangeDetector, TrustedFrames, detect_changes
-from blockloc.maps.changes.runs import read_run, trusted_mask
+from blockloc.maps.changes.pipeline import ChangeDetector, detect_changes
+from blockloc.maps.changes.runs import TrustedFrames, read_run, trusted_mask
 from tests.maps import lifelong_world as W
 
 
 def test_trusted_frames_one_at_a_time_is_the_run_folders_rule():
+    """The streaming rule (what track and the node feed) against the rule written out: a frame is
+    trusted when it and the settle_frames frames before it are all ok."""
     rng = np.random.default_rng(3)
     for settle in (0, 1, 3, 10):
         for _ in range(20):
             statuses = list(rng.choice(["ok", "ok", "ok", "ok", "lost", "rejected", "recovered", "skipped"], 60))
             rule = TrustedFrames(settle)
-            assert [rule(s) for s in statuses] == trusted_mask(statuses, settle).tolist()
+            expected = [k >= settle and all(x == "ok" for x in statuses[k - settle:k + 1])
+                        for k in range(len(statuses))]
+            assert [rule(s) for s in statuses] == expected
+            assert trusted_mask(statuses, settle).tolist() == expected
 
 
 class _Cached:

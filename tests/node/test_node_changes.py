@@ -11,8 +11,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from blockloc.app.runs import LiveChanges
-from blockloc.maps.changes.pipeline import TrustedFrames
-from blockloc.maps.changes.runs import trusted_mask
+from blockloc.maps.changes.runs import TrustedFrames, trusted_mask
 from blockloc.node.changes import NodeChanges
 
 

@@ -33,7 +33,7 @@ from blockloc.geometry import up_from_gravity
 from blockloc.maps.changes.detect import (Evidence, Thresholds, VoxelChanges, block_report, classify,
                                           ground_band, in_sorted, near_sorted, seen_by_keyframes, unique_keys,
                                           voxel_keys, without_lowest)
-from blockloc.maps.changes.runs import TRUSTED_STATUS, RunPoses
+from blockloc.maps.changes.runs import RunPoses
 
 log = logging.getLogger(__name__)
 
@@ -109,28 +109,12 @@ def sweep_poses(run: RunPoses, k: int, max_gap_s: float = 0.3):
     return _sweep(pose(k - 1) if k > 0 else None, pose(k), pose(k + 1) if k + 1 < len(run) else None, max_gap_s)
 
 
-class TrustedFrames:
-    """The rule of :func:`.runs.trusted_mask` one frame at a time: ``trusted(status)`` is True for
-    an ``ok`` frame that follows at least ``settle_frames`` ``ok`` frames (call it with every
-    frame's status in order, skipped and lost frames included)."""
-
-    def __init__(self, settle_frames: int = 10) -> None:
-        self.settle_frames = int(settle_frames)
-        self._ok_before = 0  # consecutive ok frames right before the next one
-
-    def __call__(self, status: str) -> bool:
-        ok = status == TRUSTED_STATUS
-        trusted = ok and self._ok_before >= self.settle_frames
-        self._ok_before = self._ok_before + 1 if ok else 0
-        return trusted
-
-
 class ChangeDetector:
     """What changed in a block map store, fed a tracking run one frame at a time (what
     :func:`detect_changes` does with a finished run, and ``track --detect-changes`` while tracking).
 
     ``add(stamp, T_map_body, trusted, frame)`` with every frame of the run in order (``trusted``:
-    :class:`TrustedFrames`, the rule a run folder is read with); every ``stride``-th trusted frame
+    :class:`.runs.TrustedFrames`, the rule a run folder is read with); every ``stride``-th trusted frame
     is used. A used frame is processed one trusted frame later, when the pose after it is known
     (its sweep is deskewed with the poses on both sides, :func:`sweep_poses`), or as soon as a
     frame comes more than ``max_gap_s`` after it (then no later pose can be its neighbour), or in
@@ -194,7 +178,7 @@ class ChangeDetector:
         new = [int(i) for i in np.unique(which) if not self._loaded[i]]
         if not new:
             return 0
-        fine = [self.fine_keys]
+        coarse, fine = [self.map_keys], [self.fine_keys]
         for i in new:
             self._loaded[i] = True
             bid = self._ids[i]
@@ -202,10 +186,11 @@ class ChangeDetector:
             pts = self.store.load(bid)[0][:, :3].astype(np.float64)
             self.blocks[bid] = pts
             self.keyframes[bid] = np.asarray(e.keyframes if e.keyframes is not None else e.centroid[None], float)
-            keys = unique_keys(voxel_keys(pts, self.voxel_m))
-            self.block_keys[bid] = keys
-            self.map_keys = unique_keys(np.concatenate([self.map_keys, keys]))
+            self.block_keys[bid] = unique_keys(voxel_keys(pts, self.voxel_m))
+            coarse.append(self.block_keys[bid])
             fine.append(unique_keys(voxel_keys(pts, self.fine_m)))
+        # the map's sets merged once for all the blocks that joined (not once per block)
+        self.map_keys = unique_keys(np.concatenate(coarse))
         self.fine_keys = unique_keys(np.concatenate(fine))
         # new points are judged against every map cell; free space may cross all but the ground's
         # (the lowest cell of a column can change when a block joins: recomputed over all)
@@ -229,7 +214,7 @@ class ChangeDetector:
     # ------------------------------------------------------------------ frames
     def add(self, stamp: float, T_map_body: np.ndarray | None, trusted: bool, frame=None) -> int:
         """One frame of the run, in order. T_map_body: (4, 4) or None (not localized); trusted:
-        the frame passes :class:`TrustedFrames`; frame: its ``LidarFrame`` (lidar frame points,
+        the frame passes :class:`.runs.TrustedFrames`; frame: its ``LidarFrame`` (lidar frame points,
         per-point times), or a callable returning it (read only when the frame is used), or None
         for a frame that is not trusted. Returns the number of scans processed by this call."""
         t0, c0 = time.perf_counter(), time.thread_time()

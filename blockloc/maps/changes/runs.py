@@ -44,15 +44,28 @@ class RunPoses:
         return len(self.index)
 
 
+class TrustedFrames:
+    """The rule of the module docstring one frame at a time: ``trusted(status)`` is True for an
+    ``ok`` frame that follows at least ``settle_frames`` ``ok`` frames (call it with every frame's
+    status in order, skipped and lost frames included). What ``track`` and the node feed the
+    change detector while they run, and what :func:`trusted_mask` applies to a finished run."""
+
+    def __init__(self, settle_frames: int = 10) -> None:
+        self.settle_frames = int(settle_frames)
+        self._ok_before = 0  # consecutive ok frames right before the next one
+
+    def __call__(self, status: str) -> bool:
+        ok = status == TRUSTED_STATUS
+        trusted = ok and self._ok_before >= self.settle_frames
+        self._ok_before = self._ok_before + 1 if ok else 0
+        return trusted
+
+
 def trusted_mask(statuses: list[str], settle_frames: int) -> np.ndarray:
-    """(N,) bool: status ``ok`` with the ``settle_frames`` frames before it ``ok`` too."""
-    ok = np.array([s == TRUSTED_STATUS for s in statuses], dtype=bool)
-    if settle_frames <= 0 or not len(ok):
-        return ok
-    bad = np.concatenate([np.zeros(1, int), np.cumsum(~ok)])  # bad[k] = non-ok before k
-    k = np.arange(len(ok))
-    lo = np.maximum(k - settle_frames, 0)
-    return ok & (bad[k] - bad[lo] == 0) & (k >= settle_frames)
+    """(N,) bool: status ``ok`` with the ``settle_frames`` frames before it ``ok`` too
+    (:class:`TrustedFrames` over the statuses in order)."""
+    rule = TrustedFrames(settle_frames)
+    return np.array([rule(s) for s in statuses], dtype=bool)
 
 
 def read_run(run_dir: str | Path, settle_frames: int = 10) -> RunPoses:
