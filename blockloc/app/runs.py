@@ -166,15 +166,41 @@ class LiveChanges:
         self._tap = _FrameTap(session.seq)
         session.seq = self._tap
 
-    def begin(self, session: Session) -> None:
+    def begin(self, session: Session, warm: bool = True) -> None:
         """The detector for ``session``'s map and sensor, without wrapping its sequence: for a
-        caller that steps the session itself (the live node) and feeds :meth:`add` the frames."""
+        caller that steps the session itself (the live node) and feeds :meth:`add` the frames.
+        warm: load the detector's compiled kernels now (:meth:`ChangeDetector.warm_up`), in this
+        thread; else the caller does it (the node, on the detector's own thread)."""
         from blockloc.maps.changes.pipeline import ChangeDetector
-        from blockloc.maps.changes.runs import TrustedFrames
 
         info = session.seq.info
         self.detector = ChangeDetector(session.store, info.T_body_lidar, info.gravity_map, stride=self.stride)
+        self.restart_trust()
+        if warm:
+            self.detector.warm_up()
+
+    def restart_trust(self) -> None:
+        """Trust starts over: the next ``settle_frames`` ok frames are not trusted
+        (:class:`~blockloc.maps.changes.runs.TrustedFrames`). Call it in the thread and order of
+        :meth:`trusted`."""
+        from blockloc.maps.changes.runs import TrustedFrames
+
         self._trusted = TrustedFrames(self.settle_frames)
+
+    def restart(self, trust: bool = True) -> None:
+        """The source restarted (a live stream's stamps jumped back): trust starts over (``trust``:
+        here; the node does it in its own thread, :meth:`restart_trust`) and the detector lets go
+        of the poses before it (:meth:`ChangeDetector.restart`: a scan waiting for the pose after
+        it is never deskewed with a pose of the restarted stream). A failure stops detection."""
+        if trust:
+            self.restart_trust()
+        if self.detector is None or self.error is not None:
+            return
+        try:
+            self.detector.restart()
+        except Exception as exc:  # noqa: BLE001 - tracking goes on; the command reports it at the end
+            self.error = exc
+            log.error("change detection stopped at a source restart: %s (tracking goes on)", exc)
 
     def start(self, info) -> None:
         pass
@@ -247,6 +273,9 @@ class LiveChanges:
                 "per_scan_no_join_cpu_ms": stats(cpu[used & ~joins]),
                 "join_frames": int(joins.sum()), "join_cpu_ms": stats(cpu[joins]),
                 "final_wall_s": round(final_wall, 3), "final_cpu_s": round(final_cpu, 3),
+                # imports and compiled kernels loaded before the first frame (ChangeDetector.warm_up)
+                "startup_wall_s": round(det.startup[0], 3) if det.startup else None,
+                "startup_cpu_s": round(det.startup[1], 3) if det.startup else None,
                 "blocks_loaded": len(res.block_keys), "blocks_in_map": len(det.store.ids),
                 "cpu_clock": "thread_time (the detector's own thread)",
                 "load_1min": round(os.getloadavg()[0], 1)}

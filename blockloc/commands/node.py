@@ -74,7 +74,8 @@ def node_command(map_path: str, config: str | None, init_pose: str | None, point
     settings = NodeSettings(points_topic=points_topic, imu_topic=imu_topic, frames=FrameNames(**(frames or {})),
                             queue_size=queue_size, no_data_timeout_s=no_data_timeout_s)
     node = LocalizationNode(dds, make_session, settings=settings, gravity_map=gravity_map,
-                            map_bounds=(tuple(lo), tuple(hi)), init_pose=hint, on_frame=changes)
+                            map_bounds=(tuple(lo), tuple(hi)), init_pose=hint, on_frame=changes,
+                            on_restart=changes.restart if changes is not None else None)
     where = "CYCLONEDDS_URI" if dds.user_uri else f"{dds.discovery} discovery"
     print(f"blockloc node: map {map_path}; listening on {points_topic} and {imu_topic} "
           f"(DDS domain {dds.domain}, {where}); Ctrl-C stops", file=sys.stderr, flush=True)

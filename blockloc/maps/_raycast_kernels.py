@@ -164,3 +164,12 @@ def merge_counts(k1, h1, f1, k2, h2, f2):
         j += 1
         m += 1
     return out[:m], oh[:m], of[:m]
+
+
+@njit(cache=True, nogil=True)
+def point_keys(points, voxel_m, out):
+    """``out[n]``: the packed key of the voxel ``floor(points[n] / voxel_m)`` (points (N, 3+)
+    float64; the same float operations as ``detect.voxel_keys``), no (N, 3) temporaries."""
+    for n in range(points.shape[0]):
+        out[n] = _pack(np.int64(np.floor(points[n, 0] / voxel_m)), np.int64(np.floor(points[n, 1] / voxel_m)),
+                       np.int64(np.floor(points[n, 2] / voxel_m)))

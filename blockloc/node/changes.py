@@ -26,6 +26,8 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
+_RESTART = ("restart",)  # the queue's marker of a source restart, between the frames around it
+
 
 class NodeChanges:
     """The node's frame hook feeding ``live`` (a :class:`~blockloc.app.runs.LiveChanges`).
@@ -47,6 +49,7 @@ class NodeChanges:
         self.queue_scans = int(queue_scans)
         self.scans_dropped = 0  # scans the detector would have used, not detected on: it was behind
         self.max_waiting = 0  # the most scans to use ever waiting at once
+        self.restarts = 0  # source restarts told (:meth:`restart`)
         self._trusted_fed = 0  # trusted frames handed to the detector (its frames_trusted)
         self._hook_cpu: list[float] = []  # the node thread's CPU seconds per call
         self._items: deque = deque()
@@ -56,8 +59,9 @@ class NodeChanges:
         self._worker: threading.Thread | None = None
 
     def begin(self, session) -> None:
-        """The detector for ``session``'s map and sensor; the worker starts."""
-        self.live.begin(session)
+        """The detector for ``session``'s map and sensor; the worker starts (and loads the
+        detector's compiled kernels first, on its own thread: the node's first scan does not wait)."""
+        self.live.begin(session, warm=not self.threaded)
         if self.threaded and self._worker is None:
             self._worker = threading.Thread(target=self._work, name="blockloc-changes", daemon=True)
             self._worker.start()
@@ -89,7 +93,27 @@ class NodeChanges:
         self._trusted_fed += int(item[3])
         self._hook_cpu.append(time.thread_time() - c0)
 
+    def restart(self) -> None:
+        """The node's source restarted (its scan stamps jumped back; the node's restart hook, in
+        its processing thread, between the frames around it): trust starts over now, and the
+        detector lets go of the poses before the restart when it reaches this point of the queue
+        (:meth:`~blockloc.app.runs.LiveChanges.restart`)."""
+        self.restarts += 1
+        self.live.restart_trust()
+        if not self.threaded:
+            self.live.restart(trust=False)
+            return
+        with self._cond:
+            self._items.append(_RESTART)
+            self._cond.notify()
+
     def _work(self) -> None:
+        det = self.live.detector
+        if det is not None:
+            try:
+                det.warm_up()
+            except Exception as exc:  # noqa: BLE001 - only a cost: the first scan loads them instead
+                log.warning("change detection: loading the kernels failed (%s); the first scan will", exc)
         while True:
             with self._cond:
                 while not self._items and not self._closing:
@@ -97,6 +121,9 @@ class NodeChanges:
                 if not self._items:
                     return
                 item = self._items.popleft()
+            if item is _RESTART:
+                self.live.restart(trust=False)
+                continue
             self.live.add(*item)  # a failure stops detection (live.error), never this thread's loop
             with self._cond:
                 self._scans_waiting -= int(item[4] is not None)
@@ -115,6 +142,6 @@ class NodeChanges:
         hook = np.asarray(self._hook_cpu, float)
         return {"node_thread": "worker thread, bounded queue" if self.threaded else "the node's processing thread",
                 "queue_scans": self.queue_scans if self.threaded else 0, "scans_dropped": self.scans_dropped,
-                "max_scans_waiting": self.max_waiting,
+                "max_scans_waiting": self.max_waiting, "source_restarts": self.restarts,
                 "node_hook_cpu_ms": {"p50": round(1e3 * float(np.median(hook)), 3) if len(hook) else 0.0,
                                      "max": round(1e3 * float(hook.max()), 3) if len(hook) else 0.0}}

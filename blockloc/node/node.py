@@ -120,17 +120,20 @@ class LocalizationNode:
     on_frame(frame, est): called on the worker with each processed scan (LidarFrame) and the
     tracker's Estimate of it, in order, after its pose and diagnostics are published (e.g.
     :class:`blockloc.node.changes.NodeChanges`); it should return quickly (the next scan waits).
+    on_restart(): called on the worker when the source restarted (scan stamps jumped back), before
+    the first scan after it is processed (e.g. :meth:`NodeChanges.restart`).
     """
 
     def __init__(self, dds, make_session: Callable, *, settings: NodeSettings = NodeSettings(),
                  gravity_map=(0.0, 0.0, -9.81), map_bounds=None, init_pose: tuple | None = None,
-                 on_frame: Callable | None = None) -> None:
+                 on_frame: Callable | None = None, on_restart: Callable | None = None) -> None:
         from blockloc.ros2 import messages as m
         from blockloc.ros2.dds import LATCHED, RELIABLE, SENSOR_DATA
 
         self.settings = s = settings
         self.make_session = make_session
         self.on_frame = on_frame
+        self.on_restart = on_restart
         self.gravity_map = np.asarray(gravity_map, float)
         self.map_bounds = map_bounds
         self.stats = NodeStats()
@@ -393,6 +396,11 @@ class LocalizationNode:
         if self.session is not None:
             self.session.restart_stream()
         self._local_version = None
+        if self.on_restart is not None:
+            try:
+                self.on_restart()
+            except Exception as exc:  # noqa: BLE001 - a hook's failure never stops tracking
+                log.error("the restart hook failed: %s: %s", type(exc).__name__, exc)
 
     def _make_session(self, lidar_frame: str) -> None:
         from blockloc.datasets.base import ImuData, SequenceInfo

@@ -63,7 +63,14 @@ def unpack_keys(keys: np.ndarray) -> np.ndarray:
 
 def voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """(N,) int64 keys of the voxels of (N, 3) points (metres)."""
-    return pack_keys(np.floor(np.asarray(points, dtype=np.float64)[:, :3] / voxel_m).astype(np.int64))
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] < 3:
+        return pack_keys(np.floor(pts[:, :3] / voxel_m).astype(np.int64))
+    from blockloc.maps._raycast_kernels import point_keys
+
+    out = np.empty(len(pts), np.int64)  # compiled: one pass, no (N, 3) temporaries
+    point_keys(np.ascontiguousarray(pts), float(voxel_m), out)
+    return out
 
 
 _NEIGHBOURS = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)], dtype=np.int64)
@@ -178,6 +185,12 @@ def without_lowest(fine_keys: np.ndarray, up: np.ndarray) -> np.ndarray:
     axis = int(np.argmax(np.abs(up)))
     if not len(fine_keys) or abs(up[axis]) < 0.9:  # gravity not along an axis: nothing spared
         return fine_keys
+    if _sorted_columns(fine_keys, axis):
+        # the sorted keys hold each column's cells together, bottom first or last: no sort
+        first = _column_runs(fine_keys)
+        keep = np.ones(len(fine_keys), bool)
+        keep[first if up[axis] > 0 else np.r_[first[1:] - 1, len(fine_keys) - 1]] = False
+        return fine_keys[keep]
     ijk = unpack_keys(fine_keys)
     h = ijk[:, axis] * np.sign(up[axis])  # height in cells
     other = [a for a in range(3) if a != axis]
@@ -190,6 +203,18 @@ def without_lowest(fine_keys: np.ndarray, up: np.ndarray) -> np.ndarray:
     return fine_keys[keep]
 
 
+def _sorted_columns(keys: np.ndarray, axis: int) -> bool:
+    """The sorted unique packed ``keys`` list each vertical column's cells together in height
+    order: the vertical ``axis`` is the packing's last (fastest) one."""
+    return axis == 2 and len(keys) > 0 and bool((keys[1:] > keys[:-1]).all())
+
+
+def _column_runs(keys: np.ndarray) -> np.ndarray:
+    """Indices of the first key of each column (the same first two indices) in the sorted keys."""
+    col = keys >> _BITS
+    return np.flatnonzero(np.r_[True, col[1:] != col[:-1]])
+
+
 def ground_band(fine_keys: np.ndarray, up: np.ndarray, band_cells: int) -> np.ndarray:
     """The sorted fine keys at most ``band_cells`` cells above the lowest occupied cell of their
     vertical column (``up``: (3,) unit vector against gravity, along a map axis): the ground's
@@ -200,6 +225,14 @@ def ground_band(fine_keys: np.ndarray, up: np.ndarray, band_cells: int) -> np.nd
     axis = int(np.argmax(np.abs(up)))
     if not len(fine_keys) or abs(up[axis]) < 0.9:
         return np.zeros(0, np.int64)
+    if _sorted_columns(fine_keys, axis):
+        # the sorted keys hold each column's cells together, in height order: its lowest is the
+        # run's first (up along +axis) or last cell, no unique over the columns needed
+        h = ((fine_keys & _MASK) - _OFF) * int(np.sign(up[axis]))
+        first = _column_runs(fine_keys)
+        lowest = first if up[axis] > 0 else np.r_[first[1:] - 1, len(fine_keys) - 1]
+        low = np.repeat(h[lowest], np.diff(np.r_[first, len(fine_keys)]))
+        return fine_keys[h - low <= band_cells]
     ijk = unpack_keys(fine_keys)
     h = ijk[:, axis] * int(np.sign(up[axis]))
     other = [a for a in range(3) if a != axis]
