@@ -338,3 +338,47 @@ def test_a_cloud_of_the_mapping_days_noise_is_not_removed_even_where_a_few_voxel
     # without the rule the dense voxels and their neighbours form a removed cluster
     rm0 = _centres(classify(ev, ev.fine[0], None, Thresholds(min_solid_share=0.0)).removed, 0.5)
     assert (rm0[:, 0] > 9).sum() >= 20 and (rm0[:, 0] < 6).sum() == 16
+
+
+def test_the_compiled_key_kernels_give_the_numpy_answers():
+    """near_sorted, dilate_keys, voxel_keys, the column rules (without_lowest, ground_band) and the
+    evidence merge (Evidence.flush) against the same sums written out in numpy."""
+    from blockloc.maps.changes import detect as d
+
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        table = d.unique_keys(d.pack_keys(rng.integers(-20, 20, (600, 3))))
+        q = d.pack_keys(rng.integers(-22, 22, (2000, 3)))
+        ref = np.zeros(len(q), bool)
+        for off in d._NEIGHBOURS:
+            ref |= d.in_sorted(d.pack_keys(d.unpack_keys(q) + off), table)
+        np.testing.assert_array_equal(d.near_sorted(q, table), ref)
+        dil = d.pack_keys((d.unpack_keys(table)[:, None, :] + d._NEIGHBOURS[None]).reshape(-1, 3))
+        np.testing.assert_array_equal(d.dilate_keys(table), np.unique(dil))
+        p = rng.normal(0.0, 30.0, (3000, 4))
+        np.testing.assert_array_equal(d.voxel_keys(p, 0.2), d.pack_keys(np.floor(p[:, :3] / 0.2).astype(np.int64)))
+        keys = d.unique_keys(d.pack_keys(rng.integers(-15, 15, (4000, 3))))
+        for up in ([0, 0, 1.0], [0, 0, -1.0]):
+            up = np.array(up)
+            h = d.unpack_keys(keys)[:, 2] * np.sign(up[2])
+            col = keys >> 21  # the (i, j) column
+            low = {c: h[col == c].min() for c in np.unique(col)}
+            lowest = np.array([h[n] == low[c] for n, c in enumerate(col)])
+            np.testing.assert_array_equal(d.without_lowest(keys, up), keys[~lowest])
+            band = np.array([h[n] - low[c] <= 1 for n, c in enumerate(col)])
+            np.testing.assert_array_equal(d.ground_band(keys, up, 1), keys[band])
+        ev = d.Evidence(0.5)
+        hits = [d.unique_keys(d.pack_keys(rng.integers(-9, 9, (300, 3)))) for _ in range(40)]
+        free = [d.unique_keys(d.pack_keys(rng.integers(-9, 9, (500, 3)))) for _ in range(40)]
+        for h_, f_ in zip(hits, free):
+            ev._pending_hit.append(h_)
+            ev._pending_free.append(f_)
+            if len(ev._pending_hit) == 25:
+                ev.flush()
+        ev.flush()
+        allk = np.unique(np.concatenate(hits + free))
+        np.testing.assert_array_equal(ev.keys, allk)
+        np.testing.assert_array_equal(ev.n_hit, np.bincount(np.searchsorted(allk, np.concatenate(hits)),
+                                                            minlength=len(allk)))
+        np.testing.assert_array_equal(ev.n_free, np.bincount(np.searchsorted(allk, np.concatenate(free)),
+                                                             minlength=len(allk)))

@@ -136,3 +136,72 @@ def test_a_detector_that_fails_stops_alone_and_the_command_says_why(tmp_path, ca
     with pytest.raises(TrackingError, match=r"--detect-changes: change detection stopped on an error \(block 003"):
         write_detected_changes(live, None, tmp_path)
     assert not (tmp_path / "changes.json").exists()
+
+
+def _swept(frame, stamp: float):
+    """The frame at ``stamp`` with per-point times (a 0.1 s sweep), so its scan is deskewed."""
+    import dataclasses
+
+    offsets = np.linspace(-0.05, 0.05, len(frame.points)).astype(np.float32)
+    return dataclasses.replace(frame, stamp=stamp, time_offsets=offsets)
+
+
+def test_a_restarted_source_never_deskews_a_scan_with_the_new_streams_poses(street):
+    """Stamps jump back (the node's source restarted): the scan waiting for the pose after it is
+    processed with the poses before it, as across a long gap, whether the restart is said
+    (ChangeDetector.restart, the node's hook) or only seen in the stamps."""
+    store, T, statuses, run, seq = street
+    opts = dict(max_range_m=12.0, stride=1)
+    half = 12
+
+    def feed(det, second_start: float, say_restart: bool, gap_frame: bool):
+        for i in range(half):
+            det.add(1000.0 + 0.1 * i, T[i], True, _swept(seq.frame(i), 1000.0 + 0.1 * i))
+        if say_restart:
+            assert det.restart() == 1  # the waiting scan, processed now
+        if gap_frame:  # the reference: an untrusted frame long after (no pose can be a neighbour)
+            det.add(1000.0 + 0.1 * half + 1.0, None, False, None)
+        for i in range(half, 2 * half):
+            s = second_start + 0.1 * (i - half)
+            det.add(s, T[i], True, _swept(seq.frame(i), s))
+        return det.result()
+
+    told = ChangeDetector(store, np.eye(4), seq.info.gravity_map, **opts)
+    said = feed(told, 500.0, True, False)
+    seen = feed(ChangeDetector(store, np.eye(4), seq.info.gravity_map, **opts), 500.0, False, False)
+    ref = feed(ChangeDetector(store, np.eye(4), seq.info.gravity_map, **opts), 2000.0, False, True)
+    assert told.restarts == 1 and told.scans_flushed_on_restart == 1
+    assert said.params["source_restarts"] == 1 and said.params["scans_flushed_on_restart"] == 1
+    assert "source_restarts" not in ref.params
+    doc = lambda r: {k: v for k, v in r.to_json().items() if k != "params"}  # noqa: E731
+    assert said.scans_used == ref.scans_used == 2 * half
+    assert json.dumps(doc(said), sort_keys=True) == json.dumps(doc(ref), sort_keys=True)
+    assert json.dumps(said.to_json(), sort_keys=True) == json.dumps(seen.to_json(), sort_keys=True)
+    np.testing.assert_array_equal(said.offmap_points, ref.offmap_points)
+
+
+@pytest.mark.parametrize("threaded", [False, True])
+def test_the_nodes_restart_hook_starts_trust_over_in_order(street, threaded):
+    """NodeChanges.restart (the node's on_restart) between the frames around it, on the worker
+    thread too: trust starts over (settle_frames ok frames again), the waiting scan is flushed."""
+    from types import SimpleNamespace
+
+    from blockloc.app.runs import LiveChanges
+    from blockloc.node.changes import NodeChanges
+
+    store, T, statuses, run, seq = street
+    info = SimpleNamespace(T_body_lidar=np.eye(4), gravity_map=seq.info.gravity_map)
+    node = NodeChanges(LiveChanges(stride=1, settle_frames=3), threaded=threaded)
+    node.begin(SimpleNamespace(store=store, seq=SimpleNamespace(info=info)))
+    est = lambda i: SimpleNamespace(T_map_body=T[i], diagnostics=SimpleNamespace(status="ok"))  # noqa: E731
+    for i in range(10):
+        node(_swept(seq.frame(i), 1000.0 + 0.1 * i), est(i))
+    node.restart()
+    for i in range(10, 20):
+        node(_swept(seq.frame(i), 500.0 + 0.1 * (i - 10)), est(i))
+    node.close()
+    det = node.live.detector
+    assert node.live.error is None
+    # 7 trusted frames on each side of the restart (3 to settle), not 7 + 10
+    assert det.frames_trusted == 14 and det.restarts == 1 and det.scans_flushed_on_restart == 1
+    assert node.cost()["source_restarts"] == 1
