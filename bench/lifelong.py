@@ -760,6 +760,8 @@ def render(r: dict, args, log: list, machine: str, dyn: list[str]) -> list[str]:
                   "| what | wall | CPU |", "|---|---|---|",
                   f"| detection, whole (frames and the end) | {t['wall_s']:.1f} s | {t['cpu_s']:.1f} s |",
                   f"| the classification at the end | {t['final_wall_s']:.2f} s | {t['final_cpu_s']:.2f} s |",
+                  *([f"| the kernels loaded before the first frame (startup) | {t['startup_wall_s']:.2f} s | "
+                     f"{t['startup_cpu_s']:.2f} s |"] if t.get("startup_cpu_s") is not None else []),
                   f"| detection per frame tracked, the end included (mean) | {t['wall_ms_per_frame_tracked']:.1f} ms | "
                   f"{t['cpu_ms_per_frame_tracked']:.1f} ms |"]
         if t.get("process_cpu_s") is not None:

@@ -173,3 +173,32 @@ def point_keys(points, voxel_m, out):
     for n in range(points.shape[0]):
         out[n] = _pack(np.int64(np.floor(points[n, 0] / voxel_m)), np.int64(np.floor(points[n, 1] / voxel_m)),
                        np.int64(np.floor(points[n, 2] / voxel_m)))
+
+
+@njit(cache=True, nogil=True)
+def union_sorted(a, b):
+    """The sorted unique union of the sorted unique int64 ``a`` and ``b`` (a linear merge)."""
+    na, nb = a.shape[0], b.shape[0]
+    out = np.empty(na + nb, np.int64)
+    i = j = m = 0
+    while i < na and j < nb:
+        if a[i] < b[j]:
+            out[m] = a[i]
+            i += 1
+        elif b[j] < a[i]:
+            out[m] = b[j]
+            j += 1
+        else:
+            out[m] = a[i]
+            i += 1
+            j += 1
+        m += 1
+    while i < na:
+        out[m] = a[i]
+        i += 1
+        m += 1
+    while j < nb:
+        out[m] = b[j]
+        j += 1
+        m += 1
+    return out[:m]

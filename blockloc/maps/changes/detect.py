@@ -63,9 +63,11 @@ def unpack_keys(keys: np.ndarray) -> np.ndarray:
 
 def voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
     """(N,) int64 keys of the voxels of (N, 3) points (metres)."""
-    pts = np.asarray(points, dtype=np.float64)
+    pts = np.asarray(points)
+    if pts.dtype != np.float32:  # float32 is read as it is: widened exactly, as astype(float64) does
+        pts = np.asarray(pts, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] < 3:
-        return pack_keys(np.floor(pts[:, :3] / voxel_m).astype(np.int64))
+        return pack_keys(np.floor(np.asarray(pts, np.float64)[:, :3] / voxel_m).astype(np.int64))
     from blockloc.maps._raycast_kernels import point_keys
 
     out = np.empty(len(pts), np.int64)  # compiled: one pass, no (N, 3) temporaries

@@ -158,7 +158,7 @@ class ChangeDetector:
         self._lo = np.array([store.entry(b).bounds_min for b in self._ids], float).reshape(-1, 3)
         self._hi = np.array([store.entry(b).bounds_max for b in self._ids], float).reshape(-1, 3)
         self._loaded = np.zeros(len(self._ids), bool)
-        self.blocks: dict = {}  # block id -> (N, 3) float64 its points
+        self.blocks: dict = {}  # block id -> (N, 3+) its points as the store gives them (float32)
         self.keyframes: dict = {}
         self.block_keys: dict = {}
         self.map_keys = self.fine_keys = np.zeros(0, np.int64)
@@ -191,8 +191,11 @@ class ChangeDetector:
         T = np.eye(4)
         pm = scan_to_map(pts, np.linspace(0.0, 0.1, len(pts)), 1.0, Trajectory(np.array([0.95, 1.05]),
                          np.stack([T, T])), self.T_body_lidar)
-        keys = unique_keys(voxel_keys(pm, self.voxel_m))
-        fine = unique_keys(voxel_keys(pm, self.fine_m))
+        from blockloc.maps._raycast_kernels import union_sorted
+
+        keys = union_sorted(unique_keys(voxel_keys(pm, self.voxel_m)), np.zeros(0, np.int64))
+        # a block as the store gives it: float32, x y z and intensity
+        fine = unique_keys(voxel_keys(np.c_[pm, np.zeros(len(pm))].astype(np.float32), self.fine_m))
         scan_agreement(pm, np.zeros(3), self.up, keys, self.voxel_m)
         ev = Evidence(self.voxel_m, self.margin_m, fine=(keys, self.fine_m, fine),
                       carvable=without_lowest(fine, self.up), ground=ground_band(fine, self.up, 1))
@@ -208,20 +211,21 @@ class ChangeDetector:
         new = [int(i) for i in np.unique(which) if not self._loaded[i]]
         if not new:
             return 0
-        coarse, fine = [self.map_keys], [self.fine_keys]
+        from blockloc.maps._raycast_kernels import union_sorted
+
         for i in new:
             self._loaded[i] = True
             bid = self._ids[i]
             e = self.store.entry(bid)
-            pts = self.store.load(bid)[0][:, :3].astype(np.float64)
+            # kept as the store gives them (float32, its columns): voxel_keys widens them exactly,
+            # and result() hands block_report the float64 points (no 2x copy on the joining frame)
+            pts = self.store.load(bid)[0]
             self.blocks[bid] = pts
             self.keyframes[bid] = np.asarray(e.keyframes if e.keyframes is not None else e.centroid[None], float)
             self.block_keys[bid] = unique_keys(voxel_keys(pts, self.voxel_m))
-            coarse.append(self.block_keys[bid])
-            fine.append(unique_keys(voxel_keys(pts, self.fine_m)))
-        # the map's sets merged once for all the blocks that joined (not once per block)
-        self.map_keys = unique_keys(np.concatenate(coarse))
-        self.fine_keys = unique_keys(np.concatenate(fine))
+            # the map's sets: sorted unions, merged linearly (no sort of the whole map's keys)
+            self.map_keys = union_sorted(self.map_keys, self.block_keys[bid])
+            self.fine_keys = union_sorted(self.fine_keys, unique_keys(voxel_keys(pts, self.fine_m)))
         # new points are judged against every map cell; free space may cross all but the ground's
         # (the lowest cell of a column can change when a block joins: recomputed over all)
         self.ev.fine = (self.map_keys, self.fine_m, self.fine_keys)
@@ -357,7 +361,8 @@ class ChangeDetector:
         else:
             map_free = np.zeros(0, np.int64)
         vc = classify(ev, self.map_keys, map_free, th)
-        report = block_report(vc, block_keys, keyframes, {b: self.blocks[b] for b in order}, th)
+        report = block_report(vc, block_keys, keyframes,
+                              {b: np.asarray(self.blocks[b][:, :3], np.float64) for b in order}, th)
         restarts = ({"source_restarts": self.restarts, "scans_flushed_on_restart": self.scans_flushed_on_restart}
                     if self.restarts else {})
         params = {"voxel_m": self.voxel_m, "max_range_m": self.max_range_m, "margin_m": self.margin_m,
