@@ -233,8 +233,8 @@ def refine_poses(T_map_body: np.ndarray, stamps: np.ndarray, clouds_lidar, T_bod
     each (``mounting_x_jackknife_m``): how well the drive's revisits determine x. Runs, not single
     revisits, because the input error that reaches x is correlated along the drive; the whole
     refinement, registrations included, because the local maps are placed by the poses solved
-    with every revisit (re-solving the last graph alone understated the spread 8-fold on the
-    small world's seed 2: 0.8 mm against 6.7 mm; docs/bench/accuracy_seeds.md, 2026-12-06 15:30
+    with every revisit (re-solving the last graph alone understated the spread 7-fold on the
+    small world's seed 2: 0.8 mm against 5.5 mm; docs/bench/accuracy_seeds.md, 2026-12-06 15:30
     UTC). Costs B refinements; 0: none. revisits_left_out: (i, j) revisit pairs not used.
     """
     T = np.asarray(T_map_body, np.float64)
