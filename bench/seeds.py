@@ -305,7 +305,7 @@ def refine_table(refined: dict, results: dict) -> list[str]:
     lines = ["| seed | keyframes (revisited) | pairs: neighbour / revisit | body RMSE [cm] | along RMS [cm] | "
              "cross RMS [cm] | rotation RMSE [deg] | LiDAR-pose RMSE [cm] | mounting x - true [mm] | "
              "predicted along mean [cm] | tracked along mean, default / refined [cm] | "
-             "x jackknife: SE [mm] (leave-one-out x - true [mm]) | refinement wall / CPU [s] (load) |",
+             "x jackknife: SE [mm] (leave-one-out x - true [mm]) | refinement (with its jackknife) wall / CPU [s] (load) |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for seed, e in refined.items():
         b, a, s = e["before"], e["after"], e["summary"]
