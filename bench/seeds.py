@@ -49,6 +49,8 @@ RUNS = {  # name: (map suffix, extra track options)
 }
 #: map build options of each map suffix (the default map: none)
 MAP_OPTIONS = {"": [], "_nominal": ["--nominal-mounting"], "_refined": ["--refine-poses"]}
+#: runs of revisits the refine table's jackknife of the mounting x leaves out in turn
+REFINE_JACKKNIFE_BLOCKS = 6
 TARGETS = {"median ATE": 0.03, "worst ATE": 0.035, "rotation": 0.15, "along mean": 0.01}
 
 
@@ -254,7 +256,9 @@ def refine_seed(work: Path, preset: str, seed: int) -> dict:
     ``refine_task``), against the simulator's truth (cached in ``W/sS_refine.json``): the body
     poses' error before and after, the mounting's x translation before and after against the true
     one, the along-track mean each predicts for the localization drive
-    (:func:`predicted_along_m`, keyframe rate), and how much of the drive sees a place twice."""
+    (:func:`predicted_along_m`, keyframe rate), how much of the drive sees a place twice, and the
+    refined x's block jackknife over ``REFINE_JACKKNIFE_BLOCKS`` runs of the revisits (each
+    leave-one-out x against the true one, and the standard error)."""
     cache = work / f"s{seed}_refine.json"
     if cache.exists():
         return json.loads(cache.read_text())
@@ -274,7 +278,7 @@ def refine_seed(work: Path, preset: str, seed: int) -> dict:
     drive = remounted(Drive.of(mapseq), X_map)
     plan = plan_drive_task(drive, cfg.map.keyframe_distance_m, cfg.map.keyframe_angle_deg)
     t0, c0 = time.time(), time.process_time()
-    r = refine_task(plan, cfg.lidar.deskew, False)
+    r = refine_task(plan, cfg.lidar.deskew, False, REFINE_JACKKNIFE_BLOCKS)  # a task: positional only
     wall, cpu = time.time() - t0, time.process_time() - c0
     G = mapseq.ground_truth().interpolate(plan.stamps)
     loc_gt = locseq.ground_truth()
@@ -284,6 +288,7 @@ def refine_seed(work: Path, preset: str, seed: int) -> dict:
            "revisited_share": float(len(np.unique(loops)) / max(len(plan.frames), 1)),
            "before": _pose_errors(r["before"], G), "after": _pose_errors(r["after"], G),
            "mounting_x_minus_true_m": [float(X_map[0, 3] - X_true[0, 3]), float(r["T_body_lidar"][0, 3] - X_true[0, 3])],
+           "mounting_x_jackknife_minus_true_m": [float(x - X_true[0, 3]) for x in r["mounting_x_jackknife_m"]],
            "predicted_along_m": [predicted_along_m(G, r["before"], L, X_map, X_true)["both"],
                                  predicted_along_m(G, r["after"], L, r["T_body_lidar"], X_true)["both"]],
            "lidar_rmse_m": [float(np.sqrt((((r["before"] @ X_map) - (G @ X_true))[:, :3, 3] ** 2).sum(axis=1).mean())),
@@ -299,8 +304,9 @@ def refine_table(refined: dict, results: dict) -> list[str]:
     cm = lambda v: f"{100 * v:.1f}"  # noqa: E731
     lines = ["| seed | keyframes (revisited) | pairs: neighbour / revisit | body RMSE [cm] | along RMS [cm] | "
              "cross RMS [cm] | rotation RMSE [deg] | LiDAR-pose RMSE [cm] | mounting x - true [mm] | "
-             "predicted along mean [cm] | tracked along mean, default / refined [cm] | refinement wall / CPU [s] (load) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "predicted along mean [cm] | tracked along mean, default / refined [cm] | "
+             "x jackknife: SE [mm] (leave-one-out x - true [mm]) | refinement (with its jackknife) wall / CPU [s] (load) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for seed, e in refined.items():
         b, a, s = e["before"], e["after"], e["summary"]
         pairs = s.get("skipped") or f"{s['odometry_pairs']} / {s['loop_pairs']}"
@@ -313,8 +319,18 @@ def refine_table(refined: dict, results: dict) -> list[str]:
             f"{b['rot_rmse_deg']:.3f} -> {a['rot_rmse_deg']:.3f} | {cm(e['lidar_rmse_m'][0])} -> {cm(e['lidar_rmse_m'][1])} | "
             f"{1000 * e['mounting_x_minus_true_m'][0]:+.1f} -> {1000 * e['mounting_x_minus_true_m'][1]:+.1f} | "
             f"{100 * e['predicted_along_m'][0]:+.1f} -> {100 * e['predicted_along_m'][1]:+.1f} | {tracked} | "
-            f"{e['refine_wall_s']:.0f} / {e['refine_cpu_s']:.0f} ({e['load']:.1f}) |")
+            f"{_jackknife(e)} | {e['refine_wall_s']:.0f} / {e['refine_cpu_s']:.0f} ({e['load']:.1f}) |")
     return lines
+
+
+def _jackknife(e: dict) -> str:
+    """The refine table's jackknife cell: 'SE (x_1 .. x_B)' in mm ('-': not in the cache, or too
+    few revisits for the runs)."""
+    x = np.asarray(e.get("mounting_x_jackknife_minus_true_m") or [], np.float64)
+    if len(x) < 2:
+        return "-"
+    se = np.sqrt((len(x) - 1) / len(x) * ((x - x.mean()) ** 2).sum())
+    return f"{1000 * se:.1f} ({', '.join(f'{1000 * v:+.1f}' for v in x)})"
 
 
 def explain_table(explained: dict, results: dict) -> list[str]:

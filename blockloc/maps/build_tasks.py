@@ -370,13 +370,13 @@ REFINE_MAX_KEYFRAMES = 4000
 
 
 @_timed
-def refine_task(plan: DrivePlan, deskew: bool, hold_mounting: bool) -> dict:
+def refine_task(plan: DrivePlan, deskew: bool, hold_mounting: bool, jackknife_blocks: int = 0) -> dict:
     """Task: the drive's keyframe poses refined against its own scans
     (:func:`blockloc.maps.pose_refine.refine_poses`, NDT scan to scan, then against local maps of
     neighbouring keyframes). Reads every keyframe.
     hold_mounting: keep the drive's ``T_body_lidar`` as it is (poses of the LiDAR itself, or a
     mounting not estimated); otherwise its rotation and forward translation are estimated with
-    the poses. Returns the
+    the poses. jackknife_blocks: passed on (the mounting x's block jackknife; the build: 0). Returns the
     keyframe stamps (K,), body poses before and after (K, 4, 4), ``T_body_lidar`` (4, 4),
     ``summary`` (JSON-ready; ``skipped`` says why nothing changed) and the raw points read."""
     from blockloc.geometry import inv_T, transform_points
@@ -398,9 +398,10 @@ def refine_task(plan: DrivePlan, deskew: bool, hold_mounting: bool) -> dict:
         # back into the LiDAR frame at the scan stamp: deskewed points, as the pairs see them
         clouds.append(voxel_downsample(transform_points(inv_T(plan.T_map_lidar[k]), pts_map), 0.2)[0])
     hold = {"mounting_sigma_rad": 1e-6, "mounting_sigma_m": 1e-4} if hold_mounting else {}
-    r = refine_poses(T_map_body, plan.stamps, clouds, X0, make_engine("ndt", num_threads=1), **hold)
+    r = refine_poses(T_map_body, plan.stamps, clouds, X0, make_engine("ndt", num_threads=1),
+                     jackknife_blocks=jackknife_blocks, **hold)
     return {**base, "after": r.T_map_body, "T_body_lidar": r.T_body_lidar, "summary": r.as_dict(),
-            "raw_points": raw}
+            "mounting_x_jackknife_m": r.mounting_x_jackknife_m, "raw_points": raw}
 
 
 class _Reposed:

@@ -38,7 +38,7 @@ in; no I/O.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -54,7 +54,9 @@ class RefinedPoses:
     T_map_body: (K, 4, 4) refined body poses, map frame. T_body_lidar: (4, 4) the mounting
     estimated with them. odometry_pairs / loop_pairs: registration factors added (converged,
     fitness above the floor) of those tried; shift_m: (K,) how far each body position moved, m.
-    skipped: why the poses were left as they came (None: refined).
+    skipped: why the poses were left as they came (None: refined). mounting_x_jackknife_m: (B,)
+    the mounting's body x, m, solved again without each of B runs of the revisits (empty: not
+    asked for, ``jackknife_blocks`` of :func:`refine_poses`; nan: that run left no revisit registered).
     """
 
     T_map_body: np.ndarray
@@ -64,13 +66,25 @@ class RefinedPoses:
     tried_pairs: int
     shift_m: np.ndarray
     skipped: str | None = None
+    mounting_x_jackknife_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def mounting_x_se_m(self) -> float:
+        """The block jackknife's standard error of the mounting's body x, m
+        (``sqrt((B - 1) / B * sum (x_b - mean)^2)``; nan when not computed or a run left no revisit)."""
+        x = np.asarray(self.mounting_x_jackknife_m, np.float64)
+        if len(x) < 2:
+            return float("nan")
+        return float(np.sqrt((len(x) - 1) / len(x) * ((x - x.mean()) ** 2).sum()))
 
     def as_dict(self) -> dict:
         """JSON-ready summary (the manifest keeps it beside the map)."""
         if self.skipped:
             return {"skipped": self.skipped, "tried_pairs": int(self.tried_pairs)}
+        jk = ({"mounting_x_se_m": round(self.mounting_x_se_m, 4)}
+              if np.isfinite(self.mounting_x_se_m) else {})
         return {"odometry_pairs": int(self.odometry_pairs), "loop_pairs": int(self.loop_pairs),
-                "tried_pairs": int(self.tried_pairs),
+                "tried_pairs": int(self.tried_pairs), **jk,
                 "shift_median_m": round(float(np.median(self.shift_m)), 4) if len(self.shift_m) else 0.0,
                 "shift_max_m": round(float(np.max(self.shift_m)), 4) if len(self.shift_m) else 0.0}
 
@@ -184,7 +198,8 @@ def refine_poses(T_map_body: np.ndarray, stamps: np.ndarray, clouds_lidar, T_bod
                  mounting_sigma_rad: float = np.deg2rad(2.0), odometry_span: int = 2,
                  loop_radius_m: float = 6.0, loop_min_gap_s: float = 10.0,
                  min_fitness: float = 0.15, local_span: int = 2, local_rounds: int = 2,
-                 local_sigma_m: float = 0.005, local_sigma_rad: float = 0.0005) -> RefinedPoses:
+                 local_sigma_m: float = 0.005, local_sigma_rad: float = 0.0005,
+                 jackknife_blocks: int = 0, revisits_left_out=()) -> RefinedPoses:
     """The keyframes' body poses refined against their scans (module docstring).
 
     T_map_body: (K, 4, 4) input body poses, map frame, m; stamps: (K,) s, increasing;
@@ -212,6 +227,15 @@ def refine_poses(T_map_body: np.ndarray, stamps: np.ndarray, clouds_lidar, T_bod
     poses (``mounting_sigma_rad`` about the given one; ~0: held, with ``mounting_sigma_m`` ~0, for
     poses of the LiDAR itself or a mounting not estimated). A drive with no revisit registered is left as it came
     (``skipped``): the chain alone only averages the input error against its own drift.
+
+    jackknife_blocks: B > 1 also refines B more times, each without one run of the revisits (cut
+    in B runs of equal count by the later keyframe's stamp), and returns the mounting's body x of
+    each (``mounting_x_jackknife_m``): how well the drive's revisits determine x. Runs, not single
+    revisits, because the input error that reaches x is correlated along the drive; the whole
+    refinement, registrations included, because the local maps are placed by the poses solved
+    with every revisit (re-solving the last graph alone understated the spread 7-fold on the
+    small world's seed 2: 0.8 mm against 5.5 mm; docs/bench/accuracy_seeds.md, 2026-12-06 15:30
+    UTC). Costs B refinements; 0: none. revisits_left_out: (i, j) revisit pairs not used.
     """
     T = np.asarray(T_map_body, np.float64)
     X0 = np.asarray(T_body_lidar, np.float64)
@@ -219,6 +243,9 @@ def refine_poses(T_map_body: np.ndarray, stamps: np.ndarray, clouds_lidar, T_bod
     K = len(T)
     odometry, loops = choose_refine_pairs(T, t, odometry_span=odometry_span, loop_radius_m=loop_radius_m,
                                           loop_min_gap_s=loop_min_gap_s)
+    left_out = {tuple(p) for p in np.asarray(revisits_left_out, np.int64).reshape(-1, 2).tolist()}
+    if left_out:
+        loops = np.asarray([p for p in loops.tolist() if tuple(p) not in left_out], np.int64).reshape(-1, 2)
     pairs = np.concatenate([odometry, loops]) if len(loops) else odometry
     order = np.lexsort((pairs[:, 1], pairs[:, 0]))  # scan to scan: j onto i, one target per first keyframe
     rounds = [([(j, (i,), i) for i, j in pairs[order].tolist()], (np.arange(len(order)) >= len(odometry))[order],
@@ -227,6 +254,8 @@ def refine_poses(T_map_body: np.ndarray, stamps: np.ndarray, clouds_lidar, T_bod
         regs, is_loop = registrations_to_local_maps(K, loops, int(local_span))
         rounds += [(regs, is_loop, local_sigma_m, local_sigma_rad)] * int(local_rounds)
     L, X = T @ X0, X0
+    solve_options = dict(prior_sigma_m=prior_sigma_m, prior_sigma_rad=prior_sigma_rad, correlation_s=correlation_s,
+                         mounting_sigma_m=mounting_sigma_m, mounting_sigma_rad=mounting_sigma_rad)
     for regs, is_loop, sigma_m, sigma_rad in rounds:
         kept, measured = register_to_local_maps(clouds_lidar, L, regs, engine, min_fitness=min_fitness)
         if not (kept & is_loop).any():
@@ -237,12 +266,21 @@ def refine_poses(T_map_body: np.ndarray, stamps: np.ndarray, clouds_lidar, T_bod
         factors = [(m, k, inv_T(L[m]) @ Lk, len(members))
                    for (k, members, _), Lk in zip([r for r, ok in zip(regs, kept) if ok], measured[kept])
                    for m in members]
-        L, X = _solve(T, t, X0, factors, prior_sigma_m=prior_sigma_m, prior_sigma_rad=prior_sigma_rad,
-                      correlation_s=correlation_s, odometry_sigma_m=sigma_m, odometry_sigma_rad=sigma_rad,
-                      mounting_sigma_m=mounting_sigma_m, mounting_sigma_rad=mounting_sigma_rad)
+        L, X = _solve(T, t, X0, factors, odometry_sigma_m=sigma_m, odometry_sigma_rad=sigma_rad, **solve_options)
     refined = L @ inv_T(X)
+    jackknife = np.zeros(0)
+    if jackknife_blocks > 1 and len(loops) >= jackknife_blocks:
+        options = dict(solve_options, odometry_sigma_m=odometry_sigma_m, odometry_sigma_rad=odometry_sigma_rad,
+                       odometry_span=odometry_span, loop_radius_m=loop_radius_m, loop_min_gap_s=loop_min_gap_s,
+                       min_fitness=min_fitness, local_span=local_span, local_rounds=local_rounds,
+                       local_sigma_m=local_sigma_m, local_sigma_rad=local_sigma_rad)
+        runs = np.array_split(loops[np.argsort(t[loops[:, 1]], kind="stable")], int(jackknife_blocks))
+        # a run whose leaving out leaves no revisit registered comes back skipped: no x (nan)
+        jackknife = np.array([np.nan if r.skipped else r.T_body_lidar[0, 3] for r in
+                              (refine_poses(T, t, clouds_lidar, X0, engine, revisits_left_out=run, **options)
+                               for run in runs)])
     return RefinedPoses(refined, X, int((kept & ~is_loop).sum()), int((kept & is_loop).sum()), len(regs),
-                        np.linalg.norm(refined[:, :3, 3] - T[:, :3, 3], axis=1))
+                        np.linalg.norm(refined[:, :3, 3] - T[:, :3, 3], axis=1), mounting_x_jackknife_m=jackknife)
 
 
 def _solve(T: np.ndarray, t: np.ndarray, X0: np.ndarray, factors, *, prior_sigma_m, prior_sigma_rad,

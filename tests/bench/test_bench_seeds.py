@@ -88,3 +88,18 @@ def test_the_explanation_table_sits_beside_the_measured_along_track_mean(tmp_pat
     assert "| 1 | +2.8 | +2.2 | +2.6 | -0.4 | +1.1 | 100% opposite | -11.6, +1.2 | -17.6, +4.0 (-0.142; 9.7, 6.5) |" in text
     assert "| -0.9, +4.0 (-0.142; 9.7, 6.5) |" in text
     assert "--explain" not in report({2: {"default": _m(0.03, 0.1, 0.0)}}, [], "now", 1.0, tmp_path)
+
+
+def test_the_refine_table_gives_the_mounting_x_jackknife_and_copes_with_an_older_cache():
+    from bench.seeds import refine_table
+
+    pose = {"rmse_m": 0.05, "along_rms_m": 0.03, "cross_rms_m": 0.03, "rot_rmse_deg": 0.2}
+    e = {"keyframes": 200, "revisited_share": 0.5, "summary": {"odometry_pairs": 199, "loop_pairs": 80},
+         "before": pose, "after": pose, "lidar_rmse_m": [0.05, 0.03], "mounting_x_minus_true_m": [0.0087, 0.0092],
+         "predicted_along_m": [-0.018, -0.018], "refine_wall_s": 200.0, "refine_cpu_s": 60.0, "load": 20.0,
+         "mounting_x_jackknife_minus_true_m": [0.0094, 0.0091, 0.0097, 0.0090, 0.0139, 0.0054]}
+    row = refine_table({2: e}, {})[2]
+    # sqrt(5/6 * sum (x - mean)^2) of the six leave-one-out values: 5.5 mm (seed 2's, 15:20 UTC)
+    assert "| 5.5 (+9.4, +9.1, +9.7, +9.0, +13.9, +5.4) | 200 / 60 (20.0) |" in row, row
+    old = {k: v for k, v in e.items() if k != "mounting_x_jackknife_minus_true_m"}
+    assert "| - | 200 / 60 (20.0) |" in refine_table({2: old}, {})[2]

@@ -121,6 +121,33 @@ def test_a_held_mounting_stays_and_a_drive_without_revisits_comes_back_untouched
     assert r.as_dict() == {"skipped": r.skipped, "tried_pairs": r.tried_pairs}
 
 
+def test_the_jackknife_of_the_mounting_x_shows_how_well_the_revisits_determine_it():
+    # issue 41: x is read from the input poses at the revisits; their smooth error is what the
+    # jackknife's spread must show (exact poses, exact registrations: none), without changing the
+    # estimate itself
+    G, t = _square_drive(laps=2)
+    X_true = make_T(so3_exp(np.deg2rad([0.0, 0.0, 0.3])), [0.015, 0.0, 0.0]) @ X_NOMINAL
+    clouds = [np.array([[k, 0.0, 0.0]]) for k in range(len(G))]
+    exact = lambda: TruthEngine(G @ X_true, noise_m=0.0, noise_rad=0.0)  # noqa: E731
+    S = G @ _smooth_error(t, 0.03, 0.002, seed=1)
+    r = refine_poses(S, t, clouds, X_NOMINAL, exact(), local_span=0, jackknife_blocks=4)
+    plain = refine_poses(S, t, clouds, X_NOMINAL, exact(), local_span=0)
+    np.testing.assert_array_equal(r.T_body_lidar, plain.T_body_lidar)
+    assert len(plain.mounting_x_jackknife_m) == 0 and np.isnan(plain.mounting_x_se_m)
+    assert "mounting_x_se_m" not in plain.as_dict()
+    x = r.mounting_x_jackknife_m
+    assert len(x) == 4 and r.mounting_x_se_m == pytest.approx(np.sqrt(3 / 4 * ((x - x.mean()) ** 2).sum()))
+    assert r.as_dict()["mounting_x_se_m"] == round(r.mounting_x_se_m, 4)
+    from_truth = refine_poses(G, t, clouds, X_NOMINAL, exact(), local_span=0, jackknife_blocks=4)
+    assert from_truth.mounting_x_se_m < 1e-4 and r.mounting_x_se_m > 1e-3, (from_truth.mounting_x_se_m,
+                                                                            r.mounting_x_se_m)
+    # each leave-one-out is a whole refinement without that run of revisits
+    _, loops = choose_refine_pairs(S, t)
+    run = np.array_split(loops[np.argsort(t[loops[:, 1]], kind="stable")], 4)[3]
+    alone = refine_poses(S, t, clouds, X_NOMINAL, exact(), local_span=0, revisits_left_out=run)
+    assert alone.loop_pairs == len(loops) - len(run) and alone.T_body_lidar[0, 3] == pytest.approx(x[3], abs=1e-9)
+
+
 def test_revisit_pairs_need_the_time_gap_and_the_radius():
     G, t = _square_drive(laps=2)
     odometry, loops = choose_refine_pairs(G, t, odometry_span=2, loop_radius_m=6.0, loop_min_gap_s=10.0)
