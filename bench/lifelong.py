@@ -291,8 +291,10 @@ def unchanged_day(P: str, S: int, mp: Path, run_dir: Path, stride: int) -> dict:
     (``blockloc.sim.movables.session_movables``), the moving cars and walkers and the day's sensor
     noise. The truth is those rearranged movables (``_movable_changes``, as the changed sessions
     list them): a detected voxel is explained when it lies in a changed movable's box grown by one
-    voxel; a confirmed block holding fewer than ``min_block_voxels`` explained voxels is falsely
-    confirmed. Per block: detected and explained voxels, the true movable changes the block holds
+    voxel; a confirmed block is falsely confirmed unless its explained voxels alone hold a
+    26-connected cluster of the detector's ``min_block_m3``; ``false_alone``: its unexplained
+    voxels alone hold one (a false alarm a true change next to it hides). Per block: detected and
+    explained voxels, their largest clusters, the true movable changes the block holds
     (:func:`changes_per_block`), confirmed and false; where the unexplained voxels lie
     (:func:`where_voxels`); the detection's wall and CPU time (s) and the 1-min load average."""
     from blockloc.app.lifelong import detect_run_changes, open_block_store
@@ -303,7 +305,7 @@ def unchanged_day(P: str, S: int, mp: Path, run_dir: Path, stride: int) -> dict:
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     from scipy.spatial import cKDTree
 
-    from blockloc.maps.changes.detect import Thresholds, unpack_keys
+    from blockloc.maps.changes.detect import Thresholds, cluster_sizes, unpack_keys
 
     res, seq = rc.result, open_session(P, "loc", S)
     vm = res.voxels.voxel_m
@@ -324,23 +326,35 @@ def unchanged_day(P: str, S: int, mp: Path, run_dir: Path, stride: int) -> dict:
     owner = np.concatenate([[b] * len(k) for b, k in zip(ids, kf)]).astype(object)
     ad_owner = owner[cKDTree(np.concatenate(kf)).query((unpack_keys(ad) + 0.5) * vm)[1]] if len(ad) else owner[:0]
     truth = changes_per_block(P, S, "loc", mp)
-    need = Thresholds().min_block_voxels
     blocks = []
+    th = Thresholds()
+
+    def largest_m3(keys: np.ndarray) -> float:
+        return float(cluster_sizes(np.unique(keys)).max()) * vm ** 3 if len(keys) else 0.0
+
     for b in res.blocks:
         i = b["block"]
-        in_b = np.isin(rm, res.block_keys[i])
-        n_det = int(in_b.sum() + (ad_owner == i).sum())
-        n_ok = int((in_b & rm_ok).sum() + ((ad_owner == i) & ad_ok).sum())
+        in_b, ad_b = np.isin(rm, res.block_keys[i]), ad_owner == i
+        ok = np.concatenate([rm[in_b & rm_ok], ad[ad_b & ad_ok]])
+        bad = np.concatenate([rm[in_b & ~rm_ok], ad[ad_b & ~ad_ok]])
+        # confirmed truly when the explained voxels alone hold a change the detector confirms on
+        # (one 26-connected cluster of min_block_m3), falsely otherwise; and whether the
+        # unexplained ones alone would have confirmed the block (a false alarm hidden by a true one)
+        ok_m3, bad_m3 = largest_m3(ok), largest_m3(bad)
         blocks.append({**{k: b.get(k) for k in ("block", "removed_voxels", "added_voxels", "dynamic_voxels",
                                                  "largest_change_m3", "confirmed")},
-                       "detected_voxels": n_det, "explained_voxels": n_ok, "true_changes": truth.get(i, []),
-                       "false": bool(b["confirmed"]) and n_ok < need})
+                       "detected_voxels": int(len(ok) + len(bad)), "explained_voxels": int(len(ok)),
+                       "explained_largest_m3": ok_m3, "unexplained_largest_m3": bad_m3,
+                       "true_changes": truth.get(i, []),
+                       "false": bool(b["confirmed"]) and ok_m3 < th.min_block_m3 - 1e-9,
+                       "false_alone": bad_m3 >= th.min_block_m3 - 1e-9})
     return {"session": "loc", "sequence": rc.sequence_name, "frames_trusted": res.frames_trusted,
             "scans_used": res.scans_used, "scans_rejected": res.scans_rejected,
             "examined": len(res.blocks), "confirmed": [b["block"] for b in blocks if b["confirmed"]],
             "false_confirmed": [b["block"] for b in blocks if b["false"]],
+            "false_alone": [b["block"] for b in blocks if b["false_alone"]],
             "without_true_change": [b["block"] for b in blocks if not b["true_changes"]],
-            "blocks": blocks, "min_block_voxels": need,
+            "blocks": blocks, "min_block_m3": th.min_block_m3,
             "removed_voxels": int(len(rm)), "added_voxels": int(len(ad)),
             "removed_explained": int(rm_ok.sum()), "added_explained": int(ad_ok.sum()),
             "dynamic_voxels": int(len(res.voxels.dynamic)),
@@ -773,22 +787,25 @@ def _unchanged_lines(r: dict) -> list[str]:
          f"`blockloc map changes --map MAP --run RUN_loc --stride {r['stride']}` (its recipe, through the API) on "
          "the stale-map run of `loc`, another drive of the mapping day. Its only true changes are the parked cars "
          "and bins the simulator rearranges on every day; a detected voxel is explained when it lies in one's box "
-         f"(grown a voxel); a confirmed block with fewer than {u['min_block_voxels']} explained voxels is falsely "
-         "confirmed.", "",
+         "(grown a voxel); a confirmed block is falsely confirmed unless its explained voxels alone hold a "
+         f"26-connected cluster of {u['min_block_m3']:g} m^3 (the detector's rule); 'unexplained alone' counts the "
+         "blocks whose unexplained voxels alone hold one (a false alarm a true change beside it hides).", "",
          "| session | scans used (gated) | blocks examined (without a true change) | confirmed | falsely confirmed "
-         "| removed voxels: explained (unexplained: vegetation, ground, other) | added voxels: explained "
-         "(unexplained: ...) | detection wall / CPU |", "|---|---|---|---|---|---|---|---|",
+         "| unexplained alone would confirm | removed voxels: explained (unexplained: vegetation, ground, other) "
+         "| added voxels: explained (unexplained: ...) | detection wall / CPU |", "|---|---|---|---|---|---|---|---|---|",
          f"| loc | {u['scans_used']} ({u['scans_rejected']}) | {u['examined']} ({len(u['without_true_change'])}) | "
          f"{len(u['confirmed'])} | {len(u['false_confirmed'])}"
          + (f" ({', '.join(u['false_confirmed'])})" if u["false_confirmed"] else "")
+         + f" | {len(u['false_alone'])}" + (f" ({', '.join(u['false_alone'])})" if u["false_alone"] else "")
          + f" | {u['removed_voxels']}: {u['removed_explained']} ({fr['vegetation']}, {fr['ground']}, {fr['other']}) "
          f"| {u['added_voxels']}: {u['added_explained']} ({fa['vegetation']}, {fa['ground']}, {fa['other']}) | "
          f"{u['wall_s']:.0f} / {u['cpu_s']:.0f} s (load {u['load1']:.1f}) |", "",
-         "| block | true changes (parked) | detected voxels (explained) | largest cluster m^3 | confirmed | false |",
-         "|---|---|---|---|---|---|"]
+         "| block | true changes (parked) | detected voxels (explained) | largest cluster m^3: detected / explained "
+         "/ unexplained | confirmed | false |", "|---|---|---|---|---|---|"]
     for b in u["blocks"]:
         L.append(f"| {b['block']} | {len(b['true_changes'])} | {b['detected_voxels']} ({b['explained_voxels']}) | "
-                 f"{_f(b.get('largest_change_m3'), 2)} | {b['confirmed']} | {b['false']} |")
+                 f"{_f(b.get('largest_change_m3'), 2)} / {b['explained_largest_m3']:.2f} / "
+                 f"{b['unexplained_largest_m3']:.2f} | {b['confirmed']} | {b['false']} |")
     cpb = r.get("changes_per_block") or {}
     if cpb:
         L += ["", "The simulator's changes each block of the map holds (removed: the box holds the block's map "
