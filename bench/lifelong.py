@@ -12,6 +12,12 @@ Everything runs as a user types it (the maps and runs are kept in --work and reu
   each session (``loc_m3``, ``loc_m12``) on the stale map;
 - **detect**: the detection of ``blockloc map changes`` (through the API, to score its voxels)
   on each session's run, scored against the truth (below);
+- **unchanged**: block precision where nothing changed: ``blockloc map changes --map MAP --run
+  RUN_loc --stride STRIDE`` (the app's recipe, :func:`unchanged_day`) on the stale-map run of
+  month 0's ``loc`` drive (another drive of the mapping day: no structure changed, so every
+  confirmed block and every removed or added voxel is false), beside the simulator's change list
+  per block of the map for ``--sessions`` (:func:`changes_per_block`): which blocks any drive can
+  find unchanged;
 - **loc**: ``blockloc map update MAP --run RUN_loc_m3 --out MAP_upd`` (updated from another day;
   ``--update-from map_m12``: from the stale-map run of the 12-month mapping drive instead;
   ``--update-from loc_m3+map_m12``: from both runs in one update; repeat ``--update-from`` for
@@ -71,7 +77,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "docs" / "bench" / "lifelong.md"
-PARTS = ("detect", "loc", "cost", "track")
+PARTS = ("detect", "unchanged", "loc", "cost", "track")
 
 
 def _child_cpu() -> float:
@@ -275,6 +281,133 @@ def score_detection(P: str, S: int, session: str, mp: Path, run_dir: Path, strid
     # confirming every block scores precision 1.00 where there are none)
     tn = sum(1 for row in rows if not row["changed"] and not row["confirmed"])
     out["block_counts"] = {"tp": tp, "fp": fp, "fn": fn, "tn": tn, "unchanged": tn + fp, "examined": len(rows)}
+    return out
+
+
+def unchanged_day(P: str, S: int, mp: Path, run_dir: Path, stride: int) -> dict:
+    """What ``blockloc map changes --map mp --run run_dir --stride stride`` finds on a run of
+    month 0's ``loc`` drive: the mapping day's structure (no building, wall, hedge or site
+    changed), but, as on every day the simulator makes, its parked cars and bins rearranged
+    (``blockloc.sim.movables.session_movables``), the moving cars and walkers and the day's sensor
+    noise. The truth is those rearranged movables (``_movable_changes``, as the changed sessions
+    list them): a detected voxel is explained when it lies in a changed movable's box grown by one
+    voxel; a confirmed block is falsely confirmed unless its explained voxels alone hold a
+    26-connected cluster of the detector's ``min_block_m3``; ``false_alone``: its unexplained
+    voxels alone hold one (a false alarm a true change next to it hides). Per block: detected and
+    explained voxels, their largest clusters, the true movable changes the block holds
+    (:func:`changes_per_block`), confirmed and false; where the unexplained voxels lie
+    (:func:`where_voxels`); the detection's wall and CPU time (s) and the 1-min load average."""
+    from blockloc.app.lifelong import detect_run_changes, open_block_store
+    from blockloc.sim.changes import open_session
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    rc = detect_run_changes(open_block_store(mp), run_dir, stride=stride)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    from scipy.spatial import cKDTree
+
+    from blockloc.maps.changes.detect import Thresholds, cluster_sizes, unpack_keys
+
+    res, seq = rc.result, open_session(P, "loc", S)
+    vm = res.voxels.voxel_m
+    boxes = np.array([c.box_map() for c in _day_changes(P, S, "loc")], float).reshape(-1, 6)
+
+    def explained(keys: np.ndarray) -> np.ndarray:
+        c = (unpack_keys(keys) + 0.5) * vm
+        m = np.zeros(len(c), bool)
+        for x0, x1, y0, y1, z0, z1 in boxes:
+            m |= ((c[:, 0] > x0 - vm) & (c[:, 0] < x1 + vm) & (c[:, 1] > y0 - vm) & (c[:, 1] < y1 + vm)
+                  & (c[:, 2] > z0 - vm) & (c[:, 2] < z1 + vm))
+        return m
+
+    rm, ad = np.asarray(res.voxels.removed, np.int64), np.asarray(res.voxels.added, np.int64)
+    rm_ok, ad_ok = explained(rm), explained(ad)
+    ids = list(res.block_keyframes)
+    kf = [np.asarray(res.block_keyframes[b], float).reshape(-1, 3) for b in ids]
+    owner = np.concatenate([[b] * len(k) for b, k in zip(ids, kf)]).astype(object)
+    ad_owner = owner[cKDTree(np.concatenate(kf)).query((unpack_keys(ad) + 0.5) * vm)[1]] if len(ad) else owner[:0]
+    truth = changes_per_block(P, S, "loc", mp)
+    blocks = []
+    th = Thresholds()
+
+    def largest_m3(keys: np.ndarray) -> float:
+        return float(cluster_sizes(np.unique(keys)).max()) * vm ** 3 if len(keys) else 0.0
+
+    for b in res.blocks:
+        i = b["block"]
+        in_b, ad_b = np.isin(rm, res.block_keys[i]), ad_owner == i
+        ok = np.concatenate([rm[in_b & rm_ok], ad[ad_b & ad_ok]])
+        bad = np.concatenate([rm[in_b & ~rm_ok], ad[ad_b & ~ad_ok]])
+        # confirmed truly when the explained voxels alone hold a change the detector confirms on
+        # (one 26-connected cluster of min_block_m3), falsely otherwise; and whether the
+        # unexplained ones alone would have confirmed the block (a false alarm hidden by a true one)
+        ok_m3, bad_m3 = largest_m3(ok), largest_m3(bad)
+        blocks.append({**{k: b.get(k) for k in ("block", "removed_voxels", "added_voxels", "dynamic_voxels",
+                                                 "largest_change_m3", "confirmed")},
+                       "detected_voxels": int(len(ok) + len(bad)), "explained_voxels": int(len(ok)),
+                       "explained_largest_m3": ok_m3, "unexplained_largest_m3": bad_m3,
+                       "true_changes": truth.get(i, []),
+                       "false": bool(b["confirmed"]) and ok_m3 < th.min_block_m3 - 1e-9,
+                       "false_alone": bad_m3 >= th.min_block_m3 - 1e-9})
+    return {"session": "loc", "sequence": rc.sequence_name, "frames_trusted": res.frames_trusted,
+            "scans_used": res.scans_used, "scans_rejected": res.scans_rejected,
+            "examined": len(res.blocks), "confirmed": [b["block"] for b in blocks if b["confirmed"]],
+            "false_confirmed": [b["block"] for b in blocks if b["false"]],
+            "false_alone": [b["block"] for b in blocks if b["false_alone"]],
+            "without_true_change": [b["block"] for b in blocks if not b["true_changes"]],
+            "blocks": blocks, "min_block_m3": th.min_block_m3,
+            "removed_voxels": int(len(rm)), "added_voxels": int(len(ad)),
+            "removed_explained": int(rm_ok.sum()), "added_explained": int(ad_ok.sum()),
+            "dynamic_voxels": int(len(res.voxels.dynamic)),
+            "false_removed_where": where_voxels(seq, rm[~rm_ok], vm),
+            "false_added_where": where_voxels(seq, ad[~ad_ok], vm),
+            "wall_s": wall, "cpu_s": cpu, "load1": os.getloadavg()[0]}
+
+
+def _day_changes(P: str, S: int, session: str) -> list:
+    """The simulator's changes of ``session`` against the mapping day: a changed session's
+    ``changes()``; for month 0's ``loc``, its rearranged parked cars and bins (the only change the
+    simulator makes on that day; ``blockloc.sim.changes._movable_changes``, as the changed sessions
+    list theirs)."""
+    from blockloc.sim.changes import _movable_changes, open_session
+
+    seq = open_session(P, session, S)
+    if session == "loc":
+        return _movable_changes(seq.world, "loc")[2]
+    return seq.changes()
+
+
+def changes_per_block(P: str, S: int, session: str, mp: Path) -> dict:
+    """Block id of the map ``mp`` -> the kinds of the simulator's changes of ``session`` (its
+    ``changes()``) the block holds: a removed (or moved-away) object's box holding any of the
+    block's map points, grown 0.25 m (the blocks overlap: every block that holds it); an added one
+    by the block of the keyframe nearest its box's centre (as :func:`block_truth` assigns them).
+    A block with an empty list is one no drive of that day can find changed."""
+    from scipy.spatial import cKDTree
+
+    from blockloc.maps.store import open_map
+
+    store = open_map(mp)
+    changes = _day_changes(P, S, session)
+    out: dict = {b: [] for b in store.ids}
+    ids, kf = [], []
+    for b in store.ids:
+        e = store.entry(b)
+        k = np.asarray(e.keyframes if e.keyframes is not None else e.centroid[None], float).reshape(-1, 3)
+        ids += [b] * len(k)
+        kf.append(k)
+    tree, ids = cKDTree(np.concatenate(kf)), np.asarray(ids, object)
+    pts = {b: store.load(b)[0][:, :3].astype(float) for b in store.ids}
+    pad = 0.25
+    for c in changes:
+        x0, x1, y0, y1, z0, z1 = c.box_map()
+        if c.action in ("removed", "moved"):
+            for b, p in pts.items():
+                if ((p[:, 0] > x0 - pad) & (p[:, 0] < x1 + pad) & (p[:, 1] > y0 - pad) & (p[:, 1] < y1 + pad)
+                        & (p[:, 2] > z0 - pad) & (p[:, 2] < z1 + pad)).any():
+                    out[b].append(f"{c.kind} ({c.action})")
+        if c.action in ("added", "moved"):
+            centre = [(x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2]
+            out[str(ids[tree.query(centre)[1]])].append(f"{c.kind} ({c.action})")
     return out
 
 
@@ -537,8 +670,10 @@ def main(argv: list[str] | None = None) -> Path:
     groups = args.update_from
     srcs = {s for g in groups for s in g.split("+")}
     need = (set(sessions) if "detect" in parts else set()) | (srcs | {"loc_m12"} if parts & {"loc", "cost"} else set())
+    need |= {"loc"} if "unchanged" in parts else set()
     if args.run is None:
-        runs = {s: track(s, mp, f"run_{s}_stale-{bk}") for s in ("loc_m3", "loc_m12", "map_m12") if s in need}
+        runs = {s: track(s, mp, f"run_{s}_stale-{bk}") for s in ("loc", "loc_m3", "loc_m12", "map_m12")
+                if s in need}
     else:  # given: scored as it is
         runs = {sessions[0]: args.run}
     from blockloc.maps.changes.detect import Thresholds
@@ -561,6 +696,10 @@ def main(argv: list[str] | None = None) -> Path:
         for s in sessions:
             result["detect"].append(score_detection(P, S, s, mp, runs[s], args.stride))
             write()
+    if "unchanged" in parts and args.run is None:
+        result["unchanged"] = unchanged_day(P, S, mp, runs["loc"], args.stride)
+        result["changes_per_block"] = {s: changes_per_block(P, S, s, mp) for s in ("loc", *sessions)}
+        write()
     upds: dict = {}  # update group -> (its map, wall, cpu)
     fresh, fresh_same = work / f"map_fresh-{bk}", work / f"map_fresh_same_error-{bk}"
     if parts & {"loc", "cost"}:
@@ -640,8 +779,48 @@ def _where_lines(r: dict) -> list[str]:
     return L
 
 
+def _unchanged_lines(r: dict) -> list[str]:
+    """The unchanged part: month 0's drive through the detector, and the change list per block."""
+    u = r["unchanged"]
+    fr, fa = u["false_removed_where"], u["false_added_where"]
+    L = ["", "### Block precision on month 0's `loc` drive (no structure changed, parked cars and bins rearranged)", "",
+         f"`blockloc map changes --map MAP --run RUN_loc --stride {r['stride']}` (its recipe, through the API) on "
+         "the stale-map run of `loc`, another drive of the mapping day. Its only true changes are the parked cars "
+         "and bins the simulator rearranges on every day; a detected voxel is explained when it lies in one's box "
+         "(grown a voxel); a confirmed block is falsely confirmed unless its explained voxels alone hold a "
+         f"26-connected cluster of {u['min_block_m3']:g} m^3 (the detector's rule); 'unexplained alone' counts the "
+         "blocks whose unexplained voxels alone hold one (a false alarm a true change beside it hides).", "",
+         "| session | scans used (gated) | blocks examined (without a true change) | confirmed | falsely confirmed "
+         "| unexplained alone would confirm | removed voxels: explained (unexplained: vegetation, ground, other) "
+         "| added voxels: explained (unexplained: ...) | detection wall / CPU |", "|---|---|---|---|---|---|---|---|---|",
+         f"| loc | {u['scans_used']} ({u['scans_rejected']}) | {u['examined']} ({len(u['without_true_change'])}) | "
+         f"{len(u['confirmed'])} | {len(u['false_confirmed'])}"
+         + (f" ({', '.join(u['false_confirmed'])})" if u["false_confirmed"] else "")
+         + f" | {len(u['false_alone'])}" + (f" ({', '.join(u['false_alone'])})" if u["false_alone"] else "")
+         + f" | {u['removed_voxels']}: {u['removed_explained']} ({fr['vegetation']}, {fr['ground']}, {fr['other']}) "
+         f"| {u['added_voxels']}: {u['added_explained']} ({fa['vegetation']}, {fa['ground']}, {fa['other']}) | "
+         f"{u['wall_s']:.0f} / {u['cpu_s']:.0f} s (load {u['load1']:.1f}) |", "",
+         "| block | true changes (parked) | detected voxels (explained) | largest cluster m^3: detected / explained "
+         "/ unexplained | confirmed | false |", "|---|---|---|---|---|---|"]
+    for b in u["blocks"]:
+        L.append(f"| {b['block']} | {len(b['true_changes'])} | {b['detected_voxels']} ({b['explained_voxels']}) | "
+                 f"{_f(b.get('largest_change_m3'), 2)} / {b['explained_largest_m3']:.2f} / "
+                 f"{b['unexplained_largest_m3']:.2f} | {b['confirmed']} | {b['false']} |")
+    cpb = r.get("changes_per_block") or {}
+    if cpb:
+        L += ["", "The simulator's changes each block of the map holds (removed: the box holds the block's map "
+              "points; added: the block of the keyframe nearest the box); a block with none is one a drive of that "
+              "day can find unchanged:", "", "| session | block | changes |", "|---|---|---|"]
+        for s, per in cpb.items():
+            for b, kinds in per.items():
+                counts = {k: kinds.count(k) for k in dict.fromkeys(kinds)}
+                L.append(f"| {s} | {b} | {len(kinds)}: " + (", ".join(f"{n} {k}" for k, n in counts.items()) or "none")
+                         + " |")
+    return L
+
+
 def render(r: dict, args, log: list, machine: str, dyn: list[str]) -> list[str]:
-    sessions = f" --sessions {args.sessions}" if "detect" in args.parts.split(",") else ""  # detect's alone
+    sessions = (f" --sessions {args.sessions}" if {"detect", "unchanged"} & set(args.parts.split(",")) else "")
     ups = getattr(args, "update_from", None) or ["loc_m3"]
     cmd = (f"python -m bench.lifelong --preset {r['preset']} --seed {r['seed']}{sessions} "
            f"--stride {r['stride']} --parts {args.parts}" + (f" --frames {r['frames']}" if r["frames"] else "")
@@ -692,6 +871,8 @@ def render(r: dict, args, log: list, machine: str, dyn: list[str]) -> list[str]:
                     L.append(f"| {d['session']} | {b['block']} | {b['truth_voxels']} ({b.get('truth_largest_voxels', '-')}) "
                              f"| {b['changed']} | {b['removed_voxels']} | {b['added_voxels']} | "
                              f"{_f(b.get('largest_change_m3'), 1)} | {b['confirmed']} |")
+    if "unchanged" in r:
+        L += _unchanged_lines(r)
     if "loc" in r:
         L += ["", "### Tracking loc_m12 (12 months later) on each map", "",
               "Worst tenth: the route cut in ten stretches by frame, the largest RMS position error of a "

@@ -337,3 +337,50 @@ def test_weak_voxels_joined_to_an_applied_change_are_applied_with_it():
     assert np.array_equal(plan.removed, np.union1d(wall, end)) and plan.grown == len(end)
     assert plan.blocks["000"]["held_back_voxels"] == len(apart)
     assert np.array_equal(plan_update([res], grow_weak=False).removed, wall)
+
+
+def _yawed(T: np.ndarray, yaw_rad: np.ndarray) -> np.ndarray:
+    """T (N, 4, 4) with each rotation turned by yaw_rad (N,) about the map's z."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    Rz = np.zeros((len(T), 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
+    out = T.copy()
+    out[:, :3, :3] = Rz @ T[:, :3, :3]
+    return out
+
+
+def test_another_drive_of_the_mapping_day_confirms_no_block_and_updates_nothing(base, tmp_path):
+    """Block precision where nothing changed (the bench's ``unchanged`` part, month 0's ``loc``
+    drive, in small): another drive of the mapping day (1.5 m to the side, scans at other places)
+    whose run poses carry tracking-sized errors (2 cm, 0.1 deg): ``map changes`` confirms no block
+    and ``map update`` from it rebuilds nothing, even taking one run as evidence enough. The same drive on the day the wall is
+    gone confirms the wall's block: the drive sees enough to find a change that is there."""
+    import shutil
+
+    d, T = base
+    T2 = W.drive(STEP)
+    T2[:, 0, 3] += 0.7
+    T2[:, 1, 3] -= 1.5
+    rng = np.random.default_rng(7)
+    poses = _yawed(T2, np.deg2rad(rng.normal(0.0, 0.1, len(T2))))
+    poses[:, :3, 3] += rng.normal(0.0, 0.02, (len(T2), 3))
+    shutil.copytree(d / "map", tmp_path / "map")
+    m = tmp_path / "map"
+    W.write_scan_folder(tmp_path / "day0", "map", T2)
+    run = W.write_run(tmp_path / "run", tmp_path / "day0", poses, ["ok"] * len(T2))
+    r = _cli("map", "changes", "--map", m, "--run", run)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((run / "changes.json").read_text())
+    assert doc["scans_used"] == len(T2) - 10 and doc["scans_rejected"] == 0  # trusted after 10 ok frames
+    assert {b["block"]: b["confirmed"] for b in doc["blocks"]} == {"000": False, "001": False}
+    gone = detect_changes(open_map(m), W.ArraySequence("nowall", T2),
+                          read_run(W.write_run(tmp_path / "gone", tmp_path / "day0", poses, ["ok"] * len(T2))))
+    assert gone.scans_used == doc["scans_used"]
+    assert {b["block"]: b["confirmed"] for b in gone.blocks} == {"000": False, "001": True}
+    before = _entries(m)
+    # one run is evidence enough here (--min-runs 1: every detected voxel is strong): nothing to apply
+    r = _cli("map", "update", m, "--run", run, "--min-runs", "1")
+    assert r.returncode == 0, r.stderr
+    assert "0 blocks rebuilt" in r.stdout
+    after = _entries(m)
+    assert all(after[b]["sha256"] == before[b]["sha256"] == _sha(m / after[b]["file"]) for b in before)
