@@ -568,3 +568,148 @@ def nclt_words(pts, intensity, ring, offset, scale):
                     | (np.uint64(v) << np.uint64(48)) | (r << np.uint64(56)))
         m += 1
     return words[:m], keep
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _np_mod(a, b):
+    """numpy's float ``np.mod(a, b)`` (``npy_remainder``: fmod, then the divisor's sign)."""
+    mod = np.fmod(a, b)
+    if b == 0.0:
+        return mod
+    if mod != 0.0:
+        if (b < 0.0) != (mod < 0.0):
+            mod += b
+    else:
+        mod = np.copysign(0.0, b)
+    return mod
+
+
+@njit(cache=True, nogil=True)
+def facade_rays(cat, tri, tri_owner, is_facade_cat, facades, reflect):
+    """The rays (N,) whose hit is on a category with facade rows (``is_facade_cat[cat]``; no hit:
+    ``cat`` -1): their indices (K,) int64 and rows ``tri_owner[tri]`` (K,) int64; each one's
+    reflectance set to its row's (``facades[row, 6]``; ``facades`` (B, 10), not empty) in place."""
+    n = len(cat)
+    k = 0
+    for i in range(n):
+        c = cat[i]
+        if c >= 0 and is_facade_cat[c]:
+            k += 1
+    idx = np.empty(k, np.int64)
+    owner = np.empty(k, np.int64)
+    m = 0
+    for i in range(n):
+        c = cat[i]
+        if c >= 0 and is_facade_cat[c]:
+            idx[m] = i
+            o = np.int64(tri_owner[tri[i]])
+            owner[m] = o
+            reflect[i] = facades[o, 6]
+            m += 1
+    return idx, owner
+
+
+#: facade_faces' per-ray flags
+FACADE_WINDOW, FACADE_LOST, FACADE_INSIDE, FACADE_ROOM = 1, 2, 4, 8
+
+
+@njit(cache=True, nogil=True)
+def facade_faces(idx, owner, facades, origins, dirs, rng_, normals, u_g, room_draw, room_min, back_wall):
+    """Windows, pilasters and ledges of the facade rays ``idx`` (K,) (rows ``owner`` (K,) of
+    ``facades`` (B, 10): box x0 x1 y0 y1 z0 z1, reflectance, floor height, bay width, bay offset):
+    ``SessionScene._facades`` up to the panes passed. u_g (K,): the glass draws (uniform [0, 1));
+    room_draw (K,): the room depth draws (uniform [1, 6)).
+
+    Returns the new ranges r (K,) (inf: lost at the pane), flags (K,) uint8 (FACADE_*), the depth
+    (K,) of the box behind the face along the rays into a window (0 elsewhere), and the facade
+    coordinates u, z (K,) the reflectance noise is taken at."""
+    k_n = len(idx)
+    r = np.empty(k_n)
+    flags = np.zeros(k_n, np.uint8)
+    depth = np.zeros(k_n)
+    u_out = np.empty(k_n)
+    z_out = np.empty(k_n)
+    for k in range(k_n):
+        i = idx[k]
+        o = owner[k]
+        n0, n1, n2 = normals[i, 0], normals[i, 1], normals[i, 2]
+        d0, d1, d2 = dirs[i, 0], dirs[i, 1], dirs[i, 2]
+        ri = rng_[i]
+        vertical = np.abs(n2) < 0.5
+        p0 = origins[i, 0] + d0 * ri
+        p1 = origins[i, 1] + d1 * ri
+        p2 = origins[i, 2] + d2 * ri
+        u = p1 if np.abs(n0) > np.abs(n1) else p0
+        floor_h = facades[o, 7]
+        hz = p2 - (facades[o, 4] + 0.5)
+        level = np.floor(hz / floor_h)
+        v = hz - level * floor_h
+        uu = _np_mod(u + facades[o, 9], facades[o, 8]) / facades[o, 8]
+        c = np.abs(n0 * d0 + n1 * d1 + n2 * d2)
+        cos_i = 0.25 if c < 0.25 else c  # np.maximum(c, 0.25), NaN kept
+        ledge = vertical and level >= 1 and v < 0.4
+        window = (vertical and not ledge and uu > 0.25 and uu < 0.85 and v > 0.9 and v < floor_h - 0.5
+                  and hz > 0.3)
+        pilaster = vertical and not ledge and not window and uu < 0.12
+        out = 0.2 if ledge else (0.15 if pilaster else (-0.18 if window else 0.0))
+        rk = ri - out / cos_i
+        g = u_g[k]
+        lost = window and g < 0.55
+        inside = window and g >= 0.55 and g < 0.85
+        fl = np.uint8(0)
+        if window:
+            fl |= np.uint8(FACADE_WINDOW)
+        if lost:
+            fl |= np.uint8(FACADE_LOST)
+        if inside:
+            fl |= np.uint8(FACADE_INSIDE)
+            # the box's far side along the ray (scene._box_exit)
+            far = np.inf
+            for a in range(3):
+                da = dirs[i, a]
+                if da == 0.0:  # both slab distances inf or NaN: not finite
+                    continue
+                t_lo = (facades[o, 2 * a] - origins[i, a]) / da
+                t_hi = (facades[o, 2 * a + 1] - origins[i, a]) / da
+                if np.isfinite(t_lo) and np.isfinite(t_hi):
+                    fa = t_lo if t_lo > t_hi else t_hi
+                    if fa < far:
+                        far = fa
+            dk = far - ri
+            depth[k] = dk
+            if dk >= room_min:
+                fl |= np.uint8(FACADE_ROOM)
+                b = dk - back_wall
+                w = room_draw[k]
+                rk = rk + (w if w < b else b)  # np.minimum(w, b)
+        if lost:
+            rk = np.inf
+        r[k] = rk
+        flags[k] = fl
+        u_out[k] = u
+        z_out[k] = p2
+    return r, flags, depth, u_out, z_out
+
+
+@njit(cache=True, nogil=True)
+def facade_finish(idx, r, flags, passed, u, z, seed_term, glass_albedo, rng_, reflect, glass, lost_at):
+    """The end of ``SessionScene._facades``: each facade ray's reflectance (its own times 1 +
+    0.25 noise(u, z, 0.8 m cells); glass's on a pane return; a ray ``passed`` (K,) through a
+    pane keeps what the cast behind gave it), glass flag, the range it is lost at (``lost_at``)
+    and its new range ``r``, written in place at ``idx``."""
+    for k in range(len(idx)):
+        i = idx[k]
+        fl = flags[k]
+        window = (fl & FACADE_WINDOW) != 0
+        inside = (fl & FACADE_INSIDE) != 0
+        on_glass = window and not inside and not passed[k]
+        if passed[k]:
+            refl = reflect[i]
+        elif on_glass:
+            refl = glass_albedo
+        else:
+            refl = reflect[i] * (1.0 + 0.25 * _noise_at(u[k], z[k], 0.8, seed_term))
+        lost_at[i] = rng_[i] if (fl & FACADE_LOST) != 0 else np.inf
+        rng_[i] = r[k]
+        reflect[i] = refl
+        glass[i] = on_glass

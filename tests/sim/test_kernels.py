@@ -318,10 +318,21 @@ def _ref_vegetation(self, origins, dirs, rays, rng_, normals, reflect, cat, rng)
         t_cur[active] = np.maximum(t_out[go], th[go]) + 1e-3
 
 
+# ``scene._box_exit`` as it was before the facades' kernel
+def _box_exit(origins: np.ndarray, dirs: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """(N,) distance along each ray (origins, dirs (N, 3)) at which it leaves its axis-aligned
+    box (N, 6) x0 x1 y0 y1 z0 z1 (the facade rows' layout), metres."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_lo = (box[:, 0::2] - origins) / dirs
+        t_hi = (box[:, 1::2] - origins) / dirs
+    far = np.where(np.isfinite(t_lo) & np.isfinite(t_hi), np.maximum(t_lo, t_hi), np.inf)
+    return far.min(axis=1)
+
+
 def _ref_facades(self, idx, owner, origins, dirs, rng_, normals, reflect, glass, rng, cat, lost_at) -> None:
     """``SessionScene._facades`` as 2af77ae had it: the box behind the face measured along every
     ray that hits a facade (now only along the rays into a room)."""
-    from blockloc.sim.scene import ALBEDO, BACK_WALL_M, ROOM_MIN_M, _box_exit, dot3, value_noise
+    from blockloc.sim.scene import ALBEDO, BACK_WALL_M, ROOM_MIN_M, dot3, value_noise
 
     f = self.world.facades[owner]
     n = normals[idx]
