@@ -232,21 +232,53 @@ def ground_hits(origins, dirs, rng_, cat, terrain_cat):
 
 
 @njit(cache=True, nogil=True)
-def ground_micro(r, dz, p, mat, seed_term):
-    """Micro relief along ground rays: ranges r (K,) less noise(p, 0.7 m cells) x (2 cm on grass,
-    mat 2; else 4 mm) over the ray's downward slope ``down`` = max(-dz, 0.02). Returns the new
-    ranges (K,) and down (K,)."""
-    k = len(r)
+def ground_micro(rng_, dirs, idx, p, mat, seed_term):
+    """Micro relief along the ground rays ``idx`` (K,) (of the ranges rng_ (N,) and directions
+    dirs (N, 3)): each one's range r = rng_[idx] less noise(p, 0.7 m cells) x (2 cm on grass,
+    mat 2; else 4 mm) over the ray's downward slope ``down`` = max(-dz, 0.02). Returns r, the
+    new ranges and down (K,) each."""
+    k = len(idx)
+    r = np.empty(k)
     down = np.empty(k)
     r_new = np.empty(k)
     for m in range(k):
-        v = -dz[m]
+        i = idx[m]
+        v = -dirs[i, 2]
         dn = v if v > 0.02 else 0.02
         down[m] = dn
         amp = 0.02 if mat[m] == 2 else 0.004
         micro = _noise_at(p[m, 0], p[m, 1], 0.7, seed_term) * amp
-        r_new[m] = r[m] - micro / dn
-    return r_new, down
+        r[m] = rng_[i]
+        r_new[m] = rng_[i] - micro / dn
+    return r, r_new, down
+
+
+@njit(cache=True, nogil=True)
+def kerb_rays(idx, mat, origins, dirs, r, down, kerb_m):
+    """The ground rays on a sidewalk (``mat == 1``): their positions (S,) in idx (K,), their
+    ranges r_0 (S,) (of r (K,)), the ranges r_side (S,) to the surface raised ``kerb_m`` (r_0 -
+    kerb_m / down) and that surface's point there, x and y (S,) each (world)."""
+    s_n = 0
+    for m in range(len(mat)):
+        if mat[m] == 1:
+            s_n += 1
+    side = np.empty(s_n, np.int64)
+    r_0 = np.empty(s_n)
+    r_side = np.empty(s_n)
+    x = np.empty(s_n)
+    y = np.empty(s_n)
+    s = 0
+    for m in range(len(mat)):
+        if mat[m] == 1:
+            i = idx[m]
+            side[s] = m
+            r_0[s] = r[m]
+            rs = r[m] - kerb_m / down[m]
+            r_side[s] = rs
+            x[s] = origins[i, 0] + dirs[i, 0] * rs
+            y[s] = origins[i, 1] + dirs[i, 1] * rs
+            s += 1
+    return side, r_0, r_side, x, y
 
 
 @njit(cache=True, nogil=True)

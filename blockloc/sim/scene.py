@@ -445,20 +445,17 @@ class SessionScene:
         from blockloc.sim import _kernels
 
         world = self.world
-        r = rng_[idx]
         seed = self._seed
-        r_new, down = _kernels.ground_micro(r, dirs[idx, 2], p, mat, np.int64(seed * 83492791))
+        r, r_new, down = _kernels.ground_micro(rng_, dirs, idx, p, mat, np.int64(seed * 83492791))
         # kerb: the sidewalk surface is raised; a ray whose raised hit falls back over the road
         # meets the kerb's face instead
-        side = np.flatnonzero(mat == 1)
+        side, r_0, r_side, x1, y1 = _kernels.kerb_rays(idx, mat, origins, dirs, r, down, KERB_M)
         if len(side):
-            o_s, d_s, r_0 = origins[idx[side]], dirs[idx[side]], r[side]
-            r_side = r_0 - KERB_M / down[side]
-            p1 = o_s + d_s * r_side[:, None]
-            face = world.ground_material(p1[:, 0], p1[:, 1]) == 0
+            face = world.ground_material(x1, y1) == 0
             r_s = r_side.copy()
             if face.any():  # only those rays meet the kerb's face
-                o_f, d_f = o_s[face], d_s[face]
+                at = idx[side[face]]
+                o_f, d_f = origins[at], dirs[at]
                 lo, hi = r_side[face], r_0[face]
                 for _ in range(5):  # bisect on the road edge along the ray
                     mid = 0.5 * (lo + hi)
@@ -469,9 +466,7 @@ class SessionScene:
                 r_s[face] = hi
                 n_face = np.c_[-d_f[:, :2], np.zeros(len(d_f))]
                 n_face /= np.maximum(np.linalg.norm(n_face, axis=1, keepdims=True), 1e-9)
-                nn = normals[idx[side]]
-                nn[face] = n_face
-                normals[idx[side]] = nn
+                normals[at] = n_face
             r_new[side] = r_s + (r_new[side] - r_0)
         grass = np.flatnonzero(mat == 2)
         if len(grass):  # the draws in their order: stops, tilts, reflectances
