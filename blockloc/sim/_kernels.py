@@ -309,27 +309,36 @@ def ground_grass(r_new, down, p, grass, idx, stop_draw, unit_draw, normals, refl
 
 
 @njit(cache=True, nogil=True)
-def actor_columns(xy, o, dv):
-    """Which rays (C,) (xy origins ``o`` and directions ``dv`` (C, 2), the columns of a sweep)
-    pass within an actor's bounding circle: 3.5 m around its position ``xy`` (K, 2), widened
-    by 0.1 m a metre of distance (a column's beams fan out in xy when the sensor tilts), ahead
-    of the origin (or the origin inside the circle). Conservative: a ray it leaves out cannot
-    hit an actor, so its exact bits do not matter."""
-    c_n = len(o)
-    sel = np.zeros(c_n, np.bool_)
-    for c in range(c_n):
-        hx = np.hypot(dv[c, 0], dv[c, 1]) + 1e-12
+def actor_rays(xy, origins, dirs, rng_, step, radius, margin):
+    """The rays (M,) int64, ascending, that could hit a moving actor before their range: the
+    rays (N,) come in columns of ``step`` sharing an origin (origins, dirs (N, 3), ranges rng_
+    (N,)); a column is taken if it points within an actor's bounding circle (``radius`` m round
+    its position ``xy`` (K, 2), widened by 0.1 m a metre of distance: a column's beams fan out
+    in xy when the sensor tilts) ahead of its origin (or the origin is inside the circle), and
+    of its rays those whose range reaches that circle's near side (a hit on the actor is at least
+    the xy distance to the circle away along the ray: ``rng_ > dist - radius - margin``).
+    Conservative: a ray it leaves out cannot meet an actor before its range, so its cast is not
+    needed (the others' casts do not depend on it)."""
+    n = len(rng_)
+    keep = np.zeros(n, np.bool_)
+    for c in range(n // step):
+        i0 = c * step
+        ox, oy = origins[i0, 0], origins[i0, 1]
+        dx, dy = dirs[i0, 0], dirs[i0, 1]
+        hx = np.hypot(dx, dy) + 1e-12
         for k in range(len(xy)):
-            rx = xy[k, 0] - o[c, 0]
-            ry = xy[k, 1] - o[c, 1]
+            rx = xy[k, 0] - ox
+            ry = xy[k, 1] - oy
             dist = np.hypot(rx, ry)
-            along = (rx * dv[c, 0] + ry * dv[c, 1]) / hx
+            along = (rx * dx + ry * dy) / hx
             perp2 = max(dist * dist - along * along, 0.0)
-            lim = 3.5 + 0.1 * dist
-            if perp2 < lim * lim and (along > 0 or dist < 3.5):
-                sel[c] = True
-                break
-    return sel
+            lim = radius + 0.1 * dist
+            if perp2 < lim * lim and (along > 0 or dist < radius):
+                near = dist - radius - margin
+                for i in range(i0, i0 + step):
+                    if rng_[i] > near:
+                        keep[i] = True
+    return np.flatnonzero(keep)
 
 
 @njit(cache=True, nogil=True)

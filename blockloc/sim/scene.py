@@ -215,6 +215,9 @@ def _random_unit(rng: np.random.Generator, n: int) -> np.ndarray:
     return v / np.sqrt(dot3(v, v))[:, None]  # np.linalg.norm(v, axis=1, keepdims=True), its bits
 
 
+#: Every moving actor's mesh lies within this xy distance of its position (a vehicle's corner:
+#: 2.4 m), metres.
+ACTOR_RADIUS_M = 3.5
 #: A box this deep along a ray behind a window holds a room (shallower: a wall, a pillar).
 ROOM_MIN_M = 1.5
 BACK_WALL_M = 0.3  # a room's return stops this short of the box's far side
@@ -594,15 +597,14 @@ class SessionScene:
         xy, _ = self.actors.poses(t)
         near = np.linalg.norm(xy - center[:2], axis=1) < max_range + 10.0
         # select per column when rays come in columns sharing an origin (the lidar model casts
-        # 32 a column); the bounding circle is 3.5 m, wider than any actor, for the tilt margin
-        # (the lidar model's columns are exactly equal: that check first, ~40x cheaper than allclose)
+        # 32 a column), then the rays of the column long enough to reach an actor's circle; the
+        # bounding circle is 3.5 m, wider than any actor, for the tilt margin (the lidar model's
+        # columns are exactly equal: that check first, ~40x cheaper than allclose)
         first, last = origins[::32], origins[31::32]
         step = 32 if len(rays) % 32 == 0 and (np.array_equal(first, last) or np.allclose(first, last)) else 1
         from blockloc.sim import _kernels
 
-        sel_c = _kernels.actor_columns(np.ascontiguousarray(xy[near]), origins[::step, :2], dirs[::step, :2])
-        sel = np.repeat(sel_c, step)
-        idx = np.flatnonzero(sel)
+        idx = _kernels.actor_rays(np.ascontiguousarray(xy[near]), origins, dirs, rng_, step, ACTOR_RADIUS_M, 0.1)
         if not len(idx):
             return
         dyn = o3d.t.geometry.RaycastingScene(nthreads=raycast_threads())
