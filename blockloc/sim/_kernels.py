@@ -650,6 +650,35 @@ def facade_rays(cat, tri, tri_owner, is_facade_cat, facades, reflect):
     return idx, owner
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _box_far(o, d, box):
+    """Distance along a ray (origin o, direction d (3,)) at which it leaves the axis-aligned box
+    ``box`` (x0 x1 y0 y1 z0 z1, the first six of a facade row), metres: of each axis' two slab
+    distances, the larger, where both are finite; the least of those (inf: none)."""
+    far = np.inf
+    for a in range(3):
+        da = d[a]
+        if da == 0.0:  # both slab distances inf or NaN: not finite
+            continue
+        t_lo = (box[2 * a] - o[a]) / da
+        t_hi = (box[2 * a + 1] - o[a]) / da
+        if np.isfinite(t_lo) and np.isfinite(t_hi):
+            fa = t_lo if t_lo > t_hi else t_hi
+            if fa < far:
+                far = fa
+    return far
+
+
+@njit(cache=True, nogil=True)
+def box_exit(origins, dirs, box):
+    """(N,) distance along each ray (origins, dirs (N, 3)) at which it leaves its axis-aligned
+    box (N, 6+) x0 x1 y0 y1 z0 z1 (a facade row's layout), metres (the facades' kernel's)."""
+    out = np.empty(len(origins))
+    for i in range(len(origins)):
+        out[i] = _box_far(origins[i], dirs[i], box[i])
+    return out
+
+
 #: facade_faces' per-ray flags
 FACADE_WINDOW, FACADE_LOST, FACADE_INSIDE, FACADE_ROOM = 1, 2, 4, 8
 
@@ -704,19 +733,7 @@ def facade_faces(idx, owner, facades, origins, dirs, rng_, normals, u_g, room_dr
             fl |= np.uint8(FACADE_LOST)
         if inside:
             fl |= np.uint8(FACADE_INSIDE)
-            # the box's far side along the ray (scene._box_exit)
-            far = np.inf
-            for a in range(3):
-                da = dirs[i, a]
-                if da == 0.0:  # both slab distances inf or NaN: not finite
-                    continue
-                t_lo = (facades[o, 2 * a] - origins[i, a]) / da
-                t_hi = (facades[o, 2 * a + 1] - origins[i, a]) / da
-                if np.isfinite(t_lo) and np.isfinite(t_hi):
-                    fa = t_lo if t_lo > t_hi else t_hi
-                    if fa < far:
-                        far = fa
-            dk = far - ri
+            dk = _box_far(origins[i], dirs[i], facades[o]) - ri
             depth[k] = dk
             if dk >= room_min:
                 fl |= np.uint8(FACADE_ROOM)
