@@ -232,21 +232,53 @@ def ground_hits(origins, dirs, rng_, cat, terrain_cat):
 
 
 @njit(cache=True, nogil=True)
-def ground_micro(r, dz, p, mat, seed_term):
-    """Micro relief along ground rays: ranges r (K,) less noise(p, 0.7 m cells) x (2 cm on grass,
-    mat 2; else 4 mm) over the ray's downward slope ``down`` = max(-dz, 0.02). Returns the new
-    ranges (K,) and down (K,)."""
-    k = len(r)
+def ground_micro(rng_, dirs, idx, p, mat, seed_term):
+    """Micro relief along the ground rays ``idx`` (K,) (of the ranges rng_ (N,) and directions
+    dirs (N, 3)): each one's range r = rng_[idx] less noise(p, 0.7 m cells) x (2 cm on grass,
+    mat 2; else 4 mm) over the ray's downward slope ``down`` = max(-dz, 0.02). Returns r, the
+    new ranges and down (K,) each."""
+    k = len(idx)
+    r = np.empty(k)
     down = np.empty(k)
     r_new = np.empty(k)
     for m in range(k):
-        v = -dz[m]
+        i = idx[m]
+        v = -dirs[i, 2]
         dn = v if v > 0.02 else 0.02
         down[m] = dn
         amp = 0.02 if mat[m] == 2 else 0.004
         micro = _noise_at(p[m, 0], p[m, 1], 0.7, seed_term) * amp
-        r_new[m] = r[m] - micro / dn
-    return r_new, down
+        r[m] = rng_[i]
+        r_new[m] = rng_[i] - micro / dn
+    return r, r_new, down
+
+
+@njit(cache=True, nogil=True)
+def kerb_rays(idx, mat, origins, dirs, r, down, kerb_m):
+    """The ground rays on a sidewalk (``mat == 1``): their positions (S,) in idx (K,), their
+    ranges r_0 (S,) (of r (K,)), the ranges r_side (S,) to the surface raised ``kerb_m`` (r_0 -
+    kerb_m / down) and that surface's point there, x and y (S,) each (world)."""
+    s_n = 0
+    for m in range(len(mat)):
+        if mat[m] == 1:
+            s_n += 1
+    side = np.empty(s_n, np.int64)
+    r_0 = np.empty(s_n)
+    r_side = np.empty(s_n)
+    x = np.empty(s_n)
+    y = np.empty(s_n)
+    s = 0
+    for m in range(len(mat)):
+        if mat[m] == 1:
+            i = idx[m]
+            side[s] = m
+            r_0[s] = r[m]
+            rs = r[m] - kerb_m / down[m]
+            r_side[s] = rs
+            x[s] = origins[i, 0] + dirs[i, 0] * rs
+            y[s] = origins[i, 1] + dirs[i, 1] * rs
+            s += 1
+    return side, r_0, r_side, x, y
 
 
 @njit(cache=True, nogil=True)
@@ -277,27 +309,36 @@ def ground_grass(r_new, down, p, grass, idx, stop_draw, unit_draw, normals, refl
 
 
 @njit(cache=True, nogil=True)
-def actor_columns(xy, o, dv):
-    """Which rays (C,) (xy origins ``o`` and directions ``dv`` (C, 2), the columns of a sweep)
-    pass within an actor's bounding circle: 3.5 m around its position ``xy`` (K, 2), widened
-    by 0.1 m a metre of distance (a column's beams fan out in xy when the sensor tilts), ahead
-    of the origin (or the origin inside the circle). Conservative: a ray it leaves out cannot
-    hit an actor, so its exact bits do not matter."""
-    c_n = len(o)
-    sel = np.zeros(c_n, np.bool_)
-    for c in range(c_n):
-        hx = np.hypot(dv[c, 0], dv[c, 1]) + 1e-12
+def actor_rays(xy, origins, dirs, rng_, step, radius, margin):
+    """The rays (M,) int64, ascending, that could hit a moving actor before their range: the
+    rays (N,) come in columns of ``step`` sharing an origin (origins, dirs (N, 3), ranges rng_
+    (N,)); a column is taken if it points within an actor's bounding circle (``radius`` m round
+    its position ``xy`` (K, 2), widened by 0.1 m a metre of distance: a column's beams fan out
+    in xy when the sensor tilts) ahead of its origin (or the origin is inside the circle), and
+    of its rays those whose range reaches that circle's near side (a hit on the actor is at least
+    the xy distance to the circle away along the ray: ``rng_ > dist - radius - margin``).
+    Conservative: a ray it leaves out cannot meet an actor before its range, so its cast is not
+    needed (the others' casts do not depend on it)."""
+    n = len(rng_)
+    keep = np.zeros(n, np.bool_)
+    for c in range(n // step):
+        i0 = c * step
+        ox, oy = origins[i0, 0], origins[i0, 1]
+        dx, dy = dirs[i0, 0], dirs[i0, 1]
+        hx = np.hypot(dx, dy) + 1e-12
         for k in range(len(xy)):
-            rx = xy[k, 0] - o[c, 0]
-            ry = xy[k, 1] - o[c, 1]
+            rx = xy[k, 0] - ox
+            ry = xy[k, 1] - oy
             dist = np.hypot(rx, ry)
-            along = (rx * dv[c, 0] + ry * dv[c, 1]) / hx
+            along = (rx * dx + ry * dy) / hx
             perp2 = max(dist * dist - along * along, 0.0)
-            lim = 3.5 + 0.1 * dist
-            if perp2 < lim * lim and (along > 0 or dist < 3.5):
-                sel[c] = True
-                break
-    return sel
+            lim = radius + 0.1 * dist
+            if perp2 < lim * lim and (along > 0 or dist < radius):
+                near = dist - radius - margin
+                for i in range(i0, i0 + step):
+                    if rng_[i] > near:
+                        keep[i] = True
+    return np.flatnonzero(keep)
 
 
 @njit(cache=True, nogil=True)
@@ -568,3 +609,165 @@ def nclt_words(pts, intensity, ring, offset, scale):
                     | (np.uint64(v) << np.uint64(48)) | (r << np.uint64(56)))
         m += 1
     return words[:m], keep
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _np_mod(a, b):
+    """numpy's float ``np.mod(a, b)`` (``npy_remainder``: fmod, then the divisor's sign)."""
+    mod = np.fmod(a, b)
+    if b == 0.0:
+        return mod
+    if mod != 0.0:
+        if (b < 0.0) != (mod < 0.0):
+            mod += b
+    else:
+        mod = np.copysign(0.0, b)
+    return mod
+
+
+@njit(cache=True, nogil=True)
+def facade_rays(cat, tri, tri_owner, is_facade_cat, facades, reflect):
+    """The rays (N,) whose hit is on a category with facade rows (``is_facade_cat[cat]``; no hit:
+    ``cat`` -1): their indices (K,) int64 and rows ``tri_owner[tri]`` (K,) int64; each one's
+    reflectance set to its row's (``facades[row, 6]``; ``facades`` (B, 10), not empty) in place."""
+    n = len(cat)
+    k = 0
+    for i in range(n):
+        c = cat[i]
+        if c >= 0 and is_facade_cat[c]:
+            k += 1
+    idx = np.empty(k, np.int64)
+    owner = np.empty(k, np.int64)
+    m = 0
+    for i in range(n):
+        c = cat[i]
+        if c >= 0 and is_facade_cat[c]:
+            idx[m] = i
+            o = np.int64(tri_owner[tri[i]])
+            owner[m] = o
+            reflect[i] = facades[o, 6]
+            m += 1
+    return idx, owner
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _box_far(o, d, box):
+    """Distance along a ray (origin o, direction d (3,)) at which it leaves the axis-aligned box
+    ``box`` (x0 x1 y0 y1 z0 z1, the first six of a facade row), metres: of each axis' two slab
+    distances, the larger, where both are finite; the least of those (inf: none)."""
+    far = np.inf
+    for a in range(3):
+        da = d[a]
+        if da == 0.0:  # both slab distances inf or NaN: not finite
+            continue
+        t_lo = (box[2 * a] - o[a]) / da
+        t_hi = (box[2 * a + 1] - o[a]) / da
+        if np.isfinite(t_lo) and np.isfinite(t_hi):
+            fa = t_lo if t_lo > t_hi else t_hi
+            if fa < far:
+                far = fa
+    return far
+
+
+@njit(cache=True, nogil=True)
+def box_exit(origins, dirs, box):
+    """(N,) distance along each ray (origins, dirs (N, 3)) at which it leaves its axis-aligned
+    box (N, 6+) x0 x1 y0 y1 z0 z1 (a facade row's layout), metres (the facades' kernel's)."""
+    out = np.empty(len(origins))
+    for i in range(len(origins)):
+        out[i] = _box_far(origins[i], dirs[i], box[i])
+    return out
+
+
+#: facade_faces' per-ray flags
+FACADE_WINDOW, FACADE_LOST, FACADE_INSIDE, FACADE_ROOM = 1, 2, 4, 8
+
+
+@njit(cache=True, nogil=True)
+def facade_faces(idx, owner, facades, origins, dirs, rng_, normals, u_g, room_draw, room_min, back_wall):
+    """Windows, pilasters and ledges of the facade rays ``idx`` (K,) (rows ``owner`` (K,) of
+    ``facades`` (B, 10): box x0 x1 y0 y1 z0 z1, reflectance, floor height, bay width, bay offset):
+    ``SessionScene._facades`` up to the panes passed. u_g (K,): the glass draws (uniform [0, 1));
+    room_draw (K,): the room depth draws (uniform [1, 6)).
+
+    Returns the new ranges r (K,) (inf: lost at the pane), flags (K,) uint8 (FACADE_*), the depth
+    (K,) of the box behind the face along the rays into a window (0 elsewhere), and the facade
+    coordinates u, z (K,) the reflectance noise is taken at."""
+    k_n = len(idx)
+    r = np.empty(k_n)
+    flags = np.zeros(k_n, np.uint8)
+    depth = np.zeros(k_n)
+    u_out = np.empty(k_n)
+    z_out = np.empty(k_n)
+    for k in range(k_n):
+        i = idx[k]
+        o = owner[k]
+        n0, n1, n2 = normals[i, 0], normals[i, 1], normals[i, 2]
+        d0, d1, d2 = dirs[i, 0], dirs[i, 1], dirs[i, 2]
+        ri = rng_[i]
+        vertical = np.abs(n2) < 0.5
+        p0 = origins[i, 0] + d0 * ri
+        p1 = origins[i, 1] + d1 * ri
+        p2 = origins[i, 2] + d2 * ri
+        u = p1 if np.abs(n0) > np.abs(n1) else p0
+        floor_h = facades[o, 7]
+        hz = p2 - (facades[o, 4] + 0.5)
+        level = np.floor(hz / floor_h)
+        v = hz - level * floor_h
+        uu = _np_mod(u + facades[o, 9], facades[o, 8]) / facades[o, 8]
+        c = np.abs(n0 * d0 + n1 * d1 + n2 * d2)
+        cos_i = 0.25 if c < 0.25 else c  # np.maximum(c, 0.25), NaN kept
+        ledge = vertical and level >= 1 and v < 0.4
+        window = (vertical and not ledge and uu > 0.25 and uu < 0.85 and v > 0.9 and v < floor_h - 0.5
+                  and hz > 0.3)
+        pilaster = vertical and not ledge and not window and uu < 0.12
+        out = 0.2 if ledge else (0.15 if pilaster else (-0.18 if window else 0.0))
+        rk = ri - out / cos_i
+        g = u_g[k]
+        lost = window and g < 0.55
+        inside = window and g >= 0.55 and g < 0.85
+        fl = np.uint8(0)
+        if window:
+            fl |= np.uint8(FACADE_WINDOW)
+        if lost:
+            fl |= np.uint8(FACADE_LOST)
+        if inside:
+            fl |= np.uint8(FACADE_INSIDE)
+            dk = _box_far(origins[i], dirs[i], facades[o]) - ri
+            depth[k] = dk
+            if dk >= room_min:
+                fl |= np.uint8(FACADE_ROOM)
+                b = dk - back_wall
+                w = room_draw[k]
+                rk = rk + (w if w < b else b)  # np.minimum(w, b)
+        if lost:
+            rk = np.inf
+        r[k] = rk
+        flags[k] = fl
+        u_out[k] = u
+        z_out[k] = p2
+    return r, flags, depth, u_out, z_out
+
+
+@njit(cache=True, nogil=True)
+def facade_finish(idx, r, flags, passed, u, z, seed_term, glass_albedo, rng_, reflect, glass, lost_at):
+    """The end of ``SessionScene._facades``: each facade ray's reflectance (its own times 1 +
+    0.25 noise(u, z, 0.8 m cells); glass's on a pane return; a ray ``passed`` (K,) through a
+    pane keeps what the cast behind gave it), glass flag, the range it is lost at (``lost_at``)
+    and its new range ``r``, written in place at ``idx``."""
+    for k in range(len(idx)):
+        i = idx[k]
+        fl = flags[k]
+        window = (fl & FACADE_WINDOW) != 0
+        inside = (fl & FACADE_INSIDE) != 0
+        on_glass = window and not inside and not passed[k]
+        if passed[k]:
+            refl = reflect[i]
+        elif on_glass:
+            refl = glass_albedo
+        else:
+            refl = reflect[i] * (1.0 + 0.25 * _noise_at(u[k], z[k], 0.8, seed_term))
+        lost_at[i] = rng_[i] if (fl & FACADE_LOST) != 0 else np.inf
+        rng_[i] = r[k]
+        reflect[i] = refl
+        glass[i] = on_glass

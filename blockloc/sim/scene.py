@@ -215,19 +215,12 @@ def _random_unit(rng: np.random.Generator, n: int) -> np.ndarray:
     return v / np.sqrt(dot3(v, v))[:, None]  # np.linalg.norm(v, axis=1, keepdims=True), its bits
 
 
+#: Every moving actor's mesh lies within this xy distance of its position (a vehicle's corner:
+#: 2.4 m), metres.
+ACTOR_RADIUS_M = 3.5
 #: A box this deep along a ray behind a window holds a room (shallower: a wall, a pillar).
 ROOM_MIN_M = 1.5
 BACK_WALL_M = 0.3  # a room's return stops this short of the box's far side
-
-
-def _box_exit(origins: np.ndarray, dirs: np.ndarray, box: np.ndarray) -> np.ndarray:
-    """(N,) distance along each ray (origins, dirs (N, 3)) at which it leaves its axis-aligned
-    box (N, 6) x0 x1 y0 y1 z0 z1 (the facade rows' layout), metres."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_lo = (box[:, 0::2] - origins) / dirs
-        t_hi = (box[:, 1::2] - origins) / dirs
-    far = np.where(np.isfinite(t_lo) & np.isfinite(t_hi), np.maximum(t_lo, t_hi), np.inf)
-    return far.min(axis=1)
 
 
 class SessionScene:
@@ -282,6 +275,7 @@ class SessionScene:
         self._terrain_scene = None
         # categories with facade rows (buildings, corridor walls and ceiling)
         self._facade_cats = np.array([self._cat_index[c] for c in world.owners if c in self._cat_index])
+        self._is_facade_cat = np.isin(np.arange(len(self.categories)), self._facade_cats)
         # the day's foliage: denser or sparser crowns than on the mapping day (seasons)
         vol = world.volumes
         self._vol_mfp = None
@@ -422,14 +416,12 @@ class SessionScene:
                 self._ground_relief(g_idx, origins, dirs, rng_, normals, reflect, rng, p, mat)
             else:
                 reflect[g_idx] = self.world.ground_albedo(p[:, 0], p[:, 1])
-        on_bldg = np.isin(cat, self._facade_cats)
         lost_at = np.full(len(rng_), np.inf)  # range of the pane a ray is lost at
-        if on_bldg.any():
-            owner = self._tri_owner[tri[on_bldg]]
-            reflect[on_bldg] = self.world.facades[owner, 6] if len(self.world.facades) else reflect[on_bldg]
-            if self.detail.facade_detail:
-                self._facades(np.flatnonzero(on_bldg), owner, origins, dirs, rng_, normals,
-                              reflect, glass, rng, cat, lost_at)
+        if len(self.world.facades):  # the rays on a facade take its row's reflectance (in the kernel)
+            on_bldg, owner = _kernels.facade_rays(cat, tri, self._tri_owner, self._is_facade_cat,
+                                                  self.world.facades, reflect)
+            if len(on_bldg) and self.detail.facade_detail:
+                self._facades(on_bldg, owner, origins, dirs, rng_, normals, reflect, glass, rng, cat, lost_at)
         if self._vol_scene is not None:
             self._vegetation(origins, dirs, rays, rng_, normals, reflect, cat, rng)
         if t is not None and len(self.actors.kind):
@@ -456,20 +448,17 @@ class SessionScene:
         from blockloc.sim import _kernels
 
         world = self.world
-        r = rng_[idx]
         seed = self._seed
-        r_new, down = _kernels.ground_micro(r, dirs[idx, 2], p, mat, np.int64(seed * 83492791))
+        r, r_new, down = _kernels.ground_micro(rng_, dirs, idx, p, mat, np.int64(seed * 83492791))
         # kerb: the sidewalk surface is raised; a ray whose raised hit falls back over the road
         # meets the kerb's face instead
-        side = np.flatnonzero(mat == 1)
+        side, r_0, r_side, x1, y1 = _kernels.kerb_rays(idx, mat, origins, dirs, r, down, KERB_M)
         if len(side):
-            o_s, d_s, r_0 = origins[idx[side]], dirs[idx[side]], r[side]
-            r_side = r_0 - KERB_M / down[side]
-            p1 = o_s + d_s * r_side[:, None]
-            face = world.ground_material(p1[:, 0], p1[:, 1]) == 0
+            face = world.ground_material(x1, y1) == 0
             r_s = r_side.copy()
             if face.any():  # only those rays meet the kerb's face
-                o_f, d_f = o_s[face], d_s[face]
+                at = idx[side[face]]
+                o_f, d_f = origins[at], dirs[at]
                 lo, hi = r_side[face], r_0[face]
                 for _ in range(5):  # bisect on the road edge along the ray
                     mid = 0.5 * (lo + hi)
@@ -480,9 +469,7 @@ class SessionScene:
                 r_s[face] = hi
                 n_face = np.c_[-d_f[:, :2], np.zeros(len(d_f))]
                 n_face /= np.maximum(np.linalg.norm(n_face, axis=1, keepdims=True), 1e-9)
-                nn = normals[idx[side]]
-                nn[face] = n_face
-                normals[idx[side]] = nn
+                normals[at] = n_face
             r_new[side] = r_s + (r_new[side] - r_0)
         grass = np.flatnonzero(mat == 2)
         if len(grass):  # the draws in their order: stops, tilts, reflectances
@@ -503,47 +490,23 @@ class SessionScene:
         and returns from what lies behind (cast on from the far side; seen before: "room" returns
         1-6 m beyond a 0.3 m corridor wall, out in the street, where a map built from inside the
         corridor then held structure that no other session saw)."""
-        f = self.world.facades[owner]
-        n = normals[idx]
-        d = dirs[idx]
-        vertical = np.abs(n[:, 2]) < 0.5
-        p = origins[idx] + d * rng_[idx, None]
-        u = np.where(np.abs(n[:, 0]) > np.abs(n[:, 1]), p[:, 1], p[:, 0])
-        hz = p[:, 2] - (f[:, 4] + 0.5)
-        level = np.floor(hz / f[:, 7])
-        v = hz - level * f[:, 7]
-        uu = np.mod(u + f[:, 9], f[:, 8]) / f[:, 8]
-        cos_i = np.maximum(np.abs(dot3(n, d)), 0.25)
-        ledge = vertical & (level >= 1) & (v < 0.4)
-        window = vertical & ~ledge & (uu > 0.25) & (uu < 0.85) & (v > 0.9) & (v < f[:, 7] - 0.5) & (hz > 0.3)
-        pilaster = vertical & ~ledge & ~window & (uu < 0.12)
-        out = np.where(ledge, 0.2, np.where(pilaster, 0.15, np.where(window, -0.18, 0.0)))
-        r = rng_[idx] - out / cos_i
+        from blockloc.sim import _kernels
+
+        # the draws in their order (glass, then room depths), then one pass (numpy's operations
+        # in its order: the bits of the numpy this was, tests/sim/test_kernels.py)
         u_g = rng.random(len(idx))
-        lost = window & (u_g < 0.55)
-        inside = window & (u_g >= 0.55) & (u_g < 0.85)
-        # the box behind the face, along the ray: only a ray into a room needs it (the others'
-        # depth is never read: the where()s below take their other branch)
-        depth = np.zeros(len(idx))
-        into = np.flatnonzero(inside)
-        depth[into] = _box_exit(origins[idx[into]], d[into], f[into, 0:6]) - rng_[idx[into]]
-        room = inside & (depth >= ROOM_MIN_M)
-        r = np.where(room, r + np.minimum(rng.uniform(1.0, 6.0, len(idx)), depth - BACK_WALL_M), r)
-        r = np.where(lost, np.inf, r)
-        through = np.flatnonzero(inside & ~room)
+        room_draw = rng.uniform(1.0, 6.0, len(idx))
+        r, flags, depth, u, z = _kernels.facade_faces(idx, owner, self.world.facades, origins, dirs, rng_, normals,
+                                                      u_g, room_draw, ROOM_MIN_M, BACK_WALL_M)
+        inside = (flags & _kernels.FACADE_INSIDE) != 0
+        through = np.flatnonzero(inside & ((flags & _kernels.FACADE_ROOM) == 0))
+        passed = np.zeros(len(idx), bool)
         if len(through):
             self._through_pane(idx[through], origins, dirs, rng_[idx[through]] + depth[through], r, through,
                                normals, reflect, cat)
-            inside[through] = False  # what lies behind is no glass return
-        refl = reflect[idx] * (1.0 + 0.25 * value_noise(u, p[:, 2], 0.8, self._seed + 2))
-        passed = np.zeros(len(idx), bool)
-        passed[through] = True
-        refl = np.where(window & ~inside & ~passed, ALBEDO["glass"], refl)
-        refl = np.where(passed, reflect[idx], refl)
-        lost_at[idx] = np.where(lost, rng_[idx], np.inf)
-        rng_[idx] = r
-        reflect[idx] = refl
-        glass[idx] = window & ~inside & ~passed
+            passed[through] = True  # what lies behind is no glass return
+        _kernels.facade_finish(idx, r, flags, passed, u, z, np.int64(int(self._seed + 2) * 83492791),
+                               ALBEDO["glass"], rng_, reflect, glass, lost_at)
 
     def _through_pane(self, rays, origins, dirs, t_exit, r, at, normals, reflect, cat) -> None:
         """Rays ``rays`` (indices) leave a thin box at ``t_exit`` (m along the ray): cast them on
@@ -634,15 +597,14 @@ class SessionScene:
         xy, _ = self.actors.poses(t)
         near = np.linalg.norm(xy - center[:2], axis=1) < max_range + 10.0
         # select per column when rays come in columns sharing an origin (the lidar model casts
-        # 32 a column); the bounding circle is 3.5 m, wider than any actor, for the tilt margin
-        # (the lidar model's columns are exactly equal: that check first, ~40x cheaper than allclose)
+        # 32 a column), then the rays of the column long enough to reach an actor's circle; the
+        # bounding circle is 3.5 m, wider than any actor, for the tilt margin (the lidar model's
+        # columns are exactly equal: that check first, ~40x cheaper than allclose)
         first, last = origins[::32], origins[31::32]
         step = 32 if len(rays) % 32 == 0 and (np.array_equal(first, last) or np.allclose(first, last)) else 1
         from blockloc.sim import _kernels
 
-        sel_c = _kernels.actor_columns(np.ascontiguousarray(xy[near]), origins[::step, :2], dirs[::step, :2])
-        sel = np.repeat(sel_c, step)
-        idx = np.flatnonzero(sel)
+        idx = _kernels.actor_rays(np.ascontiguousarray(xy[near]), origins, dirs, rng_, step, ACTOR_RADIUS_M, 0.1)
         if not len(idx):
             return
         dyn = o3d.t.geometry.RaycastingScene(nthreads=raycast_threads())

@@ -318,10 +318,21 @@ def _ref_vegetation(self, origins, dirs, rays, rng_, normals, reflect, cat, rng)
         t_cur[active] = np.maximum(t_out[go], th[go]) + 1e-3
 
 
+# ``scene._box_exit`` as it was before the facades' kernel
+def _box_exit(origins: np.ndarray, dirs: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """(N,) distance along each ray (origins, dirs (N, 3)) at which it leaves its axis-aligned
+    box (N, 6) x0 x1 y0 y1 z0 z1 (the facade rows' layout), metres."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_lo = (box[:, 0::2] - origins) / dirs
+        t_hi = (box[:, 1::2] - origins) / dirs
+    far = np.where(np.isfinite(t_lo) & np.isfinite(t_hi), np.maximum(t_lo, t_hi), np.inf)
+    return far.min(axis=1)
+
+
 def _ref_facades(self, idx, owner, origins, dirs, rng_, normals, reflect, glass, rng, cat, lost_at) -> None:
     """``SessionScene._facades`` as 2af77ae had it: the box behind the face measured along every
     ray that hits a facade (now only along the rays into a room)."""
-    from blockloc.sim.scene import ALBEDO, BACK_WALL_M, ROOM_MIN_M, _box_exit, dot3, value_noise
+    from blockloc.sim.scene import ALBEDO, BACK_WALL_M, ROOM_MIN_M, dot3, value_noise
 
     f = self.world.facades[owner]
     n = normals[idx]
@@ -473,6 +484,55 @@ def test_first_vegetation_pass_leaves_out_only_rays_that_end_short_of_every_hull
     for g, w in zip(got, want):
         for key in ("range", "normal", "reflect", "cat", "glass", "retro"):
             assert g[key].dtype == w[key].dtype and g[key].tobytes() == w[key].tobytes(), key
+
+
+def test_actor_cast_leaves_out_only_rays_that_end_short_of_every_actor(monkeypatch):
+    """The actors' cast takes, of the columns pointing at an actor, only the rays whose range
+    reaches its bounding circle: on the tiny world's sweeps (walkers and cars about) it leaves
+    out many of them, and the cast is bit for bit the one casting every ray at the actors."""
+    from blockloc.sim import _kernels
+    from blockloc.sim.scene import SessionScene
+
+    scene, casts = _tiny_sweeps(720)
+    kept = []
+    real = _kernels.actor_rays
+
+    def counting(xy, origins, dirs, rng_, step, radius, margin):
+        out = real(xy, origins, dirs, rng_, step, radius, margin)
+        cols = real(xy, origins, dirs, np.full(len(rng_), np.inf), step, radius, margin)
+        kept.append((len(out), len(cols)))
+        return out
+
+    def run():
+        return [scene.cast_full(o, d, t, 100.0, np.random.default_rng(5 + k)) for k, (o, d, t) in enumerate(casts)]
+
+    monkeypatch.setattr(_kernels, "actor_rays", counting)
+    got = run()
+    assert sum(k for k, _ in kept) < 0.8 * sum(n for _, n in kept)  # rays of the columns left out
+    monkeypatch.setattr(_kernels, "actor_rays", lambda xy, o, d, r, *rest: np.arange(len(r)))
+    want = run()
+    actors = [scene.categories.index(c) for c in ("pedestrian", "vehicle")]
+    assert sum(int(np.isin(w["cat"], actors).sum()) for w in want) > 50
+    for g, w in zip(got, want):
+        for key in ("range", "normal", "reflect", "cat", "glass", "retro"):
+            assert g[key].dtype == w[key].dtype and g[key].tobytes() == w[key].tobytes(), key
+
+
+def test_actor_meshes_lie_within_the_bounding_radius():
+    """Every walker's and car's mesh lies within ACTOR_RADIUS_M of its position in xy (the
+    actors' cast leaves out rays by it)."""
+    from blockloc.sim.scene import ACTOR_RADIUS_M
+    from blockloc.sim.stream import open_sim_sequence
+
+    scene = open_sim_sequence("tiny", "loc", 3).scene
+    worst = 0.0
+    for t in (3.0, 17.5, 31.0):
+        xy, _ = scene.actors.poses(t)
+        V, F, tri_cat = scene.actor_mesh(t, np.r_[xy.mean(axis=0), 0.0], 1e6)
+        d = np.hypot(V[:, None, 0] - xy[None, :, 0], V[:, None, 1] - xy[None, :, 1]).min(axis=1)
+        worst = max(worst, float(d.max()))
+        assert len(set(tri_cat.tolist())) == 2  # both kinds met
+    assert 1.0 < worst < ACTOR_RADIUS_M
 
 
 def test_sector_reach_keeps_every_ray_whose_range_meets_a_disc():

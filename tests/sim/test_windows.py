@@ -8,7 +8,8 @@ from __future__ import annotations
 import numpy as np
 
 from blockloc.sim.presets import get_preset
-from blockloc.sim.scene import SessionScene, _box_exit, make_actors
+from blockloc.sim._kernels import box_exit
+from blockloc.sim.scene import SessionScene, make_actors
 from blockloc.sim.world import build_world, session_movables
 
 
@@ -16,7 +17,7 @@ def test_box_exit_distance():
     box = np.array([[0.0, 2.0, -1.0, 1.0, 0.0, 3.0]] * 3)
     o = np.array([[-1.0, 0.0, 1.0], [1.0, 0.0, 1.0], [-1.0, 0.0, 1.0]])
     d = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [np.sqrt(0.5), np.sqrt(0.5), 0.0]])
-    np.testing.assert_allclose(_box_exit(o, d, box), [3.0, 1.0, np.sqrt(2.0)])
+    np.testing.assert_allclose(box_exit(o, d, box), [3.0, 1.0, np.sqrt(2.0)])
 
 
 def test_no_window_return_floats_in_the_air_behind_a_corridor_wall():
