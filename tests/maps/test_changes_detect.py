@@ -218,6 +218,7 @@ def _evidence(voxel_m, fine_pts, seen_free, ground=None, hits=()):
     ev.keys = map_keys
     ev.n_free = np.full(len(map_keys), seen_free, np.int32)
     ev.n_hit = np.isin(map_keys, voxel_keys(np.asarray(hits, float).reshape(-1, 3), voxel_m)).astype(np.int32) * seen_free
+    ev.n_free_near = ev.n_free.copy()
     return ev, map_keys
 
 
@@ -338,3 +339,62 @@ def test_a_cloud_of_the_mapping_days_noise_is_not_removed_even_where_a_few_voxel
     # without the rule the dense voxels and their neighbours form a removed cluster
     rm0 = _centres(classify(ev, ev.fine[0], None, Thresholds(min_solid_share=0.0)).removed, 0.5)
     assert (rm0[:, 0] > 9).sum() >= 20 and (rm0[:, 0] < 6).sum() == 16
+
+
+def test_ray_tail_keys_join_the_far_margin_cast_into_the_near_one():
+    from blockloc.maps.changes.detect import ray_tail_keys, unique_keys, voxel_keys
+
+    rng = np.random.default_rng(3)
+    wall = np.c_[10.0 + rng.normal(0, 0.02, 4000), rng.uniform(-3, 3, 4000), rng.uniform(0, 2, 4000)]
+    box = np.c_[rng.uniform(8.6, 9.2, 3000), rng.uniform(-1, 1, 3000), rng.uniform(0, 1.5, 3000)]
+    pts = np.concatenate([wall, box])
+    fine = (unique_keys(voxel_keys(pts, 0.5)), 0.2, unique_keys(voxel_keys(pts, 0.2)))
+    scan = np.c_[10.0 + rng.normal(0, 0.02, 3000), rng.uniform(-3, 3, 3000), rng.uniform(0, 2, 3000)]
+    origin, hit_fine = np.array([0.0, 0.0, 1.0]), unique_keys(voxel_keys(scan, 0.2))
+    far = ray_free_keys(origin, scan, 0.5, 1.0, fine=fine, hit_fine=hit_fine, only=fine[0])
+    near = ray_free_keys(origin, scan, 0.5, 0.5, fine=fine, hit_fine=hit_fine, only=fine[0])
+    tail = ray_tail_keys(origin, scan, 0.5, 1.0, 0.5, fine, hit_fine)
+    assert len(near) > len(far)  # the box's back, 0.8-1.4 m before the wall, only in the near cast
+    assert np.array_equal(unique_keys(np.concatenate([far, tail])), near)
+
+
+def test_removed_object_just_before_a_wall_needs_the_near_rays():
+    """A panel 0.8 m in front of a wall, gone today: today's rays end on the wall, so the 1 m
+    margin never reaches its fine cells; Evidence.near_margin_m counts them."""
+    from blockloc.maps.changes.detect import Thresholds, classify, unique_keys, voxel_keys
+
+    rng = np.random.default_rng(4)
+    wall = np.c_[10.1 + rng.normal(0, 0.01, 4000), rng.uniform(-3, 3, 4000), rng.uniform(0, 2, 4000)]
+    panel = np.c_[rng.uniform(9.25, 9.35, 3000), rng.uniform(-1, 1, 3000), rng.uniform(0, 1.5, 3000)]
+    pts = np.concatenate([wall, panel])
+    fine = (unique_keys(voxel_keys(pts, 0.5)), 0.2, unique_keys(voxel_keys(pts, 0.2)))
+    panel_keys = unique_keys(voxel_keys(panel, 0.5))
+    th = Thresholds(min_cluster_voxels=1)
+    found = {}
+    for near in (None, 0.5):
+        ev = Evidence(0.5, 1.0, fine=fine, near_margin_m=near)
+        for s in range(6):  # six scans of the wall from slightly different places
+            scan = np.c_[10.1 + rng.normal(0, 0.01, 3000), rng.uniform(-3, 3, 3000), rng.uniform(0, 2, 3000)]
+            ev.add_scan(np.array([0.0, 0.1 * s, 1.0]), scan)
+        found[near] = np.isin(panel_keys, classify(ev, fine[0], None, th).removed).sum()
+    assert found[None] == 0 and found[0.5] == len(panel_keys) == 12, found
+
+
+def test_a_neighbour_hit_once_spares_nothing_with_solid_min_hits():
+    """The neighbour rule (a crown's edge next to its hit core) asks the neighbour to be hit in
+    solid_min_hits scans (2 by default): a voxel hit once in five (a stray return) no longer keeps
+    a removed wall's side."""
+    from blockloc.maps.changes.detect import Thresholds, classify, voxel_keys
+
+    g = np.arange(0.05, 2.0, 0.1)
+    wall = np.array([[5.05, y, z] for y in g for z in g])
+    stray = np.array([[5.55, 1.0, 1.0]])  # a map voxel next to the wall
+    ev, _ = _evidence(0.5, np.concatenate([wall, stray]), seen_free=10)
+    j = np.searchsorted(ev.keys, voxel_keys(stray, 0.5))
+    ev.n_hit[j] = 1  # seen by 5 scans, hit by one
+    ev.n_free[j] = ev.n_free_near[j] = 4
+    th = Thresholds(min_cluster_voxels=1, min_map_cells=1, solid_min_hits=1)
+    spared = 16 - np.isin(np.unique(voxel_keys(wall, 0.5)), classify(ev, ev.fine[0], None, th).removed).sum()
+    assert spared >= 3  # the wall's voxels next to the stray are kept
+    rm = classify(ev, ev.fine[0], None, Thresholds(min_cluster_voxels=1, min_map_cells=1)).removed
+    assert np.isin(np.unique(voxel_keys(wall, 0.5)), rm).all()
