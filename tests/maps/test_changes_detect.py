@@ -382,3 +382,23 @@ def test_the_compiled_key_kernels_give_the_numpy_answers():
                                                             minlength=len(allk)))
         np.testing.assert_array_equal(ev.n_free, np.bincount(np.searchsorted(allk, np.concatenate(free)),
                                                              minlength=len(allk)))
+
+
+def test_a_neighbour_hit_once_spares_nothing_with_solid_min_hits():
+    """The neighbour rule (a crown's edge next to its hit core) asks the neighbour to be hit in
+    solid_min_hits scans (2 by default): a voxel hit once in five (a stray return) no longer keeps
+    a removed wall's side."""
+    from blockloc.maps.changes.detect import Thresholds, classify, voxel_keys
+
+    g = np.arange(0.05, 2.0, 0.1)
+    wall = np.array([[5.05, y, z] for y in g for z in g])
+    stray = np.array([[5.55, 1.0, 1.0]])  # a map voxel next to the wall
+    ev, _ = _evidence(0.5, np.concatenate([wall, stray]), seen_free=10)
+    j = np.searchsorted(ev.keys, voxel_keys(stray, 0.5))
+    ev.n_hit[j] = 1  # seen by 5 scans, hit by one
+    ev.n_free[j] = 4
+    th = Thresholds(min_cluster_voxels=1, min_map_cells=1, solid_min_hits=1)
+    spared = 16 - np.isin(np.unique(voxel_keys(wall, 0.5)), classify(ev, ev.fine[0], None, th).removed).sum()
+    assert spared >= 3  # the wall's voxels next to the stray are kept
+    rm = classify(ev, ev.fine[0], None, Thresholds(min_cluster_voxels=1, min_map_cells=1)).removed
+    assert np.isin(np.unique(voxel_keys(wall, 0.5)), rm).all()

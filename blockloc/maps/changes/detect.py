@@ -504,6 +504,12 @@ class Thresholds:
     #: a voxel holding the ground's surface (:func:`ground_voxels`) is no see-through neighbour
     #: that spares the voxels next to it (``max_hit_share``'s second rule)
     ground_spares_none: bool = True
+    #: a map voxel spares its removed neighbours (``max_hit_share``'s second rule) only when hit
+    #: in at least this many scans: one stray return (a mixed pixel, the ground's noise just over
+    #: the ground band, a grazing ray) in a voxel seen by five scans kept whole sides of removed
+    #: cars (campus loc_m12 block 013; small seed 1 loc_m12: removed recall 0.54 -> 0.86 at
+    #: precision 1.00; docs/bench/lifelong.md, detect5)
+    solid_min_hits: int = 2  # chosen on campus loc_m12 and small seed 1 loc_m12
     #: a voxel holding the ground's surface can be removed
     ground_removable: bool = False
     #: the ground's surface: fine cells this many cells above the lowest of their column or less
@@ -627,7 +633,8 @@ def classify(ev: Evidence, map_keys: np.ndarray, map_free_fine: np.ndarray | Non
     # removed car's lower metre, next to the ground, could never be removed)
     cand = np.flatnonzero(removed)
     if len(cand):
-        solid = in_map & (ev.n_hit + ev.n_free >= th.min_scans) & (ev.n_hit > th.max_hit_share * seen)
+        solid = (in_map & (ev.n_hit + ev.n_free >= th.min_scans) & (ev.n_hit > th.max_hit_share * seen)
+                 & (ev.n_hit >= th.solid_min_hits))
         ground = ground_voxels(ev.voxel_m, ev.fine[1], ev.ground) if ev.fine is not None and ev.ground is not None else None
         if th.ground_spares_none and ground is not None:
             solid &= ~_in_sorted(ev.keys, ground)
