@@ -154,7 +154,15 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         _check_args(window_m, yaw_window_deg)
         if self.target_cache is not None:
             self.target_cache.begin_search()
-        scan, scan_ndt = self.prepare_scan(points_body, gravity_body)
+        cands, stats = [], {}
+        if p.use_place_index:
+            t_idx = time.perf_counter()
+            index = self.place_index  # first: the scan's cells take the index's parameters
+            t0 += time.perf_counter() - t_idx  # loading the index is opening the map, not searching
+            stats["index_load_s"] = self._index_load_s
+        # the scan as the search and NDT use it, and its cells in the index's band: side by side
+        (scan, scan_ndt), cells = self._map(lambda prepare: prepare(points_body, gravity_body),
+                                            [self.prepare_scan, self._scan_cells])
         if hint_yaw is None:
             theta_c, yaw_win = 0.0, 2 * math.pi
         else:
@@ -162,19 +170,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             yaw_win = min(math.radians(yaw_window_deg), 2 * math.pi)
         if hint_xy is not None:  # the place index in the hint's window, then branch and bound (``hinted``)
             center = self._hint_to_L(hint_xy)
-            if p.use_place_index:
-                t_idx = time.perf_counter()
-                _ = self.place_index  # first: the scan's cells take the index's parameters
-                t0 += time.perf_counter() - t_idx  # loading the index is opening the map, not searching
-            cells = self._scan_cells(points_body, gravity_body)
             return self._localize_hinted(scan, scan_ndt, cells, center, window_m, theta_c, yaw_win, t0)
-        cands, stats = [], {}
-        if p.use_place_index:
-            t_idx = time.perf_counter()
-            index = self.place_index
-            t0 += time.perf_counter() - t_idx  # loading the index is opening the map, not searching
-            stats["index_load_s"] = self._index_load_s
-        cells = self._scan_cells(points_body, gravity_body)
         deadline = t0 + p.max_search_s if p.max_search_s > 0 else math.inf
         if p.use_place_index:
             cands, stats = self._relocalize_places(scan, scan_ndt, cells, index, theta_c, yaw_win, stats, deadline,
