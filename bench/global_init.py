@@ -273,6 +273,9 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--target-cache-mb", type=float, default=None,
                     help="refinement targets' per-entry statistics kept in memory, MB (InitParams.target_cache_mb; "
                          "0: every target built from its points, as before)")
+    ap.add_argument("--refine-workers", type=int, default=None,
+                    help="threads refining candidates side by side (InitParams.refine_workers; 1: one after "
+                         "another; same results either way)")
     ap.add_argument("--out", default=str(REPO / "docs" / "bench" / "global_init.md"))
     ap.add_argument("--rng", type=int, default=0)
     ap.add_argument("--append", action="store_true", help="append to --out instead of replacing it")
@@ -325,6 +328,8 @@ def run(argv: list[str]) -> dict:
     params = InitParams(projection=args.projection)
     if args.target_cache_mb is not None:
         params.target_cache_mb = args.target_cache_mb
+    if args.refine_workers is not None:
+        params.refine_workers = max(1, args.refine_workers)
     index_build_s = None
     methods = [m for m in args.methods.split(",") if m]
     if (args.reloc_frames > 0 or "hinted" in methods) and not store.files.is_remote:
@@ -477,7 +482,9 @@ def run(argv: list[str]) -> dict:
         f"pyramids and points precompute/cache load {t_pre:.2f} s.",
         f"{len(frames)} random frames; hint = ground truth + uniform +-{args.hint_error:g} m in x and y "
         f"({args.window:g} x {args.window:g} m window), yaw unknown (360 deg). Success: verified and <= 0.3 m and "
-        f"<= 2 deg after NDT refinement. Projection: `{args.projection}`. Load average (1 min) "
+        f"<= 2 deg after NDT refinement. Projection: `{args.projection}`. Candidates refined "
+        f"{'one after another' if params.refine_workers <= 1 else f'in {params.refine_workers} threads'} "
+        f"(`refine_workers`). Load average (1 min) "
         f"{load_before[0]:.1f} before, {load_after[0]:.1f} after the hinted frames.",
         "",
         "Rows: `hinted` what `blockloc init --pose-hint`, `track --init-pose`, the demo and the node run: the "

@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -129,7 +130,8 @@ class StoreMap:
         self.R_L_map = R_level_from_gravity(gravity_map)
         self._points: OrderedDict[str, _BucketedPoints] = OrderedDict()  # decoded entries, most recent last
         self.cache_dir = Path(cache_dir) if cache_dir else default_cache_dir() / "global_init"
-        self._pieces: dict[str, _Piece] = {}
+        self._pieces: dict[str, _Piece] = {}  # two threads asking for a missing piece both build it; either is kept
+        self._points_lock = threading.Lock()
         g = np.asarray(gravity_map, float)
         self._gkey = hashlib.sha256(np.round(g / np.linalg.norm(g), 6).tobytes()).hexdigest()[:8]
         # Entry xy boxes in the levelled frame.
@@ -253,6 +255,10 @@ class StoreMap:
         return self._entry_points(i).points
 
     def _entry_points(self, i: int) -> "_BucketedPoints":
+        with self._points_lock:  # refinement targets are built side by side (``GlobalLocalizer._refine``)
+            return self._entry_points_locked(i)
+
+    def _entry_points_locked(self, i: int) -> "_BucketedPoints":
         """Entry i's points bucketed by levelled cell. An entry with a sha256 is written once to the
         on-disk cache and memory-mapped from there: a box query reads only its buckets' pages, and
         the OS keeps (or drops) them. A refinement box of 100 m touches ~40 campus entries (8M

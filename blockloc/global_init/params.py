@@ -84,6 +84,11 @@ class InitParams(GlobalInitParams):
     target_cache_mb: float = 1024.0
     max_regions: int = 0  # 0: every region of the map
     num_threads: int = 2  # the registration section's
+    # refinement targets built, candidates refined and the final NDT restarts run side by side in
+    # this many threads; 1: one after another. Same results either way (``GlobalLocalizer._map``).
+    # 1 by measurement: campus no hint at a load of 1-3, 0.35 s median with 1 against 0.40 s with 2
+    # (docs/bench/global_init.md, initfast3); 2 helped only on a heavily loaded machine
+    refine_workers: int = 1
     # no-hint relocalization through the place index
     place_all_yaw_candidates: int = 2  # the second stage: this many first places at every yaw (0: none)
     place_flip_open: bool = True  # no hint: an open place's window also at its yaw guess reversed

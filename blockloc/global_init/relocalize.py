@@ -51,6 +51,8 @@ from blockloc.voxels import voxel_select
 
 log = logging.getLogger(__name__)
 
+_UNBUILT = object()  # a refinement target decided on, not built yet (``GlobalLocalizer._refine``)
+
 def _check_args(window_m: float, yaw_window_deg: float) -> None:
     if not (window_m > 0 and math.isfinite(window_m)):
         raise GlobalInitError(f"search window {window_m} m: expected a positive size in metres")
@@ -76,6 +78,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         self._index_load_s = 0.0
         self._structure_body = None  # the scan's points the structure test uses (set by _refine)
         self._target_cache = None  # built on first use (target_cache); False: not usable
+        self._pool = None  # threads of the refinements (``_map``), made on first use
 
     @property
     def place_index(self):
@@ -151,7 +154,15 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         _check_args(window_m, yaw_window_deg)
         if self.target_cache is not None:
             self.target_cache.begin_search()
-        scan, scan_ndt = self.prepare_scan(points_body, gravity_body)
+        cands, stats = [], {}
+        if p.use_place_index:
+            t_idx = time.perf_counter()
+            index = self.place_index  # first: the scan's cells take the index's parameters
+            t0 += time.perf_counter() - t_idx  # loading the index is opening the map, not searching
+            stats["index_load_s"] = self._index_load_s
+        # the scan as the search and NDT use it, and its cells in the index's band: side by side
+        (scan, scan_ndt), cells = self._map(lambda prepare: prepare(points_body, gravity_body),
+                                            [self.prepare_scan, self._scan_cells])
         if hint_yaw is None:
             theta_c, yaw_win = 0.0, 2 * math.pi
         else:
@@ -159,19 +170,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             yaw_win = min(math.radians(yaw_window_deg), 2 * math.pi)
         if hint_xy is not None:  # the place index in the hint's window, then branch and bound (``hinted``)
             center = self._hint_to_L(hint_xy)
-            if p.use_place_index:
-                t_idx = time.perf_counter()
-                _ = self.place_index  # first: the scan's cells take the index's parameters
-                t0 += time.perf_counter() - t_idx  # loading the index is opening the map, not searching
-            cells = self._scan_cells(points_body, gravity_body)
             return self._localize_hinted(scan, scan_ndt, cells, center, window_m, theta_c, yaw_win, t0)
-        cands, stats = [], {}
-        if p.use_place_index:
-            t_idx = time.perf_counter()
-            index = self.place_index
-            t0 += time.perf_counter() - t_idx  # loading the index is opening the map, not searching
-            stats["index_load_s"] = self._index_load_s
-        cells = self._scan_cells(points_body, gravity_body)
         deadline = t0 + p.max_search_s if p.max_search_s > 0 else math.inf
         if p.use_place_index:
             cands, stats = self._relocalize_places(scan, scan_ndt, cells, index, theta_c, yaw_win, stats, deadline,
@@ -269,32 +268,52 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         th = Thresholds.of(p)
         d = min(p.refine_range_m, p.max_range_m)
         # One NDT target per cluster of candidates (a target over candidates far apart would load
-        # the whole map): a candidate within d/2 of an existing target's centre reuses it.
-        targets: list[tuple[np.ndarray, Refiner | None]] = []
+        # the whole map): a candidate within d/2 of an existing target's centre reuses it. Which
+        # target a candidate uses is decided here, in order; targets are built when needed
+        # (``run_jobs``), side by side.
+        targets: list[list] = []  # [centre (2,), from the cache?, Refiner | None | _UNBUILT]
 
-        def refiner_for(xy: np.ndarray) -> Refiner | None:
-            for centre, ref in targets:
-                if np.all(np.abs(xy - centre) <= 0.5 * d):
-                    return ref
+        def target_for(xy: np.ndarray) -> list:
+            for t in targets:
+                if np.all(np.abs(xy - t[0]) <= 0.5 * d):
+                    return t
             cache = self.target_cache
-            if cache is not None and cache.ready(self.map, xy - d, xy + d):
-                ref = cache.refiner(self.map, xy - d, xy + d, min_points=100)
-            else:
-                pts = self.map.points_in_box(xy - d, xy + d)
-                ref = Refiner(self.engine, pts, self.map.R_L_map, p.footprint_cell_m,
-                              p.footprint_min_share) if len(pts) >= 100 else None
-            targets.append((xy, ref))
-            return ref
+            targets.append([xy, cache is not None and cache.ready(self.map, xy - d, xy + d), _UNBUILT])
+            return targets[-1]
 
-        out = []
+        def build(t: list) -> Refiner | None:
+            xy, cached = t[0], t[1]
+            if cached:
+                return self.target_cache.refiner(self.map, xy - d, xy + d, min_points=100)
+            pts = self.map.points_in_box(xy - d, xy + d)
+            return Refiner(self.engine, pts, self.map.R_L_map, p.footprint_cell_m,
+                           p.footprint_min_share) if len(pts) >= 100 else None
+
+        out: list[InitCandidate] = []
+        jobs: list[tuple[float, np.ndarray, list]] = []  # (2D score, T0, target) not run yet
+
+        def run_jobs() -> None:
+            # Targets, then refinements: each independent of the others, run side by side
+            # (``_map``) and kept in order.
+            new = [t for t in targets if t[2] is _UNBUILT]  # each asked for by a job waiting here
+            for t, ref in zip(new, self._map(build, new)):
+                t[2] = ref
+            ready = [(score, T0, t[2]) for score, T0, t in jobs if t[2] is not None]
+            out.extend(self._map(lambda job: self._refine_one(job, scan, scan_ndt, cells, th), ready))
+            jobs.clear()
+
         best_score = max(c.score for c in c2d)
         for c in (c2d if ordered else sorted(c2d, key=lambda c: -c.score)):
             # Once a candidate is verified, only those scoring close to the best can make the
-            # result ambiguous; the others need no NDT run.
-            if any(o.verified for o in out) and c.score < p.ambiguity_score_ratio * best_score:
-                if ordered:
-                    continue
-                break
+            # result ambiguous; the others need no NDT run. (Whether one is verified needs the
+            # refinements before it: those waiting run first. The candidates above the ratio are
+            # refined whatever came before, so they wait together.)
+            if c.score < p.ambiguity_score_ratio * best_score:
+                run_jobs()
+                if any(o.verified for o in out):
+                    if ordered:
+                        continue
+                    break
             if not self._in_leaf_box(c.x, c.y):
                 continue  # outside the hint's window (``hinted``)
             if skip is not None and any(abs(c.x - o.x) < 0.5 and abs(c.y - o.y) < 0.5
@@ -303,15 +322,37 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
                 continue
             if skip is not None:
                 skip.append(c)
-            T0 = self._pose_from_2d(c, scan)
-            refiner = refiner_for(np.array([c.x, c.y]))
-            if refiner is None:
-                continue
-            r = refiner.align(scan_ndt, T0)
-            if not r.converged and np.all(np.isfinite(r.T_map_body)):
-                r = refiner.align(scan_ndt, r.T_map_body)  # out of iterations, e.g. sliding along a corridor
-            out.append(self._verified(r, refiner, c.score, T0, scan, cells, th))
+            t = target_for(np.array([c.x, c.y]))
+            if t[2] is None:
+                continue  # fewer than 100 map points around it
+            jobs.append((c.score, self._pose_from_2d(c, scan), t))
+        run_jobs()
         return out
+
+    def _refine_one(self, job: tuple[float, np.ndarray, Refiner], scan: ScanProjection, scan_ndt: np.ndarray,
+                    cells, th: Thresholds) -> InitCandidate:
+        """One candidate of ``_refine``: ``job`` = (2D score, T0 (4, 4) T_map_body, refiner)."""
+        score, T0, refiner = job
+        r = refiner.align(scan_ndt, T0)
+        if not r.converged and np.all(np.isfinite(r.T_map_body)):
+            r = refiner.align(scan_ndt, r.T_map_body)  # out of iterations, e.g. sliding along a corridor
+        return self._verified(r, refiner, score, T0, scan, cells, th)
+
+    def _map(self, fn, items: list) -> list:
+        """``[fn(x) for x in items]``, in ``refine_workers`` threads when that is more than one and
+        there is more than one item (the NDT kernels release the GIL). Same results, same order:
+        each call depends on its item alone."""
+        items = list(items)
+        n = min(self.params.refine_workers, len(items))
+        if n <= 1:
+            return [fn(x) for x in items]
+        if self._pool is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            # lazy properties the calls read, made before the threads share them
+            _ = self.place_source, self.coverage_source
+            self._pool = ThreadPoolExecutor(self.params.refine_workers, thread_name_prefix="blockloc-refine")
+        return list(self._pool.map(fn, items))
 
     def _verified(self, r, refiner: Refiner, score: float, T0: np.ndarray, scan: ScanProjection, cells,
                   th: Thresholds) -> InitCandidate:
@@ -364,7 +405,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             for c in deciding:
                 if c.probes is not None or c.refiner is None:
                     continue  # climbed before
-                c.probes = probe_optima(c, scan_ndt, p.probe_m)
+                c.probes = probe_optima(c, scan_ndt, p.probe_m, mapper=self._map)
                 up = [(T0, r) for T0, r in c.probes if np.all(np.isfinite(r.T_map_body))
                       and r.ndt_score >= c.ndt_score + p.climb_min_gain
                       and np.linalg.norm(r.T_map_body[:3, 3] - c.T_map_body[:3, 3]) > 0.05]

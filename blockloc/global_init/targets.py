@@ -28,6 +28,7 @@ caller builds the target from the points.
 from __future__ import annotations
 
 import logging
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -119,6 +120,7 @@ class TargetCache:
         self.hits = self.misses = 0
         self._search = 0  # searches begun (begin_search)
         self._first_seen: dict[str, int] = {}  # entry key -> the search that first asked for it
+        self._lock = threading.Lock()  # the entries' LRU
 
     @staticmethod
     def usable(engine, map_source, R_L_map) -> bool:
@@ -156,6 +158,10 @@ class TargetCache:
         return ok
 
     def _entry(self, map_source, i: int) -> _Entry:
+        with self._lock:  # targets are assembled side by side (``GlobalLocalizer._refine``)
+            return self._entry_locked(map_source, i)
+
+    def _entry_locked(self, map_source, i: int) -> _Entry:
         key = map_source.entry_key(i)
         e = self._entries.get(key)
         if e is not None:

@@ -169,24 +169,29 @@ def nearby_rival(best: InitCandidate, scan_ndt: np.ndarray, structures: list[np.
     return None
 
 
-def probe_optima(cand: InitCandidate, scan_ndt: np.ndarray, probe_m, lazy: bool = False):
+def probe_optima(cand: InitCandidate, scan_ndt: np.ndarray, probe_m, lazy: bool = False, mapper=None):
     """The NDT optima reached from ``cand`` (its ``refiner``) moved by each of ``probe_m`` (m)
     along +-x and +-y of the map: (T_start (4, 4), ``Refiner.align``'s result) each, in that
-    order; ``lazy``: a generator (the caller may stop early)."""
+    order; ``lazy``: a generator (the caller may stop early); ``mapper(fn, starts)``: runs ``fn``
+    over the starts, in order (e.g. side by side in threads; default: one after another)."""
 
-    def gen():
-        for d in probe_m:
-            for dx, dy in ((d, 0.0), (-d, 0.0), (0.0, d), (0.0, -d)):
-                T0 = cand.T_map_body.copy()
-                T0[:2, 3] += (dx, dy)
-                r = cand.refiner.align(scan_ndt, T0)
-                if not r.converged and np.all(np.isfinite(r.T_map_body)):
-                    # out of iterations on its way (back to the best, or on to another optimum): an
-                    # optimum is where it stops; one still sliding after this counts as a rival
-                    r = cand.refiner.align(scan_ndt, r.T_map_body)
-                yield T0, r
+    def start(dx: float, dy: float) -> np.ndarray:
+        T0 = cand.T_map_body.copy()
+        T0[:2, 3] += (dx, dy)
+        return T0
 
-    return gen() if lazy else list(gen())
+    def run(T0: np.ndarray):
+        r = cand.refiner.align(scan_ndt, T0)
+        if not r.converged and np.all(np.isfinite(r.T_map_body)):
+            # out of iterations on its way (back to the best, or on to another optimum): an
+            # optimum is where it stops; one still sliding after this counts as a rival
+            r = cand.refiner.align(scan_ndt, r.T_map_body)
+        return T0, r
+
+    starts = (start(dx, dy) for d in probe_m for dx, dy in ((d, 0.0), (-d, 0.0), (0.0, d), (0.0, -d)))
+    if lazy:
+        return (run(T0) for T0 in starts)
+    return list(mapper(run, list(starts))) if mapper is not None else [run(T0) for T0 in starts]
 
 
 def decide(cands: list[InitCandidate], stats: dict, elapsed: float, p, scan_ndt: np.ndarray | None = None,

@@ -121,3 +121,60 @@ def test_the_localizer_refines_on_assembled_targets_and_finds_the_same_pose(maps
         assert res.verified and base.verified and res.ambiguous == base.ambiguous
         np.testing.assert_allclose(res.T_map_body, base.T_map_body, atol=1e-6)
         assert res.fitness == pytest.approx(base.fitness, abs=1e-9)
+
+
+def test_refinements_side_by_side_give_the_same_candidates_in_the_same_order(maps, monkeypatch):
+    # ``refine_workers`` 2: the targets are built and the candidates refined in threads; the
+    # candidates, their order and the early stop (a candidate scoring below the ratio is refined only
+    # while nothing before it is verified) are those of one thread, on targets built from the points
+    # (the first search) and assembled from the kept statistics (the second).
+    import math
+    import threading
+
+    from blockloc.geometry import xyzrpy_to_T
+    from blockloc.global_init.bnb import Candidate2D
+    from blockloc.global_init.relocalize import GlobalLocalizer, InitParams
+
+    from .synthetic import gravity_body, scan_from
+
+    smap = maps["down"]
+    world = smap.points_in_box(*smap.bounds_L())
+    T_true = xyzrpy_to_T(6.0, 4.0, -(1.9 + 0.02 * 6.0), 0.03, -0.02, 2.4)
+    body, g = scan_from(world, T_true), gravity_body(T_true)
+    runs = {}
+    for workers in (1, 2):
+        loc = GlobalLocalizer(smap, InitParams(use_place_index=False, target_cache_mb=64.0, refine_workers=workers))
+        threads = set()
+        align = loc.engine.align
+
+        def spy(*a, _align=align, _threads=threads):
+            _threads.add(threading.current_thread().name)
+            return _align(*a)
+
+        monkeypatch.setattr(loc.engine, "align", spy)
+        scan, scan_ndt = loc.prepare_scan(body, g)
+        cells = loc._scan_cells(body, g)
+        xy = (loc.map.R_L_map @ T_true[:3, 3])[:2]
+        th = loc._theta_from_yaw(2.4, scan)
+        # the truth, two starts near it, one 40 m away (another target), one below 0.8 x the best
+        c2d = [Candidate2D(xy[0] + 0.8, xy[1] - 0.5, th + 0.05, 0.85), Candidate2D(xy[0], xy[1], th, 0.9),
+               Candidate2D(xy[0] - 40.0, xy[1] + 3.0, th + 1.0, 0.8), Candidate2D(xy[0] + 2.0, xy[1], th, 0.3),
+               Candidate2D(xy[0] - 1.0, xy[1] + 1.0, th - 0.1, 0.75)]
+        runs[workers] = []
+        for _ in range(2):  # from the points, then assembled from the kept statistics
+            loc.target_cache.begin_search()
+            runs[workers].append(loc._refine(c2d, scan, scan_ndt, cells))
+        assert len(loc.target_cache) > 0
+        if workers == 1:
+            assert threads == {threading.current_thread().name}
+        else:
+            assert any(n.startswith("blockloc-refine") for n in threads), threads
+    for one, two in zip(runs[1], runs[2]):
+        assert len(one) == len(two) == 4  # the 0.3 leaf: not refined, the best was verified
+        assert one[0].verified and math.isclose(one[0].score, 0.9)
+        for a, b in zip(one, two):
+            assert (a.score, a.verified, a.converged) == (b.score, b.verified, b.converged)
+            np.testing.assert_array_equal(a.T_map_body, b.T_map_body)
+            assert (a.fitness, a.ndt_score, a.structure_fitness, a.overlap) == (b.fitness, b.ndt_score,
+                                                                               b.structure_fitness, b.overlap)
+            np.testing.assert_equal((a.coverage, a.see_through), (b.coverage, b.see_through))
