@@ -85,10 +85,11 @@ class InitParams(GlobalInitParams):
     max_regions: int = 0  # 0: every region of the map
     num_threads: int = 2  # the registration section's
     # refinement targets built, candidates refined and the final NDT restarts run side by side in
-    # this many threads; 1: one after another. Same results either way (``GlobalLocalizer._map``).
-    # 1 by measurement: campus no hint at a load of 1-3, 0.35 s median with 1 against 0.40 s with 2
-    # (docs/bench/global_init.md, initfast3); 2 helped only on a heavily loaded machine
-    refine_workers: int = 1
+    # this many threads (the registration section's num_threads); 1: one after another. Same
+    # results either way (``GlobalLocalizer._map``). Quiet machine, campus no hint: median 0.26 s
+    # with 2 against 0.35 s with 1 (docs/bench/global_init.md, the lead's quiet re-measure); with
+    # the second core busy elsewhere, 2 gains nothing
+    refine_workers: int = 2
     # no-hint relocalization through the place index
     place_all_yaw_candidates: int = 2  # the second stage: this many first places at every yaw (0: none)
     place_flip_open: bool = True  # no hint: an open place's window also at its yaw guess reversed
@@ -128,8 +129,9 @@ class InitParams(GlobalInitParams):
 
     @classmethod
     def from_config(cls, gi: GlobalInitParams, registration=None) -> "InitParams":
-        """The section ``gi`` field by field, ``num_threads`` from the registration section."""
+        """The section ``gi`` field by field, ``num_threads`` and ``refine_workers`` from the
+        registration section's ``num_threads``."""
         kw = {f.name: getattr(gi, f.name) for f in fields(GlobalInitParams)}
         if registration is not None:
-            kw["num_threads"] = registration.num_threads
+            kw["num_threads"] = kw["refine_workers"] = registration.num_threads
         return cls(**kw)

@@ -46,7 +46,7 @@ def test_the_global_init_section_is_the_localizers_dataclass():
     assert GlobalInitConfig is GlobalInitParams and issubclass(InitParams, GlobalInitParams)
     gi = Config().global_init
     p = InitParams.from_config(gi, RegistrationConfig(num_threads=3))
-    assert all(getattr(p, name) == getattr(gi, name) for name in SECTION) and p.num_threads == 3
+    assert all(getattr(p, name) == getattr(gi, name) for name in SECTION) and p.num_threads == p.refine_workers == 3
 
 
 def test_every_global_init_field_reaches_the_localizer():
