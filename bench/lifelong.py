@@ -376,26 +376,32 @@ def _day_changes(P: str, S: int, session: str) -> list:
     return seq.changes()
 
 
-def changes_per_block(P: str, S: int, session: str, mp: Path) -> dict:
-    """Block id of the map ``mp`` -> the kinds of the simulator's changes of ``session`` (its
-    ``changes()``) the block holds: a removed (or moved-away) object's box holding any of the
-    block's map points, grown 0.25 m (the blocks overlap: every block that holds it); an added one
-    by the block of the keyframe nearest its box's centre (as :func:`block_truth` assigns them).
-    A block with an empty list is one no drive of that day can find changed."""
+def _keyframe_tree(store):
+    """A KD-tree over every block's mapping keyframes (its centroid where it keeps none), map frame,
+    metres, and (K,) the block id of each keyframe: which block a place belongs to."""
     from scipy.spatial import cKDTree
 
-    from blockloc.maps.store import open_map
-
-    store = open_map(mp)
-    changes = _day_changes(P, S, session)
-    out: dict = {b: [] for b in store.ids}
     ids, kf = [], []
     for b in store.ids:
         e = store.entry(b)
         k = np.asarray(e.keyframes if e.keyframes is not None else e.centroid[None], float).reshape(-1, 3)
         ids += [b] * len(k)
         kf.append(k)
-    tree, ids = cKDTree(np.concatenate(kf)), np.asarray(ids, object)
+    return cKDTree(np.concatenate(kf)), np.asarray(ids, object)
+
+
+def changes_per_block(P: str, S: int, session: str, mp: Path) -> dict:
+    """Block id of the map ``mp`` -> the kinds of the simulator's changes of ``session`` (its
+    ``changes()``) the block holds: a removed (or moved-away) object's box holding any of the
+    block's map points, grown 0.25 m (the blocks overlap: every block that holds it); an added one
+    by the block of the keyframe nearest its box's centre (as :func:`block_truth` assigns them).
+    A block with an empty list is one no drive of that day can find changed."""
+    from blockloc.maps.store import open_map
+
+    store = open_map(mp)
+    changes = _day_changes(P, S, session)
+    out: dict = {b: [] for b in store.ids}
+    tree, ids = _keyframe_tree(store)
     pts = {b: store.load(b)[0][:, :3].astype(float) for b in store.ids}
     pad = 0.25
     for c in changes:
@@ -493,20 +499,12 @@ def where_worse(P: str, S: int, mp: Path, upd: Path, run_dir: Path, parts: int =
     simulator's true changes (``changes()`` of loc_m12) within ``reach_m`` (the sensor's range) of
     the stretch. A stretch where the updated map trails the fresh one with no true change in reach
     owes it to the map's own mapping error, not to the update."""
-    from scipy.spatial import cKDTree
-
     from blockloc.app.catalog import open_sequence
     from blockloc.maps.store import open_map
     from blockloc.sim.changes import open_session
 
     store = open_map(mp)
-    ids, kf = [], []
-    for b in store.ids:
-        e = store.entry(b)
-        k = np.asarray(e.keyframes if e.keyframes is not None else e.centroid[None], float).reshape(-1, 3)
-        ids += [b] * len(k)
-        kf.append(k)
-    tree, ids = cKDTree(np.concatenate(kf)), np.asarray(ids, object)
+    tree, ids = _keyframe_tree(store)
     rec = json.loads((upd / "manifest.json").read_text()).get("lifelong") or {}
     changed = set(rec.get("changed_blocks") or [])
     held = {h["block"] for h in rec.get("held_back") or [] if "block" in h and h["block"] not in changed}
