@@ -156,6 +156,15 @@ class Refiner:
         pts = np.asarray(points_body, dtype=np.float64).reshape(-1, 3)
         return inlier_ratio(self.engine, self._target, pts[self.overlapping(pts, T_map_body)], T_map_body)
 
+    def align_settled(self, source_body: np.ndarray, T_init: np.ndarray) -> RefineResult:
+        """:meth:`align`, and once more from where it stopped when it ran out of iterations on its
+        way (sliding along a corridor, or on to another optimum): an optimum is where the second run
+        stops; one still sliding after it stays unconverged."""
+        r = self.align(source_body, T_init)
+        if not r.converged and np.all(np.isfinite(r.T_map_body)):
+            r = self.align(source_body, r.T_map_body)
+        return r
+
     def align(self, source_body: np.ndarray, T_init: np.ndarray) -> RefineResult:
         """Refine ``T_init`` (4, 4) T_map_body for scan points (N, 3), body frame, metres; fitness and
         overlap over the footprint (module docstring)."""

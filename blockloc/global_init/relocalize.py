@@ -333,10 +333,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
                     cells, th: Thresholds) -> InitCandidate:
         """One candidate of ``_refine``: ``job`` = (2D score, T0 (4, 4) T_map_body, refiner)."""
         score, T0, refiner = job
-        r = refiner.align(scan_ndt, T0)
-        if not r.converged and np.all(np.isfinite(r.T_map_body)):
-            r = refiner.align(scan_ndt, r.T_map_body)  # out of iterations, e.g. sliding along a corridor
-        return self._verified(r, refiner, score, T0, scan, cells, th)
+        return self._verified(refiner.align_settled(scan_ndt, T0), refiner, score, T0, scan, cells, th)
 
     def _map(self, fn, items: list) -> list:
         """``[fn(x) for x in items]``, in ``refine_workers`` threads when that is more than one and

@@ -181,12 +181,8 @@ def probe_optima(cand: InitCandidate, scan_ndt: np.ndarray, probe_m, lazy: bool 
         return T0
 
     def run(T0: np.ndarray):
-        r = cand.refiner.align(scan_ndt, T0)
-        if not r.converged and np.all(np.isfinite(r.T_map_body)):
-            # out of iterations on its way (back to the best, or on to another optimum): an
-            # optimum is where it stops; one still sliding after this counts as a rival
-            r = cand.refiner.align(scan_ndt, r.T_map_body)
-        return T0, r
+        # an optimum is where the settled run stops; one still sliding after it counts as a rival
+        return T0, cand.refiner.align_settled(scan_ndt, T0)
 
     starts = (start(dx, dy) for d in probe_m for dx, dy in ((d, 0.0), (-d, 0.0), (0.0, d), (0.0, -d)))
     if lazy:
