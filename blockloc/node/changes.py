@@ -113,7 +113,7 @@ class NodeChanges:
             try:
                 det.warm_up()
             except Exception as exc:  # noqa: BLE001 - only a cost: the first scan loads them instead
-                log.warning("change detection: loading the kernels failed (%s); the first scan will", exc)
+                log.warning("change detection: loading the kernels ahead failed (%s); the first scan loads them", exc)
         while True:
             with self._cond:
                 while not self._items and not self._closing:

@@ -189,9 +189,8 @@ def without_lowest(fine_keys: np.ndarray, up: np.ndarray) -> np.ndarray:
         return fine_keys
     if _sorted_columns(fine_keys, axis):
         # the sorted keys hold each column's cells together, bottom first or last: no sort
-        first = _column_runs(fine_keys)
         keep = np.ones(len(fine_keys), bool)
-        keep[first if up[axis] > 0 else np.r_[first[1:] - 1, len(fine_keys) - 1]] = False
+        keep[_column_lowest(fine_keys, up[axis] > 0)[0]] = False
         return fine_keys[keep]
     ijk = unpack_keys(fine_keys)
     h = ijk[:, axis] * np.sign(up[axis])  # height in cells
@@ -211,10 +210,13 @@ def _sorted_columns(keys: np.ndarray, axis: int) -> bool:
     return axis == 2 and len(keys) > 0 and bool((keys[1:] > keys[:-1]).all())
 
 
-def _column_runs(keys: np.ndarray) -> np.ndarray:
-    """Indices of the first key of each column (the same first two indices) in the sorted keys."""
+def _column_lowest(keys: np.ndarray, up_positive: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(indices of each column's lowest cell, indices of each column's first key) in the sorted
+    keys of :func:`_sorted_columns` (a column: the same first two indices); the lowest is the
+    column's first cell when up is along +z, its last when along -z."""
     col = keys >> _BITS
-    return np.flatnonzero(np.r_[True, col[1:] != col[:-1]])
+    first = np.flatnonzero(np.r_[True, col[1:] != col[:-1]])
+    return (first if up_positive else np.r_[first[1:] - 1, len(keys) - 1]), first
 
 
 def ground_band(fine_keys: np.ndarray, up: np.ndarray, band_cells: int) -> np.ndarray:
@@ -231,8 +233,7 @@ def ground_band(fine_keys: np.ndarray, up: np.ndarray, band_cells: int) -> np.nd
         # the sorted keys hold each column's cells together, in height order: its lowest is the
         # run's first (up along +axis) or last cell, no unique over the columns needed
         h = ((fine_keys & _MASK) - _OFF) * int(np.sign(up[axis]))
-        first = _column_runs(fine_keys)
-        lowest = first if up[axis] > 0 else np.r_[first[1:] - 1, len(fine_keys) - 1]
+        lowest, first = _column_lowest(fine_keys, up[axis] > 0)
         low = np.repeat(h[lowest], np.diff(np.r_[first, len(fine_keys)]))
         return fine_keys[h - low <= band_cells]
     ijk = unpack_keys(fine_keys)

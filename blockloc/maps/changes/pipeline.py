@@ -182,6 +182,7 @@ class ChangeDetector:
         queue and the bench's p99 see it). Nothing of this object's state changes."""
         t0, c0 = time.perf_counter(), time.thread_time()
         from blockloc.geometry import Trajectory
+        from blockloc.maps._raycast_kernels import union_sorted
         from blockloc.maps.mapping import scan_to_map
         from blockloc.voxels import voxel_select
 
@@ -191,8 +192,6 @@ class ChangeDetector:
         T = np.eye(4)
         pm = scan_to_map(pts, np.linspace(0.0, 0.1, len(pts)), 1.0, Trajectory(np.array([0.95, 1.05]),
                          np.stack([T, T])), self.T_body_lidar)
-        from blockloc.maps._raycast_kernels import union_sorted
-
         keys = union_sorted(unique_keys(voxel_keys(pm, self.voxel_m)), np.zeros(0, np.int64))
         # a block as the store gives it: float32, x y z and intensity
         fine = unique_keys(voxel_keys(np.c_[pm, np.zeros(len(pm))].astype(np.float32), self.fine_m))
