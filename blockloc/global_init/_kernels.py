@@ -28,11 +28,51 @@ def _ctpop(typingctx, x):
     return types.uint64(types.uint64), codegen
 
 
+@njit(cache=True)
+def scan_offsets(dx, dy, ny):
+    """The scan cells' offsets ``lin`` (A, N) int64 = dx * ny + dy (a crop of ``ny`` columns) and
+    their box per angle ``box`` (A, 4) int64: min dx, max dx, min dy, max dy (:func:`_node_score`)."""
+    A = dx.shape[0]
+    N = dx.shape[1]
+    lin = np.empty((A, N), dtype=np.int64)
+    box = np.zeros((A, 4), dtype=np.int64)
+    for a in range(A):
+        if N == 0:
+            continue
+        x0 = dx[a, 0]
+        x1 = dx[a, 0]
+        y0 = dy[a, 0]
+        y1 = dy[a, 0]
+        for k in range(N):
+            x = dx[a, k]
+            y = dy[a, k]
+            lin[a, k] = np.int64(x) * ny + y
+            x0 = min(x0, x)
+            x1 = max(x1, x)
+            y0 = min(y0, y)
+            y1 = max(y1, y)
+        box[a, 0] = x0
+        box[a, 1] = x1
+        box[a, 2] = y0
+        box[a, 3] = y1
+    return lin, box
+
+
 @njit(cache=True, inline="always")
-def _node_score(levels, h, dx, dy, a, tx, ty):
+def _node_score(levels, flat, h, dx, dy, lin, box, a, tx, ty):
+    """The bound of node (a, tx, ty) at level h (module docstring). ``flat``: ``levels`` as one
+    row; ``lin, box``: :func:`scan_offsets`. A node whose scan cells all lie in the crop (nearly
+    every node: the crop spans the scan's reach past the window) sums ``flat`` at the cells'
+    offsets, unchecked: the same sum, which the compiler vectorizes (about 3x faster than the
+    checked loop, measured on place windows)."""
     nx = levels.shape[1]
     ny = levels.shape[2]
     s = 0
+    if box[a, 0] + tx >= 0 and box[a, 1] + tx < nx and box[a, 2] + ty >= 0 and box[a, 3] + ty < ny:
+        off = (h * nx + tx) * ny + ty
+        for k in range(lin.shape[1]):
+            s += flat[np.uint64(lin[a, k] + off)]
+        return s
     for k in range(dx.shape[1]):
         i = dx[a, k] + tx
         j = dy[a, k] + ty
@@ -42,29 +82,34 @@ def _node_score(levels, h, dx, dy, a, tx, ty):
 
 
 @njit(cache=True, parallel=True)
-def root_scores(levels, h, dx, dy, ra, rtx, rty):
-    """Bounds (R,) int64 of the nodes (ra, rtx, rty) (R,) at level h."""
+def root_scores(levels, h, dx, dy, lin, box, ra, rtx, rty):
+    """Bounds (R,) int64 of the nodes (ra, rtx, rty) (R,) at level h; ``lin, box``: :func:`scan_offsets`."""
+    flat = levels.reshape(-1)
     out = np.empty(ra.shape[0], dtype=np.int64)
     for r in prange(ra.shape[0]):
-        out[r] = _node_score(levels, h, dx, dy, ra[r], rtx[r], rty[r])
+        out[r] = _node_score(levels, flat, h, dx, dy, lin, box, ra[r], rtx[r], rty[r])
     return out
 
 
 @njit(cache=True)
 def node_scores(levels, h, dx, dy, ra, rtx, rty):
     """Serial version of :func:`root_scores` (used by tests on single nodes)."""
+    flat = levels.reshape(-1)
+    lin, box = scan_offsets(dx, dy, levels.shape[2])
     out = np.empty(ra.shape[0], dtype=np.int64)
     for r in range(ra.shape[0]):
-        out[r] = _node_score(levels, h, dx, dy, ra[r], rtx[r], rty[r])
+        out[r] = _node_score(levels, flat, h, dx, dy, lin, box, ra[r], rtx[r], rty[r])
     return out
 
 
 @njit(cache=True)
-def greedy_dive(levels, dx, dy, a, tx, ty, h, tx_end, ty_end):
-    """Descend from node (a, tx, ty, h) always into the child with the highest bound.
+def greedy_dive(levels, dx, dy, lin, box, a, tx, ty, h, tx_end, ty_end):
+    """Descend from node (a, tx, ty, h) always into the child with the highest bound (``lin, box``:
+    :func:`scan_offsets`).
 
     Returns (leaf score, leaf tx, leaf ty): the block-map paper's greedy initial score S0.
     """
+    flat = levels.reshape(-1)
     while h > 0:
         half = 1 << (h - 1)
         h -= 1
@@ -76,14 +121,14 @@ def greedy_dive(levels, dx, dy, a, tx, ty, h, tx_end, ty_end):
             cty = ty + half * (c >> 1)
             if ctx >= tx_end or cty >= ty_end:
                 continue
-            s = _node_score(levels, h, dx, dy, a, ctx, cty)
+            s = _node_score(levels, flat, h, dx, dy, lin, box, a, ctx, cty)
             if s > best:
                 best = s
                 btx = ctx
                 bty = cty
         tx = btx
         ty = bty
-    return _node_score(levels, 0, dx, dy, a, tx, ty), tx, ty
+    return _node_score(levels, flat, 0, dx, dy, lin, box, a, tx, ty), tx, ty
 
 
 @njit(cache=True)
@@ -119,7 +164,7 @@ def _insert(cs, ca, cx, cy, n, K, s, a, tx, ty, nms_cells, nms_angles, num_angle
 
 
 @njit(cache=True)
-def branch_and_bound(levels, dx, dy, ra, rtx, rty, rbound, top, tx_end, ty_end, threshold0, K,
+def branch_and_bound(levels, dx, dy, lin, box, ra, rtx, rty, rbound, top, tx_end, ty_end, threshold0, K,
                      nms_cells, nms_angles, num_angles, wrap, rel_ratio):
     """Depth-first branch and bound from the roots (sorted by ascending bound) at level ``top``.
 
@@ -127,8 +172,9 @@ def branch_and_bound(levels, dx, dy, ra, rtx, rty, rbound, top, tx_end, ty_end, 
     distinct leaves are held, then the K-th best leaf score (never below ``threshold0``), and never
     below ``rel_ratio`` times the best leaf found (0: off; leaves far below the best are of no use).
     Children are visited best bound first. Returns (scores, angles, tx, ty) of up to K leaves and
-    the number of nodes whose bound was computed.
+    the number of nodes whose bound was computed. ``lin, box``: :func:`scan_offsets`.
     """
+    flat = levels.reshape(-1)
     cs = np.full(K, -1, dtype=np.int64)
     ca = np.zeros(K, dtype=np.int64)
     cx = np.zeros(K, dtype=np.int64)
@@ -183,7 +229,7 @@ def branch_and_bound(levels, dx, dy, ra, rtx, rty, rbound, top, tx_end, ty_end, 
             cty = ty + half * (c >> 1)
             if ctx >= tx_end or cty >= ty_end:
                 continue
-            s = _node_score(levels, h - 1, dx, dy, a, ctx, cty)
+            s = _node_score(levels, flat, h - 1, dx, dy, lin, box, a, ctx, cty)
             visited += 1
             if s > threshold:
                 cb[m] = s
@@ -436,7 +482,7 @@ def in_levelled_box(points, R2, x0, y0, x1, y1):
 
 
 @njit(cache=True, parallel=True)
-def search_each_window(levels, dx, dy, ra, rtx, rty, starts, top, threshold0, K, nms_cells, nms_angles,
+def search_each_window(levels, dx, dy, lin, box, ra, rtx, rty, starts, top, threshold0, K, nms_cells, nms_angles,
                        num_angles, rel_ratio, n_dives, s0_ratio, use_s0):
     """:func:`branch_and_bound` of W windows at once, one thread per window (``bnb.search_windows``
     with ``per_window_k``). Window w's roots at level ``top`` are ``ra, rtx, rty[starts[w]:starts[w+1]]``
@@ -446,7 +492,9 @@ def search_each_window(levels, dx, dy, ra, rtx, rty, starts, top, threshold0, K,
     x the best S0 of all windows: S0 is a leaf's score, so the best leaf of all is at least that,
     and a window's leaves below ``rel_ratio`` x the best of all are dropped by the caller anyway
     (a window whose best leaf falls below returns none instead of one dropped later). Returns per
-    window (W, K) scores (-1: none), angles, tx, ty, and (W,) S0 and nodes visited."""
+    window (W, K) scores (-1: none), angles, tx, ty, and (W,) S0 and nodes visited. ``lin, box``:
+    :func:`scan_offsets`."""
+    flat = levels.reshape(-1)
     W = starts.shape[0] - 1
     cs = np.full((W, K), -1, dtype=np.int64)
     ca = np.zeros((W, K), dtype=np.int64)
@@ -469,7 +517,7 @@ def search_each_window(levels, dx, dy, ra, rtx, rty, starts, top, threshold0, K,
         n = a1 - a0
         b = np.empty(n, dtype=np.int64)
         for r in range(n):
-            b[r] = _node_score(levels, top, dx, dy, ra[a0 + r], rtx[a0 + r], rty[a0 + r])
+            b[r] = _node_score(levels, flat, top, dx, dy, lin, box, ra[a0 + r], rtx[a0 + r], rty[a0 + r])
         order = np.argsort(b, kind="mergesort")
         for r in range(n):
             sa[a0 + r] = ra[a0 + order[r]]
@@ -479,7 +527,7 @@ def search_each_window(levels, dx, dy, ra, rtx, rty, starts, top, threshold0, K,
         if use_s0:
             best = -1
             for i in range(1, min(n_dives, n) + 1):
-                s, _, _ = greedy_dive(levels, dx, dy, sa[a1 - i], sx[a1 - i], sy[a1 - i], top, big, big)
+                s, _, _ = greedy_dive(levels, dx, dy, lin, box, sa[a1 - i], sx[a1 - i], sy[a1 - i], top, big, big)
                 if s > best:
                     best = s
             s0[w] = best
@@ -495,8 +543,9 @@ def search_each_window(levels, dx, dy, ra, rtx, rty, starts, top, threshold0, K,
         threshold = floor
         if use_s0:
             threshold = max(threshold, np.int64(s0_ratio * s0[w]) - 1)
-        s_, a_, x_, y_, v = branch_and_bound(levels, dx, dy, sa[a0:a1], sx[a0:a1], sy[a0:a1], sb[a0:a1], top, big,
-                                             big, threshold, K, nms_cells, nms_angles, num_angles, True, rel_ratio)
+        s_, a_, x_, y_, v = branch_and_bound(levels, dx, dy, lin, box, sa[a0:a1], sx[a0:a1], sy[a0:a1], sb[a0:a1],
+                                             top, big, big, threshold, K, nms_cells, nms_angles, num_angles, True,
+                                             rel_ratio)
         for i in range(s_.shape[0]):
             cs[w, i] = s_[i]
             ca[w, i] = a_[i]

@@ -71,16 +71,17 @@ def rotated_cells(xy: np.ndarray, angles: np.ndarray, resolution: float) -> tupl
     return cx, cy
 
 
-def _s0_pruning(pyramid: Pyramid, dx, dy, ra, rtx, rty, top: int, tx_end: int, ty_end: int, n_dives: int,
-                full: int, threshold: int, s0_ratio: float) -> tuple[float, int]:
+def _s0_pruning(pyramid: Pyramid, dx, dy, offsets, ra, rtx, rty, top: int, tx_end: int, ty_end: int,
+                n_dives: int, full: int, threshold: int, s0_ratio: float) -> tuple[float, int]:
     """Greedy initial score S0 (block-map paper): the best leaf of greedy dives from the
     ``n_dives`` best roots (the root arrays sorted by score, ascending). Returns (S0 as a
-    fraction of ``full``, the pruning threshold raised to just below ``s0_ratio`` x S0)."""
+    fraction of ``full``, the pruning threshold raised to just below ``s0_ratio`` x S0).
+    ``offsets``: ``_kernels.scan_offsets`` of dx, dy."""
     from blockloc.global_init import _kernels as K
 
     best = -1
     for i in range(1, min(n_dives, len(ra)) + 1):
-        s, _, _ = K.greedy_dive(pyramid.levels, dx, dy, ra[-i], rtx[-i], rty[-i], top, tx_end, ty_end)
+        s, _, _ = K.greedy_dive(pyramid.levels, dx, dy, *offsets, ra[-i], rtx[-i], rty[-i], top, tx_end, ty_end)
         best = max(best, int(s))
     # Prune below a fraction of S0 (not S0 itself) so near-best candidates survive for the
     # ambiguity check and the NDT verification; the S0 leaf is found again by the search.
@@ -123,19 +124,20 @@ def search(pyramid: Pyramid, scan_xy: np.ndarray, center_xy: np.ndarray, window_
     ra = np.repeat(np.arange(A), len(gx) * len(gy)).astype(np.int64)
     rtx = np.tile(np.repeat(gx, len(gy)), A).astype(np.int64)
     rty = np.tile(np.tile(gy, len(gx)), A).astype(np.int64)
-    rb = K.root_scores(pyramid.levels, top, dx, dy, ra, rtx, rty)
+    offsets = K.scan_offsets(dx, dy, pyramid.levels.shape[2])
+    rb = K.root_scores(pyramid.levels, top, dx, dy, *offsets, ra, rtx, rty)
     order = np.argsort(rb, kind="stable")
     ra, rtx, rty, rb = ra[order], rtx[order], rty[order], rb[order]
     full = 255 * n_pts
     threshold = int(min_score * full)
     s0 = 0.0
     if use_s0 and len(rb):
-        s0, threshold = _s0_pruning(pyramid, dx, dy, ra, rtx, rty, top, tx_end, ty_end, n_dives, full,
+        s0, threshold = _s0_pruning(pyramid, dx, dy, offsets, ra, rtx, rty, top, tx_end, ty_end, n_dives, full,
                                     threshold, s0_ratio)
     nms_cells = int(math.ceil(nms_m / r))
     nms_angles = int(math.ceil(math.radians(nms_deg) / step))
     cs, ca, ctx, cty, visited = K.branch_and_bound(
-        pyramid.levels, dx, dy, ra, rtx, rty, rb, top, tx_end, ty_end, threshold, top_k,
+        pyramid.levels, dx, dy, *offsets, ra, rtx, rty, rb, top, tx_end, ty_end, threshold, top_k,
         nms_cells, nms_angles, A, wrap, 0.0)
     order = np.argsort(-cs, kind="stable")
     cands = [Candidate2D(float(ctx[i] * r), float(cty[i] * r), float(angles[ca[i]]), float(cs[i] / full))
@@ -200,8 +202,9 @@ def _search_each_window(pyramid: Pyramid, scan_xy: np.ndarray, windows: list["Wi
     nms_angles = int(math.ceil(math.radians(nms_deg) / step))
     # just below keep_ratio x min_leaf_score: a leaf scoring that much exactly is kept at the end
     threshold0 = max(int(min_score * full), int(keep_ratio * min_leaf_score * full) - 1)
+    offsets = K.scan_offsets(dx, dy, pyramid.levels.shape[2])
     cs, ca, cx_, cy_, s0, visited = K.search_each_window(
-        pyramid.levels, dx, dy, ra, rtx, rty, starts, top, threshold0, k, nms_cells, nms_angles, A,
+        pyramid.levels, dx, dy, *offsets, ra, rtx, rty, starts, top, threshold0, k, nms_cells, nms_angles, A,
         float(keep_ratio), n_dives, float(s0_ratio), bool(use_s0))
     cands: list[Candidate2D] = []
     for wi in range(len(windows)):
@@ -295,7 +298,8 @@ def search_windows(pyramid: Pyramid, scan_xy: np.ndarray, windows: list[Window],
     ra = roots[:, 0].astype(np.int64)
     rtx = roots[:, 1].astype(np.int64)
     rty = roots[:, 2].astype(np.int64)
-    rb = K.root_scores(pyramid.levels, top, dx, dy, ra, rtx, rty)
+    offsets = K.scan_offsets(dx, dy, pyramid.levels.shape[2])
+    rb = K.root_scores(pyramid.levels, top, dx, dy, *offsets, ra, rtx, rty)
     order = np.argsort(rb, kind="stable")
     ra, rtx, rty, rb = ra[order], rtx[order], rty[order], rb[order]
     full = 255 * n_pts
@@ -303,12 +307,12 @@ def search_windows(pyramid: Pyramid, scan_xy: np.ndarray, windows: list[Window],
     big = np.iinfo(np.int64).max // 4
     s0 = 0.0
     if use_s0 and len(rb):
-        s0, threshold = _s0_pruning(pyramid, dx, dy, ra, rtx, rty, top, big, big, n_dives, full,
+        s0, threshold = _s0_pruning(pyramid, dx, dy, offsets, ra, rtx, rty, top, big, big, n_dives, full,
                                     threshold, s0_ratio)
     nms_cells = int(math.ceil(nms_m / r))
     nms_angles = int(math.ceil(math.radians(nms_deg) / step))
     cs, ca, ctx, cty, visited = K.branch_and_bound(
-        pyramid.levels, dx, dy, ra, rtx, rty, rb, top, big, big, threshold, top_k,
+        pyramid.levels, dx, dy, *offsets, ra, rtx, rty, rb, top, big, big, threshold, top_k,
         nms_cells, nms_angles, A, True, float(keep_ratio))
     order = np.argsort(-cs, kind="stable")
     cands = [Candidate2D(float(ctx[i] * r), float(cty[i] * r), float(angles[ca[i]]), float(cs[i] / full))

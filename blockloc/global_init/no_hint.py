@@ -224,5 +224,5 @@ class NoHintSearch:
         ra = np.repeat(np.arange(A), n).astype(np.int64)
         rtx = np.tile(gx.ravel(), A).astype(np.int64)
         rty = np.tile(gy.ravel(), A).astype(np.int64)
-        b = K.root_scores(pyr.levels, level, dx, dy, ra, rtx, rty)
+        b = K.root_scores(pyr.levels, level, dx, dy, *K.scan_offsets(dx, dy, pyr.levels.shape[2]), ra, rtx, rty)
         return float(b.max()) / (255.0 * len(sub))

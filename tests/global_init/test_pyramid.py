@@ -73,3 +73,32 @@ def test_assembled_pieces_equal_the_pyramid_of_the_union():
     want = assemble([whole], q_lo, q_hi)
     np.testing.assert_array_equal(got.levels, want.levels)
     assert got.levels[3].max() > 0
+
+
+def test_node_scores_inside_and_across_the_crop_edge_are_the_direct_sums():
+    # Nodes whose scan cells all lie in the crop are summed unchecked (``_kernels._node_score``),
+    # the others cell by cell: every translation over and around the crop, both ways, must give
+    # the direct sum (0 outside the crop).
+    rng = np.random.default_rng(3)
+    ras = _raster(3, 24, 17, 0.3)
+    pyr = build_pyramid(ras, 3)
+    cells = rng.integers(-6, 6, (4, 30, 2))  # 4 "angles" of 30 cells
+    dx = (cells[..., 0] - pyr.origin[0]).astype(np.int32)
+    dy = (cells[..., 1] - pyr.origin[1]).astype(np.int32)
+    lin, box = K.scan_offsets(dx, dy, pyr.levels.shape[2])
+    assert np.array_equal(box, np.stack([dx.min(1), dx.max(1), dy.min(1), dy.max(1)], 1))
+    nx, ny = pyr.levels.shape[1:]
+    gx, gy = np.meshgrid(np.arange(-12, nx + 12), np.arange(-12, ny + 12), indexing="ij")
+    n = gx.size
+    for a in range(4):
+        tx = (gx.ravel() + pyr.origin[0]).astype(np.int64)
+        ty = (gy.ravel() + pyr.origin[1]).astype(np.int64)
+        ra = np.full(n, a, np.int64)
+        for h in range(3):
+            got = K.root_scores(pyr.levels, h, dx, dy, lin, box, ra, tx, ty)
+            i = dx[a][None, :] + tx[:, None]
+            j = dy[a][None, :] + ty[:, None]
+            ok = (i >= 0) & (j >= 0) & (i < nx) & (j < ny)
+            direct = np.where(ok, pyr.levels[h][np.clip(i, 0, nx - 1), np.clip(j, 0, ny - 1)], 0).sum(axis=1)
+            assert np.array_equal(got, direct)
+            assert np.array_equal(K.node_scores(pyr.levels, h, dx, dy, ra, tx, ty), direct)
