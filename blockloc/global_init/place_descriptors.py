@@ -209,7 +209,8 @@ def scan_cells(points_body: np.ndarray, gravity_body: np.ndarray, params: PlaceI
 
     points_body: (N, 3) body frame, metres; gravity_body: (3,) gravity in the body frame.
     """
-    from blockloc.global_init.projection import R_level_from_gravity, ground_grid, lookup_ground, tall_columns
+    from blockloc.global_init.projection import (R_level_from_gravity, ground_grid, lookup_ground, tall_columns,
+                                                 unique_cells)
 
     pts = np.asarray(points_body, float).reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]
@@ -226,7 +227,7 @@ def scan_cells(points_body: np.ndarray, gravity_body: np.ndarray, params: PlaceI
     lo, hi = params.band_m
 
     def cells(keep):
-        return np.unique(np.floor(lvl[keep, :2] / params.resolution_m).astype(np.int64), axis=0)
+        return unique_cells(np.floor(lvl[keep, :2] / params.resolution_m).astype(np.int64))
 
     # The nearest points at the band's top: closer, the beams pass below it (vertical field of view).
     top = np.hypot(lvl[:, 0], lvl[:, 1])[np.abs(h - hi) <= 0.5]

@@ -174,14 +174,39 @@ def select_structure(points_lvl: np.ndarray, band_m: tuple[float, float],
     return points_lvl[keep], ground
 
 
+def unique_cells(cells: np.ndarray, return_inverse: bool = False):
+    """``np.unique(cells, axis=0)`` of integer cells (N, 2) (sorted by x, then y), and with
+    ``return_inverse`` the row of each cell in it (N,): the same arrays, by one sort of int64 codes.
+    numpy's row-wise unique sorts a structured view, ~10x slower (18 vs 2 ms on 30k scan cells,
+    several times a no-hint search)."""
+    c = np.asarray(cells, np.int64).reshape(-1, 2)
+    lo = c.min(axis=0) if len(c) else np.zeros(2, np.int64)
+    span = (c.max(axis=0) - lo + 1) if len(c) else np.ones(2, np.int64)
+    if len(c) == 0 or float(span[0]) * float(span[1]) >= 2.0**62:
+        if not return_inverse:
+            return np.unique(c, axis=0)
+        u, inverse = np.unique(c, axis=0, return_inverse=True)
+        return u, inverse.reshape(-1)
+    code = (c[:, 0] - lo[0]) * span[1] + (c[:, 1] - lo[1])  # x-major: sorts as the rows do
+    order = np.argsort(code, kind="stable")
+    s = code[order]
+    first = np.r_[True, s[1:] != s[:-1]]
+    u = s[first]
+    out = np.stack([u // span[1] + lo[0], u % span[1] + lo[1]], axis=1)
+    if not return_inverse:
+        return out
+    inverse = np.empty(len(c), np.int64)
+    inverse[order] = np.cumsum(first) - 1
+    return out, inverse
+
+
 def tall_columns(xy: np.ndarray, h: np.ndarray, min_points: int = VERTICAL_MIN_POINTS) -> np.ndarray:
     """(N,) bool: the points (xy (N, 2), levelled frame, metres; h (N,) height, m) whose
     VERTICAL_CELL_M column holds at least ``min_points`` points spanning at least
     VERTICAL_EXTENT_M in height."""
     if len(h) == 0:
         return np.zeros(0, bool)
-    _, col = np.unique(np.floor(np.asarray(xy) / VERTICAL_CELL_M).astype(np.int64), axis=0, return_inverse=True)
-    col = col.reshape(-1)
+    _, col = unique_cells(np.floor(np.asarray(xy) / VERTICAL_CELL_M).astype(np.int64), return_inverse=True)
     lo = np.full(col.max() + 1, np.inf)
     hi = np.full(col.max() + 1, -np.inf)
     np.minimum.at(lo, col, h)
@@ -311,7 +336,7 @@ def project_scan(points_body: np.ndarray, gravity_body: np.ndarray, resolution: 
     structure, (g_origin, g_grid) = select_structure(lvl, band_m, mode)
     near = lookup_ground(g_origin, g_grid, np.array([[0.0, 0.0]]))[0]
     structure = structure[np.hypot(structure[:, 0], structure[:, 1]) >= min_range_m]
-    cells = np.unique(np.floor(structure[:, :2] / resolution).astype(np.int64), axis=0)
+    cells = unique_cells(np.floor(structure[:, :2] / resolution).astype(np.int64))
     if len(cells) < min_cells:
         raise GlobalInitError(f"scan has {len(cells)} occupied cells in the height band {band_m} m: "
                               f"expected at least {min_cells} (too few points or open ground)")

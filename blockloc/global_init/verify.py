@@ -249,10 +249,11 @@ def better_fit(points_body: np.ndarray, a: InitCandidate, b: InitCandidate, bloc
     points, because neighbouring points on one surface pass or fail together). Large: ``a`` fits
     better; around 0: the scan cannot tell them apart.
     """
+    from blockloc.global_init.projection import unique_cells
+
     pts = np.asarray(points_body, float).reshape(-1, 3)
     keys = np.floor(pts[:, :2] / block_m).astype(np.int64)
-    _, block = np.unique(keys, axis=0, return_inverse=True)
-    block = block.reshape(-1)
+    _, block = unique_cells(keys, return_inverse=True)
     d = []
     for k in range(int(block.max()) + 1 if len(block) else 0):
         q = pts[block == k]

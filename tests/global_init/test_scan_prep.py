@@ -11,7 +11,7 @@ from blockloc.datasets.base import ImuData, LidarFrame, SequenceInfo
 from blockloc.geometry import rpy_to_R
 from blockloc.commands.common import parse_pose_hint
 from blockloc.global_init.scan_prep import deskew_rotation, gravity_from_imu
-from blockloc.global_init.projection import R_level_from_gravity, heading_offset, rotation_aligning
+from blockloc.global_init.projection import R_level_from_gravity, heading_offset, rotation_aligning, unique_cells
 
 
 def _fake_seq(omega_z, acc=(0.0, 0.0, -9.81)):
@@ -62,3 +62,14 @@ def test_parse_pose_hint():
     for bad in ("1", "1,2,3,4", "a,b", "nan,1"):
         with pytest.raises(BlocklocError, match="--init-pose .* expected x,y or x,y,yaw"):
             parse_pose_hint(bad, "--init-pose")
+
+
+@pytest.mark.parametrize("n, span", [(0, 5), (1, 5), (7, 2), (5000, 300), (3, 2**40)])
+def test_unique_cells_are_numpys_unique_rows(n, span):
+    # sorted by x then y, with the inverse; a span too wide for one code falls back to numpy's
+    cells = np.random.default_rng(n).integers(-span, span, (n, 2))
+    want, want_inv = np.unique(cells.reshape(-1, 2), axis=0, return_inverse=True)
+    got, inv = unique_cells(cells, return_inverse=True)
+    assert np.array_equal(got, want) and got.dtype == want.dtype
+    assert np.array_equal(inv, want_inv.reshape(-1))
+    assert np.array_equal(unique_cells(cells), want)
