@@ -345,23 +345,41 @@ def polar_weighted_overlaps(scan_shifted, places, rows, weights):
 def polar_llr(occ_shifted, grown, occ_w, free_shifted, raw, free_w):
     """Per place p and shift k: sum over rings r of occ_w[p, r] * |occ_shifted[k, r] & grown[p, r]|
     + free_w[p, r] * |free_shifted[k, r] & raw[p, r]| (bit sets (K, NR, W) and (P, NR, W) uint64,
-    weights (P, NR) float32): the hit terms of the place index's log-likelihood ratio. (P, K) float32."""
+    weights (P, NR) float32): the hit terms of the place index's log-likelihood ratio. (P, K) float32.
+
+    Every shift of a place at once, ring by ring (the scan's bits laid out shift-last): the same
+    float32 sums in the same order as one shift at a time, which the compiler vectorizes over the
+    shifts (~3x faster on the campus index's 17k places)."""
     P = grown.shape[0]
     K = occ_shifted.shape[0]
     NR = grown.shape[1]
     W = grown.shape[2]
+    occ_t = np.empty((NR, W, K), dtype=np.uint64)
+    free_t = np.empty((NR, W, K), dtype=np.uint64)
+    for k in range(K):
+        for r in range(NR):
+            for w in range(W):
+                occ_t[r, w, k] = occ_shifted[k, r, w]
+                free_t[r, w, k] = free_shifted[k, r, w]
     out = np.zeros((P, K), dtype=np.float32)
     for p in prange(P):
-        for k in range(K):
-            acc = np.float32(0.0)
-            for r in range(NR):
-                c1 = np.uint64(0)
-                c2 = np.uint64(0)
-                for w in range(W):
-                    c1 += _popcount(occ_shifted[k, r, w] & grown[p, r, w])
-                    c2 += _popcount(free_shifted[k, r, w] & raw[p, r, w])
-                acc += occ_w[p, r] * np.float32(c1) + free_w[p, r] * np.float32(c2)
-            out[p, k] = acc
+        acc = np.zeros(K, dtype=np.float32)
+        c1 = np.empty(K, dtype=np.uint64)
+        c2 = np.empty(K, dtype=np.uint64)
+        for r in range(NR):
+            c1[:] = 0
+            c2[:] = 0
+            for w in range(W):
+                g = grown[p, r, w]
+                b = raw[p, r, w]
+                for k in range(K):
+                    c1[k] += _popcount(occ_t[r, w, k] & g)
+                    c2[k] += _popcount(free_t[r, w, k] & b)
+            ow = occ_w[p, r]
+            fw = free_w[p, r]
+            for k in range(K):
+                acc[k] += ow * np.float32(c1[k]) + fw * np.float32(c2[k])
+        out[p] = acc
     return out
 
 

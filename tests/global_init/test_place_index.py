@@ -298,3 +298,33 @@ def test_a_subsets_scores_are_its_rows_of_the_whole_index_with_the_weights_kept_
     np.testing.assert_array_equal(after, before)  # kept weights change nothing
     # the whole index's rows, to float32 rounding (the ring sums' matrix product by another shape)
     np.testing.assert_allclose(after, whole[rows], rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("places, rings, words, shifts", [(300, 20, 1, 64), (7, 3, 2, 128), (0, 4, 1, 8)])
+def test_polar_llr_is_the_ring_by_ring_float32_sum(places, rings, words, shifts):
+    # every shift of a place at once (_kernels.polar_llr): the same float32 sums, in the same
+    # order, as one shift at a time
+    from blockloc.global_init import _kernels as K
+
+    rng = np.random.default_rng(places)
+
+    def bits(*shape):
+        return (rng.integers(0, 2**63, shape, dtype=np.int64).astype(np.uint64) << np.uint64(1)) \
+            | rng.integers(0, 2, shape).astype(np.uint64)
+
+    grown, raw = bits(places, rings, words), bits(places, rings, words)
+    occ, free = bits(shifts, rings, words), bits(shifts, rings, words)
+    occ_w = rng.normal(0, 1, (places, rings)).astype(np.float32)
+    free_w = rng.normal(0, 1, (places, rings)).astype(np.float32)
+
+    def common(a, b):  # (P, S) set bits of a (S, W) & b (P, W)
+        x = a[None, :, :] & b[:, None, :]
+        return np.unpackbits(x.view(np.uint8), axis=-1).reshape(len(b), len(a), 64 * a.shape[-1]).sum(axis=-1)
+
+    want = np.zeros((places, shifts), np.float32)
+    for r in range(rings):
+        c1 = common(occ[:, r], grown[:, r]).astype(np.float32)
+        c2 = common(free[:, r], raw[:, r]).astype(np.float32)
+        want = want + (occ_w[:, r, None] * c1 + free_w[:, r, None] * c2)
+    got = K.polar_llr(occ, grown, occ_w, free, raw, free_w)
+    assert got.dtype == np.float32 and np.array_equal(got, want)
