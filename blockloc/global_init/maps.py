@@ -88,8 +88,8 @@ class ArrayMap:
         """The same points projected with other parameters (e.g. the place index's band)."""
         return ArrayMap(self._points, self.gravity_map, params)
 
-    def pyramid(self, lo: np.ndarray, hi: np.ndarray) -> Pyramid:
-        return assemble([self._piece.pyramid], lo, hi)
+    def pyramid(self, lo: np.ndarray, hi: np.ndarray, num_levels: int | None = None) -> Pyramid:
+        return assemble([self._piece.pyramid], lo, hi, num_levels)
 
     def base_raster(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(origin (2,) int64 = lo, (NX, NY) uint8 base raster over global cells [lo, hi))."""
@@ -195,14 +195,16 @@ class StoreMap:
                 self._entry_points(i)
         return len(self.store.entries)
 
-    def pyramid(self, lo: np.ndarray, hi: np.ndarray) -> Pyramid:
+    def pyramid(self, lo: np.ndarray, hi: np.ndarray, num_levels: int | None = None) -> Pyramid:
+        """The pyramid over global cells [lo, hi) (2,) int64; its lowest ``num_levels`` levels only
+        when given (a search whose roots start lower reads no level above them)."""
         r = self.params.resolution_m
         ids = self._entries_in(lo * r, hi * r)
         if not ids:
             from blockloc.errors import GlobalInitError
 
             raise GlobalInitError(f"{self.store.path}: no map block/tile near the search window")
-        return assemble([self._piece(i).pyramid for i in ids], lo, hi)
+        return assemble([self._piece(i).pyramid for i in ids], lo, hi, num_levels)
 
     def base_raster(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(origin (2,) int64 = lo, (NX, NY) uint8 base raster over global cells [lo, hi)); only the

@@ -131,7 +131,7 @@ class NoHintSearch:
             lo = np.floor((c.min(axis=0) - half) / r).astype(np.int64) - 2
             hi = np.floor((c.max(axis=0) + half) / r).astype(np.int64) + 3
             try:
-                pyr = self.map.pyramid(lo, hi)
+                pyr = self.map.pyramid(lo, hi, top + 1)  # the levels above the roots' are never read
             except GlobalInitError:
                 continue
             # Leaves below ambiguity_score_ratio x the best matter neither as the answer nor as its

@@ -29,6 +29,12 @@ def test_cached_pyramids_are_reused_and_match_the_whole_map(tmp_path, monkeypatc
     assert agree > 0.97, agree
     top = params.num_levels - 1
     assert np.all(got.levels[top] >= got.levels[top - 1])
+    # the lowest levels alone (a search whose roots start lower): the same arrays
+    for m in (second, ArrayMap(pts, GRAVITY_Z_DOWN, params)):
+        low = m.pyramid(lo, hi, 3)
+        full = m.pyramid(lo, hi)
+        assert low.num_levels == 3 and np.array_equal(low.levels, full.levels[:3])
+        assert np.array_equal(low.origin, full.origin)
 
 
 def test_box_queries_return_exactly_the_points_in_the_box():
