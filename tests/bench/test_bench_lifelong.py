@@ -242,3 +242,12 @@ def test_where_the_updated_map_trails_the_fresh_one(tmp_path, monkeypatch):
     text = "\n".join(B._where_lines(r))
     assert "| 7 | 0.050 | 0.040 | 0.020 | 0.030 | +0.010 | B (changed) | 1 (wall_added) |" in text
     assert "| 1 | 0.050 | 0.040 | 0.020 | 0.030 | +0.010 | A (-) | 0 (-) |" in text
+
+
+def test_a_removed_truth_voxel_still_filled_today_is_told_apart():
+    """The removed truth scored beside the truth: a voxel today's returns fill in half of the scans
+    that see it or more (a fence the removed car stood against) is still filled."""
+    seen = (np.array([1, 2, 3, 4]), np.array([4, 4, 4, 0]))
+    occupied = (np.array([1, 2, 4]), np.array([3, 1, 2]))
+    got = B.still_filled(np.array([1, 2, 3, 4, 5]), seen, occupied)
+    assert got.tolist() == [True, False, False, True, False]  # 3 of 4; 1 of 4; never; hit, rays not counted

@@ -397,8 +397,32 @@ def test_a_neighbour_hit_once_spares_nothing_with_solid_min_hits():
     j = np.searchsorted(ev.keys, voxel_keys(stray, 0.5))
     ev.n_hit[j] = 1  # seen by 5 scans, hit by one
     ev.n_free[j] = 4
-    th = Thresholds(min_cluster_voxels=1, min_map_cells=1, solid_min_hits=1)
+    th = Thresholds(min_cluster_voxels=1, min_map_cells=1, solid_min_hits=1, solid_min_cells=0)
     spared = 16 - np.isin(np.unique(voxel_keys(wall, 0.5)), classify(ev, ev.fine[0], None, th).removed).sum()
     assert spared >= 3  # the wall's voxels next to the stray are kept
     rm = classify(ev, ev.fine[0], None, Thresholds(min_cluster_voxels=1, min_map_cells=1)).removed
     assert np.isin(np.unique(voxel_keys(wall, 0.5)), rm).all()
+
+
+def test_a_neighbour_the_map_barely_holds_spares_nothing_but_a_dense_one_does():
+    """The neighbour rule asks the hit neighbour to hold solid_min_cells of the map's fine cells
+    (2 by default): the ground a removed car hid on the mapping day (one map cell, the car's
+    lowest edge) is hit today and no longer keeps the car's side; a crown's core, dense in the
+    map and hit today, still spares its edge."""
+    from blockloc.maps.changes.detect import Thresholds, classify, voxel_keys
+
+    g = np.arange(0.05, 2.0, 0.1)
+    side = np.array([[5.05, y, z] for y in g for z in g])  # a car's side, 2 x 2 m: 4 x 4 dense voxels
+    hidden = np.array([[5.55, 1.05, 1.05]])  # one map point next to it: the ground it hid, hit today
+    ev, _ = _evidence(0.5, np.concatenate([side, hidden]), seen_free=10, hits=hidden)
+    side_keys = np.unique(voxel_keys(side, 0.5))
+    th = Thresholds(min_cluster_voxels=1, min_map_cells=1)
+    assert np.isin(side_keys, classify(ev, ev.fine[0], None, th).removed).all()
+    # without the rule the hit voxel spares its 9 neighbours of the side as a crown's edge
+    old = classify(ev, ev.fine[0], None, Thresholds(min_cluster_voxels=1, min_map_cells=1, solid_min_cells=0))
+    assert (~np.isin(side_keys, old.removed)).sum() == 9
+    # a dense neighbour hit today (a crown's core: 5 x 5 map points in its voxel) still spares them
+    core = np.array([[5.55 + 0.1 * a, 1.05, 0.85 + 0.1 * b] for a in range(5) for b in range(5)])
+    ev2, _ = _evidence(0.5, np.concatenate([side, core]), seen_free=10, hits=core[:1])
+    kept = ~np.isin(side_keys, classify(ev2, ev2.fine[0], None, th).removed)
+    assert kept.sum() >= 3

@@ -511,6 +511,11 @@ class Thresholds:
     #: cars (campus loc_m12 block 013; small seed 1 loc_m12: removed recall 0.54 -> 0.86 at
     #: precision 1.00; docs/bench/lifelong.md, detect5)
     solid_min_hits: int = 2  # chosen on campus loc_m12 and small seed 1 loc_m12
+    #: ... and holds at least this many of the map's occupied fine cells (0: any map voxel). The
+    #: ground a removed car hid on the mapping day holds one or two of the map's cells (the car's
+    #: lowest edge) and is hit today: it kept the car's side as a crown's edge (campus loc_m12
+    #: block 000; docs/bench/lifelong.md, detect6)
+    solid_min_cells: int = 2  # chosen on campus loc_m12
     #: a voxel holding the ground's surface can be removed
     ground_removable: bool = False
     #: the ground's surface: fine cells this many cells above the lowest of their column or less
@@ -636,6 +641,11 @@ def classify(ev: Evidence, map_keys: np.ndarray, map_free_fine: np.ndarray | Non
     if len(cand):
         solid = (in_map & (ev.n_hit + ev.n_free >= th.min_scans) & (ev.n_hit > th.max_hit_share * seen)
                  & (ev.n_hit >= th.solid_min_hits))
+        if th.solid_min_cells > 0 and ev.fine is not None and solid.any():
+            # ... and holds the map's structure: a voxel the map barely holds (the ground a
+            # removed car hid, new today) is no crown's core
+            sel = np.flatnonzero(solid)
+            solid[sel[map_cells_per_voxel(ev.keys[sel], ev.voxel_m, ev.fine[1], ev.fine[2]) < th.solid_min_cells]] = False
         ground = ground_voxels(ev.voxel_m, ev.fine[1], ev.ground) if ev.fine is not None and ev.ground is not None else None
         if th.ground_spares_none and ground is not None:
             solid &= ~_in_sorted(ev.keys, ground)
