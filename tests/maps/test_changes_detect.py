@@ -317,6 +317,40 @@ def test_added_needs_a_place_the_mapping_day_had_in_sight():
     assert len(seen_by_keyframes(cells, fine_m, kf, fine_keys, 0.4, 1.0, k=2)) == 0
 
 
+def test_a_place_hidden_from_the_nearest_road_counts_as_seen_from_another_direction():
+    from blockloc.maps.changes.detect import Thresholds, seen_by_keyframes, voxel_keys
+
+    fine_m = 0.2
+    # a road along y = 12 (keyframes every metre), a wall at y = 9 between it and a fence at y = 0;
+    # a cross road along x = -20 sees the fence past the wall's end
+    wall = np.array([[x, 9.05, z] for x in np.arange(-15, 15, 0.1) for z in np.arange(-1, 3, 0.1)])
+    fine_keys = np.unique(voxel_keys(wall, fine_m))
+    road = np.array([[x, 12.0, 1.0] for x in np.arange(-14.0, 15.0, 1.0)])
+    cross = np.array([[-20.0, y, 1.0] for y in np.arange(-10.0, 20.0, 1.0)])
+    kf = np.concatenate([road, cross])
+    cells = np.unique(voxel_keys(np.array([[x, 0.0, 1.0] for x in np.arange(-5.0, 5.0, 1.0)]), fine_m))
+    k = Thresholds().seen_keyframes
+    # the k nearest keyframes are the road's, all behind the wall: hidden
+    assert len(seen_by_keyframes(cells, fine_m, kf, fine_keys, 0.4, 40.0, k=k)) == 0
+    # the nearest keyframe to the west (the cross road) sees them
+    got = seen_by_keyframes(cells, fine_m, kf, fine_keys, 0.4, 40.0, k=k, sectors=8, up=np.array([0, 0, 1.0]))
+    assert len(got) == len(cells)
+    # z down (the NCLT map frame): the same
+    flip = np.c_[kf[:, :2], -kf[:, 2]]
+    wall_d = np.unique(voxel_keys(np.c_[wall[:, :2], -wall[:, 2]], fine_m))
+    cells_d = np.unique(voxel_keys(np.array([[x, 0.0, -1.0] for x in np.arange(-5.0, 5.0, 1.0)]), fine_m))
+    assert len(seen_by_keyframes(cells_d, fine_m, flip, wall_d, 0.4, 40.0, k=k, sectors=8,
+                                 up=np.array([0, 0, -1.0]))) == len(cells_d)
+    # out of the range of the cross road (and of the pool of nearest keyframes): hidden still
+    assert len(seen_by_keyframes(cells, fine_m, kf, fine_keys, 0.4, 14.0, k=k, sectors=8)) == 0
+    assert len(seen_by_keyframes(cells, fine_m, kf, fine_keys, 0.4, 40.0, k=k, sectors=8, pool=10)) == 0
+    # a place the wall hides from every keyframe stays hidden
+    closed = np.concatenate([wall, [[x, y, z] for x in (-15.05, 15.05) for y in np.arange(-12, 9.1, 0.1)
+                                    for z in np.arange(-1, 3, 0.1)]])
+    closed_keys = np.unique(voxel_keys(closed, fine_m))
+    assert len(seen_by_keyframes(cells, fine_m, road, closed_keys, 0.4, 40.0, k=k, sectors=8)) == 0
+
+
 def test_a_cloud_of_the_mapping_days_noise_is_not_removed_even_where_a_few_voxels_are_dense():
     from blockloc.maps.changes.detect import Thresholds, classify, map_cells_per_voxel, voxel_keys
 

@@ -26,7 +26,8 @@ Classes:
   min_scans``);
 - **added**: a voxel holding, in ``min_scans`` scans or more, **new** points (more than one fine
   cell from every map point) in fine cells the mapping day had in clear sight (a straight line
-  from one of the nearest mapping keyframes crosses no map cell: :func:`seen_by_keyframes`), with ``n_new * l_occ + n_free * l_free >= added_logodds``: structure where the mapping
+  from one of the nearest mapping keyframes, or from the nearest in one of eight directions,
+  crosses no map cell: :func:`seen_by_keyframes`), with ``n_new * l_occ + n_free * l_free >= added_logodds``: structure where the mapping
   day saw free space, not merely a place it never saw; decided on points, not whole voxels, so
   the part of a new object in the ground's voxel counts;
 - **dynamic**: a voxel off the map (and its neighbours) with new points in some scans and seen
@@ -418,12 +419,21 @@ def segments_clear(origins: np.ndarray, targets: np.ndarray, fine_keys: np.ndarr
 
 
 def seen_by_keyframes(cells: np.ndarray, fine_m: float, keyframes: np.ndarray, fine_keys: np.ndarray,
-                      margin_m: float, max_range_m: float = 40.0, k: int = 3) -> np.ndarray:
+                      margin_m: float, max_range_m: float = 40.0, k: int = 3, sectors: int = 0,
+                      pool: int = 64, up: np.ndarray | None = None) -> np.ndarray:
     """The sorted fine ``cells`` (edge ``fine_m``) the mapping day could see: in clear sight
     (:func:`segments_clear` through the map's occupied ``fine_keys``) from one of the ``k``
-    keyframes (K, 3 sensor positions) nearest to it within ``max_range_m``. Where the mapping
-    day saw through a cell and the map holds nothing there, it saw free space; where the map's
-    structure hid the cell, a point there today is merely new to the map, not added."""
+    keyframes (K, 3 sensor positions) nearest to it within ``max_range_m``, or, with
+    ``sectors``, from the nearest keyframe of one of ``sectors`` equal azimuth sectors around the
+    cell (about ``up``, (3,) unit vector against gravity in the map frame; None: the map's z
+    axis), among its ``pool`` nearest keyframes within range. Where the mapping day saw through
+    a cell and the map holds nothing there, it saw free space; where the map's structure hid the
+    cell, a point there today is merely new to the map, not added.
+
+    Why the sectors: the nearest keyframes are one stretch of one road. When a wall stands
+    between that road and the cell, every one of them is hidden, while the drive saw the cell
+    from another road (small world seed 2 loc_m3: a site fence 12 m behind a wall from the
+    nearest road, seen from the cross road 15-20 m away; docs/bench/lifelong.md, detect7)."""
     from scipy.spatial import cKDTree
 
     cells = np.asarray(cells, np.int64)
@@ -431,14 +441,36 @@ def seen_by_keyframes(cells: np.ndarray, fine_m: float, keyframes: np.ndarray, f
     if not len(cells) or not len(kf):
         return np.zeros(0, np.int64)
     centres = (unpack_keys(cells) + 0.5) * fine_m
+    tree = cKDTree(kf)
     k = min(int(k), len(kf))
-    dist, idx = cKDTree(kf).query(centres, k=k)
+    dist, idx = tree.query(centres, k=k)
     dist, idx = dist.reshape(len(cells), k), idx.reshape(len(cells), k)
     seen = np.zeros(len(cells), bool)
     for j in range(k):  # the nearest keyframe first; the next ones only for cells still hidden
         todo = np.flatnonzero(~seen & (dist[:, j] <= max_range_m))
         if len(todo):
             seen[todo] = segments_clear(kf[idx[todo, j]], centres[todo], fine_keys, fine_m, margin_m)
+    todo = np.flatnonzero(~seen)
+    if sectors > 0 and len(todo):
+        m = min(int(pool), len(kf))
+        d2, i2 = tree.query(centres[todo], k=m, distance_upper_bound=max_range_m)
+        d2, i2 = d2.reshape(len(todo), m), i2.reshape(len(todo), m)
+        ok = np.isfinite(d2)  # sorted by distance; past the range: inf, index len(kf)
+        i2 = np.where(ok, i2, 0)
+        u = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, np.float64).reshape(3)
+        e1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(u, e1)
+        v = kf[i2] - centres[todo][:, None, :]
+        az = np.arctan2(v @ e2, v @ e1)
+        sector = np.minimum(((az + np.pi) / (2 * np.pi) * sectors).astype(np.int64), sectors - 1)
+        for s in range(sectors):  # the nearest keyframe of each sector, for cells still hidden
+            inside = ok & (sector == s)
+            first = np.argmax(inside, axis=1)
+            rows = np.flatnonzero(inside.any(axis=1) & ~seen[todo])
+            if len(rows):
+                seen[todo[rows]] = segments_clear(kf[i2[rows, first[rows]]], centres[todo[rows]], fine_keys,
+                                                  fine_m, margin_m)
     return cells[seen]
 
 
@@ -522,6 +554,12 @@ class Thresholds:
     ground_band_cells: int = 1  # chosen on the small world seed 1, loc_m12
     #: added needs the new point's cell in sight from one of this many nearest mapping keyframes
     seen_keyframes: int = 3
+    #: ... or from the nearest keyframe of one of this many azimuth sectors around the cell (among
+    #: its ``seen_pool`` nearest within range; 0: off): the nearest keyframes are one stretch of
+    #: one road, all hidden by the same wall where the drive saw the place from another road
+    #: (small world seed 2 loc_m3 block 002, a site's fence; docs/bench/lifelong.md, detect7)
+    seen_sectors: int = 8  # chosen on small seed 2 loc_m3
+    seen_pool: int = 64
     #: a removed cluster lying as a sheet over the ground (:func:`ground_sheets`: at most this many
     #: voxels per occupied vertical column on average, 0: rule off) ...
     sheet_voxels_per_column: float = 1.2  # with sheet_height_m: the largest pair leaving campus loc_m12's blocks as they were

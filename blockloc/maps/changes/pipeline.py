@@ -356,7 +356,8 @@ class ChangeDetector:
             # in sight up to two fine cells short of the cell (a new point has no map cell within one):
             # a wall that hid the ground right behind it hides it (a metre's margin would look past it)
             map_free = seen_by_keyframes(cells, self.fine_m, np.concatenate(list(keyframes.values())),
-                                         self.fine_keys, 2 * self.fine_m, self.max_range_m, k=th.seen_keyframes)
+                                         self.fine_keys, 2 * self.fine_m, self.max_range_m, k=th.seen_keyframes,
+                                         sectors=th.seen_sectors, pool=th.seen_pool, up=self.up)
         else:
             map_free = np.zeros(0, np.int64)
         vc = classify(ev, self.map_keys, map_free, th)
