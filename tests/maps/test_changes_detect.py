@@ -335,6 +335,8 @@ def test_a_place_hidden_from_the_nearest_road_counts_as_seen_from_another_direct
     # the nearest keyframe to the west (the cross road) sees them
     got = seen_by_keyframes(cells, fine_m, kf, fine_keys, 0.4, 40.0, k=k, sectors=8, up=np.array([0, 0, 1.0]))
     assert len(got) == len(cells)
+    assert np.array_equal(seen_by_keyframes(cells, fine_m, kf, fine_keys, 0.4, 40.0, k=k, sectors=8,
+                                            up=np.array([0, 0, 1.0]), chunk=3), got)  # a few cells at a time
     # z down (the NCLT map frame): the same
     flip = np.c_[kf[:, :2], -kf[:, 2]]
     wall_d = np.unique(voxel_keys(np.c_[wall[:, :2], -wall[:, 2]], fine_m))

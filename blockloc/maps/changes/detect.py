@@ -420,7 +420,7 @@ def segments_clear(origins: np.ndarray, targets: np.ndarray, fine_keys: np.ndarr
 
 def seen_by_keyframes(cells: np.ndarray, fine_m: float, keyframes: np.ndarray, fine_keys: np.ndarray,
                       margin_m: float, max_range_m: float = 40.0, k: int = 3, sectors: int = 0,
-                      pool: int = 64, up: np.ndarray | None = None) -> np.ndarray:
+                      pool: int = 64, up: np.ndarray | None = None, chunk: int = 8192) -> np.ndarray:
     """The sorted fine ``cells`` (edge ``fine_m``) the mapping day could see: in clear sight
     (:func:`segments_clear` through the map's occupied ``fine_keys``) from one of the ``k``
     keyframes (K, 3 sensor positions) nearest to it within ``max_range_m``, or, with
@@ -450,27 +450,29 @@ def seen_by_keyframes(cells: np.ndarray, fine_m: float, keyframes: np.ndarray, f
         todo = np.flatnonzero(~seen & (dist[:, j] <= max_range_m))
         if len(todo):
             seen[todo] = segments_clear(kf[idx[todo, j]], centres[todo], fine_keys, fine_m, margin_m)
-    todo = np.flatnonzero(~seen)
-    if sectors > 0 and len(todo):
-        m = min(int(pool), len(kf))
-        d2, i2 = tree.query(centres[todo], k=m, distance_upper_bound=max_range_m)
-        d2, i2 = d2.reshape(len(todo), m), i2.reshape(len(todo), m)
-        ok = np.isfinite(d2)  # sorted by distance; past the range: inf, index len(kf)
-        i2 = np.where(ok, i2, 0)
+    if sectors > 0:
         u = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, np.float64).reshape(3)
         e1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
         e1 /= np.linalg.norm(e1)
         e2 = np.cross(u, e1)
-        v = kf[i2] - centres[todo][:, None, :]
-        az = np.arctan2(v @ e2, v @ e1)
-        sector = np.minimum(((az + np.pi) / (2 * np.pi) * sectors).astype(np.int64), sectors - 1)
-        for s in range(sectors):  # the nearest keyframe of each sector, for cells still hidden
-            inside = ok & (sector == s)
-            first = np.argmax(inside, axis=1)
-            rows = np.flatnonzero(inside.any(axis=1) & ~seen[todo])
-            if len(rows):
-                seen[todo[rows]] = segments_clear(kf[i2[rows, first[rows]]], centres[todo[rows]], fine_keys,
-                                                  fine_m, margin_m)
+        m = min(int(pool), len(kf))
+        hidden = np.flatnonzero(~seen)
+        for c0 in range(0, len(hidden), chunk):  # (cells x pool) arrays a chunk of cells at a time
+            todo = hidden[c0:c0 + chunk]
+            d2, i2 = tree.query(centres[todo], k=m, distance_upper_bound=max_range_m)
+            d2, i2 = d2.reshape(len(todo), m), i2.reshape(len(todo), m)
+            ok = np.isfinite(d2)  # sorted by distance; past the range: inf, index len(kf)
+            i2 = np.where(ok, i2, 0)
+            v = kf[i2] - centres[todo][:, None, :]
+            az = np.arctan2(v @ e2, v @ e1)
+            sector = np.minimum(((az + np.pi) / (2 * np.pi) * sectors).astype(np.int64), sectors - 1)
+            for s in range(sectors):  # the nearest keyframe of each sector, for cells still hidden
+                inside = ok & (sector == s)
+                first = np.argmax(inside, axis=1)
+                rows = np.flatnonzero(inside.any(axis=1) & ~seen[todo])
+                if len(rows):
+                    seen[todo[rows]] = segments_clear(kf[i2[rows, first[rows]]], centres[todo[rows]], fine_keys,
+                                                      fine_m, margin_m)
     return cells[seen]
 
 
