@@ -33,11 +33,14 @@ class NoHintSearch:
 
     def _relocalize_places(self, scan: ScanProjection, scan_ndt: np.ndarray, cells, index, theta_c: float,
                            yaw_win: float, stats: dict, deadline: float = math.inf,
-                           candidates: tuple[int, ...] | None = None, flip_open: bool = False):
+                           candidates: tuple[int, ...] | None = None, flip_open: bool = False,
+                           first_stage: int = 0, done: list[Candidate2D] | None = None):
         """No-hint search through the place index, widening stage by stage (module docstring) while
         ``time.perf_counter()`` is before ``deadline``; ``candidates``: the stages' place counts
         (default ``place_candidates``); ``flip_open``: an open place's window is searched at its yaw
-        guess reversed too (every yaw allowed)."""
+        guess reversed too (every yaw allowed). ``first_stage``: resume a search that stopped
+        after that many stages (the candidates it returned are not returned again); ``done``: the
+        2D leaves refined so far (a list the search extends: pass the same one to resume)."""
         p = self.params
         candidates = p.place_candidates if candidates is None else candidates
         t = time.perf_counter()
@@ -55,9 +58,11 @@ class NoHintSearch:
         if p.place_all_yaw_candidates > 0:
             stages.insert(1, (p.place_all_yaw_candidates, min(yaw_win, 2 * math.pi)))
         out: list[InitCandidate] = []
-        done: list[Candidate2D] = []
-        k_done = 0
+        done = [] if done is None else done
+        k_done = max([k for k, yaw in stages[:first_stage] if yaw == yaw_guess], default=0)
         for i, (k, yaw) in enumerate(stages):
+            if i < first_stage:
+                continue
             if yaw >= min(yaw_win, 2 * math.pi) and yaw_guess >= min(yaw_win, 2 * math.pi) and i > 0:
                 break  # the guesses' windows already covered every allowed yaw
             if i > 0 and time.perf_counter() >= deadline:
