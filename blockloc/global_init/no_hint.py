@@ -100,7 +100,7 @@ class NoHintSearch:
             stats["regions_searched"] = st.regions  # the GROUP_M squares holding windows
             res = self._decide(list(out), {}, 0.0, scan_ndt, final=False)
             if res.verified or res.ambiguous:
-                break  # found; or two places fit, which searching more would not change
+                break  # found; or two places fit (the caller may search on: ``_search_on``)
         return out, stats
 
     def _search_windows(self, scan: ScanProjection, windows: list[Window], by_score: int = 0):

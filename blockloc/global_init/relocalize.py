@@ -177,9 +177,10 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             cands, stats = self._relocalize_places(scan, scan_ndt, cells, index, theta_c, yaw_win, stats, deadline,
                                                    flip_open=p.place_flip_open, done=done)
             res = self._decide(cands, stats, time.perf_counter() - t0, scan_ndt, final=False)
-            # An ambiguous result stays ambiguous however much more is searched.
+            # Something verified (ambiguous or not) ends the search for the regions' fallback: an
+            # ambiguity there is between places the index holds; the place stages may go on.
             if res.verified or res.ambiguous or not p.whole_map_fallback or stats.get("timed_out"):
-                doubt = p.search_on_doubt and res.verified
+                doubt = p.search_on_doubt and (res.verified or res.ambiguous)
                 out = self._decide(cands, stats, time.perf_counter() - t0, scan_ndt, scan=scan, cells=cells,
                                    drop_targets=not doubt)
                 if not doubt or out.verified:
@@ -457,17 +458,20 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
     def _search_on(self, doubted: InitResult, scan: ScanProjection, scan_ndt: np.ndarray, cells, index,
                    theta_c: float, yaw_win: float, stats: dict, deadline: float, done: list,
                    t0: float) -> InitResult:
-        """The place search resumed after a verified best that the final decision doubted.
+        """The place search resumed after a stage whose candidates verified but left the result
+        ambiguous (``doubted``: the final decision over them).
 
-        The place stages stop at the first verified candidate; the final decision may then find
-        it ambiguous (an NDT optimum nearby fits about as well: :func:`verify.nearby_rival`, or a
-        climbed optimum has a rival far away). A verified place that is ambiguous is no evidence
-        that the true place is not among those not searched yet: seen on the campus (map built
-        with the defaults, frames 17786 and 25289), a wrong place 507 m off passed verification
-        at the first stage, its nearby rival kept it unverified, and the true place was never
-        searched. So the stages go on from where they stopped, and the final decision judges every
-        candidate found (``doubted``'s too, with every test as before: the first best stays a
-        rival of any new one). Only frames whose result was ambiguous reach here."""
+        The place stages stop at the first stage with a verified candidate; the decision may then
+        find the result ambiguous (an NDT optimum next to the best fits about as well:
+        :func:`verify.nearby_rival`; or another verified candidate far away fits nearly as well).
+        That is no evidence that the true place is not among those not searched yet. Seen on the
+        campus: map built with the defaults, frames 17786 and 25289, a wrong place 507 m off passed
+        verification at the first stage, its nearby rival kept it unverified, the true place was
+        never searched; nominal map, frame 20179, four verified candidates 6-7 m along a street
+        from the truth, none at it. So the stages go on from where they stopped, and the final
+        decision judges every candidate found (``doubted``'s too, with every test as before: the
+        first best stays a rival of any new one). Only frames whose result was ambiguous reach
+        here: a verified result is returned as before."""
         more, st = self._relocalize_places(scan, scan_ndt, cells, index, theta_c, yaw_win, {}, deadline,
                                            flip_open=self.params.place_flip_open,
                                            first_stage=int(stats.get("place_stage", 0)), done=done)

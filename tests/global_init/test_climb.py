@@ -191,16 +191,22 @@ def test_a_verified_best_the_final_decision_doubts_does_not_end_the_place_search
         return real_rival(best, scan_ndt, structures, p)
 
     monkeypatch.setattr(verify, "nearby_rival", rival_of_the_wrong_place)
-    for search_on in (True, False):
+    # (search on, the first stage's wrong places: one with a rival next to it; two far apart that
+    # fit alike, as the nominal map's frame 20179 had four along a street)
+    T_wrong2 = T_wrong.copy()
+    T_wrong2[1, 3] += 12.0
+    for search_on, wrong_poses in ((True, [T_wrong]), (False, [T_wrong]), (True, [T_wrong, T_wrong2])):
         stages = []
 
         def places(self, scan, scan_ndt, cells, index, theta_c, yaw_win, stats, deadline=math.inf,
-                   candidates=None, flip_open=False, first_stage=0, done=None, stages=stages):
+                   candidates=None, flip_open=False, first_stage=0, done=None, stages=stages,
+                   wrong_poses=wrong_poses):
             stages.append(first_stage)
-            if first_stage == 0:  # the wrong place, verified (made so), probed and climbed already
-                wrong = InitCandidate(T_wrong, 0.9, 0.8, True, True, T_wrong, 1.1, 0.65, refiner=refiner)
-                wrong.probes = []
-                return [wrong], dict(stats, place_stage=1)
+            if first_stage == 0:  # the wrong places, verified (made so), probed and climbed already
+                wrong = [InitCandidate(T, 0.9, 0.8, True, True, T, 1.1, 0.65, refiner=refiner) for T in wrong_poses]
+                for c in wrong:
+                    c.probes = []
+                return wrong, dict(stats, place_stage=1)
             r = refiner.align(scan_ndt, T_true)
             return [self._verified(r, refiner, 0.95, T_true, scan, None, verify.Thresholds.of(self.params))], \
                 dict(stats, place_stage=3)
