@@ -43,12 +43,6 @@ class NoHintSearch:
         2D leaves refined so far (a list the search extends: pass the same one to resume)."""
         p = self.params
         candidates = p.place_candidates if candidates is None else candidates
-        t = time.perf_counter()
-        theta_window = (theta_c, yaw_win) if yaw_win < 2 * math.pi else None
-        places = index.query_cells(cells, max(candidates), theta_window=theta_window)
-        stats.update(place_query_s=time.perf_counter() - t, places=len(index), place_stage=0)
-        if not places:
-            return [], stats
         yaw_guess = math.radians(p.place_yaw_window_deg)
         # The second stage tries every yaw around the first few places (a yaw guess off by more
         # than the window: a weak or symmetric match; small world seed 2, frame 847: the true place
@@ -57,6 +51,14 @@ class NoHintSearch:
         stages = [(k, yaw_guess) for k in candidates]
         if p.place_all_yaw_candidates > 0:
             stages.insert(1, (p.place_all_yaw_candidates, min(yaw_win, 2 * math.pi)))
+        if first_stage >= len(stages):
+            return [], dict(stats, place_stage=first_stage)  # every stage was searched
+        t = time.perf_counter()
+        theta_window = (theta_c, yaw_win) if yaw_win < 2 * math.pi else None
+        places = index.query_cells(cells, max(candidates), theta_window=theta_window)
+        stats.update(place_query_s=time.perf_counter() - t, places=len(index), place_stage=0)
+        if not places:
+            return [], stats
         out: list[InitCandidate] = []
         done = [] if done is None else done
         k_done = max([k for k, yaw in stages[:first_stage] if yaw == yaw_guess], default=0)

@@ -477,10 +477,15 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
                                            first_stage=int(stats.get("place_stage", 0)), done=done)
         for k in ("bnb_time_s", "refine_time_s", "nodes_visited"):
             stats[k] = stats.get(k, 0) + st.get(k, 0)
-        stats["place_stage"] = st.get("place_stage", stats.get("place_stage"))
+        stats["place_stage"] = max(int(st.get("place_stage", 0)), int(stats.get("place_stage", 0)))
         stats["searched_on"] = len(more)
         if st.get("timed_out"):
             stats["timed_out"] = True
+        if not more:  # nothing new: the decision stands
+            for c in doubted.candidates:
+                c.refiner = None
+            doubted.time_s = time.perf_counter() - t0
+            return doubted
         return self._decide(list(doubted.candidates) + more, stats, time.perf_counter() - t0, scan_ndt,
                             scan=scan, cells=cells)
 

@@ -168,6 +168,11 @@ def test_a_resumed_place_search_runs_only_the_stages_after_those_done(setup, mon
     assert [c for c, _ in seen[1]] == [c for c, _ in seen[0][:2]]
     assert not set(c for c, _ in seen[2]) & set(c for c, _ in seen[0])
     assert len(done) >= n_done
+    # past the last stage: nothing searched, not even the index queried
+    monkeypatch.setattr(nohint.place_index, "query_cells", None)
+    more, stats = nohint._relocalize_places(sc, scan_ndt, cells, nohint.place_index, 0.0, 2 * math.pi, {},
+                                            first_stage=3, done=done)
+    assert more == [] and stats["place_stage"] == 3 and len(seen) == 3
 
 
 def test_a_verified_best_the_final_decision_doubts_does_not_end_the_place_search(setup, monkeypatch):
