@@ -33,19 +33,16 @@ class NoHintSearch:
 
     def _relocalize_places(self, scan: ScanProjection, scan_ndt: np.ndarray, cells, index, theta_c: float,
                            yaw_win: float, stats: dict, deadline: float = math.inf,
-                           candidates: tuple[int, ...] | None = None, flip_open: bool = False):
+                           candidates: tuple[int, ...] | None = None, flip_open: bool = False,
+                           first_stage: int = 0, done: list[Candidate2D] | None = None):
         """No-hint search through the place index, widening stage by stage (module docstring) while
         ``time.perf_counter()`` is before ``deadline``; ``candidates``: the stages' place counts
         (default ``place_candidates``); ``flip_open``: an open place's window is searched at its yaw
-        guess reversed too (every yaw allowed)."""
+        guess reversed too (every yaw allowed). ``first_stage``: resume a search that stopped
+        after that many stages (the candidates it returned are not returned again); ``done``: the
+        2D leaves refined so far (a list the search extends: pass the same one to resume)."""
         p = self.params
         candidates = p.place_candidates if candidates is None else candidates
-        t = time.perf_counter()
-        theta_window = (theta_c, yaw_win) if yaw_win < 2 * math.pi else None
-        places = index.query_cells(cells, max(candidates), theta_window=theta_window)
-        stats.update(place_query_s=time.perf_counter() - t, places=len(index), place_stage=0)
-        if not places:
-            return [], stats
         yaw_guess = math.radians(p.place_yaw_window_deg)
         # The second stage tries every yaw around the first few places (a yaw guess off by more
         # than the window: a weak or symmetric match; small world seed 2, frame 847: the true place
@@ -54,10 +51,20 @@ class NoHintSearch:
         stages = [(k, yaw_guess) for k in candidates]
         if p.place_all_yaw_candidates > 0:
             stages.insert(1, (p.place_all_yaw_candidates, min(yaw_win, 2 * math.pi)))
+        if first_stage >= len(stages):
+            return [], dict(stats, place_stage=first_stage)  # every stage was searched
+        t = time.perf_counter()
+        theta_window = (theta_c, yaw_win) if yaw_win < 2 * math.pi else None
+        places = index.query_cells(cells, max(candidates), theta_window=theta_window)
+        stats.update(place_query_s=time.perf_counter() - t, places=len(index), place_stage=0)
+        if not places:
+            return [], stats
         out: list[InitCandidate] = []
-        done: list[Candidate2D] = []
-        k_done = 0
+        done = [] if done is None else done
+        k_done = max([k for k, yaw in stages[:first_stage] if yaw == yaw_guess], default=0)
         for i, (k, yaw) in enumerate(stages):
+            if i < first_stage:
+                continue
             if yaw >= min(yaw_win, 2 * math.pi) and yaw_guess >= min(yaw_win, 2 * math.pi) and i > 0:
                 break  # the guesses' windows already covered every allowed yaw
             if i > 0 and time.perf_counter() >= deadline:
@@ -95,7 +102,7 @@ class NoHintSearch:
             stats["regions_searched"] = st.regions  # the GROUP_M squares holding windows
             res = self._decide(list(out), {}, 0.0, scan_ndt, final=False)
             if res.verified or res.ambiguous:
-                break  # found; or two places fit, which searching more would not change
+                break  # found; or two places fit (the caller may search on: ``_search_on``)
         return out, stats
 
     def _search_windows(self, scan: ScanProjection, windows: list[Window], by_score: int = 0):

@@ -173,12 +173,21 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             return self._localize_hinted(scan, scan_ndt, cells, center, window_m, theta_c, yaw_win, t0)
         deadline = t0 + p.max_search_s if p.max_search_s > 0 else math.inf
         if p.use_place_index:
+            done: list = []
             cands, stats = self._relocalize_places(scan, scan_ndt, cells, index, theta_c, yaw_win, stats, deadline,
-                                                   flip_open=p.place_flip_open)
+                                                   flip_open=p.place_flip_open, done=done)
             res = self._decide(cands, stats, time.perf_counter() - t0, scan_ndt, final=False)
-            # An ambiguous result stays ambiguous however much more is searched.
+            # Something verified (ambiguous or not) ends the search for the regions' fallback: an
+            # ambiguity there is between places the index holds; the place stages may go on.
             if res.verified or res.ambiguous or not p.whole_map_fallback or stats.get("timed_out"):
-                return self._decide(cands, stats, time.perf_counter() - t0, scan_ndt, scan=scan, cells=cells)
+                doubt = p.search_on_doubt and (res.verified or res.ambiguous)
+                out = self._decide(cands, stats, time.perf_counter() - t0, scan_ndt, scan=scan, cells=cells,
+                                   drop_targets=not doubt)
+                if not doubt or out.verified:
+                    for c in out.candidates:
+                        c.refiner = None
+                    return out
+                return self._search_on(out, scan, scan_ndt, cells, index, theta_c, yaw_win, stats, deadline, done, t0)
         more, st = self._relocalize(scan, scan_ndt, theta_c, yaw_win, cells, deadline)
         stats.update({k: v + stats.get(k, 0) if k in ("bnb_time_s", "refine_time_s", "nodes_visited") else v
                       for k, v in st.items()})
@@ -446,12 +455,47 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         except GlobalInitError:
             return np.nan, np.nan
 
+    def _search_on(self, doubted: InitResult, scan: ScanProjection, scan_ndt: np.ndarray, cells, index,
+                   theta_c: float, yaw_win: float, stats: dict, deadline: float, done: list,
+                   t0: float) -> InitResult:
+        """The place search resumed after a stage whose candidates verified but left the result
+        ambiguous (``doubted``: the final decision over them).
+
+        The place stages stop at the first stage with a verified candidate; the decision may then
+        find the result ambiguous (an NDT optimum next to the best fits about as well:
+        :func:`verify.nearby_rival`; or another verified candidate far away fits nearly as well).
+        That is no evidence that the true place is not among those not searched yet. Seen on the
+        campus: map built with the defaults, frames 17786 and 25289, a wrong place 507 m off passed
+        verification at the first stage, its nearby rival kept it unverified, the true place was
+        never searched; nominal map, frame 20179, four verified candidates 6-7 m along a street
+        from the truth, none at it. So the stages go on from where they stopped, and the final
+        decision judges every candidate found (``doubted``'s too, with every test as before: the
+        first best stays a rival of any new one). Only frames whose result was ambiguous reach
+        here: a verified result is returned as before."""
+        more, st = self._relocalize_places(scan, scan_ndt, cells, index, theta_c, yaw_win, {}, deadline,
+                                           flip_open=self.params.place_flip_open,
+                                           first_stage=int(stats.get("place_stage", 0)), done=done)
+        for k in ("bnb_time_s", "refine_time_s", "nodes_visited"):
+            stats[k] = stats.get(k, 0) + st.get(k, 0)
+        stats["place_stage"] = max(int(st.get("place_stage", 0)), int(stats.get("place_stage", 0)))
+        stats["searched_on"] = len(more)
+        if st.get("timed_out"):
+            stats["timed_out"] = True
+        if not more:  # nothing new: the decision stands
+            for c in doubted.candidates:
+                c.refiner = None
+            doubted.time_s = time.perf_counter() - t0
+            return doubted
+        return self._decide(list(doubted.candidates) + more, stats, time.perf_counter() - t0, scan_ndt,
+                            scan=scan, cells=cells)
+
     def _decide(self, cands: list[InitCandidate], stats: dict, elapsed: float,
                 scan_ndt: np.ndarray | None = None, final: bool = True, scan: ScanProjection | None = None,
-                cells=None) -> InitResult:
+                cells=None, drop_targets: bool = True) -> InitResult:
         """:func:`blockloc.global_init.verify.decide` with this localizer's parameters; with the
         ``scan`` (and ``scan_ndt``), a final decision first climbs to better optima nearby
-        (:meth:`_climb`; its time counts in ``elapsed``)."""
+        (:meth:`_climb`; its time counts in ``elapsed``). ``drop_targets``: a final decision
+        drops the candidates' NDT targets (False: a later decision judges them again)."""
         if final and scan is not None and scan_ndt is not None and self.params.climb_rounds > 0:
             t = time.perf_counter()
             n = len(cands)
@@ -459,7 +503,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             dt = time.perf_counter() - t
             stats["climb_s"], stats["climbed"] = dt, len(cands) - n
             elapsed += dt
-        return decide(cands, stats, elapsed, self.params, scan_ndt, final, self._structure_body)
+        return decide(cands, stats, elapsed, self.params, scan_ndt, final, self._structure_body, drop_targets)
 
 
 # ----------------------------------------------------------------------------- one-shot API

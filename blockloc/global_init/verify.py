@@ -191,12 +191,12 @@ def probe_optima(cand: InitCandidate, scan_ndt: np.ndarray, probe_m, lazy: bool 
 
 
 def decide(cands: list[InitCandidate], stats: dict, elapsed: float, p, scan_ndt: np.ndarray | None = None,
-           final: bool = True, structures: list[np.ndarray] | None = None) -> InitResult:
+           final: bool = True, structures: list[np.ndarray] | None = None, drop_targets: bool = True) -> InitResult:
     """The result from refined candidates (module docstring). With ``scan_ndt`` (the points
     refined, body frame), a plausible rival far from the best is no ambiguity when the best
     explains the scan significantly better (:func:`better_fit`). ``final``: look for a nearby
     rival of a verified best (the scan's ``structures`` test it) and drop the candidates' NDT
-    targets. ``p``: the localizer's ``InitParams``."""
+    targets (``drop_targets`` False: keep them for a later decision). ``p``: the localizer's ``InitParams``."""
     # Verified first, then by the NDT score per point: smoother than the inlier ratio, which
     # ties along weakly constrained directions (corridors).
     cands = sorted(cands, key=lambda c: (c.verified, c.ndt_score, c.fitness), reverse=True)
@@ -230,7 +230,7 @@ def decide(cands: list[InitCandidate], stats: dict, elapsed: float, p, scan_ndt:
         if rival is not None:
             ambiguous = True
             cands.append(rival)
-    if final:
+    if final and drop_targets:
         for c in cands:
             c.refiner = None
     if ambiguous:

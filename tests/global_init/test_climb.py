@@ -137,3 +137,95 @@ def test_open_places_are_also_searched_at_their_yaw_guess_reversed(setup, monkey
         assert np.allclose(a.center, w.center) and np.allclose(b.center, w.center)
         assert a.theta == w.theta and b.theta == pytest.approx(w.theta + math.pi)
         assert a.yaw_window == b.yaw_window == w.yaw_window
+
+
+def test_a_resumed_place_search_runs_only_the_stages_after_those_done(setup, monkeypatch):
+    loc, T_true, scan, _, _ = setup
+    params = InitParams(min_fitness=0.999, place_candidates=(3, 6), place_all_yaw_candidates=2,
+                        whole_map_fallback=False, max_search_s=0.0)
+    nohint = GlobalLocalizer(loc.map, params)
+    real = GlobalLocalizer._search_windows
+    seen = []
+
+    def record(self, scan, windows, by_score=0):
+        seen.append([(tuple(np.round(w.center, 3)), w.yaw_window) for w in windows])
+        return real(self, scan, windows, by_score)
+
+    monkeypatch.setattr(GlobalLocalizer, "_search_windows", record)
+    scan_body = scan_from(world_up(seed=3) @ Z_DOWN.T, T_true)
+    sc, scan_ndt = nohint.prepare_scan(scan_body, gravity_body(T_true))
+    cells = nohint._scan_cells(scan_body, gravity_body(T_true))
+    done = []
+    # stopped after the first stage (its deadline passed)
+    _, stats = nohint._relocalize_places(sc, scan_ndt, cells, nohint.place_index, 0.0, 2 * math.pi, {},
+                                         deadline=0.0, done=done)
+    assert stats["place_stage"] == 1 and stats["timed_out"] and len(seen) == 1 and len(done) > 0
+    n_done = len(done)
+    _, stats = nohint._relocalize_places(sc, scan_ndt, cells, nohint.place_index, 0.0, 2 * math.pi, {},
+                                         first_stage=1, done=done)
+    # the all-yaw stage over the first 2 places, then places 4 to 6 (the first 3 were searched)
+    assert [len(s) for s in seen] == [3, 2, 3] and stats["place_stage"] == 3
+    assert [c for c, _ in seen[1]] == [c for c, _ in seen[0][:2]]
+    assert not set(c for c, _ in seen[2]) & set(c for c, _ in seen[0])
+    assert len(done) >= n_done
+    # past the last stage: nothing searched, not even the index queried
+    monkeypatch.setattr(nohint.place_index, "query_cells", None)
+    more, stats = nohint._relocalize_places(sc, scan_ndt, cells, nohint.place_index, 0.0, 2 * math.pi, {},
+                                            first_stage=3, done=done)
+    assert more == [] and stats["place_stage"] == 3 and len(seen) == 3
+
+
+def test_a_verified_best_the_final_decision_doubts_does_not_end_the_place_search(setup, monkeypatch):
+    """Campus, defaults' map, frames 17786 and 25289: a wrong place 507 m off passed verification at
+    the first stage and ended the place search; the final decision found an NDT optimum next to it
+    fitting about as well (ambiguous, not verified), and the true place was never searched. The
+    stages go on after such a doubt; the decision judges everything found."""
+    from blockloc.global_init import verify
+
+    loc, T_true, scan, scan_ndt, refiner = setup
+    T_wrong = xyzrpy_to_T(-25.0, 20.0, -(1.9 - 0.02 * 25.0), 0.03, -0.02, 0.7)
+    real_rival = verify.nearby_rival
+
+    def rival_of_the_wrong_place(best, scan_ndt, structures, p):
+        # the wrong place's scan fit is made up here, so is its rival (as the campus frames had)
+        if np.linalg.norm(best.T_map_body[:3, 3] - T_wrong[:3, 3]) < 1e-6:
+            T = best.T_map_body.copy()
+            T[0, 3] += 0.85
+            return InitCandidate(T, 0.0, best.fitness, True, False, T, best.ndt_score, best.structure_fitness,
+                                 refiner=best.refiner)
+        return real_rival(best, scan_ndt, structures, p)
+
+    monkeypatch.setattr(verify, "nearby_rival", rival_of_the_wrong_place)
+    # (search on, the first stage's wrong places: one with a rival next to it; two far apart that
+    # fit alike, as the nominal map's frame 20179 had four along a street)
+    T_wrong2 = T_wrong.copy()
+    T_wrong2[1, 3] += 12.0
+    for search_on, wrong_poses in ((True, [T_wrong]), (False, [T_wrong]), (True, [T_wrong, T_wrong2])):
+        stages = []
+
+        def places(self, scan, scan_ndt, cells, index, theta_c, yaw_win, stats, deadline=math.inf,
+                   candidates=None, flip_open=False, first_stage=0, done=None, stages=stages,
+                   wrong_poses=wrong_poses):
+            stages.append(first_stage)
+            if first_stage == 0:  # the wrong places, verified (made so), probed and climbed already
+                wrong = [InitCandidate(T, 0.9, 0.8, True, True, T, 1.1, 0.65, refiner=refiner) for T in wrong_poses]
+                for c in wrong:
+                    c.probes = []
+                return wrong, dict(stats, place_stage=1)
+            r = refiner.align(scan_ndt, T_true)
+            return [self._verified(r, refiner, 0.95, T_true, scan, None, verify.Thresholds.of(self.params))], \
+                dict(stats, place_stage=3)
+
+        monkeypatch.setattr(GlobalLocalizer, "_relocalize_places", places)
+        nohint = GlobalLocalizer(loc.map, InitParams(search_on_doubt=search_on, max_search_s=0.0))
+        res = nohint.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true))
+        if search_on:
+            assert stages == [0, 1] and res.verified and not res.ambiguous
+            dt, dr = pose_error(res.T_map_body, T_true)
+            assert dt < 0.1 and dr < 0.5, (dt, dr)
+            assert res.stats["searched_on"] == 1 and res.stats["place_stage"] == 3
+            # the first best stayed a candidate (a rival of the new best, too poor to be one)
+            assert any(np.allclose(c.T_map_body, T_wrong) for c in res.candidates)
+            assert all(c.refiner is None for c in res.candidates)
+        else:
+            assert stages == [0] and res.ambiguous and not res.verified
