@@ -6,8 +6,9 @@ with a yaw hint, to the yaw window, ranks them; the no-hint place stages (``no_h
 windows around the best of them, and every leaf refined lies inside the hint's window. The same
 refinement and verification follow. Plain branch and bound over the whole window
 (``_search_region``) runs only where the place stages cannot answer: the window holds no indexed
-place, the map has no index (``use_place_index`` false), or the places gave nothing verified and
-nothing ambiguous (a pose between places the index does not describe well).
+place, the map has no index (``use_place_index`` false), the places gave nothing verified and
+nothing ambiguous (a pose between places the index does not describe well), or (``search_on_doubt``)
+their candidates verified but left the result ambiguous.
 
 Why: branch and bound over a 40 x 40 m window at every yaw scores ~1.5M nodes a scan at full
 HDL-32E density (3.2 s median on the small world, docs/bench/global_init.md), while the index
@@ -62,7 +63,19 @@ class HintedSearch:
             stats["hint_search"] = "places"
             res = self._decide(list(cands), stats, 0.0, scan_ndt, final=False)
             if res.verified or res.ambiguous:
-                return self._decide(cands, stats, time.perf_counter() - t0, scan_ndt, scan=scan, cells=cells)
+                doubt = p.search_on_doubt
+                out = self._decide(cands, stats, time.perf_counter() - t0, scan_ndt, scan=scan, cells=cells,
+                                   drop_targets=not doubt)
+                if not doubt or out.verified:
+                    for c in out.candidates:
+                        c.refiner = None
+                    return out
+                # Ambiguous among the places (campus, nominal-mounting map, frames 14583 and 20179:
+                # verified candidates along a street): the places are not all the window holds, so
+                # its branch and bound goes on and the decision judges everything found, with every
+                # test as before (as the no-hint search goes on, ``_search_on``).
+                cands = list(out.candidates)
+                stats["searched_on"] = True
         more, st = self._search_region(scan, scan_ndt, center, window_m, theta_c, yaw_win, cells=cells)
         stats.update({k: v + stats.get(k, 0) if k in _SUMMED else v for k, v in st.items()})
         stats["hint_search"] = "places, then branch and bound" if len(rows) else "branch and bound"

@@ -78,8 +78,9 @@ class InitParams(GlobalInitParams):
     scan_voxel_m: float = 0.5
     max_ndt_points: int = 3000
     ambiguity_score_ratio: float = 0.8  # once one is verified, refine others only above this x best
-    # no hint: a stage whose verified candidates leave the result ambiguous does not end the place
-    # search; the stages go on and the decision judges everything found (``GlobalLocalizer._search_on``)
+    # a stage whose verified candidates leave the result ambiguous does not end the search: without a
+    # hint the place stages go on (``GlobalLocalizer._search_on``), with one the window's branch and
+    # bound (``hinted``); the decision judges everything found
     search_on_doubt: bool = True
     refine_range_m: float = 50.0
     # refinement targets assembled from per-entry voxel statistics kept between searches, at most

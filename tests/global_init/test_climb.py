@@ -229,3 +229,44 @@ def test_a_verified_best_the_final_decision_doubts_does_not_end_the_place_search
             assert all(c.refiner is None for c in res.candidates)
         else:
             assert stages == [0] and res.ambiguous and not res.verified
+
+
+def test_a_hinted_search_whose_places_leave_doubt_goes_on_with_the_windows_branch_and_bound(setup, monkeypatch):
+    """Campus, nominal-mounting map, hinted frames 14583 and 20179: the places in the hint's window
+    gave verified candidates along a street that left the result ambiguous, and the window's branch
+    and bound never ran. With ``search_on_doubt`` it runs, and the decision judges everything found;
+    without it the result stays ambiguous, as before."""
+    loc, T_true, scan, scan_ndt, refiner = setup
+    T_a = xyzrpy_to_T(9.0, 4.0, -(1.9 + 0.02 * 9.0), 0.03, -0.02, 2.4)  # two places 6 m apart, both
+    T_b = xyzrpy_to_T(3.0, 4.0, -(1.9 + 0.02 * 3.0), 0.03, -0.02, 2.4)  # verified (made so) alike
+    for search_on in (True, False):
+        regions = []
+
+        def places(self, scan, scan_ndt, cells, index, theta_c, yaw_win, stats, deadline=math.inf,
+                   candidates=None, flip_open=False, first_stage=0, done=None):
+            wrong = [InitCandidate(T, 0.9, 0.8, True, True, T, 1.1, 0.65, refiner=refiner) for T in (T_a, T_b)]
+            for c in wrong:
+                c.probes = []
+            return wrong, dict(stats, place_stage=1)
+
+        def region(self, scan, scan_ndt, center, window_m, theta_c, yaw_win, cells=None, regions=regions):
+            from blockloc.global_init import verify
+
+            regions.append((tuple(np.round(center, 3)), window_m))
+            r = refiner.align(scan_ndt, T_true)
+            return [self._verified(r, refiner, 0.95, T_true, scan, None, verify.Thresholds.of(self.params))], {}
+
+        monkeypatch.setattr(GlobalLocalizer, "_relocalize_places", places)
+        monkeypatch.setattr(GlobalLocalizer, "_search_region", region)
+        hinted = GlobalLocalizer(loc.map, InitParams(search_on_doubt=search_on))
+        res = hinted.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true),
+                              hint_xy=(6.0, 4.0), window_m=30.0)
+        if search_on:
+            assert len(regions) == 1 and regions[0][1] == 30.0
+            assert res.verified and not res.ambiguous, res.stats
+            dt, dr = pose_error(res.T_map_body, T_true)
+            assert dt < 0.1 and dr < 0.5, (dt, dr)
+            assert res.stats["searched_on"] and res.stats["hint_search"] == "places, then branch and bound"
+            assert all(c.refiner is None for c in res.candidates)
+        else:
+            assert regions == [] and res.ambiguous and not res.verified
