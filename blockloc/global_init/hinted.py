@@ -15,8 +15,8 @@ HDL-32E density (3.2 s median on the small world, docs/bench/global_init.md), wh
 picks the right place and its yaw among a few dozen in the window in milliseconds.
 
 :class:`HintedSearch` is a base of :class:`blockloc.global_init.relocalize.GlobalLocalizer`; it
-uses the localizer's ``params``, ``place_index``, ``_relocalize_places``, ``_search_region`` and
-``_decide``, and sets ``_leaf_box``, which ``_refine`` honours.
+uses the localizer's ``params``, ``place_index``, ``_relocalize_places``, ``_search_region``,
+``_decide`` and ``_decide_unless_doubted``, and sets ``_leaf_box``, which ``_refine`` honours.
 """
 
 from __future__ import annotations
@@ -63,12 +63,8 @@ class HintedSearch:
             stats["hint_search"] = "places"
             res = self._decide(list(cands), stats, 0.0, scan_ndt, final=False)
             if res.verified or res.ambiguous:
-                doubt = p.search_on_doubt
-                out = self._decide(cands, stats, time.perf_counter() - t0, scan_ndt, scan=scan, cells=cells,
-                                   drop_targets=not doubt)
-                if not doubt or out.verified:
-                    for c in out.candidates:
-                        c.refiner = None
+                out, stands = self._decide_unless_doubted(cands, stats, t0, scan_ndt, scan, cells, p.search_on_doubt)
+                if stands:
                     return out
                 # Ambiguous among the places (campus, nominal-mounting map, frames 14583 and 20179:
                 # verified candidates along a street): the places are not all the window holds, so

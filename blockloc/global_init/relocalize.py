@@ -181,11 +181,8 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             # ambiguity there is between places the index holds; the place stages may go on.
             if res.verified or res.ambiguous or not p.whole_map_fallback or stats.get("timed_out"):
                 doubt = p.search_on_doubt and (res.verified or res.ambiguous)
-                out = self._decide(cands, stats, time.perf_counter() - t0, scan_ndt, scan=scan, cells=cells,
-                                   drop_targets=not doubt)
-                if not doubt or out.verified:
-                    for c in out.candidates:
-                        c.refiner = None
+                out, stands = self._decide_unless_doubted(cands, stats, t0, scan_ndt, scan, cells, doubt)
+                if stands:
                     return out
                 return self._search_on(out, scan, scan_ndt, cells, index, theta_c, yaw_win, stats, deadline, done, t0)
         more, st = self._relocalize(scan, scan_ndt, theta_c, yaw_win, cells, deadline)
@@ -488,6 +485,20 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             return doubted
         return self._decide(list(doubted.candidates) + more, stats, time.perf_counter() - t0, scan_ndt,
                             scan=scan, cells=cells)
+
+    def _decide_unless_doubted(self, cands: list[InitCandidate], stats: dict, t0: float, scan_ndt: np.ndarray,
+                               scan: ScanProjection, cells, doubt: bool) -> tuple[InitResult, bool]:
+        """The final decision over ``cands`` (``t0``: ``time.perf_counter()`` at the search's start)
+        and whether it stands: verified, or ``doubt`` false (no search goes on after an ambiguous
+        result). A result that stands drops its candidates' NDT targets; one that does not keeps
+        them for the decision after the search goes on (``search_on_doubt``)."""
+        out = self._decide(cands, stats, time.perf_counter() - t0, scan_ndt, scan=scan, cells=cells,
+                           drop_targets=not doubt)
+        stands = not doubt or out.verified
+        if stands:
+            for c in out.candidates:
+                c.refiner = None
+        return out, stands
 
     def _decide(self, cands: list[InitCandidate], stats: dict, elapsed: float,
                 scan_ndt: np.ndarray | None = None, final: bool = True, scan: ScanProjection | None = None,
