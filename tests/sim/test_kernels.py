@@ -373,6 +373,20 @@ def _ref_facades(self, idx, owner, origins, dirs, rng_, normals, reflect, glass,
     glass[idx] = window & ~inside & ~passed
 
 
+def _cast_sweeps(scene, casts, seed: int, timed: bool = True):
+    """``scene.cast_full`` of each of :func:`_tiny_sweeps`' casts, the k-th drawing from generator
+    ``seed + k``; ``timed`` False: without the sweep's time (the world's static structure)."""
+    return [scene.cast_full(o, d, t if timed else None, 100.0, np.random.default_rng(seed + k))
+            for k, (o, d, t) in enumerate(casts)]
+
+
+def _assert_same_casts(got, want):
+    """Two lists of casts bit for bit the same, field by field."""
+    for g, w in zip(got, want):
+        for key in ("range", "normal", "reflect", "cat", "glass", "retro"):
+            assert g[key].dtype == w[key].dtype and g[key].tobytes() == w[key].tobytes(), key
+
+
 def _tiny_sweeps(A: int):
     """The tiny world's localization day (seed 3) and three sweeps of ``A`` columns x 32 beams from
     it: (scene, [(origins (A*32, 3), directions (A*32, 3), mid-sweep time s)])."""
@@ -404,17 +418,12 @@ def test_facades_measure_the_room_behind_a_window_only_for_rays_into_it(monkeypa
         real_facades(self, idx, owner, origins, dirs, rng_, *rest)
         room_rays.append(int((rng_[idx] - before > 0.9).sum()))  # returns from a room behind a pane
 
-    def run():
-        return [scene.cast_full(o, d, None, 100.0, np.random.default_rng(11 + k)) for k, (o, d, _) in enumerate(casts)]
-
     monkeypatch.setattr(SessionScene, "_facades", counting)
-    got = run()
+    got = _cast_sweeps(scene, casts, 11, timed=False)
     monkeypatch.setattr(SessionScene, "_facades", _ref_facades)
-    want = run()
+    want = _cast_sweeps(scene, casts, 11, timed=False)
     assert sum(room_rays) > 20 and sum(int(w["glass"].sum()) for w in want) > 20
-    for g, w in zip(got, want):
-        for key in ("range", "normal", "reflect", "cat", "glass", "retro"):
-            assert g[key].dtype == w[key].dtype and g[key].tobytes() == w[key].tobytes(), key
+    _assert_same_casts(got, want)
 
 
 def test_scene_cast_gives_the_numpy_ground_and_vegetation_bits(monkeypatch):
@@ -424,19 +433,14 @@ def test_scene_cast_gives_the_numpy_ground_and_vegetation_bits(monkeypatch):
 
     scene, casts = _tiny_sweeps(720)
 
-    def run():
-        return [scene.cast_full(o, d, t, 100.0, np.random.default_rng(7 + k)) for k, (o, d, t) in enumerate(casts)]
-
-    got = run()
+    got = _cast_sweeps(scene, casts, 7)
     monkeypatch.setattr(SessionScene, "_ground_relief", _ref_ground_relief)
     monkeypatch.setattr(SessionScene, "_vegetation", _ref_vegetation)
-    want = run()
+    want = _cast_sweeps(scene, casts, 7)
     fol, grass_like = scene.categories.index("foliage"), scene.categories.index("terrain")
     assert sum(int((w["cat"] == fol).sum()) for w in want) > 50  # rays stopped in crowns
     assert sum(int((w["cat"] == grass_like).sum()) for w in want) > 1000
-    for g, w in zip(got, want):
-        for key in ("range", "normal", "reflect", "cat", "glass", "retro"):
-            assert g[key].dtype == w[key].dtype and g[key].tobytes() == w[key].tobytes(), key
+    _assert_same_casts(got, want)
 
 
 def test_column_poses_at_once_are_the_rotation_and_position_evaluated_apart():
@@ -472,18 +476,13 @@ def test_first_vegetation_pass_leaves_out_only_rays_that_end_short_of_every_hull
         kept.append((len(out), len(rng_)))
         return out
 
-    def run():
-        return [scene.cast_full(o, d, t, 100.0, np.random.default_rng(5 + k)) for k, (o, d, t) in enumerate(casts)]
-
     monkeypatch.setattr(SessionScene, "_rays_near_hulls", counting)
-    got = run()
+    got = _cast_sweeps(scene, casts, 5)
     assert sum(k for k, _ in kept) < 0.6 * sum(n for _, n in kept)  # most rays left out
     monkeypatch.setattr(SessionScene, "_rays_near_hulls", lambda self, o, d, r: np.arange(len(r)))
-    want = run()
+    want = _cast_sweeps(scene, casts, 5)
     assert sum(int((w["cat"] == scene.categories.index("foliage")).sum()) for w in want) > 50
-    for g, w in zip(got, want):
-        for key in ("range", "normal", "reflect", "cat", "glass", "retro"):
-            assert g[key].dtype == w[key].dtype and g[key].tobytes() == w[key].tobytes(), key
+    _assert_same_casts(got, want)
 
 
 def test_actor_cast_leaves_out_only_rays_that_end_short_of_every_actor(monkeypatch):
@@ -503,19 +502,14 @@ def test_actor_cast_leaves_out_only_rays_that_end_short_of_every_actor(monkeypat
         kept.append((len(out), len(cols)))
         return out
 
-    def run():
-        return [scene.cast_full(o, d, t, 100.0, np.random.default_rng(5 + k)) for k, (o, d, t) in enumerate(casts)]
-
     monkeypatch.setattr(_kernels, "actor_rays", counting)
-    got = run()
+    got = _cast_sweeps(scene, casts, 5)
     assert sum(k for k, _ in kept) < 0.8 * sum(n for _, n in kept)  # rays of the columns left out
     monkeypatch.setattr(_kernels, "actor_rays", lambda xy, o, d, r, *rest: np.arange(len(r)))
-    want = run()
+    want = _cast_sweeps(scene, casts, 5)
     actors = [scene.categories.index(c) for c in ("pedestrian", "vehicle")]
     assert sum(int(np.isin(w["cat"], actors).sum()) for w in want) > 50
-    for g, w in zip(got, want):
-        for key in ("range", "normal", "reflect", "cat", "glass", "retro"):
-            assert g[key].dtype == w[key].dtype and g[key].tobytes() == w[key].tobytes(), key
+    _assert_same_casts(got, want)
 
 
 def test_actor_meshes_lie_within_the_bounding_radius():
