@@ -19,6 +19,15 @@ def up_from_gravity(gravity: np.ndarray) -> np.ndarray:
     return -g / np.linalg.norm(g)
 
 
+def tangent_basis(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two (3,) unit vectors e1, e2 spanning the plane normal to the unit vector ``up`` (3,), with
+    (e1, e2, up) right-handed."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(up, helper)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(up, e1)
+
+
 def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """(3, 3) rotation and (3,) translation -> (4, 4) transform."""
     T = np.eye(4)

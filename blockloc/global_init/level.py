@@ -43,6 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from blockloc.errors import GlobalInitError
+from blockloc.geometry import tangent_basis
 
 log = logging.getLogger(__name__)
 
@@ -105,19 +106,12 @@ def _planar_cells(points: np.ndarray, cell_m: float, planarity: float, min_point
     return v[flat_enough, :, 0], cnt[kept].astype(np.float64), label[inv]
 
 
-def _tangent_basis(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(up, helper)
-    e1 /= np.linalg.norm(e1)
-    return e1, np.cross(up, e1)
-
-
 def _vote_axis(normals: np.ndarray, weights: np.ndarray, up: np.ndarray, max_tilt_deg: float
                ) -> tuple[np.ndarray, float]:
     """The up axis most normals within the cone agree with, and the weight share voting for it."""
     from scipy.ndimage import uniform_filter
 
-    e1, e2 = _tangent_basis(up)
+    e1, e2 = tangent_basis(up)
     c = normals @ up
     a, b = (normals @ e1) / c, (normals @ e2) / c
     lim = np.tan(np.radians(max_tilt_deg))

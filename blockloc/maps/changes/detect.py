@@ -44,6 +44,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from blockloc.geometry import tangent_basis
+
 #: voxel key packing: 21 bits per axis (signed, +- 2^20 voxels: +-524 km at 0.5 m)
 _BITS = 21
 _OFF = 1 << (_BITS - 1)
@@ -451,10 +453,7 @@ def seen_by_keyframes(cells: np.ndarray, fine_m: float, keyframes: np.ndarray, f
         if len(todo):
             seen[todo] = segments_clear(kf[idx[todo, j]], centres[todo], fine_keys, fine_m, margin_m)
     if sectors > 0:
-        u = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, np.float64).reshape(3)
-        e1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(u, e1)
+        e1, e2 = tangent_basis(np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, np.float64).reshape(3))
         m = min(int(pool), len(kf))
         hidden = np.flatnonzero(~seen)
         for c0 in range(0, len(hidden), chunk):  # (cells x pool) arrays a chunk of cells at a time
