@@ -86,9 +86,11 @@ ACC_LEN = 50
 SERIAL_MAX_POINTS = 2048
 
 
-# contract (FMA) and reassoc: measured 5-10% faster passes; sums agree with the strict build
-# to ~1e-15 relative (tested against a plain numpy chain rule at 1e-9)
-@njit(cache=True, nogil=True, fastmath={"contract", "reassoc", "nsz"})
+# Strict IEEE arithmetic on purpose, no fastmath: with contract (FMA) and reassoc (5-10% faster
+# passes) LLVM's choices depended on how the kernel was compiled (afresh inside its caller, or
+# loaded from numba's cache), so the same alignment differed in the last bits from one process to
+# the next, and a map build's blocks with them (tests/registration/test_ndt_reproducible.py)
+@njit(cache=True, nogil=True)
 def _eval_chunk(points, lo, hi, stride, T, level, neighbors, d1, d2, inlier_q, mode, key_cache,
                 row_cache, out):
     """Add the terms of points[lo:hi:stride] to out (ACC_LEN,); see ``ndt_evaluate``."""
