@@ -71,6 +71,56 @@ def test_an_optimum_does_not_climb_and_the_rival_check_reuses_its_probes(setup):
     assert "climb_s" not in res.stats and len(res.candidates) >= 1
 
 
+def test_an_unconverged_candidate_is_judged_at_the_optimum_it_settles_at(setup):
+    """Campus, defaults' map, frame 17933: the candidate 0.15 m from the truth fitted best of all but
+    NDT left it unconverged, so it was never verified, and a wrong place 400 m off won (made
+    ambiguous by it). A final decision aligns such a candidate once more from where it stopped and
+    judges the optimum it settles at; one still sliding stays as it was (a rival). Without
+    ``settle_unconverged``, the result stays ambiguous, as before."""
+    from blockloc.global_init.verify import Thresholds, structure_fit
+
+    loc, T_true, scan, scan_ndt, refiner = setup
+    T_wrong = xyzrpy_to_T(-25.0, 20.0, -(1.9 - 0.02 * 25.0), 0.03, -0.02, 0.7)
+    T_near = refiner.align(scan_ndt, T_true).T_map_body.copy()
+    T_near[0, 3] += 0.15
+    loc._verified(refiner.align(scan_ndt, T_true), refiner, 0.9, T_true, scan, None, Thresholds.of(loc.params))
+    structures = loc._structure_body
+
+    class Sliding:  # a refiner whose every alignment runs out of iterations
+        def align_settled(self, scan_ndt, T):
+            r = refiner.align(scan_ndt, T)
+            r.converged = False
+            return r
+
+        def __getattr__(self, name):
+            return getattr(refiner, name)
+
+    def candidates(ref):
+        # the wrong place verified (made so, as its scan fit is made up); the one near the truth
+        # with the measurements NDT gave there, unconverged
+        wrong = InitCandidate(T_wrong, 0.9, 0.8, True, True, T_wrong, 1.1, 0.65, refiner=ref)
+        wrong.probes = []
+        score = refiner.engine.evaluate(refiner._target, scan_ndt, T_near).score / len(scan_ndt)
+        near = InitCandidate(T_near, 0.9, refiner.inlier_ratio(scan_ndt, T_near), False, False, T_near, score,
+                             structure_fit(refiner, structures, T_near, loc.params.min_structure_fitness),
+                             refiner=ref)
+        assert near.fitness >= loc.params.min_fitness and near.structure_fitness >= loc.params.min_structure_fitness
+        return [wrong, near]
+
+    for settle, ref in ((True, refiner), (False, refiner), (True, Sliding())):
+        nohint = GlobalLocalizer(loc.map, InitParams(settle_unconverged=settle, climb_rounds=0))
+        cands = candidates(ref)
+        res = nohint._decide(cands, {}, 0.0, scan_ndt, scan=scan)
+        if settle and ref is refiner:
+            assert res.verified and not res.ambiguous and res.stats["settled"] == 1
+            dt, dr = pose_error(res.T_map_body, T_true)
+            assert dt < 0.1 and dr < 0.5, (dt, dr)
+        else:
+            assert res.ambiguous and not res.verified
+            assert np.allclose(res.T_map_body, T_wrong)
+            assert any(c is cands[1] for c in res.candidates)  # the sliding one kept as it was
+
+
 def test_a_later_stage_also_takes_the_best_leaves_by_2d_score(setup):
     loc, T_true, scan, _, _ = setup
     xy = (loc.map.R_L_map @ T_true[:3, 3])[:2]
@@ -91,7 +141,7 @@ def test_the_second_stage_searches_the_first_places_at_every_yaw(setup, monkeypa
     right after the first stage, the first ``place_all_yaw_candidates`` places at every yaw."""
     loc, T_true, scan, _, _ = setup
     params = InitParams(min_fitness=0.999, place_candidates=(3, 6), place_all_yaw_candidates=2,
-                        whole_map_fallback=False, max_search_s=0.0)
+                        whole_map_fallback=False, max_search_s=0.0, place_narrow_window_m=0.0)
     nohint = GlobalLocalizer(loc.map, params)
     seen = []
     real = GlobalLocalizer._search_windows
@@ -107,6 +157,39 @@ def test_the_second_stage_searches_the_first_places_at_every_yaw(setup, monkeypa
     assert [len(s) for s in seen] == [3, 2, 3]  # 3 places, the first 2 at every yaw, the next 3
     assert all(y == guess for _, y in seen[0] + seen[2]) and all(y == 2 * math.pi for _, y in seen[1])
     assert [c for c, _ in seen[1]] == [c for c, _ in seen[0][:2]]
+
+
+def test_the_first_places_are_searched_again_in_narrow_windows_right_after_the_first_stage(setup, monkeypatch):
+    """Campus, defaults' map, frame 51000 (an open stretch, 158 scan cells): the place ranked first
+    lay 0.6 m from the truth, but over its 12 m window the 2D score saturates and the window's best
+    leaf lay 7.8 m off (the leaf at the truth fifth), beyond NDT's reach. Right after the first
+    stage, its places are searched again in windows of ``place_narrow_window_m`` (same centres, same
+    yaw guesses, best place first); without it (0), not."""
+    loc, T_true, scan, _, _ = setup
+    real = GlobalLocalizer._search_windows
+    for narrow in (3.0, 0.0):
+        params = InitParams(min_fitness=0.999, place_candidates=(3, 6), place_all_yaw_candidates=2,
+                            whole_map_fallback=False, max_search_s=0.0, place_narrow_window_m=narrow)
+        nohint = GlobalLocalizer(loc.map, params)
+        seen, by = [], []
+
+        def record(self, scan, windows, by_score=0, seen=seen, by=by):
+            seen.append([(tuple(np.round(w.center, 3)), w.theta, w.yaw_window, w.size_m) for w in windows])
+            by.append(by_score)
+            return real(self, scan, windows, by_score)
+
+        monkeypatch.setattr(GlobalLocalizer, "_search_windows", record)
+        res = nohint.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true))
+        assert not res.verified
+        sizes = [{w[3] for w in s} for s in seen]
+        if narrow:
+            # the first 3 places at 12 m, the same 3 at 3 m, the first 2 at every yaw, the next 3
+            assert [len(s) for s in seen] == [3, 3, 2, 3] and sizes == [{12.0}, {3.0}, {12.0}, {12.0}]
+            assert [w[:3] for w in seen[1]] == [w[:3] for w in seen[0]]
+            assert by[1] == 0 and res.stats["place_stage"] == 4
+        else:
+            assert [len(s) for s in seen] == [3, 2, 3] and {3.0} not in sizes
+            assert res.stats["place_stage"] == 3
 
 
 def test_open_places_are_also_searched_at_their_yaw_guess_reversed(setup, monkeypatch):
@@ -163,16 +246,18 @@ def test_a_resumed_place_search_runs_only_the_stages_after_those_done(setup, mon
     n_done = len(done)
     _, stats = nohint._relocalize_places(sc, scan_ndt, cells, nohint.place_index, 0.0, 2 * math.pi, {},
                                          first_stage=1, done=done)
-    # the all-yaw stage over the first 2 places, then places 4 to 6 (the first 3 were searched)
-    assert [len(s) for s in seen] == [3, 2, 3] and stats["place_stage"] == 3
-    assert [c for c, _ in seen[1]] == [c for c, _ in seen[0][:2]]
-    assert not set(c for c, _ in seen[2]) & set(c for c, _ in seen[0])
+    # the first 3 places in narrow windows, the all-yaw stage over the first 2, then places 4 to 6
+    # (the first 3 were searched)
+    assert [len(s) for s in seen] == [3, 3, 2, 3] and stats["place_stage"] == 4
+    assert [c for c, _ in seen[1]] == [c for c, _ in seen[0]]
+    assert [c for c, _ in seen[2]] == [c for c, _ in seen[0][:2]]
+    assert not set(c for c, _ in seen[3]) & set(c for c, _ in seen[0])
     assert len(done) >= n_done
     # past the last stage: nothing searched, not even the index queried
     monkeypatch.setattr(nohint.place_index, "query_cells", None)
     more, stats = nohint._relocalize_places(sc, scan_ndt, cells, nohint.place_index, 0.0, 2 * math.pi, {},
-                                            first_stage=3, done=done)
-    assert more == [] and stats["place_stage"] == 3 and len(seen) == 3
+                                            first_stage=4, done=done)
+    assert more == [] and stats["place_stage"] == 4 and len(seen) == 4
 
 
 def test_a_verified_best_the_final_decision_doubts_does_not_end_the_place_search(setup, monkeypatch):
