@@ -49,18 +49,22 @@ class NoHintSearch:
         # than the window: a weak or symmetric match; small world seed 2, frame 847: the true place
         # ranked first with its yaw guess 40 deg off, never searched at its yaw before the budget
         # ran out). Every yaw costs ~20 guessed windows each, hence only the first few places.
-        # Each stage: (places, yaw window, window side). The first places' windows narrowed
-        # (``place_narrow_window_m``) come right after the first stage: where the scan's projection
-        # band holds few cells (an open stretch), the 2D score saturates over a 12 m window and its
-        # best leaf lies metres from the place, outside NDT's reach, though the index placed the
-        # scan within ``place_tolerance_m`` (campus, defaults' map, frame 51000: 158 scan cells,
-        # the place ranked first 0.6 m from the truth with its yaw guess 0.7 deg off; its window's
-        # best leaf 7.8 m off scored 0.990, the leaf 0.2 m from the truth 0.978, fifth).
+        # Each stage: (places, yaw window, window side). For a scan whose projection band holds
+        # few cells (fewer than ``place_narrow_max_cells``: an open stretch), the first places'
+        # windows narrowed (``place_narrow_window_m``) come right after the first stage: the 2D
+        # score of such a scan saturates over a 12 m window and its best leaf lies metres from the
+        # place, outside NDT's reach, though the index placed the scan within ``place_tolerance_m``
+        # (campus, defaults' map, frame 51000: 158 scan cells, the place ranked first 0.6 m from
+        # the truth with its yaw guess 0.7 deg off; its window's best leaf 7.8 m off scored 0.990,
+        # the leaf 0.2 m from the truth 0.978, fifth). Not for every scan: a stage that ends the
+        # search early judges fewer candidates, and a wrong place that passes verification needs
+        # the others to be found ambiguous (seen: campus frame 16498, 654 cells, the median scan
+        # ~770: a wrong place 182 m off verified in a narrowed window, alone).
         size = p.place_window_m
         stages = [(k, yaw_guess, size) for k in candidates]
         if p.place_all_yaw_candidates > 0:
             stages.insert(1, (p.place_all_yaw_candidates, min(yaw_win, 2 * math.pi), size))
-        if 0 < p.place_narrow_window_m < size:
+        if 0 < p.place_narrow_window_m < size and len(scan.xy) < p.place_narrow_max_cells:
             stages.insert(1, (candidates[0], yaw_guess, p.place_narrow_window_m))
         if first_stage >= len(stages):
             return [], dict(stats, place_stage=first_stage)  # every stage was searched

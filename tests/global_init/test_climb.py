@@ -164,12 +164,15 @@ def test_the_first_places_are_searched_again_in_narrow_windows_right_after_the_f
     lay 0.6 m from the truth, but over its 12 m window the 2D score saturates and the window's best
     leaf lay 7.8 m off (the leaf at the truth fifth), beyond NDT's reach. Right after the first
     stage, its places are searched again in windows of ``place_narrow_window_m`` (same centres, same
-    yaw guesses, best place first); without it (0), not."""
+    yaw guesses, best place first), for a scan of fewer than ``place_narrow_max_cells`` cells only;
+    without it (0), or for a scan with more cells, not."""
     loc, T_true, scan, _, _ = setup
     real = GlobalLocalizer._search_windows
-    for narrow in (3.0, 0.0):
+    n = len(scan.xy)
+    for narrow, max_cells in ((3.0, n + 1), (0.0, n + 1), (3.0, n)):
         params = InitParams(min_fitness=0.999, place_candidates=(3, 6), place_all_yaw_candidates=2,
-                            whole_map_fallback=False, max_search_s=0.0, place_narrow_window_m=narrow)
+                            whole_map_fallback=False, max_search_s=0.0, place_narrow_window_m=narrow,
+                            place_narrow_max_cells=max_cells)
         nohint = GlobalLocalizer(loc.map, params)
         seen, by = [], []
 
@@ -182,7 +185,7 @@ def test_the_first_places_are_searched_again_in_narrow_windows_right_after_the_f
         res = nohint.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true))
         assert not res.verified
         sizes = [{w[3] for w in s} for s in seen]
-        if narrow:
+        if narrow and max_cells > n:
             # the first 3 places at 12 m, the same 3 at 3 m, the first 2 at every yaw, the next 3
             assert [len(s) for s in seen] == [3, 3, 2, 3] and sizes == [{12.0}, {3.0}, {12.0}, {12.0}]
             assert [w[:3] for w in seen[1]] == [w[:3] for w in seen[0]]
@@ -225,7 +228,7 @@ def test_open_places_are_also_searched_at_their_yaw_guess_reversed(setup, monkey
 def test_a_resumed_place_search_runs_only_the_stages_after_those_done(setup, monkeypatch):
     loc, T_true, scan, _, _ = setup
     params = InitParams(min_fitness=0.999, place_candidates=(3, 6), place_all_yaw_candidates=2,
-                        whole_map_fallback=False, max_search_s=0.0)
+                        whole_map_fallback=False, max_search_s=0.0, place_narrow_max_cells=10**6)
     nohint = GlobalLocalizer(loc.map, params)
     real = GlobalLocalizer._search_windows
     seen = []
