@@ -106,6 +106,7 @@ class InitParams(GlobalInitParams):
     place_narrow_window_m: float = 3.0
     place_narrow_max_cells: int = 300
     place_top_k: int = 6  # leaves refined per stage
+    place_later_top_k: int = 12  # the same after the first stage (each way: best places, best 2D scores)
     # the best leaves of each window (0: one top place_top_k over all windows, by 2D score)
     place_leaves_per_window: int = 1
     # the hinted search's place stages (``hinted``): a window holds a few dozen places, and the true

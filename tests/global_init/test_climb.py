@@ -146,9 +146,9 @@ def test_the_second_stage_searches_the_first_places_at_every_yaw(setup, monkeypa
     seen = []
     real = GlobalLocalizer._search_windows
 
-    def record(self, scan, windows, by_score=0):
+    def record(self, scan, windows, by_score=0, top_k=None):
         seen.append([(tuple(np.round(w.center, 3)), w.yaw_window) for w in windows])
-        return real(self, scan, windows, by_score)
+        return real(self, scan, windows, by_score, top_k)
 
     monkeypatch.setattr(GlobalLocalizer, "_search_windows", record)
     res = nohint.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true))
@@ -176,10 +176,10 @@ def test_the_first_places_are_searched_again_in_narrow_windows_right_after_the_f
         nohint = GlobalLocalizer(loc.map, params)
         seen, by = [], []
 
-        def record(self, scan, windows, by_score=0, seen=seen, by=by):
+        def record(self, scan, windows, by_score=0, top_k=None, seen=seen, by=by):
             seen.append([(tuple(np.round(w.center, 3)), w.theta, w.yaw_window, w.size_m) for w in windows])
             by.append(by_score)
-            return real(self, scan, windows, by_score)
+            return real(self, scan, windows, by_score, top_k)
 
         monkeypatch.setattr(GlobalLocalizer, "_search_windows", record)
         res = nohint.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true))
@@ -210,9 +210,9 @@ def test_open_places_are_also_searched_at_their_yaw_guess_reversed(setup, monkey
         monkeypatch.setattr(index, "band", np.ones_like(np.asarray(index.band)))
         stages = []
 
-        def record(self, scan, windows, by_score=0, stages=stages):
+        def record(self, scan, windows, by_score=0, top_k=None, stages=stages):
             stages.append(list(windows))
-            return real(self, scan, windows, by_score)
+            return real(self, scan, windows, by_score, top_k)
 
         monkeypatch.setattr(GlobalLocalizer, "_search_windows", record)
         nohint.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true))
@@ -233,9 +233,9 @@ def test_a_resumed_place_search_runs_only_the_stages_after_those_done(setup, mon
     real = GlobalLocalizer._search_windows
     seen = []
 
-    def record(self, scan, windows, by_score=0):
+    def record(self, scan, windows, by_score=0, top_k=None):
         seen.append([(tuple(np.round(w.center, 3)), w.yaw_window) for w in windows])
-        return real(self, scan, windows, by_score)
+        return real(self, scan, windows, by_score, top_k)
 
     monkeypatch.setattr(GlobalLocalizer, "_search_windows", record)
     scan_body = scan_from(world_up(seed=3) @ Z_DOWN.T, T_true)
