@@ -195,6 +195,38 @@ def test_the_first_places_are_searched_again_in_narrow_windows_right_after_the_f
             assert res.stats["place_stage"] == 3
 
 
+def test_the_stages_after_the_first_refine_place_later_top_k_leaves_each_way(setup, monkeypatch):
+    """Campus, defaults' map, --rng 13, frames 16591 and 24995: the true places ranked 13th and 34th
+    (open places, whose windows come twice), their leaves never among the 6 refined a stage; a wrong
+    place verified instead (ambiguous). After the first stage, ``place_later_top_k`` leaves of the
+    best places and as many by 2D score; the first stage as before."""
+    loc, T_true, scan, _, _ = setup
+    real = GlobalLocalizer._search_windows
+    params = InitParams(min_fitness=0.999, place_candidates=(3, 6), place_all_yaw_candidates=2,
+                        whole_map_fallback=False, max_search_s=0.0, place_narrow_window_m=0.0,
+                        place_top_k=2, place_later_top_k=5)
+    nohint = GlobalLocalizer(loc.map, params)
+    calls = []
+
+    def record(self, scan, windows, by_score=0, top_k=None):
+        out = real(self, scan, windows, by_score, top_k)
+        calls.append((top_k, by_score, len(windows), len(out[0])))
+        return out
+
+    monkeypatch.setattr(GlobalLocalizer, "_search_windows", record)
+    nohint.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true))
+    assert [(k, b) for k, b, _, _ in calls] == [(2, 0), (5, 5), (5, 5)]
+    assert calls[0][3] <= 2
+    # the budget itself: top_k leaves of the best windows first, in the windows' order
+    xy = (loc.map.R_L_map @ T_true[:3, 3])[:2]
+    theta = loc._theta_from_yaw(math.atan2(T_true[1, 0], T_true[0, 0]), scan)
+    ws = [Window(xy + np.array([dx, 25.0]), 12.0, theta + 1.0, math.radians(16.0)) for dx in (-30.0, 0.0)]
+    ws.append(Window(xy, 12.0, theta, math.radians(16.0)))
+    one = GlobalLocalizer(loc.map, InitParams(place_top_k=1, ambiguity_score_ratio=0.0))
+    assert [c.window for c in one._search_windows(scan, ws)[0]] == [0]
+    assert [c.window for c in one._search_windows(scan, ws, top_k=3)[0]] == [0, 1, 2]
+
+
 def test_open_places_are_also_searched_at_their_yaw_guess_reversed(setup, monkeypatch):
     """An open street's low band looks alike both ways (campus, defaults' map, frame 27961: the true
     places' yaw guesses 180 deg off): with no hint, an open place's window comes twice, at its yaw
