@@ -2,10 +2,9 @@
 
 The map's place index ranks the places that look like the scan, with a yaw guess each; one branch
 and bound runs over small windows around the best ``place_candidates[0]`` of them (yaw within
-``place_yaw_window_deg`` of the guess), then, while nothing is verified, around the same places in
-windows of ``place_narrow_window_m``, around the first ``place_all_yaw_candidates`` of them at
-every yaw, then around more of them (later stages also refine the best leaves by 2D score beyond
-the first places); only then
+``place_yaw_window_deg`` of the guess), then, while nothing is verified, around the first
+``place_all_yaw_candidates`` of them at every yaw, then around more of them (later stages also
+refine the best leaves by 2D score beyond the first places); only then
 (``whole_map_fallback``) are square regions tiling the map searched in the order of a cheap score
 (the best coarse bound of a subsampled scan over coarse angles) until one gives a verified match
 or ``max_search_s`` has passed.
@@ -49,23 +48,9 @@ class NoHintSearch:
         # than the window: a weak or symmetric match; small world seed 2, frame 847: the true place
         # ranked first with its yaw guess 40 deg off, never searched at its yaw before the budget
         # ran out). Every yaw costs ~20 guessed windows each, hence only the first few places.
-        # Each stage: (places, yaw window, window side). For a scan whose projection band holds
-        # few cells (fewer than ``place_narrow_max_cells``: an open stretch), the first places'
-        # windows narrowed (``place_narrow_window_m``) come right after the first stage: the 2D
-        # score of such a scan saturates over a 12 m window and its best leaf lies metres from the
-        # place, outside NDT's reach, though the index placed the scan within ``place_tolerance_m``
-        # (campus, defaults' map, frame 51000: 158 scan cells, the place ranked first 0.6 m from
-        # the truth with its yaw guess 0.7 deg off; its window's best leaf 7.8 m off scored 0.990,
-        # the leaf 0.2 m from the truth 0.978, fifth). Not for every scan: a stage that ends the
-        # search early judges fewer candidates, and a wrong place that passes verification needs
-        # the others to be found ambiguous (seen: campus frame 16498, 654 cells, the median scan
-        # ~770: a wrong place 182 m off verified in a narrowed window, alone).
-        size = p.place_window_m
-        stages = [(k, yaw_guess, size) for k in candidates]
+        stages = [(k, yaw_guess) for k in candidates]
         if p.place_all_yaw_candidates > 0:
-            stages.insert(1, (p.place_all_yaw_candidates, min(yaw_win, 2 * math.pi), size))
-        if 0 < p.place_narrow_window_m < size and len(scan.xy) < p.place_narrow_max_cells:
-            stages.insert(1, (candidates[0], yaw_guess, p.place_narrow_window_m))
+            stages.insert(1, (p.place_all_yaw_candidates, min(yaw_win, 2 * math.pi)))
         if first_stage >= len(stages):
             return [], dict(stats, place_stage=first_stage)  # every stage was searched
         t = time.perf_counter()
@@ -76,8 +61,8 @@ class NoHintSearch:
             return [], stats
         out: list[InitCandidate] = []
         done = [] if done is None else done
-        k_done = max([k for k, yaw, w in stages[:first_stage] if yaw == yaw_guess and w == size], default=0)
-        for i, (k, yaw, w_m) in enumerate(stages):
+        k_done = max([k for k, yaw in stages[:first_stage] if yaw == yaw_guess], default=0)
+        for i, (k, yaw) in enumerate(stages):
             if i < first_stage:
                 continue
             if yaw >= min(yaw_win, 2 * math.pi) and yaw_guess >= min(yaw_win, 2 * math.pi) and i > 0:
@@ -85,9 +70,9 @@ class NoHintSearch:
             if i > 0 and time.perf_counter() >= deadline:
                 stats["timed_out"] = True
                 break
-            # The places not searched yet (a later yaw-only or narrowed stage: its places again).
-            first = k_done if (yaw == yaw_guess and w_m == size) else 0
-            windows = [Window(c.xy_L, w_m, c.theta if yaw < 2 * math.pi else theta_c, yaw)
+            # The places not searched yet (a later yaw-only stage: its places again, at every yaw).
+            first = k_done if yaw == yaw_guess else 0
+            windows = [Window(c.xy_L, p.place_window_m, c.theta if yaw < 2 * math.pi else theta_c, yaw)
                        for c in places[first:k]]
             if flip_open and yaw < 2 * math.pi and yaw_win >= 2 * math.pi:
                 # An open place's yaw guess may be the reverse one: its low band along an open street
@@ -99,22 +84,20 @@ class NoHintSearch:
                     if index.band[c.index] == 1:
                         both.append(Window(w.center, w.size_m, w.theta + math.pi, w.yaw_window))
                 windows = both
-            k_done = max(k_done, k) if (yaw == yaw_guess and w_m == size) else k_done
+            k_done = max(k_done, k) if yaw == yaw_guess else k_done
             if not windows:
                 continue
             t = time.perf_counter()
             # A later stage also refines the best 2D leaves beyond its first places: where the scan's
             # static band is thin, the index ranks the true place low (campus frame 27961: 38th of
             # 64, its leaf the 4th best of 48 by 2D score).
-            # (Not the narrowed stage: its windows are the first stage's places again, best first.)
             # After the first stage, ``place_later_top_k`` leaves each way: an open place's window
             # comes twice (``flip_open``), and a thin static band ranks the true place low (campus,
             # defaults' map, --rng 13, frames 16591 and 24995: the true places 13th and 34th, their
             # leaves 0.92 / 0.95 by 2D score, never refined with 6; a wrong place verified instead,
             # ambiguous). The first stage, which ends most searches, refines as before.
             top_k = p.place_top_k if i == 0 else max(p.place_top_k, p.place_later_top_k)
-            c2d, st = self._search_windows(scan, windows, by_score=top_k if (i > 0 and w_m == size) else 0,
-                                           top_k=top_k)
+            c2d, st = self._search_windows(scan, windows, by_score=top_k if i > 0 else 0, top_k=top_k)
             stats["bnb_time_s"] = stats.get("bnb_time_s", 0.0) + time.perf_counter() - t
             stats["nodes_visited"] = stats.get("nodes_visited", 0) + st.nodes_visited
             t = time.perf_counter()

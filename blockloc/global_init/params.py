@@ -100,11 +100,6 @@ class InitParams(GlobalInitParams):
     # no-hint relocalization through the place index
     place_all_yaw_candidates: int = 2  # the second stage: this many first places at every yaw (0: none)
     place_flip_open: bool = True  # no hint: an open place's window also at its yaw guess reversed
-    # the second stage: the first stage's places again in windows this wide (0: none), for scans of
-    # fewer than place_narrow_max_cells projected cells, whose 2D score saturates over
-    # place_window_m (an open stretch; ``no_hint``)
-    place_narrow_window_m: float = 3.0
-    place_narrow_max_cells: int = 300
     place_top_k: int = 6  # leaves refined per stage
     place_later_top_k: int = 12  # the same after the first stage (each way: best places, best 2D scores)
     # the best leaves of each window (0: one top place_top_k over all windows, by 2D score)

@@ -141,7 +141,7 @@ def test_the_second_stage_searches_the_first_places_at_every_yaw(setup, monkeypa
     right after the first stage, the first ``place_all_yaw_candidates`` places at every yaw."""
     loc, T_true, scan, _, _ = setup
     params = InitParams(min_fitness=0.999, place_candidates=(3, 6), place_all_yaw_candidates=2,
-                        whole_map_fallback=False, max_search_s=0.0, place_narrow_window_m=0.0)
+                        whole_map_fallback=False, max_search_s=0.0)
     nohint = GlobalLocalizer(loc.map, params)
     seen = []
     real = GlobalLocalizer._search_windows
@@ -159,42 +159,6 @@ def test_the_second_stage_searches_the_first_places_at_every_yaw(setup, monkeypa
     assert [c for c, _ in seen[1]] == [c for c, _ in seen[0][:2]]
 
 
-def test_the_first_places_are_searched_again_in_narrow_windows_right_after_the_first_stage(setup, monkeypatch):
-    """Campus, defaults' map, frame 51000 (an open stretch, 158 scan cells): the place ranked first
-    lay 0.6 m from the truth, but over its 12 m window the 2D score saturates and the window's best
-    leaf lay 7.8 m off (the leaf at the truth fifth), beyond NDT's reach. Right after the first
-    stage, its places are searched again in windows of ``place_narrow_window_m`` (same centres, same
-    yaw guesses, best place first), for a scan of fewer than ``place_narrow_max_cells`` cells only;
-    without it (0), or for a scan with more cells, not."""
-    loc, T_true, scan, _, _ = setup
-    real = GlobalLocalizer._search_windows
-    n = len(scan.xy)
-    for narrow, max_cells in ((3.0, n + 1), (0.0, n + 1), (3.0, n)):
-        params = InitParams(min_fitness=0.999, place_candidates=(3, 6), place_all_yaw_candidates=2,
-                            whole_map_fallback=False, max_search_s=0.0, place_narrow_window_m=narrow,
-                            place_narrow_max_cells=max_cells)
-        nohint = GlobalLocalizer(loc.map, params)
-        seen, by = [], []
-
-        def record(self, scan, windows, by_score=0, top_k=None, seen=seen, by=by):
-            seen.append([(tuple(np.round(w.center, 3)), w.theta, w.yaw_window, w.size_m) for w in windows])
-            by.append(by_score)
-            return real(self, scan, windows, by_score, top_k)
-
-        monkeypatch.setattr(GlobalLocalizer, "_search_windows", record)
-        res = nohint.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true))
-        assert not res.verified
-        sizes = [{w[3] for w in s} for s in seen]
-        if narrow and max_cells > n:
-            # the first 3 places at 12 m, the same 3 at 3 m, the first 2 at every yaw, the next 3
-            assert [len(s) for s in seen] == [3, 3, 2, 3] and sizes == [{12.0}, {3.0}, {12.0}, {12.0}]
-            assert [w[:3] for w in seen[1]] == [w[:3] for w in seen[0]]
-            assert by[1] == 0 and res.stats["place_stage"] == 4
-        else:
-            assert [len(s) for s in seen] == [3, 2, 3] and {3.0} not in sizes
-            assert res.stats["place_stage"] == 3
-
-
 def test_the_stages_after_the_first_refine_place_later_top_k_leaves_each_way(setup, monkeypatch):
     """Campus, defaults' map, --rng 13, frames 16591 and 24995: the true places ranked 13th and 34th
     (open places, whose windows come twice), their leaves never among the 6 refined a stage; a wrong
@@ -203,8 +167,7 @@ def test_the_stages_after_the_first_refine_place_later_top_k_leaves_each_way(set
     loc, T_true, scan, _, _ = setup
     real = GlobalLocalizer._search_windows
     params = InitParams(min_fitness=0.999, place_candidates=(3, 6), place_all_yaw_candidates=2,
-                        whole_map_fallback=False, max_search_s=0.0, place_narrow_window_m=0.0,
-                        place_top_k=2, place_later_top_k=5)
+                        whole_map_fallback=False, max_search_s=0.0, place_top_k=2, place_later_top_k=5)
     nohint = GlobalLocalizer(loc.map, params)
     calls = []
 
@@ -260,7 +223,7 @@ def test_open_places_are_also_searched_at_their_yaw_guess_reversed(setup, monkey
 def test_a_resumed_place_search_runs_only_the_stages_after_those_done(setup, monkeypatch):
     loc, T_true, scan, _, _ = setup
     params = InitParams(min_fitness=0.999, place_candidates=(3, 6), place_all_yaw_candidates=2,
-                        whole_map_fallback=False, max_search_s=0.0, place_narrow_max_cells=10**6)
+                        whole_map_fallback=False, max_search_s=0.0)
     nohint = GlobalLocalizer(loc.map, params)
     real = GlobalLocalizer._search_windows
     seen = []
@@ -281,18 +244,16 @@ def test_a_resumed_place_search_runs_only_the_stages_after_those_done(setup, mon
     n_done = len(done)
     _, stats = nohint._relocalize_places(sc, scan_ndt, cells, nohint.place_index, 0.0, 2 * math.pi, {},
                                          first_stage=1, done=done)
-    # the first 3 places in narrow windows, the all-yaw stage over the first 2, then places 4 to 6
-    # (the first 3 were searched)
-    assert [len(s) for s in seen] == [3, 3, 2, 3] and stats["place_stage"] == 4
-    assert [c for c, _ in seen[1]] == [c for c, _ in seen[0]]
-    assert [c for c, _ in seen[2]] == [c for c, _ in seen[0][:2]]
-    assert not set(c for c, _ in seen[3]) & set(c for c, _ in seen[0])
+    # the all-yaw stage over the first 2 places, then places 4 to 6 (the first 3 were searched)
+    assert [len(s) for s in seen] == [3, 2, 3] and stats["place_stage"] == 3
+    assert [c for c, _ in seen[1]] == [c for c, _ in seen[0][:2]]
+    assert not set(c for c, _ in seen[2]) & set(c for c, _ in seen[0])
     assert len(done) >= n_done
     # past the last stage: nothing searched, not even the index queried
     monkeypatch.setattr(nohint.place_index, "query_cells", None)
     more, stats = nohint._relocalize_places(sc, scan_ndt, cells, nohint.place_index, 0.0, 2 * math.pi, {},
-                                            first_stage=4, done=done)
-    assert more == [] and stats["place_stage"] == 4 and len(seen) == 4
+                                            first_stage=3, done=done)
+    assert more == [] and stats["place_stage"] == 3 and len(seen) == 3
 
 
 def test_a_verified_best_the_final_decision_doubts_does_not_end_the_place_search(setup, monkeypatch):
