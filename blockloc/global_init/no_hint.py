@@ -91,7 +91,13 @@ class NoHintSearch:
             # A later stage also refines the best 2D leaves beyond its first places: where the scan's
             # static band is thin, the index ranks the true place low (campus frame 27961: 38th of
             # 64, its leaf the 4th best of 48 by 2D score).
-            c2d, st = self._search_windows(scan, windows, by_score=p.place_top_k if i > 0 else 0)
+            # After the first stage, ``place_later_top_k`` leaves each way: an open place's window
+            # comes twice (``flip_open``), and a thin static band ranks the true place low (campus,
+            # defaults' map, --rng 13, frames 16591 and 24995: the true places 13th and 34th, their
+            # leaves 0.92 / 0.95 by 2D score, never refined with 6; a wrong place verified instead,
+            # ambiguous). The first stage, which ends most searches, refines as before.
+            top_k = p.place_top_k if i == 0 else max(p.place_top_k, p.place_later_top_k)
+            c2d, st = self._search_windows(scan, windows, by_score=top_k if i > 0 else 0, top_k=top_k)
             stats["bnb_time_s"] = stats.get("bnb_time_s", 0.0) + time.perf_counter() - t
             stats["nodes_visited"] = stats.get("nodes_visited", 0) + st.nodes_visited
             t = time.perf_counter()
@@ -105,13 +111,15 @@ class NoHintSearch:
                 break  # found; or two places fit (the caller may search on: ``_search_on``)
         return out, stats
 
-    def _search_windows(self, scan: ScanProjection, windows: list[Window], by_score: int = 0):
+    def _search_windows(self, scan: ScanProjection, windows: list[Window], by_score: int = 0,
+                        top_k: int | None = None):
         """Branch and bound over the windows, one pyramid per group of nearby windows: the leaves
-        to refine, at most ``place_top_k`` (best places first, with ``place_leaves_per_window``)
-        and then the ``by_score`` best of the others by 2D score."""
+        to refine, at most ``top_k`` (default ``place_top_k``; best places first, with
+        ``place_leaves_per_window``) and then the ``by_score`` best of the others by 2D score."""
         from blockloc.global_init.bnb import SearchStats
 
         p = self.params
+        top_k = p.place_top_k if top_k is None else top_k
         r = p.resolution_m
         top = min(p.pyramid_levels - 1, p.place_top_level)
         reach = float(np.hypot(*scan.xy.T).max()) + (1 << top) * r + 2 * r
@@ -145,7 +153,7 @@ class NoHintSearch:
             # runner-up (_refine would not refine them): prune them, across groups too.
             # (search_windows: per window, min_leaf_score is the best leaf itself; else the floor.)
             floor = best if p.place_leaves_per_window > 0 else p.ambiguity_score_ratio * best
-            c2d, st = search_windows(pyr, scan.xy, ws, p.place_top_k, p.use_s0, p.s0_ratio, p.min_score, p.nms_m,
+            c2d, st = search_windows(pyr, scan.xy, ws, top_k, p.use_s0, p.s0_ratio, p.min_score, p.nms_m,
                                      p.nms_deg, max_range=scan.max_range, keep_ratio=p.ambiguity_score_ratio,
                                      min_leaf_score=floor, top_level=p.place_top_level,
                                      per_window_k=p.place_leaves_per_window)
@@ -164,8 +172,8 @@ class NoHintSearch:
             cands.sort(key=lambda c: (c.window, -c.score))
         else:
             cands.sort(key=lambda c: -c.score)
-        rest = sorted(cands[p.place_top_k:], key=lambda c: -c.score)[:by_score]
-        return cands[: p.place_top_k] + rest, total
+        rest = sorted(cands[top_k:], key=lambda c: -c.score)[:by_score]
+        return cands[:top_k] + rest, total
 
     def _relocalize(self, scan: ScanProjection, scan_ndt: np.ndarray, theta_c: float, yaw_win: float, cells=None,
                     deadline: float = math.inf):

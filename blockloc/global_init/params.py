@@ -75,6 +75,9 @@ class InitParams(GlobalInitParams):
     climb_rounds: int = 3
     climb_rivals: int = 3
     climb_min_gain: float = 0.01
+    # a final decision first aligns once more each plausible candidate NDT left unconverged, from
+    # where it stopped, and judges the optimum it settles at instead (``GlobalLocalizer._settle``)
+    settle_unconverged: bool = True
     scan_voxel_m: float = 0.5
     max_ndt_points: int = 3000
     ambiguity_score_ratio: float = 0.8  # once one is verified, refine others only above this x best
@@ -98,6 +101,7 @@ class InitParams(GlobalInitParams):
     place_all_yaw_candidates: int = 2  # the second stage: this many first places at every yaw (0: none)
     place_flip_open: bool = True  # no hint: an open place's window also at its yaw guess reversed
     place_top_k: int = 6  # leaves refined per stage
+    place_later_top_k: int = 12  # the same after the first stage (each way: best places, best 2D scores)
     # the best leaves of each window (0: one top place_top_k over all windows, by 2D score)
     place_leaves_per_window: int = 1
     # the hinted search's place stages (``hinted``): a window holds a few dozen places, and the true

@@ -375,6 +375,48 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         return InitCandidate(r.T_map_body, score, r.fitness, r.converged, ok, T0, r.ndt_score, sfit,
                              cov, see, refiner, r.overlap)
 
+    def _settle(self, cands: list[InitCandidate], scan: ScanProjection, scan_ndt: np.ndarray,
+                cells) -> list[InitCandidate]:
+        """``cands`` with each plausible candidate NDT left unconverged replaced by the optimum it
+        settles at when aligned once more from where it stopped (``Refiner.align_settled``).
+
+        An unconverged candidate is a pose NDT passed through on its way, not an optimum, yet the
+        decision judges it as one: fitting well, it makes a verified best ambiguous, and it is
+        never verified itself. Seen on campus (defaults' map, ``--rng 7``): frame 17958, the best
+        verified 0.18 m from the truth, an unconverged candidate 0.51 m from it (0.66 m from the
+        truth, fitness 0.975) made the result ambiguous; aligned once more it converged 0.03 m from
+        the best (the same optimum). Frame 17933: a restart of the climb (:meth:`_climb`, which
+        settles its restarts the same way) reached 0.15 m from the truth and fitted best of all
+        (fitness 0.985, score per point 2.11) but was unconverged, so a wrong place 400 m off
+        (fitness 0.80, score 1.52) won, made ambiguous by it; aligned once more it converged 0.13 m
+        from the truth. A candidate is plausible as in :func:`verify.decide` (fitness and
+        structure fitness above their floors): only such can decide the result. One that is still
+        unconverged after the extra alignment stays as it was (still sliding: a rival). The
+        optimum is verified as every candidate is; nothing about verification changes."""
+        p = self.params
+        th = Thresholds.of(p)
+        todo = [i for i, c in enumerate(cands) if not c.converged and c.refiner is not None
+                and c.fitness >= p.min_fitness and c.structure_fitness >= p.min_structure_fitness
+                and np.all(np.isfinite(c.T_map_body))]
+        if not todo:
+            return cands
+        runs = self._map(lambda i: self._settled(cands[i], cands[i].refiner, scan_ndt), todo)
+        out = list(cands)
+        for i, r in zip(todo, runs):
+            if r is not cands[i]:
+                c = cands[i]
+                out[i] = self._verified(r, c.refiner, c.score, c.T_map_body_2d, scan, cells, th)
+        return out
+
+    def _settled(self, r, refiner: Refiner, scan_ndt: np.ndarray):
+        """A refinement ``r`` NDT left unconverged (``Refiner.align``'s result, or a candidate: what
+        has ``converged`` and ``T_map_body``), aligned once more from where it stopped when that
+        converges (``settle_unconverged``: ``Refiner.align_settled``'s result); else ``r``."""
+        if r.converged or not self.params.settle_unconverged or not np.all(np.isfinite(r.T_map_body)):
+            return r
+        again = refiner.align_settled(scan_ndt, r.T_map_body)
+        return again if again.converged and np.all(np.isfinite(again.T_map_body)) else r
+
     def _climb(self, cands: list[InitCandidate], scan: ScanProjection, scan_ndt: np.ndarray,
                cells) -> list[InitCandidate]:
         """``cands`` and the better NDT optima found next to those that decide the result.
@@ -415,7 +457,9 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
                 if not up:
                     continue
                 T0, r = max(up, key=lambda q: q[1].ndt_score)
-                cands.append(self._verified(r, c.refiner, c.score, T0, scan, cells, th))
+                # (a restart still sliding: settled first, as the candidates were, ``_settle``)
+                cands.append(self._verified(self._settled(r, c.refiner, scan_ndt), c.refiner, c.score, T0, scan,
+                                            cells, th))
                 added = True
             if not added:
                 break
@@ -504,9 +548,17 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
                 scan_ndt: np.ndarray | None = None, final: bool = True, scan: ScanProjection | None = None,
                 cells=None, drop_targets: bool = True) -> InitResult:
         """:func:`blockloc.global_init.verify.decide` with this localizer's parameters; with the
-        ``scan`` (and ``scan_ndt``), a final decision first climbs to better optima nearby
-        (:meth:`_climb`; its time counts in ``elapsed``). ``drop_targets``: a final decision
-        drops the candidates' NDT targets (False: a later decision judges them again)."""
+        ``scan`` (and ``scan_ndt``), a final decision first settles the unconverged candidates
+        (:meth:`_settle`) and climbs to better optima nearby (:meth:`_climb`; their time counts in
+        ``elapsed``). ``drop_targets``: a final decision drops the candidates' NDT targets (False:
+        a later decision judges them again)."""
+        if final and scan is not None and scan_ndt is not None and self.params.settle_unconverged:
+            t = time.perf_counter()
+            n = sum(not c.converged for c in cands)
+            cands = self._settle(cands, scan, scan_ndt, cells)
+            dt = time.perf_counter() - t
+            stats["settle_s"], stats["settled"] = dt, n - sum(not c.converged for c in cands)
+            elapsed += dt
         if final and scan is not None and scan_ndt is not None and self.params.climb_rounds > 0:
             t = time.perf_counter()
             n = len(cands)

@@ -71,6 +71,56 @@ def test_an_optimum_does_not_climb_and_the_rival_check_reuses_its_probes(setup):
     assert "climb_s" not in res.stats and len(res.candidates) >= 1
 
 
+def test_an_unconverged_candidate_is_judged_at_the_optimum_it_settles_at(setup):
+    """Campus, defaults' map, frame 17933: the candidate 0.15 m from the truth fitted best of all but
+    NDT left it unconverged, so it was never verified, and a wrong place 400 m off won (made
+    ambiguous by it). A final decision aligns such a candidate once more from where it stopped and
+    judges the optimum it settles at; one still sliding stays as it was (a rival). Without
+    ``settle_unconverged``, the result stays ambiguous, as before."""
+    from blockloc.global_init.verify import Thresholds, structure_fit
+
+    loc, T_true, scan, scan_ndt, refiner = setup
+    T_wrong = xyzrpy_to_T(-25.0, 20.0, -(1.9 - 0.02 * 25.0), 0.03, -0.02, 0.7)
+    T_near = refiner.align(scan_ndt, T_true).T_map_body.copy()
+    T_near[0, 3] += 0.15
+    loc._verified(refiner.align(scan_ndt, T_true), refiner, 0.9, T_true, scan, None, Thresholds.of(loc.params))
+    structures = loc._structure_body
+
+    class Sliding:  # a refiner whose every alignment runs out of iterations
+        def align_settled(self, scan_ndt, T):
+            r = refiner.align(scan_ndt, T)
+            r.converged = False
+            return r
+
+        def __getattr__(self, name):
+            return getattr(refiner, name)
+
+    def candidates(ref):
+        # the wrong place verified (made so, as its scan fit is made up); the one near the truth
+        # with the measurements NDT gave there, unconverged
+        wrong = InitCandidate(T_wrong, 0.9, 0.8, True, True, T_wrong, 1.1, 0.65, refiner=ref)
+        wrong.probes = []
+        score = refiner.engine.evaluate(refiner._target, scan_ndt, T_near).score / len(scan_ndt)
+        near = InitCandidate(T_near, 0.9, refiner.inlier_ratio(scan_ndt, T_near), False, False, T_near, score,
+                             structure_fit(refiner, structures, T_near, loc.params.min_structure_fitness),
+                             refiner=ref)
+        assert near.fitness >= loc.params.min_fitness and near.structure_fitness >= loc.params.min_structure_fitness
+        return [wrong, near]
+
+    for settle, ref in ((True, refiner), (False, refiner), (True, Sliding())):
+        nohint = GlobalLocalizer(loc.map, InitParams(settle_unconverged=settle, climb_rounds=0))
+        cands = candidates(ref)
+        res = nohint._decide(cands, {}, 0.0, scan_ndt, scan=scan)
+        if settle and ref is refiner:
+            assert res.verified and not res.ambiguous and res.stats["settled"] == 1
+            dt, dr = pose_error(res.T_map_body, T_true)
+            assert dt < 0.1 and dr < 0.5, (dt, dr)
+        else:
+            assert res.ambiguous and not res.verified
+            assert np.allclose(res.T_map_body, T_wrong)
+            assert any(c is cands[1] for c in res.candidates)  # the sliding one kept as it was
+
+
 def test_a_later_stage_also_takes_the_best_leaves_by_2d_score(setup):
     loc, T_true, scan, _, _ = setup
     xy = (loc.map.R_L_map @ T_true[:3, 3])[:2]
@@ -96,9 +146,9 @@ def test_the_second_stage_searches_the_first_places_at_every_yaw(setup, monkeypa
     seen = []
     real = GlobalLocalizer._search_windows
 
-    def record(self, scan, windows, by_score=0):
+    def record(self, scan, windows, by_score=0, top_k=None):
         seen.append([(tuple(np.round(w.center, 3)), w.yaw_window) for w in windows])
-        return real(self, scan, windows, by_score)
+        return real(self, scan, windows, by_score, top_k)
 
     monkeypatch.setattr(GlobalLocalizer, "_search_windows", record)
     res = nohint.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true))
@@ -107,6 +157,37 @@ def test_the_second_stage_searches_the_first_places_at_every_yaw(setup, monkeypa
     assert [len(s) for s in seen] == [3, 2, 3]  # 3 places, the first 2 at every yaw, the next 3
     assert all(y == guess for _, y in seen[0] + seen[2]) and all(y == 2 * math.pi for _, y in seen[1])
     assert [c for c, _ in seen[1]] == [c for c, _ in seen[0][:2]]
+
+
+def test_the_stages_after_the_first_refine_place_later_top_k_leaves_each_way(setup, monkeypatch):
+    """Campus, defaults' map, --rng 13, frames 16591 and 24995: the true places ranked 13th and 34th
+    (open places, whose windows come twice), their leaves never among the 6 refined a stage; a wrong
+    place verified instead (ambiguous). After the first stage, ``place_later_top_k`` leaves of the
+    best places and as many by 2D score; the first stage as before."""
+    loc, T_true, scan, _, _ = setup
+    real = GlobalLocalizer._search_windows
+    params = InitParams(min_fitness=0.999, place_candidates=(3, 6), place_all_yaw_candidates=2,
+                        whole_map_fallback=False, max_search_s=0.0, place_top_k=2, place_later_top_k=5)
+    nohint = GlobalLocalizer(loc.map, params)
+    calls = []
+
+    def record(self, scan, windows, by_score=0, top_k=None):
+        out = real(self, scan, windows, by_score, top_k)
+        calls.append((top_k, by_score, len(windows), len(out[0])))
+        return out
+
+    monkeypatch.setattr(GlobalLocalizer, "_search_windows", record)
+    nohint.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true))
+    assert [(k, b) for k, b, _, _ in calls] == [(2, 0), (5, 5), (5, 5)]
+    assert calls[0][3] <= 2
+    # the budget itself: top_k leaves of the best windows first, in the windows' order
+    xy = (loc.map.R_L_map @ T_true[:3, 3])[:2]
+    theta = loc._theta_from_yaw(math.atan2(T_true[1, 0], T_true[0, 0]), scan)
+    ws = [Window(xy + np.array([dx, 25.0]), 12.0, theta + 1.0, math.radians(16.0)) for dx in (-30.0, 0.0)]
+    ws.append(Window(xy, 12.0, theta, math.radians(16.0)))
+    one = GlobalLocalizer(loc.map, InitParams(place_top_k=1, ambiguity_score_ratio=0.0))
+    assert [c.window for c in one._search_windows(scan, ws)[0]] == [0]
+    assert [c.window for c in one._search_windows(scan, ws, top_k=3)[0]] == [0, 1, 2]
 
 
 def test_open_places_are_also_searched_at_their_yaw_guess_reversed(setup, monkeypatch):
@@ -124,9 +205,9 @@ def test_open_places_are_also_searched_at_their_yaw_guess_reversed(setup, monkey
         monkeypatch.setattr(index, "band", np.ones_like(np.asarray(index.band)))
         stages = []
 
-        def record(self, scan, windows, by_score=0, stages=stages):
+        def record(self, scan, windows, by_score=0, top_k=None, stages=stages):
             stages.append(list(windows))
-            return real(self, scan, windows, by_score)
+            return real(self, scan, windows, by_score, top_k)
 
         monkeypatch.setattr(GlobalLocalizer, "_search_windows", record)
         nohint.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true))
@@ -147,9 +228,9 @@ def test_a_resumed_place_search_runs_only_the_stages_after_those_done(setup, mon
     real = GlobalLocalizer._search_windows
     seen = []
 
-    def record(self, scan, windows, by_score=0):
+    def record(self, scan, windows, by_score=0, top_k=None):
         seen.append([(tuple(np.round(w.center, 3)), w.yaw_window) for w in windows])
-        return real(self, scan, windows, by_score)
+        return real(self, scan, windows, by_score, top_k)
 
     monkeypatch.setattr(GlobalLocalizer, "_search_windows", record)
     scan_body = scan_from(world_up(seed=3) @ Z_DOWN.T, T_true)
