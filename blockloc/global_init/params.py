@@ -85,6 +85,9 @@ class InitParams(GlobalInitParams):
     # hint the place stages go on (``GlobalLocalizer._search_on``), with one the window's branch and
     # bound (``hinted``); the decision judges everything found
     search_on_doubt: bool = True
+    # ... and (no hint) neither does a verified best whose static-band coverage was not judged
+    # (too few bins: only its NDT fit verified it; ``GlobalLocalizer._decide_unless_doubted``)
+    search_on_unjudged: bool = True
     refine_range_m: float = 50.0
     # refinement targets assembled from per-entry voxel statistics kept between searches, at most
     # this many MB (``targets.TargetCache``; 0: every target built from its points)

@@ -39,6 +39,7 @@ from blockloc.global_init.verify import (  # noqa: F401  (InitCandidate, InitRes
     InitResult,
     Thresholds,
     better_fit,
+    consistency_judged,
     consistency_passes,
     decide,
     fit_passes,
@@ -181,7 +182,8 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             # ambiguity there is between places the index holds; the place stages may go on.
             if res.verified or res.ambiguous or not p.whole_map_fallback or stats.get("timed_out"):
                 doubt = p.search_on_doubt and (res.verified or res.ambiguous)
-                out, stands = self._decide_unless_doubted(cands, stats, t0, scan_ndt, scan, cells, doubt)
+                out, stands = self._decide_unless_doubted(cands, stats, t0, scan_ndt, scan, cells, doubt,
+                                                          doubt_unjudged=p.search_on_unjudged)
                 if stands:
                     return out
                 return self._search_on(out, scan, scan_ndt, cells, index, theta_c, yaw_win, stats, deadline, done, t0)
@@ -531,14 +533,27 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
                             scan=scan, cells=cells)
 
     def _decide_unless_doubted(self, cands: list[InitCandidate], stats: dict, t0: float, scan_ndt: np.ndarray,
-                               scan: ScanProjection, cells, doubt: bool) -> tuple[InitResult, bool]:
+                               scan: ScanProjection, cells, doubt: bool,
+                               doubt_unjudged: bool = False) -> tuple[InitResult, bool]:
         """The final decision over ``cands`` (``t0``: ``time.perf_counter()`` at the search's start)
         and whether it stands: verified, or ``doubt`` false (no search goes on after an ambiguous
         result). A result that stands drops its candidates' NDT targets; one that does not keeps
-        them for the decision after the search goes on (``search_on_doubt``)."""
+        them for the decision after the search goes on (``search_on_doubt``).
+
+        ``doubt_unjudged`` (with ``doubt``): a verified result stands only when the static-band
+        coverage of its best was judged (:func:`verify.consistency_judged`). Without it the
+        verification rests on the NDT fit alone, and a wrong place of an open stretch fits well
+        enough. Seen on campus (nominal-mounting map, ``--rng 7``, hinted frames first): frame
+        16517, a place 197.5 m off (fitness 0.83, structure 0.69, score per point 1.65), frame
+        39798, the true place's reverse 4.5 m off and 174 deg turned (0.78, 0.62, 1.36), both
+        verified at the first stage with coverage not judged (47 and 64 static-band bins); the
+        true poses, never searched, fit 0.935 / 0.90 (structure 0.87 / 0.86, 1.93 / 1.74 per
+        point). So the search goes on (:meth:`_search_on`) and the final decision judges every
+        candidate found, with every test as before."""
         out = self._decide(cands, stats, time.perf_counter() - t0, scan_ndt, scan=scan, cells=cells,
                            drop_targets=not doubt)
-        stands = not doubt or out.verified
+        judged = not doubt_unjudged or not out.candidates or consistency_judged(out.candidates[0])
+        stands = not doubt or (out.verified and judged)
         if stands:
             for c in out.candidates:
                 c.refiner = None

@@ -59,6 +59,12 @@ def consistency_passes(coverage: float, see_through: float, th: Thresholds) -> b
     return not (math.isfinite(see_through) and see_through > th.max_see_through)
 
 
+def consistency_judged(cand) -> bool:
+    """Whether the static-band coverage test judged ``cand`` (an :class:`InitCandidate`): enough of
+    the scan's static-band bins to judge by (NaN: an open stretch; only the NDT fit verified it)."""
+    return bool(math.isfinite(cand.coverage))
+
+
 def passes(converged: bool, fitness: float, structure_fitness: float, coverage: float, see_through: float,
            th: Thresholds, finite: bool = True) -> bool:
     """Whether a refined candidate with these measurements is verified under ``th``."""
