@@ -397,16 +397,18 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         optimum is verified as every candidate is; nothing about verification changes."""
         p = self.params
         th = Thresholds.of(p)
-        todo = [i for i, c in enumerate(cands) if not c.converged and c.refiner is not None
-                and c.fitness >= p.min_fitness and c.structure_fitness >= p.min_structure_fitness
-                and np.all(np.isfinite(c.T_map_body))]
+        # plausible: would pass the fit test if converged; each tried once per search (a decision
+        # after the search goes on judges the same candidates again: the same alignment, the same end)
+        todo = [i for i, c in enumerate(cands) if not c.converged and not c.settle_tried and c.refiner is not None
+                and fit_passes(True, bool(np.all(np.isfinite(c.T_map_body))), c.fitness, c.structure_fitness, th)]
         if not todo:
             return cands
         runs = self._map(lambda i: self._settled(cands[i], cands[i].refiner, scan_ndt), todo)
         out = list(cands)
         for i, r in zip(todo, runs):
-            if r is not cands[i]:
-                c = cands[i]
+            c = cands[i]
+            c.settle_tried = True
+            if r is not c:
                 out[i] = self._verified(r, c.refiner, c.score, c.T_map_body_2d, scan, cells, th)
         return out
 

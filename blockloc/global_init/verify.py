@@ -115,6 +115,8 @@ class InitCandidate:
     overlap: float = 1.0  # share of the scan's points where the map holds data (refine.Footprint)
     # (T_start, RefineResult) of the NDT restarts around it (:func:`probe_optima`), once made
     probes: list | None = field(default=None, repr=False, compare=False)
+    # whether a final decision aligned it once more from where NDT left it unconverged (``_settle``)
+    settle_tried: bool = field(default=False, repr=False, compare=False)
 
 
 @dataclass
