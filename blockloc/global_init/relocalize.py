@@ -43,6 +43,7 @@ from blockloc.global_init.verify import (  # noqa: F401  (InitCandidate, InitRes
     consistency_passes,
     decide,
     fit_passes,
+    fits_strongly,
     pose_error,
     probe_optima,
     structure_fit,
@@ -551,10 +552,18 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         verified at the first stage with coverage not judged (47 and 64 static-band bins); the
         true poses, never searched, fit 0.935 / 0.90 (structure 0.87 / 0.86, 1.93 / 1.74 per
         point). So the search goes on (:meth:`_search_on`) and the final decision judges every
-        candidate found, with every test as before."""
+        candidate found, with every test as before.
+
+        A best that fits strongly (:func:`verify.fits_strongly` with ``unjudged_min_fitness`` and
+        ``unjudged_min_structure_fitness``) stands on its fit alone. On the campus (12 draws of 100
+        frames, both maps) searching on cost such frames 0.8-7 s CPU each and changed no answer;
+        the right bests of that kind fit 0.905 or more, and no wrong candidate whose coverage was
+        not judged (2,570) reached both floors."""
         out = self._decide(cands, stats, time.perf_counter() - t0, scan_ndt, scan=scan, cells=cells,
                            drop_targets=not doubt)
-        judged = not doubt_unjudged or not out.candidates or consistency_judged(out.candidates[0])
+        p = self.params
+        judged = (not doubt_unjudged or not out.candidates or consistency_judged(out.candidates[0])
+                  or fits_strongly(out.candidates[0], p.unjudged_min_fitness, p.unjudged_min_structure_fitness))
         stands = not doubt or (out.verified and judged)
         if stands:
             for c in out.candidates:

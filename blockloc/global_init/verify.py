@@ -65,6 +65,13 @@ def consistency_judged(cand) -> bool:
     return bool(math.isfinite(cand.coverage))
 
 
+def fits_strongly(cand, min_fitness: float, min_structure_fitness: float) -> bool:
+    """Whether ``cand`` (an :class:`InitCandidate`) fits well above the verification floors: inlier
+    ratio >= ``min_fitness`` and above-ground inlier ratio >= ``min_structure_fitness`` (fractions).
+    What lets a best stand on its NDT fit alone where its coverage was not judged."""
+    return bool(cand.fitness >= min_fitness and cand.structure_fitness >= min_structure_fitness)
+
+
 def passes(converged: bool, fitness: float, structure_fitness: float, coverage: float, see_through: float,
            th: Thresholds, finite: bool = True) -> bool:
     """Whether a refined candidate with these measurements is verified under ``th``."""

@@ -355,23 +355,33 @@ def test_a_hinted_search_whose_places_leave_doubt_goes_on_with_the_windows_branc
 
 def test_a_verified_best_whose_coverage_was_not_judged_does_not_end_the_place_search(setup, monkeypatch):
     """Campus, nominal-mounting map, ``--rng 7`` after the hinted frames: frames 16517 (a place
-    197.5 m off) and 39798 (the true place's reverse, 174 deg turned) verified at the first stage
-    on their NDT fit alone, the static-band coverage not judged (too few bins: open stretches), and
-    the true places were never searched. Such a best does not end the place search (as a doubted
-    one does not); the decision judges everything found. A best whose coverage was judged ends it
-    as before."""
+    197.5 m off, fitness 0.83, structure 0.69) and 39798 (the true place's reverse, 174 deg turned)
+    verified at the first stage on their NDT fit alone, the static-band coverage not judged (too
+    few bins: open stretches), and the true places were never searched. Such a best does not end
+    the place search (as a doubted one does not); the decision judges everything found. A best
+    whose coverage was judged ends it as before, and so does one that fits strongly (inlier ratio
+    >= 0.90 and structure >= 0.85 by default: no wrong candidate with coverage not judged reached
+    both on 12 campus draws; frame 16517's wrong place fit 0.83 / 0.69)."""
     from blockloc.global_init import verify
 
     loc, T_true, scan, scan_ndt, refiner = setup
     T_wrong = xyzrpy_to_T(-25.0, 20.0, -(1.9 - 0.02 * 25.0), 0.03, -0.02, 0.7)
-    for unjudged, coverage in ((True, math.nan), (False, math.nan), (True, 0.95)):
+    # (rule on, coverage, the first best's fitness / structure, its strong-fit floors, searched on?)
+    cases = ((True, math.nan, 0.831, 0.690, (0.90, 0.85), True),  # frame 16517's numbers
+             (False, math.nan, 0.831, 0.690, (0.90, 0.85), False),  # no rule: it stands
+             (True, 0.95, 0.831, 0.690, (0.90, 0.85), False),  # coverage judged: it stands
+             (True, math.nan, 0.95, 0.97, (0.90, 0.85), False),  # a strong fit stands
+             (True, math.nan, 0.95, 0.97, (0.96, 0.85), True),  # ... not strong enough
+             (True, math.nan, 0.95, 0.84, (0.90, 0.85), True))  # ... nor here
+    for unjudged, coverage, fitness, structure, (min_fit, min_struct), searched_on in cases:
         stages = []
 
         def places(self, scan, scan_ndt, cells, index, theta_c, yaw_win, stats, deadline=math.inf,
-                   candidates=None, flip_open=False, first_stage=0, done=None, stages=stages, coverage=coverage):
+                   candidates=None, flip_open=False, first_stage=0, done=None, stages=stages, coverage=coverage,
+                   fitness=fitness, structure=structure):
             stages.append(first_stage)
             if first_stage == 0:  # the wrong place, verified (made so), probed already: no rival
-                wrong = InitCandidate(T_wrong, 0.9, 0.8, True, True, T_wrong, 1.1, 0.65, coverage=coverage,
+                wrong = InitCandidate(T_wrong, 0.9, fitness, True, True, T_wrong, 1.1, structure, coverage=coverage,
                                       see_through=0.0, refiner=refiner)
                 wrong.probes = []
                 return [wrong], dict(stats, place_stage=1)
@@ -381,13 +391,16 @@ def test_a_verified_best_whose_coverage_was_not_judged_does_not_end_the_place_se
             return [found], dict(stats, place_stage=3)
 
         monkeypatch.setattr(GlobalLocalizer, "_relocalize_places", places)
-        nohint = GlobalLocalizer(loc.map, InitParams(search_on_unjudged=unjudged, max_search_s=0.0))
+        nohint = GlobalLocalizer(loc.map, InitParams(search_on_unjudged=unjudged, max_search_s=0.0,
+                                                     unjudged_min_fitness=min_fit,
+                                                     unjudged_min_structure_fitness=min_struct))
         res = nohint.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true))
         assert res.verified and not res.ambiguous
         dt, _ = pose_error(res.T_map_body, T_true)
-        if unjudged and math.isnan(coverage):
+        if searched_on:
             assert stages == [0, 1] and res.stats["searched_on"] == 1
-            assert dt < 0.1, dt
-            assert any(np.allclose(c.T_map_body, T_wrong) for c in res.candidates)  # judged, lost
-        else:  # no rule, or coverage judged: the first stage's best stands
+            assert any(np.allclose(c.T_map_body, T_wrong) for c in res.candidates)  # judged
+            if fitness < 0.9:  # the true place fits better: it wins
+                assert dt < 0.1, dt
+        else:  # the first stage's best stands
             assert stages == [0] and np.allclose(res.T_map_body, T_wrong)
