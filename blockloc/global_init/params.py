@@ -95,6 +95,12 @@ class InitParams(GlobalInitParams):
     # 0.87 / 0.75 537 m off). Chosen on 8 draws, 4 held out (docs/bench/global_init.md)
     unjudged_min_fitness: float = 0.90
     unjudged_min_structure_fitness: float = 0.85
+    # ... and the decision after the search went on takes the scan's every point (within max_range_m):
+    # a rival NDT on them brings back to the best's own optimum (within one_optimum_m / _deg, both
+    # converged, the best's coverage judged) is no ambiguity (``verify.one_optimum``); false: as before
+    resolve_on_every_point: bool = True
+    one_optimum_m: float = 0.1
+    one_optimum_deg: float = 0.5
     refine_range_m: float = 50.0
     # refinement targets assembled from per-entry voxel statistics kept between searches, at most
     # this many MB (``targets.TargetCache``; 0: every target built from its points)

@@ -187,7 +187,8 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
                                                           doubt_unjudged=p.search_on_unjudged)
                 if stands:
                     return out
-                return self._search_on(out, scan, scan_ndt, cells, index, theta_c, yaw_win, stats, deadline, done, t0)
+                return self._search_on(out, scan, scan_ndt, cells, index, theta_c, yaw_win, stats, deadline, done, t0,
+                                       points_body)
         more, st = self._relocalize(scan, scan_ndt, theta_c, yaw_win, cells, deadline)
         stats.update({k: v + stats.get(k, 0) if k in ("bnb_time_s", "refine_time_s", "nodes_visited") else v
                       for k, v in st.items()})
@@ -503,7 +504,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
 
     def _search_on(self, doubted: InitResult, scan: ScanProjection, scan_ndt: np.ndarray, cells, index,
                    theta_c: float, yaw_win: float, stats: dict, deadline: float, done: list,
-                   t0: float) -> InitResult:
+                   t0: float, points_body: np.ndarray | None = None) -> InitResult:
         """The place search resumed after a stage whose candidates verified but left the result
         ambiguous (``doubted``: the final decision over them).
 
@@ -517,7 +518,19 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         from the truth, none at it. So the stages go on from where they stopped, and the final
         decision judges every candidate found (``doubted``'s too, with every test as before: the
         first best stays a rival of any new one). Only frames whose result was ambiguous reach
-        here: a verified result is returned as before."""
+        here: a verified result is returned as before.
+
+        With ``resolve_on_every_point``, that decision also takes the scan's every point
+        (``points_body`` (N, 3), body frame, within ``max_range_m``): a rival NDT on them brings
+        back to the best's own optimum is no ambiguity (:func:`verify.one_optimum`; seen on
+        campus, bests 0.06-0.27 m from the truth kept unverified by optima 0.7-0.9 m along the
+        street). Only after the search went on: a rival dismissed at the first verified stage would
+        end the search before the places not searched yet (a wrong best's nearby rival kept 17786
+        searching). With nothing new found, the first decision is made again with them."""
+        p = self.params
+        dense = None
+        if p.resolve_on_every_point and points_body is not None:
+            dense = points_body[np.linalg.norm(points_body, axis=1) <= p.max_range_m]
         more, st = self._relocalize_places(scan, scan_ndt, cells, index, theta_c, yaw_win, {}, deadline,
                                            flip_open=self.params.place_flip_open,
                                            first_stage=int(stats.get("place_stage", 0)), done=done)
@@ -527,13 +540,16 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         stats["searched_on"] = len(more)
         if st.get("timed_out"):
             stats["timed_out"] = True
+        if not more and dense is not None and doubted.ambiguous:  # nothing new: the same candidates, every point
+            return self._decide(list(doubted.candidates), stats, time.perf_counter() - t0, scan_ndt, scan=scan,
+                                cells=cells, dense_points=dense)
         if not more:  # nothing new: the decision stands
             for c in doubted.candidates:
                 c.refiner = None
             doubted.time_s = time.perf_counter() - t0
             return doubted
         return self._decide(list(doubted.candidates) + more, stats, time.perf_counter() - t0, scan_ndt,
-                            scan=scan, cells=cells)
+                            scan=scan, cells=cells, dense_points=dense)
 
     def _decide_unless_doubted(self, cands: list[InitCandidate], stats: dict, t0: float, scan_ndt: np.ndarray,
                                scan: ScanProjection, cells, doubt: bool,
@@ -572,12 +588,13 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
 
     def _decide(self, cands: list[InitCandidate], stats: dict, elapsed: float,
                 scan_ndt: np.ndarray | None = None, final: bool = True, scan: ScanProjection | None = None,
-                cells=None, drop_targets: bool = True) -> InitResult:
+                cells=None, drop_targets: bool = True, dense_points: np.ndarray | None = None) -> InitResult:
         """:func:`blockloc.global_init.verify.decide` with this localizer's parameters; with the
         ``scan`` (and ``scan_ndt``), a final decision first settles the unconverged candidates
         (:meth:`_settle`) and climbs to better optima nearby (:meth:`_climb`; their time counts in
         ``elapsed``). ``drop_targets``: a final decision drops the candidates' NDT targets (False:
-        a later decision judges them again)."""
+        a later decision judges them again). ``dense_points``: the scan's every point, body frame
+        (:func:`verify.one_optimum`; None: not used)."""
         if final and scan is not None and scan_ndt is not None and self.params.settle_unconverged:
             t = time.perf_counter()
             n = sum(not c.converged for c in cands)
@@ -592,7 +609,8 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             dt = time.perf_counter() - t
             stats["climb_s"], stats["climbed"] = dt, len(cands) - n
             elapsed += dt
-        return decide(cands, stats, elapsed, self.params, scan_ndt, final, self._structure_body, drop_targets)
+        return decide(cands, stats, elapsed, self.params, scan_ndt, final, self._structure_body, drop_targets,
+                      dense_points)
 
 
 # ----------------------------------------------------------------------------- one-shot API

@@ -267,14 +267,14 @@ def test_a_verified_best_the_final_decision_doubts_does_not_end_the_place_search
     T_wrong = xyzrpy_to_T(-25.0, 20.0, -(1.9 - 0.02 * 25.0), 0.03, -0.02, 0.7)
     real_rival = verify.nearby_rival
 
-    def rival_of_the_wrong_place(best, scan_ndt, structures, p):
+    def rival_of_the_wrong_place(best, scan_ndt, structures, p, dismiss=None):
         # the wrong place's scan fit is made up here, so is its rival (as the campus frames had)
         if np.linalg.norm(best.T_map_body[:3, 3] - T_wrong[:3, 3]) < 1e-6:
             T = best.T_map_body.copy()
             T[0, 3] += 0.85
             return InitCandidate(T, 0.0, best.fitness, True, False, T, best.ndt_score, best.structure_fitness,
                                  refiner=best.refiner)
-        return real_rival(best, scan_ndt, structures, p)
+        return real_rival(best, scan_ndt, structures, p, dismiss)
 
     monkeypatch.setattr(verify, "nearby_rival", rival_of_the_wrong_place)
     # (search on, the first stage's wrong places: one with a rival next to it; two far apart that

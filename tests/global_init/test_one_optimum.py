@@ -1,0 +1,123 @@
+"""A rival that NDT on the scan's every point brings back to the best's own optimum is no ambiguity
+(``verify.one_optimum``, ``InitParams.resolve_on_every_point``): the decision after the search went on."""
+
+import math
+
+import numpy as np
+import pytest
+
+from blockloc.geometry import xyzrpy_to_T
+from blockloc.global_init import verify
+from blockloc.global_init.refine import RefineResult
+from blockloc.global_init.relocalize import GlobalLocalizer, InitParams, pose_error
+from blockloc.global_init.verify import InitCandidate, decide, nearby_rival, one_optimum
+
+from .synthetic import Z_DOWN, gravity_body, scan_from, world_up
+from .test_climb import setup as climb_setup  # noqa: F401  (the same world, pose, scan and target)
+
+
+@pytest.fixture(scope="module")
+def setup(climb_setup):
+    """test_climb's, with the scan's every point (body frame, within max_range_m)."""
+    loc, T_true, scan, scan_ndt, refiner = climb_setup
+    scan_body = scan_from(world_up(seed=3) @ Z_DOWN.T, T_true)
+    dense = scan_body[np.linalg.norm(scan_body, axis=1) <= loc.params.max_range_m]
+    return loc, T_true, scan_body, dense, scan_ndt, refiner
+
+
+def _best(refiner, scan_ndt, T_true, coverage=0.97):
+    r = refiner.align(scan_ndt, T_true)
+    best = InitCandidate(r.T_map_body, 1.0, r.fitness, True, True, T_true, r.ndt_score, 0.95, coverage=coverage,
+                         see_through=0.0, refiner=refiner)
+    best.probes = []  # probed already: no nearby rival (the far rule alone)
+    return best
+
+
+def _rival(best, T, refiner):
+    """A verified candidate at ``T`` as the campus street's were: fitting nearly as well, scoring a
+    little lower per point (its numbers made up: the thinned scan's optimum there)."""
+    c = InitCandidate(T, 1.0, best.fitness - 0.01, True, True, T, best.ndt_score - 0.03, 0.9, coverage=1.0,
+                      see_through=0.0, refiner=refiner)
+    c.probes = []
+    return c
+
+
+@pytest.fixture
+def untold(monkeypatch):
+    """The inlier test on the thinned scan cannot tell the two apart (as along the campus street:
+    ``better_fit`` z 1.8-2.4 < 2.5)."""
+    monkeypatch.setattr(verify, "better_fit", lambda *a, **k: 0.0)
+
+
+def test_a_rival_that_is_the_best_optimum_on_every_point_is_no_ambiguity(setup, untold):
+    """Campus, nominal-mounting map ``--rng 7`` frame 17933 (best 0.27 m from the truth, a verified
+    optimum 0.90 m along the street) and defaults' map frame 14583 (0.06 m; 0.68 m): ambiguous on
+    the thinned scan; on every point NDT from the rival came back to the best's optimum."""
+    loc, T_true, scan_body, dense, scan_ndt, refiner = setup
+    p = loc.params
+    best = _best(refiner, scan_ndt, T_true)
+    T_near = best.T_map_body.copy()
+    T_near[:2, 3] += (0.6, -0.5)  # 0.78 m off: NDT on every point slides back
+    assert one_optimum(dense, best, _rival(best, T_near, refiner), p)
+    res = decide([best, _rival(best, T_near, refiner)], {}, 0.0, p, scan_ndt, drop_targets=False)
+    assert res.ambiguous and not res.verified  # the thinned scan alone: as before
+    res = decide([best, _rival(best, T_near, refiner)], {}, 0.0, p, scan_ndt, drop_targets=False, dense_points=dense)
+    assert res.verified and not res.ambiguous and res.T_map_body is best.T_map_body
+    dt, dr = pose_error(res.T_map_body, T_true)
+    assert dt < 0.1 and dr < 0.5
+
+    # a rival at another place stays one; so does any rival of a best whose coverage was not judged
+    T_far = xyzrpy_to_T(-25.0, 20.0, -(1.9 - 0.02 * 25.0), 0.03, -0.02, 0.7)
+    res = decide([best, _rival(best, T_far, refiner)], {}, 0.0, p, scan_ndt, drop_targets=False, dense_points=dense)
+    assert res.ambiguous and not res.verified
+    unjudged = _best(refiner, scan_ndt, T_true, coverage=math.nan)
+    assert not one_optimum(dense, unjudged, _rival(unjudged, T_near, refiner), p)
+    res = decide([unjudged, _rival(unjudged, T_near, refiner)], {}, 0.0, p, scan_ndt, drop_targets=False,
+                 dense_points=dense)
+    assert res.ambiguous and not res.verified
+
+
+def test_a_nearby_rival_that_is_the_best_optimum_is_passed_over(setup, untold):
+    loc, T_true, scan_body, dense, scan_ndt, refiner = setup
+    p = loc.params
+    best = _best(refiner, scan_ndt, T_true)
+    T_near = best.T_map_body.copy()
+    T_near[:2, 3] += (0.6, -0.5)
+    # the restart that stopped 0.78 m away (made so: the thinned scan's flat street)
+    best.probes = [(T_near, RefineResult(T_near, best.fitness, True, 5, best.ndt_score - 0.03))]
+    assert nearby_rival(best, scan_ndt, None, p) is not None
+    assert nearby_rival(best, scan_ndt, None, p, dismiss=lambda r: one_optimum(dense, best, r, p)) is None
+    assert decide([best], {}, 0.0, p, scan_ndt, drop_targets=False).ambiguous
+    res = decide([best], {}, 0.0, p, scan_ndt, drop_targets=False, dense_points=dense)
+    assert res.verified and not res.ambiguous
+
+
+def test_the_decision_after_the_search_went_on_takes_every_point(setup, untold, monkeypatch):
+    """The first stage's best and a rival along the street; the stages after it find nothing new. With
+    ``resolve_on_every_point`` the decision made again over them takes every point and verifies
+    the best; without it the result stays ambiguous, as before."""
+    loc, T_true, scan_body, dense, scan_ndt, refiner = setup
+    for resolve in (True, False):
+        stages = []
+
+        def places(self, scan, scan_ndt, cells, index, theta_c, yaw_win, stats, deadline=math.inf,
+                   candidates=None, flip_open=False, first_stage=0, done=None, stages=stages):
+            stages.append(first_stage)
+            if first_stage == 0:
+                best = _best(refiner, scan_ndt, T_true)
+                T_near = best.T_map_body.copy()
+                T_near[:2, 3] += (0.6, -0.5)
+                return [best, _rival(best, T_near, refiner)], dict(stats, place_stage=1)
+            return [], dict(stats, place_stage=3)
+
+        monkeypatch.setattr(GlobalLocalizer, "_relocalize_places", places)
+        nohint = GlobalLocalizer(loc.map, InitParams(resolve_on_every_point=resolve, max_search_s=0.0))
+        res = nohint.localize(scan_body, gravity_body(T_true))
+        assert stages == [0, 1]
+        if resolve:
+            assert res.verified and not res.ambiguous
+            dt, dr = pose_error(res.T_map_body, T_true)
+            assert dt < 0.1 and dr < 0.5, (dt, dr)
+        else:
+            assert res.ambiguous and not res.verified
+        assert all(c.refiner is None for c in res.candidates)
