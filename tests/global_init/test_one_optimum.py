@@ -121,3 +121,29 @@ def test_the_decision_after_the_search_went_on_takes_every_point(setup, untold, 
         else:
             assert res.ambiguous and not res.verified
         assert all(c.refiner is None for c in res.candidates)
+
+
+def test_the_best_every_point_run_that_stops_unconverged_is_settled_once_more(setup, untold, monkeypatch):
+    """Nominal map, frames 20361 and 14599: the rival came back to within 0.01 / 0.08 m of the best's
+    every-point optimum, but the best's own run had stopped at its iteration limit (still sliding
+    along the flat street), so the rival counted. That run is settled once more, as the rival's is."""
+    loc, T_true, scan_body, dense, scan_ndt, refiner = setup
+    p = loc.params
+    best = _best(refiner, scan_ndt, T_true)
+    T_near = best.T_map_body.copy()
+    T_near[:2, 3] += (0.6, -0.5)
+    real = type(refiner).align_settled
+    calls = []
+
+    def first_stops_short(self, points, T_start, *a, **k):
+        r = real(self, points, T_start, *a, **k)
+        calls.append(len(points))
+        if len(calls) == 1:  # the best's run: stopped 5 cm short of its optimum, unconverged
+            T = r.T_map_body.copy()
+            T[:2, 3] += (0.04, -0.03)
+            return RefineResult(T, r.fitness, False, 60, r.ndt_score)
+        return r
+
+    monkeypatch.setattr(type(refiner), "align_settled", first_stops_short)
+    assert one_optimum(dense, best, _rival(best, T_near, refiner), p)
+    assert len(calls) == 3  # the best's run twice, the rival's once
