@@ -46,6 +46,7 @@ from blockloc.global_init.verify import (  # noqa: F401  (InitCandidate, InitRes
     fits_strongly,
     pose_error,
     probe_optima,
+    settle_once_more,
     structure_fit,
     structure_sets,
 )
@@ -418,10 +419,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         """A refinement ``r`` NDT left unconverged (``Refiner.align``'s result, or a candidate: what
         has ``converged`` and ``T_map_body``), aligned once more from where it stopped when that
         converges (``settle_unconverged``: ``Refiner.align_settled``'s result); else ``r``."""
-        if r.converged or not self.params.settle_unconverged or not np.all(np.isfinite(r.T_map_body)):
-            return r
-        again = refiner.align_settled(scan_ndt, r.T_map_body)
-        return again if again.converged and np.all(np.isfinite(again.T_map_body)) else r
+        return settle_once_more(refiner, scan_ndt, r) if self.params.settle_unconverged else r
 
     def _climb(self, cands: list[InitCandidate], scan: ScanProjection, scan_ndt: np.ndarray,
                cells) -> list[InitCandidate]:

@@ -269,23 +269,24 @@ def decide(cands: list[InitCandidate], stats: dict, elapsed: float, p, scan_ndt:
                       best.verified and not ambiguous, stats)
 
 
-def _settled_twice(refiner, points: np.ndarray, T_start: np.ndarray):
-    """``refiner.align_settled`` of ``points`` (M, 3), body frame, from ``T_start`` (4, 4), and once
-    more from where it stopped if it did not converge: along a street the objective is flat and NDT
-    still slides there after its iterations (defaults' map, 14583: a rival 0.07 m from the best's
-    optimum after 60 iterations converged 0.04 m from it once more; the best's own run can slide
-    the same way, nominal map 20361 and 14599)."""
-    r = refiner.align_settled(points, T_start)
-    if not r.converged and np.all(np.isfinite(r.T_map_body)):
-        r = refiner.align_settled(points, r.T_map_body)
-    return r
+def settle_once_more(refiner, points: np.ndarray, r):
+    """``r`` (what has ``converged`` and ``T_map_body``: a ``Refiner`` result or a candidate), or,
+    when NDT left it unconverged, ``refiner.align_settled`` of ``points`` (M, 3), body frame, from
+    where it stopped, if that converges. Along a street the objective is flat and NDT still slides
+    there after its iterations (defaults' map, 14583: a rival 0.07 m from the best's optimum after
+    60 iterations converged 0.04 m from it once more; nominal map 20361 and 14599: the best's own
+    run)."""
+    if r.converged or not np.all(np.isfinite(r.T_map_body)):
+        return r
+    again = refiner.align_settled(points, r.T_map_body)
+    return again if again.converged and np.all(np.isfinite(again.T_map_body)) else r
 
 
 def one_optimum(dense_points: np.ndarray, best: InitCandidate, rival: InitCandidate, p,
                 dense_best: list | None = None) -> bool:
     """Whether ``rival`` is the best's own optimum: NDT on the scan's every point ``dense_points``
     (M, 3), body frame, started from the best (its ``refiner``) and from the rival (its own),
-    converges both times (each run settled twice at most) to poses within ``p.one_optimum_m``
+    converges both times (each run settled once more at most, :func:`settle_once_more`) to poses within ``p.one_optimum_m``
     and ``p.one_optimum_deg``, and the best's verification was complete (static-band coverage
     judged, :func:`consistency_judged`).
 
@@ -304,14 +305,14 @@ def one_optimum(dense_points: np.ndarray, best: InitCandidate, rival: InitCandid
         return False
     dense_best = [] if dense_best is None else dense_best
     if not dense_best:
-        dense_best.append(_settled_twice(best.refiner, dense_points, best.T_map_body))
+        dense_best.append(settle_once_more(best.refiner, dense_points,
+                                           best.refiner.align_settled(dense_points, best.T_map_body)))
     rb = dense_best[0]
-    rc = _settled_twice(rival.refiner, dense_points, rival.T_map_body)
+    rc = settle_once_more(rival.refiner, dense_points, rival.refiner.align_settled(dense_points, rival.T_map_body))
     if not (rb.converged and rc.converged and np.all(np.isfinite(rb.T_map_body))
             and np.all(np.isfinite(rc.T_map_body))):
         return False
-    d_m = float(np.linalg.norm(rc.T_map_body[:3, 3] - rb.T_map_body[:3, 3]))
-    d_deg = pose_error(rc.T_map_body, rb.T_map_body)[1]
+    d_m, d_deg = pose_error(rc.T_map_body, rb.T_map_body)
     if d_m <= p.one_optimum_m and d_deg <= p.one_optimum_deg:
         log.info("a rival %.2f m from the best is its own optimum on every point (%.3f m, %.2f deg)",
                  float(np.linalg.norm(rival.T_map_body[:3, 3] - best.T_map_body[:3, 3])), d_m, d_deg)
