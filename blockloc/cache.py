@@ -108,10 +108,10 @@ class DiskTiles:
 
     def get(self, tile_id: str):
         """The tile's array, or None when it is not on disk (or unreadable)."""
-        import numpy as np
+        from blockloc.fileio import load_array
 
         try:
-            return np.load(self.dir / f"{tile_id}.npy", allow_pickle=False)
+            return load_array(self.dir / f"{tile_id}.npy")
         except Exception:  # missing, or cut short / damaged (EOFError, ValueError, ...): compute it
             return None
 

@@ -11,8 +11,9 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
+import threading
 from pathlib import Path
-from typing import Iterator
+from typing import IO, Iterator
 
 from blockloc.outdir import check_output_parent  # noqa: F401 - here since before outdir.py
 
@@ -274,3 +275,29 @@ def release_space(path: str | Path | None) -> None:
             Path(path).unlink(missing_ok=True)
         except OSError:
             pass
+
+
+# CPython 3.11 keeps the ast module's recursion depth in interpreter-wide state, so two threads
+# parsing at once can fail with "SystemError: AST constructor recursion depth mismatch"
+# (python/cpython#106905; CI hit it reading global-init pieces from relocalization's worker
+# threads). numpy parses every .npy header with ast.literal_eval: blockloc reads its arrays through
+# the two functions below, which take turns.
+_NPY_HEADER_LOCK = threading.Lock()
+
+
+def load_array(source: str | Path | IO[bytes], mmap_mode: str | None = None):
+    """The one array of a ``.npy`` file (path or binary file object); ``mmap_mode`` as np.load.
+    Raises what np.load raises (OSError, ValueError, EOFError, ...)."""
+    import numpy as np
+
+    with _NPY_HEADER_LOCK:
+        return np.load(source, mmap_mode=mmap_mode, allow_pickle=False)
+
+
+def load_arrays(source: str | Path | IO[bytes]) -> dict:
+    """Every array of a ``.npz`` file (path or binary file object), read now: name -> ndarray.
+    Raises what np.load raises (OSError, ValueError, EOFError, zipfile.BadZipFile, ...)."""
+    import numpy as np
+
+    with _NPY_HEADER_LOCK, np.load(source, allow_pickle=False) as z:
+        return {name: z[name] for name in z.files}

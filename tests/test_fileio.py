@@ -178,3 +178,57 @@ def test_to_jsonable_makes_numpy_and_nan_valid_json():
     got = to_jsonable({1: np.float32(0.5), "a": (np.int64(3), np.array([1.0, np.nan])), "b": float("inf")})
     assert got == {"1": 0.5, "a": [3, [1.0, None]], "b": None}
     json.dumps(got, allow_nan=False)
+
+
+def test_array_reads_take_turns_parsing_headers(tmp_path, monkeypatch):
+    """numpy parses .npy headers with ast.literal_eval, which CPython 3.11 cannot run in two
+    threads at once (python/cpython#106905): blockloc's readers must never overlap there."""
+    import ast
+    import threading
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    import numpy as np
+
+    from blockloc.fileio import load_array, load_arrays
+
+    np.save(tmp_path / "a.npy", np.arange(6.0).reshape(2, 3))
+    np.savez_compressed(tmp_path / "b.npz", x=np.ones(3), y=np.zeros((2, 2)))
+    inside, most, lock = [0], [0], threading.Lock()
+    literal_eval = ast.literal_eval
+
+    def watched(src):
+        with lock:
+            inside[0] += 1
+            most[0] = max(most[0], inside[0])
+        time.sleep(0.002)  # long enough for another thread to come in if nothing stops it
+        try:
+            return literal_eval(src)
+        finally:
+            with lock:
+                inside[0] -= 1
+
+    monkeypatch.setattr(ast, "literal_eval", watched)
+
+    def read(i):
+        if i % 2:
+            return float(load_array(tmp_path / "a.npy", mmap_mode="r").sum())
+        z = load_arrays(tmp_path / "b.npz")
+        return float(z["x"].sum() + z["y"].sum())
+
+    with ThreadPoolExecutor(4) as pool:
+        got = list(pool.map(read, range(40)))
+    assert got == [15.0 if i % 2 else 3.0 for i in range(40)]
+    assert most[0] == 1
+
+
+def test_the_package_reads_arrays_only_through_the_turn_taking_readers():
+    import re
+    from pathlib import Path
+
+    import blockloc
+
+    root = Path(blockloc.__file__).parent
+    direct = [f"{p.relative_to(root)}:{n}" for p in root.rglob("*.py") if p.name != "fileio.py"
+              for n, line in enumerate(p.read_text().splitlines(), 1) if re.search(r"\bnp\.load\(", line)]
+    assert direct == []

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from blockloc.cache import cache_root
-from blockloc.fileio import atomic_path
+from blockloc.fileio import atomic_path, load_array, load_arrays
 from blockloc.global_init.projection import GROUND_CELL_M, R_level_from_gravity, levelled_xy, lookup_ground, rasterize_map
 from blockloc.global_init.pyramid import Pyramid, assemble, build_pyramid
 
@@ -164,9 +164,9 @@ class StoreMap:
         piece = None
         if path.exists():
             try:
-                with np.load(path) as z:
-                    piece = _Piece(Pyramid(z["origin"], z["levels"], float(z["resolution"])),
-                                   z["ground_origin"], z["ground"])
+                z = load_arrays(path)
+                piece = _Piece(Pyramid(z["origin"], z["levels"], float(z["resolution"])),
+                               z["ground_origin"], z["ground"])
             except (OSError, ValueError, KeyError) as exc:
                 log.warning("ignoring unreadable cache %s (%s)", path, exc)
         if piece is None:
@@ -339,11 +339,11 @@ class _BucketedPoints:
 
     @classmethod
     def load(cls, path: Path) -> "_BucketedPoints":
-        with np.load(path) as z:
-            out = cls(None, z["R_L_map"])
-            out._starts, out._lo, out._span = z["starts"], z["lo"], z["span"]
+        z = load_arrays(path)
+        out = cls(None, z["R_L_map"])
+        out._starts, out._lo, out._span = z["starts"], z["lo"], z["span"]
         # (an empty file cannot be mapped)
-        out.points = np.load(cls._points_path(path), mmap_mode="r" if int(out._starts[-1]) > 0 else None)
+        out.points = load_array(cls._points_path(path), mmap_mode="r" if int(out._starts[-1]) > 0 else None)
         if out.points.ndim != 2 or out.points.shape[1] != 3 or len(out.points) != int(out._starts[-1]):
             raise ValueError(f"{cls._points_path(path).name}: {out.points.shape} points, the table says "
                              f"{int(out._starts[-1])}")

@@ -54,6 +54,7 @@ from pathlib import Path
 import numpy as np
 
 from blockloc.errors import GlobalInitError, MapError
+from blockloc.fileio import load_arrays
 from blockloc.global_init.place_descriptors import (  # noqa: F401  (pack, unpack, scan_descriptor: re-exported)
     PlaceIndexParams,
     ScanCells,
@@ -192,10 +193,10 @@ class PlaceIndex:
     def from_bytes(cls, data: bytes, where: str = PLACE_INDEX_NAME) -> "PlaceIndex":
         """Parse :meth:`to_bytes` output; MapError naming ``where`` when it is not one."""
         try:
-            with np.load(io.BytesIO(data), allow_pickle=False) as z:
-                meta = json.loads(bytes(z["meta"]).decode())
-                xy, src, raw, grown = z["xy_L"], z["source"], z["bits"], z["grown"]
-                band = z["band"] if "band" in z.files else None
+            z = load_arrays(io.BytesIO(data))
+            meta = json.loads(bytes(z["meta"]).decode())
+            xy, src, raw, grown = z["xy_L"], z["source"], z["bits"], z["grown"]
+            band = z.get("band")
         except (OSError, ValueError, KeyError, UnicodeDecodeError, EOFError) as exc:
             raise MapError(f"{where}: not a place index ({exc})") from None
         if not isinstance(meta, dict) or meta.get("format") != FORMAT:

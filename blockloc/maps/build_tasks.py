@@ -27,6 +27,7 @@ from typing import Any, Callable
 import numpy as np
 
 from blockloc.datasets.base import SequenceView
+from blockloc.fileio import load_array
 
 log = logging.getLogger(__name__)
 
@@ -205,7 +206,7 @@ def _save_cloud(target: BuildTarget, name: str, points: np.ndarray, intensity) -
 
 
 def _load_cloud(target: BuildTarget, name: str) -> tuple[np.ndarray, np.ndarray | None]:
-    arr = np.load(io.BytesIO(target.read(name)), allow_pickle=False)
+    arr = load_array(io.BytesIO(target.read(name)))
     if arr.shape[1] == 4:
         return np.ascontiguousarray(arr[:, :3]), np.ascontiguousarray(arr[:, 3])
     return arr, None

@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from blockloc.errors import SimError
+from blockloc.fileio import load_array
 from blockloc.sim.presets import Preset
 from blockloc.sim.stream import SimSequence, route_points, scene_movables
 from blockloc.sim.world import Movables, Volumes, World, box_mesh, movable_meshes, stable_hash
@@ -408,4 +409,4 @@ def write_changes_json(path: Path, seq: ChangedSimSequence) -> None:
 def read_point_labels(session_dir: str | Path, utime: int) -> np.ndarray:
     """The (N,) uint8 labels of the scan ``velodyne_sync/<utime>.bin`` of a written session: one
     per point of the file, in its order (the NCLT loader's range filter comes after)."""
-    return np.load(Path(session_dir) / LABELS_DIR / f"{int(utime)}.npy")
+    return load_array(Path(session_dir) / LABELS_DIR / f"{int(utime)}.npy")
