@@ -15,12 +15,19 @@ import threading
 from pathlib import Path
 from typing import IO, Iterator
 
+from blockloc import AST_LOCK
 from blockloc.outdir import check_output_parent  # noqa: F401 - here since before outdir.py
 
 
+# Reading the umask means setting it: two threads reading at once could each see the other's 0, and
+# the last to restore could leave the process at 0 (every later file world-writable).
+_UMASK_LOCK = threading.Lock()
+
+
 def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
+    with _UMASK_LOCK:
+        mask = os.umask(0)
+        os.umask(mask)
     return mask
 
 
@@ -277,12 +284,10 @@ def release_space(path: str | Path | None) -> None:
             pass
 
 
-# CPython 3.11 keeps the ast module's recursion depth in interpreter-wide state, so two threads
-# parsing at once can fail with "SystemError: AST constructor recursion depth mismatch"
-# (python/cpython#106905; CI hit it reading global-init pieces from relocalization's worker
-# threads). numpy parses every .npy header with ast.literal_eval: blockloc reads its arrays through
-# the two functions below, which take turns.
-_NPY_HEADER_LOCK = threading.Lock()
+# numpy parses every .npy header with ast.literal_eval, which CPython before 3.11.8 cannot run in two
+# threads at once (``blockloc.AST_LOCK``; python/cpython#106905): blockloc reads its arrays through
+# the two functions below, which take turns on every version.
+_NPY_HEADER_LOCK = AST_LOCK
 
 
 def load_array(source: str | Path | IO[bytes], mmap_mode: str | None = None):

@@ -232,3 +232,51 @@ def test_the_package_reads_arrays_only_through_the_turn_taking_readers():
     direct = [f"{p.relative_to(root)}:{n}" for p in root.rglob("*.py") if p.name != "fileio.py"
               for n, line in enumerate(p.read_text().splitlines(), 1) if re.search(r"\bnp\.load\(", line)]
     assert direct == []
+
+
+def test_on_pythons_with_the_ast_bug_every_parse_takes_turns():
+    """python/cpython#106905 (before 3.11.8, and 3.12.0): ``blockloc`` makes ast.parse take one
+    lock, so a thread's parse waits while another holds it (numpy headers, tracebacks, numba)."""
+    import ast
+    import sys
+    import threading
+
+    import blockloc
+
+    if not (sys.version_info[:3] < (3, 11, 8) or sys.version_info[:3] == (3, 12, 0)):
+        pytest.skip(f"Python {sys.version.split()[0]} parses safely in threads")
+    done = threading.Event()
+    with blockloc.AST_LOCK:
+        t = threading.Thread(target=lambda: (ast.parse("x = 1"), done.set()))
+        t.start()
+        assert not done.wait(0.3)  # waits for the lock
+    t.join(5)
+    assert done.is_set()
+
+
+def test_the_umask_is_read_by_one_thread_at_a_time(monkeypatch):
+    """Reading the umask sets it to 0 and back: two threads at once could each read the other's 0
+    (a world-writable file) and leave the process at 0. Atomic writes run in worker threads."""
+    import threading
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    from blockloc import fileio
+
+    state = {"mask": 0o022, "inside": 0, "most": 0}
+    lock = threading.Lock()
+
+    def umask(new):
+        with lock:
+            state["inside"] += 1
+            state["most"] = max(state["most"], state["inside"])
+            old, state["mask"] = state["mask"], new
+        time.sleep(0.001)  # long enough for another thread to come in if nothing stops it
+        with lock:
+            state["inside"] -= 1
+        return old
+
+    monkeypatch.setattr(fileio.os, "umask", umask)
+    with ThreadPoolExecutor(4) as pool:
+        seen = list(pool.map(lambda _: fileio._umask(), range(40)))
+    assert seen == [0o022] * 40 and state["mask"] == 0o022

@@ -360,7 +360,13 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             # lazy properties the calls read, made before the threads share them
             _ = self.place_source, self.coverage_source
             self._pool = ThreadPoolExecutor(self.params.refine_workers, thread_name_prefix="blockloc-refine")
-        return list(self._pool.map(fn, items))
+        from concurrent.futures import wait
+
+        # every call ended before one's failure is raised: none may still write to this localizer
+        # while the next search runs
+        futures = [self._pool.submit(fn, x) for x in items]
+        wait(futures)
+        return [f.result() for f in futures]
 
     def _verified(self, r, refiner: Refiner, score: float, T0: np.ndarray, scan: ScanProjection, cells,
                   th: Thresholds) -> InitCandidate:

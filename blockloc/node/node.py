@@ -159,6 +159,7 @@ class LocalizationNode:
         self._stop = threading.Event()
         self._failure: BaseException | None = None
         f = s.frames
+        self._frames = f  # before the readers: a listener reader (/tf) may call back at once
         self._pub_pose = dds.writer("/blockloc/pose", m.PoseWithCovarianceStamped, RELIABLE)
         self._pub_odom = dds.writer("/blockloc/odom", m.Odometry, RELIABLE)
         self._pub_tf = dds.writer("/tf", m.TFMessage, RELIABLE)
@@ -174,7 +175,6 @@ class LocalizationNode:
         dds.reader("/tf_static", m.TFMessage, self._on_tf_static, LATCHED)
         dds.reader("/initialpose", m.PoseWithCovarianceStamped, self._on_initialpose, RELIABLE)
         dds.reader("/blockloc/relocalize", m.Empty, self._on_relocalize, RELIABLE)
-        self._frames = f
         self._worker = threading.Thread(target=self._work, name="blockloc-node", daemon=True)
 
     # ----------------------------------------------------------------- receive threads (queue only)
