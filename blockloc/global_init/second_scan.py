@@ -13,6 +13,15 @@ A session carries an :class:`Ambiguity` from one scan to the next (``blockloc.ap
 :func:`follow_up` registers the new scan to the ambiguous one (:func:`scan_motion`) and tests the
 hypotheses there; a result still ambiguous becomes the next :class:`Ambiguity` (the hypotheses
 the new scan rejected are gone), so the evidence of every scan since the first adds up.
+
+A hypothesis is a pose, not a street: the scan confirms it only where it was put. NDT started at a
+hypothesis can slide along a street of repeated structure to another optimum (campus, nominal map,
+frame 39798: of three hypotheses 4.5-21.5 m from the truth, none at it, one slid 15 m onto another
+and the other crept 0.2-0.4 m a scan; seven scans on, one pose 6.9 m off was left and verified).
+So a plausible candidate that refinement moved more than ``ambiguity_distance_m`` from where its
+hypothesis put it keeps the result ambiguous (:func:`slid_m`), and a hypothesis carried on is its
+pose moved by the motions only (``T_map_body_2d``, the refinement's start), never by refinement:
+creeping adds up against where the first scan put it, not against the last scan.
 """
 
 from __future__ import annotations
@@ -24,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from blockloc.global_init.bnb import Candidate2D
-from blockloc.global_init.verify import InitResult
+from blockloc.global_init.verify import InitCandidate, InitResult
 
 #: scan-to-scan registration starts along the first body's x axis (m), tried in turn until one fits
 #: (the motion between two scans is unknown without a tracker; a vehicle moves along its x)
@@ -43,18 +52,31 @@ TARGET_MAX_POINTS = 30000
 SOURCE_MAX_POINTS = 4000
 
 
-def ambiguous_hypotheses(result: InitResult, params) -> list[np.ndarray]:
+def plausible(c: InitCandidate, params) -> bool:
+    """Whether ``c`` counts as a hypothesis (and as a rival, as ``decide`` counts them): verified,
+    or fitness and structure fitness above ``params``' floors."""
+    return c.verified or (c.fitness >= params.min_fitness and c.structure_fitness >= params.min_structure_fitness)
+
+
+def slid_m(c: InitCandidate) -> float:
+    """How far (m, horizontal, map frame) refinement moved ``c`` from its start (0 without one)."""
+    if c.T_map_body_2d is None or c.T_map_body is None:
+        return 0.0
+    return float(np.linalg.norm(np.asarray(c.T_map_body)[:2, 3] - np.asarray(c.T_map_body_2d)[:2, 3]))
+
+
+def ambiguous_hypotheses(result: InitResult, params, anchored: bool = False) -> list[np.ndarray]:
     """The poses T_map_body (4, 4) an ambiguous result could not tell apart: its verified
-    candidates and those as plausible as ``decide`` counts rivals (fitness and structure fitness
-    above ``params``' floors), at least ``ambiguity_distance_m`` apart, best first."""
+    candidates and those as plausible as ``decide`` counts rivals (:func:`plausible`), at least
+    ``ambiguity_distance_m`` apart, best first. ``anchored``: each at its refinement's start
+    (``T_map_body_2d``: a follow-up's hypothesis moved by the motion; module docstring)."""
     out: list[np.ndarray] = []
     for c in result.candidates:
-        plausible = c.verified or (c.fitness >= params.min_fitness
-                                   and c.structure_fitness >= params.min_structure_fitness)
-        if not plausible or c.T_map_body is None or not np.all(np.isfinite(c.T_map_body)):
+        T = c.T_map_body_2d if anchored and c.T_map_body_2d is not None else c.T_map_body
+        if not plausible(c, params) or T is None or not np.all(np.isfinite(T)):
             continue
-        if all(np.linalg.norm(c.T_map_body[:3, 3] - o[:3, 3]) > params.ambiguity_distance_m for o in out):
-            out.append(np.asarray(c.T_map_body, float))
+        if all(np.linalg.norm(T[:3, 3] - o[:3, 3]) > params.ambiguity_distance_m for o in out):
+            out.append(np.asarray(T, float))
     return out
 
 
@@ -66,8 +88,9 @@ def resolve_with_second_scan(localizer, hypotheses: list[np.ndarray], T_first_se
     localizer: a ``GlobalLocalizer``; T_first_second (4, 4): the body at the second scan in the
     body frame of the first (the motion between them); points_body (N, 3), body frame, metres, and
     gravity_body (3,): the second scan. Returns the ``InitResult`` of the second scan: verified
-    (its pose is the body at the second scan) only when one hypothesis passes verification there
-    and no other fits nearly as well.
+    (its pose is the body at the second scan) only when one hypothesis passes verification there,
+    no other fits nearly as well and no plausible one slid (:func:`slid_m`; ambiguous then, with
+    ``stats['slid']`` of them).
     """
     t0 = time.perf_counter()
     scan, scan_ndt = localizer.prepare_scan(np.asarray(points_body, float), np.asarray(gravity_body, float))
@@ -81,7 +104,13 @@ def resolve_with_second_scan(localizer, hypotheses: list[np.ndarray], T_first_se
         xy = (R_L_map @ T[:3, 3])[:2]
         leaves.append(Candidate2D(float(xy[0]), float(xy[1]), math.atan2(R_heading[1, 0], R_heading[0, 0]), 1.0))
     cands = localizer._refine(leaves, scan, scan_ndt, cells)
-    return localizer._decide(cands, {"hypotheses": len(hypotheses)}, time.perf_counter() - t0, scan_ndt)
+    p = localizer.params
+    slid = sum(plausible(c, p) and slid_m(c) > p.ambiguity_distance_m for c in cands)
+    res = localizer._decide(cands, {"hypotheses": len(hypotheses), "slid": slid}, time.perf_counter() - t0,
+                            scan_ndt)
+    if slid and res.verified:  # the scan fits along the street: no hypothesis is confirmed where it was put
+        res.verified, res.ambiguous = False, True
+    return res
 
 
 @dataclass
@@ -100,10 +129,12 @@ class Ambiguity:
     def of(cls, result: InitResult, params, points_body: np.ndarray, stamp: float, frame: int = -1,
            scans: int = 1) -> "Ambiguity | None":
         """The ambiguity of an ambiguous ``result`` of the scan ``points_body`` (N, 3), body frame,
-        or None when the result is not ambiguous or has fewer than two hypotheses."""
+        or None when the result is not ambiguous or has fewer than two hypotheses. After the first
+        scan (``scans`` > 1: ``result`` is a follow-up's) the hypotheses are anchored (module
+        docstring)."""
         if not result.ambiguous:
             return None
-        hyps = ambiguous_hypotheses(result, params)
+        hyps = ambiguous_hypotheses(result, params, anchored=scans > 1)
         if len(hyps) < 2:
             return None
         return cls(hyps, motion_points(points_body, TARGET_VOXEL_M, params.max_range_m, TARGET_MAX_POINTS),

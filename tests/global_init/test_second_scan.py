@@ -154,3 +154,59 @@ def test_track_without_a_pose_starts_from_the_scans_after_an_ambiguous_one(stree
     # no pose before the verified one; every pose after it on the street where the robot is
     assert m["estimated"] == FRAMES - init["first_frame"]
     assert not m["aligned"] and m["ate_trans_max_m"] < 0.3
+
+
+def _street_localizer(street_run, tmp_path):
+    from blockloc.datasets.nclt import NcltSequence
+    from blockloc.global_init.relocalize import GlobalLocalizer, InitParams
+    from blockloc.maps.store import open_map
+
+    seq = NcltSequence(street_run["session"])
+    return seq, GlobalLocalizer.for_store(open_map(street_run["map"]), seq.info.gravity_map, InitParams(),
+                                          cache_dir=tmp_path)
+
+
+def _shifted(T: np.ndarray, dx: float) -> np.ndarray:
+    out = np.array(T, float)
+    out[0, 3] += dx
+    return out
+
+
+def test_a_hypothesis_that_slides_along_the_street_is_not_confirmed(street_run, tmp_path):
+    """A hypothesis is a pose: a scan that fits only after NDT moved the hypothesis more than
+    ``ambiguity_distance_m`` does not confirm it (campus frame 39798: hypotheses sliding along a
+    street ended in a pose 6.9 m off, verified). Started 0.9 m from the truth, NDT reaches the truth;
+    the other hypothesis (two boxes on, where the unique box is not) fails. Without the rule that
+    verified the slid one; with it the result stays ambiguous. Started 0.1 m off, it is confirmed."""
+    from blockloc.global_init.second_scan import resolve_with_second_scan
+
+    seq, loc = _street_localizer(street_run, tmp_path)
+    scan = _prepared(seq, FRAMES - 1)
+    T_true = seq.ground_truth().interpolate(scan.stamp)[0]
+    close = resolve_with_second_scan(loc, [_shifted(T_true, 0.1), _shifted(T_true, 24.0)], np.eye(4),
+                                     scan.points_body, scan.gravity_body)
+    assert close.verified and close.stats["slid"] == 0
+    assert pose_error(close.T_map_body, T_true)[0] < 0.1
+    slid = resolve_with_second_scan(loc, [_shifted(T_true, 0.9), _shifted(T_true, 24.0)], np.eye(4),
+                                    scan.points_body, scan.gravity_body)
+    assert pose_error(slid.T_map_body, T_true)[0] < 0.1  # NDT did reach the truth from 0.9 m ...
+    assert slid.stats["slid"] >= 1
+    assert not slid.verified and slid.ambiguous  # ... but the hypothesis 0.9 m off is not confirmed
+
+
+def test_a_followed_ambiguity_carries_its_hypotheses_where_the_motion_put_them(street_run, tmp_path):
+    """After a follow-up scan the hypotheses are where the motions put them (the refinement's
+    starts), not where refinement ended: creeping along a street adds up against the first scan."""
+    from blockloc.global_init.second_scan import Ambiguity
+    from blockloc.global_init.verify import InitCandidate, InitResult
+
+    seq, loc = _street_localizer(street_run, tmp_path)
+    scan = _prepared(seq, 0)
+    starts = [_shifted(np.eye(4), 0.0), _shifted(np.eye(4), 12.0)]
+    ends = [_shifted(T, 0.3) for T in starts]
+    res = InitResult(ends[0], 1.0, 0.9, [InitCandidate(e, 1.0, 0.9, True, True, s, structure_fitness=0.9)
+                                         for e, s in zip(ends, starts)], True, 0.1, False)
+    first = Ambiguity.of(res, loc.params, scan.points_body, scan.stamp)
+    later = Ambiguity.of(res, loc.params, scan.points_body, scan.stamp, scans=2)
+    assert [h[0, 3] for h in first.hypotheses] == [0.3, 12.3]  # a search's result: where NDT ended
+    assert [h[0, 3] for h in later.hypotheses] == [0.0, 12.0]  # a follow-up's: where the motion put them
