@@ -156,6 +156,25 @@ class Refiner:
         pts = np.asarray(points_body, dtype=np.float64).reshape(-1, 3)
         return inlier_ratio(self.engine, self._target, pts[self.overlapping(pts, T_map_body)], T_map_body)
 
+    def block_inlier_ratios(self, points_body: np.ndarray, T_map_body: np.ndarray, block: np.ndarray,
+                            num_blocks: int) -> np.ndarray:
+        """(num_blocks,) float: :meth:`inlier_ratio` of each block's points, ``block`` (N,) int in
+        [0, num_blocks) the block of each point (N, 3), body frame; the same values, with one
+        pass over the points where the engine counts inliers per group (NDT)."""
+        pts = np.asarray(points_body, dtype=np.float64).reshape(-1, 3)
+        block = np.asarray(block, np.int64).reshape(-1)
+        per_group = getattr(self.engine, "inliers_per_group", None)
+        if per_group is None:
+            return np.array([self.inlier_ratio(pts[block == k], T_map_body) for k in range(num_blocks)], float)
+        sel = np.flatnonzero(self.overlapping(pts, T_map_body))
+        order = sel[np.argsort(block[sel], kind="stable")]  # each block's points in their order
+        counts = np.bincount(block[sel], minlength=num_blocks)
+        starts = np.concatenate([[0], np.cumsum(counts)])
+        if len(order) == 0:
+            return np.zeros(num_blocks)
+        inliers = per_group(self._target, pts[order], starts, T_map_body)
+        return np.where(counts > 0, inliers / np.maximum(counts, 1), 0.0)
+
     def align_settled(self, source_body: np.ndarray, T_init: np.ndarray) -> RefineResult:
         """:meth:`align`, and once more from where it stopped when it ran out of iterations on its
         way (sliding along a corridor, or on to another optimum): an optimum is where the second run

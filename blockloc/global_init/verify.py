@@ -334,11 +334,10 @@ def better_fit(points_body: np.ndarray, a: InitCandidate, b: InitCandidate, bloc
     pts = np.asarray(points_body, float).reshape(-1, 3)
     keys = np.floor(pts[:, :2] / block_m).astype(np.int64)
     _, block = unique_cells(keys, return_inverse=True)
-    d = []
-    for k in range(int(block.max()) + 1 if len(block) else 0):
-        q = pts[block == k]
-        d.append(len(q) * (a.refiner.inlier_ratio(q, a.T_map_body) - b.refiner.inlier_ratio(q, b.T_map_body)))
-    d = np.asarray(d)
+    nb = int(block.max()) + 1 if len(block) else 0
+    n = np.bincount(block, minlength=nb)
+    d = n * (a.refiner.block_inlier_ratios(pts, a.T_map_body, block, nb)
+             - b.refiner.block_inlier_ratios(pts, b.T_map_body, block, nb))
     den = math.sqrt(float(np.sum(d * d)))
     return float(np.sum(d) / den) if den > 0 else 0.0
 

@@ -316,6 +316,23 @@ def ndt_evaluate(points, stride, T, level, neighbors, d1, d2, inlier_q, mode, ke
 
 
 @njit(cache=True, nogil=True)
+def ndt_inliers_per_group(points, starts, T, level, neighbors, d1, d2, inlier_q, key_cache, row_cache):
+    """(G,) int64: for each group g of points[starts[g]:starts[g + 1]] (``starts`` (G + 1,) int64,
+    ascending), the inliers ``ndt_evaluate`` counts over that slice alone (MODE_SCORE), in one call:
+    a count of points is the same whichever pass adds it up."""
+    G = starts.shape[0] - 1
+    out = np.zeros(G, np.int64)
+    acc = np.zeros(ACC_LEN)
+    for g in range(G):
+        for j in range(ACC_LEN):
+            acc[j] = 0.0
+        _eval_chunk(points, starts[g], starts[g + 1], 1, T, level, neighbors, d1, d2, inlier_q, MODE_SCORE,
+                    key_cache, row_cache, acc)
+        out[g] = np.int64(np.round(acc[1]))
+    return out
+
+
+@njit(cache=True, nogil=True)
 def _unpack_rotate(acc, o, T, H):
     """H (6, 6) = diag(R, R)^T S diag(R, R), S the symmetric matrix of acc[o:o+21]."""
     S = np.empty((6, 6))

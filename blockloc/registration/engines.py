@@ -155,3 +155,7 @@ class NdtEngine:
 
     def evaluate(self, target, source_points, T_target_source):
         return self.registration.evaluate(target, source_points, T_target_source, derivatives=False)
+
+    def inliers_per_group(self, target, source_points, starts, T_target_source):
+        """:meth:`NdtRegistration.inliers_per_group` (an engine without it is asked group by group)."""
+        return self.registration.inliers_per_group(target, source_points, starts, T_target_source)

@@ -622,6 +622,22 @@ class NdtRegistration:
         T = _check_T(T_target_source, "T_target_source")
         return self._eval(snap, NEIGHBORS[self.neighbors], src, T, derivatives)
 
+    def inliers_per_group(self, target: NdtTarget, source_points: np.ndarray, starts: np.ndarray,
+                          T_target_source: np.ndarray) -> np.ndarray:
+        """(G,) int64: for each group g of source_points[starts[g]:starts[g + 1]] (points (N, 3),
+        ``starts`` (G + 1,) ascending from 0 to N), the inliers :meth:`evaluate` counts over that
+        group alone at the pose (finest level), in one kernel call (no Python per group)."""
+        snap = target.snapshot(0)
+        src = _as_points(source_points, "source points", 0)
+        T = _check_T(T_target_source, "T_target_source")
+        st = np.ascontiguousarray(starts, dtype=np.int64)
+        if st.ndim != 1 or len(st) < 1 or st[0] != 0 or st[-1] != len(src) or np.any(np.diff(st) < 0):
+            raise RegistrationError(f"starts: expected ascending offsets from 0 to {len(src)}")
+        d1, d2 = ndt_constants(snap.resolution, self.outlier_ratio)
+        key_cache, row_cache = _new_memo(len(src))
+        return _kernels().ndt_inliers_per_group(src, st, T, snap.kernel_level(), NEIGHBORS[self.neighbors], d1, d2,
+                                                INLIER_MAHALANOBIS_SQ, key_cache, row_cache)
+
     def _eval(self, snap: _Snapshot, neighbors: int, src: np.ndarray, T: np.ndarray,
               derivatives: bool, gauss_newton: bool = False,
               memo: tuple | None = None) -> NdtEvaluation:

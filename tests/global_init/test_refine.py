@@ -44,3 +44,33 @@ def test_the_dense_grid_and_the_sorted_codes_give_the_definition(monkeypatch):
 def test_an_empty_footprint_contains_nothing():
     fp = Footprint(np.zeros((0, 3)), np.eye(3), 1.0, 0.25)
     assert not fp.contains_L(np.zeros((4, 2))).any()
+
+
+def test_block_inlier_ratios_are_each_blocks_inlier_ratio():
+    """``Refiner.block_inlier_ratios`` (one kernel pass, used by ``verify.better_fit``) gives exactly
+    ``inlier_ratio`` of each block's points, the footprint applied as it applies it; an engine
+    without a per-group count is asked block by block."""
+    from blockloc.global_init.refine import Refiner
+    from blockloc.registration.engines import make_engine
+
+    from .synthetic import world_up
+
+    rng = np.random.default_rng(5)
+    world = world_up(seed=2, size=80.0, n_boxes=30)
+    ref = Refiner(make_engine("ndt", resolution_m=1.0, num_threads=1), world[world[:, 0] < 20.0], None, 1.0, 0.25)
+    T = np.eye(4)
+    T[:3, 3] = [3.0, -2.0, 1.5]
+    c, s = np.cos(0.2), np.sin(0.2)
+    T[:2, :2] = [[c, -s], [s, c]]
+    scan = world[rng.choice(len(world), 20_000, replace=False)] - T[:3, 3]  # partly off the map's part
+    scan = scan + rng.normal(0, 0.05, scan.shape)
+    block = np.floor(scan[:, :2] / 2.0).astype(np.int64)
+    _, block = np.unique(block, axis=0, return_inverse=True)
+    block = block.reshape(-1)
+    nb = int(block.max()) + 1
+    want = np.array([ref.inlier_ratio(scan[block == k], T) for k in range(nb)])
+    got = ref.block_inlier_ratios(scan, T, block, nb)
+    assert (want == 0).any() and ((want > 0) & (want < 1)).any() and want.max() > 0.5  # some blocks off the map
+    np.testing.assert_array_equal(got, want)
+    ref.engine = type("NoGroups", (), {"evaluate": ref.engine.evaluate})()
+    np.testing.assert_array_equal(ref.block_inlier_ratios(scan, T, block, nb), want)
