@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from blockloc.global_init.bnb import Candidate2D
-from blockloc.global_init.verify import InitCandidate, InitResult
+from blockloc.global_init.verify import InitCandidate, InitResult, plausible
 
 #: scan-to-scan registration starts along the first body's x axis (m), tried in turn until one fits
 #: (the motion between two scans is unknown without a tracker; a vehicle moves along its x)
@@ -52,12 +52,6 @@ TARGET_MAX_POINTS = 30000
 SOURCE_MAX_POINTS = 4000
 
 
-def plausible(c: InitCandidate, params) -> bool:
-    """Whether ``c`` counts as a hypothesis (and as a rival, as ``decide`` counts them): verified,
-    or fitness and structure fitness above ``params``' floors."""
-    return c.verified or (c.fitness >= params.min_fitness and c.structure_fitness >= params.min_structure_fitness)
-
-
 def slid_m(c: InitCandidate) -> float:
     """How far (m, horizontal, map frame) refinement moved ``c`` from its start (0 without one)."""
     if c.T_map_body_2d is None or c.T_map_body is None:
@@ -73,7 +67,7 @@ def ambiguous_hypotheses(result: InitResult, params, anchored: bool = False) -> 
     out: list[np.ndarray] = []
     for c in result.candidates:
         T = c.T_map_body_2d if anchored and c.T_map_body_2d is not None else c.T_map_body
-        if not plausible(c, params) or T is None or not np.all(np.isfinite(T)):
+        if not (c.verified or plausible(c, params)) or T is None or not np.all(np.isfinite(T)):
             continue
         if all(np.linalg.norm(T[:3, 3] - o[:3, 3]) > params.ambiguity_distance_m for o in out):
             out.append(np.asarray(T, float))
@@ -105,7 +99,7 @@ def resolve_with_second_scan(localizer, hypotheses: list[np.ndarray], T_first_se
         leaves.append(Candidate2D(float(xy[0]), float(xy[1]), math.atan2(R_heading[1, 0], R_heading[0, 0]), 1.0))
     cands = localizer._refine(leaves, scan, scan_ndt, cells)
     p = localizer.params
-    slid = sum(plausible(c, p) and slid_m(c) > p.ambiguity_distance_m for c in cands)
+    slid = sum((c.verified or plausible(c, p)) and slid_m(c) > p.ambiguity_distance_m for c in cands)
     res = localizer._decide(cands, {"hypotheses": len(hypotheses), "slid": slid}, time.perf_counter() - t0,
                             scan_ndt)
     if slid and res.verified:  # the scan fits along the street: no hypothesis is confirmed where it was put

@@ -66,6 +66,13 @@ def consistency_judged(cand) -> bool:
     return bool(math.isfinite(cand.coverage))
 
 
+def plausible(cand, p) -> bool:
+    """Whether ``cand`` (an :class:`InitCandidate`) fits well enough to count as a rival (and, in
+    ``second_scan``, as a hypothesis): fitness and structure fitness above ``p``'s floors
+    (``InitParams``), converged or not."""
+    return bool(cand.fitness >= p.min_fitness and cand.structure_fitness >= p.min_structure_fitness)
+
+
 def fits_strongly(cand, min_fitness: float, min_structure_fitness: float) -> bool:
     """Whether ``cand`` (an :class:`InitCandidate`) fits well above the verification floors: inlier
     ratio >= ``min_fitness`` and above-ground inlier ratio >= ``min_structure_fitness`` (fractions).
@@ -245,8 +252,7 @@ def decide(cands: list[InitCandidate], stats: dict, elapsed: float, p, scan_ndt:
         for c in cands[1:]:
             far = np.linalg.norm(c.T_map_body[:3, 3] - best.T_map_body[:3, 3]) > p.ambiguity_distance_m
             # Unconverged candidates count too: fitting as well elsewhere is what matters.
-            plausible = c.fitness >= p.min_fitness and c.structure_fitness >= p.min_structure_fitness
-            if plausible and far and c.fitness >= best.fitness - p.ambiguity_fitness_margin:
+            if plausible(c, p) and far and c.fitness >= best.fitness - p.ambiguity_fitness_margin:
                 if scan_ndt is not None and best.refiner is not None and c.refiner is not None \
                         and better_fit(scan_ndt, best, c) >= p.ambiguity_z:
                     continue
