@@ -80,6 +80,14 @@ class InitParams(GlobalInitParams):
     settle_unconverged: bool = True
     scan_voxel_m: float = 0.5
     max_ndt_points: int = 3000
+    # a verified pose the scan holds loosely (NDT restarts around it end more than one_optimum_m away) is
+    # aligned once more on the scan's points, one per whole_scan_voxel_m voxel, against the map within
+    # whole_scan_range_m around it (a levelled box; ``verify.on_whole_scan``): the search's refinement
+    # sees max_ndt_points within max_range_m against refine_range_m, and along a street the far
+    # structure holds the pose. Campus, nominal-mounting map: 65 m as good as 80 m at half the target's
+    # cost; chosen on one draw, two held out (docs/bench/global_init.md). whole_scan_voxel_m 0: off
+    whole_scan_voxel_m: float = 0.5
+    whole_scan_range_m: float = 65.0
     ambiguity_score_ratio: float = 0.8  # once one is verified, refine others only above this x best
     # a stage whose verified candidates leave the result ambiguous does not end the search: without a
     # hint the place stages go on (``GlobalLocalizer._search_on``), with one the window's branch and

@@ -47,6 +47,7 @@ from blockloc.global_init.verify import (  # noqa: F401  (InitCandidate, InitRes
     pose_error,
     probe_optima,
     settle_once_more,
+    stand,
     structure_fit,
     structure_sets,
 )
@@ -80,6 +81,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         self._coverage_source = None
         self._index_load_s = 0.0
         self._structure_body = None  # the scan's points the structure test uses (set by _refine)
+        self._whole_scan = None  # the scan's points a loosely held pose is aligned on last (set by prepare_scan)
         self._target_cache = None  # built on first use (target_cache); False: not usable
         self._pool = None  # threads of the refinements (``_map``), made on first use
 
@@ -204,6 +206,9 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
                             p.max_scan_cells, p.min_scan_cells)
         scan_ndt = points_body[voxel_select(points_body, p.scan_voxel_m)]
         scan_ndt = scan_ndt[np.linalg.norm(scan_ndt, axis=1) <= p.max_range_m]
+        self._whole_scan = None
+        if p.whole_scan_voxel_m > 0:  # a loosely held pose's last alignment (``_align_whole``)
+            self._whole_scan = points_body[voxel_select(points_body, p.whole_scan_voxel_m)]
         if len(scan_ndt) > p.max_ndt_points:
             rng = np.random.default_rng(0)
             scan_ndt = scan_ndt[np.sort(rng.choice(len(scan_ndt), p.max_ndt_points, replace=False))]
@@ -293,12 +298,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             return targets[-1]
 
         def build(t: list) -> Refiner | None:
-            xy, cached = t[0], t[1]
-            if cached:
-                return self.target_cache.refiner(self.map, xy - d, xy + d, min_points=100)
-            pts = self.map.points_in_box(xy - d, xy + d)
-            return Refiner(self.engine, pts, self.map.R_L_map, p.footprint_cell_m,
-                           p.footprint_min_share) if len(pts) >= 100 else None
+            return self._refiner_over(t[0], d, cached=t[1])
 
         out: list[InitCandidate] = []
         jobs: list[tuple[float, np.ndarray, list]] = []  # (2D score, T0, target) not run yet
@@ -548,8 +548,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             return self._decide(list(doubted.candidates), stats, time.perf_counter() - t0, scan_ndt, scan=scan,
                                 cells=cells, dense_points=dense)
         if not more:  # nothing new: the decision stands
-            for c in doubted.candidates:
-                c.refiner = None
+            stand(doubted, self._align_whole, p)
             doubted.time_s = time.perf_counter() - t0
             return doubted
         return self._decide(list(doubted.candidates) + more, stats, time.perf_counter() - t0, scan_ndt,
@@ -586,8 +585,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
                   or fits_strongly(out.candidates[0], p.unjudged_min_fitness, p.unjudged_min_structure_fitness))
         stands = not doubt or (out.verified and judged)
         if stands:
-            for c in out.candidates:
-                c.refiner = None
+            stand(out, self._align_whole, p)
         return out, stands
 
     def _decide(self, cands: list[InitCandidate], stats: dict, elapsed: float,
@@ -614,7 +612,31 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             stats["climb_s"], stats["climbed"] = dt, len(cands) - n
             elapsed += dt
         return decide(cands, stats, elapsed, self.params, scan_ndt, final, self._structure_body, drop_targets,
-                      dense_points)
+                      dense_points, self._align_whole)
+
+    def _align_whole(self, T_map_body: np.ndarray):
+        """NDT of the whole scan (``prepare_scan``'s ``_whole_scan``) from ``T_map_body`` (4, 4) against the
+        map within ``whole_scan_range_m`` around it (levelled box): ``Refiner.align_settled``'s
+        result, or None (off, or fewer than 100 map points there). ``verify.on_whole_scan`` decides."""
+        if self._whole_scan is None or len(self._whole_scan) == 0:
+            return None
+        xy = (self.map.R_L_map @ np.asarray(T_map_body, float)[:3, 3])[:2]
+        ref = self._refiner_over(xy, self.params.whole_scan_range_m)
+        return None if ref is None else ref.align_settled(self._whole_scan, T_map_body)
+
+    def _refiner_over(self, xy: np.ndarray, d: float, cached: bool | None = None) -> Refiner | None:
+        """The refiner of the map points in the levelled box ``xy`` (2,) +- ``d`` (m): assembled by the
+        target cache where it is ready there (``cached``; None: asked now), else built from the
+        points; None with fewer than 100 of them."""
+        cache = self.target_cache
+        if cached is None:
+            cached = cache is not None and cache.ready(self.map, xy - d, xy + d)
+        if cached:
+            return cache.refiner(self.map, xy - d, xy + d, min_points=100)
+        p = self.params
+        pts = self.map.points_in_box(xy - d, xy + d)
+        return Refiner(self.engine, pts, self.map.R_L_map, p.footprint_cell_m,
+                       p.footprint_min_share) if len(pts) >= 100 else None
 
 
 # ----------------------------------------------------------------------------- one-shot API

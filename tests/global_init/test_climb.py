@@ -391,8 +391,10 @@ def test_a_verified_best_whose_coverage_was_not_judged_does_not_end_the_place_se
             return [found], dict(stats, place_stage=3)
 
         monkeypatch.setattr(GlobalLocalizer, "_relocalize_places", places)
+        # whole_scan_voxel_m 0: the wrong place is verified by hand, not at an NDT optimum; the whole
+        # scan's alignment would move it to one
         nohint = GlobalLocalizer(loc.map, InitParams(search_on_unjudged=unjudged, max_search_s=0.0,
-                                                     unjudged_min_fitness=min_fit,
+                                                     whole_scan_voxel_m=0.0, unjudged_min_fitness=min_fit,
                                                      unjudged_min_structure_fitness=min_struct))
         res = nohint.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true))
         assert res.verified and not res.ambiguous

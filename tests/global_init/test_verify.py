@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from blockloc.config import Config, load_config
+from blockloc.geometry import rotation_angle, rpy_to_R
+from blockloc.global_init.params import InitParams
 from blockloc.global_init.verify import Thresholds, consistency_passes, fit_passes, passes
 
 TH = Thresholds(0.75, 0.6, 0.9, 0.35)
@@ -31,3 +35,107 @@ def test_every_threshold_decides():
 def test_consistency_not_judged_passes():
     assert consistency_passes(math.nan, math.nan, TH)
     assert not consistency_passes(0.5, math.nan, TH) and not consistency_passes(math.nan, 0.5, TH)
+
+
+# --------------------------------------------------------------- the whole scan's last alignment
+
+
+def _result(T, converged=True, fitness=0.9):
+    from blockloc.global_init.refine import RefineResult
+
+    return RefineResult(np.array(T, float), fitness, converged)
+
+
+def _moved(dx):
+    T = np.eye(4)
+    T[0, 3] = dx
+    return T
+
+
+def _candidate(T, probes_at=(0.3,)):
+    """A verified candidate at T whose NDT restarts ended ``probes_at`` metres from it along x."""
+    from blockloc.global_init.verify import InitCandidate
+
+    c = InitCandidate(np.array(T, float), 0.9, 0.9, True, True, np.array(T, float), 1.5, 0.9, refiner=object())
+    c.probes = [(None, _result(np.array(T, float) @ _moved(d))) for d in probes_at]
+    return c
+
+
+class _Align:
+    """An ``align_whole`` whose run ends where the test says (``verify.on_whole_scan``'s rule alone)."""
+
+    def __init__(self, T, converged=True, fitness=0.9):
+        self.result, self.calls = _result(T, converged, fitness), 0
+
+    def __call__(self, T_map_body):
+        self.calls += 1
+        return self.result
+
+
+def test_the_whole_scan_brings_a_loosely_held_pose_to_its_optimum():
+    from blockloc.global_init.refine import Refiner
+    from blockloc.global_init.verify import on_whole_scan
+    from blockloc.registration.engines import make_engine
+
+    from .synthetic import scan_from, world_up
+
+    world = world_up(seed=3)
+    T_true = np.eye(4)
+    T_true[:3, 3] = (4.0, -3.0, 1.5)
+    T_off = T_true.copy()
+    T_off[:3, :3] = rpy_to_R(0.0, 0.0, math.radians(1.0))
+    T_off[:2, 3] += (0.25, -0.1)  # where the near scan left it
+    refiner = Refiner(make_engine("ndt"), world)
+    scan = scan_from(world, T_true)
+    best = _candidate(T_off)
+    assert on_whole_scan(best, lambda T: refiner.align_settled(scan, T), InitParams())
+    assert np.linalg.norm(best.T_map_body[:3, 3] - T_true[:3, 3]) < 0.05
+    assert rotation_angle(best.T_map_body[:3, :3].T @ T_true[:3, :3]) < math.radians(0.2)
+
+
+def test_only_a_pose_the_scan_holds_loosely_is_aligned_again():
+    from blockloc.global_init.verify import loosely_held, on_whole_scan
+
+    p = InitParams()
+    for probes_at, loose in (((0.05, -0.08), False),  # every restart came back: held firmly
+                             ((0.05, p.one_optimum_m + 0.05), True),  # one ended along a flat direction
+                             ((3.0, -2.5), False),  # other places: rivals, not looseness
+                             ((), False)):  # no restarts run
+        best = _candidate(np.eye(4), probes_at)
+        align = _Align(_moved(0.1))
+        assert loosely_held(best, p) is loose
+        assert on_whole_scan(best, align, p) is loose and align.calls == int(loose)
+        assert best.T_map_body[0, 3] == (0.1 if loose else 0.0)
+    unconverged = _candidate(np.eye(4), ())
+    unconverged.probes = [(None, _result(_moved(0.3), converged=False))]
+    assert not loosely_held(unconverged, p)
+
+
+def test_the_whole_scan_never_moves_a_verified_pose_to_what_was_not_verified():
+    from blockloc.global_init.verify import on_whole_scan
+
+    p = InitParams()
+    for align in (_Align(_moved(p.ambiguity_distance_m + 0.3)),  # another place
+                  _Align(_moved(0.1), converged=False),  # still sliding
+                  _Align(_moved(0.1), fitness=p.min_fitness - 0.05),  # fits worse than verification asks
+                  _Align(np.full((4, 4), np.nan))):
+        best = _candidate(np.eye(4))
+        assert not on_whole_scan(best, align, p) and np.array_equal(best.T_map_body, np.eye(4))
+        assert align.calls == 1
+    assert not on_whole_scan(_candidate(np.eye(4)), lambda T: None, p)  # no map there
+
+
+def test_a_standing_decision_aligns_only_a_verified_best_and_drops_every_target():
+    from blockloc.global_init.verify import InitResult, stand
+
+    p = InitParams()
+    for verified in (True, False):
+        cands = [_candidate(np.eye(4)), _candidate(_moved(5.0))]
+        res = InitResult(cands[0].T_map_body, 0.9, 0.9, cands, not verified, 0.2, verified, {})
+        stand(res, _Align(_moved(0.1)), p)
+        assert all(c.refiner is None for c in cands)
+        assert res.T_map_body[0, 3] == (0.1 if verified else 0.0)
+        assert res.stats.get("whole_scan_moved", False) is verified
+        # a second standing (a decision returned as it stood) changes nothing: the targets are gone
+        stand(res, _Align(_moved(0.2)), p)
+        assert res.T_map_body[0, 3] == (0.1 if verified else 0.0)
