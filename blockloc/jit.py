@@ -61,3 +61,26 @@ class CompileClock:
 
             event.unregister("numba:compile", self._listener)
             self._listener = None
+
+
+class Deadline:
+    """A search's time budget that numba's compiling does not spend: :meth:`passed` once
+    ``time.perf_counter()`` reaches ``at`` (seconds; inf: never) plus the compile time ``clock`` (a
+    :class:`CompileClock`, open while the search runs) counted after ``since`` of its seconds.
+
+    Why: on a fresh install the first no-hint search compiles its kernels inside the search (50 s
+    on the campus, 2 cores); counted against ``max_search_s`` (10 s) it stopped after its first
+    stage with nothing verified, where the same call once compiled verifies the pose.
+    """
+
+    def __init__(self, at: float, clock: CompileClock | None = None, since: float = 0.0) -> None:
+        self.at = float(at)
+        self.clock = clock
+        self.since = float(since)
+
+    def passed(self) -> bool:
+        compiling = self.clock.seconds - self.since if self.clock is not None else 0.0
+        return time.perf_counter() - compiling >= self.at
+
+
+NEVER = Deadline(float("inf"))

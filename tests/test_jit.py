@@ -5,7 +5,7 @@ import time
 import numba
 import numpy as np
 
-from blockloc.jit import CompileClock
+from blockloc.jit import NEVER, CompileClock, Deadline
 
 
 def _kernels():
@@ -120,3 +120,17 @@ def test_the_place_index_load_time_leaves_out_a_compile_inside_it_and_the_cold_s
     assert 0.04 < loc._index_load_s <= wall - jit.seconds + 1e-3
     cold = cold_start(0.01, wall, {"index_load_s": loc._index_load_s}, jit.seconds)
     assert cold["search_s"] >= 0.0 and cold["total_s"] >= 0.0
+
+
+def test_a_deadline_is_pushed_back_by_the_time_spent_compiling():
+    outer = _kernels()
+    with CompileClock() as jit:
+        dl = Deadline(time.perf_counter() + 0.01, jit)
+        outer(np.arange(3.0))  # compiles: longer than the 10 ms budget
+        assert jit.seconds > 0.01
+        assert not dl.passed()  # what is left took microseconds
+        already = Deadline(time.perf_counter() + 0.01, jit, since=jit.seconds)  # compiling before it is not
+        time.sleep(0.02)
+        assert already.passed()
+    assert not NEVER.passed()
+    assert Deadline(time.perf_counter()).passed()  # no clock: wall time alone

@@ -24,6 +24,7 @@ from blockloc.errors import GlobalInitError
 from blockloc.global_init.bnb import Candidate2D, Window, make_angles, required_cells, rotated_cells, search_windows
 from blockloc.global_init.projection import ScanProjection
 from blockloc.global_init.verify import InitCandidate
+from blockloc.jit import NEVER, Deadline
 
 GROUP_M = 400.0  # windows of the no-hint search share one pyramid crop per square of this side
 
@@ -32,11 +33,11 @@ class NoHintSearch:
     """The place stages and the regions' fallback of a localizer."""
 
     def _relocalize_places(self, scan: ScanProjection, scan_ndt: np.ndarray, cells, index, theta_c: float,
-                           yaw_win: float, stats: dict, deadline: float = math.inf,
+                           yaw_win: float, stats: dict, deadline: Deadline = NEVER,
                            candidates: tuple[int, ...] | None = None, flip_open: bool = False,
                            first_stage: int = 0, done: list[Candidate2D] | None = None):
         """No-hint search through the place index, widening stage by stage (module docstring) while
-        ``time.perf_counter()`` is before ``deadline``; ``candidates``: the stages' place counts
+        ``deadline`` has not passed (``jit.Deadline``); ``candidates``: the stages' place counts
         (default ``place_candidates``); ``flip_open``: an open place's window is searched at its yaw
         guess reversed too (every yaw allowed). ``first_stage``: resume a search that stopped
         after that many stages (the candidates it returned are not returned again); ``done``: the
@@ -67,7 +68,7 @@ class NoHintSearch:
                 continue
             if yaw >= min(yaw_win, 2 * math.pi) and yaw_guess >= min(yaw_win, 2 * math.pi) and i > 0:
                 break  # the guesses' windows already covered every allowed yaw
-            if i > 0 and time.perf_counter() >= deadline:
+            if i > 0 and deadline.passed():
                 stats["timed_out"] = True
                 break
             # The places not searched yet (a later yaw-only stage: its places again, at every yaw).
@@ -176,7 +177,7 @@ class NoHintSearch:
         return cands[:top_k] + rest, total
 
     def _relocalize(self, scan: ScanProjection, scan_ndt: np.ndarray, theta_c: float, yaw_win: float, cells=None,
-                    deadline: float = math.inf):
+                    deadline: Deadline = NEVER):
         """The regions' search (module docstring), region by region while before ``deadline``."""
         p = self.params
         w = p.reloc_window_m
@@ -186,7 +187,7 @@ class NoHintSearch:
         t = time.perf_counter()
         cheap = np.full(len(centers), -np.inf)
         for i, c in enumerate(centers):
-            if time.perf_counter() >= deadline:
+            if deadline.passed():
                 break  # the regions scored so far come first
             cheap[i] = self._cheap_score(scan, c, w)
         order = np.argsort(-cheap, kind="stable")
@@ -196,7 +197,7 @@ class NoHintSearch:
         all_cands: list[InitCandidate] = []
         stats: dict = {"regions": len(centers), "cheap_time_s": t_cheap, "regions_searched": 0}
         for k, i in enumerate(order):
-            if time.perf_counter() >= deadline:
+            if deadline.passed():
                 stats["timed_out"] = True
                 break
             # Regions overlap by the scan's reach, so a pose near a border is inside some window.

@@ -51,6 +51,7 @@ from blockloc.global_init.verify import (  # noqa: F401  (InitCandidate, InitRes
     structure_fit,
     structure_sets,
 )
+from blockloc.jit import NEVER, CompileClock, Deadline
 from blockloc.voxels import voxel_select
 
 log = logging.getLogger(__name__)
@@ -82,6 +83,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         self._index_load_s = 0.0
         self._structure_body = None  # the scan's points the structure test uses (set by _refine)
         self._whole_scan = None  # the scan's points a loosely held pose is aligned on last (set by prepare_scan)
+        self._wide = None  # (centre (2,), Refiner | None): the scan's last target of _align_whole
         self._target_cache = None  # built on first use (target_cache); False: not usable
         self._pool = None  # threads of the refinements (``_map``), made on first use
 
@@ -90,8 +92,6 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         """The map's place index (``place_index``), loaded (or built) on first use."""
         if self._place_index is None:
             from blockloc.global_init.place_index import index_for_source
-
-            from blockloc.jit import CompileClock
 
             t = time.perf_counter()
             with CompileClock() as jit:  # a first run after an install compiles while building it
@@ -153,7 +153,14 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         gravity_body: (3,) gravity direction in the body frame (from the accelerometer).
         hint_xy: (2,) map-frame position hint, metres, or None for whole-map relocalization.
         hint_yaw: map-frame yaw hint (rad) or None (searched over ``yaw_window_deg`` around it).
+        ``max_search_s`` bounds the no-hint search without the time numba spends compiling
+        (``jit.Deadline``).
         """
+        with CompileClock() as jit:
+            return self._localize(points_body, gravity_body, hint_xy, hint_yaw, window_m, yaw_window_deg, jit)
+
+    def _localize(self, points_body: np.ndarray, gravity_body: np.ndarray, hint_xy, hint_yaw, window_m: float,
+                  yaw_window_deg: float, jit: CompileClock) -> InitResult:
         t0 = time.perf_counter()
         p = self.params
         _check_args(window_m, yaw_window_deg)
@@ -165,6 +172,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             index = self.place_index  # first: the scan's cells take the index's parameters
             t0 += time.perf_counter() - t_idx  # loading the index is opening the map, not searching
             stats["index_load_s"] = self._index_load_s
+        jit_before = jit.seconds  # compiling while the index loaded is in the time left out already
         # the scan as the search and NDT use it, and its cells in the index's band: side by side
         (scan, scan_ndt), cells = self._map(lambda prepare: prepare(points_body, gravity_body),
                                             [self.prepare_scan, self._scan_cells])
@@ -176,7 +184,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         if hint_xy is not None:  # the place index in the hint's window, then branch and bound (``hinted``)
             center = self._hint_to_L(hint_xy)
             return self._localize_hinted(scan, scan_ndt, cells, center, window_m, theta_c, yaw_win, t0)
-        deadline = t0 + p.max_search_s if p.max_search_s > 0 else math.inf
+        deadline = Deadline(t0 + p.max_search_s, jit, jit_before) if p.max_search_s > 0 else NEVER
         if p.use_place_index:
             done: list = []
             cands, stats = self._relocalize_places(scan, scan_ndt, cells, index, theta_c, yaw_win, stats, deadline,
@@ -206,7 +214,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
                             p.max_scan_cells, p.min_scan_cells)
         scan_ndt = points_body[voxel_select(points_body, p.scan_voxel_m)]
         scan_ndt = scan_ndt[np.linalg.norm(scan_ndt, axis=1) <= p.max_range_m]
-        self._whole_scan = None
+        self._whole_scan, self._wide = None, None
         if p.whole_scan_voxel_m > 0:  # a loosely held pose's last alignment (``_align_whole``)
             self._whole_scan = points_body[voxel_select(points_body, p.whole_scan_voxel_m)]
         if len(scan_ndt) > p.max_ndt_points:
@@ -507,7 +515,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             return np.nan, np.nan
 
     def _search_on(self, doubted: InitResult, scan: ScanProjection, scan_ndt: np.ndarray, cells, index,
-                   theta_c: float, yaw_win: float, stats: dict, deadline: float, done: list,
+                   theta_c: float, yaw_win: float, stats: dict, deadline: Deadline, done: list,
                    t0: float, points_body: np.ndarray | None = None) -> InitResult:
         """The place search resumed after a stage whose candidates verified but left the result
         ambiguous (``doubted``: the final decision over them).
@@ -621,7 +629,12 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         if self._whole_scan is None or len(self._whole_scan) == 0:
             return None
         xy = (self.map.R_L_map @ np.asarray(T_map_body, float)[:3, 3])[:2]
-        ref = self._refiner_over(xy, self.params.whole_scan_range_m)
+        d = self.params.whole_scan_range_m
+        # one target per scan while it serves: a pose within 2 m of its centre still has the map
+        # d - 2 m around it (a verified best and its rivals nearby: one_optimum, on_whole_scan)
+        if self._wide is None or np.max(np.abs(xy - self._wide[0])) > 2.0:
+            self._wide = (xy, self._refiner_over(xy, d))
+        ref = self._wide[1]
         return None if ref is None else ref.align_settled(self._whole_scan, T_map_body)
 
     def _refiner_over(self, xy: np.ndarray, d: float, cached: bool | None = None) -> Refiner | None:

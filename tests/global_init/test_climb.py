@@ -10,6 +10,7 @@ from blockloc.global_init.bnb import Window
 from blockloc.global_init.refine import Refiner
 from blockloc.global_init.relocalize import GlobalLocalizer, InitParams, pose_error
 from blockloc.global_init.verify import InitCandidate, nearby_rival
+from blockloc.jit import Deadline
 
 from .synthetic import GRAVITY_Z_DOWN, Z_DOWN, gravity_body, scan_from, world_up
 
@@ -239,7 +240,7 @@ def test_a_resumed_place_search_runs_only_the_stages_after_those_done(setup, mon
     done = []
     # stopped after the first stage (its deadline passed)
     _, stats = nohint._relocalize_places(sc, scan_ndt, cells, nohint.place_index, 0.0, 2 * math.pi, {},
-                                         deadline=0.0, done=done)
+                                         deadline=Deadline(0.0), done=done)
     assert stats["place_stage"] == 1 and stats["timed_out"] and len(seen) == 1 and len(done) > 0
     n_done = len(done)
     _, stats = nohint._relocalize_places(sc, scan_ndt, cells, nohint.place_index, 0.0, 2 * math.pi, {},

@@ -147,3 +147,39 @@ def test_the_best_every_point_run_that_stops_unconverged_is_settled_once_more(se
     monkeypatch.setattr(type(refiner), "align_settled", first_stops_short)
     assert one_optimum(dense, best, _rival(best, T_near, refiner), p)
     assert len(calls) == 3  # the best's run twice, the rival's once
+
+
+def test_where_every_point_leaves_two_optima_the_whole_scan_may_make_them_one(setup, untold):
+    """Defaults' map ``--rng 7`` frame 17992: a best 0.12 m and a rival 0.63 m from the truth, both
+    verified, stayed apart on every point within 60 m against the map within 50 m; the whole scan
+    against the map 65 m around brought both to 0.04-0.05 m. Here the rival's own target is made so
+    that NDT cannot bring it back (a target holding none of the map), and ``align_whole`` is
+    NDT on the scan's every point against the whole world."""
+    from blockloc.global_init.refine import Refiner
+    from blockloc.registration.engines import make_engine
+
+    loc, T_true, scan_body, dense, scan_ndt, refiner = setup
+    p = loc.params
+    best = _best(refiner, scan_ndt, T_true)
+    T_near = best.T_map_body.copy()
+    T_near[:2, 3] += (0.6, -0.5)
+    elsewhere = Refiner(make_engine("ndt"), world_up(seed=99) @ Z_DOWN.T)  # the dense runs stay apart
+    calls = []
+
+    def align_whole(T):
+        calls.append(T)
+        return refiner.align_settled(scan_body, T)
+
+    assert not one_optimum(dense, best, _rival(best, T_near, elsewhere), p)
+    assert one_optimum(dense, best, _rival(best, T_near, elsewhere), p, align_whole=align_whole)
+    assert len(calls) == 2  # from the best, from the rival
+    res = decide([best, _rival(best, T_near, elsewhere)], {}, 0.0, p, scan_ndt, drop_targets=False,
+                 dense_points=dense, align_whole=align_whole)
+    assert res.verified and not res.ambiguous
+    # a rival at another place stays one; a best whose coverage was not judged keeps every rival
+    T_far = xyzrpy_to_T(-25.0, 20.0, -(1.9 - 0.02 * 25.0), 0.03, -0.02, 0.7)
+    assert not one_optimum(dense, best, _rival(best, T_far, elsewhere), p, align_whole=align_whole)
+    unjudged = _best(refiner, scan_ndt, T_true, coverage=math.nan)
+    calls.clear()
+    assert not one_optimum(dense, unjudged, _rival(unjudged, T_near, elsewhere), p, align_whole=align_whole)
+    assert not calls
