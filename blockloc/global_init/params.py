@@ -88,6 +88,9 @@ class InitParams(GlobalInitParams):
     # cost; chosen on one draw, two held out (docs/bench/global_init.md). whole_scan_voxel_m 0: off
     whole_scan_voxel_m: float = 0.5
     whole_scan_range_m: float = 65.0
+    # ... and, after the search went on, a far ambiguity among at most this many candidates is
+    # judged on the whole scan (``verify.whole_scan_decides``)
+    whole_scan_max_candidates: int = 8
     ambiguity_score_ratio: float = 0.8  # once one is verified, refine others only above this x best
     # a stage whose verified candidates leave the result ambiguous does not end the search: without a
     # hint the place stages go on (``GlobalLocalizer._search_on``), with one the window's branch and

@@ -197,3 +197,37 @@ class Refiner:
             fitness = self.inlier_ratio(src, T)
         return RefineResult(T, fitness, bool(res.converged), int(res.iterations),
                             float(res.score) / max(int(res.num_points), 1), overlap)
+
+
+class WholeScan:
+    """The scan's whole reach for the last decisions of a search: ``points`` (K, 3), body frame (one
+    per ``whole_scan_voxel_m`` voxel, every range), aligned against the map ``range_m`` around a
+    pose, where the search refines a sample within ``max_range_m`` against ``refine_range_m``.
+
+    ``refiner_over(xy_L (2,), d)``: the refiner of the map in the levelled box xy_L +- d (the
+    localizer's, from its target cache), or None; ``R_L_map`` (3, 3) levels the map frame. One target
+    is kept while the poses asked about stay within ``reuse_m`` of its centre (a best and its
+    rivals nearby): the map is then at least ``range_m - reuse_m`` around each.
+    """
+
+    def __init__(self, points: np.ndarray, refiner_over, R_L_map: np.ndarray, range_m: float,
+                 reuse_m: float = 2.0):
+        self.points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        self._refiner_over = refiner_over
+        self._R = np.asarray(R_L_map, float).reshape(3, 3)
+        self.range_m = float(range_m)
+        self.reuse_m = float(reuse_m)
+        self._kept: tuple[np.ndarray, Refiner | None] | None = None
+
+    def refiner_at(self, T_map_body: np.ndarray) -> Refiner | None:
+        """The refiner of the map ``range_m`` around the pose T_map_body (4, 4), or None (no map there)."""
+        xy = (self._R @ np.asarray(T_map_body, float)[:3, 3])[:2]
+        if self._kept is None or np.max(np.abs(xy - self._kept[0])) > self.reuse_m:
+            self._kept = (xy, self._refiner_over(xy, self.range_m))
+        return self._kept[1]
+
+    def align(self, T_map_body: np.ndarray) -> RefineResult | None:
+        """``Refiner.align_settled`` of the points from T_map_body (4, 4) against :meth:`refiner_at`'s
+        target, or None (no points, or no map there)."""
+        ref = self.refiner_at(T_map_body) if len(self.points) else None
+        return None if ref is None else ref.align_settled(self.points, T_map_body)

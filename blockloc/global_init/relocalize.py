@@ -33,7 +33,7 @@ from blockloc.global_init.no_hint import NoHintSearch
 from blockloc.global_init.params import InitParams
 from blockloc.global_init.pyramid import extend
 from blockloc.global_init.projection import ScanProjection, heading_offset, project_scan
-from blockloc.global_init.refine import Refiner
+from blockloc.global_init.refine import Refiner, WholeScan
 from blockloc.global_init.verify import (  # noqa: F401  (InitCandidate, InitResult, better_fit, pose_error: re-exported)
     InitCandidate,
     InitResult,
@@ -82,8 +82,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         self._coverage_source = None
         self._index_load_s = 0.0
         self._structure_body = None  # the scan's points the structure test uses (set by _refine)
-        self._whole_scan = None  # the scan's points a loosely held pose is aligned on last (set by prepare_scan)
-        self._wide = None  # (centre (2,), Refiner | None): the scan's last target of _align_whole
+        self._whole_scan = None  # refine.WholeScan of the scan (set by prepare_scan)
         self._target_cache = None  # built on first use (target_cache); False: not usable
         self._pool = None  # threads of the refinements (``_map``), made on first use
 
@@ -214,9 +213,10 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
                             p.max_scan_cells, p.min_scan_cells)
         scan_ndt = points_body[voxel_select(points_body, p.scan_voxel_m)]
         scan_ndt = scan_ndt[np.linalg.norm(scan_ndt, axis=1) <= p.max_range_m]
-        self._whole_scan, self._wide = None, None
-        if p.whole_scan_voxel_m > 0:  # a loosely held pose's last alignment (``_align_whole``)
-            self._whole_scan = points_body[voxel_select(points_body, p.whole_scan_voxel_m)]
+        self._whole_scan = None
+        if p.whole_scan_voxel_m > 0:  # the last decisions' evidence (``verify.stand``, ``one_optimum``)
+            self._whole_scan = WholeScan(points_body[voxel_select(points_body, p.whole_scan_voxel_m)],
+                                         self._refiner_over, self.map.R_L_map, p.whole_scan_range_m)
         if len(scan_ndt) > p.max_ndt_points:
             rng = np.random.default_rng(0)
             scan_ndt = scan_ndt[np.sort(rng.choice(len(scan_ndt), p.max_ndt_points, replace=False))]
@@ -556,7 +556,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             return self._decide(list(doubted.candidates), stats, time.perf_counter() - t0, scan_ndt, scan=scan,
                                 cells=cells, dense_points=dense)
         if not more:  # nothing new: the decision stands
-            stand(doubted, self._align_whole, p)
+            stand(doubted, self._whole_scan, p)
             doubted.time_s = time.perf_counter() - t0
             return doubted
         return self._decide(list(doubted.candidates) + more, stats, time.perf_counter() - t0, scan_ndt,
@@ -593,7 +593,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
                   or fits_strongly(out.candidates[0], p.unjudged_min_fitness, p.unjudged_min_structure_fitness))
         stands = not doubt or (out.verified and judged)
         if stands:
-            stand(out, self._align_whole, p)
+            stand(out, self._whole_scan, p)
         return out, stands
 
     def _decide(self, cands: list[InitCandidate], stats: dict, elapsed: float,
@@ -620,22 +620,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             stats["climb_s"], stats["climbed"] = dt, len(cands) - n
             elapsed += dt
         return decide(cands, stats, elapsed, self.params, scan_ndt, final, self._structure_body, drop_targets,
-                      dense_points, self._align_whole)
-
-    def _align_whole(self, T_map_body: np.ndarray):
-        """NDT of the whole scan (``prepare_scan``'s ``_whole_scan``) from ``T_map_body`` (4, 4) against the
-        map within ``whole_scan_range_m`` around it (levelled box): ``Refiner.align_settled``'s
-        result, or None (off, or fewer than 100 map points there). ``verify.on_whole_scan`` decides."""
-        if self._whole_scan is None or len(self._whole_scan) == 0:
-            return None
-        xy = (self.map.R_L_map @ np.asarray(T_map_body, float)[:3, 3])[:2]
-        d = self.params.whole_scan_range_m
-        # one target per scan while it serves: a pose within 2 m of its centre still has the map
-        # d - 2 m around it (a verified best and its rivals nearby: one_optimum, on_whole_scan)
-        if self._wide is None or np.max(np.abs(xy - self._wide[0])) > 2.0:
-            self._wide = (xy, self._refiner_over(xy, d))
-        ref = self._wide[1]
-        return None if ref is None else ref.align_settled(self._whole_scan, T_map_body)
+                      dense_points, self._whole_scan)
 
     def _refiner_over(self, xy: np.ndarray, d: float, cached: bool | None = None) -> Refiner | None:
         """The refiner of the map points in the levelled box ``xy`` (2,) +- ``d`` (m): assembled by the

@@ -219,15 +219,17 @@ def probe_optima(cand: InitCandidate, scan_ndt: np.ndarray, probe_m, lazy: bool 
 
 def decide(cands: list[InitCandidate], stats: dict, elapsed: float, p, scan_ndt: np.ndarray | None = None,
            final: bool = True, structures: list[np.ndarray] | None = None, drop_targets: bool = True,
-           dense_points: np.ndarray | None = None, align_whole=None) -> InitResult:
+           dense_points: np.ndarray | None = None, whole=None) -> InitResult:
     """The result from refined candidates (module docstring). With ``scan_ndt`` (the points
     refined, body frame), a plausible rival far from the best is no ambiguity when the best
     explains the scan significantly better (:func:`better_fit`). ``final``: look for a nearby
     rival of a verified best (the scan's ``structures`` test it) and drop the candidates' NDT
     targets (``drop_targets`` False: keep them for a later decision). ``dense_points`` (M, 3),
     body frame: the scan's every point; a rival (far or nearby) NDT on them brings to the best's
-    own optimum is none (:func:`one_optimum`). ``align_whole``: a final decision that drops its
-    targets stands (:func:`stand`: a verified best held loosely aligned once more with it).
+    own optimum is none (:func:`one_optimum`). ``whole``: the scan's whole reach
+    (``refine.WholeScan``; None: not used): after the search went on (``dense_points`` given), a
+    far ambiguity that it settles is none (:func:`whole_scan_decides`); a final decision that drops
+    its targets stands (:func:`stand`: a verified best held loosely aligned once more with it).
     ``p``: the localizer's ``InitParams``."""
     # Verified first, then by the NDT score per point: smoother than the inlier ratio, which
     # ties along weakly constrained directions (corridors).
@@ -249,7 +251,7 @@ def decide(cands: list[InitCandidate], stats: dict, elapsed: float, p, scan_ndt:
     dense_best: list = []  # the best's optimum on dense_points, once aligned
 
     def same(rival: InitCandidate) -> bool:
-        return dense_points is not None and one_optimum(dense_points, best, rival, p, dense_best, align_whole)
+        return dense_points is not None and one_optimum(dense_points, best, rival, p, dense_best, whole)
 
     if best.verified:
         for c in cands[1:]:
@@ -263,6 +265,18 @@ def decide(cands: list[InitCandidate], stats: dict, elapsed: float, p, scan_ndt:
                     continue
                 ambiguous = True
                 break
+    if final and ambiguous and dense_points is not None and whole is not None:
+        group = [best] + [c for c in cands[1:] if plausible(c, p) and c.fitness >= best.fitness - p.ambiguity_fitness_margin
+                          and np.linalg.norm(c.T_map_body[:3, 3] - best.T_map_body[:3, 3]) > p.ambiguity_distance_m]
+        decided = whole_scan_decides(group, whole, p)
+        if decided is not None:
+            winner, run = decided
+            stats["whole_scan_decided"] = True
+            cands = [winner] + [c for c in cands if c is not winner]
+            best, ambiguous = winner, False
+
+            def same(rival: InitCandidate) -> bool:  # noqa: F811  (the whole scan judges the nearby rival too)
+                return whole_scan_beats(run, rival, whole, p)
     if final and best.verified and not ambiguous and scan_ndt is not None and best.refiner is not None:
         rival = nearby_rival(best, scan_ndt, structures, p, dismiss=same if dense_points is not None else None)
         if rival is not None:
@@ -274,25 +288,94 @@ def decide(cands: list[InitCandidate], stats: dict, elapsed: float, p, scan_ndt:
     res = InitResult(best.T_map_body, best.score, best.fitness, cands, ambiguous, elapsed,
                      best.verified and not ambiguous, stats)
     if final and drop_targets:
-        stand(res, align_whole, p)
+        stand(res, whole, p)
     return res
 
 
-def stand(res: InitResult, align_whole, p) -> InitResult:
+def stand(res: InitResult, whole, p) -> InitResult:
     """A decision that stands (no later decision judges its candidates again): a verified best is
     aligned on the scan's whole reach where the scan holds it loosely (:func:`on_whole_scan`, with
-    ``align_whole``; None: not), then every candidate's NDT target is dropped. ``res`` is changed in
+    ``whole``, a ``refine.WholeScan``; None: not), then every candidate's NDT target is dropped. ``res`` is changed in
     place and returned."""
     best = res.candidates[0] if res.candidates else None
-    if res.verified and align_whole is not None and best is not None and best.refiner is not None:
+    if res.verified and whole is not None and best is not None and best.refiner is not None:
         t = time.perf_counter()
-        res.stats["whole_scan_moved"] = on_whole_scan(best, align_whole, p)
+        res.stats["whole_scan_moved"] = on_whole_scan(best, whole, p)
         res.T_map_body = best.T_map_body
         res.stats["whole_scan_s"] = time.perf_counter() - t
         res.time_s += res.stats["whole_scan_s"]
     for c in res.candidates:
         c.refiner = None
     return res
+
+
+def whole_scan_decides(group: list[InitCandidate], whole, p) -> tuple[InitCandidate, InitCandidate] | None:
+    """Which of a best and its far rivals (``group``: plausible candidates more than
+    ``ambiguity_distance_m`` apart from the best, the best first) the scan's whole reach decides
+    for, with its whole-scan run (a candidate holding that target), or None: still ambiguous.
+
+    Each is aligned on the whole scan against the map around it (``whole``, a ``refine.WholeScan``).
+    The one with the highest NDT score per point wins when
+    - every run converged, within ``ambiguity_distance_m`` of its candidate or at another's run
+      (within ``one_optimum_m`` / ``_deg``: one optimum, counted once);
+    - the winner was verified by the search and fits the whole scan strongly (inlier ratio at least
+      ``unjudged_min_fitness``, the floor a best stands on without coverage);
+    - it explains the whole scan significantly better than each other run more than
+      ``ambiguity_distance_m`` from its own (:func:`better_fit` at least ``ambiguity_z``, each
+      against its own target).
+    At most ``whole_scan_max_candidates`` are judged (more: None). The winner's pose becomes its
+    whole-scan run's; a nearby rival of it is then judged the same way (:func:`whole_scan_beats`).
+
+    Why: the search ranks on a sample of the near scan. Campus, defaults' map ``--rng 41``, frame
+    47154: the true place verified 0.07 m off, outranked by a wrong one 158 m off (NDT score per
+    point 2.01 against 1.84, fitness 0.84 against 0.92); on the whole scan 1.66 against 1.93,
+    fitness 0.75 against 0.95. Of the wrong places in the campus's ambiguous frames none fit the
+    whole scan above 0.84 but one 10.8 m along a street (0.92), which the true place there beat."""
+    if len(group) < 2 or len(group) > p.whole_scan_max_candidates:
+        return None
+    runs: list[tuple[InitCandidate, InitCandidate]] = []  # (candidate, its whole-scan run)
+    for c in group:
+        run = _whole_run(c, whole)
+        if run is None:
+            return None
+        if any(_one(run, o, p) for _, o in runs):
+            continue  # the whole scan brought it to one found already: one optimum
+        if float(np.linalg.norm(run.T_map_body[:3, 3] - c.T_map_body[:3, 3])) > p.ambiguity_distance_m:
+            return None  # to a place no candidate holds
+        runs.append((c, run))
+    c, w = max(runs, key=lambda cw: cw[1].ndt_score)
+    if not c.verified or w.fitness < p.unjudged_min_fitness:
+        return None
+    if any(better_fit(whole.points, w, o) < p.ambiguity_z for _, o in runs
+           if np.linalg.norm(o.T_map_body[:3, 3] - w.T_map_body[:3, 3]) > p.ambiguity_distance_m):
+        return None
+    log.info("the whole scan decides an ambiguity of %d candidates (fitness %.2f, score per point %.2f)",
+             len(group), w.fitness, w.ndt_score)
+    c.T_map_body = w.T_map_body
+    return c, w
+
+
+def _whole_run(c: InitCandidate, whole) -> InitCandidate | None:
+    """``c`` aligned on the whole scan (``whole``, a ``refine.WholeScan``) as a candidate holding
+    that target, or None (no map there, not converged)."""
+    ref = whole.refiner_at(c.T_map_body)
+    r = ref.align_settled(whole.points, c.T_map_body) if ref is not None else None
+    if r is None or not r.converged or not np.all(np.isfinite(r.T_map_body)):
+        return None
+    return InitCandidate(r.T_map_body, c.score, r.fitness, True, c.verified, ndt_score=r.ndt_score, refiner=ref)
+
+
+def whole_scan_beats(run: InitCandidate, rival: InitCandidate, whole, p) -> bool:
+    """Whether the whole scan's run of a decided best (``run``, :func:`whole_scan_decides`) leaves
+    ``rival`` no ambiguity: the rival's own whole-scan run comes back within
+    ``ambiguity_distance_m`` of it, or ``run`` explains the whole scan significantly better
+    (:func:`better_fit` at least ``ambiguity_z``). A rival the whole scan cannot align stays one."""
+    r = _whole_run(rival, whole)
+    if r is None:
+        return False
+    if float(np.linalg.norm(r.T_map_body[:3, 3] - run.T_map_body[:3, 3])) <= p.ambiguity_distance_m:
+        return True
+    return better_fit(whole.points, run, r) >= p.ambiguity_z
 
 
 def loosely_held(best: InitCandidate, p) -> bool:
@@ -311,12 +394,12 @@ def loosely_held(best: InitCandidate, p) -> bool:
     return False
 
 
-def on_whole_scan(best: InitCandidate, align_whole, p) -> bool:
+def on_whole_scan(best: InitCandidate, whole, p) -> bool:
     """Align a verified best the scan holds loosely (:func:`loosely_held`) once more, on the scan's
-    whole reach: ``align_whole(T_map_body)`` (the localizer's: the scan's points one per
-    ``whole_scan_voxel_m`` voxel out to ``whole_scan_range_m``, against a target of the map that far
-    around, where the search refines a sample of ``max_ndt_points`` within ``max_range_m`` against
-    ``refine_range_m``) returns a ``RefineResult`` or None. The pose moves there
+    whole reach: ``whole.align(T_map_body)`` (a ``refine.WholeScan``: the scan's points one per
+    ``whole_scan_voxel_m`` voxel against the map ``whole_scan_range_m`` around, where the search
+    refines a sample of ``max_ndt_points`` within ``max_range_m`` against ``refine_range_m``)
+    returns a ``RefineResult`` or None. The pose moves there
     (``best.T_map_body``; its verification figures stay those of the search) when that run
     converged to the same place, within ``ambiguity_distance_m`` (farther would be another place,
     which verification did not judge), with an inlier ratio of at least ``min_fitness``. Returns
@@ -328,7 +411,7 @@ def on_whole_scan(best: InitCandidate, align_whole, p) -> bool:
     (docs/bench/global_init.md). Only loosely held poses: the wider target costs 60-150 ms."""
     if not loosely_held(best, p):
         return False
-    r = align_whole(best.T_map_body)
+    r = whole.align(best.T_map_body)
     if r is None:
         return False
     moved = float(np.linalg.norm(r.T_map_body[:3, 3] - best.T_map_body[:3, 3])) if np.all(
@@ -355,7 +438,7 @@ def settle_once_more(refiner, points: np.ndarray, r):
 
 
 def one_optimum(dense_points: np.ndarray, best: InitCandidate, rival: InitCandidate, p,
-                dense_best: list | None = None, align_whole=None) -> bool:
+                dense_best: list | None = None, whole=None) -> bool:
     """Whether ``rival`` is the best's own optimum: NDT on the scan's every point ``dense_points``
     (M, 3), body frame, started from the best (its ``refiner``) and from the rival (its own),
     converges both times (each run settled once more at most, :func:`settle_once_more`) to poses within ``p.one_optimum_m``
@@ -374,8 +457,8 @@ def one_optimum(dense_points: np.ndarray, best: InitCandidate, rival: InitCandid
     (0.3 m / 1 deg). ``dense_best``: a list holding the best's dense alignment once made (shared
     over one decision's rivals).
 
-    Where the dense runs stay apart, ``align_whole`` (:func:`on_whole_scan`'s: the whole scan against
-    the map out to ``whole_scan_range_m``) decides the same way: the scan's every point within
+    Where the dense runs stay apart, ``whole`` (a ``refine.WholeScan``: the whole scan against the
+    map ``whole_scan_range_m`` around) decides the same way: the scan's every point within
     ``max_range_m`` against the map within ``refine_range_m`` may still hold two optima along a
     street that the far structure makes one (defaults' map ``--rng 7``, frame 17992: a best 0.12 m
     and a rival 0.63 m from the truth, both verified and judged, came to 0.05 and 0.04 m)."""
@@ -390,11 +473,11 @@ def one_optimum(dense_points: np.ndarray, best: InitCandidate, rival: InitCandid
         log.info("a rival %.2f m from the best is its own optimum on every point",
                  float(np.linalg.norm(rival.T_map_body[:3, 3] - best.T_map_body[:3, 3])))
         return True
-    if align_whole is None:
+    if whole is None:
         return False
     if len(dense_best) < 2:
-        dense_best.append(align_whole(best.T_map_body))
-    rw = align_whole(rival.T_map_body)
+        dense_best.append(whole.align(best.T_map_body))
+    rw = whole.align(rival.T_map_body)
     if dense_best[1] is not None and rw is not None and _one(dense_best[1], rw, p):
         log.info("a rival %.2f m from the best is its own optimum on the whole scan",
                  float(np.linalg.norm(rival.T_map_body[:3, 3] - best.T_map_body[:3, 3])))

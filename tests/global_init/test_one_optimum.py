@@ -2,6 +2,7 @@
 (``verify.one_optimum``, ``InitParams.resolve_on_every_point``): the decision after the search went on."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -163,23 +164,77 @@ def test_where_every_point_leaves_two_optima_the_whole_scan_may_make_them_one(se
     best = _best(refiner, scan_ndt, T_true)
     T_near = best.T_map_body.copy()
     T_near[:2, 3] += (0.6, -0.5)
+    from blockloc.global_init.refine import WholeScan
+
     elsewhere = Refiner(make_engine("ndt"), world_up(seed=99) @ Z_DOWN.T)  # the dense runs stay apart
     calls = []
 
-    def align_whole(T):
-        calls.append(T)
-        return refiner.align_settled(scan_body, T)
+    def refiner_over(xy, d):
+        calls.append(xy)
+        return refiner
 
+    whole = WholeScan(scan_body, refiner_over, np.eye(3), 65.0, reuse_m=0.0)  # a target asked for each pose
     assert not one_optimum(dense, best, _rival(best, T_near, elsewhere), p)
-    assert one_optimum(dense, best, _rival(best, T_near, elsewhere), p, align_whole=align_whole)
+    assert one_optimum(dense, best, _rival(best, T_near, elsewhere), p, whole=whole)
     assert len(calls) == 2  # from the best, from the rival
     res = decide([best, _rival(best, T_near, elsewhere)], {}, 0.0, p, scan_ndt, drop_targets=False,
-                 dense_points=dense, align_whole=align_whole)
+                 dense_points=dense, whole=whole)
     assert res.verified and not res.ambiguous
     # a rival at another place stays one; a best whose coverage was not judged keeps every rival
     T_far = xyzrpy_to_T(-25.0, 20.0, -(1.9 - 0.02 * 25.0), 0.03, -0.02, 0.7)
-    assert not one_optimum(dense, best, _rival(best, T_far, elsewhere), p, align_whole=align_whole)
+    assert not one_optimum(dense, best, _rival(best, T_far, elsewhere), p, whole=whole)
     unjudged = _best(refiner, scan_ndt, T_true, coverage=math.nan)
     calls.clear()
-    assert not one_optimum(dense, unjudged, _rival(unjudged, T_near, elsewhere), p, align_whole=align_whole)
+    assert not one_optimum(dense, unjudged, _rival(unjudged, T_near, elsewhere), p, whole=whole)
     assert not calls
+
+
+def _whole(refiner, scan_body):
+    from blockloc.global_init.refine import WholeScan
+
+    return WholeScan(scan_body, lambda xy, d: refiner, np.eye(3), 65.0)
+
+
+def test_the_whole_scan_decides_a_far_ambiguity_for_the_place_that_explains_it(setup):
+    """Defaults' map ``--rng 41``, frame 47154: the true place verified, outranked on the thinned scan
+    by a wrong place 158 m off; on the whole scan the truth fits 0.95 against 0.75. Here the wrong
+    place is made to score higher per point on the thinned scan."""
+    from blockloc.global_init.verify import whole_scan_decides
+
+    loc, T_true, scan_body, dense, scan_ndt, refiner = setup
+    p = loc.params
+    truth = _best(refiner, scan_ndt, T_true)
+    T_far = xyzrpy_to_T(-25.0, 20.0, -(1.9 - 0.02 * 25.0), 0.03, -0.02, 0.7)
+    wrong = _rival(truth, T_far, refiner)
+    wrong.ndt_score = truth.ndt_score + 0.2  # ranked first on the thinned scan
+    whole = _whole(refiner, scan_body)
+    res = decide([wrong, truth], {}, 0.0, p, scan_ndt, drop_targets=False, dense_points=dense)
+    assert res.ambiguous and not res.verified  # without the whole scan: as before
+    res = decide([wrong, truth], {}, 0.0, p, scan_ndt, drop_targets=False, dense_points=dense, whole=whole)
+    assert res.verified and not res.ambiguous and res.candidates[0] is truth and res.stats["whole_scan_decided"]
+    assert pose_error(res.T_map_body, T_true)[0] < 0.1
+    # only after the search went on (the decision given every point), as one_optimum
+    assert decide([wrong, truth], {}, 0.0, p, scan_ndt, drop_targets=False, whole=whole).ambiguous
+    # the winner must have been verified by the search
+    truth.verified = False
+    assert whole_scan_decides([wrong, truth], whole, p) is None
+    truth.verified = True
+    # more candidates than judged: still ambiguous
+    assert whole_scan_decides([wrong, truth], whole, replace(p, whole_scan_max_candidates=1)) is None
+
+
+def test_the_whole_scan_never_decides_among_wrong_places(setup):
+    """Every wrong place of the campus's ambiguous frames fit the whole scan at 0.84 or less: none
+    reaches the strong-fit floor, so an ambiguity of wrong places stays one."""
+    from blockloc.global_init.verify import whole_scan_decides
+
+    loc, T_true, scan_body, dense, scan_ndt, refiner = setup
+    p = loc.params
+    truth = _best(refiner, scan_ndt, T_true)
+    far = [xyzrpy_to_T(-25.0, 20.0, -(1.9 - 0.02 * 25.0), 0.03, -0.02, 0.7),
+           xyzrpy_to_T(30.0, -28.0, -(1.9 + 0.02 * 30.0), 0.0, 0.02, -1.2)]
+    wrongs = [_rival(truth, T, refiner) for T in far]
+    assert whole_scan_decides(wrongs, _whole(refiner, scan_body), p) is None
+    res = decide(wrongs, {}, 0.0, p, scan_ndt, drop_targets=False, dense_points=dense,
+                 whole=_whole(refiner, scan_body))
+    assert not res.verified

@@ -62,14 +62,24 @@ def _candidate(T, probes_at=(0.3,)):
 
 
 class _Align:
-    """An ``align_whole`` whose run ends where the test says (``verify.on_whole_scan``'s rule alone)."""
+    """A ``refine.WholeScan`` whose run ends where the test says (``verify.on_whole_scan``'s rule alone)."""
 
     def __init__(self, T, converged=True, fitness=0.9):
         self.result, self.calls = _result(T, converged, fitness), 0
+        self.points = np.zeros((10, 3))
 
-    def __call__(self, T_map_body):
+    def align(self, T_map_body):
         self.calls += 1
         return self.result
+
+
+class _NoMap(_Align):
+    def __init__(self):
+        super().__init__(np.eye(4))
+
+    def align(self, T_map_body):
+        self.calls += 1
+        return None
 
 
 def test_the_whole_scan_brings_a_loosely_held_pose_to_its_optimum():
@@ -85,10 +95,12 @@ def test_the_whole_scan_brings_a_loosely_held_pose_to_its_optimum():
     T_off = T_true.copy()
     T_off[:3, :3] = rpy_to_R(0.0, 0.0, math.radians(1.0))
     T_off[:2, 3] += (0.25, -0.1)  # where the near scan left it
+    from blockloc.global_init.refine import WholeScan
+
     refiner = Refiner(make_engine("ndt"), world)
-    scan = scan_from(world, T_true)
+    whole = WholeScan(scan_from(world, T_true), lambda xy, d: refiner, np.eye(3), 65.0)
     best = _candidate(T_off)
-    assert on_whole_scan(best, lambda T: refiner.align_settled(scan, T), InitParams())
+    assert on_whole_scan(best, whole, InitParams())
     assert np.linalg.norm(best.T_map_body[:3, 3] - T_true[:3, 3]) < 0.05
     assert rotation_angle(best.T_map_body[:3, :3].T @ T_true[:3, :3]) < math.radians(0.2)
 
@@ -122,7 +134,7 @@ def test_the_whole_scan_never_moves_a_verified_pose_to_what_was_not_verified():
         best = _candidate(np.eye(4))
         assert not on_whole_scan(best, align, p) and np.array_equal(best.T_map_body, np.eye(4))
         assert align.calls == 1
-    assert not on_whole_scan(_candidate(np.eye(4)), lambda T: None, p)  # no map there
+    assert not on_whole_scan(_candidate(np.eye(4)), _NoMap(), p)  # no map there
 
 
 def test_a_standing_decision_aligns_only_a_verified_best_and_drops_every_target():
