@@ -46,7 +46,8 @@ class GlobalInitParams:
     place_tolerance_m: float = bounded(1.5, POSITIVE)  # a scan this far from a place still matches it
     place_max_offset_m: float = bounded(20.0, POSITIVE)  # grid places within this of a mapping keyframe
     whole_map_fallback: bool = True  # then the regions of reloc_window_m, as without an index
-    # no-hint search budget, seconds (0: none); then "not found" (verified false) rather than minutes
+    # no-hint search budget, seconds (0: none); then "not found" (verified false) rather than minutes;
+    # numba's compiling (a first search after an install) does not count (``jit.Deadline``)
     max_search_s: float = bounded(10.0, NON_NEGATIVE)
     # Verification at the refined pose, in the static band (both the hinted and the no-hint path).
     min_coverage: float = bounded(0.9, FRACTION)  # scan structure the map covers (true poses: >= 0.91 on campus)
