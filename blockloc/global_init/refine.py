@@ -226,6 +226,10 @@ class WholeScan:
             self._kept = (xy, self._refiner_over(xy, self.range_m))
         return self._kept[1]
 
+    def release(self) -> None:
+        """Drop the kept target (a decision that stands needs it no more; a new pose builds one)."""
+        self._kept = None
+
     def align(self, T_map_body: np.ndarray) -> RefineResult | None:
         """``Refiner.align_settled`` of the points from T_map_body (4, 4) against :meth:`refiner_at`'s
         target, or None (no points, or no map there)."""

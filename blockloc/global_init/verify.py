@@ -306,6 +306,8 @@ def stand(res: InitResult, whole, p) -> InitResult:
         res.time_s += res.stats["whole_scan_s"]
     for c in res.candidates:
         c.refiner = None
+    if whole is not None:
+        whole.release()  # the whole scan's target too: a localizer keeps nothing of a search between calls
     return res
 
 

@@ -74,3 +74,28 @@ def test_block_inlier_ratios_are_each_blocks_inlier_ratio():
     np.testing.assert_array_equal(got, want)
     ref.engine = type("NoGroups", (), {"evaluate": ref.engine.evaluate})()
     np.testing.assert_array_equal(ref.block_inlier_ratios(scan, T, block, nb), want)
+
+
+def test_the_whole_scan_keeps_one_target_while_poses_stay_near_and_drops_it_when_told():
+    from blockloc.global_init.refine import WholeScan
+
+    built = []
+
+    def refiner_over(xy, d):
+        built.append((xy.copy(), d))
+        return None  # no map there: align says None
+
+    whole = WholeScan(np.ones((5, 3)), refiner_over, np.eye(3), 65.0, reuse_m=2.0)
+    T = np.eye(4)
+    assert whole.align(T) is None and len(built) == 1 and built[0][1] == 65.0
+    T1 = T.copy()
+    T1[:2, 3] = (1.5, -1.0)  # within 2 m of the kept target's centre
+    whole.align(T1)
+    assert len(built) == 1
+    T1[0, 3] = 3.0
+    whole.align(T1)
+    assert len(built) == 2
+    whole.release()
+    whole.align(T1)
+    assert len(built) == 3
+    assert WholeScan(np.zeros((0, 3)), refiner_over, np.eye(3), 65.0).align(T) is None and len(built) == 3

@@ -72,6 +72,9 @@ class _Align:
         self.calls += 1
         return self.result
 
+    def release(self):
+        self.released = True
+
 
 class _NoMap(_Align):
     def __init__(self):
@@ -144,8 +147,9 @@ def test_a_standing_decision_aligns_only_a_verified_best_and_drops_every_target(
     for verified in (True, False):
         cands = [_candidate(np.eye(4)), _candidate(_moved(5.0))]
         res = InitResult(cands[0].T_map_body, 0.9, 0.9, cands, not verified, 0.2, verified, {})
-        stand(res, _Align(_moved(0.1)), p)
-        assert all(c.refiner is None for c in cands)
+        whole = _Align(_moved(0.1))
+        stand(res, whole, p)
+        assert all(c.refiner is None for c in cands) and whole.released
         assert res.T_map_body[0, 3] == (0.1 if verified else 0.0)
         assert res.stats.get("whole_scan_moved", False) is verified
         # a second standing (a decision returned as it stood) changes nothing: the targets are gone
