@@ -265,6 +265,7 @@ def decide(cands: list[InitCandidate], stats: dict, elapsed: float, p, scan_ndt:
                     continue
                 ambiguous = True
                 break
+    dismiss = same if dense_points is not None else None  # what makes a nearby rival none
     if final and ambiguous and dense_points is not None and whole is not None:
         group = [best] + [c for c in cands[1:] if plausible(c, p) and c.fitness >= best.fitness - p.ambiguity_fitness_margin
                           and np.linalg.norm(c.T_map_body[:3, 3] - best.T_map_body[:3, 3]) > p.ambiguity_distance_m]
@@ -274,11 +275,9 @@ def decide(cands: list[InitCandidate], stats: dict, elapsed: float, p, scan_ndt:
             stats["whole_scan_decided"] = True
             cands = [winner] + [c for c in cands if c is not winner]
             best, ambiguous = winner, False
-
-            def same(rival: InitCandidate) -> bool:  # noqa: F811  (the whole scan judges the nearby rival too)
-                return whole_scan_beats(run, rival, whole, p)
+            dismiss = lambda rival: whole_scan_beats(run, rival, whole, p)  # noqa: E731  (nearby rivals too)
     if final and best.verified and not ambiguous and scan_ndt is not None and best.refiner is not None:
-        rival = nearby_rival(best, scan_ndt, structures, p, dismiss=same if dense_points is not None else None)
+        rival = nearby_rival(best, scan_ndt, structures, p, dismiss=dismiss)
         if rival is not None:
             ambiguous = True
             cands.append(rival)
@@ -360,11 +359,11 @@ def whole_scan_decides(group: list[InitCandidate], whole, p) -> tuple[InitCandid
 def _whole_run(c: InitCandidate, whole) -> InitCandidate | None:
     """``c`` aligned on the whole scan (``whole``, a ``refine.WholeScan``) as a candidate holding
     that target, or None (no map there, not converged)."""
-    ref = whole.refiner_at(c.T_map_body)
-    r = ref.align_settled(whole.points, c.T_map_body) if ref is not None else None
+    r = whole.align(c.T_map_body)
     if r is None or not r.converged or not np.all(np.isfinite(r.T_map_body)):
         return None
-    return InitCandidate(r.T_map_body, c.score, r.fitness, True, c.verified, ndt_score=r.ndt_score, refiner=ref)
+    return InitCandidate(r.T_map_body, c.score, r.fitness, True, c.verified, ndt_score=r.ndt_score,
+                         refiner=whole.refiner_at(c.T_map_body))
 
 
 def whole_scan_beats(run: InitCandidate, rival: InitCandidate, whole, p) -> bool:
@@ -410,7 +409,7 @@ def on_whole_scan(best: InitCandidate, whole, p) -> bool:
     Why: along a street the near scan leaves the pose where the map's own error puts it (on the
     campus map built with the nominal mounting, 0.3 m off), and the far structure holds it: the
     four verified poses 0.31-0.37 m off in two draws of 100 frames came to 0.05-0.15 m
-    (docs/bench/global_init.md). Only loosely held poses: the wider target costs 60-150 ms."""
+    (docs/bench/global_init.md). Only loosely held poses: the wider target costs 58-145 ms."""
     if not loosely_held(best, p):
         return False
     r = whole.align(best.T_map_body)
