@@ -38,7 +38,8 @@ class HintedSearch:
     _leaf_box: tuple[np.ndarray, np.ndarray] | None = None
 
     def _localize_hinted(self, scan: ScanProjection, scan_ndt: np.ndarray, cells, center: np.ndarray,
-                         window_m: float, theta_c: float, yaw_win: float, t0: float) -> InitResult:
+                         window_m: float, theta_c: float, yaw_win: float, t0: float,
+                         points_body: np.ndarray | None = None) -> InitResult:
         """Search the window of side ``window_m`` (m) around ``center`` (2,) (levelled frame, m) at
         rotations ``theta_c`` +- ``yaw_win`` / 2 (rad). ``t0``: ``time.perf_counter()`` at the start
         of the search (the result's ``time_s`` counts from it)."""
@@ -53,6 +54,7 @@ class HintedSearch:
             rows = np.flatnonzero(np.all(np.abs(xy - center) <= half, axis=1))
         stats["places_in_window"] = int(len(rows))
         cands = []
+        dense = None  # the scan's every point, once the search went on
         if len(rows):
             self._leaf_box = (center - half, center + half)
             try:
@@ -72,11 +74,14 @@ class HintedSearch:
                 # test as before (as the no-hint search goes on, ``_search_on``).
                 cands = list(out.candidates)
                 stats["searched_on"] = True
+                if p.resolve_on_every_point and points_body is not None:
+                    dense = points_body[np.linalg.norm(points_body, axis=1) <= p.max_range_m]
         more, st = self._search_region(scan, scan_ndt, center, window_m, theta_c, yaw_win, cells=cells)
         stats.update({k: v + stats.get(k, 0) if k in _SUMMED else v for k, v in st.items()})
         stats["hint_search"] = "places, then branch and bound" if len(rows) else "branch and bound"
         stats["regions_searched"] = 1
-        return self._decide(cands + more, stats, time.perf_counter() - t0, scan_ndt, scan=scan, cells=cells)
+        return self._decide(cands + more, stats, time.perf_counter() - t0, scan_ndt, scan=scan, cells=cells,
+                            dense_points=dense)
 
     def _in_leaf_box(self, x: float, y: float) -> bool:
         """Whether a 2D leaf (levelled frame, m) may be refined: inside the hint's window, if any."""

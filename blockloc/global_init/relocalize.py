@@ -182,7 +182,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             yaw_win = min(math.radians(yaw_window_deg), 2 * math.pi)
         if hint_xy is not None:  # the place index in the hint's window, then branch and bound (``hinted``)
             center = self._hint_to_L(hint_xy)
-            return self._localize_hinted(scan, scan_ndt, cells, center, window_m, theta_c, yaw_win, t0)
+            return self._localize_hinted(scan, scan_ndt, cells, center, window_m, theta_c, yaw_win, t0, points_body)
         deadline = Deadline(t0 + p.max_search_s, jit, jit_before) if p.max_search_s > 0 else NEVER
         if p.use_place_index:
             done: list = []
