@@ -313,6 +313,44 @@ def test_a_verified_best_the_final_decision_doubts_does_not_end_the_place_search
             assert stages == [0] and res.ambiguous and not res.verified
 
 
+def test_the_search_goes_on_stage_after_stage_while_the_result_stays_ambiguous(setup, monkeypatch):
+    """Campus, defaults' map ``--rng 7``, frame 16517 (and nominal map, frame 25037): the first
+    stage verified a wrong place; the next stage, resumed after that doubt, verified another wrong
+    place far from it and ended the call (a stage with a verified candidate ends it), leaving the
+    result ambiguous; the true place (29th) was in the stage after. Each resumed stage is decided
+    over with everything found before; while that stays ambiguous the stages go on."""
+    loc, T_true, scan, scan_ndt, refiner = setup
+    T_a = xyzrpy_to_T(9.0, 4.0, -(1.9 + 0.02 * 9.0), 0.03, -0.02, 2.4)  # two wrong places 6 m apart,
+    T_b = xyzrpy_to_T(3.0, 4.0, -(1.9 + 0.02 * 3.0), 0.03, -0.02, 2.4)  # verified (made so) alike
+    stages = []
+
+    def places(self, scan, scan_ndt, cells, index, theta_c, yaw_win, stats, deadline=math.inf,
+               candidates=None, flip_open=False, first_stage=0, done=None):
+        from blockloc.global_init import verify
+
+        stages.append(first_stage)
+        if first_stage < 2:  # one wrong place a stage
+            c = InitCandidate((T_a, T_b)[first_stage], 0.9, 0.8, True, True, (T_a, T_b)[first_stage], 1.1, 0.65,
+                              refiner=refiner)
+            c.probes = []
+            return [c], dict(stats, place_stage=first_stage + 1)
+        if first_stage == 2:
+            r = refiner.align(scan_ndt, T_true)
+            return [self._verified(r, refiner, 0.95, T_true, scan, None, verify.Thresholds.of(self.params))], \
+                dict(stats, place_stage=3)
+        return [], dict(stats, place_stage=first_stage)
+
+    monkeypatch.setattr(GlobalLocalizer, "_relocalize_places", places)
+    nohint = GlobalLocalizer(loc.map, InitParams(max_search_s=0.0))
+    res = nohint.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true))
+    assert stages == [0, 1, 2], stages
+    assert res.verified and not res.ambiguous, res.stats
+    dt, dr = pose_error(res.T_map_body, T_true)
+    assert dt < 0.1 and dr < 0.5, (dt, dr)
+    assert res.stats["searched_on"] == 2 and res.stats["place_stage"] == 3
+    assert all(c.refiner is None for c in res.candidates)
+
+
 def test_a_hinted_search_whose_places_leave_doubt_goes_on_with_the_windows_branch_and_bound(setup, monkeypatch):
     """Campus, nominal-mounting map, hinted frames 14583 and 20179: the places in the hint's window
     gave verified candidates along a street that left the result ambiguous, and the window's branch
