@@ -8,7 +8,8 @@ refinement and verification follow. Plain branch and bound over the whole window
 (``_search_region``) runs only where the place stages cannot answer: the window holds no indexed
 place, the map has no index (``use_place_index`` false), the places gave nothing verified and
 nothing ambiguous (a pose between places the index does not describe well), or (``search_on_doubt``)
-their candidates verified but left the result ambiguous.
+their candidates verified but left the result ambiguous, or verified a best whose static-band
+coverage was not judged and whose fit is not strong (``search_on_unjudged``, as without a hint).
 
 Why: branch and bound over a 40 x 40 m window at every yaw scores ~1.5M nodes a scan at full
 HDL-32E density (3.2 s median on the small world, docs/bench/global_init.md), while the index
@@ -65,7 +66,12 @@ class HintedSearch:
             stats["hint_search"] = "places"
             res = self._decide(list(cands), stats, 0.0, scan_ndt, final=False)
             if res.verified or res.ambiguous:
-                out, stands = self._decide_unless_doubted(cands, stats, t0, scan_ndt, scan, cells, p.search_on_doubt)
+                # A verified best whose static-band coverage was not judged stands only on a strong
+                # fit, as without a hint (defaults' map, --rng 13, hinted frame 25176 with 8 m place
+                # windows: a place 23 m off, fitness 0.77, coverage not judged, stood; the window's
+                # branch and bound finds the truth, fitness 0.92).
+                out, stands = self._decide_unless_doubted(cands, stats, t0, scan_ndt, scan, cells, p.search_on_doubt,
+                                                          doubt_unjudged=p.search_on_unjudged)
                 if stands:
                     return out
                 # Ambiguous among the places (campus, nominal-mounting map, frames 14583 and 20179:

@@ -392,6 +392,46 @@ def test_a_hinted_search_whose_places_leave_doubt_goes_on_with_the_windows_branc
             assert regions == [] and res.ambiguous and not res.verified
 
 
+def test_a_hinted_best_whose_coverage_was_not_judged_does_not_end_the_search(setup, monkeypatch):
+    """A hint constrains the no-hint search, doubts included. Defaults' map, ``--rng 13``, hinted
+    frame 25176 with 8 m place windows: a place 23 m off verified on its fit alone (0.77, static-band
+    coverage not judged) stood, a wrong answer; the window's branch and bound finds the truth (0.92).
+    Such a best sends the search on to the window's branch and bound; one whose coverage was judged,
+    or without the rule, stands."""
+    from blockloc.global_init import verify
+
+    loc, T_true, scan, scan_ndt, refiner = setup
+    T_wrong = xyzrpy_to_T(9.0, 4.0, -(1.9 + 0.02 * 9.0), 0.03, -0.02, 2.4)
+    for unjudged, coverage, searched_on in ((True, math.nan, True), (False, math.nan, False), (True, 0.95, False)):
+        regions = []
+
+        def places(self, scan, scan_ndt, cells, index, theta_c, yaw_win, stats, deadline=math.inf,
+                   candidates=None, flip_open=False, first_stage=0, done=None, coverage=coverage):
+            wrong = InitCandidate(T_wrong, 0.9, 0.773, True, True, T_wrong, 1.1, 0.62, coverage=coverage,
+                                  see_through=0.0, refiner=refiner)
+            wrong.probes = []
+            return [wrong], dict(stats, place_stage=1)
+
+        def region(self, scan, scan_ndt, center, window_m, theta_c, yaw_win, cells=None, regions=regions):
+            regions.append(window_m)
+            r = refiner.align(scan_ndt, T_true)
+            found = self._verified(r, refiner, 0.95, T_true, scan, None, verify.Thresholds.of(self.params))
+            return [found], {}
+
+        monkeypatch.setattr(GlobalLocalizer, "_relocalize_places", places)
+        monkeypatch.setattr(GlobalLocalizer, "_search_region", region)
+        hinted = GlobalLocalizer(loc.map, InitParams(search_on_unjudged=unjudged, whole_scan_voxel_m=0.0))
+        res = hinted.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true),
+                              hint_xy=(6.0, 4.0), window_m=30.0)
+        assert res.verified and not res.ambiguous, res.stats
+        if searched_on:
+            assert regions == [30.0] and res.stats["hint_search"] == "places, then branch and bound"
+            dt, dr = pose_error(res.T_map_body, T_true)
+            assert dt < 0.1 and dr < 0.5, (dt, dr)
+        else:
+            assert regions == [] and np.allclose(res.T_map_body, T_wrong)
+
+
 def test_a_verified_best_whose_coverage_was_not_judged_does_not_end_the_place_search(setup, monkeypatch):
     """Campus, nominal-mounting map, ``--rng 7`` after the hinted frames: frames 16517 (a place
     197.5 m off, fitness 0.83, structure 0.69) and 39798 (the true place's reverse, 174 deg turned)
