@@ -194,6 +194,34 @@ def test_a_hypothesis_that_slides_along_the_street_is_not_confirmed(street_run, 
     assert not slid.verified and slid.ambiguous  # ... but the hypothesis 0.9 m off is not confirmed
 
 
+def test_a_hypothesis_confirmed_on_its_fit_alone_needs_a_strong_fit(street_run, tmp_path, monkeypatch):
+    """Where the static-band coverage was not judged (an open stretch), a later scan confirms a
+    hypothesis only when it fits strongly, as a search's first stage lets such a best stand
+    (``search_on_unjudged``). Defaults' map ``--rng 7``, frame 39963 (8 m place windows): two
+    hypotheses 11-12 m from the truth, none at it; three scans on, one fitting 0.77 lost its rival
+    and was confirmed, 11.75 m off. Here the street's true hypothesis, its coverage made unjudged:
+    confirmed when its fit clears the strong-fit floors, not when the floors are above it, and
+    confirmed either way without the rule."""
+    from blockloc.global_init import second_scan
+
+    seq, loc = _street_localizer(street_run, tmp_path)
+    scan = _prepared(seq, FRAMES - 1)
+    T_true = seq.ground_truth().interpolate(scan.stamp)[0]
+    hyps = [_shifted(T_true, 0.1), _shifted(T_true, 24.0)]
+    monkeypatch.setattr(second_scan, "consistency_judged", lambda c: False)
+    p = loc.params
+    first = second_scan.resolve_with_second_scan(loc, hyps, np.eye(4), scan.points_body, scan.gravity_body)
+    best = first.candidates[0]
+    strong = (best.fitness - 0.01, best.structure_fitness - 0.01)
+    for rule, (min_fit, min_struct), confirmed in ((True, strong, True), (True, (best.fitness + 0.01, 0.0), False),
+                                                   (False, (best.fitness + 0.01, 0.0), True)):
+        p.search_on_unjudged, p.unjudged_min_fitness, p.unjudged_min_structure_fitness = rule, min_fit, min_struct
+        res = second_scan.resolve_with_second_scan(loc, hyps, np.eye(4), scan.points_body, scan.gravity_body)
+        assert pose_error(res.T_map_body, T_true)[0] < 0.1
+        assert res.verified is confirmed and res.ambiguous is not confirmed, (rule, min_fit, res.stats)
+        assert res.stats.get("unjudged", False) is not confirmed
+
+
 def test_a_followed_ambiguity_carries_its_hypotheses_where_the_motion_put_them(street_run, tmp_path):
     """After a follow-up scan the hypotheses are where the motions put them (the refinement's
     starts), not where refinement ended: creeping along a street adds up against the first scan."""
