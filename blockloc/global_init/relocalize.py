@@ -528,11 +528,11 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         verification at the first stage, its nearby rival kept it unverified, the true place was
         never searched; nominal map, frame 20179, four verified candidates 6-7 m along a street
         from the truth, none at it. So the stages go on from where they stopped, and the final
-        decision judges every candidate found; while it stays ambiguous, the next stages too (a
-        resumed call ends at its first stage with a verified candidate, which may be one more
-        wrong place) (``doubted``'s too, with every test as before: the
-        first best stays a rival of any new one). Only frames whose result was ambiguous reach
-        here: a verified result is returned as before.
+        decision judges every candidate found (``doubted``'s too, with every test as before: the
+        first best stays a rival of any new one). While that decision stays ambiguous, the next
+        stages are searched too: a resumed call ends at its first stage with a verified candidate,
+        which may be one more wrong place. Only frames whose result was ambiguous reach here: a
+        verified result is returned as before.
 
         With ``resolve_on_every_point``, that decision also takes the scan's every point
         (``points_body`` (N, 3), body frame, within ``max_range_m``): a rival NDT on them brings
