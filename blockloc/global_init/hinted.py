@@ -80,8 +80,7 @@ class HintedSearch:
                 # test as before (as the no-hint search goes on, ``_search_on``).
                 cands = list(out.candidates)
                 stats["searched_on"] = True
-                if p.resolve_on_every_point and points_body is not None:
-                    dense = points_body[np.linalg.norm(points_body, axis=1) <= p.max_range_m]
+                dense = self._dense_points(points_body)
         more, st = self._search_region(scan, scan_ndt, center, window_m, theta_c, yaw_win, cells=cells)
         stats.update({k: v + stats.get(k, 0) if k in _SUMMED else v for k, v in st.items()})
         stats["hint_search"] = "places, then branch and bound" if len(rows) else "branch and bound"

@@ -39,15 +39,14 @@ from blockloc.global_init.verify import (  # noqa: F401  (InitCandidate, InitRes
     InitResult,
     Thresholds,
     better_fit,
-    consistency_judged,
     consistency_passes,
     decide,
     fit_passes,
-    fits_strongly,
     pose_error,
     probe_optima,
     settle_once_more,
     stand,
+    stands_alone,
     structure_fit,
     structure_sets,
 )
@@ -542,9 +541,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         end the search before the places not searched yet (a wrong best's nearby rival kept 17786
         searching). With nothing new found, the first decision is made again with them."""
         p = self.params
-        dense = None
-        if p.resolve_on_every_point and points_body is not None:
-            dense = points_body[np.linalg.norm(points_body, axis=1) <= p.max_range_m]
+        dense = self._dense_points(points_body)
         cands = list(doubted.candidates)
         found, out = 0, None
         while True:
@@ -579,6 +576,13 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         out.time_s = time.perf_counter() - t0
         return out
 
+    def _dense_points(self, points_body: np.ndarray | None) -> np.ndarray | None:
+        """The scan's every point within ``max_range_m`` (body frame, (N, 3)) for the decision after
+        a search went on (:func:`verify.one_optimum`), or None (``resolve_on_every_point`` off, no points)."""
+        if not self.params.resolve_on_every_point or points_body is None:
+            return None
+        return points_body[np.linalg.norm(points_body, axis=1) <= self.params.max_range_m]
+
     def _decide_unless_doubted(self, cands: list[InitCandidate], stats: dict, t0: float, scan_ndt: np.ndarray,
                                scan: ScanProjection, cells, doubt: bool,
                                doubt_unjudged: bool = False) -> tuple[InitResult, bool]:
@@ -606,8 +610,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         out = self._decide(cands, stats, time.perf_counter() - t0, scan_ndt, scan=scan, cells=cells,
                            drop_targets=not doubt)
         p = self.params
-        judged = (not doubt_unjudged or not out.candidates or consistency_judged(out.candidates[0])
-                  or fits_strongly(out.candidates[0], p.unjudged_min_fitness, p.unjudged_min_structure_fitness))
+        judged = not doubt_unjudged or not out.candidates or stands_alone(out.candidates[0], p)
         stands = not doubt or (out.verified and judged)
         if stands:
             stand(out, self._whole_scan, p)

@@ -81,6 +81,15 @@ def fits_strongly(cand, min_fitness: float, min_structure_fitness: float) -> boo
     return bool(cand.fitness >= min_fitness and cand.structure_fitness >= min_structure_fitness)
 
 
+def stands_alone(cand, p) -> bool:
+    """Whether ``cand`` (an :class:`InitCandidate`, verified) may end a search on its own: its
+    static-band coverage was judged (:func:`consistency_judged`), or it fits strongly
+    (:func:`fits_strongly` with ``p.unjudged_min_fitness`` and ``p.unjudged_min_structure_fitness``;
+    ``p``: ``InitParams``). Else only the NDT fit verified it, and a wrong place of an open stretch
+    fits well enough: the search goes on (``search_on_unjudged``)."""
+    return consistency_judged(cand) or fits_strongly(cand, p.unjudged_min_fitness, p.unjudged_min_structure_fitness)
+
+
 def passes(converged: bool, fitness: float, structure_fitness: float, coverage: float, see_through: float,
            th: Thresholds, finite: bool = True) -> bool:
     """Whether a refined candidate with these measurements is verified under ``th``."""

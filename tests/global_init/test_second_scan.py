@@ -208,7 +208,9 @@ def test_a_hypothesis_confirmed_on_its_fit_alone_needs_a_strong_fit(street_run, 
     scan = _prepared(seq, FRAMES - 1)
     T_true = seq.ground_truth().interpolate(scan.stamp)[0]
     hyps = [_shifted(T_true, 0.1), _shifted(T_true, 24.0)]
-    monkeypatch.setattr(second_scan, "consistency_judged", lambda c: False)
+    from blockloc.global_init import verify
+
+    monkeypatch.setattr(verify, "consistency_judged", lambda c: False)
     p = loc.params
     first = second_scan.resolve_with_second_scan(loc, hyps, np.eye(4), scan.points_body, scan.gravity_body)
     best = first.candidates[0]
