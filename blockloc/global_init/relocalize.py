@@ -82,6 +82,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         self._index_load_s = 0.0
         self._structure_body = None  # the scan's points the structure test uses (set by _refine)
         self._whole_scan = None  # refine.WholeScan of the scan (set by prepare_scan)
+        self._targets: list[list] = []  # the refinement targets of the scan's search (``_refine``)
         self._target_cache = None  # built on first use (target_cache); False: not usable
         self._pool = None  # threads of the refinements (``_map``), made on first use
 
@@ -213,6 +214,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         scan_ndt = points_body[voxel_select(points_body, p.scan_voxel_m)]
         scan_ndt = scan_ndt[np.linalg.norm(scan_ndt, axis=1) <= p.max_range_m]
         self._whole_scan = None
+        self._targets = []
         if p.whole_scan_voxel_m > 0:  # the last decisions' evidence (``verify.stand``, ``one_optimum``)
             self._whole_scan = WholeScan(points_body[voxel_select(points_body, p.whole_scan_voxel_m)],
                                          self._refiner_over, self.map.R_L_map, p.whole_scan_range_m)
@@ -293,8 +295,10 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         # One NDT target per cluster of candidates (a target over candidates far apart would load
         # the whole map): a candidate within d/2 of an existing target's centre reuses it. Which
         # target a candidate uses is decided here, in order; targets are built when needed
-        # (``run_jobs``), side by side.
-        targets: list[list] = []  # [centre (2,), from the cache?, Refiner | None | _UNBUILT]
+        # (``run_jobs``), side by side. The targets are the scan's (``prepare_scan`` starts the
+        # list): a later stage of the search refining near an earlier stage's candidates reuses
+        # theirs (campus, defaults' map: a third of the targets of the frames that need stage 3 or 4).
+        targets = self._targets  # [centre (2,), from the cache?, Refiner | None | _UNBUILT]
 
         def target_for(xy: np.ndarray) -> list:
             for t in targets:
@@ -313,7 +317,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         def run_jobs() -> None:
             # Targets, then refinements: each independent of the others, run side by side
             # (``_map``) and kept in order.
-            new = [t for t in targets if t[2] is _UNBUILT]  # each asked for by a job waiting here
+            new = list({id(t): t for _, _, t in jobs if t[2] is _UNBUILT}.values())  # asked for by a job waiting here
             for t, ref in zip(new, self._map(build, new)):
                 t[2] = ref
             ready = [(score, T0, t[2]) for score, T0, t in jobs if t[2] is not None]

@@ -156,6 +156,7 @@ def test_refinements_side_by_side_give_the_same_candidates_in_the_same_order(map
         cells = loc._scan_cells(body, g)
         xy = (loc.map.R_L_map @ T_true[:3, 3])[:2]
         th = loc._theta_from_yaw(2.4, scan)
+        scan_ndt0 = scan_ndt
         # the truth, two starts near it, one 40 m away (another target), one below 0.8 x the best
         c2d = [Candidate2D(xy[0] + 0.8, xy[1] - 0.5, th + 0.05, 0.85), Candidate2D(xy[0], xy[1], th, 0.9),
                Candidate2D(xy[0] - 40.0, xy[1] + 3.0, th + 1.0, 0.8), Candidate2D(xy[0] + 2.0, xy[1], th, 0.3),
@@ -163,6 +164,8 @@ def test_refinements_side_by_side_give_the_same_candidates_in_the_same_order(map
         runs[workers] = []
         for _ in range(2):  # from the points, then assembled from the kept statistics
             loc.target_cache.begin_search()
+            scan, scan_ndt = loc.prepare_scan(body, g)  # a new search: its own targets
+            np.testing.assert_array_equal(scan_ndt, scan_ndt0)
             runs[workers].append(loc._refine(c2d, scan, scan_ndt, cells))
         assert len(loc.target_cache) > 0
         if workers == 1:
@@ -178,3 +181,38 @@ def test_refinements_side_by_side_give_the_same_candidates_in_the_same_order(map
             assert (a.fitness, a.ndt_score, a.structure_fitness, a.overlap) == (b.fitness, b.ndt_score,
                                                                                b.structure_fitness, b.overlap)
             np.testing.assert_equal((a.coverage, a.see_through), (b.coverage, b.see_through))
+
+
+def test_a_later_stage_reuses_the_targets_of_the_same_scan_and_a_new_scan_builds_its_own(maps, monkeypatch):
+    # The place stages call ``_refine`` once each: a candidate of a later stage within half the
+    # refinement range of an earlier stage's target refines on it (no second assembly of the same
+    # map); ``prepare_scan`` (a new search) starts the list again.
+    from blockloc.geometry import xyzrpy_to_T
+    from blockloc.global_init.bnb import Candidate2D
+    from blockloc.global_init.relocalize import GlobalLocalizer, InitParams
+
+    from .synthetic import gravity_body, scan_from
+
+    smap = maps["down"]
+    world = smap.points_in_box(*smap.bounds_L())
+    T_true = xyzrpy_to_T(6.0, 4.0, -(1.9 + 0.02 * 6.0), 0.03, -0.02, 2.4)
+    body, g = scan_from(world, T_true), gravity_body(T_true)
+    loc = GlobalLocalizer(smap, InitParams(use_place_index=False, target_cache_mb=0.0, refine_workers=1))
+    built = []
+    over = loc._refiner_over
+    monkeypatch.setattr(loc, "_refiner_over", lambda xy, d, cached=None: built.append(xy.copy()) or over(xy, d, cached))
+    scan, scan_ndt = loc.prepare_scan(body, g)
+    cells = loc._scan_cells(body, g)
+    xy = (loc.map.R_L_map @ T_true[:3, 3])[:2]
+    th = loc._theta_from_yaw(2.4, scan)
+    first = loc._refine([Candidate2D(xy[0], xy[1], th, 0.9)], scan, scan_ndt, cells)
+    assert len(built) == 1 and first[0].verified
+    # the next stage: one candidate 10 m off (the same target), one 40 m off (a target of its own)
+    later = loc._refine([Candidate2D(xy[0] + 10.0, xy[1], th, 0.9), Candidate2D(xy[0] - 40.0, xy[1], th, 0.9)],
+                        scan, scan_ndt, cells, ordered=True)
+    assert len(later) == 2 and len(built) == 2
+    assert later[0].refiner is first[0].refiner and later[1].refiner is not first[0].refiner
+    scan, scan_ndt = loc.prepare_scan(body, g)
+    again = loc._refine([Candidate2D(xy[0], xy[1], th, 0.9)], scan, scan_ndt, cells)
+    assert len(built) == 3 and again[0].refiner is not first[0].refiner
+    np.testing.assert_array_equal(again[0].T_map_body, first[0].T_map_body)
