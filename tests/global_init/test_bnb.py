@@ -172,3 +172,42 @@ def test_windows_below_the_keep_ratio_of_the_best_s0_are_pruned_and_the_kept_lea
     assert [(c.x, c.y, c.theta, c.score, c.window) for c in both] == \
         [(c.x, c.y, c.theta, c.score, 1) for c in alone_true]
     assert st.nodes_visited < st_true.nodes_visited + st_wrong.nodes_visited
+
+
+def test_the_later_windows_give_their_best_leaves_with_less_search():
+    # ``rest`` windows (the places after the first few) give only the rest_k best leaves of them
+    # all: pruned below the rest_k-th best S0 among them, they give those same leaves as the
+    # unpruned search, and fewer nodes are visited; ``rest_floor`` (the rest_k-th best of such
+    # leaves from groups searched before) drops every leaf below it.
+    from blockloc.global_init.bnb import Window, search_windows
+
+    world = _world()
+    raster = Raster(world.origin, world.grid, RES, np.zeros(2, np.int64), np.zeros((1, 1), np.float32))
+    x_true, y_true, th_true = 3.2, -1.7, 0.8
+    scan_xy = _scan_of(world, x_true, y_true, th_true)
+    rng = np.random.default_rng(1)
+    windows = [Window(rng.uniform(-15, 15, 2), 6.0, rng.uniform(-math.pi, math.pi), math.radians(20))
+               for _ in range(14)]
+    windows.insert(9, Window(np.array([x_true + 1.1, y_true - 0.9]), 6.0, th_true, math.radians(20)))
+    lo, hi = required_cells(scan_xy, np.zeros(2), 40.0, RES)
+    pyramid = assemble([build_pyramid(raster, 4)], lo, hi)
+    kw = dict(top_k=1, top_level=3, per_window_k=1, keep_ratio=0.0)
+    rest = np.arange(len(windows)) >= 2
+    every, st_every = search_windows(pyramid, scan_xy, windows, **kw)
+    pruned, st_pruned = search_windows(pyramid, scan_xy, windows, rest=rest, rest_k=3, **kw)
+
+    def best_of_rest(cands):
+        return sorted(((c.score, c.x, c.y, c.theta, c.window) for c in cands if rest[c.window]), reverse=True)[:3]
+
+    def first(cands):
+        return [(c.score, c.x, c.y, c.theta, c.window) for c in cands if not rest[c.window]]
+
+    assert len(best_of_rest(every)) == 3 and best_of_rest(pruned) == best_of_rest(every)
+    assert best_of_rest(every)[0][4] == 9  # the true window's leaf is the best of them
+    assert first(pruned) == first(every) and len(first(every)) == 2  # the first windows: searched as before
+    assert len(pruned) < len(every) and st_pruned.nodes_visited < st_every.nodes_visited
+    # a floor from earlier groups: only the leaves at or above it
+    cut = best_of_rest(every)[0][0]
+    assert best_of_rest(every)[1][0] < cut
+    floored, _ = search_windows(pyramid, scan_xy, windows, rest=rest, rest_k=3, rest_floor=cut, **kw)
+    assert best_of_rest(floored) == best_of_rest(every)[:1] and first(floored) == first(every)
