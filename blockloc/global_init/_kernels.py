@@ -501,7 +501,7 @@ def in_levelled_box(points, R2, x0, y0, x1, y1):
 
 @njit(cache=True, parallel=True)
 def search_each_window(levels, dx, dy, lin, box, ra, rtx, rty, starts, top, threshold0, K, nms_cells, nms_angles,
-                       num_angles, rel_ratio, n_dives, s0_ratio, use_s0, rest, rest_k, rest_floor):
+                       num_angles, rel_ratio, n_dives, s0_ratio, use_s0):
     """:func:`branch_and_bound` of W windows at once, one thread per window (``bnb.search_windows``
     with ``per_window_k``). Window w's roots at level ``top`` are ``ra, rtx, rty[starts[w]:starts[w+1]]``
     (any order: sorted here by ascending bound, stably, as the serial search sorts them); its
@@ -509,15 +509,9 @@ def search_each_window(levels, dx, dy, lin, box, ra, rtx, rty, starts, top, thre
     greedy dives from its ``n_dives`` best roots) with ``use_s0``, and to just below ``rel_ratio``
     x the best S0 of all windows: S0 is a leaf's score, so the best leaf of all is at least that,
     and a window's leaves below ``rel_ratio`` x the best of all are dropped by the caller anyway
-    (a window whose best leaf falls below returns none instead of one dropped later).
-
-    ``rest`` (W,) bool: windows of which only the ``rest_k`` best leaves of them all matter (0: no
-    such); their threshold is also raised to just below the ``rest_k``-th best S0 among them, or
-    ``rest_floor`` where that is higher (the ``rest_k``-th best of such leaves found before): that
-    many leaves of theirs score at least that much, so none below it is among the best.
-
-    Returns per window (W, K) scores (-1: none), angles, tx, ty, and (W,) S0 and nodes visited.
-    ``lin, box``: :func:`scan_offsets`."""
+    (a window whose best leaf falls below returns none instead of one dropped later). Returns per
+    window (W, K) scores (-1: none), angles, tx, ty, and (W,) S0 and nodes visited. ``lin, box``:
+    :func:`scan_offsets`."""
     flat = levels.reshape(-1)
     W = starts.shape[0] - 1
     cs = np.full((W, K), -1, dtype=np.int64)
@@ -558,11 +552,6 @@ def search_each_window(levels, dx, dy, lin, box, ra, rtx, rty, starts, top, thre
     floor = threshold0
     if use_s0 and rel_ratio > 0.0 and W > 0:
         floor = max(floor, np.int64(rel_ratio * s0.max()) - 1)
-    rest_threshold = rest_floor - 1
-    if use_s0 and rest_k > 0:
-        rs = np.sort(s0[rest])
-        if rs.shape[0] >= rest_k:
-            rest_threshold = max(rest_threshold, rs[rs.shape[0] - rest_k] - 1)
     # Phase 2: each window's branch and bound.
     for w in prange(W):
         a0 = starts[w]
@@ -572,8 +561,6 @@ def search_each_window(levels, dx, dy, lin, box, ra, rtx, rty, starts, top, thre
         threshold = floor
         if use_s0:
             threshold = max(threshold, np.int64(s0_ratio * s0[w]) - 1)
-        if rest_k > 0 and rest[w]:
-            threshold = max(threshold, rest_threshold)
         s_, a_, x_, y_, v = branch_and_bound(levels, dx, dy, lin, box, sa[a0:a1], sx[a0:a1], sy[a0:a1], sb[a0:a1],
                                              top, big, big, threshold, K, nms_cells, nms_angles, num_angles, True,
                                              rel_ratio)

@@ -168,8 +168,7 @@ def _window_roots(w: "Window", angles: np.ndarray, step: float, r: float, width:
 def _search_each_window(pyramid: Pyramid, scan_xy: np.ndarray, windows: list["Window"], angles: np.ndarray,
                         step: float, top: int, k: int, use_s0: bool, s0_ratio: float, min_score: float,
                         nms_m: float, nms_deg: float, n_dives: int, keep_ratio: float, min_leaf_score: float,
-                        t0: float, rest: np.ndarray | None = None, rest_k: int = 0,
-                        rest_floor: float = 0.0) -> tuple[list[Candidate2D], SearchStats]:
+                        t0: float) -> tuple[list[Candidate2D], SearchStats]:
     """:func:`search_windows` with ``per_window_k``: the windows searched side by side (one thread
     each, ``_kernels.search_each_window``), the scan cells rotated only by the angles some window
     takes (a place window spans ~16 deg: 5% of the circle).
@@ -204,11 +203,9 @@ def _search_each_window(pyramid: Pyramid, scan_xy: np.ndarray, windows: list["Wi
     # just below keep_ratio x min_leaf_score: a leaf scoring that much exactly is kept at the end
     threshold0 = max(int(min_score * full), int(keep_ratio * min_leaf_score * full) - 1)
     offsets = K.scan_offsets(dx, dy, pyramid.levels.shape[2])
-    rest = np.zeros(len(windows), np.bool_) if rest is None else np.asarray(rest, np.bool_).reshape(len(windows))
     cs, ca, cx_, cy_, s0, visited = K.search_each_window(
         pyramid.levels, dx, dy, *offsets, ra, rtx, rty, starts, top, threshold0, k, nms_cells, nms_angles, A,
-        float(keep_ratio), n_dives, float(s0_ratio), bool(use_s0), rest, int(rest_k if rest.any() else 0),
-        np.int64(round(rest_floor * full)))
+        float(keep_ratio), n_dives, float(s0_ratio), bool(use_s0))
     cands: list[Candidate2D] = []
     for wi in range(len(windows)):
         row = cs[wi]
@@ -252,17 +249,13 @@ def search_windows(pyramid: Pyramid, scan_xy: np.ndarray, windows: list[Window],
                    nms_m: float = 1.0, nms_deg: float = 5.0, n_dives: int = 8,
                    max_range: float | None = None, keep_ratio: float = 0.0,
                    min_leaf_score: float = 0.0, top_level: int | None = None,
-                   per_window_k: int = 0, rest: np.ndarray | None = None, rest_k: int = 0,
-                   rest_floor: float = 0.0) -> tuple[list[Candidate2D], SearchStats]:
+                   per_window_k: int = 0) -> tuple[list[Candidate2D], SearchStats]:
     """Top-K poses over the union of several windows in one branch and bound (one threshold for all,
     so a window whose bound cannot beat the best leaf found elsewhere is never expanded).
 
     per_window_k > 0: instead, the ``per_window_k`` best leaves of each window (``Candidate2D.window``
     says which), each window searched on its own (its own S0) and pruned below ``keep_ratio`` x the
-    best leaf of the windows before it. ``rest`` (W,) bool, ``rest_k`` > 0: of the windows marked,
-    only the ``rest_k`` best leaves of them all are wanted (and none scoring below ``rest_floor``,
-    the ``rest_k``-th best of such leaves found before): a leaf of theirs that cannot be among those
-    is pruned (``_kernels.search_each_window``). A region where the map is occupied everywhere (woods, a
+    best leaf of the windows before it. A region where the map is occupied everywhere (woods, a
     parking lot in the height band) scores about 1 at any pose; with one top K for all windows its
     leaves would crowd out every other window's, the right one's too.
 
@@ -289,8 +282,7 @@ def search_windows(pyramid: Pyramid, scan_xy: np.ndarray, windows: list[Window],
     width = 1 << top
     if per_window_k > 0:
         return _search_each_window(pyramid, scan_xy, windows, angles, step, top, per_window_k, use_s0, s0_ratio,
-                                   min_score, nms_m, nms_deg, n_dives, keep_ratio, min_leaf_score, t0,
-                                   rest, rest_k, rest_floor)
+                                   min_score, nms_m, nms_deg, n_dives, keep_ratio, min_leaf_score, t0)
     ra, rtx, rty = [], [], []
     for w in windows:
         a, x, y = _window_roots(w, angles, step, r, width)

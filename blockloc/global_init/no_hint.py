@@ -116,9 +116,7 @@ class NoHintSearch:
                         top_k: int | None = None):
         """Branch and bound over the windows, one pyramid per group of nearby windows: the leaves
         to refine, at most ``top_k`` (default ``place_top_k``; best places first, with
-        ``place_leaves_per_window``) and then the ``by_score`` best of the others by 2D score. With
-        both, the first ``top_k`` are the leaves of the first ``top_k`` windows, and the others
-        those of the later windows (searched only for leaves that can be among their best)."""
+        ``place_leaves_per_window``) and then the ``by_score`` best of the others by 2D score."""
         from blockloc.global_init.bnb import SearchStats
 
         p = self.params
@@ -143,9 +141,6 @@ class NoHintSearch:
         total = SearchStats(0, 0.0, 0, 0, 0.0, 0.0)
         best = 0.0
         rank = {id(w): i for i, w in enumerate(windows)}
-        # per place: the first top_k places' leaves in their order, then the by_score best of the
-        # later places' (and of those first places' leaves beyond top_k)
-        split = p.place_leaves_per_window > 0 and by_score > 0
         for _, _, ws in groups:
             c = np.array([w.center for w in ws])
             half = 0.5 * max(w.size_m for w in ws) + reach
@@ -159,18 +154,10 @@ class NoHintSearch:
             # runner-up (_refine would not refine them): prune them, across groups too.
             # (search_windows: per window, min_leaf_score is the best leaf itself; else the floor.)
             floor = best if p.place_leaves_per_window > 0 else p.ambiguity_score_ratio * best
-            # The places after the first top_k give only their by_score best leaves: a leaf of theirs
-            # below the by_score-th best S0 among them (or among their leaves of the groups before)
-            # cannot be one (campus, defaults' map, --rng 7, frame 17992: stage 4's 279 windows, 8.9M
-            # nodes where the first 12 places alone need a few hundred thousand).
-            rest = [rank[id(w)] >= top_k for w in ws] if split else None
-            rest_leaves = sorted((c.score for c in cands if c.window >= top_k), reverse=True)
-            rest_floor = rest_leaves[by_score - 1] if split and len(rest_leaves) >= by_score else 0.0
             c2d, st = search_windows(pyr, scan.xy, ws, top_k, p.use_s0, p.s0_ratio, p.min_score, p.nms_m,
                                      p.nms_deg, max_range=scan.max_range, keep_ratio=p.ambiguity_score_ratio,
                                      min_leaf_score=floor, top_level=p.place_top_level,
-                                     per_window_k=p.place_leaves_per_window, rest=rest, rest_k=by_score,
-                                     rest_floor=rest_floor)
+                                     per_window_k=p.place_leaves_per_window)
             for c in c2d:
                 c.window = rank[id(ws[c.window])] if c.window >= 0 else -1
             cands.extend(c2d)
@@ -186,10 +173,6 @@ class NoHintSearch:
             cands.sort(key=lambda c: (c.window, -c.score))
         else:
             cands.sort(key=lambda c: -c.score)
-        if split:
-            first = [c for c in cands if c.window < top_k]
-            rest = sorted(first[top_k:] + [c for c in cands if c.window >= top_k], key=lambda c: -c.score)
-            return first[:top_k] + rest[:by_score], total
         rest = sorted(cands[top_k:], key=lambda c: -c.score)[:by_score]
         return cands[:top_k] + rest, total
 
