@@ -643,8 +643,20 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             dt = time.perf_counter() - t
             stats["climb_s"], stats["climbed"] = dt, len(cands) - n
             elapsed += dt
-        return decide(cands, stats, elapsed, self.params, scan_ndt, final, self._structure_body, drop_targets,
-                      dense_points, self._whole_scan)
+        out = decide(cands, stats, elapsed, self.params, scan_ndt, final, self._structure_body, drop_targets,
+                     dense_points, self._whole_scan)
+        if final and self.params.search_on_unjudged and out.verified and not stands_alone(out.candidates[0],
+                                                                                          self.params):
+            # A best verified on its NDT fit alone (static-band coverage not judged: an open
+            # stretch), not strongly, is never the answer, at whatever point the search ends: a
+            # search that went on to its last stage (nominal map, frame 39893: a place 465 m off,
+            # fitness 0.78, structure 0.61, verified after stage 4 found nothing better), the
+            # window's branch and bound after a hint, a later scan confirming a hypothesis
+            # (defaults' map, --rng 7, frame 39963: confirmed 11.75 m off, fitness 0.77). Reported
+            # ambiguous instead: a session's next scan judges its candidates (``second_scan``).
+            out.verified, out.ambiguous = False, True
+            out.stats["unjudged"] = True
+        return out
 
     def _refiner_over(self, xy: np.ndarray, d: float, cached: bool | None = None) -> Refiner | None:
         """The refiner of the map points in the levelled box ``xy`` (2,) +- ``d`` (m): assembled by the

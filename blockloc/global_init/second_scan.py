@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from blockloc.global_init.bnb import Candidate2D
-from blockloc.global_init.verify import InitCandidate, InitResult, plausible, stands_alone
+from blockloc.global_init.verify import InitCandidate, InitResult, plausible
 
 #: scan-to-scan registration starts along the first body's x axis (m), tried in turn until one fits
 #: (the motion between two scans is unknown without a tracker; a vehicle moves along its x)
@@ -105,15 +105,8 @@ def resolve_with_second_scan(localizer, hypotheses: list[np.ndarray], T_first_se
                             scan_ndt)
     if slid and res.verified:  # the scan fits along the street: no hypothesis is confirmed where it was put
         res.verified, res.ambiguous = False, True
-    best = res.candidates[0] if res.candidates else None
-    if res.verified and p.search_on_unjudged and not stands_alone(best, p):
-        # Confirmed on its NDT fit alone (static-band coverage not judged: an open stretch), not
-        # strongly: no more than a search's first stage lets such a best stand (``search_on_unjudged``).
-        # Defaults' map, --rng 7, frame 39963 with 8 m place windows: two hypotheses 11-12 m from
-        # the truth, none at it; three scans on, one fitting 0.77 (structure 0.62) lost its rival
-        # and was confirmed, 11.75 m off.
-        res.verified, res.ambiguous = False, True
-        res.stats["unjudged"] = True
+    # (a best confirmed on its NDT fit alone, not strongly, is not: ``GlobalLocalizer._decide``,
+    # ``stats['unjudged']``)
     return res
 
 
