@@ -101,8 +101,10 @@ class InitParams(GlobalInitParams):
     # hint the place stages go on (``GlobalLocalizer._search_on``), with one the window's branch and
     # bound (``hinted``); the decision judges everything found
     search_on_doubt: bool = True
-    # ... and (no hint) neither does a verified best whose static-band coverage was not judged
-    # (too few bins: only its NDT fit verified it; ``GlobalLocalizer._decide_unless_doubted``)
+    # ... and neither does a verified best whose static-band coverage was not judged (too few bins:
+    # only its NDT fit verified it; ``GlobalLocalizer._decide_unless_doubted``); where the search
+    # ends with such a best, it is the answer only as the clear best (``unjudged_end_*``), else the
+    # result is ambiguous (``GlobalLocalizer._decide``); a later scan confirms one only on a strong fit
     search_on_unjudged: bool = True
     # ... unless it fits strongly: inlier ratio and above-ground inlier ratio at least these. Campus,
     # no hint, 12 draws of 100 frames over both maps: the 86 right bests verified with coverage not
@@ -111,6 +113,15 @@ class InitParams(GlobalInitParams):
     # 0.87 / 0.75 537 m off). Chosen on 8 draws, 4 held out (docs/bench/global_init.md)
     unjudged_min_fitness: float = 0.90
     unjudged_min_structure_fitness: float = 0.85
+    # The clear best at a search's end (``verify.clear_best``): inlier ratio and above-ground inlier
+    # ratio at least these, and an inlier ratio this much above every other candidate's more than
+    # ambiguity_distance_m away. Campus, both maps, the ten draws of 2026-12-07: the right bests of
+    # this kind fit 0.899-0.931 / 0.82-0.86 with margins 0.093-0.135 (frames 16730, 16735, 39798,
+    # 25037, 25061); nominal frame 39893, a place 465 m off, fit 0.776 / 0.61, another candidate
+    # 0.781 (it was verified before this rule)
+    unjudged_end_min_fitness: float = bounded(0.88, FRACTION)
+    unjudged_end_min_structure_fitness: float = bounded(0.75, FRACTION)
+    unjudged_end_margin: float = bounded(0.05, NON_NEGATIVE)
     # ... and the decision after the search went on takes the scan's every point (within max_range_m):
     # a rival NDT on them brings back to the best's own optimum (within one_optimum_m / _deg, both
     # converged, the best's coverage judged) is no ambiguity (``verify.one_optimum``); false: as before

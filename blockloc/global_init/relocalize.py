@@ -39,6 +39,7 @@ from blockloc.global_init.verify import (  # noqa: F401  (InitCandidate, InitRes
     InitResult,
     Thresholds,
     better_fit,
+    clear_best,
     consistency_passes,
     decide,
     fit_passes,
@@ -622,13 +623,15 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
 
     def _decide(self, cands: list[InitCandidate], stats: dict, elapsed: float,
                 scan_ndt: np.ndarray | None = None, final: bool = True, scan: ScanProjection | None = None,
-                cells=None, drop_targets: bool = True, dense_points: np.ndarray | None = None) -> InitResult:
+                cells=None, drop_targets: bool = True, dense_points: np.ndarray | None = None,
+                searched: bool = True) -> InitResult:
         """:func:`blockloc.global_init.verify.decide` with this localizer's parameters; with the
         ``scan`` (and ``scan_ndt``), a final decision first settles the unconverged candidates
         (:meth:`_settle`) and climbs to better optima nearby (:meth:`_climb`; their time counts in
         ``elapsed``). ``drop_targets``: a final decision drops the candidates' NDT targets (False:
         a later decision judges them again). ``dense_points``: the scan's every point, body frame
-        (:func:`verify.one_optimum`; None: not used)."""
+        (:func:`verify.one_optimum`; None: not used). ``searched``: the candidates are a search's
+        (False: hypotheses a later scan confirms, ``second_scan``)."""
         if final and scan is not None and scan_ndt is not None and self.params.settle_unconverged:
             t = time.perf_counter()
             n = sum(not c.converged for c in cands)
@@ -645,15 +648,16 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
             elapsed += dt
         out = decide(cands, stats, elapsed, self.params, scan_ndt, final, self._structure_body, drop_targets,
                      dense_points, self._whole_scan)
-        if final and self.params.search_on_unjudged and out.verified and not stands_alone(out.candidates[0],
-                                                                                          self.params):
+        p = self.params
+        if (final and p.search_on_unjudged and out.verified and not stands_alone(out.candidates[0], p)
+                and not (searched and clear_best(out.candidates, p))):
             # A best verified on its NDT fit alone (static-band coverage not judged: an open
-            # stretch), not strongly, is never the answer, at whatever point the search ends: a
-            # search that went on to its last stage (nominal map, frame 39893: a place 465 m off,
-            # fitness 0.78, structure 0.61, verified after stage 4 found nothing better), the
-            # window's branch and bound after a hint, a later scan confirming a hypothesis
-            # (defaults' map, --rng 7, frame 39963: confirmed 11.75 m off, fitness 0.77). Reported
-            # ambiguous instead: a session's next scan judges its candidates (``second_scan``).
+            # stretch), not strongly, is the answer of a search only as the clear best, and never
+            # of a later scan's confirmation (``searched`` false). Nominal map, frame 39893: a place
+            # 465 m off (fitness 0.776, structure 0.61, another candidate 0.781) was verified after
+            # the last stage found nothing better; defaults' map, --rng 7, frame 39963: a hypothesis
+            # confirmed 11.75 m off (0.77) three scans on. Reported ambiguous instead: a session's
+            # next scan judges its candidates (``second_scan``).
             out.verified, out.ambiguous = False, True
             out.stats["unjudged"] = True
         return out

@@ -102,7 +102,7 @@ def resolve_with_second_scan(localizer, hypotheses: list[np.ndarray], T_first_se
     p = localizer.params
     slid = sum((c.verified or plausible(c, p)) and slid_m(c) > p.ambiguity_distance_m for c in cands)
     res = localizer._decide(cands, {"hypotheses": len(hypotheses), "slid": slid}, time.perf_counter() - t0,
-                            scan_ndt)
+                            scan_ndt, searched=False)
     if slid and res.verified:  # the scan fits along the street: no hypothesis is confirmed where it was put
         res.verified, res.ambiguous = False, True
     # (a best confirmed on its NDT fit alone, not strongly, is not: ``GlobalLocalizer._decide``,

@@ -90,6 +90,22 @@ def stands_alone(cand, p) -> bool:
     return consistency_judged(cand) or fits_strongly(cand, p.unjudged_min_fitness, p.unjudged_min_structure_fitness)
 
 
+def clear_best(cands: list, p) -> bool:
+    """Whether the best of ``cands`` (:class:`InitCandidate` list, the decision's, best first) is the
+    answer of a search that ended with it, though only its NDT fit verified it, not strongly
+    (:func:`stands_alone` false): it fits well (``p.unjudged_end_min_fitness`` and
+    ``p.unjudged_end_min_structure_fitness``) and better by ``p.unjudged_end_margin`` in inlier ratio
+    than every other candidate more than ``p.ambiguity_distance_m`` from it, verified or not (the
+    scan fits there clearly better than at any other place searched; a wrong place of an open
+    stretch fits about as well as others do)."""
+    best = cands[0]
+    if not fits_strongly(best, p.unjudged_end_min_fitness, p.unjudged_end_min_structure_fitness):
+        return False
+    others = [c.fitness for c in cands[1:] if np.isfinite(c.fitness)
+              and np.linalg.norm(c.T_map_body[:3, 3] - best.T_map_body[:3, 3]) > p.ambiguity_distance_m]
+    return all(f <= best.fitness - p.unjudged_end_margin for f in others)
+
+
 def passes(converged: bool, fitness: float, structure_fitness: float, coverage: float, see_through: float,
            th: Thresholds, finite: bool = True) -> bool:
     """Whether a refined candidate with these measurements is verified under ``th``."""
