@@ -15,6 +15,12 @@ from blockloc.commands.common import config_for, console, parse_pose_hint
 from blockloc.errors import GlobalInitError
 
 
+#: why a best that passed the fit tests is not the answer (``InitResult.stats['unjudged']``)
+UNJUDGED = ("only its NDT fit could be judged (too little structure in the static band to test its coverage) "
+            "and it is not the clear best (global_init.unjudged_end_min_fitness, "
+            "global_init.unjudged_end_min_structure_fitness, global_init.unjudged_end_margin)")
+
+
 def compile_note(info: dict) -> str:
     """" (+N s compiling kernels, ...)" when the kernels were compiled in the timed part, else ""."""
     c = info.get("compile_s") or 0.0
@@ -36,7 +42,9 @@ def print_result(summ: dict, console) -> None:
     if summ.get("stats", {}).get("timed_out") and not summ["verified"]:
         console.print("[yellow]not found: the search stopped at its budget (global_init.max_search_s; "
                       "--set global_init.max_search_s=0 searches the whole map however long it takes)[/yellow]")
-    if summ["ambiguous"]:
+    if summ.get("stats", {}).get("unjudged"):
+        console.print(f"[yellow]not verified: {UNJUDGED}[/yellow]")
+    elif summ["ambiguous"]:
         console.print("[yellow]warning: ambiguous: another verified candidate far from this one fits almost "
                       "as well (repeated structure); check the candidates or give a tighter hint[/yellow]")
     table = Table("#", "x", "y", "z", "yaw deg", "score", "fitness", "verified")
@@ -58,4 +66,5 @@ def init_command(seq, frame, map_path, pose_hint, window, yaw_window, json_out, 
     else:
         print_result(summ, console())
     if not res.verified:
-        raise GlobalInitError(f"no verified match (best score {res.score:.3f}, fitness {res.fitness:.3f})")
+        why = f": {UNJUDGED}" if res.stats.get("unjudged") else ""
+        raise GlobalInitError(f"no verified match (best score {res.score:.3f}, fitness {res.fitness:.3f}){why}")

@@ -32,6 +32,22 @@ class GlobalInitParams:
     min_fitness: float = bounded(0.75, PROBABILITY)
     # same for the above-ground points alone (true >= 0.9, false <= 0.37)
     min_structure_fitness: float = bounded(0.6, PROBABILITY)
+    # A best whose static-band coverage could not be judged (an open stretch: only the NDT fit
+    # verified it) is a search's answer only as the clear best (``verify.clear_best``): inlier ratio
+    # and above-ground inlier ratio at least these, and an inlier ratio this much above every other
+    # candidate's more than ambiguity_distance_m away. Campus, both maps, the ten draws of 2026-12-07:
+    # the right bests of this kind fit 0.899-0.931 / 0.82-0.86 with margins 0.093-0.135 (frames
+    # 16730, 16735, 39798, 25037, 25061); nominal frame 39893, a place 465 m off, fit 0.776 / 0.61,
+    # another candidate 0.781 (it was verified before this rule)
+    unjudged_clear_best: bool = True  # false: such a best is a search's answer as any verified one
+    # Scored on what overlaps (refine.Footprint): inlier ratios and the static-band coverage count
+    # only scan points / bins where the map holds data (levelled cells of this size; 0: every point
+    # counts), and at least min_overlap of the scan's points must fall there for a verified match
+    # (a scan at the map's edge, half outside it)
+    footprint_cell_m: float = bounded(1.0, NON_NEGATIVE)
+    unjudged_end_min_fitness: float = bounded(0.88, FRACTION)
+    unjudged_end_min_structure_fitness: float = bounded(0.75, FRACTION)
+    unjudged_end_margin: float = bounded(0.05, NON_NEGATIVE)
     ambiguity_distance_m: float = bounded(0.5, NON_NEGATIVE)  # rivals farther than this (NDT merges closer ones)
     ndt_resolution_m: float = bounded(1.0, POSITIVE)
     reloc_window_m: float = bounded(100.0, POSITIVE)  # regions of the no-hint relocalization (the place index's fallback)
@@ -113,15 +129,6 @@ class InitParams(GlobalInitParams):
     # 0.87 / 0.75 537 m off). Chosen on 8 draws, 4 held out (docs/bench/global_init.md)
     unjudged_min_fitness: float = 0.90
     unjudged_min_structure_fitness: float = 0.85
-    # The clear best at a search's end (``verify.clear_best``): inlier ratio and above-ground inlier
-    # ratio at least these, and an inlier ratio this much above every other candidate's more than
-    # ambiguity_distance_m away. Campus, both maps, the ten draws of 2026-12-07: the right bests of
-    # this kind fit 0.899-0.931 / 0.82-0.86 with margins 0.093-0.135 (frames 16730, 16735, 39798,
-    # 25037, 25061); nominal frame 39893, a place 465 m off, fit 0.776 / 0.61, another candidate
-    # 0.781 (it was verified before this rule)
-    unjudged_end_min_fitness: float = bounded(0.88, FRACTION)
-    unjudged_end_min_structure_fitness: float = bounded(0.75, FRACTION)
-    unjudged_end_margin: float = bounded(0.05, NON_NEGATIVE)
     # ... and the decision after the search went on takes the scan's every point (within max_range_m):
     # a rival NDT on them brings back to the best's own optimum (within one_optimum_m / _deg, both
     # converged, the best's coverage judged) is no ambiguity (``verify.one_optimum``); false: as before
@@ -155,12 +162,9 @@ class InitParams(GlobalInitParams):
     consistency_tolerance_m: float = 0.75
     min_consistency_bits: int = 20
     min_static_points: int = 300  # fewer static-band points: the structure test uses the low band
-    # Scored on what overlaps (refine.Footprint): inlier ratios and the static-band coverage count
-    # only scan points / bins where the map holds data (levelled cells of footprint_cell_m with at
-    # least footprint_min_share of the median non-empty cell's map points: ground seen well, not a
-    # few returns from afar, where NDT's Gaussians are poor; 0 cell: every point counts), and at
-    # least min_overlap of the scan's points must fall there for a verified match.
-    footprint_cell_m: float = 1.0
+    # (footprint_cell_m: in the section above) the map's levelled cells of footprint_cell_m count
+    # where they hold at least footprint_min_share of the median non-empty cell's map points: ground
+    # seen well, not a few returns from afar, where NDT's Gaussians are poor
     footprint_min_share: float = 0.25
     min_overlap: float = 0.3
 

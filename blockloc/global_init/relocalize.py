@@ -650,7 +650,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
                      dense_points, self._whole_scan)
         p = self.params
         if (final and p.search_on_unjudged and out.verified and not stands_alone(out.candidates[0], p)
-                and not (searched and clear_best(out.candidates, p))):
+                and not (searched and (not p.unjudged_clear_best or clear_best(out.candidates, p)))):
             # A best verified on its NDT fit alone (static-band coverage not judged: an open
             # stretch), not strongly, is the answer of a search only as the clear best, and never
             # of a later scan's confirmation (``searched`` false). Nominal map, frame 39893: a place

@@ -506,8 +506,11 @@ def test_a_best_verified_on_its_fit_alone_is_the_answer_of_a_search_only_as_the_
              (math.nan, 0.92, 0.83, 0.90, False),  # ... not clear
              (0.95, 0.776, 0.61, 0.781, True),  # coverage judged
              (math.nan, 0.95, 0.97, 0.93, True))  # a strong fit
+    # (``unjudged_clear_best`` false, the handheld preset's choice: any verified best is the answer)
+    cases += tuple((c, f, s, o, True, False) for c, f, s, o, _ in cases[:2])
+    cases = tuple(c if len(c) == 6 else c + (True,) for c in cases)
     for hint in (None, (6.0, 4.0)):
-        for coverage, fitness, structure, other, answer in cases:
+        for coverage, fitness, structure, other, answer, rule in cases:
             def found():
                 best = InitCandidate(T_wrong, 0.9, fitness, True, True, T_wrong, 1.9, structure, coverage=coverage,
                                      see_through=0.0, refiner=refiner)
@@ -529,9 +532,10 @@ def test_a_best_verified_on_its_fit_alone_is_the_answer_of_a_search_only_as_the_
 
             monkeypatch.setattr(GlobalLocalizer, "_relocalize_places", places)
             monkeypatch.setattr(GlobalLocalizer, "_search_region", region)
-            other_loc = GlobalLocalizer(loc.map, InitParams(max_search_s=0.0, whole_scan_voxel_m=0.0))
+            other_loc = GlobalLocalizer(loc.map, InitParams(max_search_s=0.0, whole_scan_voxel_m=0.0,
+                                                            unjudged_clear_best=rule))
             res = other_loc.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true),
                                      hint_xy=hint, window_m=30.0)
             assert res.candidates and np.allclose(res.candidates[0].T_map_body, T_wrong)
-            assert res.verified is answer and res.ambiguous is not answer, (hint, coverage, fitness, other, res.stats)
+            assert res.verified is answer and res.ambiguous is not answer, (hint, coverage, fitness, other, rule)
             assert res.stats.get("unjudged", False) is not answer

@@ -23,8 +23,10 @@ from .synthetic import GRAVITY_Z_DOWN, Z_DOWN, gravity_body, scan_from, world_up
 SECTION = {f.name for f in dataclasses.fields(GlobalInitParams)}
 # read by the caller that hands the hinted window to localize (session, ``blockloc init``)
 BY_THE_CALLER = {"window_m", "yaw_window_deg"}
-# read only when a plausible rival of a verified best shows up (none in this map)
-RARE = {"ambiguity_z"}
+# read only when a plausible rival of a verified best shows up (none in this map), or when a search
+# ends with a best whose coverage could not be judged and whose fit is not strong (the clear best:
+# ``test_climb.py``)
+RARE = {"ambiguity_z", "unjudged_clear_best", "unjudged_end_min_fitness", "unjudged_end_min_structure_fitness", "unjudged_end_margin"}
 
 
 class Recording(InitParams):
