@@ -13,15 +13,20 @@ def _blockloc(*args):
                           timeout=600)
 
 
-@pytest.fixture(scope="module")
-def walk_map(shared_data, tmp_path_factory):
+def _build_walk_map(shared_data, tmp_path_factory, name, *options):
+    """(walk folder, its poses file, a map of its first 89 scans in 8 m blocks built with ``options``)."""
     walk = shared_data / "balm_hilti_walk"
     poses = walk / "poses_T_world_lidar.tum"
-    out = tmp_path_factory.mktemp("walk") / "map"
+    out = tmp_path_factory.mktemp(name) / "map"
     r = _blockloc("map", "build", "--seq", str(walk), "--poses", str(poses), "--max-frames", "89",
-                  "--block-size", "8", "--voxel", "0.1", "--out", str(out))
+                  "--block-size", "8", *options, "--out", str(out))
     assert r.returncode == 0, r.stderr
     return walk, poses, out
+
+
+@pytest.fixture(scope="module")
+def walk_map(shared_data, tmp_path_factory):
+    return _build_walk_map(shared_data, tmp_path_factory, "walk", "--voxel", "0.1")
 
 
 def test_map_from_a_scan_folder_and_its_trajectory(walk_map):
@@ -48,13 +53,7 @@ def test_init_on_a_held_out_scan_reports_its_error_against_the_reference(walk_ma
 
 @pytest.fixture(scope="module")
 def handheld_walk_map(shared_data, tmp_path_factory):
-    walk = shared_data / "balm_hilti_walk"
-    poses = walk / "poses_T_world_lidar.tum"
-    out = tmp_path_factory.mktemp("walk_handheld") / "map"
-    r = _blockloc("map", "build", "--seq", str(walk), "--poses", str(poses), "--max-frames", "89",
-                  "--config", "handheld", "--block-size", "8", "--out", str(out))
-    assert r.returncode == 0, r.stderr
-    return walk, poses, out
+    return _build_walk_map(shared_data, tmp_path_factory, "walk_handheld", "--config", "handheld")
 
 
 @pytest.mark.parametrize("frame", [139, 141, 144])
