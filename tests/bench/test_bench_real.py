@@ -115,10 +115,13 @@ def test_the_handheld_preset_is_the_walk_tests_config_but_for_documented_setting
 
     a, b = real.walk_config_handheld().to_dict(), walk_config().to_dict()
     differ = {(s, k) for s in a for k in a[s] if a[s][k] != b[s][k]}
-    # global-init verification (the preset's), every scan a keyframe (the walk's map builder passes
-    # 0/0 itself), deskew (a no-op on the walk's scans, which have no per-point times)
+    # global-init verification (the preset's: its floors, the clear best's, every scan point counted),
+    # every scan a keyframe (the walk's map builder passes 0/0 itself), deskew (a no-op on the walk's
+    # scans, which have no per-point times)
     assert differ == {("global_init", "min_fitness"), ("global_init", "min_structure_fitness"),
                       ("global_init", "structure_from_static"), ("global_init", "min_coverage"),
+                      ("global_init", "unjudged_end_min_fitness"),
+                      ("global_init", "unjudged_end_min_structure_fitness"), ("global_init", "footprint_cell_m"),
                       ("map", "keyframe_distance_m"), ("map", "keyframe_angle_deg"), ("lidar", "deskew")}
     assert a["map"]["block_size_m"] == b["map"]["block_size_m"] == 8.0
 
