@@ -32,6 +32,11 @@ class GlobalInitParams:
     min_fitness: float = bounded(0.75, PROBABILITY)
     # same for the above-ground points alone (true >= 0.9, false <= 0.37)
     min_structure_fitness: float = bounded(0.6, PROBABILITY)
+    # Scored on what overlaps (refine.Footprint): inlier ratios and the static-band coverage count
+    # only scan points / bins where the map holds data (levelled cells of this size; 0: every point
+    # counts), and at least min_overlap of the scan's points must fall there for a verified match
+    # (a scan at the map's edge, half outside it)
+    footprint_cell_m: float = bounded(1.0, NON_NEGATIVE)
     # A best whose static-band coverage could not be judged (an open stretch: only the NDT fit
     # verified it) is a search's answer only as the clear best (``verify.clear_best``): inlier ratio
     # and above-ground inlier ratio at least these, and an inlier ratio this much above every other
@@ -40,11 +45,6 @@ class GlobalInitParams:
     # 16730, 16735, 39798, 25037, 25061); nominal frame 39893, a place 465 m off, fit 0.776 / 0.61,
     # another candidate 0.781 (it was verified before this rule)
     unjudged_clear_best: bool = True  # false: such a best is a search's answer as any verified one
-    # Scored on what overlaps (refine.Footprint): inlier ratios and the static-band coverage count
-    # only scan points / bins where the map holds data (levelled cells of this size; 0: every point
-    # counts), and at least min_overlap of the scan's points must fall there for a verified match
-    # (a scan at the map's edge, half outside it)
-    footprint_cell_m: float = bounded(1.0, NON_NEGATIVE)
     unjudged_end_min_fitness: float = bounded(0.88, FRACTION)
     unjudged_end_min_structure_fitness: float = bounded(0.75, FRACTION)
     unjudged_end_margin: float = bounded(0.05, NON_NEGATIVE)

@@ -105,8 +105,8 @@ def resolve_with_second_scan(localizer, hypotheses: list[np.ndarray], T_first_se
                             scan_ndt, searched=False)
     if slid and res.verified:  # the scan fits along the street: no hypothesis is confirmed where it was put
         res.verified, res.ambiguous = False, True
-    # (a best confirmed on its NDT fit alone, not strongly, is not: ``GlobalLocalizer._decide``,
-    # ``stats['unjudged']``)
+    # (a hypothesis confirmed on its NDT fit alone needs a strong fit: ``searched=False`` above,
+    # ``GlobalLocalizer._decide``; ``stats['unjudged']`` otherwise)
     return res
 
 
