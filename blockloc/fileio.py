@@ -301,8 +301,14 @@ def load_array(source: str | Path | IO[bytes], mmap_mode: str | None = None):
 
 def load_arrays(source: str | Path | IO[bytes]) -> dict:
     """Every array of a ``.npz`` file (path or binary file object), read now: name -> ndarray.
-    Raises what np.load raises (OSError, ValueError, EOFError, zipfile.BadZipFile, ...)."""
+    Raises what np.load raises (OSError, ValueError, EOFError, ...); a damaged archive (cut short,
+    not a zip: ``zipfile.BadZipFile``) as ValueError, so that callers' ``except ValueError`` holds."""
+    import zipfile
+
     import numpy as np
 
-    with _NPY_HEADER_LOCK, np.load(source, allow_pickle=False) as z:
-        return {name: z[name] for name in z.files}
+    try:
+        with _NPY_HEADER_LOCK, np.load(source, allow_pickle=False) as z:
+            return {name: z[name] for name in z.files}
+    except zipfile.BadZipFile as exc:
+        raise ValueError(f"not a whole .npz archive ({exc})") from None
