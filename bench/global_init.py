@@ -341,9 +341,10 @@ def run(argv: list[str]) -> dict:
             index_build_s = time.perf_counter() - t0
     loc = GlobalLocalizer.for_store(store, seq.info.gravity_map, params)
     t0 = time.perf_counter()
-    # the pyramids and the on-disk copy of the points refinement reads (warm figures; the cold
+    # the pyramids, the on-disk copy of the points refinement reads and the entries' refinement
+    # statistics (warm figures: what an earlier process on this map left in the cache; the cold
     # first call of a fresh process is --cold's)
-    loc.map.precompute(points=True)
+    loc.precompute()
     t_pre = time.perf_counter() - t0
     loc_all = None
     if "bbs+s0/all" in args.methods:
@@ -479,7 +480,7 @@ def run(argv: list[str]) -> dict:
          f"Data: simulated `{seq_name}` against the `{store.kind}` map ({args.map_source}) of `sim:{args.preset}/map@{args.seed}` ")
         +
         f"({len(store)} entries, {store.total_points:,} points); map build {t_map:.1f} s (0 if cached), "
-        f"pyramids and points precompute/cache load {t_pre:.2f} s.",
+        f"pyramids, points and refinement statistics precompute/cache load {t_pre:.2f} s.",
         f"{len(frames)} random frames; hint = ground truth + uniform +-{args.hint_error:g} m in x and y "
         f"({args.window:g} x {args.window:g} m window), yaw unknown (360 deg). Success: verified and <= 0.3 m and "
         f"<= 2 deg after NDT refinement. Projection: `{args.projection}`. Candidates refined "

@@ -252,6 +252,11 @@ class StoreMap:
         e = self.store.entries[i]
         return e.sha256 or f"{self.store.path}:{e.id}:{e.num_points}"
 
+    def entry_sha256(self, i: int) -> str | None:
+        """Entry i's content hash as the store records it (None: not recorded), which keys what is
+        cached of it on disk."""
+        return self.store.entries[i].sha256
+
     def entry_points(self, i: int) -> np.ndarray:
         """All of entry i's points (N, 3) float32, map frame (memory-mapped where cached)."""
         return self._entry_points(i).points

@@ -110,7 +110,7 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
 
             p = self.params
             self._target_cache = (TargetCache(self.engine, self.map.R_L_map, p.footprint_cell_m, p.footprint_min_share,
-                                              int(p.target_cache_mb * 1e6))
+                                              int(p.target_cache_mb * 1e6), getattr(self.map, "cache_dir", None))
                                   if p.target_cache_mb > 0 and TargetCache.usable(self.engine, self.map,
                                                                                   self.map.R_L_map) else False)
         return None if self._target_cache is False else self._target_cache
@@ -145,6 +145,21 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
         return cls(ArrayMap(map_points, gravity_map, params.projection_params), params, engine)
 
     # ------------------------------------------------------------------------- public
+
+    def precompute(self, targets: bool = True) -> int:
+        """Prepare the on-disk caches of a store map ahead of the searches: every entry's pyramid,
+        its points sorted for box queries and, with ``targets``, its refinement statistics
+        (:class:`~blockloc.global_init.targets.TargetCache`); returns the number of entries (0 for
+        an array map). A process that searches many times (a session, the node) then builds none
+        of them; the first search of a fresh process still assembles its targets from the points."""
+        if not hasattr(self.map, "precompute"):
+            return 0
+        n = self.map.precompute(points=True)
+        cache = self.target_cache if targets else None
+        if cache is not None:
+            for i in range(n):
+                cache.prepare(self.map, i)
+        return n
 
     def localize(self, points_body: np.ndarray, gravity_body: np.ndarray, hint_xy=None, hint_yaw=None,
                  window_m: float = 40.0, yaw_window_deg: float = 360.0) -> InitResult:

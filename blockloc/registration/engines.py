@@ -131,6 +131,13 @@ class NdtEngine:
 
         return NdtTarget(**self.target_options).tile_stats(points)
 
+    def tile_stats_from_arrays(self, arrays):
+        """The statistics ``stats.to_arrays()`` gave (e.g. read back from a file), checked against
+        this engine's levels; raises ValueError or KeyError on arrays of another shape."""
+        from blockloc.registration.ndt import TileStats
+
+        return TileStats.from_arrays(arrays, self.target_options["coarse_levels"] + 1)
+
     def target_from_tile_stats(self, tiles):
         """The target of ``{key: tile_stats}`` (``NdtTarget.from_tile_stats``): the same target as
         ``build_tiled_target`` of the points they were computed from."""

@@ -196,14 +196,41 @@ class _TileStats:
                                   & (ijk[:, 1] >= a[1]) & (ijk[:, 1] < b[1]))
             # rows by index, found once for the seven arrays (a boolean mask is counted again for
             # each: ~4x slower)
-            levels.append(_LevelStats(*(np.take(getattr(lv, f), keep, axis=0)
-                                        for f in ("keys", "count", "sums", "outer", "means", "icov", "valid"))))
+            levels.append(_LevelStats(*(np.take(getattr(lv, f), keep, axis=0) for f in _LEVEL_FIELDS)))
         return _TileStats(tuple(levels), int(levels[0].count.sum()) if levels else 0)
 
     @property
     def nbytes(self) -> int:
-        return sum(getattr(lv, f).nbytes for lv in self.levels
-                   for f in ("keys", "count", "sums", "outer", "means", "icov", "valid"))
+        return sum(getattr(lv, f).nbytes for lv in self.levels for f in _LEVEL_FIELDS)
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The statistics as named arrays (``l<level>_<field>``), for ``np.savez``; read back by
+        :meth:`from_arrays`."""
+        return {f"l{level}_{f}": getattr(lv, f) for level, lv in enumerate(self.levels) for f in _LEVEL_FIELDS}
+
+    @classmethod
+    def from_arrays(cls, arrays: Mapping[str, np.ndarray], num_levels: int) -> _TileStats:
+        """The statistics :meth:`to_arrays` gave, checked: ``num_levels`` levels (the target's
+        ``coarse_levels + 1``), each field's rows and columns as the tile statistics have them.
+        Raises ValueError (or KeyError for a missing array) on anything else."""
+        levels = []
+        for level in range(int(num_levels)):
+            lv = _LevelStats(*(np.asarray(arrays[f"l{level}_{f}"]) for f in _LEVEL_FIELDS))
+            n = len(lv.keys)
+            for f, cols, kind in _LEVEL_SHAPES:
+                a = getattr(lv, f)
+                if a.dtype.kind != kind or len(a) != n or a.shape[1:] != cols:
+                    raise ValueError(f"level {level} {f}: {a.dtype} {a.shape}, expected {n} rows of {cols} ({kind})")
+            levels.append(lv)
+        if f"l{int(num_levels)}_keys" in arrays:
+            raise ValueError(f"more than {num_levels} levels")
+        return cls(tuple(levels), int(levels[0].count.sum()) if levels else 0)
+
+
+_LEVEL_FIELDS = ("keys", "count", "sums", "outer", "means", "icov", "valid")
+# (field, shape after the rows, dtype kind) of a level's arrays
+_LEVEL_SHAPES = (("keys", (), "i"), ("count", (), "i"), ("sums", (3,), "f"), ("outer", (6,), "f"),
+                 ("means", (3,), "f"), ("icov", (6,), "f"), ("valid", (), "b"))
 
 
 #: The voxel statistics of one tile at every level (``NdtTarget.tile_stats``).

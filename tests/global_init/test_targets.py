@@ -123,6 +123,37 @@ def test_the_localizer_refines_on_assembled_targets_and_finds_the_same_pose(maps
         assert res.fitness == pytest.approx(base.fitness, abs=1e-9)
 
 
+def test_a_precomputed_map_is_searched_on_statistics_read_from_disk_with_the_same_result(maps, tmp_path):
+    # `GlobalLocalizer.precompute` leaves every entry's statistics in the cache; a later process's
+    # second search reads them (builds none) and finds the pose a localizer without them finds
+    from blockloc.geometry import xyzrpy_to_T
+    from blockloc.global_init.relocalize import GlobalLocalizer, InitParams
+
+    from .synthetic import gravity_body, scan_from
+
+    smap = maps["down"]
+    store = smap.store
+    params = dict(use_place_index=False, target_cache_mb=64.0)
+    ahead = GlobalLocalizer(StoreMap(store, smap.gravity_map, cache_dir=tmp_path), InitParams(**params))
+    assert ahead.precompute() == len(store.entries)
+    assert len(list(ahead.target_cache.disk_dir.glob("*.npz"))) == len(store.entries)
+    assert len(ahead.target_cache) == 0  # written, not held
+
+    world = smap.points_in_box(*smap.bounds_L())
+    T_true = xyzrpy_to_T(-5.0, 7.0, -(1.9 + 0.02 * -5.0), 0.02, 0.03, -1.1)
+    scan, g = scan_from(world, T_true), gravity_body(T_true)
+    loc = GlobalLocalizer(StoreMap(store, smap.gravity_map, cache_dir=tmp_path), InitParams(**params))
+    loc.target_cache._build = None  # any build would raise
+    loc.localize(scan, g, hint_xy=(-3.0, 5.0), window_m=10.0)
+    res = loc.localize(scan, g, hint_xy=(-3.0, 5.0), window_m=10.0)
+    assert loc.target_cache.misses > 0 and loc.target_cache.loaded == loc.target_cache.misses
+    base = GlobalLocalizer(smap, InitParams(use_place_index=False, target_cache_mb=0.0)).localize(
+        scan, g, hint_xy=(-3.0, 5.0), window_m=10.0)
+    assert res.verified and base.verified
+    np.testing.assert_allclose(res.T_map_body, base.T_map_body, atol=1e-6)
+    assert res.fitness == pytest.approx(base.fitness, abs=1e-9)
+
+
 def test_refinements_side_by_side_give_the_same_candidates_in_the_same_order(maps, monkeypatch):
     # ``refine_workers`` 2: the targets are built and the candidates refined in threads; the
     # candidates, their order and the early stop (a candidate scoring below the ratio is refined only
@@ -216,3 +247,69 @@ def test_a_later_stage_reuses_the_targets_of_the_same_scan_and_a_new_scan_builds
     again = loc._refine([Candidate2D(xy[0], xy[1], th, 0.9)], scan, scan_ndt, cells)
     assert len(built) == 3 and again[0].refiner is not first[0].refiner
     np.testing.assert_array_equal(again[0].T_map_body, first[0].T_map_body)
+
+
+def test_entry_statistics_kept_on_disk_are_read_back_by_a_later_process_and_give_the_same_targets(
+        maps, tmp_path, caplog):
+    smap = maps["up"]
+    assert all(smap.entry_sha256(i) for i in range(len(smap.store.entries)))
+    engine = make_engine("ndt", resolution_m=1.0)
+    lo, hi = np.array([-20.3, -31.7]), np.array([29.9, 18.4])
+    n = len(smap.entries_in(lo, hi))
+    first = TargetCache(engine, smap.R_L_map, 1.0, 0.25, max_bytes=10**9, disk_dir=tmp_path)
+    built = first.refiner(smap, lo, hi)
+    files = sorted(first.disk_dir.glob("*.npz"))
+    assert first.loaded == 0 and len(files) == n  # built, then written once each
+
+    # a later process: reads every entry, builds none, and assembles the same target and footprint
+    later = TargetCache(engine, smap.R_L_map, 1.0, 0.25, max_bytes=10**9, disk_dir=tmp_path)
+    calls = []
+    later._build = lambda pts: calls.append(len(pts))  # noqa: E731 - any build is a failure here
+    read = later.refiner(smap, lo, hi)
+    assert later.loaded == n and calls == []
+    for level in (0, 1):
+        for a, b in zip(_sorted_level(read._target, level), _sorted_level(built._target, level)):
+            np.testing.assert_array_equal(a, b)
+    assert _footprint_cells(read.footprint) == _footprint_cells(built.footprint) != set()
+
+    # another footprint cell or another voxel size keys other files: nothing of these is read
+    other = TargetCache(make_engine("ndt", resolution_m=2.0), smap.R_L_map, 1.0, 0.25, max_bytes=10**9,
+                        disk_dir=tmp_path)
+    other.refiner(smap, lo, hi)
+    assert other.loaded == 0 and other.disk_dir != first.disk_dir
+
+    # a damaged file is rebuilt (one warning naming it) and replaced
+    files[0].write_bytes(files[0].read_bytes()[:1000])
+    again = TargetCache(engine, smap.R_L_map, 1.0, 0.25, max_bytes=10**9, disk_dir=tmp_path)
+    with caplog.at_level("WARNING"):
+        again.refiner(smap, lo, hi)
+    assert again.loaded == n - 1 and any(files[0].name in r.getMessage() for r in caplog.records)
+    assert TargetCache(engine, smap.R_L_map, 1.0, 0.25, max_bytes=10**9, disk_dir=tmp_path)._read(files[0]).nbytes > 0
+
+    # files of older code with the same settings are removed when new ones are written; others kept
+    stale = first.disk_dir.parent / f"targets-{first._settings_key}-0000000000"
+    stale.mkdir()
+    (stale / "x.npz").write_bytes(b"old")
+    unrelated = tmp_path / "points-b25-mm-gx"
+    unrelated.mkdir()
+    for f in first.disk_dir.glob("*.npz"):
+        f.unlink()
+    TargetCache(engine, smap.R_L_map, 1.0, 0.25, max_bytes=10**9, disk_dir=tmp_path).refiner(smap, lo, hi)
+    assert not stale.exists() and unrelated.exists() and other.disk_dir.exists()
+
+
+def test_tile_statistics_of_the_wrong_shape_are_refused():
+    from blockloc.registration.ndt import TileStats
+
+    engine = make_engine("ndt", resolution_m=1.0)
+    pts = world_up(seed=1, size=20.0)
+    arrays = engine.tile_stats(pts).to_arrays()
+    back = engine.tile_stats_from_arrays(arrays)
+    assert back.num_points == len(pts) and len(back.levels) == 2
+    with pytest.raises(ValueError, match="levels"):
+        TileStats.from_arrays(arrays, 1)  # a file of a coarser pyramid
+    bad = dict(arrays, l0_icov=arrays["l0_icov"][:, :3])
+    with pytest.raises(ValueError, match="icov"):
+        engine.tile_stats_from_arrays(bad)
+    with pytest.raises(KeyError):
+        engine.tile_stats_from_arrays({k: v for k, v in arrays.items() if k != "l1_means"})
