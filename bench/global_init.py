@@ -419,7 +419,7 @@ def run(argv: list[str]) -> dict:
     cpu_s = {name: [] for name in reloc_modes}  # CPU time per frame (a loaded machine stretches the wall clock)
     index_load_s = None
     tcache = loc.target_cache  # its entries at the start of the no-hint frames (filled by the hinted ones)
-    cache_before = (len(tcache), tcache.misses) if tcache is not None else None
+    cache_before = (len(tcache), tcache.misses, tcache.loaded) if tcache is not None else None
     rframes = np.sort(rng.choice(np.arange(20, len(seq)), size=min(args.reloc_frames, len(seq) - 20), replace=False))
     # The anchor: KISS-Matcher against the whole map (when it fits) and, as its best case, against the
     # local map around the ground truth (what a perfect candidate generator would hand it); each result
@@ -597,13 +597,16 @@ def run(argv: list[str]) -> dict:
         if starts:
             lines += start_lines(starts, args.follow_up, results)
         if tcache is not None:
+            taken = tcache.misses - cache_before[1]
+            read = tcache.loaded - cache_before[2]
             results["target_cache"] = {"entries": len(tcache), "mb": tcache.nbytes / 1e6,
-                                       "built_in_reloc": tcache.misses - cache_before[1]}
+                                       "built_in_reloc": taken - read, "read_in_reloc": read}
             lines.append(f"\nRefinement targets assembled from per-entry voxel statistics kept in memory "
                          f"(`global_init/targets.py`, at most {params.target_cache_mb:g} MB): warm figures. At the "
                          f"first no-hint frame {cache_before[0]} of the map's {len(store)} entries were kept (the "
-                         f"frames before built them); during the no-hint frames {tcache.misses - cache_before[1]} "
-                         f"entries were built (their cost is in those frames' times); at the end "
+                         f"frames before took them); during the no-hint frames {taken} entries were taken in, "
+                         f"{read} read from the on-disk cache (`GlobalLocalizer.precompute`, before the frames) and "
+                         f"{taken - read} built (their cost is in those frames' times); at the end "
                          f"{len(tcache)} entries, {tcache.nbytes / 1e6:.0f} MB.")
         elif params.target_cache_mb <= 0:
             lines.append("\nRefinement targets built from the map points for each search (`--target-cache-mb 0`).")
