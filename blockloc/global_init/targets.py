@@ -145,6 +145,7 @@ class TargetCache:
                                "blockloc.global_init._kernels")
             self.disk_dir = Path(disk_dir) / f"targets-{self._settings_key}-{code}"
             self._swept = False
+            self._write_failed = False
 
     @staticmethod
     def usable(engine, map_source, R_L_map) -> bool:
@@ -239,8 +240,10 @@ class TargetCache:
         try:
             with atomic_path(path) as tmp, open(tmp, "wb") as f:
                 np.savez(f, **arrays)  # uncompressed: read back at disk speed
-        except OSError as exc:  # a read-only cache only costs time
-            log.warning("cannot write global-init cache %s (%s)", path, exc)
+        except OSError as exc:  # a read-only cache only costs time; said once, not per entry
+            if not self._write_failed:
+                log.warning("cannot write global-init cache %s (%s); entries will be built again", path, exc)
+            self._write_failed = True
             return
         if not self._swept:  # the files of other code with the same settings are never read again
             self._swept = True

@@ -313,3 +313,17 @@ def test_tile_statistics_of_the_wrong_shape_are_refused():
         engine.tile_stats_from_arrays(bad)
     with pytest.raises(KeyError):
         engine.tile_stats_from_arrays({k: v for k, v in arrays.items() if k != "l1_means"})
+
+
+def test_a_cache_that_cannot_be_written_costs_time_and_one_warning(maps, tmp_path, caplog):
+    smap = maps["up"]
+    blocked = tmp_path / "file"
+    blocked.write_text("not a directory")
+    engine = make_engine("ndt", resolution_m=1.0)
+    cache = TargetCache(engine, smap.R_L_map, 1.0, 0.25, max_bytes=10**9, disk_dir=blocked)
+    lo, hi = np.array([-50.0, -50.0]), np.array([50.0, 50.0])
+    with caplog.at_level("WARNING"):
+        got = cache.refiner(smap, lo, hi)
+    want = TargetCache(engine, smap.R_L_map, 1.0, 0.25, max_bytes=10**9).refiner(smap, lo, hi)
+    np.testing.assert_array_equal(_sorted_level(got._target, 0)[1], _sorted_level(want._target, 0)[1])
+    assert cache.misses > 1 and [r.getMessage().startswith("cannot write") for r in caplog.records] == [True]
