@@ -209,11 +209,15 @@ def map_index_cmd(
     gravity: Optional[str] = typer.Option(None, "--gravity", metavar="down|up|X,Y,Z",
                                           help="Gravity in the map frame (default: the mapping sequence's)."),
     config: Optional[str] = typer.Option(None, "--config", metavar=FILE, help="Config file or preset name."),
+    precompute: bool = typer.Option(False, "--precompute",
+                                    help="Also fill the global-init caches of every block/tile (pyramids, sorted "
+                                         "points, refinement statistics: ~50 bytes a point under the cache "
+                                         "directory), so that no relocalization of a session or node builds them."),
 ) -> None:
     """Build (or rebuild) the place index of a map: no-hint relocalization."""
     from blockloc.commands.map import index_command
 
-    index_command(map_path, gravity, config)
+    index_command(map_path, gravity, config, precompute)
 
 
 @map_app.command("info")

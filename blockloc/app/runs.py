@@ -454,6 +454,20 @@ def drive_sequence_name(text: str) -> str:
     return DRIVE_SLICE.sub(r"\g<seq>", text)
 
 
+def mapping_sequence(params: dict) -> str | None:
+    """The sequence a map store was built from, as ``open_sequence`` takes it: its manifest's first
+    drive (``drives``, else ``sequence``, which joins several with " + "), without a
+    ``[START:STOP]`` slice; None when the manifest names none."""
+    drives = params.get("drives")
+    if isinstance(drives, list) and drives and isinstance(drives[0], dict) and drives[0].get("sequence"):
+        text = str(drives[0]["sequence"])
+    elif params.get("sequence"):
+        text = str(params["sequence"]).split(" + ")[0]
+    else:
+        return None
+    return drive_sequence_name(text)
+
+
 def parse_drive(text: str, poses: str | None = None, *, data_root: str | None = None,
                 dataset_cfg: Any = None, max_frames: int | None = None) -> Drive:
     """A ``--seq`` value -> :class:`~blockloc.maps.build_plan.Drive`. ``NAME[START:STOP]`` maps

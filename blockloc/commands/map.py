@@ -294,10 +294,11 @@ def parse_gravity(text: str):
     return g
 
 
-def index_command(map_path: str, gravity: str | None, config: str | None) -> None:
+def index_command(map_path: str, gravity: str | None, config: str | None, precompute: bool = False) -> None:
     """``blockloc map index MAP``: (re)build the place index of an existing local map store.
     Gravity: ``--gravity``, else that of the sequence the map was built from (its manifest's
-    ``sequence``)."""
+    ``sequence``). ``precompute``: then fill the global-init caches of every entry (pyramids,
+    sorted points, refinement statistics) so that no later search builds them."""
     from blockloc.app.runs import add_place_index
     from blockloc.commands.common import config_for, console
     from blockloc.errors import BlocklocError, MapError
@@ -309,7 +310,9 @@ def index_command(map_path: str, gravity: str | None, config: str | None) -> Non
     from blockloc.outdir import claim_output
 
     claim_output(Path(map_path), "MAP", need_bytes=max(MAP_BUILD_MIN_BYTES // 4, store.total_bytes // 4))
-    source = store.params.get("sequence")
+    from blockloc.app.runs import mapping_sequence
+
+    source = mapping_sequence(store.params)
     if gravity is not None:
         g = parse_gravity(gravity)
     elif source:
@@ -329,3 +332,18 @@ def index_command(map_path: str, gravity: str | None, config: str | None) -> Non
     e = store.extras[PLACE_INDEX_NAME]
     console().print(f"place index of {map_path}: {e.file}, {e.bytes / 1e6:.2f} MB "
                     f"({100.0 * e.bytes / max(sum(x.bytes for x in store.entries), 1):.1f}% of the map's bytes)")
+    if precompute:
+        import time
+
+        from blockloc.app.assemble import make_localizer
+        from blockloc.commands.common import progress
+
+        loc = make_localizer(store, g, cfg)
+        t0 = time.perf_counter()
+        with progress("global-init caches (entries)", len(store.entries)) as report:
+            n = loc.precompute(progress=report)
+        where = loc.map.cache_dir
+        kept = "" if loc.target_cache is not None and loc.target_cache.disk_dir is not None else \
+            " (refinement statistics: not kept for this engine or map)"
+        console().print(f"global-init caches of {map_path}: {n} entries in {time.perf_counter() - t0:.1f} s, "
+                        f"under {where}{kept}")

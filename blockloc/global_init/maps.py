@@ -190,10 +190,14 @@ class StoreMap:
         of its points sorted for box queries (refinement then reads no PCD); returns the number of
         entries."""
         for i in range(len(self.store.entries)):
-            self._piece(i)
-            if points:
-                self._entry_points(i)
+            self.precompute_entry(i, points)
         return len(self.store.entries)
+
+    def precompute_entry(self, i: int, points: bool = False) -> None:
+        """:meth:`precompute` of entry i alone."""
+        self._piece(i)
+        if points:
+            self._entry_points(i)
 
     def pyramid(self, lo: np.ndarray, hi: np.ndarray, num_levels: int | None = None) -> Pyramid:
         """The pyramid over global cells [lo, hi) (2,) int64; its lowest ``num_levels`` levels only

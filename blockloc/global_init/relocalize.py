@@ -146,19 +146,23 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
 
     # ------------------------------------------------------------------------- public
 
-    def precompute(self, targets: bool = True) -> int:
+    def precompute(self, targets: bool = True, progress=None) -> int:
         """Prepare the on-disk caches of a store map ahead of the searches: every entry's pyramid,
         its points sorted for box queries and, with ``targets``, its refinement statistics
         (:class:`~blockloc.global_init.targets.TargetCache`); returns the number of entries (0 for
         an array map). A process that searches many times (a session, the node) then builds none
-        of them; the first search of a fresh process still assembles its targets from the points."""
+        of them; the first search of a fresh process still assembles its targets from the points.
+        progress: called ``(entries done, entries)`` after each entry."""
         if not hasattr(self.map, "precompute"):
             return 0
-        n = self.map.precompute(points=True)
+        n = len(self.map.store.entries)
         cache = self.target_cache if targets else None
-        if cache is not None:
-            for i in range(n):
+        for i in range(n):
+            self.map.precompute_entry(i, points=True)
+            if cache is not None:
                 cache.prepare(self.map, i)
+            if progress is not None:
+                progress(i + 1, n)
         return n
 
     def localize(self, points_body: np.ndarray, gravity_body: np.ndarray, hint_xy=None, hint_yaw=None,

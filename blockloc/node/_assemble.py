@@ -71,7 +71,9 @@ def map_gravity(store) -> np.ndarray | None:
 
     if store.has_extra(PLACE_INDEX_NAME):
         return np.asarray(PlaceIndex.from_bytes(store.load_extra(PLACE_INDEX_NAME)).gravity_map, float)
-    source = store.params.get("sequence")
+    from blockloc.app.runs import mapping_sequence
+
+    source = mapping_sequence(store.params)
     if source:
         try:
             return np.asarray(open_sequence(str(source)).info.gravity_map, float)

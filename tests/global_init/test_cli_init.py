@@ -143,6 +143,31 @@ def test_map_index_then_init_without_a_hint_uses_the_place_index(setup, tmp_path
     assert "error_m" in out and out["error_m"] < 0.1  # the session has ground truth
 
 
+def test_map_index_precompute_fills_the_caches_that_later_searches_read(setup, tmp_path):
+    import shutil
+
+    root, T, env = setup
+    shutil.copytree(root / "map", tmp_path / "map")
+    env = dict(env, BLOCKLOC_CACHE=str(tmp_path / "cache"))
+    p = _blockloc(env, "map", "index", str(tmp_path / "map"), "--gravity", "down", "--precompute")
+    assert p.returncode == 0, p.stderr
+    entries = json.loads((tmp_path / "map" / "manifest.json").read_text())["entries"]
+    assert f"global-init caches of {tmp_path / 'map'}: {len(entries)} entries" in " ".join(p.stdout.split())
+    cache = tmp_path / "cache" / "global_init"
+    (targets,) = cache.glob("targets-*")  # one entry's refinement statistics a file, named by its content
+    assert sorted(f.stem for f in targets.glob("*.npz")) == sorted(e["sha256"] for e in entries)
+    assert len(list(cache.glob("points-*/*.points.npy"))) == len(entries)
+    pyramids = [d for d in cache.iterdir() if d.name.startswith("v")]
+    assert pyramids and all(len(list(d.glob("*.npz"))) == len(entries) for d in pyramids)
+    stamp = {f: f.stat().st_mtime_ns for f in targets.glob("*.npz")}
+    # a search afterwards finds the pose as before and rewrites none of it
+    p = _run(env, "--seq", str(root / "session"), "--frame", "0", "--map", str(tmp_path / "map"), "--json")
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout)
+    assert out["verified"] and out["error_m"] < 0.1
+    assert {f: f.stat().st_mtime_ns for f in targets.glob("*.npz")} == stamp
+
+
 @pytest.mark.parametrize("args, message", [
     (["--gravity", "sideways"], "--gravity 'sideways'"),
     (["--gravity", "0,0,0"], "--gravity '0,0,0'"),

@@ -313,3 +313,45 @@ def test_map_build_remove_dynamic_from_the_command_line(tmp_path):
                          capture_output=True, text=True)
     assert res.returncode != 0 and "--remove-dynamic needs --seq" in res.stderr
     assert "Traceback" not in res.stderr and not (tmp_path / "g").exists()
+
+
+def test_mapping_sequence_reads_every_form_the_manifest_records():
+    from blockloc.app.runs import mapping_sequence
+
+    assert mapping_sequence({"sequence": "sim:small/map@1"}) == "sim:small/map@1"
+    assert mapping_sequence({"sequence": "sim:small/map@1[0:900]"}) == "sim:small/map@1"
+    assert mapping_sequence({"sequence": "/d/a[5:] + /d/b", "drives": [{"sequence": "/d/a[5:]"},
+                                                                     {"sequence": "/d/b"}]}) == "/d/a"
+    assert mapping_sequence({"sequence": "/d/a + /d/b"}) == "/d/a"
+    assert mapping_sequence({}) is None and mapping_sequence({"sequence": ""}) is None
+
+
+def test_map_index_of_a_map_built_from_part_of_a_drive_finds_the_drives_gravity(tmp_path):
+    """A map built from `DRIVE[START:STOP]` records that slice as its sequence: `map index` (and the
+    node) must open the drive itself for gravity (they refused it: "expected sim:<preset>/...")."""
+    import json
+
+    from blockloc.datasets.base import ImuData
+    from blockloc.datasets.nclt import write_session
+
+    from .synthetic import MemorySequence, route, world_points
+
+    world = world_points(extent=(-30, 90), seed=3, density=0.2)
+    traj = route([[0, 0], [60, 0]], speed=5.0)
+    seq = MemorySequence(world, traj, radius=20.0)
+    imu = ImuData(traj.stamps, np.zeros((len(traj), 3)), np.zeros((len(traj), 3)))
+    write_session(tmp_path / "sess", date="2012-01-15", frames=seq.frames(), imu=imu, ground_truth=traj)
+    res = _blockloc("map", "build", "--seq", f"{tmp_path / 'sess'}[0:80]", "--kind", "block", "--block-size", "20",
+                    "--nominal-mounting", "--out", tmp_path / "bm")
+    assert res.returncode == 0, res.stderr
+    assert json.loads((tmp_path / "bm" / "manifest.json").read_text())["parameters"]["sequence"].endswith("[0:80]")
+    (tmp_path / "bm" / "place_index.npz").unlink()  # the index `map build` wrote, rebuilt below
+    res = _blockloc("map", "index", tmp_path / "bm")
+    assert res.returncode == 0, res.stderr
+    assert "place index of" in res.stdout
+    from blockloc.app.catalog import open_sequence
+    from blockloc.global_init.place_index import PLACE_INDEX_NAME, PlaceIndex
+
+    store = open_map(tmp_path / "bm")
+    got = PlaceIndex.from_bytes(store.load_extra(PLACE_INDEX_NAME)).gravity_map
+    np.testing.assert_allclose(got, open_sequence(str(tmp_path / "sess")).info.gravity_map)
