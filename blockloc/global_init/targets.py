@@ -141,7 +141,8 @@ class TargetCache:
             # frame, and the code that computes them
             settings = json.dumps([sorted(opts.items()), self.cell_m, np.round(self.R, 9).tolist()])
             self._settings_key = hashlib.sha256(settings.encode()).hexdigest()[:10]
-            code = fingerprint("blockloc.registration.ndt", "blockloc.global_init.targets",
+            # (the whole registration package: the voxel statistics are its kernels' too)
+            code = fingerprint("blockloc.registration", "blockloc.global_init.targets",
                                "blockloc.global_init._kernels")
             self.disk_dir = Path(disk_dir) / f"targets-{self._settings_key}-{code}"
             self._swept = False
@@ -222,13 +223,13 @@ class TargetCache:
 
     def prepare(self, map_source, i: int) -> bool:
         """Entry i's statistics built and written to ``disk_dir`` unless already there (not kept
-        in memory); False where nothing can be kept (no ``disk_dir``, no sha256)."""
+        in memory); False where nothing is kept (no ``disk_dir``, no sha256, a failed write)."""
         path = self._disk_path(map_source, i)
         if path is None:
             return False
         if not path.is_file():
             self._write(path, self._build(np.asarray(map_source.entry_points(i))))
-        return True
+        return path.is_file()
 
     def _write(self, path: Path, e: _Entry) -> None:
         from blockloc.fileio import atomic_path
