@@ -292,17 +292,22 @@ _NPY_HEADER_LOCK = AST_LOCK
 
 def load_array(source: str | Path | IO[bytes], mmap_mode: str | None = None):
     """The one array of a ``.npy`` file (path or binary file object); ``mmap_mode`` as np.load.
-    Raises what np.load raises (OSError, ValueError, EOFError, ...)."""
+    Raises what np.load raises (OSError, ValueError, ...); an empty or cut-short file (EOFError)
+    as ValueError, so that callers' ``except ValueError`` holds."""
     import numpy as np
 
-    with _NPY_HEADER_LOCK:
-        return np.load(source, mmap_mode=mmap_mode, allow_pickle=False)
+    try:
+        with _NPY_HEADER_LOCK:
+            return np.load(source, mmap_mode=mmap_mode, allow_pickle=False)
+    except EOFError as exc:
+        raise ValueError(f"not a whole .npy file ({exc})") from None
 
 
 def load_arrays(source: str | Path | IO[bytes]) -> dict:
     """Every array of a ``.npz`` file (path or binary file object), read now: name -> ndarray.
-    Raises what np.load raises (OSError, ValueError, EOFError, ...); a damaged archive (cut short,
-    not a zip: ``zipfile.BadZipFile``) as ValueError, so that callers' ``except ValueError`` holds."""
+    Raises what np.load raises (OSError, ValueError, ...); a damaged archive (empty, cut short, not
+    a zip: EOFError, ``zipfile.BadZipFile``) as ValueError, so that callers' ``except ValueError``
+    holds."""
     import zipfile
 
     import numpy as np
@@ -310,5 +315,5 @@ def load_arrays(source: str | Path | IO[bytes]) -> dict:
     try:
         with _NPY_HEADER_LOCK, np.load(source, allow_pickle=False) as z:
             return {name: z[name] for name in z.files}
-    except zipfile.BadZipFile as exc:
-        raise ValueError(f"not a whole .npz archive ({exc})") from None
+    except (zipfile.BadZipFile, EOFError) as exc:
+        raise ValueError(f"not a whole .npz archive ({exc or type(exc).__name__})") from None
