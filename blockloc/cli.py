@@ -212,7 +212,8 @@ def map_index_cmd(
     precompute: bool = typer.Option(False, "--precompute",
                                     help="Also fill the global-init caches of every block/tile (pyramids, sorted "
                                          "points, refinement statistics: ~50 bytes a point under the cache "
-                                         "directory), so that no relocalization of a session or node builds them."),
+                                         "directory), so that no relocalization of a session or node with the "
+                                         "same --config builds them."),
 ) -> None:
     """Build (or rebuild) the place index of a map: no-hint relocalization."""
     from blockloc.commands.map import index_command

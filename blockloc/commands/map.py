@@ -299,7 +299,7 @@ def index_command(map_path: str, gravity: str | None, config: str | None, precom
     Gravity: ``--gravity``, else that of the sequence the map was built from (its manifest's
     ``sequence``). ``precompute``: then fill the global-init caches of every entry (pyramids,
     sorted points, refinement statistics) so that no later search builds them."""
-    from blockloc.app.runs import add_place_index
+    from blockloc.app.runs import add_place_index, mapping_sequence
     from blockloc.commands.common import config_for, console
     from blockloc.errors import BlocklocError, MapError
     from blockloc.maps.store import open_map
@@ -310,8 +310,6 @@ def index_command(map_path: str, gravity: str | None, config: str | None, precom
     from blockloc.outdir import claim_output
 
     claim_output(Path(map_path), "MAP", need_bytes=max(MAP_BUILD_MIN_BYTES // 4, store.total_bytes // 4))
-    from blockloc.app.runs import mapping_sequence
-
     source = mapping_sequence(store.params)
     if gravity is not None:
         g = parse_gravity(gravity)
@@ -338,12 +336,10 @@ def index_command(map_path: str, gravity: str | None, config: str | None, precom
         from blockloc.app.assemble import make_localizer
         from blockloc.commands.common import progress
 
-        loc = make_localizer(store, g, cfg)
+        loc = make_localizer(store, g, cfg)  # the settings `init`, `track` and `node` search with
         t0 = time.perf_counter()
         with progress("global-init caches (entries)", len(store.entries)) as report:
-            n = loc.precompute(progress=report)
-        where = loc.map.cache_dir
-        kept = "" if loc.target_cache is not None and loc.target_cache.disk_dir is not None else \
-            " (refinement statistics: not kept for this engine or map)"
+            n, kept = loc.precompute(progress=report)
         console().print(f"global-init caches of {map_path}: {n} entries in {time.perf_counter() - t0:.1f} s, "
-                        f"under {where}{kept}")
+                        f"refinement statistics of {kept} on disk, under {loc.map.cache_dir} (searches with "
+                        "this map's --config read them)")

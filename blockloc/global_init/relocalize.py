@@ -146,24 +146,26 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
 
     # ------------------------------------------------------------------------- public
 
-    def precompute(self, targets: bool = True, progress=None) -> int:
+    def precompute(self, targets: bool = True, progress=None) -> tuple[int, int]:
         """Prepare the on-disk caches of a store map ahead of the searches: every entry's pyramid,
         its points sorted for box queries and, with ``targets``, its refinement statistics
-        (:class:`~blockloc.global_init.targets.TargetCache`); returns the number of entries (0 for
-        an array map). A process that searches many times (a session, the node) then builds none
-        of them; the first search of a fresh process still assembles its targets from the points.
-        progress: called ``(entries done, entries)`` after each entry."""
+        (:class:`~blockloc.global_init.targets.TargetCache`). Returns (entries, entries whose
+        statistics are on disk); (0, 0) for an array map. A process that searches many times (a
+        session, the node) with the same settings then builds none of them; the first search of a
+        fresh process still assembles its targets from the points. progress: called ``(entries
+        done, entries)`` after each entry."""
         if not hasattr(self.map, "precompute"):
-            return 0
+            return 0, 0
         n = len(self.map.store.entries)
         cache = self.target_cache if targets else None
+        kept = 0
         for i in range(n):
             self.map.precompute_entry(i, points=True)
             if cache is not None:
-                cache.prepare(self.map, i)
+                kept += bool(cache.prepare(self.map, i))
             if progress is not None:
                 progress(i + 1, n)
-        return n
+        return n, kept
 
     def localize(self, points_body: np.ndarray, gravity_body: np.ndarray, hint_xy=None, hint_yaw=None,
                  window_m: float = 40.0, yaw_window_deg: float = 360.0) -> InitResult:

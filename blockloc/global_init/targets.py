@@ -17,11 +17,11 @@ is then assembled from them:
 
 An entry's statistics are built the first time a search needs an entry an earlier search asked for
 (:meth:`TargetCache.ready`): a one-shot search builds its targets from the points as before.
-Given a directory (``disk_dir``), an entry whose content has a sha256 is written there once built and
-read back by later processes instead of built again (campus: ~7 ms to read an entry against
-40-90 ms to build it; a 100 m box meets ~40 entries, so a fresh process's second search paid
-1-2 s for them). The files are keyed by the engine's settings, the footprint's and the code that
-builds them; files of older code are removed when new ones are written.
+Given a directory (``disk_dir``), an entry whose content has a sha256 is written there once built (by
+a background thread) and read back by later processes instead of built again (campus: 4-8 ms to
+read an entry against 25-100 ms to build it; a fresh process's second search paid 1-2 s for them).
+The files are keyed by the engine's settings, the footprint's and the code that builds them; those
+of other code not written to for a day are removed when new ones are written.
 
 The target and the footprint are those of the same points as before (every voxel's statistics the
 same sums, added in another order: equal to rounding), so verification judges the same thing.
@@ -35,8 +35,10 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import queue
 import shutil
 import threading
+import time
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,6 +50,8 @@ from blockloc.global_init.refine import Footprint, Refiner
 log = logging.getLogger(__name__)
 
 _BYTES_PER_POINT = 40  # an entry kept here, about (campus: 648 MB for 18.6M points, 35 bytes a point)
+_STALE_S = 86400.0  # another code's statistics (or a temp file) not written to for a day are removed
+_WRITE_QUEUE = 64  # entries waiting for the background writer; more are not written (built again later)
 _EPS_M = 1e-6  # the core keeps this clear of the box's edges (a point's voxel is floor(x / res))
 
 
@@ -147,6 +151,10 @@ class TargetCache:
             self.disk_dir = Path(disk_dir) / f"targets-{self._settings_key}-{code}"
             self._swept = False
             self._write_failed = False
+            # entries built during a search are written by a background thread: ~10 MB each, which
+            # a robot's slow storage must not add to the search
+            self._pending: queue.Queue = queue.Queue(maxsize=_WRITE_QUEUE)
+            self._writer: threading.Thread | None = None
 
     @staticmethod
     def usable(engine, map_source, R_L_map) -> bool:
@@ -207,37 +215,69 @@ class TargetCache:
         return None if self.disk_dir is None or not sha else self.disk_dir / f"{sha}.npz"
 
     def _load_or_build(self, map_source, i: int) -> _Entry:
-        """Entry i read from ``disk_dir``, else built from its points (and written there)."""
+        """Entry i read from ``disk_dir``, else built from its points (and written there in the
+        background)."""
         path = self._disk_path(map_source, i)
-        if path is not None and path.is_file():
-            try:
-                e = self._read(path)
-                self.loaded += 1
-                return e
-            except (OSError, ValueError, KeyError, EOFError) as exc:  # a damaged file is rebuilt
-                log.warning("ignoring unreadable cache %s (%s)", path, exc)
-        e = self._build(np.asarray(map_source.entry_points(i)))
         if path is not None:
-            self._write(path, e)
-        return e
+            try:
+                if path.is_file():
+                    entry = self._read(path)
+                    self.loaded += 1
+                    return entry
+            except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:  # rebuilt, rewritten
+                log.warning("ignoring unreadable cache %s (%s)", path, exc)
+        entry = self._build(np.asarray(map_source.entry_points(i)))
+        if path is not None:
+            self._write_later(path, entry)
+        return entry
 
     def prepare(self, map_source, i: int) -> bool:
         """Entry i's statistics built and written to ``disk_dir`` unless already there (not kept
-        in memory); False where nothing is kept (no ``disk_dir``, no sha256, a failed write)."""
+        in memory); False where nothing is kept: no ``disk_dir``, no sha256, a failed write, or an
+        entry too big to be assembled from (:meth:`ready`: refined from its points)."""
         path = self._disk_path(map_source, i)
-        if path is None:
+        if path is None or len(map_source.entry_points(i)) * _BYTES_PER_POINT > self.max_bytes / 4:
             return False
-        if not path.is_file():
-            self._write(path, self._build(np.asarray(map_source.entry_points(i))))
+        try:
+            if path.is_file():
+                return True
+        except OSError:
+            return False
+        self._write(path, self._build(np.asarray(map_source.entry_points(i))))
         return path.is_file()
 
-    def _write(self, path: Path, e: _Entry) -> None:
+    def flush(self) -> None:
+        """Wait until the entries queued for writing are written (or given up)."""
+        if self.disk_dir is not None:
+            self._pending.join()
+
+    def _write_later(self, path: Path, entry: _Entry) -> None:
+        if self._writer is None:
+            self._writer = threading.Thread(target=self._write_loop, name="blockloc-target-cache", daemon=True)
+            self._writer.start()
+        try:
+            self._pending.put_nowait((path, entry))
+        except queue.Full:
+            pass  # a later process builds it again
+
+    def _write_loop(self) -> None:
+        while True:
+            path, entry = self._pending.get()
+            try:
+                self._write(path, entry)
+            except Exception as exc:  # noqa: BLE001 - the cache only saves time; the search goes on
+                log.warning("cannot write global-init cache %s (%s)", path, exc)
+            finally:
+                self._pending.task_done()
+
+    def _write(self, path: Path, entry: _Entry) -> None:
         from blockloc.fileio import atomic_path
 
-        arrays = dict(points=e.points, lo=e.lo, span=e.span, starts=e.starts, pair_col=e.pair_col,
-                      pair_cell=e.pair_cell, pair_count=e.pair_count, has_stats=np.array(e.stats is not None))
-        if e.stats is not None:
-            arrays.update({f"stats_{k}": v for k, v in e.stats.to_arrays().items()})
+        arrays = dict(points=entry.points, lo=entry.lo, span=entry.span, starts=entry.starts,
+                      pair_col=entry.pair_col, pair_cell=entry.pair_cell, pair_count=entry.pair_count,
+                      has_stats=np.array(entry.stats is not None))
+        if entry.stats is not None:
+            arrays.update({f"stats_{k}": v for k, v in entry.stats.to_arrays().items()})
         try:
             with atomic_path(path) as tmp, open(tmp, "wb") as f:
                 np.savez(f, **arrays)  # uncompressed: read back at disk speed
@@ -246,27 +286,51 @@ class TargetCache:
                 log.warning("cannot write global-init cache %s (%s); entries will be built again", path, exc)
             self._write_failed = True
             return
-        if not self._swept:  # the files of other code with the same settings are never read again
+        if not self._swept:
             self._swept = True
-            for old in path.parent.parent.glob(f"targets-{self._settings_key}-*"):
-                if old != path.parent and old.is_dir():
-                    shutil.rmtree(old, ignore_errors=True)
+            self._sweep(path.parent)
+
+    def _sweep(self, mine: Path) -> None:
+        """Remove what no process reads again: the statistics of other code with the same settings
+        (an older blockloc, an edited checkout) not written to for a day, and temp files of writes a
+        process did not finish (killed) as old. A day: two installs sharing the cache (a robot's and
+        a developer's) do not remove each other's files while both are in use."""
+        cutoff = time.time() - _STALE_S
+        for other in mine.parent.glob(f"targets-{self._settings_key}-*"):
+            try:
+                if other != mine and other.is_dir() and other.stat().st_mtime < cutoff:
+                    shutil.rmtree(other, ignore_errors=True)
+            except OSError:
+                pass
+        for tmp in mine.glob(".*.tmp"):
+            try:
+                if tmp.stat().st_mtime < cutoff:
+                    tmp.unlink()
+            except OSError:
+                pass
 
     def _read(self, path: Path) -> _Entry:
+        """An entry as :meth:`_write` wrote it; ValueError (or KeyError) for anything else."""
         from blockloc.fileio import load_arrays
 
-        z = load_arrays(path)
-        stats = (self.engine.tile_stats_from_arrays({k[6:]: v for k, v in z.items() if k.startswith("stats_")})
-                 if bool(z["has_stats"]) else None)
-        e = _Entry(z["points"], z["lo"], z["span"], z["starts"], stats, z["pair_col"], z["pair_cell"],
-                   z["pair_count"])
-        n = len(e.points)
-        if (e.points.ndim != 2 or e.points.shape[1:] != (3,) or e.points.dtype != np.float32
-                or e.lo.shape != (2,) or e.span.shape != (2,) or len(e.starts) != int(np.prod(e.span)) + 1
-                or int(e.starts[-1]) != n or (stats is not None and stats.num_points > n)
-                or not (len(e.pair_col) == len(e.pair_cell) == len(e.pair_count))):
-            raise ValueError(f"{n} points, columns {e.span.tolist()}, {len(e.starts)} offsets: not one entry")
-        return e
+        arrays = load_arrays(path)
+        stats = (self.engine.tile_stats_from_arrays({k[6:]: v for k, v in arrays.items() if k.startswith("stats_")})
+                 if bool(arrays["has_stats"]) else None)
+        entry = _Entry(arrays["points"], arrays["lo"], arrays["span"], arrays["starts"], stats, arrays["pair_col"],
+                       arrays["pair_cell"], arrays["pair_count"])
+        num = len(entry.points)
+        ints = (entry.lo, entry.span, entry.starts, entry.pair_col, entry.pair_cell, entry.pair_count)
+        ok = (entry.points.ndim == 2 and entry.points.shape[1:] == (3,) and entry.points.dtype == np.float32
+              and all(a.dtype.kind == "i" for a in ints) and entry.lo.shape == (2,) and entry.span.shape == (2,)
+              and np.all(entry.span >= 1) and entry.starts.shape == (int(np.prod(entry.span)) + 1,)
+              and int(entry.starts[0]) == 0 and int(entry.starts[-1]) == num and np.all(np.diff(entry.starts) >= 0)
+              and (stats is None) == (num == 0) and (stats is None or stats.num_points == num)
+              and entry.pair_col.shape == entry.pair_cell.shape == (len(entry.pair_count), 2)
+              and int(entry.pair_count.sum()) == (num if self.cell_m > 0 else 0))
+        if not ok:
+            raise ValueError(f"{num} points, columns {entry.span.tolist()}, {len(entry.starts)} offsets, "
+                             f"{len(entry.pair_count)} footprint pairs: not one entry of these settings")
+        return entry
 
     def _build(self, pts32: np.ndarray) -> _Entry:
         from blockloc.global_init import _kernels as K

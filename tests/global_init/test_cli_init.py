@@ -143,7 +143,7 @@ def test_map_index_then_init_without_a_hint_uses_the_place_index(setup, tmp_path
     assert "error_m" in out and out["error_m"] < 0.1  # the session has ground truth
 
 
-def test_map_index_precompute_fills_the_caches_that_later_searches_read(setup, tmp_path):
+def test_map_index_precompute_fills_the_caches_that_later_searches_read(setup, tmp_path, monkeypatch):
     import shutil
 
     root, T, env = setup
@@ -152,7 +152,9 @@ def test_map_index_precompute_fills_the_caches_that_later_searches_read(setup, t
     p = _blockloc(env, "map", "index", str(tmp_path / "map"), "--gravity", "down", "--precompute")
     assert p.returncode == 0, p.stderr
     entries = json.loads((tmp_path / "map" / "manifest.json").read_text())["entries"]
-    assert f"global-init caches of {tmp_path / 'map'}: {len(entries)} entries" in " ".join(p.stdout.split())
+    out = " ".join(p.stdout.split())
+    assert f"global-init caches of {tmp_path / 'map'}: {len(entries)} entries" in out
+    assert f"refinement statistics of {len(entries)} on disk" in out
     cache = tmp_path / "cache" / "global_init"
     (targets,) = cache.glob("targets-*")  # one entry's refinement statistics a file, named by its content
     assert sorted(f.stem for f in targets.glob("*.npz")) == sorted(e["sha256"] for e in entries)
@@ -165,6 +167,22 @@ def test_map_index_precompute_fills_the_caches_that_later_searches_read(setup, t
     assert p.returncode == 0, p.stderr
     out = json.loads(p.stdout)
     assert out["verified"] and out["error_m"] < 0.1
+    # a process that searches again (a session, the node) with the same settings reads every entry
+    # its targets need from those files and builds none
+    from blockloc.app.assemble import make_localizer
+    from blockloc.app.catalog import open_sequence
+    from blockloc.commands.common import config_for
+    from blockloc.global_init.scan_prep import prepare_for_init
+    from blockloc.maps.store import open_map
+
+    monkeypatch.setenv("BLOCKLOC_CACHE", str(tmp_path / "cache"))
+    seq = open_sequence(str(root / "session"))
+    scan = prepare_for_init(seq.frame(0), seq.imu(), seq.info)
+    loc = make_localizer(open_map(tmp_path / "map"), GRAVITY_Z_DOWN, config_for(None, None))
+    for _ in range(2):
+        res = loc.localize(scan.points_body, scan.gravity_body)
+    loc.target_cache.flush()
+    assert res.verified and 0 < loc.target_cache.misses == loc.target_cache.loaded
     assert {f: f.stat().st_mtime_ns for f in targets.glob("*.npz")} == stamp
 
 

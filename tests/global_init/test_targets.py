@@ -135,9 +135,14 @@ def test_a_precomputed_map_is_searched_on_statistics_read_from_disk_with_the_sam
     store = smap.store
     params = dict(use_place_index=False, target_cache_mb=64.0)
     ahead = GlobalLocalizer(StoreMap(store, smap.gravity_map, cache_dir=tmp_path), InitParams(**params))
-    assert ahead.precompute() == len(store.entries)
+    assert ahead.precompute() == (len(store.entries), len(store.entries))
     assert len(list(ahead.target_cache.disk_dir.glob("*.npz"))) == len(store.entries)
     assert len(ahead.target_cache) == 0  # written, not held
+    # entries too big for the cache's budget are refined from their points (`ready`): none written
+    tiny = GlobalLocalizer(StoreMap(store, smap.gravity_map, cache_dir=tmp_path / "tiny"),
+                           InitParams(use_place_index=False, target_cache_mb=0.01))
+    assert tiny.precompute() == (len(store.entries), 0)
+    assert not list(tiny.target_cache.disk_dir.parent.glob("targets-*/*.npz"))
 
     world = smap.points_in_box(*smap.bounds_L())
     T_true = xyzrpy_to_T(-5.0, 7.0, -(1.9 + 0.02 * -5.0), 0.02, 0.03, -1.1)
@@ -258,6 +263,7 @@ def test_entry_statistics_kept_on_disk_are_read_back_by_a_later_process_and_give
     n = len(smap.entries_in(lo, hi))
     first = TargetCache(engine, smap.R_L_map, 1.0, 0.25, max_bytes=10**9, disk_dir=tmp_path)
     built = first.refiner(smap, lo, hi)
+    first.flush()  # written by the background writer
     files = sorted(first.disk_dir.glob("*.npz"))
     assert first.loaded == 0 and len(files) == n  # built, then written once each
 
@@ -276,6 +282,7 @@ def test_entry_statistics_kept_on_disk_are_read_back_by_a_later_process_and_give
     other = TargetCache(make_engine("ndt", resolution_m=2.0), smap.R_L_map, 1.0, 0.25, max_bytes=10**9,
                         disk_dir=tmp_path)
     other.refiner(smap, lo, hi)
+    other.flush()
     assert other.loaded == 0 and other.disk_dir != first.disk_dir
 
     # a damaged file is rebuilt (one warning naming it) and replaced
@@ -283,19 +290,46 @@ def test_entry_statistics_kept_on_disk_are_read_back_by_a_later_process_and_give
     again = TargetCache(engine, smap.R_L_map, 1.0, 0.25, max_bytes=10**9, disk_dir=tmp_path)
     with caplog.at_level("WARNING"):
         again.refiner(smap, lo, hi)
+        again.flush()
     assert again.loaded == n - 1 and any(files[0].name in r.getMessage() for r in caplog.records)
     assert TargetCache(engine, smap.R_L_map, 1.0, 0.25, max_bytes=10**9, disk_dir=tmp_path)._read(files[0]).nbytes > 0
 
-    # files of older code with the same settings are removed when new ones are written; others kept
+    # a file whose arrays do not make one entry (here: the statistics left out) is not read
+    import io
+
+    from blockloc.fileio import load_arrays
+
+    arrays = {k: v for k, v in load_arrays(files[1]).items() if not k.startswith("stats_")}
+    buf = io.BytesIO()
+    np.savez(buf, **dict(arrays, has_stats=np.array(False)))
+    files[1].write_bytes(buf.getvalue())
+    with pytest.raises(ValueError, match="not one entry"):
+        again._read(files[1])
+
+    # the files of other code with the same settings, not written to for a day, are removed when new
+    # ones are written, with temp files a killed writer left; a newer one, or another file, is kept
+    import os
+    import time
+
     stale = first.disk_dir.parent / f"targets-{first._settings_key}-0000000000"
-    stale.mkdir()
-    (stale / "x.npz").write_bytes(b"old")
+    recent = first.disk_dir.parent / f"targets-{first._settings_key}-1111111111"
+    for d in (stale, recent):
+        d.mkdir()
+        (d / "x.npz").write_bytes(b"old")
+    left = first.disk_dir / ".x.npz.abc.tmp"
+    left.write_bytes(b"part")
+    day_ago = time.time() - 2 * 86400
+    for p in (stale, left):
+        os.utime(p, (day_ago, day_ago))
     unrelated = tmp_path / "points-b25-mm-gx"
     unrelated.mkdir()
     for f in first.disk_dir.glob("*.npz"):
         f.unlink()
-    TargetCache(engine, smap.R_L_map, 1.0, 0.25, max_bytes=10**9, disk_dir=tmp_path).refiner(smap, lo, hi)
-    assert not stale.exists() and unrelated.exists() and other.disk_dir.exists()
+    last = TargetCache(engine, smap.R_L_map, 1.0, 0.25, max_bytes=10**9, disk_dir=tmp_path)
+    last.refiner(smap, lo, hi)
+    last.flush()
+    assert not stale.exists() and not left.exists()
+    assert recent.exists() and unrelated.exists() and other.disk_dir.exists()
 
 
 def test_tile_statistics_of_the_wrong_shape_are_refused():
@@ -324,6 +358,7 @@ def test_a_cache_that_cannot_be_written_costs_time_and_one_warning(maps, tmp_pat
     lo, hi = np.array([-50.0, -50.0]), np.array([50.0, 50.0])
     with caplog.at_level("WARNING"):
         got = cache.refiner(smap, lo, hi)
+        cache.flush()
     want = TargetCache(engine, smap.R_L_map, 1.0, 0.25, max_bytes=10**9).refiner(smap, lo, hi)
     np.testing.assert_array_equal(_sorted_level(got._target, 0)[1], _sorted_level(want._target, 0)[1])
     assert cache.misses > 1 and [r.getMessage().startswith("cannot write") for r in caplog.records] == [True]
