@@ -187,9 +187,14 @@ class TargetCache:
             if key in self._entries:
                 continue
             first = self._first_seen.setdefault(key, self._search)
-            if first == self._search or len(map_source.entry_points(i)) * _BYTES_PER_POINT > self.max_bytes / 4:
+            if first == self._search or self._too_big(map_source, i):
                 ok = False
         return ok
+
+    def _too_big(self, map_source, i: int) -> bool:
+        """Whether entry i is over a quarter of the budget (~40 bytes a point): it is refined from its
+        points instead (:meth:`ready`), so its statistics are neither kept nor written."""
+        return len(map_source.entry_points(i)) * _BYTES_PER_POINT > self.max_bytes / 4
 
     def _entry(self, map_source, i: int) -> _Entry:
         with self._lock:  # targets are assembled side by side (``GlobalLocalizer._refine``)
@@ -236,7 +241,7 @@ class TargetCache:
         in memory); False where nothing is kept: no ``disk_dir``, no sha256, a failed write, or an
         entry too big to be assembled from (:meth:`ready`: refined from its points)."""
         path = self._disk_path(map_source, i)
-        if path is None or len(map_source.entry_points(i)) * _BYTES_PER_POINT > self.max_bytes / 4:
+        if path is None or self._too_big(map_source, i):
             return False
         try:
             if path.is_file():
