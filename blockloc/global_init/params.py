@@ -148,7 +148,7 @@ class InitParams(GlobalInitParams):
     # the second core busy elsewhere, 2 gains nothing
     refine_workers: int = 2
     # no-hint relocalization through the place index
-    place_all_yaw_candidates: int = 2  # the second stage: this many first places at every yaw (0: none)
+    place_all_yaw_candidates: int = 2  # the third stage: this many first places at every yaw (0: none)
     place_flip_open: bool = True  # no hint: an open place's window also at its yaw guess reversed
     place_top_k: int = 6  # leaves refined per stage
     place_later_top_k: int = 12  # the same after the first stage (each way: best places, best 2D scores)

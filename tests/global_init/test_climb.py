@@ -137,9 +137,10 @@ def test_a_later_stage_also_takes_the_best_leaves_by_2d_score(setup):
     assert np.hypot(more[1].x - xy[0], more[1].y - xy[1]) < 1.0 and more[1].score > more[0].score
 
 
-def test_the_second_stage_searches_the_first_places_at_every_yaw(setup, monkeypatch):
+def test_the_third_stage_searches_the_first_places_at_every_yaw(setup, monkeypatch):
     """A yaw guess can be far off (small world seed 2, frame 847: 40 deg, the place ranked first):
-    right after the first stage, the first ``place_all_yaw_candidates`` places at every yaw."""
+    after the second stage (more places at their guesses: a true place ranked low is the commoner
+    miss), the first ``place_all_yaw_candidates`` places at every yaw."""
     loc, T_true, scan, _, _ = setup
     params = InitParams(min_fitness=0.999, place_candidates=(3, 6), place_all_yaw_candidates=2,
                         whole_map_fallback=False, max_search_s=0.0)
@@ -155,9 +156,10 @@ def test_the_second_stage_searches_the_first_places_at_every_yaw(setup, monkeypa
     res = nohint.localize(scan_from(world_up(seed=3) @ Z_DOWN.T, T_true), gravity_body(T_true))
     assert not res.verified and len(seen) == 3
     guess = math.radians(params.place_yaw_window_deg)
-    assert [len(s) for s in seen] == [3, 2, 3]  # 3 places, the first 2 at every yaw, the next 3
-    assert all(y == guess for _, y in seen[0] + seen[2]) and all(y == 2 * math.pi for _, y in seen[1])
-    assert [c for c, _ in seen[1]] == [c for c, _ in seen[0][:2]]
+    assert [len(s) for s in seen] == [3, 3, 2]  # 3 places, the next 3, then the first 2 at every yaw
+    assert all(y == guess for _, y in seen[0] + seen[1]) and all(y == 2 * math.pi for _, y in seen[2])
+    assert [c for c, _ in seen[2]] == [c for c, _ in seen[0][:2]]
+    assert not set(c for c, _ in seen[1]) & set(c for c, _ in seen[0])
 
 
 def test_the_stages_after_the_first_refine_place_later_top_k_leaves_each_way(setup, monkeypatch):
@@ -245,10 +247,10 @@ def test_a_resumed_place_search_runs_only_the_stages_after_those_done(setup, mon
     n_done = len(done)
     _, stats = nohint._relocalize_places(sc, scan_ndt, cells, nohint.place_index, 0.0, 2 * math.pi, {},
                                          first_stage=1, done=done)
-    # the all-yaw stage over the first 2 places, then places 4 to 6 (the first 3 were searched)
-    assert [len(s) for s in seen] == [3, 2, 3] and stats["place_stage"] == 3
-    assert [c for c, _ in seen[1]] == [c for c, _ in seen[0][:2]]
-    assert not set(c for c, _ in seen[2]) & set(c for c, _ in seen[0])
+    # places 4 to 6 (the first 3 were searched), then the all-yaw stage over the first 2 places
+    assert [len(s) for s in seen] == [3, 3, 2] and stats["place_stage"] == 3
+    assert not set(c for c, _ in seen[1]) & set(c for c, _ in seen[0])
+    assert [c for c, _ in seen[2]] == [c for c, _ in seen[0][:2]]
     assert len(done) >= n_done
     # past the last stage: nothing searched, not even the index queried
     monkeypatch.setattr(nohint.place_index, "query_cells", None)
