@@ -392,7 +392,13 @@ class GlobalLocalizer(HintedSearch, NoHintSearch):
 
             # lazy properties the calls read, made before the threads share them
             _ = self.place_source, self.coverage_source
-            self._pool = ThreadPoolExecutor(self.params.refine_workers, thread_name_prefix="blockloc-refine")
+            from blockloc.registration.ndt import cap_threads
+
+            # The workers share the cores (``num_threads``) rather than each taking them all:
+            # two workers of two numba threads each on two cores wait on descheduled threads.
+            per_worker = max(1, int(self.params.num_threads) // self.params.refine_workers)
+            self._pool = ThreadPoolExecutor(self.params.refine_workers, thread_name_prefix="blockloc-refine",
+                                            initializer=cap_threads, initargs=(per_worker,))
         from concurrent.futures import wait
 
         # every call ended before one's failure is raised: none may still write to this localizer

@@ -93,6 +93,35 @@ def _kernels():
     return _ndt_kernels
 
 
+_THREAD_CAP = threading.local()
+
+
+def cap_threads(n: int | None) -> None:
+    """Cap at ``n`` the numba threads of the calling thread's parallel kernels: its alignments
+    (whatever ``NdtRegistration.num_threads`` asks) and every other kernel (numba's setting for
+    the thread). None: no cap (numba's setting is left as it is).
+
+    Why: workers that align side by side (``global_init``'s refinement threads) with every core
+    each run more numba threads than there are cores, and a parallel region waits for its
+    slowest, descheduled thread (docs/bench/ndt.md). A worker pool calls this in each thread."""
+    _THREAD_CAP.n = None if n is None else max(1, int(n))
+    if n is not None:
+        import numba
+
+        numba.set_num_threads(min(_THREAD_CAP.n, numba.config.NUMBA_NUM_THREADS))
+
+
+def _set_threads(num_threads: int | None) -> None:
+    """numba's threads for the calling thread's next kernels: ``num_threads`` (None: as they are),
+    at most the thread's cap (:func:`cap_threads`)."""
+    cap = getattr(_THREAD_CAP, "n", None)
+    n = num_threads if cap is None else min(num_threads or cap, cap)
+    if n:
+        import numba
+
+        numba.set_num_threads(min(int(n), numba.config.NUMBA_NUM_THREADS))
+
+
 # --------------------------------------------------------------------------------------------
 # SE(3) helpers (GTSAM Pose3 Expmap convention: xi = (omega, v))
 
@@ -595,10 +624,10 @@ class NdtRegistration:
     "gauss_newton", see the module doc. step_epsilon: stop when the next step (rad and m
     together) is shorter. max_step_m (default: the level's resolution) and max_step_rad cap
     one step. num_threads: numba threads of the alignment kernels, set for the calling thread
-    (None: numba's current setting). On cores shared with other busy processes or threads, 1
-    thread has a much better median latency than 2 (a parallel region waits for its slowest,
-    descheduled worker): see docs/bench/ndt.md. Source points in scan order (spatially
-    coherent) run faster than shuffled ones.
+    (None: numba's current setting; at most the thread's :func:`cap_threads`). On cores shared
+    with other busy processes or threads, 1 thread has a much better median latency than 2 (a
+    parallel region waits for its slowest, descheduled worker): see docs/bench/ndt.md. Source
+    points in scan order (spatially coherent) run faster than shuffled ones.
 
     ``stage_observer`` (None, or a callable set after construction): told every kernel stage an
     alignment runs, ``(neighbors, resolution_m, stride, passes)`` (passes: (iterations,) array of
@@ -714,10 +743,7 @@ class NdtRegistration:
         levels = target.levels()  # one consistent set even if a tile update swaps them now
         src = _as_points(source_points, "source points", MIN_SOURCE_POINTS)
         T = _check_T(T_init)
-        if self.num_threads:
-            import numba
-
-            numba.set_num_threads(min(int(self.num_threads), numba.config.NUMBA_NUM_THREADS))
+        _set_threads(self.num_threads)
         coarse_iterations = 0
         passes = 0
         if self.coarse_to_fine and len(levels) > 1:
@@ -771,10 +797,7 @@ class NdtRegistration:
         fine = levels[0]
         if len(fine.keys) == 0:
             return self.align(target, src, T0)
-        if self.num_threads:
-            import numba
-
-            numba.set_num_threads(min(int(self.num_threads), numba.config.NUMBA_NUM_THREADS))
+        _set_threads(self.num_threads)
         memo = _new_memo(len(src))
         T, acc, b, H, it, converged, passes = self._level(
             fine, self.neighbors, src, 1, T0, self.step_epsilon, min(int(max_iterations), self.max_iterations),
