@@ -105,10 +105,7 @@ def cap_threads(n: int | None) -> None:
     each run more numba threads than there are cores, and a parallel region waits for its
     slowest, descheduled thread (docs/bench/ndt.md). A worker pool calls this in each thread."""
     _THREAD_CAP.n = None if n is None else max(1, int(n))
-    if n is not None:
-        import numba
-
-        numba.set_num_threads(min(_THREAD_CAP.n, numba.config.NUMBA_NUM_THREADS))
+    _set_threads(_THREAD_CAP.n)
 
 
 def _set_threads(num_threads: int | None) -> None:
