@@ -52,10 +52,10 @@ KINDS = (MAP_STORE, SIM_DATASET, RESULTS, SESSION, PLOTS, DYNAMIC_MAP)
 #: Files a results folder holds (a run writes them in place, so its marker lists no files).
 RESULT_NAMES = frozenset({"poses.tum", "diagnostics.csv", "config.yaml", "poses_kitti.txt",
                           "poses_kitti.times.txt", "metrics.json", "trajectories.png", "errors.png",
-                          "report.html", "run.mcap", "foxglove_layout.json", "live.json", ".reserve",
-                          "changes.json"})
+                          "error_breakdown.png", "report.html", "run.mcap", "foxglove_layout.json",
+                          "live.json", ".reserve", "changes.json"})
 #: Files ``eval --plot`` writes.
-PLOT_NAMES = frozenset({"trajectories.png", "errors.png"})
+PLOT_NAMES = frozenset({"trajectories.png", "errors.png", "error_breakdown.png"})
 _KIND_NAMES = {RESULTS: RESULT_NAMES, PLOTS: PLOT_NAMES}
 
 
@@ -164,13 +164,22 @@ def foreign_files(directory: str | Path, kind: str, files: set[str] | None) -> l
     """Files in ``directory`` (relative paths, sorted) that blockloc did not write there."""
     directory = Path(directory)
     names = set(files) if files is not None else set(_KIND_NAMES.get(kind, ())) | {MARKER_NAME}
+    # a folder filled in place (results) may hold blockloc's own plot folders (`eval --plot RUN/eval`):
+    # their files are blockloc's when the sub-folder is, and holds nothing else
+    own_subdirs = set()
+    if files is None:
+        for sub in directory.iterdir():
+            o = owner(sub) if sub.is_dir() and not sub.is_symlink() else None
+            if o is not None and o[0] in (PLOTS, RESULTS) and not foreign_files(sub, o[0], o[1]):
+                own_subdirs.add(sub.name)
     out = []
     for p in sorted(directory.rglob("*")):
         if p.is_dir() and not p.is_symlink():
             continue
         rel = p.relative_to(directory).as_posix()
         if files is None and "/" in rel:
-            out.append(rel)
+            if rel.split("/", 1)[0] not in own_subdirs:
+                out.append(rel)
         elif rel not in names and not _is_temp_of(rel if files is not None else p.name, names):
             out.append(rel)
     return out

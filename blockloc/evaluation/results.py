@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 
 #: The files a results folder holds (the first two grow during the run).
 RESULT_FILES = ("poses.tum", "diagnostics.csv", "config.yaml", "poses_kitti.txt", "poses_kitti.times.txt",
-                "metrics.json", "trajectories.png", "errors.png")
+                "metrics.json", "trajectories.png", "errors.png", "error_breakdown.png")
 
 
 def _q(values: Sequence[float], q: float) -> float | None:

@@ -88,6 +88,28 @@ def test_track_may_reuse_its_own_results_folder(tiny_world, tmp_path):
     assert len(rows) == 3
 
 
+@case(1, "the README's sequence run twice into the same folders: track --out RUN, eval --plot RUN/eval, "
+      "then both again", "allowed: every file is blockloc's (error_breakdown.png, the plot folder inside the run)")
+def test_the_readme_sequence_may_run_twice_into_its_own_folders(tiny_world, tmp_path):
+    out = tmp_path / "runs" / "small"
+    shutil.copytree(tiny_world["session"], tmp_path / "sess")
+    gt = sorted((tmp_path / "sess").glob("groundtruth_*.csv"))[0]
+    for _ in range(2):
+        r = cli_in_process("track", "--seq", tmp_path / "sess", "--map", tiny_world["map"], "--init", "gt",
+                           "--config", tiny_world["config"], "--set", "evaluation.plots=true", "--out", out)
+        assert r.code == 0, r.err
+        assert (out / "error_breakdown.png").is_file()  # what the first fix missed: a real run writes it
+        r = cli_in_process("eval", "--gt", gt, "--est", out / "poses.tum", "--plot", out / "eval")
+        assert r.code == 0, r.err
+        assert (out / "eval" / "error_breakdown.png").is_file()
+    # a file of the user's inside the plot folder still makes the run folder foreign
+    (out / "eval" / "notes.txt").write_text("mine")
+    r = cli_in_process("track", "--seq", tmp_path / "sess", "--map", tiny_world["map"], "--init", "gt",
+                       "--config", tiny_world["config"], "--out", out)
+    assert r.code == 2 and "eval/notes.txt" in r.err_lines[0], r.err
+    assert (out / "eval" / "notes.txt").read_text() == "mine"
+
+
 @case(6, "what `blockloc demo` and the README's commands write into a clone (results/, runs/, "
       "sim_out/, maps/, map.png)", "ignored by git (.gitignore)")
 def test_outputs_are_ignored_by_git(tmp_path):
