@@ -24,7 +24,7 @@ from typing import Callable
 from blockloc.app.assemble import place_index_params
 from blockloc.app.catalog import config_for_sequence, open_sequence
 from blockloc.config import Config
-from blockloc.errors import MapError
+from blockloc.errors import DatasetError, MapError
 from blockloc.maps.changes.pipeline import ChangeResult, detect_changes
 from blockloc.maps.changes.runs import RunError, RunPoses, read_run
 from blockloc.maps.changes.update import apply_update, plan_update
@@ -60,6 +60,13 @@ def open_run_sequence(run: RunPoses, seq: str | None, data_root: str | None):
     name = seq or run.sequence
     if not name:
         raise RunError(f"--run {run.path}: its metrics.json names no sequence (an interrupted run?); give --seq")
+    if seq is None:
+        try:
+            cfg = config_for_sequence(name)
+            return open_sequence(name, data_root=data_root, dataset_cfg=cfg.dataset), name, cfg
+        except DatasetError as exc:  # a live run, a moved or renamed recording
+            raise RunError(f"--run {run.path}: the sequence its metrics.json names ({name!r}) cannot be opened "
+                           f"here ({exc}); give its scans with --seq") from None
     cfg = config_for_sequence(name)
     return open_sequence(name, data_root=data_root, dataset_cfg=cfg.dataset), name, cfg
 

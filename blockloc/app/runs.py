@@ -70,8 +70,11 @@ def open_session(seq: str, *, cfg: Config, map_path: str | None = None, backend:
                         poses=poses, want_imu=cfg.tracking.use_imu)
     path = resolve_map(ref, map_path, backend, cfg, data_root)
     store = open_store(path, cfg.map)
+    # `--seq` as `map changes --run` / `map update --run` can open it again (a path made absolute:
+    # the run may be read from another directory); metrics.json's "sequence" is the display name
+    again = str(ref.path.resolve()) if ref.path is not None else ref.text
     return build_session(cfg, sequence, store, backend=backend, observers=observers, out_dir=out_dir,
-                         keep_estimates=keep_estimates, facts={"map": path})
+                         keep_estimates=keep_estimates, facts={"map": path, "sequence_arg": again})
 
 
 def track(session: Session, *, mode: str, hint=None, max_frames: int | None = None,

@@ -110,6 +110,34 @@ def test_the_readme_sequence_may_run_twice_into_its_own_folders(tiny_world, tmp_
     assert (out / "eval" / "notes.txt").read_text() == "mine"
 
 
+@case(4, "track --seq with a relative path, then `map changes --run RUN` and `map update MAP --run RUN` "
+      "without --seq from another directory; then a run whose recorded sequence is gone",
+      "both open the run's own scans (exit 0); the gone one: exit 2, one line naming the run and --seq")
+def test_changes_and_update_find_the_runs_own_sequence(tiny_world, tmp_path, monkeypatch):
+    import json
+
+    shutil.copytree(tiny_world["session"], tmp_path / "sess")
+    shutil.copytree(tiny_world["map"], tmp_path / "map")
+    monkeypatch.chdir(tmp_path)
+    r = cli_in_process("track", "--seq", "sess", "--map", "map", "--init", "gt", "--config", tiny_world["config"],
+                       "--out", "run")
+    assert r.code == 0, r.err
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    r = cli_in_process("map", "changes", "--map", tmp_path / "map", "--run", tmp_path / "run")
+    assert r.code == 0, r.err
+    assert json.loads((tmp_path / "run" / "changes.json").read_text())["frames_trusted"] > 0
+    r = cli_in_process("map", "update", tmp_path / "map", "--run", tmp_path / "run")
+    assert r.code == 0, r.err
+    metrics = tmp_path / "run" / "metrics.json"
+    doc = json.loads(metrics.read_text())
+    doc["sequence_arg"] = str(tmp_path / "moved")
+    metrics.write_text(json.dumps(doc))
+    r = cli_in_process("map", "changes", "--map", tmp_path / "map", "--run", tmp_path / "run")
+    assert r.code == 2 and len(r.err_lines) == 1 and "--seq" in r.err_lines[0] and "moved" in r.err_lines[0], r.err
+
+
 @case(6, "what `blockloc demo` and the README's commands write into a clone (results/, runs/, "
       "sim_out/, maps/, map.png)", "ignored by git (.gitignore)")
 def test_outputs_are_ignored_by_git(tmp_path):

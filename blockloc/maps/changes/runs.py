@@ -30,8 +30,8 @@ class RunError(BlocklocError):
 @dataclass
 class RunPoses:
     """A run's trusted frames. index: (N,) frame index; stamps: (N,) s; T_map_body: (N, 4, 4);
-    statuses: every diagnostics row's status by frame index; sequence: the name the run was made
-    from (metrics.json), or None."""
+    statuses: every diagnostics row's status by frame index; sequence: the ``--seq`` the run was
+    made from (metrics.json's ``sequence_arg``, else its ``sequence`` name), or None."""
 
     path: Path
     index: np.ndarray
@@ -97,7 +97,9 @@ def read_run(run_dir: str | Path, settle_frames: int = 10) -> RunPoses:
     metrics = run_dir / "metrics.json"
     if metrics.is_file():
         try:
-            seq = json.loads(metrics.read_text()).get("sequence")
+            doc = json.loads(metrics.read_text())
+            # the --seq the run was given (since 2026-12-07), else its display name (a sim name opens again)
+            seq = (doc.get("sequence_arg") or doc.get("sequence")) if isinstance(doc, dict) else None
         except (OSError, ValueError):
             seq = None
     return RunPoses(run_dir, idx[keep], stamps[keep], traj.poses[j[keep]] if has else np.zeros((0, 4, 4)),
