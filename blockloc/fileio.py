@@ -90,6 +90,9 @@ def check_figure_path(path: str | Path, option: str = "--out") -> Path:
         raise BlocklocError(f"{option} {path}: expected an image file name ending in "
                             f"{', '.join('.' + f for f in FIGURE_FORMATS[:3])}, ...")
     check_output_parent(path, option)
+    from blockloc.outdir import check_writable
+
+    check_writable(path, option)  # a read-only mount, a folder not the user's: said now, naming the option
     return path
 
 

@@ -246,6 +246,8 @@ def check_writable(path: str | Path, option: str = "--out") -> None:
     import tempfile
 
     where = _existing_ancestor(Path(path))
+    if not where.is_dir():  # a file to be replaced: its directory is where the new one is made
+        where = where.parent
     try:
         fd, probe = tempfile.mkstemp(prefix=".blockloc-probe-", dir=where)
         os.close(fd)

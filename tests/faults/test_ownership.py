@@ -152,6 +152,19 @@ def test_unwritable_out_fails_before_any_work(c: Case, places, tiny_world):
         assert time.monotonic() - t0 < 30  # refused at once: nothing was tracked, simulated or built
 
 
+@case(9, "map plot MAP --out FILE.png with FILE in a read-only file system (a new file, and one there already)",
+      "exit 2 before the map is read, one line naming --out and 'cannot write' (not a hidden temp file)")
+def test_map_plot_into_a_read_only_place(places, tiny_world):
+    src = places["root"] / "src"
+    src.mkdir()
+    (src / "old.png").write_bytes(b"an old figure")
+    with small_fs(places["root"] / "ro", "4m", fill_from=src, read_only=True) as ro:
+        for png in (ro / "map.png", ro / "old.png"):
+            line = _one_line(cli_in_process("map", "plot", tiny_world["map"], "--out", png))
+            assert line.startswith(f"error: --out {png}: cannot write in {ro}"), line
+        assert (ro / "old.png").read_bytes() == b"an old figure"
+
+
 # ----------------------------------------------------------------------------- locked --out
 LOCKED_CASES = table("test_output_in_use_is_refused", [
     Case(k, 9, f"{' '.join(COMMANDS[k][:2])} while a live blockloc process holds the output's lock",
