@@ -33,6 +33,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import os
 import re
 import shutil
@@ -307,8 +308,37 @@ def _open_manifest(files: MapFiles) -> MapStore:
     if not isinstance(raw_extras, dict):
         raise MapError(f"{where}: 'extras' must be an object (name -> file, bytes, sha256)")
     extras = {n: ExtraFile.from_dict(n, d, where) for n, d in raw_extras.items()}
-    return MapStore(files, kind, str(doc.get("frame", "map")), doc.get("parameters") or {},
+    return MapStore(files, kind, str(doc.get("frame", "map")), _parameters(doc.get("parameters"), where),
                     entries, version, extras=extras)
+
+
+#: Parameters the map's readers compute with: (must be > 0, must be an integer).
+_NUMERIC_PARAMETERS = {"block_size_m": (True, False), "tile_size_m": (True, False), "voxel_size_m": (False, False),
+                       "keyframe_distance_m": (False, False), "keyframe_angle_deg": (False, False),
+                       "name_decimals": (False, True), "num_keyframes": (False, True)}
+
+
+def _parameters(raw, where: str) -> dict:
+    """The manifest's ``parameters``, the ones readers compute with checked (a hand-edited or
+    corrupted value fails here, naming the manifest, not later in whatever reads it)."""
+    if raw is None:
+        return {}
+    if not isinstance(raw, dict):
+        raise MapError(f"{where}: 'parameters' must be an object")
+    for key, (positive, integer) in _NUMERIC_PARAMETERS.items():
+        if key not in raw:
+            continue
+        v = raw[key]
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) \
+            and (not integer or float(v).is_integer()) and (v > 0 if positive else v >= 0)
+        if not ok:
+            what = "a positive number" if positive else ("a whole number >= 0" if integer else "a number >= 0")
+            raise MapError(f"{where}: parameters.{key} is {v!r:.40}, expected {what}")
+    origin = raw.get("origin")
+    if origin is not None and not (isinstance(origin, list) and len(origin) == 2 and all(
+            isinstance(c, (int, float)) and not isinstance(c, bool) and math.isfinite(c) for c in origin)):
+        raise MapError(f"{where}: parameters.origin is {origin!r:.40}, expected [x, y] in metres")
+    return raw
 
 
 def _open_legacy_block(files: MapFiles) -> MapStore:

@@ -104,3 +104,24 @@ def test_pcd_counts_and_headers(tiny_world, tmp_path):
     m = json.loads((tmp_path / "res" / "metrics.json").read_text())
     assert m["skipped_frames"] == 1 and m["nonfinite_points"] == 1000
     assert len([ln for ln in r.err_lines if "NaN/inf" in ln]) == 1
+
+
+@case(11, "a map copy whose manifest has parameters.block_size_m \"big\", then -4, then origin [1] "
+      "(hand-edited); map info, track and init on each", "exit 2 before any frame, one line naming "
+      "manifest.json and the parameter (was: `track` crashed with a bare ValueError in its report)")
+def test_a_manifest_parameter_of_the_wrong_type_is_named(tiny_world, tmp_path):
+    src = json.loads((tiny_world["map"] / "manifest.json").read_text())
+    for key, value in (("block_size_m", "big"), ("block_size_m", -4), ("origin", [1])):
+        m = tmp_path / f"map_{key}_{value}"
+        shutil.copytree(tiny_world["map"], m)
+        doc = json.loads(json.dumps(src))
+        doc["parameters"][key] = value
+        (m / "manifest.json").write_text(json.dumps(doc))
+        for args in (("map", "info", m), ("init", "--seq", tiny_world["session"], "--map", m, "--frame", "0"),
+                     ("track", "--seq", tiny_world["session"], "--map", m, "--init", "gt", "--config",
+                      tiny_world["config"], "--out", tmp_path / f"run_{key}")):
+            r = cli_in_process(*args)
+            assert r.code == 2 and len(r.err_lines) == 1, (args, r.code, r.err)
+            line = r.err_lines[0]
+            assert "manifest.json" in line and f"parameters.{key}" in line and "Traceback" not in r.err, line
+            assert not (tmp_path / f"run_{key}").exists()  # refused before the run made its folder
