@@ -193,7 +193,11 @@ def serve_command(map_path: Path, host: str, port: int) -> None:
             print(f"serving {url}/{s + '/' if s else ''}", file=sys.stderr)
         print("press Ctrl-C to stop", file=sys.stderr, flush=True)
 
-    serve(map_path, host, port, on_ready=ready)
+    from blockloc.commands.common import Interrupted
+
+    signum = serve(map_path, host, port, on_ready=ready)
+    # stopped as every command is stopped: exit 130 (Ctrl-C) / 143 (SIGTERM), one line
+    raise Interrupted("map server stopped", exit_code=128 + int(signum))
 
 
 def mounting_lines(params: dict) -> list[tuple[str, str]]:

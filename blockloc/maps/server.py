@@ -219,16 +219,19 @@ class MapServer:
 
 
 def serve(root: str | Path, host: str = "127.0.0.1", port: int = 8765,
-          on_ready=None) -> None:
-    """Serve ``root`` in the foreground until SIGINT or SIGTERM, then shut down cleanly.
+          on_ready=None) -> int:
+    """Serve ``root`` in the foreground until SIGINT or SIGTERM, then shut down cleanly; returns
+    the signal's number (the CLI exits 128 + it, as every command stopped by a signal does).
 
     ``on_ready(url, stores)`` is called once listening (the CLI prints the URLs there).
     """
     server = MapServer(root, host, port)
     done = threading.Event()
     previous = {}
+    received = []
 
     def _stop(signum, frame) -> None:
+        received.append(signum)
         done.set()
 
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -247,3 +250,4 @@ def serve(root: str | Path, host: str = "127.0.0.1", port: int = 8765,
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         log.info("map server on %s stopped", server.url)
+    return received[0] if received else int(signal.SIGINT)

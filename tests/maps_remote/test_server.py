@@ -147,7 +147,10 @@ def test_port_in_use_is_a_clear_error(jail):
     assert _request(srv, "HEAD", "/campus/manifest.json")[0] == 200  # the first one still serves
 
 
-def test_cli_serve_subprocess_and_clean_shutdown(tmp_path):
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_cli_serve_subprocess_and_clean_shutdown(tmp_path, sig, code):
+    """Served until Ctrl-C / SIGTERM, then stopped as every blockloc command is: exit 130 / 143,
+    one line (it exited 0 before: a script could not tell a stop from a finish)."""
     write_grid_store(tmp_path / "campus", n_tiles=1)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen([sys.executable, "-m", "blockloc.cli", "map", "serve",
@@ -156,14 +159,17 @@ def test_cli_serve_subprocess_and_clean_shutdown(tmp_path):
     try:
         line = proc.stderr.readline()  # "serving http://127.0.0.1:PORT/"
         assert line.startswith("serving http://127.0.0.1:"), line
+        assert proc.stderr.readline().startswith("press Ctrl-C")
         port = int(line.split(":")[2].split("/")[0])
         conn = http.client.HTTPConnection("127.0.0.1", port, timeout=5)
         conn.request("GET", "/manifest.json")
         r = conn.getresponse()
         assert r.status == 200 and b'"kind": "grid"' in r.read()
         conn.close()
-        proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=10) == 0
+        proc.send_signal(sig)
+        assert proc.wait(timeout=10) == code
+        rest = proc.stderr.read()
+        assert rest.strip().splitlines()[-1] == "map server stopped" and "Traceback" not in rest, rest
     finally:
         if proc.poll() is None:
             proc.kill()
