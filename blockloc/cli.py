@@ -93,7 +93,7 @@ def eval_cmd(
 # ----------------------------------------------------------------------------- sim
 @app.command("sim")
 def sim_cmd(
-    preset: str = typer.Option("small", "--preset", metavar="NAME", help="World preset: small | campus."),
+    preset: str = typer.Option("small", "--preset", metavar="NAME", help="World preset: small | campus | city | tiny."),
     seed: int = typer.Option(1, "--seed", metavar="N", min=0, help="World and noise seed (same seed, same bytes)."),
     out: Path = typer.Option(..., "--out", metavar=DIR, help="Output directory (replaced when complete)."),
     fmt: str = typer.Option("nclt", "--format", metavar="FORMAT", help="nclt | rosbag1 | rosbag2."),

@@ -263,6 +263,8 @@ def _build(cls: type, data: dict[str, Any], where: str, base: Any = None) -> Any
     names = {f.name for f in dataclasses.fields(cls)}
     for key in data:
         if key not in names:
+            if not where:  # the top level: its keys are the config's sections
+                raise ConfigError(f"unknown section '{key}' (expected one of: {', '.join(sorted(names))})")
             raise ConfigError(f"{where}: unknown key '{key}' (expected one of: {', '.join(sorted(names))})")
     kwargs = {}
     for f in dataclasses.fields(cls):

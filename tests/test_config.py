@@ -30,7 +30,7 @@ def test_preset_overrides_only_what_it_names():
     "text, needle",
     [
         ("map:\n  bogus: 1\n", "map: unknown key 'bogus'"),
-        ("mapp:\n  backend: block\n", "unknown key 'mapp'"),
+        ("mapp:\n  backend: block\n", "bad.yaml: unknown section 'mapp'"),
         ("map:\n  block_size_m: big\n", "map.block_size_m: expected a number"),
         ("tracking:\n  window_size: 2.5\n", "tracking.window_size: expected an integer"),
         ("lidar:\n  deskew: 1\n", "lidar.deskew: expected true or false"),
@@ -107,3 +107,12 @@ def test_every_config_field_reaches_code():
                 unread.add((section.name, f.name))
     assert unread == UNREAD_FIELDS, f"read nowhere: {sorted(unread - UNREAD_FIELDS)}; " \
                                     f"read now, drop from UNREAD_FIELDS: {sorted(UNREAD_FIELDS - unread)}"
+
+
+def test_a_mistyped_section_is_named_as_a_section():
+    """`--set registraton.method=ndt` / a file's `trackin:` said `--set: : unknown key ...` (an empty path)."""
+    from blockloc.config import Config, merge
+
+    with pytest.raises(ConfigError) as err:
+        merge(Config(), {"registraton": {"method": "ndt"}}, "--set")
+    assert str(err.value).startswith("--set: unknown section 'registraton' (expected one of: ") and ": :" not in str(err.value)

@@ -85,7 +85,7 @@ def test_a_preset_name_wins_over_a_file_of_that_name_with_one_warning(tiny_sessi
     assert open_map(tmp_path / "m1").params["voxel_size_m"] == load_config(preset="handheld").map.voxel_size_m == 0.1
     # the file, given as a path, is read (and its unknown section named)
     r = _blockloc(*args, "--out", "m2", "--config", "./handheld", cwd=tmp_path)
-    assert r.returncode == 2 and "unknown key 'bogus_section'" in r.stderr and "handheld" in r.stderr, r.stderr
+    assert r.returncode == 2 and "unknown section 'bogus_section'" in r.stderr and "handheld" in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
 
 
