@@ -33,6 +33,7 @@ it (``--config`` when given, else the preset that fits the sequence).
 
 from __future__ import annotations
 
+import json
 import os
 import re
 from dataclasses import dataclass
@@ -105,6 +106,19 @@ def map_kind_for_backend(backend: str) -> str:
     return "block" if backend == "block" else "grid"
 
 
+def _is_map_store(path: Path) -> bool:
+    """A directory blockloc's map build (or the block maps paper's release layout) wrote."""
+    if not path.is_dir():
+        return False
+    if (path / "CentroidCloud.pcd").is_file():
+        return True
+    try:
+        doc = json.loads((path / "manifest.json").read_text())
+    except (OSError, ValueError, UnicodeDecodeError):
+        return False
+    return isinstance(doc, dict) and doc.get("kind") in ("block", "grid") and isinstance(doc.get("entries"), list)
+
+
 @dataclass(frozen=True)
 class SequenceRef:
     """A parsed ``--seq`` value.
@@ -138,6 +152,9 @@ class SequenceRef:
         if name in M2DGR_NAMES:
             return cls(name, "m2dgr", "m2dgr")
         path = Path(name).expanduser()
+        if _is_map_store(path):  # its PCD blocks would read as a scan folder without stamps
+            raise DatasetError(f"{path}: a map store, not a sequence (give it with --map; --seq takes the scans: "
+                               f"{_PATH_KINDS})")
         for kind in PATH_LOADERS:
             loader = _loader(kind)
             if loader.detect(path):

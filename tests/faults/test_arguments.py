@@ -69,6 +69,9 @@ BAD_INVOCATIONS = table("test_bad_invocation", [
          ("track", "--seq", S, "--map", M, "--init", "gt", "--map-backend", "bogus"), needle="'bogus'"),
     Case("track-seq-missing-path", 2, "--seq naming nothing", "exit 2, names it",
          ("track", "--seq", "{root}/nosuch", "--map", M, "--init", "gt"), needle="nosuch"),
+    Case("track-seq-is-a-map-store", 4, "--seq naming a map store (the map given as the scans)",
+         "exit 2, says it is a map store and to give it with --map (it was read as a scan folder without "
+         "stamps)", ("track", "--seq", M, "--map", M, "--init", "gt"), needle="a map store, not a sequence"),
     Case("track-map-missing", 2, "--map naming nothing", "exit 2, names it",
          ("track", "--seq", S, "--map", "{root}/nomap", "--init", "gt"), needle="nomap: no such map directory"),
     Case("map-info-of-a-file", 2, "map info FILE", "exit 2, names the file",
