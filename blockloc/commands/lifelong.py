@@ -83,8 +83,9 @@ def update_command(map_path: str, runs: list[Path], seqs: list[str] | None, out:
                      min_runs=min_runs)
     for b in rec["changed_blocks"]:
         c = rec["blocks"][b]
-        print(f"block {b}: removed {c['removed_voxels']} voxels, added {c['added_voxels']} voxels, "
-              f"{c['points_before']} -> {c['points_after']} points")
+        print(f"block {b}: removed {c['removed_voxels']} voxels ({c['points_removed']} points), added "
+              f"{c['added_voxels']} voxels; {c['points_added']} points added (in added voxels and seen behind "
+              f"removed ones), {c['points_before']} -> {c['points_after']} points")
     for h in rec["held_back"]:
         print(f"held back: block {h['block']}: {h['reason']}")
     print(f"version {rec['version']} of {rec['path']}: {len(rec['changed_blocks'])} blocks rebuilt, "

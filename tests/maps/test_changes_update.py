@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 import subprocess
 
 import numpy as np
@@ -161,6 +162,14 @@ def test_cli_changes_update_info_rollback(base, tmp_path):
     r = _cli("map", "update", m, "--run", run1, "--run", run2)
     assert r.returncode == 0, r.stderr
     assert "version 2" in r.stdout and "block 001" in r.stdout
+    # the line adds up: before - removed + added = after (it showed "added 0 voxels" beside a
+    # block that grew: the points seen behind what was removed were not counted anywhere)
+    line = next(ln for ln in r.stdout.splitlines() if ln.startswith("block 001:"))
+    mt = re.match(r"block 001: removed (\d+) voxels \((\d+) points\), added (\d+) voxels; (\d+) points added "
+                 r"\(in added voxels and seen behind removed ones\), (\d+) -> (\d+) points$", line)
+    assert mt, line
+    _, p_rm, _, p_add, before, after = map(int, mt.groups())
+    assert p_rm > 0 and before - p_rm + p_add == after == open_map(m).entry("001").num_points
     assert open_map(m).entry("000").sha256 == sha_000 and open_map(m).entry("001").file == "001.v2.pcd"
     r = _cli("map", "info", m, "--quick")
     assert r.returncode == 0 and "* v2 (parent v1)" in r.stdout and "blocks 001" in r.stdout

@@ -304,7 +304,12 @@ def apply_update(map_root: str | Path, plan: UpdatePlan, results: list, *, runs:
             e.update({"file": file, "bounds_min": [float(v) for v in lo], "bounds_max": [float(v) for v in hi],
                       "centroid": [float(v) for v in mean], "num_points": int(len(new_pts)),
                       "bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()})
-            plan.blocks[b].update({"points_before": int(len(pts)), "points_after": int(len(new_pts))})
+            kept = int((~np.isin(voxel_keys(np.asarray(pts, np.float64)[:, :3], plan.voxel_m), plan.removed)).sum()
+                       if len(plan.removed) else len(pts))
+            # points added: in the added voxels and those seen behind what was removed (step 4), so
+            # a block can gain points with no voxel added
+            plan.blocks[b].update({"points_before": int(len(pts)), "points_after": int(len(new_pts)),
+                                   "points_removed": int(len(pts) - kept), "points_added": int(len(new_pts) - kept)})
             changed.append(b)
         extras = doc.get("extras") or {}
         if changed and "place_index.npz" in extras:
