@@ -256,7 +256,10 @@ def rasterize_map(points_lvl: np.ndarray, resolution: float, band_m: tuple[float
         raise GlobalInitError("map region holds no points: nothing to localize against")
     structure, (g_origin, g_grid) = select_structure(pts, band_m, mode)
     if len(structure) == 0:
-        log.warning("no map points in the height band %s; raster is empty", band_m)
+        # a sliver of a map (an edge tile with a handful of ground points) is expected to have none:
+        # only a region of substance without any is worth a warning (a wrong gravity, a wrong band)
+        (log.warning if len(pts) >= 1000 else log.debug)(
+            "no map points in the height band %s among %d; raster is empty", band_m, len(pts))
         structure = pts[:1]
     cells = np.floor(structure[:, :2] / resolution).astype(np.int64)
     rad = SMOOTH_RADIUS_CELLS
