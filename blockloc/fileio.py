@@ -108,16 +108,49 @@ def check_output_dir(path: str | Path, option: str) -> Path:
     return path
 
 
+#: What every figure blockloc saves carries in its metadata (PNG text, PDF / SVG / PostScript
+#: creator, a JPEG comment, a TIFF description, WebP XMP): a file at a user-chosen path is replaced
+#: only when it carries it (:func:`is_blockloc_figure`).
+FIGURE_MARK = "blockloc figure"
+
+
+def _figure_mark_kwargs(fmt: str) -> dict:
+    """``savefig`` keyword arguments that put :data:`FIGURE_MARK` into a ``fmt`` file."""
+    if fmt == "png":
+        return {"metadata": {"Software": FIGURE_MARK}}
+    if fmt in ("pdf", "svg", "eps", "ps"):
+        return {"metadata": {"Creator": FIGURE_MARK}}
+    if fmt in ("jpg", "jpeg"):
+        return {"pil_kwargs": {"comment": FIGURE_MARK.encode()}}
+    if fmt in ("tif", "tiff"):
+        return {"pil_kwargs": {"description": FIGURE_MARK}}
+    if fmt == "webp":
+        return {"pil_kwargs": {"xmp": FIGURE_MARK.encode()}}
+    return {}
+
+
+def is_blockloc_figure(path: str | Path, max_bytes: int = 256 * 2**20) -> bool:
+    """True when the file at ``path`` carries :data:`FIGURE_MARK` (a figure :func:`save_figure` wrote)."""
+    try:
+        path = Path(path)
+        if path.stat().st_size > max_bytes:
+            return False
+        return FIGURE_MARK.encode() in path.read_bytes()
+    except OSError:
+        return False
+
+
 def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
     """Save a matplotlib figure atomically (the format from ``path``'s suffix, one of
-    :data:`FIGURE_FORMATS`) and close it."""
+    :data:`FIGURE_FORMATS`, marked with :data:`FIGURE_MARK`) and close it."""
     import matplotlib.pyplot as plt
 
     path = Path(path)
     try:
         check_figure_path(path, "figure")
+        fmt = path.suffix[1:].lower()
         with atomic_path(path, suffix=path.suffix) as tmp:
-            fig.savefig(tmp, dpi=dpi, format=path.suffix[1:].lower())
+            fig.savefig(tmp, dpi=dpi, format=fmt, **_figure_mark_kwargs(fmt))
     finally:
         plt.close(fig)
     return path

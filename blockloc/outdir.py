@@ -222,6 +222,16 @@ def check_replaceable(path: str | Path, option: str = "--out", kinds: tuple[str,
     check_output_parent(path, option)
 
 
+def check_file_replaceable(path: str | Path, option: str, ours, what: str) -> None:
+    """Before any work that writes the single file ``path`` (``map plot --out``, ``map changes
+    --out``): BlocklocError, one line naming ``option``, when a file is there that ``ours(path)``
+    does not recognise as blockloc's ``what`` (a user's figure or notes are never replaced)."""
+    path = Path(path)
+    if path.is_file() and not ours(path):
+        raise BlocklocError(f"{option} {path}: a file blockloc did not write ({what} blockloc writes carry its mark); "
+                            "not replacing it (choose another path, or remove it)")
+
+
 # ----------------------------------------------------------------------------- pre-checks
 def check_output_parent(path: str | Path, option: str = "--out") -> None:
     """BlocklocError unless every existing ancestor of ``path`` is a directory (so that

@@ -283,3 +283,25 @@ def test_the_umask_is_read_by_one_thread_at_a_time(monkeypatch):
     with ThreadPoolExecutor(4) as pool:
         seen = list(pool.map(lambda _: fileio._umask(), range(40)))
     assert seen == [0o022] * 40 and state["mask"] == 0o022
+
+
+@pytest.mark.parametrize("fmt", ["png", "pdf", "svg", "jpg", "tif", "webp", "eps"])
+def test_saved_figures_carry_blockloc_s_mark_and_others_do_not(tmp_path, fmt):
+    """map plot replaces a file at its --out only when it carries the mark (a user's figure is kept)."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    from blockloc.fileio import is_blockloc_figure, save_figure
+
+    fig = plt.figure()
+    plt.plot([0, 1])
+    save_figure(fig, tmp_path / f"ours.{fmt}")
+    fig = plt.figure()
+    plt.plot([0, 1])
+    fig.savefig(tmp_path / f"theirs.{fmt}")
+    plt.close(fig)
+    assert is_blockloc_figure(tmp_path / f"ours.{fmt}")
+    assert not is_blockloc_figure(tmp_path / f"theirs.{fmt}")
+    assert not is_blockloc_figure(tmp_path / "absent.png")

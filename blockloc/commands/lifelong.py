@@ -29,11 +29,25 @@ def changes_command(map_path: str, run_dir: Path, seq: str | None, out: Path | N
 
     out = Path(out) if out is not None else Path(run_dir) / "changes.json"
     check_output_parent(out, "--out")  # before any work
+    from blockloc.outdir import check_file_replaceable
+
+    check_file_replaceable(out, "--out", _is_changes_report, "the change reports")
     store = open_block_store(map_path, "--map")
     found = _detect(store, Path(run_dir), seq, data_root, stride)
     doc = write_changes(found.result, store, out, run_dir, map=str(map_path), run=str(run_dir),
                         sequence=found.sequence_name)
     print_changes(doc, out)
+
+
+def _is_changes_report(path: Path) -> bool:
+    """A ``changes.json`` blockloc wrote (a JSON object with its report's fields)."""
+    import json
+
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError, UnicodeDecodeError):
+        return False
+    return isinstance(doc, dict) and doc.get("format") == "blockloc-changes"
 
 
 def print_changes(doc: dict, out: Path) -> None:

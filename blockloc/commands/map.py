@@ -172,6 +172,10 @@ def plot_command(map_path: str, seq: str | None, out: Path | None, data_root: st
     from blockloc.maps.store import open_map
 
     png = check_figure_path(out or Path(str(map_path).rstrip("/") + ".png"), "--out")  # before any work
+    from blockloc.fileio import is_blockloc_figure
+    from blockloc.outdir import check_file_replaceable
+
+    check_file_replaceable(png, "--out", is_blockloc_figure, "the figures")
     store = open_map(map_path)
     traj = None
     if seq:

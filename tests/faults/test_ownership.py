@@ -165,6 +165,41 @@ def test_map_plot_into_a_read_only_place(places, tiny_world):
         assert (ro / "old.png").read_bytes() == b"an old figure"
 
 
+@case(8, "map plot --out FILE and map changes --out FILE over a file of the user's (a figure matplotlib "
+      "made, notes in JSON); then over their own earlier output", "the user's file: exit 2, one line naming "
+      "--out, the file unchanged (map plot replaced any file before); blockloc's own: replaced, exit 0")
+def test_single_file_outputs_replace_only_blockloc_files(tiny_world, tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    fig = plt.figure()
+    plt.plot([0, 1], [1, 0])
+    fig.savefig(tmp_path / "mine.png")
+    plt.close(fig)
+    mine = (tmp_path / "mine.png").read_bytes()
+    line = _one_line(cli_in_process("map", "plot", tiny_world["map"], "--out", tmp_path / "mine.png"))
+    assert line.startswith(f"error: --out {tmp_path / 'mine.png'}: a file blockloc did not write"), line
+    assert (tmp_path / "mine.png").read_bytes() == mine
+    for _ in range(2):  # its own figure is replaced
+        r = cli_in_process("map", "plot", tiny_world["map"], "--out", tmp_path / "map.png")
+        assert r.code == 0, r.err
+    shutil.copytree(tiny_world["session"], tmp_path / "sess")
+    r = cli_in_process("track", "--seq", tmp_path / "sess", "--map", tiny_world["map"], "--init", "gt",
+                       "--config", tiny_world["config"], "--out", tmp_path / "run")
+    assert r.code == 0, r.err
+    (tmp_path / "notes.json").write_text('{"my": "notes"}')
+    line = _one_line(cli_in_process("map", "changes", "--map", tiny_world["map"], "--run", tmp_path / "run",
+                                    "--out", tmp_path / "notes.json"))
+    assert line.startswith(f"error: --out {tmp_path / 'notes.json'}: a file blockloc did not write"), line
+    assert (tmp_path / "notes.json").read_text() == '{"my": "notes"}'
+    for _ in range(2):
+        r = cli_in_process("map", "changes", "--map", tiny_world["map"], "--run", tmp_path / "run",
+                           "--out", tmp_path / "changes_copy.json")
+        assert r.code == 0, r.err
+
+
 # ----------------------------------------------------------------------------- locked --out
 LOCKED_CASES = table("test_output_in_use_is_refused", [
     Case(k, 9, f"{' '.join(COMMANDS[k][:2])} while a live blockloc process holds the output's lock",
