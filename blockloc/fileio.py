@@ -90,9 +90,6 @@ def check_figure_path(path: str | Path, option: str = "--out") -> Path:
         raise BlocklocError(f"{option} {path}: expected an image file name ending in "
                             f"{', '.join('.' + f for f in FIGURE_FORMATS[:3])}, ...")
     check_output_parent(path, option)
-    from blockloc.outdir import check_writable
-
-    check_writable(path, option)  # a read-only mount, a folder not the user's: said now, naming the option
     return path
 
 
@@ -114,7 +111,7 @@ def check_output_dir(path: str | Path, option: str) -> Path:
 FIGURE_MARK = "blockloc figure"
 
 
-def _figure_mark_kwargs(fmt: str) -> dict:
+def figure_mark_kwargs(fmt: str) -> dict:
     """``savefig`` keyword arguments that put :data:`FIGURE_MARK` into a ``fmt`` file."""
     if fmt == "png":
         return {"metadata": {"Software": FIGURE_MARK}}
@@ -150,7 +147,7 @@ def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
         check_figure_path(path, "figure")
         fmt = path.suffix[1:].lower()
         with atomic_path(path, suffix=path.suffix) as tmp:
-            fig.savefig(tmp, dpi=dpi, format=fmt, **_figure_mark_kwargs(fmt))
+            fig.savefig(tmp, dpi=dpi, format=fmt, **figure_mark_kwargs(fmt))
     finally:
         plt.close(fig)
     return path

@@ -107,16 +107,19 @@ def map_kind_for_backend(backend: str) -> str:
 
 
 def _is_map_store(path: Path) -> bool:
-    """A directory blockloc's map build (or the block maps paper's release layout) wrote."""
+    """A directory blockloc's map build (or the block maps paper's release layout) wrote: what
+    :func:`blockloc.maps.store.open_map` opens, recognised without checking it whole."""
+    from blockloc.maps.store import CENTROID_CLOUD, KINDS, MANIFEST_NAME
+
     if not path.is_dir():
         return False
-    if (path / "CentroidCloud.pcd").is_file():
+    if (path / CENTROID_CLOUD).is_file():
         return True
     try:
-        doc = json.loads((path / "manifest.json").read_text())
+        doc = json.loads((path / MANIFEST_NAME).read_text())
     except (OSError, ValueError, UnicodeDecodeError):
         return False
-    return isinstance(doc, dict) and doc.get("kind") in ("block", "grid") and isinstance(doc.get("entries"), list)
+    return isinstance(doc, dict) and doc.get("kind") in KINDS and isinstance(doc.get("entries"), list)
 
 
 @dataclass(frozen=True)

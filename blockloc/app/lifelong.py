@@ -60,15 +60,15 @@ def open_run_sequence(run: RunPoses, seq: str | None, data_root: str | None):
     name = seq or run.sequence
     if not name:
         raise RunError(f"--run {run.path}: its metrics.json names no sequence (an interrupted run?); give --seq")
-    if seq is None:
-        try:
-            cfg = config_for_sequence(name)
-            return open_sequence(name, data_root=data_root, dataset_cfg=cfg.dataset), name, cfg
-        except DatasetError as exc:  # a live run, a moved or renamed recording
-            raise RunError(f"--run {run.path}: the sequence its metrics.json names ({name!r}) cannot be opened "
-                           f"here ({exc}); give its scans with --seq") from None
-    cfg = config_for_sequence(name)
-    return open_sequence(name, data_root=data_root, dataset_cfg=cfg.dataset), name, cfg
+    try:
+        cfg = config_for_sequence(name)
+        return open_sequence(name, data_root=data_root, dataset_cfg=cfg.dataset), name, cfg
+    except DatasetError as exc:
+        if seq is not None:  # the user's own --seq: its error as it is
+            raise
+        # the one metrics.json names: a live run, a moved or renamed recording
+        raise RunError(f"--run {run.path}: the sequence its metrics.json names ({name!r}) cannot be opened "
+                       f"here ({exc}); give its scans with --seq") from None
 
 
 def detect_run_changes(store: MapStore, run_dir: str | Path, *, seq: str | None = None,

@@ -173,8 +173,9 @@ def plot_command(map_path: str, seq: str | None, out: Path | None, data_root: st
 
     png = check_figure_path(out or Path(str(map_path).rstrip("/") + ".png"), "--out")  # before any work
     from blockloc.fileio import is_blockloc_figure
-    from blockloc.outdir import check_file_replaceable
+    from blockloc.outdir import check_file_replaceable, check_writable
 
+    check_writable(png, "--out")  # a read-only mount, a folder not the user's: said now, naming --out
     check_file_replaceable(png, "--out", is_blockloc_figure, "the figures")
     store = open_map(map_path)
     traj = None

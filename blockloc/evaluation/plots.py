@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from blockloc.fileio import FIGURE_MARK, atomic_path
+from blockloc.fileio import atomic_path, figure_mark_kwargs
 
 log = logging.getLogger(__name__)
 
@@ -24,7 +24,7 @@ def _pyplot():
 def _save(fig, path: Path) -> Path:
     """Save ``fig`` as PNG to a temp file beside ``path``, then rename it into place."""
     with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, dpi=120, format="png", metadata={"Software": FIGURE_MARK})
+        fig.savefig(tmp, dpi=120, format="png", **figure_mark_kwargs("png"))
     return path
 
 

@@ -250,4 +250,4 @@ def serve(root: str | Path, host: str = "127.0.0.1", port: int = 8765,
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         log.info("map server on %s stopped", server.url)
-    return received[0] if received else int(signal.SIGINT)
+    return received[0]

@@ -236,22 +236,23 @@ def new_points_by_block(plan: UpdatePlan, results: list) -> dict:
 
 def rebuild_block(points: np.ndarray, intensity: np.ndarray | None, removed: np.ndarray,
                   new_points: np.ndarray, new_intensity: np.ndarray, voxel_m: float,
-                  store_voxel_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """A block's new (points (N, 3) float64, intensity (N,) float32): its points outside the
-    ``removed`` voxels (sorted keys at ``voxel_m``) plus ``new_points`` (M, 3) filtered at
-    ``store_voxel_m`` (centroids, mean intensity)."""
+                  store_voxel_m: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """A block's new (points (N, 3) float64, intensity (N,) float32) and how many of its old points
+    it kept: its points outside the ``removed`` voxels (sorted keys at ``voxel_m``) plus
+    ``new_points`` (M, 3) filtered at ``store_voxel_m`` (centroids, mean intensity)."""
     from blockloc.voxels import voxel_downsample
 
     pts = np.asarray(points, np.float64)[:, :3]
     inten = np.zeros(len(pts), np.float32) if intensity is None else np.asarray(intensity, np.float32)
     keep = ~np.isin(voxel_keys(pts, voxel_m), removed) if len(removed) else np.ones(len(pts), bool)
     pts, inten = pts[keep], inten[keep]
+    kept = len(pts)
     if len(new_points):
         add, add_i = voxel_downsample(np.asarray(new_points, np.float64), store_voxel_m,
                                       np.asarray(new_intensity, np.float32))
         pts = np.concatenate([pts, add])
         inten = np.concatenate([inten, np.asarray(add_i, np.float32)])
-    return pts, inten
+    return pts, inten, kept
 
 
 def apply_update(map_root: str | Path, plan: UpdatePlan, results: list, *, runs: list[str],
@@ -296,7 +297,7 @@ def apply_update(map_root: str | Path, plan: UpdatePlan, results: list, *, runs:
                 continue
             pts, inten = store.load(b)
             P, I = by_block_new[b]
-            new_pts, new_int = rebuild_block(pts, inten, plan.removed, P, I, plan.voxel_m, store_voxel)
+            new_pts, new_int, kept = rebuild_block(pts, inten, plan.removed, P, I, plan.voxel_m, store_voxel)
             data = encode_pcd(new_pts, new_int)
             file = f"{b}.v{number}.pcd"
             (target / file).write_bytes(data)
@@ -304,8 +305,6 @@ def apply_update(map_root: str | Path, plan: UpdatePlan, results: list, *, runs:
             e.update({"file": file, "bounds_min": [float(v) for v in lo], "bounds_max": [float(v) for v in hi],
                       "centroid": [float(v) for v in mean], "num_points": int(len(new_pts)),
                       "bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()})
-            kept = int((~np.isin(voxel_keys(np.asarray(pts, np.float64)[:, :3], plan.voxel_m), plan.removed)).sum()
-                       if len(plan.removed) else len(pts))
             # points added: in the added voxels and those seen behind what was removed (step 4), so
             # a block can gain points with no voxel added
             plan.blocks[b].update({"points_before": int(len(pts)), "points_after": int(len(new_pts)),
