@@ -114,6 +114,7 @@ class _Tasks:
         self._expected = 0
         self._lock = threading.Lock()
         self._done = 0
+        self._final = False  # set by finished(): until then the plan may still grow
         # (done, total) callback; the bar drawing it is the command's (blockloc.commands.common)
         self._report = progress if callable(progress) else None
 
@@ -148,6 +149,10 @@ class _Tasks:
 
     def _show(self) -> None:
         total = max(self._expected, len(self.futures))
+        if not self._final:
+            # each stage plans the next one's tasks from its results (mounting, refinement, blocks),
+            # so every task planned so far being done is not the end: the bar shows 100% once
+            total = max(total, self._done + 1)
         if self._report is not None:
             self._report(self._done, total)
 
@@ -155,6 +160,7 @@ class _Tasks:
         """All done: the total is what ran (skips had no second task)."""
         with self._lock:
             self._expected = len(self.futures)
+            self._final = True
             self._show()
 
     def cancel(self) -> None:

@@ -66,3 +66,20 @@ def test_from_pcd_counts_keyframes(tmp_path):
         build_map_from_global_pcd(gpath, tmp_path / "poses.tum", kind, tmp_path / kind, block_size_m=8.0,
                                   tile_size_m=5.0, voxel_size_m=0.5, progress=calls, **kw)
         assert_counts_up(calls, n)
+
+
+def test_a_build_shows_all_tasks_done_only_at_its_end(tmp_path):
+    """A build plans each stage's tasks from the last one's results, so its total grows; the bar
+    must not read ``done == total`` (100%) until the build has finished."""
+    from blockloc.maps.build_plan import Drive, build_map_from_drives
+
+    seq = MemorySequence(world_points(extent=(-30, 110), seed=6, density=0.2),
+                         route([[0, 0], [80, 0], [80, 30]], speed=4.0), radius=20.0)
+    calls = Calls()
+    store = build_map_from_drives([Drive.of(seq)], "block", tmp_path / "m", block_size_m=30.0,
+                                  voxel_size_m=0.3, keyframe_distance_m=2.0, progress=calls)
+    assert len(store.entries) > 1
+    totals = sorted({t for _, t in calls})
+    assert len(totals) > 1  # the plan did grow while the build ran
+    assert calls[-1][0] == calls[-1][1]  # the end: every task that ran is done
+    assert all(d < t for d, t in calls[:-1]), calls
