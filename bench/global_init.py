@@ -300,7 +300,9 @@ def run(argv: list[str]) -> dict:
     from blockloc.app.catalog import open_sequence
     from blockloc.global_init.scan_prep import prepare_for_init
     from blockloc.voxels import voxel_select
+    from blockloc.errors import GlobalInitError
     from blockloc.global_init.relocalize import GlobalLocalizer, InitParams, pose_error
+    from blockloc.global_init.verify import InitResult
     from blockloc.maps.store import open_map
 
     if args.seq is not None and args.map is None:
@@ -356,6 +358,7 @@ def run(argv: list[str]) -> dict:
     rows = {m: [] for m in methods}
     hints = []
     hint_search: dict[str, int] = {}  # how the hinted search ended, frames
+    refused: dict[str, list] = {}  # method or search -> [(frame, why)]: scans the search refused to start from
     load_before = os.getloadavg()
     for k, i in enumerate(frames):
         f = seq.frame(int(i))
@@ -371,14 +374,17 @@ def run(argv: list[str]) -> dict:
                 L.params.use_s0 = m != "bbs"
                 L.params.use_place_index = m == "hinted"  # the bbs rows: the window's branch and bound alone
                 t, c = time.perf_counter(), time.process_time()
-                res = L.localize(pts, g, hint, None, args.window, 360.0)
+                try:
+                    res = L.localize(pts, g, hint, None, args.window, 360.0)
+                except GlobalInitError as exc:  # a scan the search cannot start from (too few band cells)
+                    res = None
+                    refused.setdefault(m, []).append((int(i), str(exc)))
                 dt, cpu = time.perf_counter() - t, time.process_time() - c
-                T = res.T_map_body
-                extra = res.stats.get("nodes_visited", 0)
-                if not res.verified:
-                    T = None  # reported as not found: counts as a failure
+                T = None if res is None or not res.verified else res.T_map_body  # not verified: a failure
+                extra = 0 if res is None else res.stats.get("nodes_visited", 0)
                 if m == "hinted":
-                    hint_search[res.stats.get("hint_search", "?")] = hint_search.get(res.stats.get("hint_search", "?"), 0) + 1
+                    how = "scan refused" if res is None else res.stats.get("hint_search", "?")
+                    hint_search[how] = hint_search.get(how, 0) + 1
             elif m == "fpfh+ransac":
                 if args.fpfh_frames is not None and k >= args.fpfh_frames:
                     continue
@@ -454,7 +460,11 @@ def run(argv: list[str]) -> dict:
             print(f"[reloc {name}] frame {i}: {e_t:.2f} m {e_r:.2f} deg {dt:.2f} s valid {valid}", flush=True)
         for name, rl in reloc_modes.items():
             t_cpu = time.process_time()
-            res = rl.localize(scan.points_body, scan.gravity_body, None, None, args.window, 360.0)
+            try:
+                res = rl.localize(scan.points_body, scan.gravity_body, None, None, args.window, 360.0)
+            except GlobalInitError as exc:  # counted as not found, as a session's start goes on to the next scan
+                refused.setdefault(name, []).append((int(i), str(exc)))
+                res = InitResult(None, 0.0, 0.0, [], False, time.process_time() - t_cpu, False)
             cpu_s[name].append(time.process_time() - t_cpu)  # every thread of the process
             dt = res.time_s  # search and refinement (not the index's first load)
             if name == "place index" and index_load_s is None:
@@ -614,6 +624,11 @@ def run(argv: list[str]) -> dict:
         if failed:
             lines.append("\nNot found (place index): " + ", ".join(
                 f"frame {i} ({e:.2f} m off)" for i, e in failed[:10]) + (" ..." if len(failed) > 10 else "") + ".")
+    if refused:
+        results["refused"] = refused
+        lines.append("\nScans the search refused to start from (failures; a session goes on to the next scan): "
+                     + "; ".join(f"{name}: " + ", ".join(f"frame {i} ({why})" for i, why in v)
+                                 for name, v in refused.items()) + ".")
     if args.edge_frames > 0:
         lines += edge_section(args, seq, gt, imu, results)
     text = "\n".join(lines) + "\n"
@@ -726,7 +741,9 @@ def edge_section(args, seq, gt, imu, results: dict) -> list[str]:
     from scipy.spatial import cKDTree
 
     from blockloc.global_init.place_index import PLACE_INDEX_NAME, write_place_index
+    from blockloc.errors import GlobalInitError
     from blockloc.global_init.relocalize import GlobalLocalizer, InitParams, pose_error
+    from blockloc.global_init.verify import InitResult
     from blockloc.global_init.scan_prep import prepare_for_init
     from blockloc.maps.store import open_map
 
