@@ -2,8 +2,9 @@
 the run's sequence opened by name and the config read here (the core, which reads neither, is
 :mod:`blockloc.maps.changes`).
 
-- :func:`detect_run_changes`: a map store + a run folder -> what changed (its sequence from
-  ``--seq`` or the name the run's ``metrics.json`` records, the config that fits it);
+- :func:`open_run`: a run folder, its sequence (``--seq`` or the name the run's ``metrics.json``
+  records) and the config that fits it, checked against each other before any work;
+- :func:`detect_run_changes`: a map store + a run folder (or an opened run) -> what changed;
 - :func:`update_map`: several runs' detections -> a new version of the store, its place index
   rebuilt with the ``global_init`` settings of the first run's config and its sequence's gravity;
 - :func:`write_changes`: ``changes.json``, and the changes drawn into the run folder's
@@ -71,18 +72,44 @@ def open_run_sequence(run: RunPoses, seq: str | None, data_root: str | None):
                        f"here ({exc}); give its scans with --seq") from None
 
 
-def detect_run_changes(store: MapStore, run_dir: str | Path, *, seq: str | None = None,
-                       data_root: str | None = None, stride: int = 1,
-                       progress: Callable[[int, int], None] | None = None) -> RunChanges:
-    """What changed in ``store`` according to the trusted frames of the run folder ``run_dir``."""
+@dataclass
+class OpenedRun:
+    """A run folder read (its trusted frames), the sequence it was made from opened (placed with
+    the mounting the run tracked with), its name and the config that fits it."""
+
+    run: RunPoses
+    sequence_name: str
+    sequence: object
+    config: Config
+
+
+def open_run(store: MapStore, run_dir: str | Path, *, seq: str | None = None,
+             data_root: str | None = None) -> OpenedRun:
+    """The run folder ``run_dir`` and its sequence, checked before any work: RunError naming
+    ``--seq`` (or the sequence the run records) when it has fewer scans than the run went through
+    (the run's frame indices would run past its end)."""
     run = read_run(run_dir)
     sequence, name, cfg = open_run_sequence(run, seq, data_root)
+    if len(sequence) < run.num_frames:
+        where = f"--seq {seq}" if seq is not None else f"--run {run.path}: its sequence {name}"
+        raise RunError(f"{where}: {len(sequence)} scans, fewer than the {run.num_frames} frames the run "
+                       f"{run.path} tracked (expected the sequence it was tracked on)")
     # the scans placed with the mounting the run tracked with (track's default: the map's, issue 41)
     sequence = with_map_mounting(sequence, store, cfg.map.use_map_mounting)
+    return OpenedRun(run, name, sequence, cfg)
+
+
+def detect_run_changes(store: MapStore, run_dir: str | Path | OpenedRun, *, seq: str | None = None,
+                       data_root: str | None = None, stride: int = 1,
+                       progress: Callable[[int, int], None] | None = None) -> RunChanges:
+    """What changed in ``store`` according to the trusted frames of the run folder ``run_dir``
+    (opened here with ``seq`` and ``data_root``, or already by :func:`open_run`)."""
+    opened = run_dir if isinstance(run_dir, OpenedRun) else open_run(store, run_dir, seq=seq, data_root=data_root)
+    run = opened.run
     if not len(run):
-        log.warning("%s: no trusted frame (status ok after 10 ok frames): nothing to learn from it", run_dir)
-    res = detect_changes(store, sequence, run, stride=stride, progress=progress)
-    return RunChanges(res, name, sequence, cfg)
+        log.warning("%s: no trusted frame (status ok after 10 ok frames): nothing to learn from it", run.path)
+    res = detect_changes(store, opened.sequence, run, stride=stride, progress=progress)
+    return RunChanges(res, opened.sequence_name, opened.sequence, opened.config)
 
 
 def place_index_builder(gravity_map, cfg: Config) -> Callable[[MapStore], bytes]:

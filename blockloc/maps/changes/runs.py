@@ -43,6 +43,12 @@ class RunPoses:
     def __len__(self) -> int:
         return len(self.index)
 
+    @property
+    def num_frames(self) -> int:
+        """Frames of its sequence the run went through: the last diagnostics row's index + 1 (0
+        for a run without rows)."""
+        return max(self.statuses) + 1 if self.statuses else 0
+
 
 class TrustedFrames:
     """The rule of the module docstring one frame at a time: ``trusted(status)`` is True for an
