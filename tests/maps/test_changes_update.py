@@ -185,6 +185,12 @@ def test_cli_changes_update_info_rollback(base, tmp_path):
     assert r.returncode == 2 and "already exists" in r.stderr
 
 
+def _tracked_in(run, map_path):
+    """Record in ``run``'s metrics.json the map it was tracked in, as ``blockloc track`` does."""
+    metrics = run / "metrics.json"
+    metrics.write_text(json.dumps({**json.loads(metrics.read_text()), "map": str(map_path)}))
+
+
 def test_cli_a_sequence_shorter_than_the_run_is_refused_before_any_work(base, tmp_path):
     """``--seq`` with fewer scans than the run tracked (another recording, a cut copy): one line
     naming --seq, its scan count and the run's frame count, exit 2, nothing detected nor written
@@ -196,6 +202,7 @@ def test_cli_a_sequence_shorter_than_the_run_is_refused_before_any_work(base, tm
     m = tmp_path / "map"
     short = W.write_scan_folder(tmp_path / "short", "nowall", T[:12])
     run = W.write_run(tmp_path / "run", d / "nowall", T, ["ok"] * len(T))
+    _tracked_in(run, m)
     manifest = (m / "manifest.json").read_bytes()
     r = _cli("map", "changes", "--map", m, "--run", run, "--seq", short)
     lines = r.stderr.strip().splitlines()
@@ -210,6 +217,7 @@ def test_cli_a_sequence_shorter_than_the_run_is_refused_before_any_work(base, tm
     assert (m / "manifest.json").read_bytes() == manifest and not (m / "versions").exists()
     # the sequence the run records, cut since: named as the run's
     cut = W.write_run(tmp_path / "run_cut", short, T, ["ok"] * len(T))
+    _tracked_in(cut, m)
     r = _cli("map", "changes", "--map", m, "--run", cut)
     assert r.returncode == 2 and r.stderr.strip() == (
         f"error: --run {cut}: its sequence {short}: 12 scans, fewer than the {len(T)} frames the run {cut} "
