@@ -57,14 +57,18 @@ def open_block_store(map_path: str | Path, option: str = "--map") -> MapStore:
 
 
 def open_run_sequence(run: RunPoses, seq: str | None, data_root: str | None):
-    """The sequence a run was made from (``seq``, else the name its metrics.json records), its
-    name and the config that fits it: (Sequence, name, Config)."""
+    """The sequence a run was made from (``seq``, else the name its metrics.json records), with
+    the trajectory the run gave it (``--poses``: the scans' stamps may come from it), its name and
+    the config that fits it: (Sequence, name, Config)."""
     name = seq or run.sequence
     if not name:
         raise RunError(f"--run {run.path}: its metrics.json names no sequence (an interrupted run?); give --seq")
+    if run.poses is not None and not Path(run.poses).is_file():
+        raise RunError(f"--run {run.path}: the trajectory it was tracked with (--poses {run.poses}) is not there "
+                       "any more (expected it where the run's metrics.json records it)")
     try:
         cfg = config_for_sequence(name)
-        return open_sequence(name, data_root=data_root, dataset_cfg=cfg.dataset), name, cfg
+        return open_sequence(name, data_root=data_root, dataset_cfg=cfg.dataset, poses=run.poses), name, cfg
     except DatasetError as exc:
         if seq is not None:  # the user's own --seq: its error as it is
             raise

@@ -71,3 +71,41 @@ def test_a_run_tracked_in_another_map_is_refused(tiny_world, tmp_path, monkeypat
     r = cli_process("map", "changes", "--map", other, "--run", run, cwd=work)
     assert r.code == 0, r.err
     assert f"{run}: tracked in maps/walk, which cannot be compared with {other} here" in r.err, r.err
+
+
+@case(11, "track --seq FOLDER --poses FILE where the scans have no stamps of their own (the trajectory gives "
+      "them, as docs/own_data.md's walk), then map changes --run RUN and map update MAP --run RUN from another "
+      "directory; then the trajectory moved away; then a run from before runs recorded their --poses",
+      "the scans reopened with the run's trajectory: exit 0, no 'no scan stamps' warning, every trusted frame "
+      "used; the trajectory gone: exit 2, one line naming the run and the file; the old run: as before, exit 0")
+def test_changes_and_update_reopen_the_runs_poses(tiny_world, tmp_path):
+    folder = shutil.copytree(tiny_world["folder"], tmp_path / "walk")
+    for i, scan in enumerate(sorted((folder / "scans").iterdir())):  # names that are not times
+        scan.rename(scan.with_name(f"{i:06d}.pcd"))
+    traj = tmp_path / "poses" / "walk.tum"
+    traj.parent.mkdir()
+    (folder / "poses.tum").rename(traj)
+    m = shutil.copytree(tiny_world["map"], tmp_path / "map")
+    r = cli_process("track", "--seq", "walk", "--poses", "poses/walk.tum", "--map", "map", "--init", "gt",
+                    "--config", tiny_world["config"], "--out", "run", cwd=tmp_path)
+    assert r.code == 0 and "no scan stamps" not in r.err, r.err
+    run = tmp_path / "run"
+    metrics = (run / "metrics.json").read_text()
+    assert json.loads(metrics)["poses_arg"] == str(traj)
+    r = cli_process("map", "changes", "--map", m, "--run", run)
+    assert r.code == 0 and "WARNING" not in r.err, r.err
+    doc = json.loads((run / "changes.json").read_text())
+    assert doc["frames_trusted"] == doc["scans_used"] > 0 and doc["scans_rejected"] == 0, doc
+    r = cli_process("map", "update", m, "--run", run)
+    assert r.code == 0 and "WARNING" not in r.err, r.err
+    # the trajectory moved away: the scans' stamps cannot be had; nothing detected
+    traj.rename(tmp_path / "moved.tum")
+    line = _one_error(cli_process("map", "changes", "--map", m, "--run", run))
+    assert line == (f"error: --run {run}: the trajectory it was tracked with (--poses {traj}) is not there any "
+                    "more (expected it where the run's metrics.json records it)"), line
+    # a run from before runs recorded their --poses: opened as before
+    old = json.loads(metrics)
+    del old["poses_arg"]
+    (run / "metrics.json").write_text(json.dumps(old))
+    r = cli_process("map", "changes", "--map", m, "--run", run)
+    assert r.code == 0, r.err

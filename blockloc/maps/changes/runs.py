@@ -34,7 +34,9 @@ class RunPoses:
     made from (metrics.json's ``sequence_arg``, else its ``sequence`` name), or None; map: the
     map it was tracked in (metrics.json's ``map_path``, absolute, else its ``map`` as given to
     track), or None; map_id: that map's identity (``map_id``,
-    :func:`blockloc.maps.changes.versions.map_identity`), or None (runs from before it was recorded)."""
+    :func:`blockloc.maps.changes.versions.map_identity`), or None (runs from before it was recorded);
+    poses: the trajectory file the sequence was given (``--poses``, metrics.json's ``poses_arg``,
+    absolute), or None."""
 
     path: Path
     index: np.ndarray
@@ -44,6 +46,7 @@ class RunPoses:
     sequence: str | None
     map: str | None = None
     map_id: str | None = None
+    poses: str | None = None
 
     def __len__(self) -> int:
         return len(self.index)
@@ -119,4 +122,4 @@ def read_run(run_dir: str | Path, settle_frames: int = 10) -> RunPoses:
     # the --seq the run was given (since 2026-12-07), else its display name (a sim name opens again)
     return RunPoses(run_dir, idx[keep], stamps[keep], traj.poses[j[keep]] if has else np.zeros((0, 4, 4)),
                     dict(zip(idx.tolist(), status)), text("sequence_arg", "sequence"),
-                    map=text("map_path", "map"), map_id=text("map_id"))
+                    map=text("map_path", "map"), map_id=text("map_id"), poses=text("poses_arg"))
