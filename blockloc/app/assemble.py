@@ -170,6 +170,23 @@ def evaluation_options(cfg: Config) -> dict[str, Any]:
     return {"align": ev.align, "max_time_diff_s": ev.max_time_diff_s, "rpe_deltas_m": ev.rpe_deltas_m}
 
 
+def map_facts(store: MapStore) -> dict[str, str]:
+    """What a run records of the map it tracks in (its ``metrics.json``), for ``map changes`` and
+    ``map update`` to tell whether a run was tracked in the map they are given: ``map_path``
+    (absolute, or the URL) and ``map_id``, the store's identity, the same wherever it was moved
+    or copied to and through its updates (:func:`blockloc.maps.changes.versions.map_identity`;
+    left out for a store without one)."""
+    from pathlib import Path
+
+    from blockloc.maps.changes.versions import map_identity
+
+    facts = {"map_path": store.path if store.files.is_remote else str(Path(store.path).resolve())}
+    identity = map_identity(store)
+    if identity is not None:
+        facts["map_id"] = identity
+    return facts
+
+
 def build_session(cfg: Config, seq, store: MapStore, *, backend: str | None = None, observers: Sequence = (),
                   out_dir=None, keep_estimates: bool = False, facts: dict | None = None) -> Session:
     """All parts of a :class:`Session` from a config: the engine ``registration.method``, the map
@@ -185,7 +202,8 @@ def build_session(cfg: Config, seq, store: MapStore, *, backend: str | None = No
         session = Session(seq, None, provider, localizer=localizer, store=store, init_settings=init_settings(gi),
                           observers=observers, out_dir=out_dir, keep_estimates=keep_estimates,
                           evaluation=evaluation_options(cfg), plots=cfg.evaluation.plots,
-                          facts={"backend": backend, "registration": rc.method, **(facts or {})},
+                          facts={"backend": backend, "registration": rc.method, **map_facts(store),
+                                 **(facts or {})},
                           config=cfg.to_dict())
         session.tracker = make_tracker(cfg, seq.info, map_provider=provider, registration=engine,
                                        relocalize=session.relocalize,

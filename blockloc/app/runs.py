@@ -70,11 +70,14 @@ def open_session(seq: str, *, cfg: Config, map_path: str | None = None, backend:
                         poses=poses, want_imu=cfg.tracking.use_imu)
     path = resolve_map(ref, map_path, backend, cfg, data_root)
     store = open_store(path, cfg.map)
-    # `--seq` as `map changes --run` / `map update --run` can open it again (a path made absolute:
-    # the run may be read from another directory); metrics.json's "sequence" is the display name
-    again = str(ref.path.resolve()) if ref.path is not None else ref.text
+    # `--seq` (and `--poses`) as `map changes --run` / `map update --run` can open it again (a path
+    # made absolute: the run may be read from another directory); metrics.json's "sequence" is the
+    # display name
+    facts = {"map": path, "sequence_arg": str(ref.path.resolve()) if ref.path is not None else ref.text}
+    if isinstance(poses, (str, os.PathLike)):
+        facts["poses_arg"] = str(Path(poses).resolve())
     return build_session(cfg, sequence, store, backend=backend, observers=observers, out_dir=out_dir,
-                         keep_estimates=keep_estimates, facts={"map": path, "sequence_arg": again})
+                         keep_estimates=keep_estimates, facts=facts)
 
 
 def track(session: Session, *, mode: str, hint=None, max_frames: int | None = None,

@@ -14,17 +14,18 @@ log = logging.getLogger("blockloc")
 UPDATE_MIN_BYTES = 16 * 2**20
 
 
-def _detect(store, run_dir: Path, seq: str | None, data_root: str | None, stride: int):
+def _detect(store, opened, stride: int):
+    """One opened run's detection (:func:`blockloc.app.lifelong.open_run`), with its progress bar."""
     from blockloc.app.lifelong import detect_run_changes
     from blockloc.commands.common import progress
 
-    with progress(f"changes {Path(run_dir).name}") as cb:
-        return detect_run_changes(store, run_dir, seq=seq, data_root=data_root, stride=stride, progress=cb)
+    with progress(f"changes {opened.run.path.name}") as cb:
+        return detect_run_changes(store, opened, stride=stride, progress=cb)
 
 
 def changes_command(map_path: str, run_dir: Path, seq: str | None, out: Path | None, data_root: str | None,
                     stride: int) -> None:
-    from blockloc.app.lifelong import open_block_store, write_changes
+    from blockloc.app.lifelong import open_block_store, open_run, write_changes
     from blockloc.fileio import check_output_parent
 
     out = Path(out) if out is not None else Path(run_dir) / "changes.json"
@@ -33,7 +34,7 @@ def changes_command(map_path: str, run_dir: Path, seq: str | None, out: Path | N
 
     check_file_replaceable(out, "--out", _is_changes_report, "the change reports")
     store = open_block_store(map_path, "--map")
-    found = _detect(store, Path(run_dir), seq, data_root, stride)
+    found = _detect(store, open_run(store, Path(run_dir), seq=seq, data_root=data_root), stride)
     doc = write_changes(found.result, store, out, run_dir, map=str(map_path), run=str(run_dir),
                         sequence=found.sequence_name)
     print_changes(doc, out)
@@ -71,7 +72,7 @@ def print_changes(doc: dict, out: Path) -> None:
 
 def update_command(map_path: str, runs: list[Path], seqs: list[str] | None, out: Path | None,
                    data_root: str | None, stride: int, strong_scans: int, min_runs: int) -> None:
-    from blockloc.app.lifelong import open_block_store, update_map
+    from blockloc.app.lifelong import open_block_store, open_run, update_map
     from blockloc.errors import MapError
 
     seqs = list(seqs or [])
@@ -87,9 +88,12 @@ def update_command(map_path: str, runs: list[Path], seqs: list[str] | None, out:
 
     claim_output(Path(out) if out is not None else Path(map_path), "--out" if out is not None else "MAP",
                  need_bytes=max(UPDATE_MIN_BYTES, store.total_bytes if out is not None else 0))
+    # every run read and checked against its sequence before the first detection
+    opened = [open_run(store, Path(run_dir), seq=seqs[k] if seqs else None, data_root=data_root)
+              for k, run_dir in enumerate(runs)]
     detected = []
-    for k, run_dir in enumerate(runs):
-        found = _detect(store, Path(run_dir), seqs[k] if seqs else None, data_root, stride)
+    for run_dir, one in zip(runs, opened):
+        found = _detect(store, one, stride)
         print(f"{run_dir}: {found.result.scans_used} scans used, {found.result.scans_rejected} dropped by the "
               "consistency gate", file=sys.stderr)
         detected.append(found)

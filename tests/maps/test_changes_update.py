@@ -185,6 +185,45 @@ def test_cli_changes_update_info_rollback(base, tmp_path):
     assert r.returncode == 2 and "already exists" in r.stderr
 
 
+def _tracked_in(run, map_path):
+    """Record in ``run``'s metrics.json the map it was tracked in, as ``blockloc track`` does."""
+    metrics = run / "metrics.json"
+    metrics.write_text(json.dumps({**json.loads(metrics.read_text()), "map": str(map_path)}))
+
+
+def test_cli_a_sequence_shorter_than_the_run_is_refused_before_any_work(base, tmp_path):
+    """``--seq`` with fewer scans than the run tracked (another recording, a cut copy): one line
+    naming --seq, its scan count and the run's frame count, exit 2, nothing detected nor written
+    (it was an IndexError, exit 1, once the detection reached the first frame past its end)."""
+    import shutil
+
+    d, T = base
+    shutil.copytree(d / "map", tmp_path / "map")
+    m = tmp_path / "map"
+    short = W.write_scan_folder(tmp_path / "short", "nowall", T[:12])
+    run = W.write_run(tmp_path / "run", d / "nowall", T, ["ok"] * len(T))
+    _tracked_in(run, m)
+    manifest = (m / "manifest.json").read_bytes()
+    r = _cli("map", "changes", "--map", m, "--run", run, "--seq", short)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert lines[0] == (f"error: --seq {short}: 12 scans, fewer than the {len(T)} frames the run {run} tracked "
+                        "(expected the sequence it was tracked on)"), lines
+    assert not (run / "changes.json").exists()
+    # update: the second run's sequence checked before the first run is detected
+    r = _cli("map", "update", m, "--run", run, "--run", run, "--seq", d / "nowall", "--seq", short)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith(f"error: --seq {short}: 12 scans"), r.stderr
+    assert (m / "manifest.json").read_bytes() == manifest and not (m / "versions").exists()
+    # the sequence the run records, cut since: named as the run's
+    cut = W.write_run(tmp_path / "run_cut", short, T, ["ok"] * len(T))
+    _tracked_in(cut, m)
+    r = _cli("map", "changes", "--map", m, "--run", cut)
+    assert r.returncode == 2 and r.stderr.strip() == (
+        f"error: --run {cut}: its sequence {short}: 12 scans, fewer than the {len(T)} frames the run {cut} "
+        "tracked (expected the sequence it was tracked on)"), r.stderr
+
+
 def test_served_clients_pick_up_a_new_version_when_they_open_the_map_again(base, tmp_path):
     """``map serve`` reads files per request: a client that opens the map after an update (or a
     rollback) gets that version; one still holding the old version reads its old block files

@@ -31,7 +31,12 @@ class RunError(BlocklocError):
 class RunPoses:
     """A run's trusted frames. index: (N,) frame index; stamps: (N,) s; T_map_body: (N, 4, 4);
     statuses: every diagnostics row's status by frame index; sequence: the ``--seq`` the run was
-    made from (metrics.json's ``sequence_arg``, else its ``sequence`` name), or None."""
+    made from (metrics.json's ``sequence_arg``, else its ``sequence`` name), or None; map: the
+    map it was tracked in (metrics.json's ``map_path``, absolute, else its ``map`` as given to
+    track), or None; map_id: that map's identity (``map_id``,
+    :func:`blockloc.maps.changes.versions.map_identity`), or None (runs from before it was recorded);
+    poses: the trajectory file the sequence was given (``--poses``, metrics.json's ``poses_arg``,
+    absolute), or None."""
 
     path: Path
     index: np.ndarray
@@ -39,9 +44,18 @@ class RunPoses:
     T_map_body: np.ndarray
     statuses: dict
     sequence: str | None
+    map: str | None = None
+    map_id: str | None = None
+    poses: str | None = None
 
     def __len__(self) -> int:
         return len(self.index)
+
+    @property
+    def num_frames(self) -> int:
+        """Frames of its sequence the run went through: the last diagnostics row's index + 1 (0
+        for a run without rows)."""
+        return max(self.statuses) + 1 if self.statuses else 0
 
 
 class TrustedFrames:
@@ -93,14 +107,19 @@ def read_run(run_dir: str | Path, settle_frames: int = 10) -> RunPoses:
     has = len(traj.stamps) > 0
     match = has & (np.abs(traj.stamps[j] - stamps) < 1e-4) if has else np.zeros(len(stamps), bool)
     keep = trusted & match
-    seq = None
+    doc = {}
     metrics = run_dir / "metrics.json"
     if metrics.is_file():
         try:
             doc = json.loads(metrics.read_text())
-            # the --seq the run was given (since 2026-12-07), else its display name (a sim name opens again)
-            seq = (doc.get("sequence_arg") or doc.get("sequence")) if isinstance(doc, dict) else None
         except (OSError, ValueError):
-            seq = None
+            doc = {}
+    doc = doc if isinstance(doc, dict) else {}
+
+    def text(*keys: str) -> str | None:
+        return next((str(doc[k]) for k in keys if isinstance(doc.get(k), str) and doc[k]), None)
+
+    # the --seq the run was given (since 2026-12-07), else its display name (a sim name opens again)
     return RunPoses(run_dir, idx[keep], stamps[keep], traj.poses[j[keep]] if has else np.zeros((0, 4, 4)),
-                    dict(zip(idx.tolist(), status)), seq)
+                    dict(zip(idx.tolist(), status)), text("sequence_arg", "sequence"),
+                    map=text("map_path", "map"), map_id=text("map_id"), poses=text("poses_arg"))

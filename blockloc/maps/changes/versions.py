@@ -14,17 +14,22 @@ A version is written completely (its block files, then ``versions/vNNNN.json``) 
 ``manifest.json`` is replaced by it in one atomic rename: a reader sees the old version or the new
 one, never a mix. ``rollback`` replaces ``manifest.json`` by an older version's the same way.
 A store without ``versions/`` is version 1 (its history starts when it is first updated).
+
+A store's identity (:func:`map_identity`) is that of its version 1, as built: the same through
+its updates and rollbacks, and wherever it is moved or copied to; a run records the identity of
+the map it was tracked in (its ``metrics.json``'s ``map_id``).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import re
 import time
 from pathlib import Path
 
-from blockloc.errors import MapError
+from blockloc.errors import BlocklocError, MapError
 from blockloc.fileio import atomic_write_bytes
 
 log = logging.getLogger(__name__)
@@ -70,6 +75,34 @@ def history(root: str | Path) -> list[dict]:
         out.append({"version": 1, "parent": None, "note": "as built", "runs": [], "changed_blocks": [],
                     "current": True})
     return out
+
+
+#: The manifest keys that make a store's identity: what its build wrote (the extras, such as a
+#: place index added later, and the lifelong record are left out).
+IDENTITY_KEYS = ("kind", "frame", "parameters", "created", "entries")
+
+
+def map_identity(store) -> str | None:
+    """The identity of a manifest store (a :class:`~blockloc.maps.store.MapStore`, local or
+    remote): 16 hex digits of the sha256 of its version 1's :data:`IDENTITY_KEYS` (from
+    ``versions/v0001.json`` once it was updated, else from ``manifest.json``). None for a store
+    in the released layout (no manifest), or updated but without its version 1 at hand (a served
+    store's history is not read: no request beyond its manifest)."""
+    if getattr(store, "legacy", False):
+        return None
+    files = store.files
+    try:
+        first = None if files.is_remote else version_path(Path(files.root), 1)
+        if first is not None and first.is_file():
+            doc = json.loads(first.read_bytes())
+        else:
+            doc = json.loads(files.read_bytes("manifest.json"))
+            if int((doc.get("lifelong") or {}).get("version", 1)) != 1:
+                return None  # an updated store whose history is gone
+    except (OSError, ValueError, TypeError, AttributeError, BlocklocError):
+        return None
+    built = {k: doc.get(k) for k in IDENTITY_KEYS}
+    return hashlib.sha256(json.dumps(built, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def _now() -> str:
