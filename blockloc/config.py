@@ -341,22 +341,45 @@ def config_file(source: str | Path) -> Path:
     return file
 
 
+def _read_config_file(file: Path) -> dict[str, Any]:
+    """The top-level mapping of the YAML config ``file``; ConfigError naming the file and saying a
+    YAML config was expected when it cannot be read, is binary (a PCD, a bag), is empty, is not
+    YAML or holds something else than a mapping of sections (a list, a bare word). A file of
+    comments only is the defaults."""
+    import yaml
+
+    expected = "expected a YAML config file (a mapping of sections such as 'map:')"
+    try:
+        raw = file.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"{file}: cannot be read ({exc.strerror or exc}), {expected}") from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{file}: binary bytes (not UTF-8 text at byte {exc.start}), {expected}") from None
+    if not text.strip():
+        raise ConfigError(f"{file}: empty, {expected}; '{{}}' for the defaults")
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{file}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    if data is None:  # comments only: nothing differs from the defaults
+        return {}
+    if not isinstance(data, dict):
+        kind = "a list" if isinstance(data, list) else f"a single value ({str(data)[:40]!r})"
+        raise ConfigError(f"{file}: {kind} at the top level, expected a mapping of sections (a YAML config "
+                          "file, sections such as 'map:')")
+    return data
+
+
 def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None,
                 overrides_source: str = "overrides", *, preset: str | None = None) -> Config:
     """Defaults, then the YAML file ``path`` (a path, or a preset name such as 'nclt': see
     :func:`config_file`) or else the preset named ``preset`` (never a file), then overrides."""
-    import yaml
-
     cfg = Config()
     file = config_file(path) if path else (preset_path(preset) if preset else None)
     if file is not None:
-        try:
-            data = yaml.safe_load(file.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{file}: not valid YAML ({str(exc).splitlines()[0]})") from None
-        if not isinstance(data, dict):
-            raise ConfigError(f"{file}: expected a mapping of sections at the top level")
-        cfg = merge(cfg, data, str(file))
+        cfg = merge(cfg, _read_config_file(file), str(file))
     if overrides:
         cfg = merge(cfg, overrides, overrides_source)
     return cfg

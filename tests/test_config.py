@@ -116,3 +116,11 @@ def test_a_mistyped_section_is_named_as_a_section():
     with pytest.raises(ConfigError) as err:
         merge(Config(), {"registraton": {"method": "ndt"}}, "--set")
     assert str(err.value).startswith("--set: unknown section 'registraton' (expected one of: ") and ": :" not in str(err.value)
+
+
+def test_a_config_of_comments_only_is_the_defaults(tmp_path):
+    """Every line commented out is a deliberate 'nothing differs'; an empty file is refused (see
+    tests/faults/test_arguments.py: map-build-config-empty)."""
+    path = tmp_path / "c.yaml"
+    path.write_text("# map:\n#   voxel_size_m: 0.1\n")
+    assert load_config(path) == Config()

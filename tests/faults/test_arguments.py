@@ -65,6 +65,20 @@ BAD_INVOCATIONS = table("test_bad_invocation", [
          "exit 2, names the key", ("track", "--seq", S, "--map", M, "--init", "gt", "--config",
                                    "{root}/bad_ratio.yaml"),
          needle="registration.outlier_ratio: expected a value in (0, 1)"),
+    Case("map-build-config-binary", 6, "--config naming a binary PCD (a scan given as the config)",
+         "exit 2, names the file, a YAML config expected (was UnicodeDecodeError naming no file, exit 1)",
+         ("map", "build", "--seq", S, "--out", "{root}/m", "--config", "{pcd}"),
+         needle="global.pcd: binary bytes (not UTF-8 text at byte "),
+    Case("map-build-config-empty", 6, "--config naming an empty file", "exit 2, names the file, a YAML "
+         "config expected (was silently the defaults)", ("map", "build", "--seq", S, "--out", "{root}/m",
+                                                         "--config", "{root}/empty.yaml"),
+         needle="empty.yaml: empty, expected a YAML config file"),
+    Case("map-build-config-list", 6, "--config naming a YAML list", "exit 2, names the file, a mapping "
+         "expected", ("map", "build", "--seq", S, "--out", "{root}/m", "--config", "{root}/list.yaml"),
+         needle="list.yaml: a list at the top level, expected a mapping of sections (a YAML config file"),
+    Case("map-build-config-directory", 6, "--config naming a directory", "exit 2, names it, a YAML config "
+         "file expected", ("map", "build", "--seq", S, "--out", "{root}/m", "--config", "{userdir}"),
+         needle="thesis: a directory, expected a YAML config file"),
     Case("track-backend-bogus", 4, "--map-backend bogus", "exit 2, names the value and the choices",
          ("track", "--seq", S, "--map", M, "--init", "gt", "--map-backend", "bogus"), needle="'bogus'"),
     Case("track-seq-missing-path", 2, "--seq naming nothing", "exit 2, names it",
@@ -176,6 +190,8 @@ def places(tiny_world, tmp_path):
     (tmp_path / "bad_rate.yaml").write_text("imu:\n  rate_hz: .nan\n")
     (tmp_path / "bad_count.yaml").write_text("registration:\n  max_iterations: 0\n")
     (tmp_path / "bad_ratio.yaml").write_text("registration:\n  outlier_ratio: 1.5\n")
+    (tmp_path / "empty.yaml").write_text("")
+    (tmp_path / "list.yaml").write_text("- map\n- tracking\n")
     import shutil
 
     shutil.copytree(tiny_world["map"], tmp_path / "store")
