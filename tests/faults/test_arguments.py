@@ -236,6 +236,21 @@ def test_bad_invocation(c: Case, places):
     assert _tree(places["root"]) == before  # nothing deleted, nothing written: no work was done
 
 
+@case(4, "`--debug` after the command (`blockloc map changes --map NOMAP --run DIR --debug`), where the "
+      "error line's hint '(rerun with --debug for a traceback)' leads a user", "the traceback, as with "
+      "`blockloc --debug map changes ...` (was 'error: no such option --debug', exit 2); without it one line")
+def test_debug_anywhere_on_the_command_line(tmp_path):
+    from .conftest import cli_process
+
+    changes = ("map", "changes", "--map", tmp_path / "nomap", "--run", tmp_path)
+    for args in ((*changes, "--debug"), ("--debug", *changes), ("map", "--debug", *changes[1:])):
+        r = cli_process(*args)
+        assert r.code == 1 and "no such option" not in r.err, (args, r.err)
+        assert "Traceback" in r.err and r.err.rstrip().endswith("nomap: no such map directory"), (args, r.err)
+    r = cli_process(*changes)
+    assert r.code == 2 and r.err == f"error: {tmp_path / 'nomap'}: no such map directory\n"
+
+
 # ----------------------------------------------------------------------------- --help
 COMMANDS = [(), ("eval",), ("sim",), ("map",), ("map", "build"), ("map", "tile"), ("map", "info"),
             ("map", "plot"), ("map", "serve"), ("map", "index"), ("map", "changes"), ("map", "update"),
