@@ -118,6 +118,28 @@ def test_scientific_notation_in_set_and_config_file(tiny_world, tmp_path):
     assert used["registration"]["max_iterations"] == 30 and type(used["registration"]["max_iterations"]) is int
 
 
+@case(6, "`map build` of a scan folder without stamps (scans named 000000.pcd ..., KITTI poses without "
+      "times): the loader warns that it assumes 10 Hz", "the warning once, before the build's progress, as "
+      "track and init give it (was twice: the command opened the drive again after the build, for its "
+      "gravity)")
+def test_map_build_gives_a_drives_warning_once(tiny_world, tmp_path):
+    from blockloc.trajectory_io import read_tum, write_kitti
+
+    from .conftest import cli_process
+
+    folder = tmp_path / "walk"
+    (folder / "scans").mkdir(parents=True)
+    for i, scan in enumerate(sorted((tiny_world["folder"] / "scans").glob("*.pcd"), key=lambda p: float(p.stem))):
+        shutil.copy(scan, folder / "scans" / f"{i:06d}.pcd")
+    write_kitti(folder / "poses_kitti.txt", read_tum(tiny_world["folder"] / "poses.tum"), write_times=False)
+    r = cli_process("map", "build", "--seq", folder / "scans", "--poses", folder / "poses_kitti.txt", "--block-size",
+                    "8", "--nominal-mounting", "--no-refine-poses", "--out", tmp_path / "map")
+    assert r.code == 0, r.err
+    warnings = [ln for ln in r.err.splitlines() if "no scan stamps" in ln]
+    assert len(warnings) == 1 and warnings[0].startswith("WARNING "), r.err
+    assert r.err.index("no scan stamps") < r.err.index("map build tasks")
+
+
 @case(6, "the defaults and every preset against the declared ranges", "all within them (a bound "
       "that rejects a shipped value would be wrong)")
 def test_defaults_and_presets_lie_in_their_ranges():
