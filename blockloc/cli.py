@@ -55,7 +55,7 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def _main(
-    debug: bool = typer.Option(False, "--debug", help="Show tracebacks and debug logs."),
+    debug: bool = typer.Option(False, "--debug", help="Show tracebacks and debug logs (anywhere on the command line)."),
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Info-level logs."),
     version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
                                  help="Print the version and exit."),
@@ -510,6 +510,16 @@ def _say(message: str) -> None:
     typer.echo(message, err=True)
 
 
+def _debug_first(args: list[str]) -> list[str]:
+    """``args`` with every ``--debug`` before a ``--`` moved to the front, where the group's option
+    is parsed: ``blockloc map changes ... --debug`` (as the error line's hint suggests) works as
+    ``blockloc --debug map changes ...`` does. No command has an option or value of that name."""
+    end = args.index("--") if "--" in args else len(args)
+    if "--debug" not in args[:end]:
+        return args
+    return ["--debug"] + [a for a in args[:end] if a != "--debug"] + args[end:]
+
+
 def main() -> None:
     """Console-script entry point: run the app, turn known errors into one line.
 
@@ -521,7 +531,7 @@ def main() -> None:
     install_signal_handlers()
     try:
         try:
-            code = app(standalone_mode=False)
+            code = app(args=_debug_first(sys.argv[1:]), standalone_mode=False)
         except (Exception, KeyboardInterrupt):
             if RECEIVED:  # the Stopped a signal raised became another error where it landed
                 raise Stopped(RECEIVED[-1]) from None

@@ -13,9 +13,11 @@ import dataclasses
 import logging
 import math
 import os
+import re
 import types
 import typing
 from dataclasses import dataclass, field
+from decimal import Decimal
 from pathlib import Path
 from typing import Any
 
@@ -209,8 +211,30 @@ def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
 
 
+#: A number written in decimal, with or without an exponent: ``5e-1``, ``1E-6``, ``1e3``, ``-.5``.
+#: YAML 1.1 (PyYAML) reads a float only with a dot and a signed exponent, so these reach a field as
+#: strings (``--set tracking.min_fitness=5e-1``, ``voxel_size_m: 1e-6``).
+_DECIMAL = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?")
+
+
+def _number(value: Any) -> int | float | None:
+    """``value`` as the number it is or spells (a string in :data:`_DECIMAL`'s forms, or one of
+    float()'s names of nan and infinity); None for anything else (bools included)."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, (int, float)):
+        return value
+    if isinstance(value, str) and _DECIMAL.fullmatch(value):
+        return float(value)  # '1e999' is inf: refused as not finite
+    if isinstance(value, str) and value.strip().lower().lstrip("+-") in ("nan", "inf", "infinity"):
+        return float(value)
+    return None
+
+
 def _coerce(value: Any, tp: Any, where: str) -> Any:
-    """Check ``value`` against annotation ``tp``; int is accepted where float is expected."""
+    """Check ``value`` against annotation ``tp``. A float field takes an int or a number written as
+    text (``5e-1``: see :func:`_number`), finite; an int field takes an integer in any notation
+    (``20000``, ``2e4``, ``2.0e+4``) and refuses a fraction (``2.5``, ``1e-3``)."""
     origin = typing.get_origin(tp)
     if dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
@@ -242,14 +266,20 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
             return value
         raise ConfigError(f"{where}: expected true or false, got {value!r}")
     if tp is float:
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
-            if not math.isfinite(value):
-                raise ConfigError(f"{where}: expected a finite number, got {value!r}")
-            return float(value)
-        raise ConfigError(f"{where}: expected a number, got {value!r}")
+        number = _number(value)
+        if number is None:
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        if not math.isfinite(number):
+            raise ConfigError(f"{where}: expected a finite number, got {value!r}")
+        return float(number)
     if tp is int:
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
+        number = _number(value)
+        if isinstance(number, int):
+            return number
+        if number is not None and math.isfinite(number):
+            exact = Decimal(value) if isinstance(value, str) else Decimal(number)  # '1e3', or the float read
+            if exact == exact.to_integral_value() and abs(exact) < 2**63:
+                return int(exact)
         raise ConfigError(f"{where}: expected an integer, got {value!r}")
     if tp is str:
         if isinstance(value, str):
@@ -341,22 +371,45 @@ def config_file(source: str | Path) -> Path:
     return file
 
 
+def _read_config_file(file: Path) -> dict[str, Any]:
+    """The top-level mapping of the YAML config ``file``; ConfigError naming the file and saying a
+    YAML config was expected when it cannot be read, is binary (a PCD, a bag), is empty, is not
+    YAML or holds something else than a mapping of sections (a list, a bare word). A file of
+    comments only is the defaults."""
+    import yaml
+
+    expected = "expected a YAML config file (a mapping of sections such as 'map:')"
+    try:
+        raw = file.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"{file}: cannot be read ({exc.strerror or exc}), {expected}") from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{file}: binary bytes (not UTF-8 text at byte {exc.start}), {expected}") from None
+    if not text.strip():
+        raise ConfigError(f"{file}: empty, {expected}; '{{}}' for the defaults")
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{file}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    if data is None:  # comments only: nothing differs from the defaults
+        return {}
+    if not isinstance(data, dict):
+        kind = "a list" if isinstance(data, list) else f"a single value ({str(data)[:40]!r})"
+        raise ConfigError(f"{file}: {kind} at the top level, expected a mapping of sections (a YAML config "
+                          "file, sections such as 'map:')")
+    return data
+
+
 def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None,
                 overrides_source: str = "overrides", *, preset: str | None = None) -> Config:
     """Defaults, then the YAML file ``path`` (a path, or a preset name such as 'nclt': see
     :func:`config_file`) or else the preset named ``preset`` (never a file), then overrides."""
-    import yaml
-
     cfg = Config()
     file = config_file(path) if path else (preset_path(preset) if preset else None)
     if file is not None:
-        try:
-            data = yaml.safe_load(file.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{file}: not valid YAML ({str(exc).splitlines()[0]})") from None
-        if not isinstance(data, dict):
-            raise ConfigError(f"{file}: expected a mapping of sections at the top level")
-        cfg = merge(cfg, data, str(file))
+        cfg = merge(cfg, _read_config_file(file), str(file))
     if overrides:
         cfg = merge(cfg, overrides, overrides_source)
     return cfg

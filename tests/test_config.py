@@ -116,3 +116,48 @@ def test_a_mistyped_section_is_named_as_a_section():
     with pytest.raises(ConfigError) as err:
         merge(Config(), {"registraton": {"method": "ndt"}}, "--set")
     assert str(err.value).startswith("--set: unknown section 'registraton' (expected one of: ") and ": :" not in str(err.value)
+
+
+def test_a_config_of_comments_only_is_the_defaults(tmp_path):
+    """Every line commented out is a deliberate 'nothing differs'; an empty file is refused (see
+    tests/faults/test_arguments.py: map-build-config-empty)."""
+    path = tmp_path / "c.yaml"
+    path.write_text("# map:\n#   voxel_size_m: 0.1\n")
+    assert load_config(path) == Config()
+
+
+@pytest.mark.parametrize("text, section, key, value", [
+    ("tracking:\n  min_fitness: 5e-1\n", "tracking", "min_fitness", 0.5),
+    ("map:\n  voxel_size_m: 1E-6\n", "map", "voxel_size_m", 1e-6),
+    ("map:\n  block_size_m: 1e3\n", "map", "block_size_m", 1000.0),
+    ("map:\n  block_size_m: '40'\n", "map", "block_size_m", 40.0),
+    ("lidar:\n  max_points: 2e4\n", "lidar", "max_points", 20000),
+    ("lidar:\n  max_points: 2.0e+4\n", "lidar", "max_points", 20000),  # a YAML float, integral
+    ("evaluation:\n  rpe_deltas_m: [1e0, 1e1]\n", "evaluation", "rpe_deltas_m", (1.0, 10.0)),
+])
+def test_numbers_in_scientific_notation(tmp_path, text, section, key, value):
+    """YAML 1.1 reads 5e-1 (no dot, no exponent sign) as a string: a number field takes it."""
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    got = getattr(getattr(load_config(path), section), key)
+    assert got == value and type(got) is type(value)
+
+
+@pytest.mark.parametrize("text, needle", [
+    ("lidar:\n  max_points: 2.5e0\n", "lidar.max_points: expected an integer, got '2.5e0'"),
+    ("lidar:\n  max_points: 1e30\n", "lidar.max_points: expected an integer"),
+    ("map:\n  voxel_size_m: nan\n", "map.voxel_size_m: expected a finite number, got 'nan'"),
+    ("map:\n  voxel_size_m: -inf\n", "map.voxel_size_m: expected a finite number"),
+    ("map:\n  voxel_size_m: 1e-3.5\n", "map.voxel_size_m: expected a number, got '1e-3.5'"),
+    ("map:\n  voxel_size_m: 1_0e1\n", "map.voxel_size_m: expected a number"),
+    ("map:\n  backend: 1e3\n", None),  # a string field keeps the text
+])
+def test_what_scientific_notation_does_not_open(tmp_path, text, needle):
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    if needle is None:
+        assert load_config(path).map.backend == "1e3"
+        return
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    assert needle in str(err.value)

@@ -76,11 +76,18 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
             store = add_place_index(out, gravity_map, cfg)
         print_summary(map_summary(store), console())
         return
+    from blockloc.maps.build_tasks import drive_info, forget_drives
     from blockloc.maps.distributed import open_executor
 
     drives = [parse_drive(s, poses[i] if poses and poses[i] not in ("", "-") else None,
                           data_root=data_root, dataset_cfg=cfg.dataset, max_frames=max_frames)
               for i, s in enumerate(seqs)]
+    if not is_url(str(out)):  # the place index below needs the first drive's gravity: read it from
+        # the drive as the build opens it (opening it again after the build, as before, read
+        # its data twice and gave each of its warnings twice)
+        gravity_map = drive_info(drives[0]).gravity_map
+        if cluster:  # the workers open their own: none kept here meanwhile
+            forget_drives(drives[:1])
     with open_executor(cluster) as ex:
         if cluster:
             link = ex.dashboard_link
@@ -93,7 +100,7 @@ def build_command(seqs: list[str] | None, kind: str, out: str | Path, config: st
                                          calibrate_mounting=calibrate_mounting, refine_poses=refine_poses,
                                          remove_dynamic=remove_dynamic)
     if not is_url(str(out)):  # the place index (no-hint relocalization) goes with a local map
-        store = add_place_index(out, drives[0].open().info.gravity_map, cfg)
+        store = add_place_index(out, gravity_map, cfg)
     print_summary(map_summary(store), console())
 
 

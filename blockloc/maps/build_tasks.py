@@ -132,6 +132,13 @@ def _touch(key: str) -> None:
         _OPENED.move_to_end(k)
 
 
+def drive_info(drive: Drive):
+    """The ``SequenceInfo`` of ``drive``'s sequence, from this process's opened drives (opened
+    here now when no task of this process has: a serial build's tasks then reuse it, and the
+    warnings of opening it are given once)."""
+    return _opened(drive)[0].info
+
+
 def forget_drives(drives) -> None:
     """Drop the opened sequences of ``drives`` from this process's cache."""
     with _OPENED_LOCK:

@@ -47,6 +47,17 @@ BAD_INVOCATIONS = table("test_bad_invocation", [
     Case("track-set-out-of-range", 6, "--set map.voxel_size_m=-1", "exit 2, names the key and its range",
          ("track", "--seq", S, "--map", M, "--init", "gt", "--set", "map.voxel_size_m=-1"),
          needle="map.voxel_size_m: expected a value >= 0"),
+    Case("track-set-integer-fraction", 6, "--set registration.max_iterations=2.5e0",
+         "exit 2, names the key: an integer field refuses a fraction in any notation",
+         ("track", "--seq", S, "--map", M, "--init", "gt", "--set", "registration.max_iterations=2.5e0"),
+         needle="registration.max_iterations: expected an integer, got '2.5e0'"),
+    Case("track-set-notation-out-of-range", 6, "--set tracking.min_fitness=5e0",
+         "exit 2, names the key and its range, the value read as 5.0 (was 'expected a number, got '5e0'')",
+         ("track", "--seq", S, "--map", M, "--init", "gt", "--set", "tracking.min_fitness=5e0"),
+         needle="tracking.min_fitness: expected a value in [0, 1], got 5.0"),
+    Case("track-set-nan-text", 6, "--set tracking.min_fitness=nan", "exit 2, names the key: a finite number",
+         ("track", "--seq", S, "--map", M, "--init", "gt", "--set", "tracking.min_fitness=nan"),
+         needle="tracking.min_fitness: expected a finite number, got 'nan'"),
     Case("track-config-missing", 4, "--config naming no file", "exit 2, names the file and the presets",
          ("track", "--seq", S, "--map", M, "--init", "gt", "--config", "{root}/nosuch.yaml"),
          needle="nosuch.yaml: no such config file"),
@@ -65,6 +76,20 @@ BAD_INVOCATIONS = table("test_bad_invocation", [
          "exit 2, names the key", ("track", "--seq", S, "--map", M, "--init", "gt", "--config",
                                    "{root}/bad_ratio.yaml"),
          needle="registration.outlier_ratio: expected a value in (0, 1)"),
+    Case("map-build-config-binary", 6, "--config naming a binary PCD (a scan given as the config)",
+         "exit 2, names the file, a YAML config expected (was UnicodeDecodeError naming no file, exit 1)",
+         ("map", "build", "--seq", S, "--out", "{root}/m", "--config", "{pcd}"),
+         needle="global.pcd: binary bytes (not UTF-8 text at byte "),
+    Case("map-build-config-empty", 6, "--config naming an empty file", "exit 2, names the file, a YAML "
+         "config expected (was silently the defaults)", ("map", "build", "--seq", S, "--out", "{root}/m",
+                                                         "--config", "{root}/empty.yaml"),
+         needle="empty.yaml: empty, expected a YAML config file"),
+    Case("map-build-config-list", 6, "--config naming a YAML list", "exit 2, names the file, a mapping "
+         "expected", ("map", "build", "--seq", S, "--out", "{root}/m", "--config", "{root}/list.yaml"),
+         needle="list.yaml: a list at the top level, expected a mapping of sections (a YAML config file"),
+    Case("map-build-config-directory", 6, "--config naming a directory", "exit 2, names it, a YAML config "
+         "file expected", ("map", "build", "--seq", S, "--out", "{root}/m", "--config", "{userdir}"),
+         needle="thesis: a directory, expected a YAML config file"),
     Case("track-backend-bogus", 4, "--map-backend bogus", "exit 2, names the value and the choices",
          ("track", "--seq", S, "--map", M, "--init", "gt", "--map-backend", "bogus"), needle="'bogus'"),
     Case("track-seq-missing-path", 2, "--seq naming nothing", "exit 2, names it",
@@ -176,6 +201,8 @@ def places(tiny_world, tmp_path):
     (tmp_path / "bad_rate.yaml").write_text("imu:\n  rate_hz: .nan\n")
     (tmp_path / "bad_count.yaml").write_text("registration:\n  max_iterations: 0\n")
     (tmp_path / "bad_ratio.yaml").write_text("registration:\n  outlier_ratio: 1.5\n")
+    (tmp_path / "empty.yaml").write_text("")
+    (tmp_path / "list.yaml").write_text("- map\n- tracking\n")
     import shutil
 
     shutil.copytree(tiny_world["map"], tmp_path / "store")
@@ -207,6 +234,21 @@ def test_bad_invocation(c: Case, places):
     assert line.startswith("error: ")
     assert c.needle in line, line
     assert _tree(places["root"]) == before  # nothing deleted, nothing written: no work was done
+
+
+@case(4, "`--debug` after the command (`blockloc map changes --map NOMAP --run DIR --debug`), where the "
+      "error line's hint '(rerun with --debug for a traceback)' leads a user", "the traceback, as with "
+      "`blockloc --debug map changes ...` (was 'error: no such option --debug', exit 2); without it one line")
+def test_debug_anywhere_on_the_command_line(tmp_path):
+    from .conftest import cli_process
+
+    changes = ("map", "changes", "--map", tmp_path / "nomap", "--run", tmp_path)
+    for args in ((*changes, "--debug"), ("--debug", *changes), ("map", "--debug", *changes[1:])):
+        r = cli_process(*args)
+        assert r.code == 1 and "no such option" not in r.err, (args, r.err)
+        assert "Traceback" in r.err and r.err.rstrip().endswith("nomap: no such map directory"), (args, r.err)
+    r = cli_process(*changes)
+    assert r.code == 2 and r.err == f"error: {tmp_path / 'nomap'}: no such map directory\n"
 
 
 # ----------------------------------------------------------------------------- --help

@@ -67,6 +67,14 @@ CONFIG_RANGES = table("test_config_value_out_of_range", [
          needle="evaluation.rpe_deltas_m: expected a value > 0"),
     Case("band-nan", 6, "global_init.height_band_m: [0.3, .nan]", "ConfigError naming the element",
          needle="global_init.height_band_m[1]: expected a finite"),
+    Case("fraction-in-scientific-notation", 6, "tracking.min_fitness: 5e0",
+         "ConfigError: in [0, 1], the value read as 5.0 (was 'expected a number')",
+         needle="tracking.min_fitness: expected a value in [0, 1], got 5.0"),
+    Case("rate-overflowing-notation", 6, "imu.rate_hz: 1e999", "ConfigError: expected a finite number",
+         needle="imu.rate_hz: expected a finite number, got '1e999'"),
+    Case("count-a-fraction-in-notation", 6, "registration.max_iterations: 2.5e0",
+         "ConfigError: an integer field refuses a fraction in any notation",
+         needle="registration.max_iterations: expected an integer, got '2.5e0'"),
 ])
 
 
@@ -83,6 +91,53 @@ def test_config_value_out_of_range(c: Case, tmp_path):
         load_config(path)
     msg = str(err.value)
     assert msg.startswith(f"{path}: ") and c.needle in msg and "\n" not in msg
+
+
+@case(6, "numbers in scientific notation, which YAML 1.1 (PyYAML) reads as strings: `--set "
+      "tracking.min_fitness=5e-1`, `--set registration.max_iterations=3E1`, a config file with "
+      "`voxel_size_m: 4e-1` and `max_points: 6e3`",
+      "exit 0; the run's config.yaml holds the floats 0.5 and 0.4 and the integers 30 and 6000 (was "
+      "'expected a number, got '5e-1''); an integer field takes an integral value in any notation")
+def test_scientific_notation_in_set_and_config_file(tiny_world, tmp_path):
+    import yaml
+
+    from . import tiny
+
+    config = tmp_path / "sci.yaml"  # tiny.CONFIG, with numbers as a user may write them
+    config.write_text(f"lidar:\n  rate_hz: {tiny.RATE_HZ}\n  max_points: 6e3\n  voxel_size_m: 4e-1\n"
+                      f"map:\n  block_size_m: {tiny.BLOCK_SIZE_M}\n  prefetch: false\n"
+                      "evaluation:\n  plots: false\n")
+    out = tmp_path / "res"
+    r = cli_in_process("track", "--seq", tiny_world["session"], "--map", tiny_world["map"], "--init", "gt",
+                       "--config", config, "--out", out, "--max-frames", "2", "--no-record",
+                       "--set", "tracking.min_fitness=5e-1", "--set", "registration.max_iterations=3E1")
+    assert r.code == 0, r.err
+    used = yaml.safe_load((out / "config.yaml").read_text())
+    assert used["tracking"]["min_fitness"] == 0.5 and used["lidar"]["voxel_size_m"] == 0.4
+    assert used["lidar"]["max_points"] == 6000 and type(used["lidar"]["max_points"]) is int
+    assert used["registration"]["max_iterations"] == 30 and type(used["registration"]["max_iterations"]) is int
+
+
+@case(6, "`map build` of a scan folder without stamps (scans named 000000.pcd ..., KITTI poses without "
+      "times): the loader warns that it assumes 10 Hz", "the warning once, before the build's progress, as "
+      "track and init give it (was twice: the command opened the drive again after the build, for its "
+      "gravity)")
+def test_map_build_gives_a_drives_warning_once(tiny_world, tmp_path):
+    from blockloc.trajectory_io import read_tum, write_kitti
+
+    from .conftest import cli_process
+
+    folder = tmp_path / "walk"
+    (folder / "scans").mkdir(parents=True)
+    for i, scan in enumerate(sorted((tiny_world["folder"] / "scans").glob("*.pcd"), key=lambda p: float(p.stem))):
+        shutil.copy(scan, folder / "scans" / f"{i:06d}.pcd")
+    write_kitti(folder / "poses_kitti.txt", read_tum(tiny_world["folder"] / "poses.tum"), write_times=False)
+    r = cli_process("map", "build", "--seq", folder / "scans", "--poses", folder / "poses_kitti.txt", "--block-size",
+                    "8", "--nominal-mounting", "--no-refine-poses", "--out", tmp_path / "map")
+    assert r.code == 0, r.err
+    warnings = [ln for ln in r.err.splitlines() if "no scan stamps" in ln]
+    assert len(warnings) == 1 and warnings[0].startswith("WARNING "), r.err
+    assert r.err.index("no scan stamps") < r.err.index("map build tasks")
 
 
 @case(6, "the defaults and every preset against the declared ranges", "all within them (a bound "
