@@ -24,6 +24,7 @@ from blockloc.global_init.relocalize import pose_error
 from blockloc.jit import CompileClock
 from blockloc.global_init.scan_prep import gravity_from_imu, prepare_for_init
 from blockloc.global_init.second_scan import Ambiguity, follow_up
+from blockloc.global_init.verify import InitResult
 
 log = logging.getLogger("blockloc.app.session")
 
@@ -76,9 +77,18 @@ class Recovery:
         with CompileClock() as jit:
             res = self._follow_up(scan.points_body, scan.gravity_body, scan.stamp, int(frame.index), init_info)
             if res is None:
-                res = self.localizer.localize(scan.points_body, scan.gravity_body, hint_xy, hint_yaw, s.window_m,
-                                              yaw_window if hint_xy is not None else 360.0)
-                self._remember(res, scan.points_body, scan.stamp, int(frame.index))
+                try:
+                    res = self.localizer.localize(scan.points_body, scan.gravity_body, hint_xy, hint_yaw,
+                                                  s.window_m, yaw_window if hint_xy is not None else 360.0)
+                except GlobalInitError as exc:
+                    # a scan the search cannot start from (open ground, a view blocked close by):
+                    # no pose from it, as from an unverified search; a start goes on with the next
+                    res = InitResult(None, 0.0, 0.0, [], False, 0.0, False, {"refused": str(exc)})
+                    init_info["refused"] = str(exc)
+                    init_info["refused_frames"] = init_info.get("refused_frames", 0) + 1
+                    log.info("frame %d: global init cannot start from this scan: %s", int(frame.index), exc)
+                else:
+                    self._remember(res, scan.points_body, scan.stamp, int(frame.index))
         # a first run after install compiles the kernels inside the search: reported apart
         init_info.update(time_s=max(0.0, time.perf_counter() - t0 - jit.seconds), compile_s=jit.seconds,
                          verified=bool(res.verified),

@@ -169,8 +169,9 @@ class Session:
             x, y, yaw = pose_hint
             T, res, t_ref = self._global_init(self.seq.frame(first), (x, y), yaw)
             if T is None:
+                why = res.stats.get("refused") or f"best fitness {res.fitness:.2f}"
                 raise TrackingError(f"global init around ({x:.1f}, {y:.1f}) found no verified pose "
-                                    f"(best fitness {res.fitness:.2f}); try another --init-pose or --window")
+                                    f"({why}); try another --init-pose or --window")
             # The pose is the body's at mid-sweep; the first scan's registration refines it at the
             # frame stamp (they differ by at most speed x half a sweep).
             self.tracker.initialize(T, stamp)

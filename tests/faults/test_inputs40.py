@@ -125,3 +125,29 @@ def test_a_manifest_parameter_of_the_wrong_type_is_named(tiny_world, tmp_path):
             line = r.err_lines[0]
             assert "manifest.json" in line and f"parameters.{key}" in line and "Traceback" not in r.err, line
             assert not (tmp_path / f"run_{key}").exists()  # refused before the run made its folder
+
+
+@case(11, "`blockloc track` without a pose (the no-hint start) on a scan folder whose first 3 scans hold "
+      "only 40 points each (open ground, a view blocked close by: too few for the global search to start "
+      "from)", "exit 0: those scans start nothing, as an unverified search does, and the start goes on "
+      "with the next scans; metrics.json counts the 3 refused scans and the frame the run started at")
+def test_a_no_hint_start_goes_on_past_scans_too_sparse_to_search(tiny_world, tmp_path):
+    import numpy as np
+
+    from blockloc.datasets.pointclouds import read_point_cloud, write_point_cloud
+
+    folder = tmp_path / "folder"
+    shutil.copytree(tiny_world["folder"], folder)
+    scans = sorted((folder / "scans").glob("*.pcd"), key=lambda p: float(p.stem))
+    for scan in scans[:3]:
+        c = read_point_cloud(scan)
+        keep = np.arange(0, len(c.points), len(c.points) // 40)[:40]
+        write_point_cloud(scan, c.points[keep].astype(np.float32), intensity=c.intensity[keep],
+                          extra={"time": np.asarray(c.time_offsets, np.float32)[keep]})
+    r = cli_process("track", "--seq", folder, "--map", tiny_world["map"], "--config", tiny_world["config"],
+                    "--out", tmp_path / "res", "--max-frames", "15")
+    assert r.code == 0, r.err
+    assert "Traceback" not in r.err
+    init = json.loads((tmp_path / "res" / "metrics.json").read_text())["init"]
+    assert init["refused_frames"] == 3 and init["first_frame"] >= 3, init
+    assert "expected at least" in init["refused"]
