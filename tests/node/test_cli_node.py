@@ -140,6 +140,31 @@ def test_play_stops_after_max_frames_and_rejects_a_bad_rate(tiny_live_world, loo
     assert bad.err.strip().splitlines()[-1].startswith("error: --rate 0")
 
 
+def test_play_pace_file_replaces_only_its_own(tiny_live_world, loopback_dds, tmp_path):
+    """``play --pace-file FILE`` over a user's file (notes, a figure) or a directory: exit 2 before
+    anything is published, one line naming --pace-file, the file unchanged (play replaced any file,
+    and a directory failed with IsADirectoryError once publishing had started); a pace file of its
+    own is replaced."""
+    import json
+
+    w = tiny_live_world
+    notes = tmp_path / "notes.txt"
+    notes.write_text("my notes")
+    (tmp_path / "folder").mkdir()
+    for target in (notes, tmp_path / "folder"):
+        p = Proc("play", "--seq", w["session"], "--config", w["config"], "--max-frames", "3", "--pace-file", target)
+        assert p.finish(60) == 2, p.err
+        lines = p.err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"error: --pace-file {target}: "), p.err
+    assert notes.read_text() == "my notes" and not any((tmp_path / "folder").iterdir())
+    pace = tmp_path / "pace.json"
+    for _ in range(2):  # its own file, written then replaced
+        p = Proc("play", "--seq", w["session"], "--config", w["config"], "--max-frames", "3", "--rate", "4",
+                 "--pace-file", pace)
+        assert p.finish(60) == 0, p.err
+        assert json.loads(pace.read_text())["clock"] == "CLOCK_MONOTONIC"
+
+
 def test_node_with_a_missing_map_is_one_error_line(loopback_dds, tmp_path):
     p = Proc("node", "--map", tmp_path / "nowhere")
     assert p.finish(60) == 2
