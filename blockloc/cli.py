@@ -392,6 +392,7 @@ def demo_cmd(
 @app.command("node")
 def node_cmd(
     map_path: str = typer.Option(..., "--map", metavar=MAP, help="Map store directory or URL."),
+    backend: Optional[str] = typer.Option(None, "--map-backend", metavar="BACKEND", help="block | grid | srt | global."),
     config: Optional[str] = typer.Option(None, "--config", metavar=FILE, help="Config file or preset name."),
     init_pose: Optional[str] = typer.Option(None, "--init-pose", metavar="X,Y[,YAW]",
                                             help="x,y[,yaw]: global init around a hint (default: the whole map)."),
@@ -420,7 +421,7 @@ def node_cmd(
 
     node_command(map_path, config, init_pose, points_topic, imu_topic, out, discovery, gravity, sets or [],
                  no_data_timeout_s=no_data_timeout, frames={"map": map_frame, "odom": odom_frame, "base": base_frame},
-                 detect_changes=detect_changes, changes_stride=changes_stride)
+                 detect_changes=detect_changes, changes_stride=changes_stride, backend=backend)
 
 
 @app.command("play")

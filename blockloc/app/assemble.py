@@ -108,6 +108,13 @@ def make_provider(store: MapStore, backend: str, mc: MapConfig, engine) -> MapPr
                        cache_mb=mc.cache_mb, retry_missing_s=mc.retry_missing_s)
 
 
+def check_backend(store: MapStore, backend: str, mc: MapConfig) -> None:
+    """MapError, before any work, unless the map policy ``backend`` can serve ``store`` (a block
+    map for ``block``, a grid map for ``grid`` / ``srt``): what :func:`build_session` would raise
+    on a live source's first scan."""
+    make_policy(backend, store, **policy_settings(mc))
+
+
 # ----------------------------------------------------------------------------- global init
 def init_params(gi: GlobalInitConfig, rc: RegistrationConfig | None = None):
     """The global localizer's parameters (``InitParams``) from the ``global_init`` section."""

@@ -5,20 +5,26 @@ coordinates, counted (``nonfinite_points``) and warned about once."""
 from __future__ import annotations
 
 import logging
+from collections import deque
+
+import numpy as np
 
 log = logging.getLogger("blockloc.app.session")
 
 IMU_GAP_WARN_S = 0.5  # an IMU gap longer than this is logged and counted (once per gap)
 LIDAR_GAP_FACTOR = 3.0  # a gap between scans of more than this many scan periods is logged
+LIVE_PERIOD_SCANS = 50  # a source of unknown rate: its scan period is the median of this many last spacings
 
 
 class StreamChecks:
-    """info: the sequence's SequenceInfo (``lidar_rate_hz``); counters: the session's counters."""
+    """info: the sequence's SequenceInfo (``lidar_rate_hz``; 0: unknown, a live source: the scan
+    period is learned from the stamps); counters: the session's counters."""
 
     def __init__(self, info, counters: dict) -> None:
         self.info = info
         self.counters = counters
         self._last_stamp: float | None = None
+        self._spacings: deque[float] = deque(maxlen=LIVE_PERIOD_SCANS)  # s, between the last scans
         self._imu_gap_s = 0.0  # the longest gap of the IMU gap in progress, or 0
 
     def restart(self) -> None:
@@ -38,15 +44,28 @@ class StreamChecks:
             log.warning("frame %d: IMU samples again, after a gap of %.2f s", index, self._imu_gap_s)
             self._imu_gap_s = 0.0
 
+    def scan_period(self) -> float | None:
+        """The scan period, s: the sequence's (``1 / lidar_rate_hz``: a recorded sequence's median
+        stamp spacing), else (rate 0, a live source) the median spacing of the last
+        LIVE_PERIOD_SCANS scans seen, the same rule on what has come so far; None before a spacing."""
+        rate = float(getattr(self.info, "lidar_rate_hz", 0.0) or 0.0)
+        if rate > 0:
+            return 1.0 / rate
+        return float(np.median(self._spacings)) if self._spacings else None
+
     def lidar_frame(self, frame) -> None:
         """Count and log a gap before ``frame`` longer than LIDAR_GAP_FACTOR scan periods, and the
         points its loader dropped for NaN/inf coordinates."""
         self._count_nonfinite(frame)
         stamp = float(frame.stamp)
-        period = 1.0 / max(float(getattr(self.info, "lidar_rate_hz", 10.0) or 10.0), 1e-6)
-        if self._last_stamp is not None and stamp - self._last_stamp > LIDAR_GAP_FACTOR * period:
-            self.counters["lidar_gaps"] += 1
-            log.warning("frame %d: no LiDAR scan for %.2f s before it", frame.index, stamp - self._last_stamp)
+        if self._last_stamp is not None:
+            gap = stamp - self._last_stamp
+            period = self.scan_period()  # from the spacings before this one
+            if period is not None and gap > LIDAR_GAP_FACTOR * period:
+                self.counters["lidar_gaps"] += 1
+                log.warning("frame %d: no LiDAR scan for %.2f s before it", frame.index, gap)
+            if gap > 0:
+                self._spacings.append(gap)
         self._last_stamp = stamp
 
     def _count_nonfinite(self, frame) -> None:

@@ -31,7 +31,8 @@ def map_gravity(store, option: str | None) -> np.ndarray:
 def node_command(map_path: str, config: str | None, init_pose: str | None, points_topic: str, imu_topic: str,
                  out: Path | None, discovery: str | None, gravity: str | None = None, sets: list[str] | None = None,
                  no_data_timeout_s: float = 5.0, queue_size: int = 2, frames: dict | None = None,
-                 detect_changes: bool = False, changes_stride: int = 1) -> None:
+                 detect_changes: bool = False, changes_stride: int = 1, backend: str | None = None) -> None:
+    """``backend``: the map policy (``--map-backend``; None: the config's ``map.backend``)."""
     from blockloc.app.runs import write_run_report
     from blockloc.commands.common import Interrupted, check_results_dir, config_for, interruptible, parse_pose_hint
     from blockloc.commands.track import run_observers
@@ -49,6 +50,7 @@ def node_command(map_path: str, config: str | None, init_pose: str | None, point
     hint = parse_pose_hint(init_pose, "--init-pose") if init_pose else None
     cfg = config_for(None, config, sets)
     store = _assemble.open_store(map_path, cfg)
+    _assemble.check_backend(store, cfg, backend)  # before listening: a grid map for 'block' is one line now
     gravity_map = map_gravity(store, gravity)
     lo = np.min([e.bounds_min[:2] for e in store.entries], axis=0)
     hi = np.max([e.bounds_max[:2] for e in store.entries], axis=0)
@@ -65,7 +67,8 @@ def node_command(map_path: str, config: str | None, init_pose: str | None, point
         changes = NodeChanges(LiveChanges(stride=changes_stride))
 
     def make_session(info, imu):
-        session = _assemble.build_session(cfg, store, map_path, info, imu, observers=observers, out_dir=out)
+        session = _assemble.build_session(cfg, store, map_path, info, imu, backend=backend, observers=observers,
+                                          out_dir=out)
         if changes is not None:
             changes.begin(session)
         return session
@@ -100,9 +103,9 @@ def node_command(map_path: str, config: str | None, init_pose: str | None, point
     s = node.stats
     summary = (f"{s.processed} scans processed, {s.published} poses published, {s.dropped} dropped, "
                f"{s.bad_scans} bad, {s.restarts} restarts")
-    if interrupted:
-        raise Interrupted(f"node stopped: {summary}" + (f"; results in {out}" if out is not None else ""),
-                          stop.exit_code)
+    if interrupted:  # the run folder is written only when a scan made a session
+        written = out is not None and res is not None
+        raise Interrupted(f"node stopped: {summary}" + (f"; results in {out}" if written else ""), stop.exit_code)
     print(summary, file=sys.stderr)
 
 

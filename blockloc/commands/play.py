@@ -18,6 +18,8 @@ def play_command(seq: str, rate: float, loop: bool, max_frames: int | None, conf
 
     if not rate > 0:
         raise BlocklocError(f"--rate {rate}: expected a positive factor (1.0: recorded pace)")
+    if pace_file is not None:
+        check_pace_file(pace_file)  # before anything is published
     cfg = config_for(seq, config)
     sequence = SequenceRef.parse(seq).open(data_root=data_root, dataset_cfg=cfg.dataset)
     dds = Dds(discovery)
@@ -36,6 +38,35 @@ def play_command(seq: str, rate: float, loop: bool, max_frames: int | None, conf
         print(summary, file=sys.stderr)
     finally:
         dds.close()
+
+
+def check_pace_file(path) -> None:
+    """Before any work: ``--pace-file`` names a file play may write (BlocklocError, one line naming
+    the option, otherwise): not a directory, its directory writable, and no file there that is not
+    a pace file play wrote (a user's notes or figure is never replaced)."""
+    from pathlib import Path
+
+    from blockloc.outdir import check_file_replaceable, check_output_parent, check_writable
+
+    path = Path(path)
+    if path.is_dir():
+        raise BlocklocError(f"--pace-file {path}: is a directory, expected a file name (e.g. pace.json)")
+    check_output_parent(path, "--pace-file")
+    check_writable(path, "--pace-file")
+    check_file_replaceable(path, "--pace-file", is_pace_file, "the pace files")
+
+
+def is_pace_file(path) -> bool:
+    """True for a file :func:`write_pace` wrote (a JSON object of exactly its fields)."""
+    import json
+    from pathlib import Path
+
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, ValueError, UnicodeDecodeError):
+        return False
+    return (isinstance(doc, dict) and set(doc) == {"stamp", "monotonic", "rate", "clock"}
+            and doc["clock"] == "CLOCK_MONOTONIC")
 
 
 def write_pace(path, stamp: float, monotonic_s: float, rate: float) -> None:

@@ -75,6 +75,8 @@ class SequenceInfo:
 
     T_body_lidar, T_body_imu: (4, 4) extrinsics.
     gravity_map: (3,) gravity vector in the map frame, m/s^2 (NCLT, z down: (0, 0, +9.81)).
+    lidar_rate_hz: scans a second (a recording's median stamp spacing); 0: unknown (a live source,
+    whose gap check learns the period from the stamps).
     """
 
     name: str

@@ -53,11 +53,22 @@ def open_store(map_path: str, cfg):
     return open_map_store(map_path, cfg.map)
 
 
-def build_session(cfg, store, map_path: str, info: SequenceInfo, imu: ImuData, *, observers=(), out_dir=None):
-    """The Session ``track`` would build for a sequence with ``info`` and ``imu`` in ``store``."""
+def check_backend(store, cfg, backend: str | None = None) -> None:
+    """MapError unless the map policy ``backend`` (default ``map.backend``) can serve ``store``:
+    checked when the node starts, as ``track`` does before its first frame (the node builds its
+    session on the first scan)."""
+    from blockloc.app.assemble import check_backend as check
+
+    check(store, backend or cfg.map.backend, cfg.map)
+
+
+def build_session(cfg, store, map_path: str, info: SequenceInfo, imu: ImuData, *, backend: str | None = None,
+                  observers=(), out_dir=None):
+    """The Session ``track`` would build for a sequence with ``info`` and ``imu`` in ``store``
+    (map policy ``backend``, default ``map.backend``)."""
     from blockloc.app.assemble import build_session as build
 
-    return build(cfg, LiveSequence(info, imu), store, observers=observers, out_dir=out_dir,
+    return build(cfg, LiveSequence(info, imu), store, backend=backend, observers=observers, out_dir=out_dir,
                  facts={"map": str(map_path), "source": "live"})
 
 

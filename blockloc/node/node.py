@@ -424,7 +424,8 @@ class LocalizationNode:
             self._lidar_only_said = True
         info = SequenceInfo("live", T_body_lidar=np.eye(4) if T_body_lidar is None else T_body_lidar,
                             T_body_imu=np.eye(4) if T_body_imu is None else T_body_imu,
-                            gravity_map=self.gravity_map)
+                            gravity_map=self.gravity_map,
+                            lidar_rate_hz=0.0)  # unknown: the session's gap check learns it from the stamps
         self.session = self.make_session(info, imu)
 
     def _feed_imu(self) -> None:

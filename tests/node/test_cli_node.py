@@ -140,11 +140,64 @@ def test_play_stops_after_max_frames_and_rejects_a_bad_rate(tiny_live_world, loo
     assert bad.err.strip().splitlines()[-1].startswith("error: --rate 0")
 
 
+def test_play_pace_file_replaces_only_its_own(tiny_live_world, loopback_dds, tmp_path):
+    """``play --pace-file FILE`` over a user's file (notes, a figure) or a directory: exit 2 before
+    anything is published, one line naming --pace-file, the file unchanged (play replaced any file,
+    and a directory failed with IsADirectoryError once publishing had started); a pace file of its
+    own is replaced."""
+    import json
+
+    w = tiny_live_world
+    notes = tmp_path / "notes.txt"
+    notes.write_text("my notes")
+    (tmp_path / "folder").mkdir()
+    for target in (notes, tmp_path / "folder"):
+        p = Proc("play", "--seq", w["session"], "--config", w["config"], "--max-frames", "3", "--pace-file", target)
+        assert p.finish(60) == 2, p.err
+        lines = p.err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"error: --pace-file {target}: "), p.err
+    assert notes.read_text() == "my notes" and not any((tmp_path / "folder").iterdir())
+    pace = tmp_path / "pace.json"
+    for _ in range(2):  # its own file, written then replaced
+        p = Proc("play", "--seq", w["session"], "--config", w["config"], "--max-frames", "3", "--rate", "4",
+                 "--pace-file", pace)
+        assert p.finish(60) == 0, p.err
+        assert json.loads(pace.read_text())["clock"] == "CLOCK_MONOTONIC"
+
+
 def test_node_with_a_missing_map_is_one_error_line(loopback_dds, tmp_path):
     p = Proc("node", "--map", tmp_path / "nowhere")
     assert p.finish(60) == 2
     lines = p.err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error:") and "nowhere" in lines[0]
+
+
+def test_node_checks_the_map_against_its_backend_at_startup(loopback_dds, tmp_path):
+    """``node --map GRID`` (the default backend 'block' needs a block map): one line at startup
+    naming --map-backend, exit 2 (it listened, then failed on every scan, advising a --map-backend
+    node did not have). ``--map-backend grid`` takes the grid map; Ctrl-C before any scan came says
+    no "results in DIR": nothing was written there (it said so anyway)."""
+    from blockloc.maps.store import MapWriter
+
+    grid = tmp_path / "lgrid"
+    with MapWriter(grid, "grid", params={"tile_size_m": 10.0}) as w:
+        w.add("5.0_5.0", np.random.default_rng(0).uniform(0, 10, (100, 3)).astype(np.float32))
+        w.commit()
+    out = tmp_path / "runs" / "lgrid"
+    p = Proc("node", "--map", grid, "--out", out)
+    assert p.finish(60) == 2, p.err
+    lines = p.err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: {grid}: the 'block' backend needs a block map"), p.err
+    assert "--map-backend grid" in lines[0] and "listening" not in p.err
+    node = Proc("node", "--map", grid, "--map-backend", "grid", "--gravity", "up", "--out", out)
+    try:
+        node.wait_for("listening on /points", 120)
+        node.proc.send_signal(signal.SIGINT)
+        assert node.finish(60) == 130, node.err
+    finally:
+        node.kill()
+    assert "node stopped: 0 scans processed" in node.err and "results in" not in node.err, node.err
+    assert not out.exists()
 
 
 def test_the_node_takes_gravity_from_the_option_else_the_maps_place_index(tiny_live_world, tmp_path):

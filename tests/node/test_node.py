@@ -103,6 +103,22 @@ def test_no_scans_for_a_while_says_no_data_then_recovers(harness, node_log):
     wait_until(lambda: h.diag_values()[-1]["state"] == "ok", 10, "ok again")
 
 
+def test_a_slower_lidar_is_judged_by_its_own_scan_period(harness, node_log):
+    """Scans 0.5 s apart (a 2 Hz source, as the real walk played into the node): no gap warning,
+    as ``track`` gives none on the recording (it judges against the sequence's median spacing);
+    the node judged every scan against 10 Hz and warned on each. A real gap (5 s, ten periods)
+    is still said once and counted."""
+    h = harness()
+    h.publish_static()
+    for i in range(0, 55, 5):
+        h.send_scan(i)
+    assert not lines(node_log, "no LiDAR scan"), lines(node_log, "no LiDAR scan")
+    for i in (100, 105):
+        h.send_scan(i)
+    assert lines(node_log, "no LiDAR scan") == ["frame 11: no LiDAR scan for 5.00 s before it"]
+    assert h.node.session.counters["lidar_gaps"] == 1
+
+
 def test_no_imu_at_start_tracks_lidar_only_and_says_so(harness, node_log):
     h = harness()
     h.publish_static()
