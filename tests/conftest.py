@@ -37,37 +37,6 @@ def _numba_cache_of_this_worker() -> None:
     if "numba" in sys.modules:  # read when a cached function is first located, not at import
         sys.modules["numba"].config.CACHE_DIR = str(path)
 
-_PREBUILD: list = []
-
-
-def pytest_sessionstart(session):
-    """The whole suite on several workers: the small world's block map (cached under
-    BLOCKLOC_CACHE, built once behind a lock: ``blockloc.app.runs.ensure_block_map``) is started
-    in a process of its own before the workers start. Otherwise the first worker to need it builds
-    it while the second, needing it too, waits idle for minutes; now both run other tests
-    meanwhile. Only the controller of a whole-suite run does it (not a worker, not a run of
-    chosen files: those may not need the map at all)."""
-    import subprocess
-    import sys
-
-    config = session.config
-    if hasattr(config, "workerinput") or not getattr(config.option, "numprocesses", None):
-        return
-    if [Path(a).resolve() for a in config.args] != [REPO / t for t in config.getini("testpaths")]:
-        return
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(Path.home() / ".cache" / "blockloc-tests" / "numba" / "prebuild"))
-    _PREBUILD.append(subprocess.Popen(
-        [sys.executable, "-c", "from blockloc.app.runs import prepare_small_world; prepare_small_world()"],
-        cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-
-
-def pytest_sessionfinish(session):
-    for proc in _PREBUILD:  # a run stopped early: the build is let go (its writer leaves no map)
-        if proc.poll() is None:
-            proc.terminate()
-            proc.wait(60)
-
-
 # Machines here are shared and noisy: hypothesis checks properties, not speed.
 settings.register_profile("blockloc", deadline=None, derandomize=True)
 settings.load_profile("blockloc")
