@@ -228,7 +228,7 @@ def check_file_replaceable(path: str | Path, option: str, ours, what: str) -> No
     does not recognise as blockloc's ``what`` (a user's figure or notes are never replaced)."""
     path = Path(path)
     if path.is_file() and not ours(path):
-        raise BlocklocError(f"{option} {path}: a file blockloc did not write ({what} blockloc writes carry its mark); "
+        raise BlocklocError(f"{option} {path}: a file blockloc did not write (not one of {what} it writes); "
                             "not replacing it (choose another path, or remove it)")
 
 
